@@ -1,0 +1,133 @@
+#!/usr/bin/env bash
+# Flash / static-RAM usage report for esp-hal ELF images (ESP32-C3 / ESP32-C6).
+#
+# Usage: ./size-report.sh [-v] [ELF ...]
+#   Without ELF arguments, reports the release ELFs of both chips (if built):
+#     target/riscv32imc-unknown-none-elf/release/tinybms-firmware   (esp32c3)
+#     target/riscv32imac-unknown-none-elf/release/tinybms-firmware  (esp32c6)
+#   -v  also list every counted section.
+# Budgets (KiB) can be overridden: FLASH_BUDGET_KIB (default 128), RAM_BUDGET_KIB (default 48).
+# Exit status: 0 = all within budget, 1 = some image over budget, 2 = usage/tool error.
+#
+# How sections are classified (from esp-hal's ld/<chip>/memory.x and the ELF section headers):
+#   flash      = every allocated PROGBITS section: code/rodata in the cached flash windows
+#                (C3: IROM 0x4200_0000.., DROM 0x3C00_0000..; C6: 0x4200_0000..) plus the
+#                load images of RAM-resident sections (.trap/.rwtext/.data, .rtc_fast.*) that the
+#                bootloader copies out of flash. Image headers / 64 KiB alignment padding of the
+#                .bin are not counted.
+#   static RAM = every allocated section in internal SRAM (C3: DRAM 0x3FC8_0000.., IRAM
+#                0x4037_C000..; C6: HP SRAM 0x4080_0000..): .trap/.rwtext (code in IRAM),
+#                .data, .bss, .noinit, ...
+#   not counted: NOBITS placeholders that only reserve address space -- .rotext_dummy /
+#                .rwdata_dummy (C3: the I-bus and D-bus views of the same SRAM/flash are
+#                aliased, the dummy mirrors what the other view uses) and .text_gap (C6);
+#                .stack, which is simply all RAM left over (reported as "stack").
+#   RTC/LP RAM (0x5000_0000..) is reported separately, not in the static RAM figure.
+set -euo pipefail
+
+FLASH_BUDGET_KIB=${FLASH_BUDGET_KIB:-128}
+RAM_BUDGET_KIB=${RAM_BUDGET_KIB:-48}
+
+verbose=0
+if [[ ${1:-} == -v ]]; then verbose=1; shift; fi
+
+script_dir=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
+if [[ $# -eq 0 ]]; then
+    for t in riscv32imc-unknown-none-elf riscv32imac-unknown-none-elf; do
+        f="$script_dir/target/$t/release/tinybms-firmware"
+        [[ -f $f ]] && set -- "$@" "$f"
+    done
+    if [[ $# -eq 0 ]]; then
+        echo "size-report: no ELF given and none built (cargo build --release / cargo build-c6)" >&2
+        exit 2
+    fi
+fi
+
+# --- locate tools: rustup llvm-tools first (rustup component add llvm-tools), then PATH ---
+llvm_bin=""
+if command -v rustc >/dev/null 2>&1; then
+    llvm_bin="$(rustc --print sysroot)/lib/rustlib/$(rustc -vV | sed -n 's/^host: //p')/bin"
+fi
+find_tool() { # name [fallback...]
+    local n
+    for n in "$@"; do
+        if [[ -n $llvm_bin && -x $llvm_bin/$n ]]; then echo "$llvm_bin/$n"; return; fi
+        if command -v "$n" >/dev/null 2>&1; then command -v "$n"; return; fi
+    done
+    return 1
+}
+READOBJ=$(find_tool llvm-readobj) || { echo "size-report: need llvm-readobj (rustup component add llvm-tools)" >&2; exit 2; }
+NM=$(find_tool llvm-nm nm) || true
+OBJCOPY=$(find_tool llvm-objcopy objcopy) || true
+
+# --- chip detection: esp-hal's `build_info.CHIP_NAME` in .espressif.metadata, else addresses ---
+detect_chip() { # elf
+    local elf=$1 tmp off size
+    if [[ -n $NM && -n $OBJCOPY ]]; then
+        read -r off size < <("$NM" -S "$elf" 2>/dev/null | awk '$4=="build_info.CHIP_NAME"{print $1, $2}') || true
+        if [[ -n ${off:-} ]]; then
+            tmp=$(mktemp)
+            if "$OBJCOPY" --dump-section ".espressif.metadata=$tmp" "$elf" /dev/null 2>/dev/null; then
+                dd if="$tmp" bs=1 skip=$((16#$off)) count=$((16#$size)) status=none
+                rm -f "$tmp"
+                return
+            fi
+            rm -f "$tmp"
+        fi
+    fi
+    # Fallback: HP SRAM at 0x408xxxxx => C6; DRAM at 0x3FCxxxxx => C3.
+    "$READOBJ" --elf-output-style=GNU -S "$elf" | awk '
+        /\] / { sub(/^ *\[ *[0-9]+\] */, ""); a = tolower($3)
+                if (a ~ /^408/) { print "esp32c6"; exit } if (a ~ /^3fc/) { print "esp32c3"; exit } }'
+}
+
+status=0
+for elf in "$@"; do
+    if [[ ! -f $elf ]]; then echo "size-report: $elf: not found" >&2; status=2; continue; fi
+    chip=$(detect_chip "$elf")
+    case $chip in
+        esp32c3) # name:start:end (hex, end exclusive), per esptool / esp-hal memory.x
+            ranges="flash:3C000000:3C800000 flash:42000000:42800000 ram:3FC80000:3FD00000 ram:4037C000:403E0000 rtc:50000000:50002000" ;;
+        esp32c6)
+            ranges="flash:42000000:43000000 ram:40800000:40880000 rtc:50000000:50004000" ;;
+        *) echo "size-report: $elf: unsupported/unknown chip '${chip}'" >&2; status=2; continue ;;
+    esac
+
+    "$READOBJ" --elf-output-style=GNU -S "$elf" | awk \
+        -v chip="$chip" -v ranges="$ranges" -v verbose="$verbose" \
+        -v fbud="$FLASH_BUDGET_KIB" -v rbud="$RAM_BUDGET_KIB" '
+    function hex(s,   i, c, v) { v = 0; s = tolower(s)
+        for (i = 1; i <= length(s); i++) { c = index("0123456789abcdef", substr(s, i, 1)); v = v * 16 + c - 1 }
+        return v }
+    function region(addr,   i) { for (i = 1; i <= nr; i++) if (addr >= rs[i] && addr < re[i]) return rn[i]; return "" }
+    function kib(b) { return sprintf("%.1f KiB", b / 1024) }
+    BEGIN { nr = split(ranges, tmp, " ")
+        for (i = 1; i <= nr; i++) { split(tmp[i], p, ":"); rn[i] = p[1]; rs[i] = hex(p[2]); re[i] = hex(p[3]) } }
+    /^ *\[ *[0-9]+\] / {
+        sub(/^ *\[ *[0-9]+\] */, "")
+        name = $1; type = $2; addr = hex($3); size = hex($5); flags = (NF >= 10) ? $7 : ""
+        if (index(flags, "A") == 0 || size == 0) next           # not loaded / empty
+        reg = region(addr)
+        if (type == "NOBITS" && (name ~ /dummy/ || name == ".text_gap")) next   # address-space reservations
+        if (name == ".stack") { stack += size; next }
+        if (type == "PROGBITS") {
+            flash += size
+            if (reg == "flash") { if (index(flags, "X")) ftext += size; else frodata += size }
+            else fload += size
+            if (reg == "") printf("  warning: %s at 0x%08x is outside the known memory map (counted as flash)\n", name, addr)
+        }
+        if (reg == "ram") { ram += size; if (type == "NOBITS") rbss += size; else if (index(flags, "X")) riram += size; else rdata += size }
+        if (reg == "rtc") rtc += size
+        if (verbose) printf("    %-24s %-8s 0x%08x %8d  %s\n", name, type, addr, size, (reg == "" ? "?" : reg))
+    }
+    END {
+        over = (flash > fbud * 1024) || (ram > rbud * 1024)
+        printf("%s: flash %s (budget %d KiB), static RAM %s (budget %d KiB)%s\n",
+               chip, kib(flash), fbud, kib(ram), rbud, over ? "  ** OVER BUDGET **" : "")
+        printf("  flash = text %s + rodata %s + RAM load images %s; RAM = code(IRAM) %s + data %s + bss/noinit %s; stack (rest of RAM) %s%s\n",
+               kib(ftext), kib(frodata), kib(fload), kib(riram), kib(rdata), kib(rbss), kib(stack),
+               rtc ? "; RTC RAM " kib(rtc) : "")
+        exit over ? 1 : 0
+    }' || status=$(( status > 1 ? status : 1 ))
+done
+exit "$status"

@@ -1,0 +1,421 @@
+//! Settings (registers 300-343, Rev D §3.4) as typed values with validation.
+//!
+//! A [`Setting`] is one setting field with a value in raw register units. It is
+//! checked against Rev D's range and enumerations when built, and against the
+//! BMS's own min/max (command 0x1D) with [`Setting::check_limits`]. Low-byte
+//! fields (330-343) and 330's high byte are written read-modify-write: the
+//! [`Setting::words`] encoder needs the current register value and keeps the
+//! other byte.
+
+use crate::registers::{self as regs, Field, Register, ValueType};
+use crate::response::RegisterBlock;
+
+macro_rules! setting_ids {
+    ($( $(#[$m:meta])* $v:ident = ($addr:literal, $field:ident) ),* $(,)?) => {
+        /// Every writable setting field of Rev D §3.4.
+        #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+        #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+        pub enum SettingId { $( $(#[$m])* $v, )* }
+
+        impl SettingId {
+            /// All settings, in register order.
+            pub const ALL: &'static [SettingId] = &[$(SettingId::$v),*];
+            /// Register address.
+            pub const fn address(self) -> u16 {
+                match self { $(SettingId::$v => $addr,)* }
+            }
+            /// Field within the register.
+            pub const fn field(self) -> Field {
+                match self { $(SettingId::$v => Field::$field,)* }
+            }
+        }
+    };
+}
+
+setting_ids! {
+    /// 300, mV.
+    FullyChargedVoltage = (300, Whole),
+    /// 301, mV.
+    FullyDischargedVoltage = (301, Whole),
+    /// 303, mV.
+    EarlyBalancingThreshold = (303, Whole),
+    /// 304, mA.
+    ChargeFinishedCurrent = (304, Whole),
+    /// 305, A.
+    PeakDischargeCurrentCutoff = (305, Whole),
+    /// 306, 0.01 Ah.
+    BatteryCapacity = (306, Whole),
+    /// 307, cells.
+    NumberOfSeriesCells = (307, Whole),
+    /// 308, mV.
+    AllowedDisbalance = (308, Whole),
+    /// 310, s.
+    ChargerStartupDelay = (310, Whole),
+    /// 311, s.
+    ChargerDisableDelay = (311, Whole),
+    /// 312-313, pulses per unit (32 bits).
+    PulsesPerUnit = (312, Whole),
+    /// 314.
+    DistanceUnit = (314, Whole),
+    /// 315, mV.
+    OverVoltageCutoff = (315, Whole),
+    /// 316, mV.
+    UnderVoltageCutoff = (316, Whole),
+    /// 317, A.
+    DischargeOverCurrentCutoff = (317, Whole),
+    /// 318, A.
+    ChargeOverCurrentCutoff = (318, Whole),
+    /// 319, °C.
+    OverHeatCutoff = (319, Whole),
+    /// 320, °C.
+    LowTemperatureChargerCutoff = (320, Whole),
+    /// 321, %.
+    ChargeRestartLevel = (321, Whole),
+    /// 322, cycles.
+    BatteryMaximumCycles = (322, Whole),
+    /// 323, 0.002 % (reads back 0xFFFF when accepted).
+    StateOfHealth = (323, Whole),
+    /// 328, 0.002 % (reads back 0xFFFF when accepted).
+    StateOfCharge = (328, Whole),
+    /// 329, bit flags.
+    ConfigurationFlags = (329, Whole),
+    /// 330 low byte.
+    ChargerType = (330, LowByte),
+    /// 330 high byte, s.
+    DischargeOverCurrentTimeout = (330, HighByte),
+    /// 331 low byte.
+    LoadSwitchType = (331, LowByte),
+    /// 332 low byte, s.
+    AutomaticRecovery = (332, LowByte),
+    /// 333 low byte.
+    ChargerSwitchType = (333, LowByte),
+    /// 334 low byte.
+    Ignition = (334, LowByte),
+    /// 335 low byte.
+    ChargerDetection = (335, LowByte),
+    /// 336 low byte.
+    SpeedSensorInput = (336, LowByte),
+    /// 337 low byte.
+    PrechargePin = (337, LowByte),
+    /// 338 low byte.
+    PrechargeDuration = (338, LowByte),
+    /// 339 low byte.
+    TemperatureSensorType = (339, LowByte),
+    /// 340 low byte: writing it restarts the BMS.
+    OperationMode = (340, LowByte),
+    /// 341 low byte.
+    SinglePortSwitchType = (341, LowByte),
+    /// 342 low byte.
+    BroadcastTime = (342, LowByte),
+    /// 343 low byte.
+    Protocol = (343, LowByte),
+}
+
+/// Read-back value of 323 and 328 when the BMS accepted the write (Rev D §3.4,
+/// HARDWARE-NOTES).
+pub const ACCEPTED_MARKER: u16 = 0xFFFF;
+
+impl SettingId {
+    /// The register-map row describing this setting.
+    pub fn register(self) -> Option<&'static Register> {
+        regs::REGISTERS
+            .iter()
+            .find(|r| r.address == self.address() && r.field == self.field())
+    }
+    /// Rev D's name.
+    pub fn name(self) -> &'static str {
+        self.register().map(|r| r.name).unwrap_or("?")
+    }
+    /// Looks a setting up by register address and field.
+    pub fn from_address(address: u16, field: Field) -> Option<Self> {
+        Self::ALL
+            .iter()
+            .copied()
+            .find(|s| s.address() == address && s.field() == field)
+    }
+    /// Registers the setting occupies (2 for the 32-bit 312-313).
+    pub const fn register_count(self) -> u16 {
+        match self {
+            SettingId::PulsesPerUnit => 2,
+            _ => 1,
+        }
+    }
+    /// True when the BMS reads this register back as [`ACCEPTED_MARKER`] once it
+    /// accepted a write.
+    pub const fn reads_back_marker(self) -> bool {
+        matches!(self, SettingId::StateOfHealth | SettingId::StateOfCharge)
+    }
+    /// True when writing it restarts the BMS (HARDWARE-NOTES: register 340).
+    pub const fn restarts_bms(self) -> bool {
+        matches!(self, SettingId::OperationMode)
+    }
+    /// True for the signed settings (319, 320).
+    pub fn is_signed(self) -> bool {
+        self.register()
+            .map(|r| r.value_type == ValueType::I16)
+            .unwrap_or(false)
+    }
+
+    /// Interprets raw register words as this setting's value.
+    pub fn value_from_words(self, first: u16, second: Option<u16>) -> Option<i32> {
+        Some(match self {
+            SettingId::PulsesPerUnit => regs::u32_from_words(first, second?) as i32,
+            s if s.is_signed() => i32::from(first as i16),
+            s => i32::from(s.field().get(first)),
+        })
+    }
+
+    /// The current value of this setting in `block`.
+    pub fn read(self, block: &RegisterBlock) -> Option<i32> {
+        let a = self.address();
+        let second = if self.register_count() == 2 {
+            Some(block.get(a + 1)?)
+        } else {
+            None
+        };
+        self.value_from_words(block.get(a)?, second)
+    }
+
+    /// The (min, max) this BMS reports through 0x1D options 0x01 and 0x02.
+    pub fn limits(self, min: &RegisterBlock, max: &RegisterBlock) -> Option<(i32, i32)> {
+        Some((self.read(min)?, self.read(max)?))
+    }
+}
+
+/// Why a setting value is refused (before any byte is sent).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[non_exhaustive]
+pub enum SettingError {
+    /// Outside Rev D's range.
+    OutOfRange {
+        /// Setting.
+        id: SettingId,
+        /// Value asked for.
+        value: i32,
+        /// Rev D minimum.
+        min: i32,
+        /// Rev D maximum.
+        max: i32,
+    },
+    /// Not one of the enumerated values.
+    NotAnOption {
+        /// Setting.
+        id: SettingId,
+        /// Value asked for.
+        value: i32,
+    },
+    /// Outside the min/max the BMS reports for itself (0x1D).
+    OutsideBmsLimits {
+        /// Setting.
+        id: SettingId,
+        /// Value asked for.
+        value: i32,
+        /// BMS minimum.
+        min: i32,
+        /// BMS maximum.
+        max: i32,
+    },
+    /// The current register value needed for read-modify-write is missing.
+    CurrentValueUnknown {
+        /// Setting.
+        id: SettingId,
+    },
+}
+
+impl SettingError {
+    /// Short snake_case reason.
+    pub const fn reason(&self) -> &'static str {
+        match self {
+            Self::OutOfRange { .. } => "out_of_rev_d_range",
+            Self::NotAnOption { .. } => "not_an_option",
+            Self::OutsideBmsLimits { .. } => "outside_bms_limits",
+            Self::CurrentValueUnknown { .. } => "current_value_unknown",
+        }
+    }
+}
+
+/// One setting and the value to give it, in raw register units.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Setting {
+    /// Which setting.
+    pub id: SettingId,
+    /// Raw value (mV, A, s, enumeration value, ...).
+    pub value: i32,
+}
+
+/// The register words of one setting write: (address, value), one or two.
+pub type SettingWords = heapless::Vec<(u16, u16), 2>;
+
+impl Setting {
+    /// A setting checked against Rev D's range and enumerations.
+    pub fn new(id: SettingId, value: i32) -> Result<Self, SettingError> {
+        let s = Setting { id, value };
+        s.validate()?;
+        Ok(s)
+    }
+
+    /// Checks Rev D's range and enumerations.
+    pub fn validate(&self) -> Result<(), SettingError> {
+        let Some(r) = self.id.register() else {
+            return Err(SettingError::NotAnOption {
+                id: self.id,
+                value: self.value,
+            });
+        };
+        if let Some((min, max)) = r.range {
+            if self.value < min || self.value > max {
+                return Err(SettingError::OutOfRange {
+                    id: self.id,
+                    value: self.value,
+                    min,
+                    max,
+                });
+            }
+        }
+        if !r.options.is_empty()
+            && r.value_type != ValueType::Bits
+            && !r.options.iter().any(|&(v, _)| i32::from(v) == self.value)
+        {
+            return Err(SettingError::NotAnOption {
+                id: self.id,
+                value: self.value,
+            });
+        }
+        Ok(())
+    }
+
+    /// Checks the min/max the BMS reports (0x1D), which depend on the current
+    /// sensor for 304, 305, 317 and 318 (HARDWARE-NOTES).
+    pub fn check_limits(&self, min: i32, max: i32) -> Result<(), SettingError> {
+        if self.value < min || self.value > max {
+            Err(SettingError::OutsideBmsLimits {
+                id: self.id,
+                value: self.value,
+                min,
+                max,
+            })
+        } else {
+            Ok(())
+        }
+    }
+
+    /// The register words to write. `current` is the present value of the
+    /// setting's register, needed for byte fields (read-modify-write).
+    pub fn words(&self, current: Option<u16>) -> Result<SettingWords, SettingError> {
+        let a = self.id.address();
+        let mut out = SettingWords::new();
+        match self.id.field() {
+            Field::Whole if self.id.register_count() == 2 => {
+                let (lo, hi) = regs::words_from_u32(self.value as u32);
+                let _ = out.push((a, lo));
+                let _ = out.push((a + 1, hi));
+            }
+            Field::Whole => {
+                let _ = out.push((a, self.value as u16));
+            }
+            field => {
+                let cur = current.ok_or(SettingError::CurrentValueUnknown { id: self.id })?;
+                let _ = out.push((a, field.set(cur, self.value as u16)));
+            }
+        }
+        Ok(out)
+    }
+
+    /// True when `readback` (raw words of the setting's registers) shows the
+    /// value was taken: equal, or [`ACCEPTED_MARKER`] for 323/328.
+    pub fn matches_readback(&self, first: u16, second: Option<u16>) -> bool {
+        if self.id.reads_back_marker() && first == ACCEPTED_MARKER {
+            return true;
+        }
+        self.id.value_from_words(first, second) == Some(self.value)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_setting_has_a_row() {
+        for id in SettingId::ALL {
+            let r = id.register().unwrap();
+            assert!(crate::command::WRITABLE.contains(&r.address), "{id:?}");
+            assert!(r.range.is_some(), "{id:?}");
+        }
+        assert_eq!(SettingId::ALL.len(), 38);
+    }
+
+    #[test]
+    fn rev_d_ranges_enforced() {
+        assert!(Setting::new(SettingId::OverVoltageCutoff, 4200).is_ok());
+        assert_eq!(
+            Setting::new(SettingId::OverVoltageCutoff, 4600),
+            Err(SettingError::OutOfRange {
+                id: SettingId::OverVoltageCutoff,
+                value: 4600,
+                min: 1200,
+                max: 4500
+            })
+        );
+        assert!(Setting::new(SettingId::LowTemperatureChargerCutoff, -40).is_ok());
+        assert!(Setting::new(SettingId::LowTemperatureChargerCutoff, -41).is_err());
+        assert_eq!(
+            Setting::new(SettingId::PrechargePin, 1),
+            Err(SettingError::NotAnOption {
+                id: SettingId::PrechargePin,
+                value: 1
+            })
+        );
+        assert!(Setting::new(SettingId::PrechargePin, 0x10).is_ok());
+        assert!(Setting::new(SettingId::DischargeOverCurrentTimeout, 31).is_err());
+        let s = Setting::new(SettingId::ChargeOverCurrentCutoff, 200).unwrap();
+        assert_eq!(
+            s.check_limits(1, 100),
+            Err(SettingError::OutsideBmsLimits {
+                id: SettingId::ChargeOverCurrentCutoff,
+                value: 200,
+                min: 1,
+                max: 100
+            })
+        );
+    }
+
+    #[test]
+    fn byte_fields_keep_the_other_byte() {
+        let s = Setting::new(SettingId::ChargerType, 1).unwrap();
+        assert_eq!(s.words(Some(0x0A02)).unwrap().as_slice(), &[(330, 0x0A01)]);
+        assert_eq!(
+            s.words(None),
+            Err(SettingError::CurrentValueUnknown {
+                id: SettingId::ChargerType
+            })
+        );
+        let t = Setting::new(SettingId::DischargeOverCurrentTimeout, 5).unwrap();
+        assert_eq!(t.words(Some(0x0A01)).unwrap().as_slice(), &[(330, 0x0501)]);
+        let b = Setting::new(SettingId::BroadcastTime, 4).unwrap();
+        assert_eq!(b.words(Some(0xAB00)).unwrap().as_slice(), &[(342, 0xAB04)]);
+        assert!(b.matches_readback(0xAB04, None));
+        assert!(!b.matches_readback(0xAB05, None));
+    }
+
+    #[test]
+    fn wide_signed_and_marker() {
+        let p = Setting::new(SettingId::PulsesPerUnit, 100_000).unwrap();
+        assert_eq!(
+            p.words(None).unwrap().as_slice(),
+            &[(312, 0x86A0), (313, 0x0001)]
+        );
+        assert!(p.matches_readback(0x86A0, Some(1)));
+        let t = Setting::new(SettingId::LowTemperatureChargerCutoff, -10).unwrap();
+        assert_eq!(t.words(None).unwrap().as_slice(), &[(320, 0xFFF6)]);
+        assert!(t.matches_readback(0xFFF6, None));
+        let soc = Setting::new(SettingId::StateOfCharge, 25000).unwrap();
+        assert!(soc.matches_readback(0xFFFF, None));
+        assert!(soc.matches_readback(25000, None));
+        assert!(!soc.matches_readback(24999, None));
+        let ov = Setting::new(SettingId::OverVoltageCutoff, 4200).unwrap();
+        assert!(!ov.matches_readback(0xFFFF, None));
+    }
+}
