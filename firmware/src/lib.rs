@@ -1,5 +1,53 @@
-//! TinyBMS firmware library (placeholder — owned by the bridge-logic author).
+//! # tinybms-firmware — the bridge logic
+//!
+//! Everything the ESP32 does with the TinyBMS, written as plain sans-IO `no_std`
+//! code so that it also compiles and runs on the host (host-tests drives it against
+//! a simulated BMS in virtual time). No HAL type, no `await`, no clock read: time is
+//! an argument ([`Instant`], microseconds), bytes go in through
+//! [`Bridge::handle_rx`], and [`Bridge::poll`] says what to do next — transmit these
+//! bytes, or wait until a deadline. What happened comes out as [`Report`]s, which
+//! the chip shell logs with `defmt` and the host simulator prints.
+//!
+//! * [`link`] — one outstanding request at a time, response timeout, wake-up
+//!   resend, bounded retries, offline detection, link statistics.
+//! * [`bridge`] — the poll schedule, telemetry model and the write/verify state
+//!   machine for settings, on top of the link.
+//! * [`config`] — every default as a named, documented constant.
+//! * [`profile`] — the settings profile applied at start-up (empty by default).
 #![no_std]
+#![deny(missing_docs)]
+#![deny(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    clippy::indexing_slicing
+)]
+#![cfg_attr(
+    test,
+    allow(
+        clippy::unwrap_used,
+        clippy::expect_used,
+        clippy::panic,
+        clippy::indexing_slicing
+    )
+)]
+#![allow(clippy::large_enum_variant)]
 
-/// Crate version string (placeholder public item).
-pub const VERSION: &str = env!("CARGO_PKG_VERSION");
+pub mod bridge;
+pub mod config;
+pub mod link;
+pub mod profile;
+pub mod report;
+
+pub use bridge::{Action, Bridge, Command, Telemetry};
+pub use link::{LinkStats, Transmit};
+pub use report::{Level, Report};
+
+/// Time in microseconds since an arbitrary origin (boot on the chip, 0 in the
+/// simulator). Always passed in, never read.
+pub type Instant = u64;
+
+/// Microseconds per millisecond.
+pub const MS: Instant = 1_000;
+/// Microseconds per second.
+pub const SECOND: Instant = 1_000_000;

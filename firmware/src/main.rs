@@ -1,8 +1,10 @@
 //! TinyBMS firmware — chip-specific shell (ESP32-C3 / ESP32-C6).
 //!
-//! Structure: init (clocks, esp-rtos, watchdog, UART1) → spawn `uart_task(rx, tx, wdt)`
-//! and `log_task()`. The bridge logic lives in the library crate (`tinybms_firmware`)
-//! and will be wired in here later.
+//! Structure: init (clocks, esp-rtos, watchdog, UART1) → spawn `bridge_task(rx, tx, wdt)`
+//! and `consumer_task()`. All protocol and state-machine logic lives in the library
+//! (`tinybms_firmware::Bridge`, sans-IO, tested on the host); this file only moves
+//! bytes and time between UART1 and the bridge, logs its reports and shares the
+//! latest telemetry through an embassy-sync `Watch`.
 //!
 //! Logging: defmt over RTT (`defmt-rtt`), read with `probe-rs run` (see .cargo/config.toml).
 
@@ -18,7 +20,7 @@ use embassy_executor::Spawner;
 use embassy_futures::select::{select, Either};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::watch::Watch;
-use embassy_time::{Duration, Instant, Ticker, Timer};
+use embassy_time::{with_timeout, Duration, Instant, Timer};
 use esp_backtrace as _; // panic handler (prints via defmt)
 use esp_hal::clock::CpuClock;
 use esp_hal::gpio::Pin;
@@ -26,6 +28,10 @@ use esp_hal::peripherals::TIMG0;
 use esp_hal::timer::timg::{MwdtStage, TimerGroup, Wdt};
 use esp_hal::uart::{Config as UartConfig, Uart, UartRx, UartTx};
 use esp_hal::Async;
+use protocol_core::events::OnlineStatus;
+use protocol_core::views::LiveSnapshot;
+use tinybms_firmware::config::Config as BridgeConfig;
+use tinybms_firmware::{profile, Action, Bridge, Level, Report};
 
 // ESP-IDF 2nd-stage bootloader requires an application descriptor in the image.
 esp_bootloader_esp_idf::esp_app_desc!();
@@ -70,29 +76,24 @@ macro_rules! bms_uart_pins {
     };
 }
 
-/// TinyBMS UART baud rate (8N1 is the esp-hal default frame format).
+/// TinyBMS UART baud rate (8N1 is the esp-hal default frame format; Rev D §1).
 const BMS_BAUDRATE: u32 = 115_200;
-/// Poll period of the UART task.
-const POLL_PERIOD: Duration = Duration::from_millis(250);
-/// How long to wait for response bytes after a request.
-const RESPONSE_DEADLINE: Duration = Duration::from_millis(100);
-/// Watchdog timeout (MWDT stage 0 → system reset). Fed once per poll cycle.
+/// Longest the bridge task sleeps without feeding the watchdog.
+const MAX_WAIT: Duration = Duration::from_millis(500);
+/// Watchdog timeout (MWDT stage 0 → system reset). Fed by the bridge loop.
 const WDT_TIMEOUT: esp_hal::time::Duration = esp_hal::time::Duration::from_secs(4);
+/// Telemetry older than this is reported stale by the consumer task.
+const STALE_AFTER: Duration = Duration::from_secs(5);
 
-/// Placeholder request frame (TinyBMS "read" style command).
-const REQUEST: [u8; 4] = [0xAA, 0x14, 0x7F, 0x1F];
-
-/// Snapshot published by the UART task.
-#[derive(Clone, Copy, Default, defmt::Format)]
-struct UartStats {
-    cycles: u32,
-    last_rx_len: usize,
-    rx_errors: u32,
-    timeouts: u32,
+/// The latest live snapshot, with the time it was decoded (so readers know its age).
+#[derive(Clone)]
+struct SharedSnapshot {
+    snapshot: LiveSnapshot,
+    taken_at: Instant,
 }
 
-/// Shared state: one sender (uart_task), up to 2 receivers.
-static STATS: Watch<CriticalSectionRawMutex, UartStats, 2> = Watch::new();
+/// Latest telemetry for the other tasks: one sender (bridge_task), up to 2 receivers.
+static TELEMETRY: Watch<CriticalSectionRawMutex, SharedSnapshot, 2> = Watch::new();
 
 #[esp_rtos::main]
 async fn main(spawner: Spawner) {
@@ -124,73 +125,218 @@ async fn main(spawner: Spawner) {
         BMS_BAUDRATE, BMS_UART_TX_GPIO, BMS_UART_RX_GPIO
     );
 
-    spawner.spawn(uart_task(rx, tx, wdt).expect("spawn uart_task"));
-    spawner.spawn(log_task().expect("spawn log_task"));
+    spawner.spawn(bridge_task(rx, tx, wdt).expect("spawn bridge_task"));
+    spawner.spawn(consumer_task().expect("spawn consumer_task"));
 }
 
-/// Periodically sends `REQUEST` and collects whatever arrives before the deadline.
+fn now_us() -> u64 {
+    Instant::now().as_micros()
+}
+
+/// Moves bytes and time between UART1 and the sans-IO bridge; logs its reports.
 #[embassy_executor::task]
-async fn uart_task(
+async fn bridge_task(
     mut rx: UartRx<'static, Async>,
     mut tx: UartTx<'static, Async>,
     mut wdt: Wdt<TIMG0<'static>>,
 ) {
-    let sender = STATS.sender();
-    let mut stats = UartStats::default();
-    let mut buf = [0u8; 64];
-    let mut ticker = Ticker::every(POLL_PERIOD);
+    let sender = TELEMETRY.sender();
+    let mut bridge = Bridge::new(BridgeConfig::default(), now_us());
+    if bridge.submit_profile(profile::PROFILE).is_err() {
+        warn!("settings profile too long for the command queue");
+    }
+    let mut buf = [0u8; 128];
+    let mut published_seq = 0u32;
 
     loop {
         wdt.feed();
-        stats.cycles = stats.cycles.wrapping_add(1);
-
-        if let Err(e) = tx.write_async(&REQUEST).await {
-            warn!("uart tx error: {}", e);
-        }
-        if let Err(e) = tx.flush_async().await {
-            warn!("uart flush error: {}", e);
-        }
-
-        // Collect bytes until the buffer is full or the deadline passes.
-        // `read_async` is cancellation-safe, so racing it against a timer is fine.
-        let deadline = Instant::now() + RESPONSE_DEADLINE;
-        let mut len = 0;
-        while len < buf.len() {
-            match select(rx.read_async(&mut buf[len..]), Timer::at(deadline)).await {
-                Either::First(Ok(n)) => len += n,
-                Either::First(Err(e)) => {
-                    warn!("uart rx error: {}", e);
-                    stats.rx_errors = stats.rx_errors.wrapping_add(1);
-                    break;
+        match bridge.poll(now_us()) {
+            Action::Transmit(bytes) => {
+                let mut rest: &[u8] = &bytes;
+                while !rest.is_empty() {
+                    match tx.write_async(rest).await {
+                        Ok(n) => rest = rest.get(n..).unwrap_or(&[]),
+                        Err(e) => {
+                            warn!("uart tx error: {}", e);
+                            break;
+                        }
+                    }
                 }
-                Either::Second(()) => break,
+                if let Err(e) = tx.flush_async().await {
+                    warn!("uart flush error: {}", e);
+                }
+            }
+            Action::WaitUntil(t) => {
+                let deadline = Instant::from_micros(t).min(Instant::now() + MAX_WAIT);
+                // `read_async` is cancellation-safe: racing it against a timer loses nothing.
+                match select(rx.read_async(&mut buf), Timer::at(deadline)).await {
+                    Either::First(Ok(n)) => bridge.handle_rx(now_us(), buf.get(..n).unwrap_or(&[])),
+                    Either::First(Err(e)) => warn!("uart rx error: {}", e),
+                    Either::Second(()) => {}
+                }
             }
         }
-
-        if len == 0 {
-            stats.timeouts = stats.timeouts.wrapping_add(1);
-            warn!("no response within {} ms", RESPONSE_DEADLINE.as_millis());
-        } else {
-            info!("received {} bytes: {=[u8]:02x}", len, &buf[..len]);
+        while let Some(report) = bridge.next_report() {
+            log_report(&report);
         }
-        stats.last_rx_len = len;
-        sender.send(stats);
-
-        ticker.next().await;
+        let t = bridge.telemetry();
+        if t.snapshot_seq != published_seq {
+            published_seq = t.snapshot_seq;
+            if let (Some(snapshot), Some(at)) = (&t.snapshot, t.snapshot_at) {
+                sender.send(SharedSnapshot {
+                    snapshot: snapshot.clone(),
+                    taken_at: Instant::from_micros(at),
+                });
+            }
+        }
     }
 }
 
-/// Logs a summary whenever the UART task publishes new stats (rate-limited).
+/// An example reader of the shared telemetry: it always knows the age of what it
+/// reads, and says so when the data goes stale.
 #[embassy_executor::task]
-async fn log_task() {
-    let Some(mut receiver) = STATS.receiver() else {
-        warn!("STATS watch has no free receiver slot");
+async fn consumer_task() {
+    let Some(mut receiver) = TELEMETRY.receiver() else {
+        warn!("telemetry watch has no free receiver slot");
         return;
     };
+    let mut stale = false;
     loop {
-        let stats = receiver.changed().await;
-        if stats.cycles % 20 == 0 {
-            info!("stats: {}", stats);
+        match with_timeout(STALE_AFTER, receiver.changed()).await {
+            Ok(shared) => {
+                if stale {
+                    info!("telemetry fresh again");
+                    stale = false;
+                }
+                let age = Instant::now().saturating_duration_since(shared.taken_at);
+                if age > STALE_AFTER {
+                    warn!("telemetry is {} ms old", age.as_millis());
+                }
+                let _ = shared.snapshot.soc_percent();
+            }
+            Err(_) => {
+                if !stale {
+                    warn!(
+                        "no telemetry for {} s: values are stale",
+                        STALE_AFTER.as_secs()
+                    );
+                    stale = true;
+                }
+            }
         }
+    }
+}
+
+/// One defmt line per report, in the same words as the host simulator prints.
+fn log_report(r: &Report) {
+    match r {
+        Report::Snapshot(s) => info!(
+            "pack {=f32}V {=f32}A soc {=f32}% min #{=u8} {=f32}V max #{=u8} {=f32}V temp {=f32}C ext {} {} status {=str}",
+            s.pack_v,
+            s.current_a,
+            s.soc_percent,
+            s.min_cell.0,
+            s.min_cell.1,
+            s.max_cell.0,
+            s.max_cell.1,
+            s.internal_c,
+            s.external_c.0,
+            s.external_c.1,
+            s.status.name()
+        ),
+        Report::StatusChanged { from, to } => {
+            let from = from.map(|f| f.name()).unwrap_or("-");
+            if *to == OnlineStatus::Fault {
+                warn!("status {=str} -> {=str}", from, to.name());
+            } else {
+                info!("status {=str} -> {=str}", from, to.name());
+            }
+        }
+        Report::NewEvent(e) => {
+            if r.level() == Level::Warn {
+                warn!(
+                    "event {=str} t={=u32}s 0x{=u8:02X} {=str}",
+                    e.id.severity().name(),
+                    e.timestamp_s,
+                    e.id.raw(),
+                    e.id.name()
+                );
+            } else {
+                info!(
+                    "event {=str} t={=u32}s 0x{=u8:02X} {=str}",
+                    e.id.severity().name(),
+                    e.timestamp_s,
+                    e.id.raw(),
+                    e.id.name()
+                );
+            }
+        }
+        Report::LinkError { command, failure } => {
+            warn!("link error cmd 0x{=u8:02X}: {=str}", command, failure.name())
+        }
+        Report::Offline { failures } => warn!("BMS offline after {=u8} failed requests", failures),
+        Report::Online => info!("BMS online; re-reading version and settings"),
+        Report::Version(v) => info!(
+            "version hw {=u8}.{=u8} fw {=u8} ({=u16}) bootloader {=u8} profile {=u8} serial {=[u8]:02X}",
+            v.hardware,
+            v.hardware_changes,
+            v.firmware_public,
+            v.firmware_internal,
+            v.bootloader,
+            v.profile,
+            v.serial
+        ),
+        Report::Ready { series_cells } => {
+            info!("settings and limits read ({=u16} cells): ready", series_cells)
+        }
+        Report::Write { setting, outcome } => {
+            if outcome.is_success() {
+                info!(
+                    "write {=str} ({=u16}) = {=i32}: {=str}",
+                    setting.id.name(),
+                    setting.id.address(),
+                    setting.value,
+                    outcome.name()
+                );
+            } else {
+                warn!(
+                    "write {=str} ({=u16}) = {=i32}: {=str} {}",
+                    setting.id.name(),
+                    setting.id.address(),
+                    setting.value,
+                    outcome.name(),
+                    outcome
+                );
+            }
+        }
+        Report::ResetDone { confirmed } => {
+            if *confirmed {
+                info!("BMS reset confirmed (reg 114 = software reset)")
+            } else {
+                warn!("BMS reset not confirmed")
+            }
+        }
+        Report::Cleared { option, ok } => info!("clear option {=u8}: ok={=bool}", option, ok),
+        Report::LinkStats(s) => info!(
+            "link: req {=u32} rep {=u32} timeouts {=u32} wake {=u32} retries {=u32} crc {=u32} framing {=u32} invalid {=u32} nack {=u32}/{=u32}/{=u32} skipped {=u32} unsolicited {=u32} failures {=u32} latency {=u32}/{=u32}/{=u32} us",
+            s.requests,
+            s.replies,
+            s.timeouts,
+            s.wakeup_resends,
+            s.retries,
+            s.crc_errors,
+            s.framing_errors,
+            s.invalid_replies,
+            s.nacks_command,
+            s.nacks_crc,
+            s.nacks_other,
+            s.skipped_bytes,
+            s.unsolicited,
+            s.failures,
+            s.latency_min_us,
+            s.latency_mean_us(),
+            s.latency_max_us
+        ),
+        Report::Dropped(n) => warn!("{=u32} log reports dropped", n),
     }
 }

@@ -1,0 +1,103 @@
+//! Defaults, as named constants (documented in the README's "Poll schedule").
+
+use crate::{Instant, MS, SECOND};
+
+/// Wire time of one byte at 115200 8N1 (10 bits), rounded up: 86.8 µs.
+pub const BYTE_TIME_US: Instant = 87;
+
+/// How long to wait for the complete reply after the last request byte left.
+/// HARDWARE-NOTES: the BMS answers 1-2 ms after the request; the reply's own wire
+/// time is added on top (a 56-register 0x03 reply is 117 bytes = 10.2 ms).
+pub const RESPONSE_TIMEOUT_US: Instant = 100 * MS;
+
+/// Retries of a read after a failed attempt (CRC error, timeout after the wake-up
+/// resend, bad length). Writes follow the same count but are never re-sent after
+/// an ACK or a NACK.
+pub const MAX_RETRIES: u8 = 2;
+
+/// Consecutive failed transactions after which the BMS is considered offline.
+pub const OFFLINE_AFTER_FAILURES: u8 = 3;
+
+/// Probe period while offline.
+pub const OFFLINE_PROBE_PERIOD_US: Instant = 2 * SECOND;
+
+/// Period of the live block read (registers 0-55, one 0x03 request).
+pub const LIVE_PERIOD_US: Instant = 250 * MS;
+
+/// Period of the statistics read (registers 100-117).
+pub const STATS_PERIOD_US: Instant = 30 * SECOND;
+
+/// Period of the newest-events read (0x11).
+pub const EVENTS_PERIOD_US: Instant = 5 * SECOND;
+
+/// Period of the snapshot info line in the log.
+pub const SNAPSHOT_LOG_PERIOD_US: Instant = 10 * SECOND;
+
+/// Period of the link statistics line in the log.
+pub const LINK_STATS_LOG_PERIOD_US: Instant = 5 * 60 * SECOND;
+
+/// Pause between a write's ACK and its read-back (HARDWARE-NOTES: one client saw
+/// the next read time out after a write; EEPROM write in progress?).
+pub const WRITE_SETTLE_US: Instant = 200 * MS;
+
+/// Wait after a write to register 340 or a reset before talking to the BMS again
+/// (it restarts; HARDWARE-NOTES: expect a communication gap).
+pub const REBOOT_WAIT_US: Instant = 3 * SECOND;
+
+/// Attempts to read back after a reboot (each with its own wake-up and retries).
+pub const REBOOT_READBACK_ATTEMPTS: u8 = 5;
+
+/// Most settings in one group given to the write/verify machine.
+pub const MAX_SETTINGS_GROUP: usize = 16;
+
+/// Queued commands (profile, resets, ...).
+pub const COMMAND_QUEUE: usize = 4;
+
+/// Pending reports before the oldest is dropped (and counted).
+pub const REPORT_QUEUE: usize = 24;
+
+/// Run-time configuration; [`Default`] gives the constants above.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Config {
+    /// See [`RESPONSE_TIMEOUT_US`].
+    pub response_timeout_us: Instant,
+    /// See [`MAX_RETRIES`].
+    pub max_retries: u8,
+    /// See [`OFFLINE_AFTER_FAILURES`].
+    pub offline_after_failures: u8,
+    /// See [`OFFLINE_PROBE_PERIOD_US`].
+    pub offline_probe_period_us: Instant,
+    /// See [`LIVE_PERIOD_US`].
+    pub live_period_us: Instant,
+    /// See [`STATS_PERIOD_US`].
+    pub stats_period_us: Instant,
+    /// See [`EVENTS_PERIOD_US`].
+    pub events_period_us: Instant,
+    /// See [`SNAPSHOT_LOG_PERIOD_US`]; 0 logs every snapshot.
+    pub snapshot_log_period_us: Instant,
+    /// See [`LINK_STATS_LOG_PERIOD_US`].
+    pub link_stats_log_period_us: Instant,
+    /// See [`WRITE_SETTLE_US`].
+    pub write_settle_us: Instant,
+    /// See [`REBOOT_WAIT_US`].
+    pub reboot_wait_us: Instant,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            response_timeout_us: RESPONSE_TIMEOUT_US,
+            max_retries: MAX_RETRIES,
+            offline_after_failures: OFFLINE_AFTER_FAILURES,
+            offline_probe_period_us: OFFLINE_PROBE_PERIOD_US,
+            live_period_us: LIVE_PERIOD_US,
+            stats_period_us: STATS_PERIOD_US,
+            events_period_us: EVENTS_PERIOD_US,
+            snapshot_log_period_us: SNAPSHOT_LOG_PERIOD_US,
+            link_stats_log_period_us: LINK_STATS_LOG_PERIOD_US,
+            write_settle_us: WRITE_SETTLE_US,
+            reboot_wait_us: REBOOT_WAIT_US,
+        }
+    }
+}

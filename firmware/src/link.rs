@@ -1,0 +1,447 @@
+//! The link engine: one outstanding request at a time over a half-duplex UART.
+//!
+//! * The response timeout runs from the moment the request's last byte is on the
+//!   wire ([`crate::config::RESPONSE_TIMEOUT_US`]).
+//! * Wake-up (HARDWARE-NOTES "Sleep"): when a request gets total silence, it is sent
+//!   once more before anything counts as a failure. Requests are never sent twice
+//!   blindly: an awake BMS would answer twice.
+//! * Reads are retried a bounded number of times. A write is re-sent only when
+//!   neither ACK nor NACK (nor the 0x10 echo) arrived, and never after one did.
+//! * After N consecutive failed transactions the link is offline; the first valid
+//!   reply brings it back (the bridge then re-reads version and settings).
+//! * Frames that do not answer the outstanding request are counted as
+//!   unsolicited and ignored.
+
+use protocol_core::decoder::{DecodeError, Decoder};
+use protocol_core::frame::NackCode;
+use protocol_core::request::{Request, RequestBytes, RequestError};
+use protocol_core::response::{Response, ResponseError};
+
+use crate::config::{Config, BYTE_TIME_US};
+use crate::Instant;
+
+/// Bytes to put on the UART now.
+pub type Transmit = RequestBytes;
+
+/// How a transaction treats silence.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Silence {
+    /// Silence is a failure (after the wake-up resend and the retries).
+    Failure,
+    /// Silence is the normal outcome (reset: the ACK may never come). No resend.
+    Expected,
+}
+
+/// Why a transaction failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Failure {
+    /// Nothing valid arrived before the deadline, every attempt.
+    Timeout,
+    /// Bytes arrived but never a valid answer (last decode error kept).
+    Corrupt(DecodeError),
+    /// A CRC-valid frame that does not fit the request (length, echo).
+    Invalid(ResponseError),
+    /// The BMS answered NACK (for reads: after the retries a CRC NACK allows).
+    Nack(NackCode),
+    /// Silence where silence was expected (reset).
+    Silent,
+    /// The request could not be encoded (a bug upstream; never sent).
+    Request(RequestError),
+}
+
+impl Failure {
+    /// Short snake_case name.
+    pub const fn name(&self) -> &'static str {
+        match self {
+            Failure::Timeout => "timeout",
+            Failure::Corrupt(e) => e.reason(),
+            Failure::Invalid(e) => e.reason(),
+            Failure::Nack(_) => "nack",
+            Failure::Silent => "silent",
+            Failure::Request(e) => e.reason(),
+        }
+    }
+}
+
+/// A finished transaction.
+#[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Completion {
+    /// What was asked.
+    pub request: Request,
+    /// What came back.
+    pub result: Result<Response, Failure>,
+    /// First send to completion, µs.
+    pub latency_us: Instant,
+}
+
+/// Link counters (logged periodically).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct LinkStats {
+    /// Transactions started.
+    pub requests: u32,
+    /// Valid replies (answers to the outstanding request, NACKs included).
+    pub replies: u32,
+    /// Attempts that ended in silence or an incomplete reply at the deadline.
+    pub timeouts: u32,
+    /// Re-sends after silence (wake-up).
+    pub wakeup_resends: u32,
+    /// Re-sends after a failed attempt.
+    pub retries: u32,
+    /// Frames with a bad CRC.
+    pub crc_errors: u32,
+    /// Other framing errors (length, truncation, packet sequence).
+    pub framing_errors: u32,
+    /// CRC-valid frames that did not fit the request (length, echo).
+    pub invalid_replies: u32,
+    /// NACK 0x00 (command error).
+    pub nacks_command: u32,
+    /// NACK 0x01 (CRC error).
+    pub nacks_crc: u32,
+    /// NACKs with another code.
+    pub nacks_other: u32,
+    /// Bytes skipped by the decoder (noise, ASCII broadcasts, corrupt frames).
+    pub skipped_bytes: u32,
+    /// Frames that answered no outstanding request.
+    pub unsolicited: u32,
+    /// Failed transactions.
+    pub failures: u32,
+    /// Smallest reply latency, µs.
+    pub latency_min_us: u32,
+    /// Largest reply latency, µs.
+    pub latency_max_us: u32,
+    /// Sum of reply latencies, µs (for the mean).
+    pub latency_sum_us: u64,
+}
+
+impl LinkStats {
+    /// Mean reply latency, µs.
+    pub fn latency_mean_us(&self) -> u32 {
+        if self.replies == 0 {
+            0
+        } else {
+            (self.latency_sum_us / u64::from(self.replies)) as u32
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+struct Pending {
+    request: Request,
+    bytes: RequestBytes,
+    silence: Silence,
+    first_sent: Option<Instant>,
+    deadline: Instant,
+    heard: bool,
+    wake_used: bool,
+    retries_used: u8,
+    last_error: Option<Failure>,
+}
+
+/// What the link wants next.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LinkStep {
+    /// Transmit these bytes now.
+    Send(Transmit),
+    /// A transaction finished.
+    Done(Completion),
+    /// Nothing until this time (or until bytes arrive).
+    WaitUntil(Instant),
+    /// No transaction in progress.
+    Idle,
+}
+
+/// The link engine.
+#[derive(Debug, Clone)]
+pub struct Link {
+    config: Config,
+    decoder: Decoder,
+    pending: Option<Pending>,
+    to_send: bool,
+    done: Option<Completion>,
+    stats: LinkStats,
+    consecutive_failures: u8,
+    online: bool,
+}
+
+impl Link {
+    /// A link with no transaction; considered online until proven otherwise.
+    pub fn new(config: Config) -> Self {
+        Self {
+            config,
+            decoder: Decoder::new(),
+            pending: None,
+            to_send: false,
+            done: None,
+            stats: LinkStats::default(),
+            consecutive_failures: 0,
+            online: true,
+        }
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> LinkStats {
+        let mut s = self.stats;
+        s.skipped_bytes = self.decoder.stats().skipped_bytes;
+        s
+    }
+
+    /// True when no transaction is in progress.
+    pub fn is_idle(&self) -> bool {
+        self.pending.is_none() && self.done.is_none()
+    }
+
+    /// False after [`crate::config::OFFLINE_AFTER_FAILURES`] consecutive failures,
+    /// until a valid reply arrives.
+    pub fn is_online(&self) -> bool {
+        self.online
+    }
+
+    /// Consecutive failed transactions.
+    pub fn consecutive_failures(&self) -> u8 {
+        self.consecutive_failures
+    }
+
+    /// Starts a transaction. The request is validated and encoded here; an invalid
+    /// one completes at once with [`Failure::Request`] and no byte is sent.
+    pub fn start(&mut self, now: Instant, request: Request, silence: Silence) {
+        self.stats.requests += 1;
+        match request.to_bytes() {
+            Ok(bytes) => {
+                self.pending = Some(Pending {
+                    request,
+                    bytes,
+                    silence,
+                    first_sent: None,
+                    deadline: now,
+                    heard: false,
+                    wake_used: false,
+                    retries_used: 0,
+                    last_error: None,
+                });
+                self.to_send = true;
+            }
+            Err(e) => {
+                self.done = Some(Completion {
+                    request,
+                    result: Err(Failure::Request(e)),
+                    latency_us: 0,
+                });
+            }
+        }
+    }
+
+    /// What to do now. Call after [`Link::start`], after bytes arrived and when a
+    /// deadline passed.
+    pub fn step(&mut self, now: Instant) -> LinkStep {
+        // Bounded: each pass either returns or changes the state towards a return.
+        for _ in 0..4 {
+            if let Some(done) = self.done.take() {
+                return LinkStep::Done(done);
+            }
+            let Some(p) = self.pending.as_mut() else {
+                return LinkStep::Idle;
+            };
+            if self.to_send {
+                self.to_send = false;
+                // Whatever is still buffered belongs to no one now.
+                let stats = &mut self.stats;
+                self.decoder.finish(|r| count_unsolicited(stats, r));
+                p.first_sent.get_or_insert(now);
+                p.heard = false;
+                p.deadline =
+                    now + BYTE_TIME_US * p.bytes.len() as Instant + self.config.response_timeout_us;
+                self.decoder.expect(&p.request);
+                return LinkStep::Send(p.bytes.clone());
+            }
+            if now < p.deadline {
+                return LinkStep::WaitUntil(p.deadline);
+            }
+            self.on_deadline(now);
+        }
+        LinkStep::WaitUntil(now)
+    }
+
+    /// The response deadline passed.
+    fn on_deadline(&mut self, now: Instant) {
+        let Some(p) = self.pending.as_mut() else {
+            return;
+        };
+        // Whatever is half-received is cut off.
+        let mut heard = p.heard;
+        let mut last = p.last_error;
+        {
+            let stats = &mut self.stats;
+            self.decoder.finish(|r| {
+                heard = true;
+                if let Err(e) = r {
+                    count_decode_error(stats, &e);
+                    last = Some(Failure::Corrupt(e));
+                } else {
+                    stats.unsolicited += 1;
+                }
+            });
+        }
+        p.heard = heard;
+        p.last_error = last;
+        self.stats.timeouts += 1;
+        if !heard {
+            if p.silence == Silence::Expected {
+                self.finish(now, Err(Failure::Silent));
+                return;
+            }
+            if !p.wake_used {
+                p.wake_used = true;
+                self.stats.wakeup_resends += 1;
+                self.to_send = true;
+                return;
+            }
+        }
+        let err = if heard {
+            last.unwrap_or(Failure::Timeout)
+        } else {
+            Failure::Timeout
+        };
+        self.retry_or_fail(now, err);
+    }
+
+    fn retry_or_fail(&mut self, now: Instant, err: Failure) {
+        let Some(p) = self.pending.as_mut() else {
+            return;
+        };
+        if p.retries_used < self.config.max_retries {
+            p.retries_used += 1;
+            p.last_error = Some(err);
+            self.stats.retries += 1;
+            self.to_send = true;
+        } else {
+            self.finish(now, Err(err));
+        }
+    }
+
+    fn finish(&mut self, now: Instant, result: Result<Response, Failure>) {
+        let Some(p) = self.pending.take() else {
+            return;
+        };
+        self.to_send = false;
+        self.decoder.clear_expectation();
+        let latency_us = now.saturating_sub(p.first_sent.unwrap_or(now));
+        match &result {
+            Ok(_) | Err(Failure::Nack(_)) => {
+                self.consecutive_failures = 0;
+                self.online = true;
+                self.stats.replies += 1;
+                let l = latency_us.min(u64::from(u32::MAX)) as u32;
+                if self.stats.replies == 1 || l < self.stats.latency_min_us {
+                    self.stats.latency_min_us = l;
+                }
+                self.stats.latency_max_us = self.stats.latency_max_us.max(l);
+                self.stats.latency_sum_us += u64::from(l);
+            }
+            Err(Failure::Silent) => {}
+            Err(_) => {
+                self.stats.failures += 1;
+                self.consecutive_failures = self.consecutive_failures.saturating_add(1);
+                if self.consecutive_failures >= self.config.offline_after_failures {
+                    self.online = false;
+                }
+            }
+        }
+        self.done = Some(Completion {
+            request: p.request,
+            result,
+            latency_us,
+        });
+    }
+
+    /// Bytes received from the UART at `now`. Call [`Link::step`] afterwards.
+    pub fn on_bytes(&mut self, now: Instant, bytes: &[u8]) {
+        let mut input = bytes;
+        loop {
+            let n = self.decoder.push(input);
+            input = input.get(n..).unwrap_or(&[]);
+            while let Some(item) = self.decoder.poll() {
+                self.on_item(now, item);
+            }
+            if input.is_empty() {
+                break;
+            }
+        }
+    }
+
+    fn on_item(&mut self, now: Instant, item: Result<protocol_core::Frame, DecodeError>) {
+        let Some(p) = self.pending.as_mut() else {
+            count_unsolicited(&mut self.stats, item);
+            return;
+        };
+        if self.to_send || self.done.is_some() {
+            // A re-send is queued: anything arriving now answers an old attempt.
+            count_unsolicited(&mut self.stats, item);
+            return;
+        }
+        p.heard = true;
+        let frame = match item {
+            Ok(f) => f,
+            Err(e) => {
+                count_decode_error(&mut self.stats, &e);
+                p.last_error = Some(Failure::Corrupt(e));
+                return; // keep waiting: a good frame may follow
+            }
+        };
+        match Response::decode(&p.request, &frame) {
+            Ok(Response::Nack { code, .. }) => {
+                match code {
+                    NackCode::CommandError => self.stats.nacks_command += 1,
+                    NackCode::CrcError => self.stats.nacks_crc += 1,
+                    NackCode::Unknown(_) => self.stats.nacks_other += 1,
+                }
+                // The BMS got our request corrupted: a read may be re-sent. A write
+                // never is after a NACK.
+                if code == NackCode::CrcError && !p.request.is_write() {
+                    self.retry_or_fail(now, Failure::Nack(code));
+                } else {
+                    self.finish(now, Err(Failure::Nack(code)));
+                }
+            }
+            Ok(resp) => self.finish(now, Ok(resp)),
+            Err(ResponseError::UnexpectedResponse { .. }) => self.stats.unsolicited += 1,
+            Err(e) => {
+                self.stats.invalid_replies += 1;
+                if p.request.is_write() {
+                    // Something answered the write: re-sending it is not allowed.
+                    self.finish(now, Err(Failure::Invalid(e)));
+                } else {
+                    self.retry_or_fail(now, Failure::Invalid(e));
+                }
+            }
+        }
+    }
+}
+
+fn count_decode_error(stats: &mut LinkStats, e: &DecodeError) {
+    match e {
+        DecodeError::Crc { .. } => stats.crc_errors += 1,
+        _ => stats.framing_errors += 1,
+    }
+}
+
+fn count_unsolicited(stats: &mut LinkStats, item: Result<protocol_core::Frame, DecodeError>) {
+    match item {
+        Ok(_) => stats.unsolicited += 1,
+        Err(e) => count_decode_error(stats, &e),
+    }
+}
+
+/// Helper for tests and the shell: the bytes of a step, if it is a send.
+pub fn sent_bytes(step: &LinkStep) -> Option<&[u8]> {
+    match step {
+        LinkStep::Send(b) => Some(b.as_slice()),
+        _ => None,
+    }
+}
+
+/// Compile-time check that a request fits the transmit buffer.
+const _: () = assert!(protocol_core::request::MAX_REQUEST_LEN <= 256);

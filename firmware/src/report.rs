@@ -1,0 +1,288 @@
+//! What the bridge tells the world: log-worthy happenings, each with a level.
+//! The chip shell turns them into `defmt` lines; the host simulator prints them
+//! with [`core::fmt::Display`] in the same words.
+
+use core::fmt;
+
+use protocol_core::events::{Event, OnlineStatus, Severity};
+use protocol_core::frame::NackCode;
+use protocol_core::settings::{Setting, SettingError, SettingId};
+use protocol_core::views::VersionInfo;
+
+use crate::link::{Failure, LinkStats};
+
+/// Log level of a report.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Level {
+    /// Routine.
+    Info,
+    /// Needs attention.
+    Warn,
+}
+
+/// A compact summary of one live snapshot, for the log line.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct SnapshotLine {
+    /// Volts.
+    pub pack_v: f32,
+    /// Amps.
+    pub current_a: f32,
+    /// Percent.
+    pub soc_percent: f32,
+    /// 1-based index of the lowest cell and its voltage in volts.
+    pub min_cell: (u8, f32),
+    /// 1-based index of the highest cell and its voltage in volts.
+    pub max_cell: (u8, f32),
+    /// Internal temperature, °C.
+    pub internal_c: f32,
+    /// External sensors, °C (`None` when disconnected).
+    pub external_c: (Option<f32>, Option<f32>),
+    /// Online status.
+    pub status: OnlineStatus,
+}
+
+/// Result of one setting through the write/verify machine.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum WriteOutcome {
+    /// Written and read back equal (or 0xFFFF for 323/328).
+    Verified,
+    /// Already had the value: nothing written.
+    Unchanged,
+    /// Refused before any byte was sent.
+    Rejected(SettingError),
+    /// Written (ACKed) but the read-back differs.
+    Mismatch {
+        /// Raw value read back (first register).
+        read_back: u16,
+    },
+    /// The BMS refused the write.
+    Nacked(NackCode),
+    /// The link failed before the outcome could be known.
+    Failed(Failure),
+}
+
+impl WriteOutcome {
+    /// Short snake_case name.
+    pub const fn name(&self) -> &'static str {
+        match self {
+            Self::Verified => "verified",
+            Self::Unchanged => "unchanged",
+            Self::Rejected(_) => "rejected",
+            Self::Mismatch { .. } => "mismatch",
+            Self::Nacked(_) => "nacked",
+            Self::Failed(_) => "failed",
+        }
+    }
+    /// True for verified and unchanged: the BMS holds the value.
+    pub const fn is_success(&self) -> bool {
+        matches!(self, Self::Verified | Self::Unchanged)
+    }
+}
+
+/// Everything the bridge reports.
+#[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Report {
+    /// Periodic snapshot line.
+    Snapshot(SnapshotLine),
+    /// The online status changed.
+    StatusChanged {
+        /// Before (None at the first snapshot).
+        from: Option<OnlineStatus>,
+        /// Now.
+        to: OnlineStatus,
+    },
+    /// An event not seen before.
+    NewEvent(Event),
+    /// A transaction failed.
+    LinkError {
+        /// Command code of the request.
+        command: u8,
+        /// Why.
+        failure: Failure,
+    },
+    /// The BMS stopped answering.
+    Offline {
+        /// Consecutive failures.
+        failures: u8,
+    },
+    /// The BMS answers again (version and settings are being re-read).
+    Online,
+    /// Version block read.
+    Version(VersionInfo),
+    /// Settings, their BMS limits and the version are known: telemetry is trusted.
+    Ready {
+        /// Cells configured (register 307).
+        series_cells: u16,
+    },
+    /// Outcome of one setting.
+    Write {
+        /// The setting and value asked for.
+        setting: Setting,
+        /// What happened.
+        outcome: WriteOutcome,
+    },
+    /// A reset was sent; whether register 114 confirmed a software reset.
+    ResetDone {
+        /// Register 114 low byte read 0x04 after the restart.
+        confirmed: bool,
+    },
+    /// Events or statistics cleared (ACKed).
+    Cleared {
+        /// 0x01 events, 0x02 statistics.
+        option: u8,
+        /// ACKed.
+        ok: bool,
+    },
+    /// Periodic link statistics.
+    LinkStats(LinkStats),
+    /// Reports were dropped because nobody drained the queue.
+    Dropped(u32),
+}
+
+impl Report {
+    /// Level under which it is logged.
+    pub fn level(&self) -> Level {
+        match self {
+            Report::StatusChanged { to, .. } if *to == OnlineStatus::Fault => Level::Warn,
+            Report::NewEvent(e)
+                if matches!(e.id.severity(), Severity::Fault | Severity::Warning) =>
+            {
+                Level::Warn
+            }
+            Report::LinkError { .. } | Report::Offline { .. } | Report::Dropped(_) => Level::Warn,
+            Report::Write { outcome, .. } if !outcome.is_success() => Level::Warn,
+            Report::ResetDone { confirmed: false } | Report::Cleared { ok: false, .. } => {
+                Level::Warn
+            }
+            _ => Level::Info,
+        }
+    }
+}
+
+struct OptC(Option<f32>);
+impl fmt::Display for OptC {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.0 {
+            Some(v) => write!(f, "{v:.1}C"),
+            None => f.write_str("--"),
+        }
+    }
+}
+
+fn setting_name(id: SettingId) -> &'static str {
+    id.name()
+}
+
+impl fmt::Display for Report {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Report::Snapshot(s) => write!(
+                f,
+                "pack {:.2}V {:.2}A soc {:.1}% min #{} {:.4}V max #{} {:.4}V temp {:.1}C ext {} {} status {}",
+                s.pack_v,
+                s.current_a,
+                s.soc_percent,
+                s.min_cell.0,
+                s.min_cell.1,
+                s.max_cell.0,
+                s.max_cell.1,
+                s.internal_c,
+                OptC(s.external_c.0),
+                OptC(s.external_c.1),
+                s.status.name()
+            ),
+            Report::StatusChanged { from, to } => match from {
+                Some(from) => write!(f, "status {} -> {}", from.name(), to.name()),
+                None => write!(f, "status {}", to.name()),
+            },
+            Report::NewEvent(e) => write!(
+                f,
+                "event {} t={}s 0x{:02X} {}",
+                e.id.severity().name(),
+                e.timestamp_s,
+                e.id.raw(),
+                e.id.name()
+            ),
+            Report::LinkError { command, failure } => {
+                write!(f, "link error cmd 0x{command:02X}: {}", failure.name())?;
+                if let Failure::Nack(code) = failure {
+                    write!(f, " code 0x{:02X}", code.to_u8())?;
+                }
+                Ok(())
+            }
+            Report::Offline { failures } => {
+                write!(f, "BMS offline after {failures} failed requests")
+            }
+            Report::Online => f.write_str("BMS online; re-reading version and settings"),
+            Report::Version(v) => {
+                write!(
+                    f,
+                    "version hw {}.{} fw {} ({}) bootloader {} profile {} serial ",
+                    v.hardware, v.hardware_changes, v.firmware_public, v.firmware_internal,
+                    v.bootloader, v.profile
+                )?;
+                for b in v.serial {
+                    write!(f, "{b:02X}")?;
+                }
+                Ok(())
+            }
+            Report::Ready { series_cells } => {
+                write!(f, "settings and limits read ({series_cells} cells): ready")
+            }
+            Report::Write { setting, outcome } => {
+                write!(
+                    f,
+                    "write {} ({}) = {}: {}",
+                    setting_name(setting.id),
+                    setting.id.address(),
+                    setting.value,
+                    outcome.name()
+                )?;
+                match outcome {
+                    WriteOutcome::Rejected(e) => write!(f, " ({})", e.reason()),
+                    WriteOutcome::Mismatch { read_back } => write!(f, " (read back {read_back})"),
+                    WriteOutcome::Nacked(c) => write!(f, " (code 0x{:02X})", c.to_u8()),
+                    WriteOutcome::Failed(e) => write!(f, " ({})", e.name()),
+                    _ => Ok(()),
+                }
+            }
+            Report::ResetDone { confirmed } => write!(
+                f,
+                "BMS reset {}",
+                if *confirmed { "confirmed (reg 114 = software reset)" } else { "not confirmed" }
+            ),
+            Report::Cleared { option, ok } => write!(
+                f,
+                "clear {} {}",
+                if *option == 1 { "events" } else { "statistics" },
+                if *ok { "ok" } else { "failed" }
+            ),
+            Report::LinkStats(s) => write!(
+                f,
+                "link: req {} rep {} timeouts {} wake {} retries {} crc {} framing {} invalid {} nack {}/{}/{} skipped {} unsolicited {} failures {} latency {}/{}/{} us",
+                s.requests,
+                s.replies,
+                s.timeouts,
+                s.wakeup_resends,
+                s.retries,
+                s.crc_errors,
+                s.framing_errors,
+                s.invalid_replies,
+                s.nacks_command,
+                s.nacks_crc,
+                s.nacks_other,
+                s.skipped_bytes,
+                s.unsolicited,
+                s.failures,
+                s.latency_min_us,
+                s.latency_mean_us(),
+                s.latency_max_us
+            ),
+            Report::Dropped(n) => write!(f, "{n} log reports dropped"),
+        }
+    }
+}
