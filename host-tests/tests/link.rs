@@ -1,0 +1,181 @@
+//! The link engine's rules, against a scripted responder (no simulator): what is
+//! sent, when, and how many times.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, clippy::indexing_slicing)]
+
+use protocol_core::frame::{Frame, NackCode};
+use protocol_core::request::Request;
+use protocol_core::response::Response;
+use tinybms_firmware::config::Config;
+use tinybms_firmware::link::{Failure, Link, LinkStep, Silence};
+
+fn encode(f: &Frame) -> Vec<u8> {
+    let mut b = [0u8; 600];
+    let n = f.encode(&mut b).unwrap();
+    b[..n].to_vec()
+}
+
+/// Runs one transaction. `answer(attempt)` gives the bytes the BMS sends back to
+/// the n-th transmission (None = silence). Returns the completion and how many
+/// times the request went out.
+fn run(
+    req: Request,
+    silence: Silence,
+    mut answer: impl FnMut(usize) -> Option<Vec<u8>>,
+) -> (Result<Response, Failure>, usize, Link) {
+    let mut link = Link::new(Config::default());
+    let mut now = 0u64;
+    link.start(now, req, silence);
+    let mut sends = 0;
+    for _ in 0..50 {
+        match link.step(now) {
+            LinkStep::Send(_) => {
+                sends += 1;
+                if let Some(bytes) = answer(sends) {
+                    now += 2_000;
+                    link.on_bytes(now, &bytes);
+                }
+            }
+            LinkStep::WaitUntil(t) => now = t,
+            LinkStep::Done(c) => return (c.result, sends, link),
+            LinkStep::Idle => panic!("idle before done"),
+        }
+    }
+    panic!("no completion");
+}
+
+fn live_reply() -> Vec<u8> {
+    let req = Request::read_registers(0, 2).unwrap();
+    let resp = Response::Registers(protocol_core::response::RegisterBlock {
+        start: 0,
+        values: heapless::Vec::from_slice(&[33000, 33010]).unwrap(),
+    });
+    encode(&resp.to_frame(&req).unwrap())
+}
+
+#[test]
+fn awake_bms_gets_each_request_once() {
+    let (r, sends, link) = run(Request::read_registers(0, 2).unwrap(), Silence::Failure, |_| {
+        Some(live_reply())
+    });
+    assert!(matches!(r, Ok(Response::Registers(_))));
+    assert_eq!(sends, 1);
+    assert_eq!(link.stats().wakeup_resends, 0);
+}
+
+#[test]
+fn sleeping_bms_gets_one_wakeup_resend() {
+    let (r, sends, link) = run(Request::read_registers(0, 2).unwrap(), Silence::Failure, |n| {
+        (n >= 2).then(live_reply)
+    });
+    assert!(r.is_ok());
+    assert_eq!(sends, 2);
+    assert_eq!(link.stats().wakeup_resends, 1);
+    assert_eq!(link.stats().timeouts, 1);
+}
+
+#[test]
+fn silent_bms_fails_after_wakeup_and_retries() {
+    let (r, sends, link) =
+        run(Request::read_registers(0, 2).unwrap(), Silence::Failure, |_| None);
+    assert_eq!(r, Err(Failure::Timeout));
+    // 1 + wake-up resend + MAX_RETRIES.
+    assert_eq!(sends, 2 + usize::from(tinybms_firmware::config::MAX_RETRIES));
+    assert_eq!(link.consecutive_failures(), 1);
+}
+
+#[test]
+fn corrupt_read_reply_is_retried_not_woken() {
+    let mut bad = live_reply();
+    let last = bad.len() - 1;
+    bad[last] ^= 0x55;
+    let (r, sends, link) = run(Request::read_registers(0, 2).unwrap(), Silence::Failure, |n| {
+        Some(if n == 1 { bad.clone() } else { live_reply() })
+    });
+    assert!(r.is_ok());
+    assert_eq!(sends, 2);
+    assert_eq!(link.stats().crc_errors, 1);
+    assert_eq!(link.stats().retries, 1);
+    assert_eq!(link.stats().wakeup_resends, 0);
+}
+
+#[test]
+fn write_is_never_resent_after_ack_or_nack() {
+    let w = Request::write_individual(&[(315, 3650)]).unwrap();
+    let (r, sends, _) = run(w.clone(), Silence::Failure, |_| Some(encode(&Frame::Ack { command: 0x0D })));
+    assert_eq!(r, Ok(Response::Ack { command: 0x0D }));
+    assert_eq!(sends, 1);
+    for code in [NackCode::CommandError, NackCode::CrcError] {
+        let (r, sends, _) = run(w.clone(), Silence::Failure, |_| {
+            Some(encode(&Frame::Nack { command: 0x0D, code }))
+        });
+        assert_eq!(r, Err(Failure::Nack(code)));
+        assert_eq!(sends, 1, "{code:?}");
+    }
+}
+
+#[test]
+fn crc_nack_on_a_read_is_retried() {
+    let (r, sends, link) = run(Request::read_registers(0, 2).unwrap(), Silence::Failure, |n| {
+        Some(if n == 1 {
+            encode(&Frame::Nack { command: 0x03, code: NackCode::CrcError })
+        } else {
+            live_reply()
+        })
+    });
+    assert!(r.is_ok());
+    assert_eq!(sends, 2);
+    assert_eq!(link.stats().nacks_crc, 1);
+}
+
+#[test]
+fn reset_silence_is_expected_and_not_resent() {
+    let (r, sends, link) = run(
+        Request::ResetClear(protocol_core::request::ResetOption::ResetBms),
+        Silence::Expected,
+        |_| None,
+    );
+    assert_eq!(r, Err(Failure::Silent));
+    assert_eq!(sends, 1);
+    assert_eq!(link.consecutive_failures(), 0);
+}
+
+#[test]
+fn other_frames_are_unsolicited_and_ignored() {
+    let (r, sends, link) = run(Request::read_registers(0, 2).unwrap(), Silence::Failure, |_| {
+        let mut b = encode(&Frame::data(0x1B, &[1, 0, 2, 0, 3, 0]).unwrap());
+        b.extend_from_slice(b"MST:\tEXT1:----\r\n");
+        b.extend(live_reply());
+        Some(b)
+    });
+    assert!(r.is_ok());
+    assert_eq!(sends, 1);
+    assert_eq!(link.stats().unsolicited, 1);
+    assert_eq!(link.stats().skipped_bytes, 16);
+}
+
+#[test]
+fn offline_after_consecutive_failures_and_back() {
+    let mut link = Link::new(Config::default());
+    let mut now = 0;
+    for i in 0..3 {
+        assert!(link.is_online(), "online before failure {i}");
+        link.start(now, Request::ReadSoc, Silence::Failure);
+        loop {
+            match link.step(now) {
+                LinkStep::WaitUntil(t) => now = t,
+                LinkStep::Send(_) => {}
+                LinkStep::Done(c) => {
+                    assert_eq!(c.result, Err(Failure::Timeout));
+                    break;
+                }
+                LinkStep::Idle => panic!(),
+            }
+        }
+    }
+    assert!(!link.is_online());
+    link.start(now, Request::ReadSoc, Silence::Failure);
+    assert!(matches!(link.step(now), LinkStep::Send(_)));
+    link.on_bytes(now + 1000, &encode(&Frame::data(0x1A, &[0, 0x7D, 0xF4, 1]).unwrap()));
+    assert!(matches!(link.step(now + 1000), LinkStep::Done(c) if c.result == Ok(Response::Soc(32_800_000))));
+    assert!(link.is_online());
+}
