@@ -171,6 +171,8 @@ pub struct Bridge {
     next_link_log: Instant,
     sync_retry_at: Instant,
     newest_event: Option<u32>,
+    next_error_log: Instant,
+    suppressed_errors: u32,
     seen: Deque<(u32, u8), SEEN_EVENTS>,
     was_online: bool,
 }
@@ -200,6 +202,8 @@ impl Bridge {
             next_link_log: now + config.link_stats_log_period_us,
             sync_retry_at: now,
             newest_event: None,
+            next_error_log: now,
+            suppressed_errors: 0,
             seen: Deque::new(),
             was_online: true,
         }
@@ -513,10 +517,17 @@ impl Bridge {
                 || (!online && self.purpose == Purpose::Probe)
                 || self.purpose == Purpose::Job;
             if !quiet {
-                self.report(Report::LinkError {
-                    command: c.request.command(),
-                    failure: *f,
-                });
+                if now >= self.next_error_log {
+                    self.next_error_log = now + self.config.link_error_log_period_us;
+                    let suppressed = core::mem::take(&mut self.suppressed_errors);
+                    self.report(Report::LinkError {
+                        command: c.request.command(),
+                        failure: *f,
+                        suppressed,
+                    });
+                } else {
+                    self.suppressed_errors += 1;
+                }
             }
         }
         match self.purpose {

@@ -10,16 +10,26 @@ pub const BYTE_TIME_US: Instant = 87;
 /// time is added on top (a 56-register 0x03 reply is 117 bytes = 10.2 ms).
 pub const RESPONSE_TIMEOUT_US: Instant = 100 * MS;
 
+/// Once bytes of a reply have started to arrive, this much silence ends the
+/// attempt early (a corrupt reply need not wait for the full timeout). Replies
+/// stream back to back: 10 ms is over 100 byte times.
+pub const REPLY_IDLE_GAP_US: Instant = 10 * MS;
+
 /// Retries of a read after a failed attempt (CRC error, timeout after the wake-up
 /// resend, bad length). Writes follow the same count but are never re-sent after
 /// an ACK or a NACK.
 pub const MAX_RETRIES: u8 = 2;
 
-/// Consecutive failed transactions after which the BMS is considered offline.
+/// Consecutive silent transactions (each: request, wake-up resend and retries all
+/// unanswered) after which the BMS is considered offline.
 pub const OFFLINE_AFTER_FAILURES: u8 = 3;
 
 /// Probe period while offline.
 pub const OFFLINE_PROBE_PERIOD_US: Instant = 2 * SECOND;
+
+/// Link errors are logged at most once per this period; the line says how many
+/// were not logged in between (the log stays readable on a noisy line).
+pub const LINK_ERROR_LOG_PERIOD_US: Instant = 10 * SECOND;
 
 /// Period of the live block read (registers 0-55, one 0x03 request).
 pub const LIVE_PERIOD_US: Instant = 250 * MS;
@@ -62,12 +72,16 @@ pub const REPORT_QUEUE: usize = 24;
 pub struct Config {
     /// See [`RESPONSE_TIMEOUT_US`].
     pub response_timeout_us: Instant,
+    /// See [`REPLY_IDLE_GAP_US`].
+    pub reply_idle_gap_us: Instant,
     /// See [`MAX_RETRIES`].
     pub max_retries: u8,
     /// See [`OFFLINE_AFTER_FAILURES`].
     pub offline_after_failures: u8,
     /// See [`OFFLINE_PROBE_PERIOD_US`].
     pub offline_probe_period_us: Instant,
+    /// See [`LINK_ERROR_LOG_PERIOD_US`].
+    pub link_error_log_period_us: Instant,
     /// See [`LIVE_PERIOD_US`].
     pub live_period_us: Instant,
     /// See [`STATS_PERIOD_US`].
@@ -88,9 +102,11 @@ impl Default for Config {
     fn default() -> Self {
         Self {
             response_timeout_us: RESPONSE_TIMEOUT_US,
+            reply_idle_gap_us: REPLY_IDLE_GAP_US,
             max_retries: MAX_RETRIES,
             offline_after_failures: OFFLINE_AFTER_FAILURES,
             offline_probe_period_us: OFFLINE_PROBE_PERIOD_US,
+            link_error_log_period_us: LINK_ERROR_LOG_PERIOD_US,
             live_period_us: LIVE_PERIOD_US,
             stats_period_us: STATS_PERIOD_US,
             events_period_us: EVENTS_PERIOD_US,

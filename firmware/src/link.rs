@@ -1,14 +1,17 @@
 //! The link engine: one outstanding request at a time over a half-duplex UART.
 //!
 //! * The response timeout runs from the moment the request's last byte is on the
-//!   wire ([`crate::config::RESPONSE_TIMEOUT_US`]).
+//!   wire ([`crate::config::RESPONSE_TIMEOUT_US`]); once reply bytes flow, a gap of
+//!   [`crate::config::REPLY_IDLE_GAP_US`] ends the attempt early.
 //! * Wake-up (HARDWARE-NOTES "Sleep"): when a request gets total silence, it is sent
 //!   once more before anything counts as a failure. Requests are never sent twice
 //!   blindly: an awake BMS would answer twice.
 //! * Reads are retried a bounded number of times. A write is re-sent only when
 //!   neither ACK nor NACK (nor the 0x10 echo) arrived, and never after one did.
-//! * After N consecutive failed transactions the link is offline; the first valid
-//!   reply brings it back (the bridge then re-reads version and settings).
+//! * After N consecutive transactions that got no answer at all (silence on every
+//!   attempt) the link is offline; the first valid reply brings it back (the bridge
+//!   then re-reads version and settings). Corrupt replies are failures too, but they
+//!   show the BMS is there: they do not count towards offline.
 //! * Frames that do not answer the outstanding request are counted as
 //!   unsolicited and ignored.
 
@@ -136,6 +139,7 @@ struct Pending {
     first_sent: Option<Instant>,
     deadline: Instant,
     heard: bool,
+    last_rx: Option<Instant>,
     wake_used: bool,
     retries_used: u8,
     last_error: Option<Failure>,
@@ -200,7 +204,7 @@ impl Link {
         self.online
     }
 
-    /// Consecutive failed transactions.
+    /// Consecutive transactions that got nothing back.
     pub fn consecutive_failures(&self) -> u8 {
         self.consecutive_failures
     }
@@ -218,6 +222,7 @@ impl Link {
                     first_sent: None,
                     deadline: now,
                     heard: false,
+                    last_rx: None,
                     wake_used: false,
                     retries_used: 0,
                     last_error: None,
@@ -252,13 +257,18 @@ impl Link {
                 self.decoder.finish(|r| count_unsolicited(stats, r));
                 p.first_sent.get_or_insert(now);
                 p.heard = false;
+                p.last_rx = None;
                 p.deadline =
                     now + BYTE_TIME_US * p.bytes.len() as Instant + self.config.response_timeout_us;
                 self.decoder.expect(&p.request);
                 return LinkStep::Send(p.bytes.clone());
             }
-            if now < p.deadline {
-                return LinkStep::WaitUntil(p.deadline);
+            let deadline = match p.last_rx {
+                Some(t) => p.deadline.min(t + self.config.reply_idle_gap_us),
+                None => p.deadline,
+            };
+            if now < deadline {
+                return LinkStep::WaitUntil(deadline);
             }
             self.on_deadline(now);
         }
@@ -342,12 +352,19 @@ impl Link {
                 self.stats.latency_sum_us += u64::from(l);
             }
             Err(Failure::Silent) => {}
-            Err(_) => {
+            // Nothing at all came back: that is what counts towards "offline".
+            Err(Failure::Timeout) => {
                 self.stats.failures += 1;
                 self.consecutive_failures = self.consecutive_failures.saturating_add(1);
                 if self.consecutive_failures >= self.config.offline_after_failures {
                     self.online = false;
                 }
+            }
+            // Bytes came back, just never a valid answer: the BMS is there, the
+            // line is noisy. A failure, but not a sign of absence.
+            Err(_) => {
+                self.stats.failures += 1;
+                self.consecutive_failures = 0;
             }
         }
         self.done = Some(Completion {
@@ -359,6 +376,11 @@ impl Link {
 
     /// Bytes received from the UART at `now`. Call [`Link::step`] afterwards.
     pub fn on_bytes(&mut self, now: Instant, bytes: &[u8]) {
+        if let Some(p) = self.pending.as_mut() {
+            if !self.to_send && !bytes.is_empty() {
+                p.last_rx = Some(now);
+            }
+        }
         let mut input = bytes;
         loop {
             let n = self.decoder.push(input);

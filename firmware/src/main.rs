@@ -271,9 +271,16 @@ fn log_report(r: &Report) {
                 );
             }
         }
-        Report::LinkError { command, failure } => {
-            warn!("link error cmd 0x{=u8:02X}: {=str}", command, failure.name())
-        }
+        Report::LinkError {
+            command,
+            failure,
+            suppressed,
+        } => warn!(
+            "link error cmd 0x{=u8:02X}: {=str} (+{=u32} more since the last line)",
+            command,
+            failure.name(),
+            suppressed
+        ),
         Report::Offline { failures } => warn!("BMS offline after {=u8} failed requests", failures),
         Report::Online => info!("BMS online; re-reading version and settings"),
         Report::Version(v) => info!(

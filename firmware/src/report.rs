@@ -103,6 +103,8 @@ pub enum Report {
         command: u8,
         /// Why.
         failure: Failure,
+        /// Link errors not logged since the previous line (rate limit).
+        suppressed: u32,
     },
     /// The BMS stopped answering.
     Offline {
@@ -207,10 +209,17 @@ impl fmt::Display for Report {
                 e.id.raw(),
                 e.id.name()
             ),
-            Report::LinkError { command, failure } => {
+            Report::LinkError {
+                command,
+                failure,
+                suppressed,
+            } => {
                 write!(f, "link error cmd 0x{command:02X}: {}", failure.name())?;
                 if let Failure::Nack(code) = failure {
                     write!(f, " code 0x{:02X}", code.to_u8())?;
+                }
+                if *suppressed > 0 {
+                    write!(f, " (+{suppressed} more since the last line)")?;
                 }
                 Ok(())
             }

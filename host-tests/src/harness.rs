@@ -160,7 +160,10 @@ impl Harness {
     }
 
     /// Log lines whose report matches `f`.
-    pub fn reports<'a>(&'a self, f: impl Fn(&Report) -> bool + 'a) -> impl Iterator<Item = &'a LogLine> + 'a {
+    pub fn reports<'a>(
+        &'a self,
+        f: impl Fn(&Report) -> bool + 'a,
+    ) -> impl Iterator<Item = &'a LogLine> + 'a {
         self.log.iter().filter(move |l| f(&l.report))
     }
 

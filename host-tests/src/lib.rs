@@ -1,1 +1,9 @@
+//! Host-side test infrastructure for the TinyBMS firmware: the capture format and
+//! its replay, the simulated TinyBMS, and the virtual-time harness that runs the
+//! firmware's bridge logic against it.
 
+pub mod capture;
+pub mod harness;
+pub mod profile;
+pub mod replay;
+pub mod sim;

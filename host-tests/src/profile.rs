@@ -35,9 +35,10 @@ pub fn find_setting(name: &str) -> Option<SettingId> {
         return SettingId::from_address(addr, Field::Whole)
             .or_else(|| SettingId::from_address(addr, Field::LowByte));
     }
-    SettingId::ALL.iter().copied().find(|id| {
-        snake_name(*id) == n.to_ascii_lowercase() || id.name().eq_ignore_ascii_case(n)
-    })
+    SettingId::ALL
+        .iter()
+        .copied()
+        .find(|id| snake_name(*id) == n.to_ascii_lowercase() || id.name().eq_ignore_ascii_case(n))
 }
 
 /// Parses one `name=value` assignment.
@@ -72,13 +73,28 @@ mod tests {
 
     #[test]
     fn names_and_files() {
-        assert_eq!(snake_name(SettingId::OverVoltageCutoff), "over_voltage_cutoff");
-        assert_eq!(find_setting("over_voltage_cutoff"), Some(SettingId::OverVoltageCutoff));
-        assert_eq!(find_setting("Under-Voltage Cutoff"), Some(SettingId::UnderVoltageCutoff));
+        assert_eq!(
+            snake_name(SettingId::OverVoltageCutoff),
+            "over_voltage_cutoff"
+        );
+        assert_eq!(
+            find_setting("over_voltage_cutoff"),
+            Some(SettingId::OverVoltageCutoff)
+        );
+        assert_eq!(
+            find_setting("Under-Voltage Cutoff"),
+            Some(SettingId::UnderVoltageCutoff)
+        );
         assert_eq!(find_setting("342"), Some(SettingId::BroadcastTime));
         assert_eq!(find_setting("nope"), None);
         let p = parse_profile("# x\nover_voltage_cutoff = 3650 # mV\n\n316=2700\n").unwrap();
-        assert_eq!(p, vec![(SettingId::OverVoltageCutoff, 3650), (SettingId::UnderVoltageCutoff, 2700)]);
+        assert_eq!(
+            p,
+            vec![
+                (SettingId::OverVoltageCutoff, 3650),
+                (SettingId::UnderVoltageCutoff, 2700)
+            ]
+        );
         assert!(parse_profile("a = b").unwrap_err().starts_with("line 1"));
         assert!(parse_assignment("over_voltage_cutoff=x").is_err());
     }

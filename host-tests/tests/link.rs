@@ -1,6 +1,11 @@
 //! The link engine's rules, against a scripted responder (no simulator): what is
 //! sent, when, and how many times.
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, clippy::indexing_slicing)]
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    clippy::indexing_slicing
+)]
 
 use protocol_core::frame::{Frame, NackCode};
 use protocol_core::request::Request;
@@ -54,9 +59,11 @@ fn live_reply() -> Vec<u8> {
 
 #[test]
 fn awake_bms_gets_each_request_once() {
-    let (r, sends, link) = run(Request::read_registers(0, 2).unwrap(), Silence::Failure, |_| {
-        Some(live_reply())
-    });
+    let (r, sends, link) = run(
+        Request::read_registers(0, 2).unwrap(),
+        Silence::Failure,
+        |_| Some(live_reply()),
+    );
     assert!(matches!(r, Ok(Response::Registers(_))));
     assert_eq!(sends, 1);
     assert_eq!(link.stats().wakeup_resends, 0);
@@ -64,9 +71,11 @@ fn awake_bms_gets_each_request_once() {
 
 #[test]
 fn sleeping_bms_gets_one_wakeup_resend() {
-    let (r, sends, link) = run(Request::read_registers(0, 2).unwrap(), Silence::Failure, |n| {
-        (n >= 2).then(live_reply)
-    });
+    let (r, sends, link) = run(
+        Request::read_registers(0, 2).unwrap(),
+        Silence::Failure,
+        |n| (n >= 2).then(live_reply),
+    );
     assert!(r.is_ok());
     assert_eq!(sends, 2);
     assert_eq!(link.stats().wakeup_resends, 1);
@@ -75,11 +84,17 @@ fn sleeping_bms_gets_one_wakeup_resend() {
 
 #[test]
 fn silent_bms_fails_after_wakeup_and_retries() {
-    let (r, sends, link) =
-        run(Request::read_registers(0, 2).unwrap(), Silence::Failure, |_| None);
+    let (r, sends, link) = run(
+        Request::read_registers(0, 2).unwrap(),
+        Silence::Failure,
+        |_| None,
+    );
     assert_eq!(r, Err(Failure::Timeout));
     // 1 + wake-up resend + MAX_RETRIES.
-    assert_eq!(sends, 2 + usize::from(tinybms_firmware::config::MAX_RETRIES));
+    assert_eq!(
+        sends,
+        2 + usize::from(tinybms_firmware::config::MAX_RETRIES)
+    );
     assert_eq!(link.consecutive_failures(), 1);
 }
 
@@ -88,9 +103,11 @@ fn corrupt_read_reply_is_retried_not_woken() {
     let mut bad = live_reply();
     let last = bad.len() - 1;
     bad[last] ^= 0x55;
-    let (r, sends, link) = run(Request::read_registers(0, 2).unwrap(), Silence::Failure, |n| {
-        Some(if n == 1 { bad.clone() } else { live_reply() })
-    });
+    let (r, sends, link) = run(
+        Request::read_registers(0, 2).unwrap(),
+        Silence::Failure,
+        |n| Some(if n == 1 { bad.clone() } else { live_reply() }),
+    );
     assert!(r.is_ok());
     assert_eq!(sends, 2);
     assert_eq!(link.stats().crc_errors, 1);
@@ -101,12 +118,17 @@ fn corrupt_read_reply_is_retried_not_woken() {
 #[test]
 fn write_is_never_resent_after_ack_or_nack() {
     let w = Request::write_individual(&[(315, 3650)]).unwrap();
-    let (r, sends, _) = run(w.clone(), Silence::Failure, |_| Some(encode(&Frame::Ack { command: 0x0D })));
+    let (r, sends, _) = run(w.clone(), Silence::Failure, |_| {
+        Some(encode(&Frame::Ack { command: 0x0D }))
+    });
     assert_eq!(r, Ok(Response::Ack { command: 0x0D }));
     assert_eq!(sends, 1);
     for code in [NackCode::CommandError, NackCode::CrcError] {
         let (r, sends, _) = run(w.clone(), Silence::Failure, |_| {
-            Some(encode(&Frame::Nack { command: 0x0D, code }))
+            Some(encode(&Frame::Nack {
+                command: 0x0D,
+                code,
+            }))
         });
         assert_eq!(r, Err(Failure::Nack(code)));
         assert_eq!(sends, 1, "{code:?}");
@@ -115,13 +137,20 @@ fn write_is_never_resent_after_ack_or_nack() {
 
 #[test]
 fn crc_nack_on_a_read_is_retried() {
-    let (r, sends, link) = run(Request::read_registers(0, 2).unwrap(), Silence::Failure, |n| {
-        Some(if n == 1 {
-            encode(&Frame::Nack { command: 0x03, code: NackCode::CrcError })
-        } else {
-            live_reply()
-        })
-    });
+    let (r, sends, link) = run(
+        Request::read_registers(0, 2).unwrap(),
+        Silence::Failure,
+        |n| {
+            Some(if n == 1 {
+                encode(&Frame::Nack {
+                    command: 0x03,
+                    code: NackCode::CrcError,
+                })
+            } else {
+                live_reply()
+            })
+        },
+    );
     assert!(r.is_ok());
     assert_eq!(sends, 2);
     assert_eq!(link.stats().nacks_crc, 1);
@@ -141,12 +170,16 @@ fn reset_silence_is_expected_and_not_resent() {
 
 #[test]
 fn other_frames_are_unsolicited_and_ignored() {
-    let (r, sends, link) = run(Request::read_registers(0, 2).unwrap(), Silence::Failure, |_| {
-        let mut b = encode(&Frame::data(0x1B, &[1, 0, 2, 0, 3, 0]).unwrap());
-        b.extend_from_slice(b"MST:\tEXT1:----\r\n");
-        b.extend(live_reply());
-        Some(b)
-    });
+    let (r, sends, link) = run(
+        Request::read_registers(0, 2).unwrap(),
+        Silence::Failure,
+        |_| {
+            let mut b = encode(&Frame::data(0x1B, &[1, 0, 2, 0, 3, 0]).unwrap());
+            b.extend_from_slice(b"MST:\tEXT1:----\r\n");
+            b.extend(live_reply());
+            Some(b)
+        },
+    );
     assert!(r.is_ok());
     assert_eq!(sends, 1);
     assert_eq!(link.stats().unsolicited, 1);
@@ -175,7 +208,12 @@ fn offline_after_consecutive_failures_and_back() {
     assert!(!link.is_online());
     link.start(now, Request::ReadSoc, Silence::Failure);
     assert!(matches!(link.step(now), LinkStep::Send(_)));
-    link.on_bytes(now + 1000, &encode(&Frame::data(0x1A, &[0, 0x7D, 0xF4, 1]).unwrap()));
-    assert!(matches!(link.step(now + 1000), LinkStep::Done(c) if c.result == Ok(Response::Soc(32_800_000))));
+    link.on_bytes(
+        now + 1000,
+        &encode(&Frame::data(0x1A, &[0, 0x7D, 0xF4, 1]).unwrap()),
+    );
+    assert!(
+        matches!(link.step(now + 1000), LinkStep::Done(c) if c.result == Ok(Response::Soc(32_800_000)))
+    );
     assert!(link.is_online());
 }

@@ -25,7 +25,7 @@
 //!
 //! let rx = [0xAA, 0x03, 0x0A, 0x97, 0x40, 0x97, 0x40, 0x97, 0x2C, 0x97, 0x2C, 0x97, 0x2C, 0x3E, 0xC7];
 //! let mut dec = Decoder::new();
-//! dec.push(&rx);
+//! assert_eq!(dec.push(&rx), rx.len()); // bounded buffer: push says how much it took
 //! let frame = dec.poll().unwrap()?;
 //! let Response::Registers(block) = Response::decode(&req, &frame)? else { unreachable!() };
 //! assert_eq!(block.get(5), Some(38720)); // 0.1 mV: 3.872 V

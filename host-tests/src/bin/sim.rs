@@ -9,7 +9,8 @@ use host_tests::profile::{parse_assignment, parse_profile};
 use host_tests::sim::{FaultConfig, PackProfile, SimBms, SimConfig};
 use tinybms_firmware::config::{Config, BYTE_TIME_US};
 
-const USAGE: &str = "usage: sim [--duration 10m] [--fault-rate 0.01] [--profile FILE] [--set NAME=VALUE]...
+const USAGE: &str =
+    "usage: sim [--duration 10m] [--fault-rate 0.01] [--profile FILE] [--set NAME=VALUE]...
            [--pack lifepo4-16s|liion-14s] [--seed N] [--asleep] [--snapshot-every 10s] [--quiet]
 
   --duration D       virtual time to run (e.g. 90s, 10m, 2h; default 60s)
@@ -79,7 +80,8 @@ fn parse_args() -> Result<Options, String> {
             "--profile" => {
                 let path = value("--profile")?;
                 let text = std::fs::read_to_string(&path).map_err(|e| format!("{path}: {e}"))?;
-                o.profile.extend(parse_profile(&text).map_err(|e| format!("{path}: {e}"))?);
+                o.profile
+                    .extend(parse_profile(&text).map_err(|e| format!("{path}: {e}"))?);
             }
             "--set" => o.profile.push(parse_assignment(&value("--set")?)?),
             "--pack" => {
@@ -89,9 +91,15 @@ fn parse_args() -> Result<Options, String> {
                     other => return Err(format!("unknown pack `{other}`")),
                 }
             }
-            "--seed" => o.seed = value("--seed")?.parse().map_err(|_| "bad --seed".to_string())?,
+            "--seed" => {
+                o.seed = value("--seed")?
+                    .parse()
+                    .map_err(|_| "bad --seed".to_string())?
+            }
             "--asleep" => o.asleep = true,
-            "--snapshot-every" => o.snapshot_every_us = parse_duration(&value("--snapshot-every")?)?,
+            "--snapshot-every" => {
+                o.snapshot_every_us = parse_duration(&value("--snapshot-every")?)?
+            }
             "--quiet" => o.quiet = true,
             "-h" | "--help" => return Err(String::new()),
             other => return Err(format!("unknown option `{other}`")),
@@ -145,7 +153,10 @@ fn main() -> ExitCode {
     let live_reply = 3 + 2 * 56 + 2;
     let live_request = 8;
     println!("--- summary ---");
-    println!("virtual time {secs:.1} s, snapshots published {}", h.published.len());
+    println!(
+        "virtual time {secs:.1} s, snapshots published {}",
+        h.published.len()
+    );
     println!("{}", tinybms_firmware::Report::LinkStats(s));
     println!(
         "bytes on the wire per live snapshot: {} request + {} reply = {} ({:.1} ms at 115200 8N1)",

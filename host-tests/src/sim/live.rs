@@ -134,10 +134,15 @@ pub(crate) struct Live {
 }
 
 impl Live {
-    pub(crate) fn new(profile: PackProfile, mut rng: Rng, capacity_ah: f64) -> Self {
-        let (curve, r_cell, soc, lifetime_s, ambient) = match profile {
-            PackProfile::LiFePO4_16S => (OCV_LFP, 0.0003, 65.0, 3_877_000, 24.0),
-            PackProfile::LiIon_14S => (OCV_NMC, 0.0015, 62.0, 9_876_543, 22.0),
+    pub(crate) fn new(
+        profile: PackProfile,
+        mut rng: Rng,
+        capacity_ah: f64,
+        lifetime_s: u32,
+    ) -> Self {
+        let (curve, r_cell, soc, ambient) = match profile {
+            PackProfile::LiFePO4_16S => (OCV_LFP, 0.0003, 65.0, 24.0),
+            PackProfile::LiIon_14S => (OCV_NMC, 0.0015, 62.0, 22.0),
         };
         let mut offsets_v = [0.0; 16];
         for o in offsets_v.iter_mut() {
@@ -173,11 +178,6 @@ impl Live {
     pub(crate) fn set_soc(&mut self, soc: f64) {
         self.soc = soc.clamp(0.0, 100.0);
         self.full = self.soc >= 99.9;
-    }
-
-    /// Present SOC, percent.
-    pub(crate) fn soc(&self) -> f64 {
-        self.soc
     }
 
     fn compute_cells(&mut self, noise_v: f64) {
@@ -271,7 +271,9 @@ impl Live {
                     events.push(EventId::ChargingDone);
                     self.start_phase(Phase::Idle, p, events);
                     0.0
-                } else if self.phase_left_s == 0 {
+                } else if self.phase_left_s == 0 && self.soc < 90.0 {
+                    // Unplugged before the end; above 90 % the charge runs to
+                    // completion (CV phase).
                     self.start_phase(Phase::Idle, p, events);
                     0.0
                 } else {
@@ -291,7 +293,8 @@ impl Live {
             self.current = self.rng.range_f64(-0.05, 0.05);
         }
 
-        self.soc = (self.soc + self.current * dt / 3600.0 / p.capacity_ah * 100.0).clamp(0.0, 100.0);
+        self.soc =
+            (self.soc + self.current * dt / 3600.0 / p.capacity_ah * 100.0).clamp(0.0, 100.0);
 
         // Temperatures: ambient drifts, the BMS and the pack warm with current.
         self.ambient = (self.ambient + self.rng.range_f64(-0.002, 0.002)).clamp(15.0, 35.0);
@@ -320,68 +323,56 @@ impl Live {
     /// Writes every live register (Rev D §3.1) and updates the statistics
     /// maxima (§3.2).
     pub(crate) fn publish(&self, regs: &mut [u16], p: &Params) {
-        let mut set = |a: usize, v: u16| {
-            if let Some(r) = regs.get_mut(a) {
-                *r = v;
-            }
-        };
         let cells = self.cells_raw.get(..self.cells.min(16)).unwrap_or(&[]);
         for (i, &c) in cells.iter().enumerate() {
-            set(self.first_reg + i, c);
+            set_in(regs, self.first_reg + i, c);
         }
-        let (lo32, hi32) = |v: u32| -> (u16, u16) { (v as u16, (v >> 16) as u16) }(0);
-        let _ = (lo32, hi32);
         let min_raw = cells.iter().copied().min().unwrap_or(0);
         let max_raw = cells.iter().copied().max().unwrap_or(0);
         let sum: u32 = cells.iter().map(|&c| u32::from(c)).sum();
+        // Pack voltage = sum of the cells (0.1 mV each), f32 volts.
         let pack_v = (f64::from(sum) / 10_000.0) as f32;
-        let current = self.current as f32;
-        let words = |v: u32| (v as u16, (v >> 16) as u16);
-        let mut set32 = |a: usize, v: u32| {
-            let (lo, hi) = words(v);
-            set(a, lo);
-            set(a + 1, hi);
-        };
-        set32(32, self.lifetime_s);
+        set32(regs, 32, self.lifetime_s);
         let time_left = if self.current < -IDLE_BAND_A {
             (self.soc / 100.0 * p.capacity_ah / -self.current * 3600.0) as u32
         } else {
             0
         };
-        set32(34, time_left);
-        set32(36, pack_v.to_bits());
-        set32(38, current.to_bits());
-        set32(46, (self.soc * 1_000_000.0).round() as u32);
-        set32(54, 0f32.to_bits());
-        let mut set = |a: usize, v: u16| {
-            if let Some(r) = regs.get_mut(a) {
-                *r = v;
-            }
+        set32(regs, 34, time_left);
+        set32(regs, 36, pack_v.to_bits());
+        set32(regs, 38, (self.current as f32).to_bits());
+        set32(regs, 46, (self.soc * 1_000_000.0).round() as u32);
+        set32(regs, 54, 0f32.to_bits());
+        // Registers 40/41 are in mV, the cells in 0.1 mV: rounded to the nearest mV.
+        set_in(regs, 40, raw_to_mv(min_raw));
+        set_in(regs, 41, raw_to_mv(max_raw));
+        set_in(regs, 42, dc(self.t_ext1));
+        let ext2 = if self.ext2_connected {
+            dc(self.t_ext1 + 0.3)
+        } else {
+            SENSOR_DISCONNECTED
         };
-        set(40, min_raw.div_ceil(10).min(min_raw / 10 + u16::from(min_raw % 10 >= 5)));
-        set(41, max_raw / 10 + u16::from(max_raw % 10 >= 5));
-        set(42, dc(self.t_ext1));
-        set(
-            43,
-            if self.ext2_connected {
-                dc(self.t_ext1 + 0.3)
-            } else {
-                SENSOR_DISCONNECTED
-            },
-        );
-        set(44, 0);
-        set(48, dc(self.t_int));
-        set(50, self.status(p.fault));
-        // Balancing: bit n = n-th detected cell (bit 0 = first cell, Rev D §3.1).
+        set_in(regs, 43, ext2);
+        set_in(regs, 44, 0);
+        set_in(regs, 48, dc(self.t_int));
+        set_in(regs, 50, self.status(p.fault));
+        // Balancing: bit n = n-th detected cell (bit 0 = first cell, Rev D §3.1),
+        // needed when the cell is above the early balancing threshold (303);
+        // really balancing unless discharging.
         let mut decision = 0u16;
-        for (i, &c) in cells.iter().enumerate() {
-            if c / 10 > p.early_balancing_mv && i < 16 {
+        for (i, &c) in cells.iter().enumerate().take(16) {
+            if raw_to_mv(c) > p.early_balancing_mv {
                 decision |= 1 << i;
             }
         }
-        set(51, decision);
-        set(52, if self.current < -IDLE_BAND_A { 0 } else { decision });
-        set(53, self.cells as u16);
+        set_in(regs, 51, decision);
+        let real = if self.current < -IDLE_BAND_A {
+            0
+        } else {
+            decision
+        };
+        set_in(regs, 52, real);
+        set_in(regs, 53, self.cells as u16);
 
         // Statistics maxima (Rev D §3.2).
         let g = |regs: &[u16], a: usize| regs.get(a).copied().unwrap_or(0);
@@ -395,7 +386,7 @@ impl Live {
         if max_raw - min_raw > g(regs, 104) {
             set_in(regs, 104, max_raw - min_raw);
         }
-        let t = self.t_ext1.round().clamp(-128.0, 127.0) as i8;
+        let t = self.pack_temp_c();
         let [tmin, tmax] = g(regs, 113).to_le_bytes();
         let (tmin, tmax) = ((tmin as i8).min(t), (tmax as i8).max(t));
         set_in(regs, 113, u16::from_le_bytes([tmin as u8, tmax as u8]));
@@ -413,14 +404,80 @@ fn set_in(regs: &mut [u16], a: usize, v: u16) {
     }
 }
 
+/// A 32-bit value over two registers, low word at the lower address
+/// (HARDWARE-NOTES "Values").
+fn set32(regs: &mut [u16], a: usize, v: u32) {
+    set_in(regs, a, v as u16);
+    set_in(regs, a + 1, (v >> 16) as u16);
+}
+
+/// 0.1 mV to mV, rounded to nearest.
+pub(crate) fn raw_to_mv(raw: u16) -> u16 {
+    ((u32::from(raw) + 5) / 10) as u16
+}
+
 /// °C to 0.1 °C, as the i16 bits of a register.
 fn dc(t: f64) -> u16 {
     ((t * 10.0).round().clamp(-32767.0, 32767.0) as i16) as u16
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::indexing_slicing)]
 mod tests {
     use super::*;
+
+    fn params() -> Params {
+        Params {
+            capacity_ah: 50.0,
+            early_balancing_mv: 4000,
+            charge_finished_a: 1.0,
+            discharge_cutoff_a: 50.0,
+            charge_cutoff_a: 25.0,
+            fault: false,
+        }
+    }
+
+    #[test]
+    fn a_charge_ends_with_charging_done_and_fully_charged() {
+        let p = params();
+        let mut live = Live::new(PackProfile::LiIon_14S, Rng::new(3), 50.0, 1000);
+        live.set_soc(96.0);
+        let mut events = Vec::new();
+        live.start_phase(Phase::Charge, &p, &mut events);
+        assert_eq!(
+            events,
+            [EventId::ChargerConnected, EventId::ChargingStarted]
+        );
+        events.clear();
+        for _ in 0..20_000 {
+            live.step(&p, &mut events);
+            if !events.is_empty() {
+                break;
+            }
+        }
+        assert_eq!(
+            events,
+            [EventId::ChargingDone, EventId::ChargerDisconnected]
+        );
+        assert!(live.soc > 99.0, "{}", live.soc);
+        for _ in 0..30 {
+            live.step(&p, &mut events);
+        }
+        assert_eq!(live.status(false), STATUS_FULLY_CHARGED);
+        assert_eq!(live.status(true), STATUS_FAULT);
+    }
+
+    #[test]
+    fn a_latched_fault_stops_the_current() {
+        let mut p = params();
+        p.fault = true;
+        let mut live = Live::new(PackProfile::LiIon_14S, Rng::new(4), 50.0, 1000);
+        let mut events = Vec::new();
+        for _ in 0..60 {
+            live.step(&p, &mut events);
+        }
+        assert!(live.current.abs() < IDLE_BAND_A, "{}", live.current);
+    }
 
     #[test]
     fn ocv_interpolates() {

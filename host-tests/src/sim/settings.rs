@@ -221,6 +221,7 @@ pub(crate) fn clamp_to_sensor(addr: u16, v: u16, sensor: CurrentSensor) -> u16 {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::indexing_slicing)]
 mod tests {
     use super::*;
 
@@ -255,12 +256,12 @@ mod tests {
 
     #[test]
     fn sensor_changes_limits() {
-        assert_eq!(
-            spec(317, CurrentSensor::InternalResistor).unwrap().max,
-            60
-        );
+        assert_eq!(spec(317, CurrentSensor::InternalResistor).unwrap().max, 60);
         assert_eq!(spec(318, CurrentSensor::External).unwrap().max, 750);
-        assert_eq!(spec(302, CurrentSensor::External).unwrap().kind, Kind::Reserved);
+        assert_eq!(
+            spec(302, CurrentSensor::External).unwrap().kind,
+            Kind::Reserved
+        );
         assert_eq!(spec(299, CurrentSensor::External), None);
         assert_eq!(spec(400, CurrentSensor::External), None);
     }

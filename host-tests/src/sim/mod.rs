@@ -1,0 +1,1245 @@
+//! # A simulated TinyBMS
+//!
+//! [`SimBms`] is a TinyBMS s516 on the far end of a 115200 8N1 UART, in virtual
+//! time and without I/O (sans-IO, in the style of `embassy-net-ppp`): the caller
+//! hands it the bytes the host sends and the time, and takes the bytes the BMS
+//! puts on the wire. No thread, no sleep, no clock: time is a `u64` of
+//! microseconds given by the caller, and the simulator returns "something happens
+//! at T" ([`SimBms::next_event_at`], [`SimBms::next_output_at`]) instead of
+//! waiting. Virtual time starts at 0 µs.
+//!
+//! Every frame is parsed and encoded by `protocol-core` ([`Request::parse`],
+//! [`Request::frame_len`], [`Response::to_frame`], [`Frame::encode`]); nothing
+//! here re-implements the CRC or a layout.
+//!
+//! ## What it models
+//!
+//! * **A register file** of 600 `u16` (0-599, Rev D chapter 3), initialised from
+//!   a [`PackProfile`]: cells, pack voltage/current as f32 and lifetime/SOC as u32
+//!   with the low word at the lower address (HARDWARE-NOTES), temperatures
+//!   (external sensor 2 disconnected = -32768 on the 14S profile), status,
+//!   balancing bits, statistics 100-117, the event log 200-297 (§3.3 layout),
+//!   settings 300-343, version 500-509 with a seeded serial number.
+//! * **Every command** of Rev D chapter 1, answered byte-exactly: 0x02, 0x03,
+//!   0x07, 0x09, 0x0B (PL = 2 + 2n, as protocol-core encodes it), 0x0D, 0x10
+//!   (8-byte echo), 0x11, 0x12, 0x14-0x1C, 0x1D (min / max / default / current
+//!   from the simulator's own table, sensor-dependent for 304, 305, 317, 318),
+//!   0x1E, 0x1F, 0x20. Native replies over 63 payload bytes (0x07, 0x09, 0x11,
+//!   0x12) are split into packets by [`Frame::encode`].
+//! * **Errors**: NACK 0x01 for a bad CRC; NACK 0x00 for an unknown command
+//!   byte, a malformed request (bad option byte, too many registers...), a read
+//!   past register 599, a write outside 300-399 or to a reserved register
+//!   (302, 309, 324-327, 344-399), or a value outside the simulator's min/max.
+//!   A refused write changes nothing (all or nothing per request).
+//! * **Real-unit behaviour** of HARDWARE-NOTES: a sleeping BMS swallows the first
+//!   request (register 114 high byte = 0x03, UART wake-up); 0x02 option 0x05
+//!   gets no ACK and reboots (register 114 low byte = 0x04, software reset);
+//!   323 and 328 read back 0xFFFF once a write was accepted; a write to 340
+//!   reboots; ASCII broadcast lines when 343 = ASCII and 342 ≠ 0.
+//! * **Timing**: each byte takes 10 bits / 115200 = 86.8 µs on the wire, both
+//!   ways ([`wire_time_us`], exact integer math, rounded up to the µs per
+//!   transmission); a reply starts 1-2 ms (seeded) after the last request byte
+//!   arrived, and never overlaps another transmission.
+//! * **Live values** that move with virtual time (see `live.rs`): a current
+//!   profile of discharge / idle / charge phases, SOC integrated over the
+//!   capacity (register 306), cells from an OCV curve + I·R + per-cell offsets +
+//!   noise, registers 40/41 = min/max cell rounded to the mV, pack voltage = sum
+//!   of the cells, drifting temperatures, status from the current sign (0x91 /
+//!   0x93 / 0x97, 0x92 after a full charge, 0x9B with a latched fault), events
+//!   (charger connected, charging started / done, charger disconnected), charge
+//!   counters and statistics maxima. [`SimConfig::live`] = false freezes them.
+//! * **Seeded fault injection** ([`FaultConfig`]): dropped and bit-flipped output
+//!   bytes, truncated / duplicated / delayed replies, lost requests; counted by
+//!   kind in [`SimStats::faults`].
+//!
+//! Determinism: the same profile, config, seed and sequence of calls give the
+//! same bytes at the same times. The live model, the reply latencies and the
+//! faults draw from separate streams derived from the seed, so switching a fault
+//! on does not change the pack's values.
+//!
+//! ## Choices where Rev D and HARDWARE-NOTES are silent
+//!
+//! * **0x11 (newest events)** returns the BMS timestamp and the events logged
+//!   since the previous 0x11 request (since the start of the simulation for the
+//!   first one), oldest first, at most the newest
+//!   [`SimConfig::newest_events_max`] (16 by default). No new event: a reply
+//!   with the timestamp only (PL = 4). 0x12 returns the whole log, oldest first.
+//! * **Event log registers 200-297**: slot 0 (200-201) holds the oldest event,
+//!   slots fill in order; when all 49 are used the oldest is dropped and the
+//!   others move down. Empty slots read 0xFFFF 0xFFFF (erased), also after
+//!   0x02 option 0x01. Event timestamps and the 0x11/0x12 BMS timestamp are the
+//!   lifetime counter (registers 32-33), in seconds.
+//! * **Packet IDs** of multi-packet replies start at 1 (protocol-core's
+//!   encoder); [`SimConfig::first_packet_id`] can start them elsewhere (the real
+//!   unit was seen sending 0x82 first).
+//! * **Reboot** (0x02 option 0x05, write to 340): the BMS goes silent for
+//!   [`SimConfig::boot_time_us`] (1 s by default): bytes received meanwhile are
+//!   ignored, output queued after the reset instant is lost, no broadcast. At
+//!   the end of the boot it logs "System Started" (0x61), register 114 low byte
+//!   reads 0x04 (software reset). Values, settings, statistics, the lifetime
+//!   counter and a latched fault survive. 0x05 is never acknowledged; the reset
+//!   happens one reply latency after the request.
+//! * **Write to 340**: the write is answered first (ACK for 0x0B/0x0D, echo for
+//!   0x10) and the BMS reboots as soon as that reply has left the wire. Any
+//!   accepted write that includes register 340 reboots, even with an unchanged
+//!   value (the harsh choice: a client should not rewrite 340 casually).
+//! * **323 / 328**: read 0xFFFF from the start (as the real unit did) and after
+//!   every accepted write; writing 0xFFFF to them is accepted and changes nothing
+//!   (so a read-modify-write of the whole block goes through). A value takes
+//!   effect at once: 323 sets SOH (register 45), 328 sets SOC (46-47, and the
+//!   live model continues from it), both in 0.002 %.
+//! * **Byte-field settings 331-343**: the low byte is checked against min/max,
+//!   the reserved high byte is stored as written and not checked; 330 has both
+//!   bytes checked (charger type 0-2, timeout 0-30 s). 312-313 are checked as
+//!   one u32 (1-100000) after the whole request is applied. 0x1D reports
+//!   reserved registers as 0 in the min / max / default tables.
+//! * **0x1C** returns register 53's count of cells starting at the profile's
+//!   first cell register (2 on the 14S profile).
+//! * **Unknown command byte**: NACK 0x00 right after `AA <cmd>`; the bytes that
+//!   follow are skipped as garbage until the next 0xAA. A frame with a bad CRC is
+//!   dropped whole (its length is known from the command) and answered NACK
+//!   0x01. A partial request is dropped when the next byte comes more than
+//!   [`SimConfig::idle_gap_us`] (5 ms) after the previous one.
+//! * **Sleep**: UART traffic means bytes from the host; the BMS falls asleep
+//!   [`SimConfig::sleep_after_us`] after the last one (not while rebooting).
+//!   Asleep, it sends nothing (no broadcast either); any byte wakes it, and the
+//!   first complete request after the wake-up (valid or not) gets no reply and
+//!   has no effect. Rev D §1.3: "the response to the command will be sent when it
+//!   receives the command a second time".
+//! * **ASCII broadcasts**: the first line comes one interval after 342/343 were
+//!   set (or after boot), then one per interval; a line due while a binary reply
+//!   is on the wire waits for it, and a reply due while a line is on the wire
+//!   waits for the line, so the two never interleave. See `ascii.rs` for the
+//!   line format.
+//! * **`no_reply` fault**: the request is lost before the BMS sees it (no
+//!   effect), rather than processed with its reply lost; truncation and dropped
+//!   bytes cover lost replies.
+//! * The BMS only transmits while awake, booted and not silenced with
+//!   [`SimBms::set_silent_until`] (bytes due inside a silent window are lost).
+//!
+//! ## Example
+//! ```
+//! use host_tests::sim::{PackProfile, SimBms, SimConfig};
+//! use protocol_core::{Decoder, Request, Response};
+//!
+//! let mut bms = SimBms::new(PackProfile::LiIon_14S, SimConfig::default(), 42);
+//! let req = Request::ReadPackVoltage;
+//! let sent = bms.host_send(0, &req.to_bytes()?);
+//! let mut rx = Vec::new();
+//! bms.take_output(sent + 100_000, &mut rx); // 100 ms later
+//! let mut dec = Decoder::new();
+//! dec.push(&rx);
+//! let frame = dec.poll().ok_or("no reply")??;
+//! let Response::PackVoltage(v) = Response::decode(&req, &frame)? else { panic!() };
+//! assert!((50.0..60.0).contains(&v));
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+#![deny(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::indexing_slicing,
+    clippy::panic
+)]
+
+mod ascii;
+mod config;
+mod live;
+mod profile;
+mod rng;
+mod settings;
+mod stats;
+
+pub use config::{CurrentSensor, FaultConfig, PackProfile, SimConfig};
+pub use profile::REGISTER_COUNT;
+pub use stats::{FaultCounts, SimStats};
+
+use std::collections::VecDeque;
+
+use live::{Live, Params};
+use protocol_core::command::{self as cmd, PREAMBLE};
+use protocol_core::crc::crc16;
+use protocol_core::events::{Event, EventId, OnlineStatus, Severity};
+use protocol_core::frame::{
+    Frame, NackCode, FIRST_PACKET_ID, MAX_PACKET_PAYLOAD, PL_MORE_PACKETS, PL_VALUE_MASK,
+};
+use protocol_core::registers::{EVENTS_FIRST, EVENT_SLOTS};
+use protocol_core::request::{Request, RequestError, ResetOption, SettingsOption};
+use protocol_core::response::{
+    sensor, EventList, ExtendedVersion, RegisterBlock, Response, Temperatures, Version, Words,
+    MAX_EVENTS,
+};
+use rng::Rng;
+
+/// Highest register address that can be read (Rev D §3.5: 510-599 reserved).
+pub const LAST_REGISTER: u16 = (REGISTER_COUNT - 1) as u16;
+
+/// Register 114 (Rev D §3.2): low byte = last reset, high byte = last wake-up.
+const REG_RESET_WAKE: u16 = 114;
+/// Register 114 low byte: software reset.
+const RESET_SOFTWARE: u16 = 0x04;
+/// Register 114 high byte: UART communication detected.
+const WAKE_UART: u16 = 0x03;
+/// Register 340: BMS operation mode; writing it restarts the BMS (HARDWARE-NOTES).
+const REG_OPERATION_MODE: u16 = 340;
+/// Registers 323 / 328 read back this once a write was accepted (Rev D §3.4).
+const ACCEPTED_MARKER: u16 = 0xFFFF;
+/// An erased event slot register.
+const EMPTY_SLOT: u16 = 0xFFFF;
+
+/// Wire time of `bytes` bytes at 115200 baud, 8N1 (10 bits per byte, 86.8 µs),
+/// rounded up to the µs: `bytes · 10 / 115200` s = `bytes · 3125 / 36` µs.
+pub const fn wire_time_us(bytes: u64) -> u64 {
+    (bytes.saturating_mul(3125)).div_ceil(36)
+}
+
+/// Internal timed events, in the order they are handled when due at the same
+/// microsecond.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+enum Ev {
+    BootDone,
+    Reboot,
+    Input,
+    Sleep,
+    Live,
+    Broadcast,
+}
+
+/// The simulated TinyBMS. See the [module documentation](self).
+#[derive(Debug, Clone)]
+pub struct SimBms {
+    profile: PackProfile,
+    config: SimConfig,
+    regs: [u16; REGISTER_COUNT],
+    now: u64,
+
+    // Host -> BMS.
+    input: VecDeque<(u64, u8)>,
+    host_wire_free: u64,
+    rx: Vec<u8>,
+    rx_last: u64,
+    swallow_next: bool,
+    busy_until: u64,
+
+    // BMS -> host: (time the byte has fully arrived, byte), in time order.
+    out: VecDeque<(u64, u8)>,
+    out_free: u64,
+
+    // Power state.
+    asleep: bool,
+    last_traffic: u64,
+    pending_reboot: Option<u64>,
+    boot_until: Option<u64>,
+    silent: Option<(u64, u64)>,
+
+    next_broadcast: Option<u64>,
+
+    live: Live,
+    next_step: u64,
+    fault: Option<EventId>,
+
+    /// (sequence number, event), oldest first, at most [`EVENT_SLOTS`].
+    events: VecDeque<(u64, Event)>,
+    event_seq: u64,
+    newest_read_seq: u64,
+
+    rng_faults: Rng,
+    rng_latency: Rng,
+    stats: SimStats,
+
+    // Test hooks.
+    record: bool,
+    sent_log: Vec<Frame>,
+    ignored_writes: Vec<u16>,
+}
+
+impl SimBms {
+    /// A BMS managing `profile`, configured by `config`; every random choice
+    /// (serial number, live values, latencies, faults) derives from `seed`.
+    pub fn new(profile: PackProfile, config: SimConfig, seed: u64) -> Self {
+        let mut master = Rng::new(seed);
+        let mut rng_serial = master.fork();
+        let rng_live = master.fork();
+        let rng_faults = master.fork();
+        let rng_latency = master.fork();
+        let lifetime = profile::initial_lifetime_s(profile);
+        let mut regs =
+            profile::initial_registers(profile, config.current_sensor, lifetime, &mut rng_serial);
+        let params = Params::from_registers(&regs, false);
+        let live = Live::new(profile, rng_live, params.capacity_ah, lifetime);
+        live.publish(&mut regs, &params);
+        let asleep = config.start_asleep;
+        let mut sim = Self {
+            profile,
+            config,
+            regs,
+            now: 0,
+            input: VecDeque::new(),
+            host_wire_free: 0,
+            rx: Vec::new(),
+            rx_last: 0,
+            swallow_next: false,
+            busy_until: 0,
+            out: VecDeque::new(),
+            out_free: 0,
+            asleep,
+            last_traffic: 0,
+            pending_reboot: None,
+            boot_until: None,
+            silent: None,
+            next_broadcast: None,
+            live,
+            next_step: live::STEP_US,
+            fault: None,
+            events: VecDeque::new(),
+            event_seq: 0,
+            newest_read_seq: 0,
+            rng_faults,
+            rng_latency,
+            stats: SimStats::default(),
+            record: false,
+            sent_log: Vec::new(),
+            ignored_writes: Vec::new(),
+        };
+        for &(ago, id) in profile::HISTORY {
+            sim.push_event(Event {
+                timestamp_s: lifetime.saturating_sub(ago) & Event::MAX_TIMESTAMP,
+                id,
+            });
+        }
+        sim.write_event_registers();
+        sim.reconfigure_broadcast(0);
+        sim
+    }
+
+    // ------------------------------------------------------------------
+    // Public API
+    // ------------------------------------------------------------------
+
+    /// The host starts sending `bytes` at `now_us` (or when its previous bytes
+    /// have left the wire, if later). Each byte reaches the BMS 86.8 µs after the
+    /// previous one. Returns the time the last byte has arrived: advancing to it
+    /// lets the BMS see the whole request.
+    pub fn host_send(&mut self, now_us: u64, bytes: &[u8]) -> u64 {
+        self.advance(now_us);
+        let start = self.now.max(self.host_wire_free);
+        for (k, &b) in bytes.iter().enumerate() {
+            self.input
+                .push_back((start + wire_time_us(k as u64 + 1), b));
+        }
+        let end = start + wire_time_us(bytes.len() as u64);
+        self.host_wire_free = end;
+        end
+    }
+
+    /// Appends to `out`, in order, every byte the BMS has fully put on the wire
+    /// at or before `now_us` (advancing the simulation to `now_us` first).
+    pub fn take_output(&mut self, now_us: u64, out: &mut Vec<u8>) {
+        self.advance(now_us);
+        while let Some(&(t, b)) = self.out.front() {
+            if t > self.now {
+                break;
+            }
+            out.push(b);
+            self.out.pop_front();
+        }
+    }
+
+    /// Time at which the next output byte completes, so a caller can jump
+    /// virtual time. Exact for bytes already scheduled. While a request is still
+    /// arriving (or not yet processed), or a broadcast line is due, it is a
+    /// lower bound: the earliest the reply's / line's first byte can complete
+    /// (end of the request's last byte + the minimum latency + one byte). The
+    /// reply is scheduled once the simulation reaches that point, so
+    /// [`SimBms::take_output`] at that time may return nothing yet (or nothing at
+    /// all: a sleeping BMS, a lost request); ask again. `None`: nothing can come
+    /// out before the host sends more.
+    pub fn next_output_at(&self) -> Option<u64> {
+        let scheduled = self.out.front().map(|&(t, _)| t);
+        let reply = self.pending_frame_end().map(|t| {
+            t.saturating_add(self.config.reply_latency_us.0)
+                .saturating_add(wire_time_us(1))
+        });
+        let line = self
+            .next_broadcast
+            .filter(|_| !self.asleep)
+            .map(|t| t.saturating_add(wire_time_us(1)));
+        [scheduled, reply, line].into_iter().flatten().min()
+    }
+
+    /// Arrival time of the byte that completes the first request (or unknown
+    /// command) among the bytes not processed yet: framing only, no effect.
+    fn pending_frame_end(&self) -> Option<u64> {
+        let mut rx = self.rx.clone();
+        let mut last = self.rx_last;
+        for &(t, b) in &self.input {
+            if !rx.is_empty() && t.saturating_sub(last) > self.config.idle_gap_us {
+                rx.clear();
+            }
+            last = t;
+            rx.push(b);
+            loop {
+                match rx.first() {
+                    Some(&x) if x != PREAMBLE => {
+                        rx.remove(0);
+                    }
+                    _ => break,
+                }
+            }
+            match Request::frame_len(&rx) {
+                Ok(Some(n)) if rx.len() >= n => return Some(t),
+                Err(RequestError::UnknownCommand(_)) => return Some(t),
+                _ => {}
+            }
+        }
+        None
+    }
+
+    /// Earliest time at which anything happens: an output byte completes, an
+    /// input byte arrives, a live-value step (every second when live values are
+    /// on), a broadcast, a sleep, a reboot or the end of one. Advancing to it
+    /// and checking again walks the simulation event by event.
+    pub fn next_event_at(&self) -> Option<u64> {
+        let internal = self.next_internal().map(|(t, _)| t);
+        let output = self.out.front().map(|&(t, _)| t);
+        [internal, output].into_iter().flatten().min()
+    }
+
+    /// Moves the simulation to `now_us`: bytes arrive and are answered, live
+    /// values step, broadcasts go out, the BMS sleeps, reboots... in time order.
+    /// Time never goes back: an earlier `now_us` is ignored.
+    pub fn advance(&mut self, now_us: u64) {
+        let target = now_us.max(self.now);
+        while let Some((t, ev)) = self.next_internal() {
+            if t > target {
+                break;
+            }
+            let t = t.max(self.now);
+            self.now = t;
+            self.handle(ev, t);
+        }
+        self.now = target;
+    }
+
+    /// The simulation's present time, µs.
+    pub fn now_us(&self) -> u64 {
+        self.now
+    }
+
+    /// Register `addr` as the BMS holds it (0 beyond 599).
+    pub fn register(&self, addr: u16) -> u16 {
+        self.regs.get(usize::from(addr)).copied().unwrap_or(0)
+    }
+
+    /// The whole register file.
+    pub fn registers(&self) -> &[u16; REGISTER_COUNT] {
+        &self.regs
+    }
+
+    /// Sets register `addr` (ignored beyond 599), bypassing every check. With
+    /// live values on, the live registers (0-55 except 45, statistics maxima,
+    /// event slots) are rewritten by the model at its next step; freeze them with
+    /// [`SimConfig::live`] = false. Setting 342/343 restarts the broadcast timer.
+    pub fn set_register(&mut self, addr: u16, v: u16) {
+        if let Some(r) = self.regs.get_mut(usize::from(addr)) {
+            *r = v;
+        }
+        if addr == 342 || addr == 343 {
+            self.reconfigure_broadcast(self.now);
+        }
+    }
+
+    /// Test hook: change the configuration while running (e.g. the current sensor,
+    /// which changes the settings limits the BMS enforces and reports).
+    pub fn config_mut(&mut self) -> &mut SimConfig {
+        &mut self.config
+    }
+
+    /// Test hook: keep a copy of every frame the BMS sends, as built, before any
+    /// fault is applied — the ground truth a test compares decoded values with.
+    pub fn record_frames(&mut self, on: bool) {
+        self.record = on;
+    }
+
+    /// The frames recorded since [`SimBms::record_frames`] was turned on.
+    pub fn sent_frames(&self) -> &[Frame] {
+        &self.sent_log
+    }
+
+    /// Test hook: writes to `addr` are checked and acknowledged as usual but not
+    /// stored (a BMS that silently keeps its old value), so a read-back differs.
+    pub fn ignore_writes_to(&mut self, addr: u16) {
+        self.ignored_writes.push(addr);
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> &SimStats {
+        &self.stats
+    }
+
+    /// True while the BMS sleeps (the next request only wakes it).
+    pub fn is_asleep(&self) -> bool {
+        self.asleep
+    }
+
+    /// True while the BMS reboots (silent, ignoring input).
+    pub fn is_rebooting(&self) -> bool {
+        self.boot_until.is_some()
+    }
+
+    /// The BMS behaves as disconnected from now until `t_us`: it ignores input
+    /// and its output due in that window is lost. The pack keeps living.
+    pub fn set_silent_until(&mut self, t_us: u64) {
+        let from = self.now;
+        self.silent = Some((from, t_us));
+        self.out.retain(|&(ts, _)| ts <= from || ts >= t_us);
+        self.rx.clear();
+    }
+
+    /// Logs `id` in the event log now. A fault-class event (IDs 0x01-0x30)
+    /// also latches a fault: status 0x9B, switches open (no current), the
+    /// matching statistics counter (105-109) incremented, until
+    /// [`SimBms::clear_fault`].
+    pub fn inject_fault_event(&mut self, id: EventId) {
+        self.log_event(id);
+        if id.severity() == Severity::Fault {
+            self.fault = Some(id);
+            let counter = match id {
+                EventId::UnderVoltageCutoff => Some(105),
+                EventId::OverVoltageCutoff => Some(106),
+                EventId::DischargingOverCurrentCutoff => Some(107),
+                EventId::ChargingOverCurrentCutoff => Some(108),
+                EventId::OverTemperatureCutoff => Some(109),
+                _ => None,
+            };
+            if let Some(a) = counter {
+                self.set_reg(a, self.register(a).saturating_add(1));
+            }
+            self.set_reg(50, live::STATUS_FAULT);
+        }
+    }
+
+    /// Clears a latched fault, logging the matching "Recovered From ..." event
+    /// when Rev D chapter 4 has one.
+    pub fn clear_fault(&mut self) {
+        if let Some(id) = self.fault.take() {
+            let recovered = match id {
+                EventId::UnderVoltageCutoff => Some(EventId::RecoveredUnderVoltage),
+                EventId::OverVoltageCutoff => Some(EventId::RecoveredOverVoltage),
+                EventId::OverTemperatureCutoff => Some(EventId::RecoveredOverTemperature),
+                EventId::DischargingOverCurrentCutoff => {
+                    Some(EventId::RecoveredDischargingOverCurrent)
+                }
+                EventId::ChargingOverCurrentCutoff => Some(EventId::RecoveredChargingOverCurrent),
+                EventId::RegenerationOverCurrentCutoff => {
+                    Some(EventId::RecoveredRegenerationOverCurrent)
+                }
+                EventId::LowTemperatureCutoff => Some(EventId::RecoveredLowTemperatureFault),
+                _ => None,
+            };
+            if let Some(r) = recovered {
+                self.log_event(r);
+            }
+            self.set_reg(50, self.live.status(false));
+        }
+    }
+
+    /// The latched fault, if any.
+    pub fn fault(&self) -> Option<EventId> {
+        self.fault
+    }
+
+    /// The event log, oldest first (what 0x12 returns).
+    pub fn events(&self) -> Vec<Event> {
+        self.events.iter().map(|&(_, e)| e).collect()
+    }
+
+    /// What 0x1D returns for `option`: registers 300-399.
+    pub fn settings_values(&self, option: SettingsOption) -> [u16; 100] {
+        let mut v = [0u16; 100];
+        for (i, x) in v.iter_mut().enumerate() {
+            let addr = 300 + i as u16;
+            let spec = settings::spec(addr, self.config.current_sensor);
+            *x = match (option, spec) {
+                (SettingsOption::Current, _) => self.register(addr),
+                (_, None) => 0,
+                (_, Some(s)) if s.kind == settings::Kind::Reserved => 0,
+                (SettingsOption::Min, Some(s)) => s.min,
+                (SettingsOption::Max, Some(s)) => s.max,
+                (SettingsOption::Default, Some(s)) => s.default,
+            };
+        }
+        v
+    }
+
+    /// The pack profile.
+    pub fn profile(&self) -> PackProfile {
+        self.profile
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &SimConfig {
+        &self.config
+    }
+
+    // ------------------------------------------------------------------
+    // Event loop
+    // ------------------------------------------------------------------
+
+    fn sleep_at(&self) -> Option<u64> {
+        if self.asleep || self.boot_until.is_some() {
+            return None;
+        }
+        self.config
+            .sleep_after_us
+            .map(|d| self.last_traffic.saturating_add(d))
+    }
+
+    fn next_internal(&self) -> Option<(u64, Ev)> {
+        let candidates = [
+            (self.boot_until, Ev::BootDone),
+            (self.pending_reboot, Ev::Reboot),
+            (self.input.front().map(|&(t, _)| t), Ev::Input),
+            (self.sleep_at(), Ev::Sleep),
+            (self.config.live.then_some(self.next_step), Ev::Live),
+            (self.next_broadcast, Ev::Broadcast),
+        ];
+        candidates
+            .iter()
+            .filter_map(|&(t, e)| t.map(|t| (t, e)))
+            .min()
+    }
+
+    fn handle(&mut self, ev: Ev, t: u64) {
+        match ev {
+            Ev::BootDone => self.finish_boot(t),
+            Ev::Reboot => self.begin_reboot(t),
+            Ev::Input => {
+                if let Some((_, b)) = self.input.pop_front() {
+                    self.on_byte(t, b);
+                }
+            }
+            Ev::Sleep => {
+                self.asleep = true;
+                self.stats.sleeps += 1;
+                self.rx.clear();
+            }
+            Ev::Live => self.live_step(),
+            Ev::Broadcast => self.broadcast(t),
+        }
+    }
+
+    fn silent_at(&self, t: u64) -> bool {
+        matches!(self.silent, Some((from, until)) if from <= t && t < until)
+    }
+
+    fn live_step(&mut self) {
+        self.next_step = self.next_step.saturating_add(live::STEP_US);
+        let params = Params::from_registers(&self.regs, self.fault.is_some());
+        let mut events = Vec::new();
+        self.live.step(&params, &mut events);
+        self.live.publish(&mut self.regs, &params);
+        for id in events {
+            match id {
+                EventId::ChargingStarted => self.set_reg(111, self.register(111).saturating_add(1)),
+                EventId::ChargingDone => self.set_reg(112, self.register(112).saturating_add(1)),
+                _ => {}
+            }
+            self.log_event(id);
+        }
+    }
+
+    fn begin_reboot(&mut self, t: u64) {
+        self.pending_reboot = None;
+        self.boot_until = Some(t.saturating_add(self.config.boot_time_us));
+        self.stats.reboots += 1;
+        self.rx.clear();
+        self.swallow_next = false;
+        self.asleep = false;
+        self.next_broadcast = None;
+        // The UART stops mid-byte: what was still to be sent is lost.
+        self.out.retain(|&(ts, _)| ts <= t);
+        self.out_free = self.out_free.min(t);
+        let r = self.register(REG_RESET_WAKE);
+        self.set_reg(REG_RESET_WAKE, (r & 0xFF00) | RESET_SOFTWARE);
+    }
+
+    fn finish_boot(&mut self, t: u64) {
+        self.boot_until = None;
+        self.last_traffic = t;
+        self.log_event(EventId::SystemStarted);
+        self.reconfigure_broadcast(t);
+    }
+
+    fn reconfigure_broadcast(&mut self, t: u64) {
+        self.next_broadcast = if self.boot_until.is_some() {
+            None
+        } else {
+            ascii::active_interval(&self.regs).map(|iv| t.saturating_add(iv))
+        };
+    }
+
+    fn can_transmit(&self, t: u64) -> bool {
+        !self.asleep && self.boot_until.is_none() && !self.silent_at(t)
+    }
+
+    fn broadcast(&mut self, t: u64) {
+        let Some(iv) = ascii::active_interval(&self.regs) else {
+            self.next_broadcast = None;
+            return;
+        };
+        self.next_broadcast = Some(t.saturating_add(iv));
+        if self.can_transmit(t) {
+            let line = ascii::line(&self.regs);
+            let start = t.max(self.out_free);
+            self.transmit(start, &line);
+            self.stats.broadcasts += 1;
+        }
+    }
+
+    // ------------------------------------------------------------------
+    // Receiving
+    // ------------------------------------------------------------------
+
+    fn on_byte(&mut self, t: u64, b: u8) {
+        self.stats.bytes_received += 1;
+        if self.silent_at(t) || self.boot_until.is_some() {
+            self.stats.bytes_ignored += 1;
+            return;
+        }
+        self.last_traffic = t;
+        if self.asleep {
+            self.asleep = false;
+            self.stats.wakeups += 1;
+            let r = self.register(REG_RESET_WAKE);
+            self.set_reg(REG_RESET_WAKE, (r & 0x00FF) | (WAKE_UART << 8));
+            self.swallow_next = true;
+            self.rx.clear();
+        }
+        if !self.rx.is_empty() && t.saturating_sub(self.rx_last) > self.config.idle_gap_us {
+            self.stats.partial_requests_dropped += 1;
+            self.rx.clear();
+        }
+        self.rx_last = t;
+        self.rx.push(b);
+        self.scan(t);
+    }
+
+    /// Frames the receive buffer: resynchronises on the preamble one byte at a
+    /// time, hands complete frames on.
+    fn scan(&mut self, t: u64) {
+        loop {
+            let Some(&first) = self.rx.first() else {
+                return;
+            };
+            if first != PREAMBLE {
+                self.rx.remove(0);
+                self.stats.garbage_bytes += 1;
+                continue;
+            }
+            match Request::frame_len(&self.rx) {
+                Ok(None) => return,
+                Ok(Some(n)) => {
+                    if self.rx.len() < n {
+                        return;
+                    }
+                    let frame: Vec<u8> = self.rx.drain(..n).collect();
+                    let command = frame.get(1).copied().unwrap_or(0);
+                    let parsed = Request::parse(&frame).map_err(|e| match e {
+                        RequestError::Crc { .. } => NackCode::CrcError,
+                        _ => NackCode::CommandError,
+                    });
+                    self.on_request(t, command, parsed);
+                }
+                Err(RequestError::UnknownCommand(c)) => {
+                    self.rx.drain(..2.min(self.rx.len()));
+                    self.on_request(t, c, Err(NackCode::CommandError));
+                }
+                Err(_) => {
+                    self.rx.remove(0);
+                    self.stats.garbage_bytes += 1;
+                }
+            }
+        }
+    }
+
+    fn on_request(&mut self, t: u64, command: u8, parsed: Result<Request, NackCode>) {
+        self.stats.requests += 1;
+        *self.stats.requests_by_command.entry(command).or_insert(0) += 1;
+        if self.swallow_next {
+            self.swallow_next = false;
+            self.stats.wake_requests += 1;
+            return;
+        }
+        if t < self.busy_until {
+            self.stats.busy_ignored += 1;
+            return;
+        }
+        if self.rng_faults.chance(self.config.faults.no_reply) {
+            self.stats.faults.no_reply += 1;
+            return;
+        }
+        match parsed {
+            Err(code) => {
+                self.send_frame(t, &Frame::Nack { command, code });
+            }
+            Ok(req) => self.execute(t, &req),
+        }
+    }
+
+    // ------------------------------------------------------------------
+    // Commands
+    // ------------------------------------------------------------------
+
+    fn execute(&mut self, t: u64, req: &Request) {
+        let command = req.command();
+        let nack = Frame::Nack {
+            command,
+            code: NackCode::CommandError,
+        };
+        let ack = Frame::Ack { command };
+        let response = match req {
+            Request::ResetClear(ResetOption::ClearEvents) => {
+                self.clear_events();
+                self.send_frame(t, &ack);
+                return;
+            }
+            Request::ResetClear(ResetOption::ClearStatistics) => {
+                self.clear_statistics();
+                self.send_frame(t, &ack);
+                return;
+            }
+            Request::ResetClear(ResetOption::ResetBms) => {
+                // HARDWARE-NOTES: the ACK never comes.
+                let latency = self.draw_latency();
+                self.pending_reboot = Some(t.saturating_add(latency));
+                return;
+            }
+            Request::ReadRegisters { start, count }
+            | Request::ReadRegistersNative { start, count } => self
+                .block(*start, usize::from(*count))
+                .map(Response::Registers),
+            Request::ReadIndividual(addresses) => {
+                let mut pairs = heapless::Vec::new();
+                let mut ok = true;
+                for &a in addresses {
+                    match self.regs.get(usize::from(a)) {
+                        Some(&v) if pairs.push((a, v)).is_ok() => {}
+                        _ => ok = false,
+                    }
+                }
+                ok.then_some(Response::Individual(pairs))
+            }
+            Request::WriteRegistersNative { start, values } => {
+                let writes = consecutive(*start, values);
+                return self.write(t, &writes, ack, nack);
+            }
+            Request::WriteIndividual(pairs) => {
+                return self.write(t, pairs, ack, nack);
+            }
+            Request::WriteRegisters { start, values } => {
+                let writes = consecutive(*start, values);
+                let echo = Response::WriteEcho {
+                    start: *start,
+                    count: values.len() as u8,
+                }
+                .to_frame(req);
+                match echo {
+                    Ok(echo) => return self.write(t, &writes, echo, nack),
+                    Err(_) => None,
+                }
+            }
+            Request::ReadNewestEvents => Some(Response::Events(self.event_list(true))),
+            Request::ReadAllEvents => Some(Response::Events(self.event_list(false))),
+            Request::ReadPackVoltage => Some(Response::PackVoltage(self.f32_at(36))),
+            Request::ReadPackCurrent => Some(Response::PackCurrent(self.f32_at(38))),
+            Request::ReadMaxCellVoltage => Some(Response::MaxCellVoltage(self.register(41))),
+            Request::ReadMinCellVoltage => Some(Response::MinCellVoltage(self.register(40))),
+            Request::ReadOnlineStatus => Some(Response::OnlineStatus(OnlineStatus::from_raw(
+                self.register(50),
+            ))),
+            Request::ReadLifetime => Some(Response::Lifetime(self.u32_at(32))),
+            Request::ReadSoc => Some(Response::Soc(self.u32_at(46))),
+            Request::ReadTemperatures => Some(Response::Temperatures(Temperatures {
+                internal_dc: self.register(48) as i16,
+                external1_dc: sensor(self.register(42) as i16),
+                external2_dc: sensor(self.register(43) as i16),
+            })),
+            Request::ReadCellVoltages => Some(Response::CellVoltages(self.cells())),
+            Request::ReadSettings { option, count } => {
+                let table = self.settings_values(*option);
+                let mut values = Words::new();
+                let mut ok = true;
+                for &v in table.iter().take(usize::from(*count)) {
+                    ok &= values.push(v).is_ok();
+                }
+                ok.then_some(Response::Settings {
+                    option: *option,
+                    values: RegisterBlock {
+                        start: cmd::SETTINGS_FIRST_REGISTER,
+                        values,
+                    },
+                })
+            }
+            Request::ReadVersion => Some(Response::Version(self.version())),
+            Request::ReadExtendedVersion => {
+                let [bootloader, register_map] = self.register(503).to_le_bytes();
+                Some(Response::ExtendedVersion(ExtendedVersion {
+                    version: self.version(),
+                    bootloader,
+                    register_map,
+                }))
+            }
+            Request::ReadSpeedDistanceTime => Some(Response::SpeedDistanceTime {
+                speed_kmh: self.f32_at(54),
+                distance_left_km: u32::from(self.register(44)),
+                time_left_s: self.u32_at(34),
+            }),
+        };
+        let frame = match response.map(|r| r.to_frame(req)) {
+            Some(Ok(f)) => f,
+            Some(Err(_)) => {
+                self.stats.encode_errors += 1;
+                return;
+            }
+            None => nack,
+        };
+        self.send_frame(t, &frame);
+    }
+
+    /// Applies a write request all-or-nothing, answers `ok` or `refused`, and
+    /// runs the side effects (323/328 markers, broadcast settings, 340 reboot).
+    fn write(&mut self, t: u64, writes: &[(u16, u16)], ok: Frame, refused: Frame) {
+        let sensor = self.config.current_sensor;
+        let mut candidate = self.regs;
+        for &(a, v) in writes {
+            match candidate.get_mut(usize::from(a)) {
+                Some(r) if cmd::WRITABLE.contains(&a) => *r = v,
+                _ => {
+                    self.send_frame(t, &refused);
+                    return;
+                }
+            }
+        }
+        if writes
+            .iter()
+            .any(|&(a, _)| settings::check(a, &candidate, sensor).is_err())
+        {
+            self.send_frame(t, &refused);
+            return;
+        }
+        let mut reboot = false;
+        let mut broadcast = false;
+        for &(a, v) in writes {
+            match a {
+                323 => {
+                    if v != ACCEPTED_MARKER {
+                        self.set_reg(45, v);
+                    }
+                    self.set_reg(323, ACCEPTED_MARKER);
+                }
+                328 => {
+                    if v != ACCEPTED_MARKER {
+                        // 0.002 % -> 0.000001 %.
+                        let soc = u32::from(v) * 2000;
+                        self.set_reg(46, soc as u16);
+                        self.set_reg(47, (soc >> 16) as u16);
+                        self.live.set_soc(f64::from(v) * 0.002);
+                    }
+                    self.set_reg(328, ACCEPTED_MARKER);
+                }
+                _ if self.ignored_writes.contains(&a) => {}
+                _ => self.set_reg(a, v),
+            }
+            reboot |= a == REG_OPERATION_MODE;
+            broadcast |= a == 342 || a == 343;
+        }
+        if broadcast {
+            self.reconfigure_broadcast(t);
+        }
+        self.busy_until = t.saturating_add(self.config.settle_after_write_us);
+        let end = self.send_frame(t, &ok);
+        if reboot {
+            self.pending_reboot = Some(end.unwrap_or(t));
+        }
+    }
+
+    fn block(&self, start: u16, count: usize) -> Option<RegisterBlock> {
+        let first = usize::from(start);
+        let regs = self.regs.get(first..first.checked_add(count)?)?;
+        if regs.is_empty() {
+            return None;
+        }
+        let values = Words::from_slice(regs).ok()?;
+        Some(RegisterBlock { start, values })
+    }
+
+    fn cells(&self) -> heapless::Vec<u16, { protocol_core::registers::MAX_CELLS }> {
+        let max = protocol_core::registers::MAX_CELLS;
+        let n = usize::from(self.register(53)).min(max);
+        let first = usize::from(self.profile.first_cell_register()).min(max - n);
+        let mut cells = heapless::Vec::new();
+        for &c in self.regs.iter().skip(first).take(n) {
+            if cells.push(c).is_err() {
+                break; // n <= MAX_CELLS: cannot happen
+            }
+        }
+        cells
+    }
+
+    fn version(&self) -> Version {
+        let [hardware, hardware_changes] = self.register(500).to_le_bytes();
+        Version {
+            hardware,
+            hardware_changes,
+            firmware_public: self.register(501) as u8,
+            firmware_internal: self.register(502),
+        }
+    }
+
+    fn u32_at(&self, a: u16) -> u32 {
+        u32::from(self.register(a)) | (u32::from(self.register(a + 1)) << 16)
+    }
+
+    fn f32_at(&self, a: u16) -> f32 {
+        f32::from_bits(self.u32_at(a))
+    }
+
+    fn set_reg(&mut self, a: u16, v: u16) {
+        if let Some(r) = self.regs.get_mut(usize::from(a)) {
+            *r = v;
+        }
+    }
+
+    fn draw_latency(&mut self) -> u64 {
+        let (lo, hi) = self.config.reply_latency_us;
+        self.rng_latency.range_u64(lo, hi)
+    }
+
+    // ------------------------------------------------------------------
+    // Events and statistics
+    // ------------------------------------------------------------------
+
+    fn lifetime(&self) -> u32 {
+        self.u32_at(32)
+    }
+
+    fn push_event(&mut self, e: Event) {
+        self.event_seq += 1;
+        self.events.push_back((self.event_seq, e));
+        while self.events.len() > EVENT_SLOTS {
+            self.events.pop_front();
+        }
+    }
+
+    fn log_event(&mut self, id: EventId) {
+        let timestamp_s = self.lifetime() & Event::MAX_TIMESTAMP;
+        self.push_event(Event { timestamp_s, id });
+        self.stats.events_logged += 1;
+        self.write_event_registers();
+    }
+
+    /// Mirrors the log into registers 200-297 (Rev D §3.3): first register =
+    /// timestamp bits 0-15, second = bits 16-23 (low byte) and the ID (high byte).
+    fn write_event_registers(&mut self) {
+        for slot in 0..EVENT_SLOTS {
+            let (first, second) = match self.events.get(slot) {
+                Some(&(_, e)) => {
+                    let [t0, t1, t2, id] = e.to_bytes();
+                    (u16::from_le_bytes([t0, t1]), u16::from_le_bytes([t2, id]))
+                }
+                None => (EMPTY_SLOT, EMPTY_SLOT),
+            };
+            let a = EVENTS_FIRST + 2 * slot as u16;
+            self.set_reg(a, first);
+            self.set_reg(a + 1, second);
+        }
+    }
+
+    fn clear_events(&mut self) {
+        self.events.clear();
+        self.newest_read_seq = self.event_seq;
+        self.write_event_registers();
+    }
+
+    fn clear_statistics(&mut self) {
+        for a in 100..=112 {
+            self.set_reg(a, 0);
+        }
+        let t = self.live.pack_temp_c() as u8;
+        self.set_reg(113, u16::from_le_bytes([t, t]));
+        let now = self.lifetime();
+        self.set_reg(116, now as u16);
+        self.set_reg(117, (now >> 16) as u16);
+    }
+
+    fn event_list(&mut self, newest_only: bool) -> EventList {
+        let mut chosen: Vec<Event> = self
+            .events
+            .iter()
+            .filter(|&&(seq, _)| !newest_only || seq > self.newest_read_seq)
+            .map(|&(_, e)| e)
+            .collect();
+        if newest_only {
+            let keep = self.config.newest_events_max.min(MAX_EVENTS);
+            let skip = chosen.len().saturating_sub(keep);
+            chosen.drain(..skip);
+            self.newest_read_seq = self.event_seq;
+        }
+        let mut events = heapless::Vec::new();
+        for e in chosen {
+            // At most EVENT_SLOTS (49) <= MAX_EVENTS (63) events: always fits.
+            if events.push(e).is_err() {
+                break;
+            }
+        }
+        EventList {
+            bms_timestamp_s: self.lifetime(),
+            events,
+        }
+    }
+
+    // ------------------------------------------------------------------
+    // Transmitting
+    // ------------------------------------------------------------------
+
+    /// Encodes `frame` with protocol-core, applies the reply faults and queues
+    /// it one latency after `t`. Returns the time its last byte leaves the wire.
+    fn send_frame(&mut self, t: u64, frame: &Frame) -> Option<u64> {
+        let mut buf = match frame.encoded_len() {
+            Ok(n) => vec![0u8; n],
+            Err(_) => {
+                self.stats.encode_errors += 1;
+                return None;
+            }
+        };
+        match frame.encode(&mut buf) {
+            Ok(n) => buf.truncate(n),
+            Err(_) => {
+                self.stats.encode_errors += 1;
+                return None;
+            }
+        }
+        self.stats.replies += 1;
+        if self.record {
+            self.sent_log.push(frame.clone());
+        }
+        match frame {
+            Frame::Ack { .. } => self.stats.acks += 1,
+            Frame::Nack {
+                code: NackCode::CrcError,
+                ..
+            } => self.stats.nacks_crc += 1,
+            Frame::Nack { .. } => self.stats.nacks_command += 1,
+            Frame::Data { command, .. } => {
+                self.stats.data_replies += 1;
+                if cmd::is_packetized(*command) && self.config.first_packet_id != FIRST_PACKET_ID {
+                    renumber_packets(&mut buf, self.config.first_packet_id);
+                }
+            }
+        }
+        let faults = self.config.faults;
+        let mut start = t.saturating_add(self.draw_latency());
+        if self.rng_faults.chance(faults.delay) {
+            self.stats.faults.delayed += 1;
+            start = start.saturating_add(faults.delay_us);
+        }
+        if buf.len() > 1 && self.rng_faults.chance(faults.truncate) {
+            self.stats.faults.truncated += 1;
+            let keep = 1 + self.rng_faults.below(buf.len() as u64 - 1) as usize;
+            buf.truncate(keep);
+        }
+        if self.rng_faults.chance(faults.duplicate) {
+            self.stats.faults.duplicated += 1;
+            buf.extend_from_within(..);
+        }
+        let start = start.max(self.out_free);
+        Some(self.transmit(start, &buf))
+    }
+
+    /// Puts `bytes` on the wire from `start`, applying the byte faults. Returns
+    /// the time the last byte has left.
+    fn transmit(&mut self, start: u64, bytes: &[u8]) -> u64 {
+        let faults = self.config.faults;
+        for (k, &b) in bytes.iter().enumerate() {
+            let at = start.saturating_add(wire_time_us(k as u64 + 1));
+            if self.silent_at(at) {
+                continue;
+            }
+            if self.rng_faults.chance(faults.drop_byte) {
+                self.stats.faults.dropped_bytes += 1;
+                continue;
+            }
+            let mut b = b;
+            if self.rng_faults.chance(faults.bit_flip) {
+                self.stats.faults.bit_flips += 1;
+                b ^= 1 << self.rng_faults.below(8);
+            }
+            self.out.push_back((at, b));
+            self.stats.bytes_sent += 1;
+        }
+        let end = start.saturating_add(wire_time_us(bytes.len() as u64));
+        self.out_free = self.out_free.max(end);
+        end
+    }
+}
+
+/// (address, value) pairs of a block write.
+fn consecutive(start: u16, values: &[u16]) -> Vec<(u16, u16)> {
+    values
+        .iter()
+        .enumerate()
+        .map(|(i, &v)| (start.wrapping_add(i as u16), v))
+        .collect()
+}
+
+/// Renumbers the non-last packets of an encoded multi-packet reply from
+/// `first_id` (and recomputes their CRCs).
+fn renumber_packets(buf: &mut [u8], first_id: u8) {
+    const PACKET: usize = 3 + MAX_PACKET_PAYLOAD + 2;
+    let mut pos = 0usize;
+    let mut id = first_id;
+    while let Some(&pl) = buf.get(pos + 2) {
+        if pl & PL_MORE_PACKETS == 0 {
+            break;
+        }
+        let Some(packet) = buf.get_mut(pos..pos + PACKET) else {
+            break;
+        };
+        if let Some(p) = packet.get_mut(2) {
+            *p = PL_MORE_PACKETS | (id & PL_VALUE_MASK);
+        }
+        let crc = crc16(packet.get(..PACKET - 2).unwrap_or(&[])).to_le_bytes();
+        if let Some(c) = packet.get_mut(PACKET - 2..) {
+            c.copy_from_slice(&crc);
+        }
+        pos += PACKET;
+        id = id.wrapping_add(1);
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::indexing_slicing)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn wire_time_is_86_8_us_per_byte() {
+        assert_eq!(wire_time_us(0), 0);
+        assert_eq!(wire_time_us(1), 87); // 86.806
+        assert_eq!(wire_time_us(36), 3125); // exact
+        assert_eq!(wire_time_us(11_520), 1_000_000); // 1 s = 11520 bytes
+    }
+
+    #[test]
+    fn renumbering_keeps_frames_valid() {
+        let payload: Vec<u8> = (0..90u8).collect();
+        let f = Frame::data(cmd::READ_BLOCK, &payload).unwrap();
+        let mut b = vec![0u8; f.encoded_len().unwrap()];
+        f.encode(&mut b).unwrap();
+        renumber_packets(&mut b, 2);
+        assert_eq!(b[2], 0x82);
+        assert_eq!(crc16(&b[..66]).to_le_bytes(), [b[66], b[67]]);
+        assert_eq!(b[70], 27);
+    }
+}

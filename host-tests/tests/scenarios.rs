@@ -1,0 +1,584 @@
+//! The firmware's bridge logic against the simulated TinyBMS, in virtual time: the
+//! scenarios of the firmware issue. Each runs the real `tinybms_firmware::Bridge`
+//! through `host_tests::harness::Harness` (the same loop as the chip shell).
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    clippy::indexing_slicing
+)]
+
+use host_tests::harness::Harness;
+use host_tests::sim::{CurrentSensor, FaultConfig, PackProfile, SimBms, SimConfig};
+use protocol_core::events::{EventId, OnlineStatus};
+use protocol_core::frame::Frame;
+use protocol_core::request::Request;
+use protocol_core::response::Response;
+use protocol_core::settings::{Setting, SettingError, SettingId};
+use protocol_core::views::LiveSnapshot;
+use tinybms_firmware::report::WriteOutcome;
+use tinybms_firmware::{Command, Level, Report};
+
+const S: u64 = 1_000_000;
+
+fn harness(profile: PackProfile, config: SimConfig, seed: u64) -> Harness {
+    let mut sim = SimBms::new(profile, config, seed);
+    sim.record_frames(true);
+    Harness::new(sim)
+}
+
+fn writes(h: &Harness) -> Vec<(SettingId, i32, WriteOutcome)> {
+    h.log
+        .iter()
+        .filter_map(|l| match &l.report {
+            Report::Write { setting, outcome } => Some((setting.id, setting.value, *outcome)),
+            _ => None,
+        })
+        .collect()
+}
+
+fn count(h: &Harness, f: impl Fn(&Report) -> bool) -> usize {
+    h.log.iter().filter(|l| f(&l.report)).count()
+}
+
+fn group(items: &[(SettingId, i32)]) -> Command {
+    Command::ApplySettings(
+        items
+            .iter()
+            .map(|&(id, value)| Setting { id, value })
+            .collect(),
+    )
+}
+
+fn write_requests(h: &Harness) -> u64 {
+    let by = &h.sim.stats().requests_by_command;
+    [0x0B, 0x0D, 0x10]
+        .iter()
+        .map(|c| by.get(c).copied().unwrap_or(0))
+        .sum()
+}
+
+/// Every published snapshot must be exactly one the simulated BMS really sent
+/// (decoded from its clean, pre-fault frames), in order.
+fn assert_published_are_genuine(h: &Harness) {
+    let live = Request::read_registers(0, 56).unwrap();
+    let genuine: Vec<LiveSnapshot> = h
+        .sim
+        .sent_frames()
+        .iter()
+        .filter(|f| matches!(f, Frame::Data { command: 0x03, payload, .. } if payload.len() == 112))
+        .filter_map(|f| match Response::decode(&live, f) {
+            Ok(Response::Registers(b)) => LiveSnapshot::from_registers(&b).ok(),
+            _ => None,
+        })
+        .collect();
+    let mut j = 0;
+    for (at, snap) in &h.published {
+        while j < genuine.len() && genuine[j] != *snap {
+            j += 1;
+        }
+        assert!(
+            j < genuine.len(),
+            "snapshot published at {at} µs was never sent by the BMS: {snap:?}"
+        );
+    }
+}
+
+#[test]
+fn cold_start_with_a_sleeping_bms() {
+    let mut h = harness(
+        PackProfile::LiFePO4_16S,
+        SimConfig::default().with_start_asleep(true),
+        1,
+    );
+    h.run_until(5 * S);
+    let s = h.bridge.link_stats();
+    assert_eq!(s.wakeup_resends, 1, "{s:?}");
+    assert_eq!(h.sim.stats().wakeups, 1);
+    assert_eq!(
+        count(&h, |r| matches!(r, Report::Ready { series_cells: 16 })),
+        1
+    );
+    assert_eq!(count(&h, |r| matches!(r, Report::Version(_))), 1);
+    assert!(h.published.len() >= 18, "{}", h.published.len());
+    assert_eq!(
+        count(&h, |r| matches!(
+            r,
+            Report::LinkError { .. } | Report::Offline { .. }
+        )),
+        0
+    );
+    // Only the first request was sent twice: every other one once.
+    assert_eq!(
+        h.sim.stats().requests,
+        u64::from(s.requests + s.wakeup_resends)
+    );
+    assert_eq!(s.retries, 0);
+    assert_eq!(s.requests, s.replies);
+    // Register 114's high byte says the UART woke it.
+    assert_eq!(h.sim.register(114) >> 8, 0x03);
+    assert_published_are_genuine(&h);
+}
+
+#[test]
+fn an_awake_bms_gets_every_request_exactly_once() {
+    let mut h = harness(PackProfile::LiIon_14S, SimConfig::default(), 2);
+    h.run_until(60 * S);
+    let s = h.bridge.link_stats();
+    assert_eq!(u64::from(s.requests), h.sim.stats().requests);
+    assert_eq!(s.wakeup_resends + s.retries + s.timeouts, 0, "{s:?}");
+    assert!(h.published.len() >= 235);
+    // 14S pack, cells in registers 2-15.
+    let (_, last) = h.published.last().unwrap();
+    assert_eq!((last.cells.first_register, last.cells.raw.len()), (2, 14));
+    let sum: f32 = last.cells.raw.iter().map(|&c| f32::from(c) * 1e-4).sum();
+    assert!(
+        (sum - last.pack_voltage_v).abs() < 0.01,
+        "{sum} vs {}",
+        last.pack_voltage_v
+    );
+    assert_eq!(last.external2_dc, None);
+    // Snapshot age is known to readers.
+    let t = h.bridge.telemetry();
+    assert!(t.ready && t.online);
+    assert!(t.snapshot_age_us(h.now).unwrap() <= 250_000);
+    assert_published_are_genuine(&h);
+}
+
+#[test]
+fn hours_of_polling_with_1_percent_byte_corruption() {
+    let faults = FaultConfig {
+        drop_byte: 0.005,
+        bit_flip: 0.005,
+        ..FaultConfig::NONE
+    };
+    let mut h = harness(
+        PackProfile::LiFePO4_16S,
+        SimConfig::default().with_faults(faults),
+        3,
+    );
+    h.run_until(2 * 3600 * S);
+    let s = h.bridge.link_stats();
+    // The line really was bad, and the link recovered every time.
+    assert!(h.sim.stats().faults.bit_flips > 10_000 && h.sim.stats().faults.dropped_bytes > 10_000);
+    assert!(
+        s.crc_errors > 5_000 && s.framing_errors > 5_000 && s.retries > 10_000,
+        "{s:?}"
+    );
+    assert!(s.skipped_bytes > 100_000);
+    // Corruption is not absence: never offline.
+    assert_eq!(count(&h, |r| matches!(r, Report::Offline { .. })), 0);
+    // Still a steady flow of snapshots (at least 1.5 per second of the 4 asked).
+    assert!(
+        h.published.len() > 2 * 3600 * 3 / 2,
+        "{}",
+        h.published.len()
+    );
+    // Link errors are logged, but rate-limited: the log stays readable.
+    let errors = count(&h, |r| matches!(r, Report::LinkError { .. }));
+    assert!(errors > 0 && errors <= 2 * 360 + 1, "{errors}");
+    // And never a wrong value.
+    assert_published_are_genuine(&h);
+    // The statistics line went out periodically.
+    assert!(count(&h, |r| matches!(r, Report::LinkStats(_))) >= 23);
+}
+
+#[test]
+fn bms_silent_for_10_s_then_back() {
+    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 4);
+    h.run_until(10 * S);
+    let before = h.published.len();
+    let version_reads = h
+        .sim
+        .stats()
+        .requests_by_command
+        .get(&0x03)
+        .copied()
+        .unwrap_or(0);
+    h.sim.set_silent_until(20 * S);
+    h.run_until(30 * S);
+    let offline: Vec<_> = h
+        .reports(|r| matches!(r, Report::Offline { .. }))
+        .map(|l| l.at_us)
+        .collect();
+    let online: Vec<_> = h
+        .reports(|r| matches!(r, Report::Online))
+        .map(|l| l.at_us)
+        .collect();
+    assert_eq!(offline.len(), 1, "offline logged once");
+    assert_eq!(online.len(), 1);
+    // Three silent transactions (each: send, wake-up resend, 2 retries) in ~3 s.
+    assert!(offline[0] > 10 * S && offline[0] < 15 * S, "{}", offline[0]);
+    assert!(online[0] >= 20 * S && online[0] < 23 * S, "{}", online[0]);
+    // Nothing published while silent.
+    assert!(h
+        .published
+        .iter()
+        .all(|(t, _)| *t < 10 * S || *t > online[0]));
+    // On reconnection: version and settings re-read before trusting anything.
+    let after: Vec<&Report> = h
+        .log
+        .iter()
+        .filter(|l| l.at_us >= online[0])
+        .map(|l| &l.report)
+        .collect();
+    let ready = after
+        .iter()
+        .position(|r| matches!(r, Report::Ready { .. }))
+        .unwrap();
+    let version = after
+        .iter()
+        .position(|r| matches!(r, Report::Version(_)))
+        .unwrap();
+    assert!(version < ready);
+    let first_published_after = h.published.iter().find(|(t, _)| *t > online[0]).unwrap().0;
+    let ready_at = h
+        .log
+        .iter()
+        .filter(|l| l.at_us >= online[0])
+        .nth(ready)
+        .unwrap()
+        .at_us;
+    assert!(first_published_after >= ready_at);
+    assert!(h.published.len() > before + 30);
+    assert!(h.sim.stats().requests_by_command[&0x03] > version_reads);
+    // While offline it probed slowly (every 2 s), not at the live rate.
+    let probes_while_silent = h.bridge.link_stats().wakeup_resends;
+    assert!(probes_while_silent < 20, "{probes_while_silent}");
+    assert!(h.bridge.telemetry().online && h.bridge.telemetry().ready);
+    assert_published_are_genuine(&h);
+}
+
+#[test]
+fn ascii_broadcasts_on() {
+    let mut h = harness(PackProfile::LiIon_14S, SimConfig::default(), 5);
+    h.sim.set_register(342, 0x01); // every 0.1 s
+    h.sim.set_register(343, 0x01); // ASCII
+    h.run_until(60 * S);
+    assert!(
+        h.sim.stats().broadcasts > 500,
+        "{}",
+        h.sim.stats().broadcasts
+    );
+    let s = h.bridge.link_stats();
+    assert!(s.skipped_bytes > 20_000, "{s:?}");
+    assert_eq!(s.crc_errors + s.framing_errors + s.failures, 0, "{s:?}");
+    assert!(h.published.len() >= 235);
+    assert_eq!(count(&h, |r| r_level_warn(r)), 0, "{}", h.log_text());
+    assert_published_are_genuine(&h);
+}
+
+fn r_level_warn(r: &Report) -> bool {
+    r.level() == Level::Warn
+}
+
+#[test]
+fn a_settings_profile_is_applied_and_verified() {
+    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 6);
+    // 330: charger type (low byte) and over-current timeout (high byte) share a register.
+    h.sim.set_register(330, 0x0A01);
+    let profile = [
+        (SettingId::OverVoltageCutoff, 3600),
+        (SettingId::UnderVoltageCutoff, 2600),
+        (SettingId::ChargerType, 0),
+        (SettingId::BroadcastTime, 0x04),
+        (SettingId::StateOfCharge, 40_000), // 80 %: reads back 0xFFFF when accepted
+        (SettingId::PulsesPerUnit, 70_000), // 32 bits over 312-313
+        (SettingId::FullyChargedVoltage, h.sim.register(300) as i32), // already equal
+    ];
+    h.bridge.submit_profile(&profile).unwrap();
+    h.run_until(20 * S);
+    let w = writes(&h);
+    assert_eq!(w.len(), profile.len(), "{}", h.log_text());
+    for (id, value, outcome) in &w {
+        let expected = if *id == SettingId::FullyChargedVoltage {
+            WriteOutcome::Unchanged
+        } else {
+            WriteOutcome::Verified
+        };
+        assert_eq!(*outcome, expected, "{id:?} = {value}");
+    }
+    assert_eq!(h.sim.register(315), 3600);
+    assert_eq!(h.sim.register(316), 2600);
+    assert_eq!(h.sim.register(330), 0x0A00, "high byte (timeout) kept");
+    assert_eq!(h.sim.register(342) & 0xFF, 0x04);
+    assert_eq!(h.sim.register(328), 0xFFFF);
+    assert_eq!(
+        (h.sim.register(312), h.sim.register(313)),
+        ((70_000 & 0xFFFF) as u16, 1)
+    );
+    // Settings re-read after the writes, and they show the new values.
+    let settings = h.bridge.telemetry().settings.clone().unwrap();
+    assert_eq!(settings.get(315), Some(3600));
+    assert_eq!(count(&h, |r| matches!(r, Report::Ready { .. })), 2);
+    // Five registers written: five writes, no more (the unchanged one was skipped).
+    assert_eq!(write_requests(&h), 6);
+}
+
+#[test]
+fn out_of_range_settings_are_rejected_before_any_byte() {
+    let config = SimConfig::default().with_current_sensor(CurrentSensor::InternalResistor);
+    let mut h = harness(PackProfile::LiFePO4_16S, config, 7);
+    h.run_until(S);
+    let before = h.sim.stats().requests;
+    let tx_before = h.tx_bytes;
+    h.bridge
+        .submit(group(&[
+            (SettingId::OverVoltageCutoff, 4600),      // Rev D: 1200..=4500
+            (SettingId::PrechargePin, 0x01),           // not an option of Rev D
+            (SettingId::ChargeOverCurrentCutoff, 200), // Rev D allows, this BMS's max is 60 A
+        ]))
+        .unwrap();
+    // Run just long enough for the bridge to take the command, not for a live poll.
+    h.run_until(S + 1);
+    let w = writes(&h);
+    assert_eq!(w.len(), 3);
+    assert!(matches!(
+        w[0].2,
+        WriteOutcome::Rejected(SettingError::OutOfRange {
+            min: 1200,
+            max: 4500,
+            ..
+        })
+    ));
+    assert!(matches!(
+        w[1].2,
+        WriteOutcome::Rejected(SettingError::NotAnOption { .. })
+    ));
+    assert!(matches!(
+        w[2].2,
+        WriteOutcome::Rejected(SettingError::OutsideBmsLimits { max: 60, .. })
+    ));
+    assert_eq!(h.sim.stats().requests, before);
+    assert_eq!(h.tx_bytes, tx_before);
+    h.run_until(5 * S);
+    assert_eq!(write_requests(&h), 0);
+    assert_eq!(
+        count(
+            &h,
+            |r| matches!(r, Report::Write { .. } if r.level() == Level::Warn)
+        ),
+        3
+    );
+}
+
+#[test]
+fn a_read_back_mismatch_is_reported_as_such() {
+    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 8);
+    h.sim.ignore_writes_to(308);
+    let old = h.sim.register(308);
+    h.bridge
+        .submit(group(&[(SettingId::AllowedDisbalance, 30)]))
+        .unwrap();
+    h.run_until(5 * S);
+    assert_eq!(
+        writes(&h),
+        vec![(
+            SettingId::AllowedDisbalance,
+            30,
+            WriteOutcome::Mismatch { read_back: old }
+        )]
+    );
+    assert_eq!(
+        write_requests(&h),
+        1,
+        "written once, never re-sent after the echo"
+    );
+}
+
+#[test]
+fn a_nacked_write_is_reported_with_its_code() {
+    // The bridge read the limits with an external sensor (max 750 A); the sensor
+    // then changes and the BMS now refuses 200 A itself.
+    let config = SimConfig::default().with_current_sensor(CurrentSensor::External);
+    let mut h = harness(PackProfile::LiFePO4_16S, config, 9);
+    h.run_until(S);
+    h.sim.config_mut().current_sensor = CurrentSensor::InternalResistor;
+    let old = h.sim.register(318);
+    h.bridge
+        .submit(group(&[(SettingId::ChargeOverCurrentCutoff, 200)]))
+        .unwrap();
+    h.run_until(3 * S);
+    assert_eq!(
+        writes(&h),
+        vec![(
+            SettingId::ChargeOverCurrentCutoff,
+            200,
+            WriteOutcome::Nacked(protocol_core::frame::NackCode::CommandError)
+        )]
+    );
+    assert_eq!(write_requests(&h), 1, "never re-sent after a NACK");
+    assert_eq!(h.sim.register(318), old);
+    // The limits were re-read after the attempt: the bridge now knows 60 A.
+    let max = h.bridge.telemetry().limits_max.clone().unwrap();
+    assert_eq!(SettingId::ChargeOverCurrentCutoff.read(&max), Some(60));
+}
+
+#[test]
+fn a_write_to_340_waits_for_the_reboot_and_confirms() {
+    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 10);
+    h.run_until(2 * S);
+    let old = h.sim.register(340) & 0xFF;
+    let new = if old == 0 { 1 } else { 0 };
+    h.bridge
+        .submit(group(&[(SettingId::OperationMode, i32::from(new))]))
+        .unwrap();
+    h.run_until(12 * S);
+    assert_eq!(
+        writes(&h),
+        vec![(
+            SettingId::OperationMode,
+            i32::from(new),
+            WriteOutcome::Verified
+        )]
+    );
+    assert_eq!(h.sim.stats().reboots, 1);
+    assert_eq!(h.sim.register(340) & 0xFF, new);
+    // The restart is visible: "System Started" logged as a new event, version re-read.
+    assert!(
+        count(
+            &h,
+            |r| matches!(r, Report::NewEvent(e) if e.id == EventId::SystemStarted && e.timestamp_s > 0)
+        ) >= 1
+    );
+    assert_eq!(count(&h, |r| matches!(r, Report::Version(_))), 2);
+    assert_eq!(count(&h, |r| matches!(r, Report::Offline { .. })), 0);
+    assert_published_are_genuine(&h);
+}
+
+#[test]
+fn a_reset_gets_no_ack_and_is_confirmed() {
+    let mut h = harness(PackProfile::LiIon_14S, SimConfig::default(), 11);
+    h.run_until(2 * S);
+    h.bridge.submit(Command::ResetBms).unwrap();
+    h.run_until(12 * S);
+    assert_eq!(h.sim.stats().reboots, 1);
+    assert_eq!(
+        h.sim.stats().requests_by_command.get(&0x02),
+        Some(&1),
+        "reset sent once"
+    );
+    assert_eq!(
+        count(&h, |r| matches!(r, Report::ResetDone { confirmed: true })),
+        1
+    );
+    // Silence after a reset is normal: no link error, no offline.
+    assert_eq!(
+        count(&h, |r| r.level() == Level::Warn),
+        0,
+        "{}",
+        h.log_text()
+    );
+    assert_eq!(count(&h, |r| matches!(r, Report::Ready { .. })), 2);
+    assert!(h.published.iter().any(|(t, _)| *t > 8 * S));
+}
+
+#[test]
+fn clear_events_and_statistics() {
+    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 12);
+    h.run_until(2 * S);
+    h.bridge.submit(Command::ClearEvents).unwrap();
+    h.bridge.submit(Command::ClearStatistics).unwrap();
+    h.run_until(4 * S);
+    assert_eq!(
+        count(&h, |r| matches!(r, Report::Cleared { ok: true, .. })),
+        2
+    );
+    assert!(h.sim.events().is_empty());
+}
+
+#[test]
+fn faults_are_warnings_and_events_are_logged_once() {
+    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 13);
+    h.run_until(10 * S);
+    let events_before = count(&h, |r| matches!(r, Report::NewEvent(_)));
+    assert!(events_before > 0);
+    h.sim.inject_fault_event(EventId::OverTemperatureCutoff);
+    h.run_until(20 * S);
+    h.sim.clear_fault();
+    h.run_until(40 * S);
+    let lines: Vec<_> = h.log.iter().filter(|l| l.at_us > 10 * S).collect();
+    let fault_status = lines
+        .iter()
+        .find(|l| {
+            matches!(
+                l.report,
+                Report::StatusChanged {
+                    to: OnlineStatus::Fault,
+                    ..
+                }
+            )
+        })
+        .unwrap();
+    assert_eq!(fault_status.level, Level::Warn);
+    let fault_event = lines
+        .iter()
+        .filter(
+            |l| matches!(l.report, Report::NewEvent(e) if e.id == EventId::OverTemperatureCutoff),
+        )
+        .collect::<Vec<_>>();
+    assert_eq!(fault_event.len(), 1, "logged once");
+    assert_eq!(fault_event[0].level, Level::Warn);
+    assert!(lines.iter().any(
+        |l| matches!(l.report, Report::NewEvent(e) if e.id == EventId::RecoveredOverTemperature)
+    ));
+    assert!(lines.iter().any(|l| matches!(
+        l.report,
+        Report::StatusChanged {
+            from: Some(OnlineStatus::Fault),
+            ..
+        }
+    )));
+    // Polling events every 5 s for 30 s did not log old events again.
+    let total = count(&h, |r| matches!(r, Report::NewEvent(_)));
+    assert_eq!(total, events_before + 2, "{}", h.log_text());
+}
+
+#[test]
+fn faults_of_every_kind_never_publish_a_wrong_value() {
+    let faults = FaultConfig {
+        drop_byte: 0.002,
+        bit_flip: 0.002,
+        truncate: 0.02,
+        no_reply: 0.02,
+        duplicate: 0.02,
+        delay: 0.02,
+        delay_us: 150_000,
+    };
+    let config = SimConfig::default()
+        .with_faults(faults)
+        .with_sleep_after_us(Some(20 * S));
+    let mut h = harness(PackProfile::LiIon_14S, config, 14);
+    h.sim.set_register(342, 0x03);
+    h.sim.set_register(343, 0x01);
+    h.bridge
+        .submit(group(&[
+            (SettingId::OverVoltageCutoff, 4150),
+            (SettingId::ChargerType, 1),
+        ]))
+        .unwrap();
+    h.run_until(20 * 60 * S);
+    let f = h.sim.stats().faults;
+    assert!(
+        f.duplicated > 0 && f.delayed > 0 && f.truncated > 0 && f.no_reply > 0,
+        "{f:?}"
+    );
+    assert!(h.bridge.link_stats().unsolicited > 0);
+    for (id, _, outcome) in writes(&h) {
+        // Success only with a matching read-back; the sim holds what was reported.
+        if outcome == WriteOutcome::Verified {
+            let r = h.sim.register(id.address());
+            assert!(Setting {
+                id,
+                value: if id == SettingId::ChargerType {
+                    1
+                } else {
+                    4150
+                }
+            }
+            .matches_readback(r, None));
+        }
+    }
+    assert!(h.published.len() > 20 * 60 * 3);
+    assert_published_are_genuine(&h);
+}
