@@ -210,6 +210,7 @@ impl Bridge {
     }
 
     /// Queues a command; gives it back when the queue is full.
+    #[allow(clippy::result_large_err)] // the command itself is handed back
     pub fn submit(&mut self, command: Command) -> Result<(), Command> {
         self.commands.push_back(command)
     }
@@ -217,6 +218,7 @@ impl Bridge {
     /// Queues the settings of a profile (see [`crate::profile`]) as one group. An
     /// empty profile queues nothing. Entries beyond [`config::MAX_SETTINGS_GROUP`]
     /// are queued as further groups.
+    #[allow(clippy::result_large_err)] // the command itself is handed back
     pub fn submit_profile(&mut self, profile: &[(SettingId, i32)]) -> Result<(), Command> {
         for chunk in profile.chunks(config::MAX_SETTINGS_GROUP) {
             let mut items = Vec::new();

@@ -264,7 +264,7 @@ fn ascii_broadcasts_on() {
     assert!(s.skipped_bytes > 20_000, "{s:?}");
     assert_eq!(s.crc_errors + s.framing_errors + s.failures, 0, "{s:?}");
     assert!(h.published.len() >= 235);
-    assert_eq!(count(&h, |r| r_level_warn(r)), 0, "{}", h.log_text());
+    assert_eq!(count(&h, r_level_warn), 0, "{}", h.log_text());
     assert_published_are_genuine(&h);
 }
 

@@ -149,6 +149,8 @@ pub struct Decoder {
     len: usize,
     asm: Option<Assembly>,
     expect: Option<(u8, Option<u16>)>,
+    /// A decode error happened since [`Decoder::expect`].
+    disturbed: bool,
     stats: DecoderStats,
 }
 
@@ -166,6 +168,7 @@ impl Decoder {
             len: 0,
             asm: None,
             expect: None,
+            disturbed: false,
             stats: DecoderStats {
                 bytes_in: 0,
                 skipped_bytes: 0,
@@ -203,11 +206,13 @@ impl Decoder {
             _ => None,
         };
         self.expect = Some((request.command(), len));
+        self.disturbed = false;
     }
 
     /// Forgets the outstanding request.
     pub fn clear_expectation(&mut self) {
         self.expect = None;
+        self.disturbed = false;
     }
 
     /// Forget buffered bytes and any partial reassembly (counted as skipped).
@@ -236,7 +241,15 @@ impl Decoder {
     /// The next frame or error found in the buffered bytes, or `None` when more
     /// bytes are needed.
     pub fn poll(&mut self) -> Option<Result<Frame, DecodeError>> {
-        self.step(false)
+        let r = self.step(false);
+        self.note(&r);
+        r
+    }
+
+    fn note(&mut self, r: &Option<Result<Frame, DecodeError>>) {
+        if let Some(Err(_)) = r {
+            self.disturbed = true;
+        }
     }
 
     /// Like [`Decoder::poll`], but treats the input as ended: an incomplete candidate
@@ -244,7 +257,9 @@ impl Decoder {
     /// byte), an unfinished reassembly as [`DecodeError::IncompletePackets`]. Call it
     /// until it returns `None` when a response deadline passes.
     pub fn flush(&mut self) -> Option<Result<Frame, DecodeError>> {
-        self.step(true)
+        let r = self.step(true);
+        self.note(&r);
+        r
     }
 
     /// Convenience: push all of `input`, calling `sink` with every result in order.
@@ -408,6 +423,32 @@ impl Decoder {
         result
     }
 
+    /// Length checks of a complete packetized reply (reassembled or single): the
+    /// length the outstanding request implies, and the command's layout (0x07 whole
+    /// registers, 0x09 whole address/value pairs, events 4 + 4n). The last packet
+    /// carries no ID, so this is how a lost packet is caught.
+    fn check_packetized(&mut self, command: u8, got: usize) -> Option<DecodeError> {
+        let expected = match self.expect {
+            Some((c, len)) if c == command => len,
+            _ => None,
+        };
+        let plausible = match command {
+            cmd::READ_BLOCK => got.is_multiple_of(2),
+            cmd::READ_INDIVIDUAL => got.is_multiple_of(4),
+            _ => got >= 4 && (got - 4).is_multiple_of(4), // events: timestamp + 4 per event
+        };
+        if !plausible || expected.is_some_and(|e| usize::from(e) != got) {
+            self.stats.packet_errors += 1;
+            Some(DecodeError::PacketLength {
+                command,
+                expected,
+                got: got as u16,
+            })
+        } else {
+            None
+        }
+    }
+
     fn packet(&mut self, command: u8, pl: u8, chunk: &[u8]) -> Option<Result<Frame, DecodeError>> {
         let more = pl & PL_MORE_PACKETS != 0;
         let id = pl & PL_VALUE_MASK;
@@ -432,6 +473,23 @@ impl Decoder {
             }
             None => {
                 if !more {
+                    // A lone last packet: it may be the tail of a reply whose first
+                    // packets were lost, so it gets the same checks as a reassembly.
+                    if let Some(err) = self.check_packetized(command, chunk.len()) {
+                        return Some(Err(err));
+                    }
+                    // Events have no length the request implies: after a decode
+                    // error in this exchange, a lone packet may be such a tail.
+                    let expected_here = matches!(self.expect, Some((c, _)) if c == command);
+                    let events = matches!(command, cmd::READ_NEWEST_EVENTS | cmd::READ_ALL_EVENTS);
+                    if expected_here && events && self.disturbed {
+                        self.stats.packet_errors += 1;
+                        return Some(Err(DecodeError::PacketLength {
+                            command,
+                            expected: None,
+                            got: chunk.len() as u16,
+                        }));
+                    }
                     return Some(
                         Payload::from_slice(chunk)
                             .map(|payload| Frame::Data {
@@ -460,23 +518,8 @@ impl Decoder {
             self.asm = Some(asm);
             None
         } else {
-            let got = asm.payload.len();
-            let expected = match self.expect {
-                Some((c, len)) if c == command => len,
-                _ => None,
-            };
-            let plausible = match command {
-                cmd::READ_BLOCK => got.is_multiple_of(2),
-                cmd::READ_INDIVIDUAL => got.is_multiple_of(4),
-                _ => got >= 4 && (got - 4).is_multiple_of(4), // events: timestamp + 4 per event
-            };
-            if !plausible || expected.is_some_and(|e| usize::from(e) != got) {
-                self.stats.packet_errors += 1;
-                return Some(Err(DecodeError::PacketLength {
-                    command,
-                    expected,
-                    got: got as u16,
-                }));
+            if let Some(err) = self.check_packetized(command, asm.payload.len()) {
+                return Some(Err(err));
             }
             Some(Ok(Frame::Data {
                 command,
@@ -662,6 +705,33 @@ mod tests {
         assert!(
             matches!(&got[0], Ok(Frame::Data { packets: 2, payload: p, .. }) if p.as_slice() == payload.as_slice())
         );
+    }
+
+    #[test]
+    fn lone_event_packet_after_an_error_is_not_trusted() {
+        // The tail (4 bytes: looks like "timestamp, no events") of a 0x12 reply
+        // whose first packet was damaged.
+        let mut s = vec![0xAA, 0x12, 0x81];
+        s.extend_from_slice(&[0x55; 63]);
+        s.extend_from_slice(&[0, 0]); // wrong CRC
+        s.extend(encode(&Frame::data(0x12, &[1, 2, 3, 4]).unwrap()));
+        let mut d = Decoder::new();
+        d.expect(&crate::request::Request::ReadAllEvents);
+        let mut got = Vec::new();
+        d.feed(&s, |r| got.push(r));
+        assert!(got.iter().all(|r| r.is_err()), "{got:?}");
+        assert!(got.contains(&Err(DecodeError::PacketLength {
+            command: 0x12,
+            expected: None,
+            got: 4
+        })));
+        // The same packet after a clean exchange is a genuine reply.
+        d.expect(&crate::request::Request::ReadAllEvents);
+        let mut got = Vec::new();
+        d.feed(&encode(&Frame::data(0x12, &[1, 2, 3, 4]).unwrap()), |r| {
+            got.push(r)
+        });
+        assert_eq!(got, vec![Ok(Frame::data(0x12, &[1, 2, 3, 4]).unwrap())]);
     }
 
     #[test]
