@@ -23,10 +23,10 @@
 //! reported with a matching read-back.
 
 use heapless::{Deque, Vec};
-use protocol_core::events::{EventId, OnlineStatus};
+use protocol_core::events::{Event, EventId, OnlineStatus};
 use protocol_core::request::{Request, ResetOption, SettingsOption};
 use protocol_core::response::{RegisterBlock, Response};
-use protocol_core::settings::{Setting, SettingId};
+use protocol_core::settings::{Setting, SettingId, ACCEPTED_MARKER};
 use protocol_core::views::{LiveSnapshot, Statistics, VersionInfo};
 
 use crate::config::{self, Config};
@@ -136,8 +136,15 @@ struct WriteJob {
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum ResetStep {
-    Send,
-    Confirm { attempts: u8 },
+    /// Read the event log: the newest "System Started" before the reset.
+    Before,
+    /// Send 0x02 option 0x05.
+    Send { last_start: Option<u32> },
+    /// Read the event log again: a newer "System Started" proves the restart.
+    Confirm {
+        attempts: u8,
+        last_start: Option<u32>,
+    },
 }
 
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -146,6 +153,10 @@ enum Job {
     Reset(ResetStep),
     Clear(ResetOption),
 }
+
+/// Failed attempts at reading the BMS's settings limits (0x1D) before the bridge
+/// goes on without them.
+const SYNC_LIMITS_ATTEMPTS: u8 = 3;
 
 /// Most event (timestamp, id) pairs remembered to recognise events already logged.
 const SEEN_EVENTS: usize = 64;
@@ -170,6 +181,8 @@ pub struct Bridge {
     next_snapshot_log: Instant,
     next_link_log: Instant,
     sync_retry_at: Instant,
+    sync_failures: u8,
+    limits_unsupported: bool,
     newest_event: Option<u32>,
     next_error_log: Instant,
     suppressed_errors: u32,
@@ -201,6 +214,8 @@ impl Bridge {
             next_snapshot_log: now,
             next_link_log: now + config.link_stats_log_period_us,
             sync_retry_at: now,
+            sync_failures: 0,
+            limits_unsupported: false,
             newest_event: None,
             next_error_log: now,
             suppressed_errors: 0,
@@ -342,9 +357,20 @@ impl Bridge {
                     count: 44,
                 },
             };
-            return Some((req, Silence::Failure, Purpose::Sync(step)));
+            // A BMS that does not answer 0x1D is not absent: its other answers
+            // prove it is there, so that silence does not count towards offline.
+            let silence = match step {
+                SyncStep::LimitsMin | SyncStep::LimitsMax => Silence::Tolerated,
+                _ => Silence::Failure,
+            };
+            return Some((req, silence, Purpose::Sync(step)));
         }
-        // Running.
+        // Running. Between two settings of a group (or before a job starts) the
+        // live block still gets its turn, so a long group does not blind the bridge.
+        if now >= self.next_live && self.at_job_boundary() {
+            self.next_live = now + self.config.live_period_us;
+            return Some((block(0, 56), Silence::Failure, Purpose::Live));
+        }
         for _ in 0..config::COMMAND_QUEUE + 1 {
             if self.job.is_none() {
                 let Some(cmd) = self.commands.pop_front() else {
@@ -357,6 +383,10 @@ impl Bridge {
                 JobNext::Wait => return None,
                 JobNext::Finished => {
                     self.job = None;
+                    if matches!(self.phase, Phase::Sync(_)) {
+                        // Re-read settings before the next command runs.
+                        return self.next_request(now);
+                    }
                 }
             }
         }
@@ -375,9 +405,18 @@ impl Bridge {
         None
     }
 
+    /// No job, or a settings group between two settings.
+    fn at_job_boundary(&self) -> bool {
+        match &self.job {
+            None => true,
+            Some(Job::Write(w)) => w.step == WriteStep::ReadCurrent,
+            Some(_) => false,
+        }
+    }
+
     fn start_job(&mut self, cmd: Command) -> Option<Job> {
         match cmd {
-            Command::ResetBms => Some(Job::Reset(ResetStep::Send)),
+            Command::ResetBms => Some(Job::Reset(ResetStep::Before)),
             Command::ClearEvents => Some(Job::Clear(ResetOption::ClearEvents)),
             Command::ClearStatistics => Some(Job::Clear(ResetOption::ClearStatistics)),
             Command::ApplySettings(settings) => {
@@ -428,11 +467,16 @@ impl Bridge {
         };
         match job {
             Job::Clear(opt) => JobNext::Send(Request::ResetClear(*opt), Silence::Failure),
-            Job::Reset(ResetStep::Send) => JobNext::Send(
+            Job::Reset(ResetStep::Before) => {
+                JobNext::Send(Request::ReadAllEvents, Silence::Failure)
+            }
+            Job::Reset(ResetStep::Send { .. }) => JobNext::Send(
                 Request::ResetClear(ResetOption::ResetBms),
                 Silence::Expected,
             ),
-            Job::Reset(ResetStep::Confirm { .. }) => JobNext::Send(block(114, 1), Silence::Failure),
+            Job::Reset(ResetStep::Confirm { .. }) => {
+                JobNext::Send(Request::ReadAllEvents, Silence::Tolerated)
+            }
             Job::Write(w) => {
                 let Some(item) = w.items.get(w.index).copied() else {
                     let wrote = w.wrote_any;
@@ -441,17 +485,25 @@ impl Bridge {
                     }
                     return JobNext::Finished;
                 };
-                let reg_count = usize::from(item.id.register_count());
+                // Reads of a setting use 0x09: its reply echoes the addresses, so a
+                // late answer to another read can never pass for this one.
+                let read = individual(item.id);
                 match w.step {
-                    WriteStep::ReadCurrent | WriteStep::ReadBack => {
-                        JobNext::Send(block(item.id.address(), reg_count), Silence::Failure)
+                    WriteStep::ReadCurrent => JobNext::Send(read, Silence::Failure),
+                    WriteStep::ReadBack => {
+                        let silence = if item.id.restarts_bms() {
+                            Silence::Tolerated
+                        } else {
+                            Silence::Failure
+                        };
+                        JobNext::Send(read, silence)
                     }
                     WriteStep::Settle(until) => {
                         if now < until {
                             JobNext::Wait
                         } else {
                             w.step = WriteStep::ReadBack;
-                            JobNext::Send(block(item.id.address(), reg_count), Silence::Failure)
+                            JobNext::Send(read, Silence::Failure)
                         }
                     }
                     WriteStep::Write => {
@@ -464,8 +516,15 @@ impl Bridge {
                             }
                         };
                         let values: Vec<u16, 2> = words.iter().map(|&(_, v)| v).collect();
+                        // A write to 340 restarts the BMS: its answer may never come,
+                        // and it must not be sent twice.
+                        let silence = if item.id.restarts_bms() {
+                            Silence::Expected
+                        } else {
+                            Silence::Failure
+                        };
                         match Request::write_registers(item.id.address(), &values) {
-                            Ok(req) => JobNext::Send(req, Silence::Failure),
+                            Ok(req) => JobNext::Send(req, silence),
                             Err(_) => {
                                 let e = protocol_core::settings::SettingError::NotAnOption {
                                     id: item.id,
@@ -515,9 +574,14 @@ impl Bridge {
         }
         self.was_online = online;
         if let Err(f) = &c.result {
+            let limits = matches!(
+                self.purpose,
+                Purpose::Sync(SyncStep::LimitsMin | SyncStep::LimitsMax)
+            );
             let quiet = matches!(f, Failure::Silent)
                 || (!online && self.purpose == Purpose::Probe)
-                || self.purpose == Purpose::Job;
+                || self.purpose == Purpose::Job
+                || (limits && self.limits_unsupported);
             if !quiet {
                 if now >= self.next_error_log {
                     self.next_error_log = now + self.config.link_error_log_period_us;
@@ -590,7 +654,11 @@ impl Bridge {
             }
             (SyncStep::Settings, Ok(Response::Registers(b))) => {
                 self.telemetry.settings = Some(b);
-                Some(SyncStep::LimitsMin)
+                if self.limits_unsupported {
+                    None // known not to answer 0x1D: do not ask at every sync
+                } else {
+                    Some(SyncStep::LimitsMin)
+                }
             }
             (SyncStep::LimitsMin, Ok(Response::Settings { values, .. })) => {
                 self.telemetry.limits_min = Some(values);
@@ -600,17 +668,25 @@ impl Bridge {
                 self.telemetry.limits_max = Some(values);
                 None
             }
-            // A BMS without 0x1D: go on without its limits (it still checks writes).
-            (SyncStep::LimitsMin | SyncStep::LimitsMax, Err(Failure::Nack(_))) => {
+            // A BMS without 0x1D (NACK, or no valid answer after a few tries): go on
+            // without its limits; Rev D's ranges still apply and the BMS still
+            // checks writes itself.
+            (SyncStep::LimitsMin | SyncStep::LimitsMax, Err(f))
+                if matches!(f, Failure::Nack(_))
+                    || self.sync_failures + 1 >= SYNC_LIMITS_ATTEMPTS =>
+            {
+                self.limits_unsupported = true;
                 self.telemetry.limits_min = None;
                 self.telemetry.limits_max = None;
                 None
             }
             _ => {
+                self.sync_failures = self.sync_failures.saturating_add(1);
                 self.sync_retry_at = now + self.config.live_period_us;
                 return;
             }
         };
+        self.sync_failures = 0;
         match next {
             Some(s) => self.phase = Phase::Sync(s),
             None => {
@@ -652,28 +728,48 @@ impl Bridge {
         self.telemetry.snapshot_seq = self.telemetry.snapshot_seq.wrapping_add(1);
     }
 
-    fn on_events(&mut self, events: &[protocol_core::events::Event]) {
-        let newest = self.newest_event;
-        let mut max = newest;
+    fn on_events(&mut self, events: &[Event]) {
+        let first_read = self.newest_event.is_none() && self.seen.is_empty();
+        let mut newest = self.newest_event;
+        let mut fresh = 0u8;
         for e in events {
             let key = (e.timestamp_s, e.id.raw());
-            let is_new = match newest {
-                None => true,
-                Some(n) => {
-                    e.timestamp_s > n
-                        || (e.timestamp_s == n && !self.seen.iter().any(|k| *k == key))
+            if self.seen.iter().any(|k| *k == key) {
+                continue;
+            }
+            // Older than what was already seen: history, not news.
+            if let Some(n) = self.newest_event {
+                if ts_newer(n, e.timestamp_s) {
+                    continue;
                 }
-            };
-            if is_new && !self.seen.iter().any(|k| *k == key) {
-                if self.seen.is_full() {
-                    let _oldest = self.seen.pop_front();
-                }
-                let _room = self.seen.push_back(key);
+            }
+            if self.seen.is_full() {
+                let _oldest = self.seen.pop_front();
+            }
+            let _room = self.seen.push_back(key);
+            if newest.is_none_or(|n| ts_newer(e.timestamp_s, n)) {
+                newest = Some(e.timestamp_s);
+            }
+            fresh = fresh.saturating_add(1);
+            if !first_read {
                 self.report(Report::NewEvent(*e));
             }
-            max = Some(max.map_or(e.timestamp_s, |m: u32| m.max(e.timestamp_s)));
         }
-        self.newest_event = max;
+        self.newest_event = newest;
+        if first_read {
+            // The log's history at start-up: one line, not a burst of old faults.
+            let last = events.iter().copied().reduce(|a, b| {
+                if ts_newer(b.timestamp_s, a.timestamp_s) {
+                    b
+                } else {
+                    a
+                }
+            });
+            self.report(Report::EventHistory {
+                count: fresh,
+                newest: last,
+            });
+        }
     }
 
     fn on_job(&mut self, now: Instant, c: Completion) {
@@ -687,7 +783,20 @@ impl Bridge {
                 self.job = None;
                 self.report(Report::Cleared { option, ok });
             }
-            Job::Reset(ResetStep::Send) => {
+            Job::Reset(ResetStep::Before) => {
+                let last_start = match &c.result {
+                    Ok(Response::Events(list)) => newest_start(&list.events),
+                    _ => {
+                        // Without the log there is no way to prove the restart.
+                        self.job = None;
+                        self.report(Report::ResetDone { confirmed: false });
+                        return;
+                    }
+                };
+                *job = Job::Reset(ResetStep::Send { last_start });
+            }
+            Job::Reset(ResetStep::Send { last_start }) => {
+                let last_start = *last_start;
                 // ACK or silence are both normal (HARDWARE-NOTES); a NACK is not.
                 if matches!(c.result, Err(Failure::Nack(_))) {
                     self.job = None;
@@ -696,25 +805,37 @@ impl Bridge {
                     self.hold_until = now + self.config.reboot_wait_us;
                     *job = Job::Reset(ResetStep::Confirm {
                         attempts: config::REBOOT_READBACK_ATTEMPTS,
+                        last_start,
                     });
                 }
             }
-            Job::Reset(ResetStep::Confirm { attempts }) => {
+            Job::Reset(ResetStep::Confirm {
+                attempts,
+                last_start,
+            }) => {
+                // Proof of this restart: a "System Started" newer than the newest
+                // one before the reset.
                 let confirmed = match &c.result {
-                    Ok(Response::Registers(b)) => b.get(114).map(|v| v & 0xFF == 0x04),
+                    Ok(Response::Events(list)) => {
+                        Some(match (newest_start(&list.events), *last_start) {
+                            (Some(now_start), Some(before)) => ts_newer(now_start, before),
+                            (Some(_), None) => true,
+                            (None, _) => false,
+                        })
+                    }
                     _ => None,
                 };
                 match confirmed {
-                    Some(ok) => {
+                    Some(true) => {
                         self.job = None;
-                        self.report(Report::ResetDone { confirmed: ok });
+                        self.report(Report::ResetDone { confirmed: true });
                         self.resync();
                     }
-                    None if *attempts > 1 => {
+                    _ if *attempts > 1 => {
                         *attempts -= 1;
-                        self.hold_until = now + self.config.live_period_us;
+                        self.hold_until = now + self.config.live_period_us * 2;
                     }
-                    None => {
+                    _ => {
                         self.job = None;
                         self.report(Report::ResetDone { confirmed: false });
                         self.resync();
@@ -725,10 +846,10 @@ impl Bridge {
                 let Some(item) = w.items.get(w.index).copied() else {
                     return;
                 };
+                let a = item.id.address();
                 match (w.step, c.result) {
-                    (WriteStep::ReadCurrent, Ok(Response::Registers(b))) => {
-                        let a = item.id.address();
-                        let (Some(first), second) = (b.get(a), b.get(a + 1)) else {
+                    (WriteStep::ReadCurrent, Ok(Response::Individual(pairs))) => {
+                        let (Some(first), second) = (pair(&pairs, a), pair(&pairs, a + 1)) else {
                             self.finish_item(item, WriteOutcome::Failed(Failure::Timeout));
                             return;
                         };
@@ -748,18 +869,21 @@ impl Bridge {
                     }
                     (WriteStep::Write, result) => {
                         w.wrote_any = true;
-                        let restart = item.id.restarts_bms();
                         match result {
                             Ok(Response::WriteEcho { .. }) => {}
-                            Err(Failure::Nack(code)) => {
+                            // Refused at the first attempt: nothing was written.
+                            Err(Failure::Nack(code)) if c.sends <= 1 => {
                                 self.finish_item(item, WriteOutcome::Nacked(code));
                                 return;
                             }
-                            // No confirmation: the read-back will tell what happened.
+                            // No clear confirmation (lost, damaged, or a NACK after an
+                            // unanswered first attempt that may have been applied):
+                            // the read-back decides.
+                            Err(Failure::Silent) => w.unconfirmed = Some(Failure::Timeout),
                             Err(f) => w.unconfirmed = Some(f),
                             Ok(_) => w.unconfirmed = Some(Failure::Timeout),
                         }
-                        if restart {
+                        if item.id.restarts_bms() {
                             self.hold_until = now + self.config.reboot_wait_us;
                             w.readback_attempts = config::REBOOT_READBACK_ATTEMPTS;
                             w.step = WriteStep::ReadBack;
@@ -768,26 +892,34 @@ impl Bridge {
                             w.step = WriteStep::Settle(now + self.config.write_settle_us);
                         }
                     }
-                    (WriteStep::ReadBack, Ok(Response::Registers(b))) => {
-                        let a = item.id.address();
-                        let Some(first) = b.get(a) else {
+                    (WriteStep::ReadBack, Ok(Response::Individual(pairs))) => {
+                        let Some(first) = pair(&pairs, a) else {
                             self.finish_item(item, WriteOutcome::Failed(Failure::Timeout));
                             return;
                         };
-                        let second = b.get(a + 1);
-                        let outcome = if item.matches_readback(first, second) {
+                        let second = pair(&pairs, a + 1);
+                        // 323/328 read 0xFFFF once a write is accepted; when they
+                        // already did before and the write was not confirmed, the
+                        // marker proves nothing.
+                        let marker_was_there = item.id.reads_back_marker()
+                            && w.current.map(|(f, _)| f) == Some(ACCEPTED_MARKER);
+                        let proof = item.matches_readback(first, second)
+                            && !(marker_was_there && w.unconfirmed.is_some());
+                        let outcome = if proof {
                             WriteOutcome::Verified
-                        } else if let Some(f) = w.unconfirmed {
-                            WriteOutcome::Failed(f)
                         } else {
-                            WriteOutcome::Mismatch { read_back: first }
+                            match w.unconfirmed {
+                                Some(Failure::Nack(code)) => WriteOutcome::Nacked(code),
+                                Some(f) => WriteOutcome::Failed(f),
+                                None => WriteOutcome::Mismatch { read_back: first },
+                            }
                         };
                         self.finish_item(item, outcome);
                     }
                     (WriteStep::ReadBack, Err(f)) => {
                         if w.readback_attempts > 1 {
                             w.readback_attempts -= 1;
-                            self.hold_until = now + self.config.live_period_us;
+                            self.hold_until = now + self.config.live_period_us * 2;
                         } else {
                             self.finish_item(item, WriteOutcome::Failed(f));
                         }
@@ -816,6 +948,36 @@ fn block(start: u16, count: usize) -> Request {
 
 fn version_request() -> Request {
     block(500, 10)
+}
+
+/// A 0x09 read of the register(s) of a setting.
+fn individual(id: SettingId) -> Request {
+    let a = id.address();
+    let mut addresses = protocol_core::request::AddressList::new();
+    for i in 0..id.register_count() {
+        let _fits = addresses.push(a + i); // at most 2 of 31
+    }
+    Request::ReadIndividual(addresses)
+}
+
+fn pair(pairs: &[(u16, u16)], address: u16) -> Option<u16> {
+    pairs.iter().find(|(a, _)| *a == address).map(|(_, v)| *v)
+}
+
+/// Event timestamps are 24 bits (Rev D §1.1.9) and wrap after 194 days: compare
+/// them as serial numbers (RFC 1982 style), `a` newer than `b`.
+pub fn ts_newer(a: u32, b: u32) -> bool {
+    let d = a.wrapping_sub(b) & 0x00FF_FFFF;
+    d != 0 && d < 0x0080_0000
+}
+
+/// Timestamp of the newest "System Started" event in a list.
+fn newest_start(events: &[Event]) -> Option<u32> {
+    events
+        .iter()
+        .filter(|e| e.id == EventId::SystemStarted)
+        .map(|e| e.timestamp_s)
+        .reduce(|a, b| if ts_newer(b, a) { b } else { a })
 }
 
 /// The log summary of a snapshot.

@@ -7,7 +7,13 @@
 //!   once more before anything counts as a failure. Requests are never sent twice
 //!   blindly: an awake BMS would answer twice.
 //! * Reads are retried a bounded number of times. A write is re-sent only when
-//!   neither ACK nor NACK (nor the 0x10 echo) arrived, and never after one did.
+//!   nothing at all came back (no ACK, NACK or 0x10 echo, not even a damaged
+//!   one), and never after anything did: then the read-back decides. A write
+//!   always follows a read the BMS just answered, so it gets no wake-up resend.
+//! * After a transaction that went out more than once, the next request waits
+//!   until an answer to the earlier copy would have arrived, so a late answer is
+//!   never taken for the answer to the next request (0x03 replies carry no
+//!   address).
 //! * After N consecutive transactions that got no answer at all (silence on every
 //!   attempt) the link is offline; the first valid reply brings it back (the bridge
 //!   then re-reads version and settings). Corrupt replies are failures too, but they
@@ -30,9 +36,14 @@ pub type Transmit = RequestBytes;
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Silence {
-    /// Silence is a failure (after the wake-up resend and the retries).
+    /// Silence is a failure after the wake-up resend and the retries, and counts
+    /// towards "offline".
     Failure,
-    /// Silence is the normal outcome (reset: the ACK may never come). No resend.
+    /// As [`Silence::Failure`], but a silent failure does not count towards
+    /// "offline": reads while the BMS is expected to be restarting.
+    Tolerated,
+    /// Silence is a normal outcome ([`Failure::Silent`]) and nothing is re-sent:
+    /// a reset (its ACK may never come) and a write to 340 (the BMS restarts).
     Expected,
 }
 
@@ -78,6 +89,8 @@ pub struct Completion {
     pub result: Result<Response, Failure>,
     /// First send to completion, µs.
     pub latency_us: Instant,
+    /// How many times the request went out.
+    pub sends: u8,
 }
 
 /// Link counters (logged periodically).
@@ -143,6 +156,8 @@ struct Pending {
     wake_used: bool,
     retries_used: u8,
     last_error: Option<Failure>,
+    sends: u8,
+    last_sent: Instant,
 }
 
 /// What the link wants next.
@@ -169,6 +184,8 @@ pub struct Link {
     stats: LinkStats,
     consecutive_failures: u8,
     online: bool,
+    /// No request goes out before this time (see [`Link::step`]).
+    quiet_until: Instant,
 }
 
 impl Link {
@@ -183,6 +200,7 @@ impl Link {
             stats: LinkStats::default(),
             consecutive_failures: 0,
             online: true,
+            quiet_until: 0,
         }
     }
 
@@ -226,6 +244,8 @@ impl Link {
                     wake_used: false,
                     retries_used: 0,
                     last_error: None,
+                    sends: 0,
+                    last_sent: now,
                 });
                 self.to_send = true;
             }
@@ -234,6 +254,7 @@ impl Link {
                     request,
                     result: Err(Failure::Request(e)),
                     latency_us: 0,
+                    sends: 0,
                 });
             }
         }
@@ -251,7 +272,17 @@ impl Link {
                 return LinkStep::Idle;
             };
             if self.to_send {
+                // After a transaction that went out more than once, an answer to an
+                // earlier copy may still be on its way; 0x03 replies carry no
+                // address, so it could pass for the answer to the next request.
+                // Stay quiet until it would have arrived (frames meanwhile are
+                // counted as unsolicited).
+                if p.sends == 0 && now < self.quiet_until {
+                    return LinkStep::WaitUntil(self.quiet_until);
+                }
                 self.to_send = false;
+                p.sends = p.sends.saturating_add(1);
+                p.last_sent = now;
                 // Whatever is still buffered belongs to no one now.
                 let stats = &mut self.stats;
                 self.decoder.finish(|r| count_unsolicited(stats, r));
@@ -277,45 +308,45 @@ impl Link {
 
     /// The response deadline passed.
     fn on_deadline(&mut self, now: Instant) {
+        // Whatever is half-received is cut off; a complete frame it reveals may
+        // still be the answer.
+        while let Some(item) = self.decoder.flush() {
+            self.on_item(now, item);
+            if self.pending.is_none() || self.to_send {
+                break;
+            }
+        }
         let Some(p) = self.pending.as_mut() else {
             return;
         };
-        // Whatever is half-received is cut off.
-        let mut heard = p.heard;
-        let mut last = p.last_error;
-        {
-            let stats = &mut self.stats;
-            self.decoder.finish(|r| {
-                heard = true;
-                if let Err(e) = r {
-                    count_decode_error(stats, &e);
-                    last = Some(Failure::Corrupt(e));
-                } else {
-                    stats.unsolicited += 1;
-                }
-            });
+        if self.to_send {
+            return; // on_item queued a retry
         }
-        p.heard = heard;
-        p.last_error = last;
         self.stats.timeouts += 1;
-        if !heard {
+        if !p.heard {
             if p.silence == Silence::Expected {
                 self.finish(now, Err(Failure::Silent));
                 return;
             }
-            if !p.wake_used {
+            // A write always follows a read the BMS just answered: it is awake,
+            // so silence is not a wake-up case for a write.
+            if !p.wake_used && !p.request.is_write() {
                 p.wake_used = true;
                 self.stats.wakeup_resends += 1;
                 self.to_send = true;
                 return;
             }
+            self.retry_or_fail(now, Failure::Timeout);
+            return;
         }
-        let err = if heard {
-            last.unwrap_or(Failure::Timeout)
+        let err = p.last_error.unwrap_or(Failure::Timeout);
+        if p.request.is_write() {
+            // Something came back (a corrupt ACK/echo/NACK?): never re-send a write
+            // the BMS may have answered. The read-back decides.
+            self.finish(now, Err(err));
         } else {
-            Failure::Timeout
-        };
-        self.retry_or_fail(now, err);
+            self.retry_or_fail(now, err);
+        }
     }
 
     fn retry_or_fail(&mut self, now: Instant, err: Failure) {
@@ -338,6 +369,11 @@ impl Link {
         };
         self.to_send = false;
         self.decoder.clear_expectation();
+        if p.sends > 1 {
+            self.quiet_until = p.last_sent
+                + BYTE_TIME_US * p.bytes.len() as Instant
+                + self.config.response_timeout_us;
+        }
         let latency_us = now.saturating_sub(p.first_sent.unwrap_or(now));
         match &result {
             Ok(_) | Err(Failure::Nack(_)) => {
@@ -352,6 +388,9 @@ impl Link {
                 self.stats.latency_sum_us += u64::from(l);
             }
             Err(Failure::Silent) => {}
+            Err(Failure::Timeout) if p.silence == Silence::Tolerated => {
+                self.stats.failures += 1;
+            }
             // Nothing at all came back: that is what counts towards "offline".
             Err(Failure::Timeout) => {
                 self.stats.failures += 1;
@@ -371,6 +410,7 @@ impl Link {
             request: p.request,
             result,
             latency_us,
+            sends: p.sends,
         });
     }
 
@@ -400,14 +440,15 @@ impl Link {
             return;
         };
         if self.to_send || self.done.is_some() {
-            // A re-send is queued: anything arriving now answers an old attempt.
+            // A (re-)send is queued: anything arriving now answers an old attempt.
             count_unsolicited(&mut self.stats, item);
             return;
         }
-        p.heard = true;
         let frame = match item {
             Ok(f) => f,
             Err(e) => {
+                // Probably our answer, damaged: the BMS is talking.
+                p.heard = true;
                 count_decode_error(&mut self.stats, &e);
                 p.last_error = Some(Failure::Corrupt(e));
                 return; // keep waiting: a good frame may follow
@@ -415,13 +456,14 @@ impl Link {
         };
         match Response::decode(&p.request, &frame) {
             Ok(Response::Nack { code, .. }) => {
+                p.heard = true;
                 match code {
                     NackCode::CommandError => self.stats.nacks_command += 1,
                     NackCode::CrcError => self.stats.nacks_crc += 1,
                     NackCode::Unknown(_) => self.stats.nacks_other += 1,
                 }
-                // The BMS got our request corrupted: a read may be re-sent. A write
-                // never is after a NACK.
+                // The BMS got our request corrupted: a read may be re-sent (its
+                // NACK is complete, nothing else is coming). A write never is.
                 if code == NackCode::CrcError && !p.request.is_write() {
                     self.retry_or_fail(now, Failure::Nack(code));
                 } else {
@@ -429,15 +471,17 @@ impl Link {
                 }
             }
             Ok(resp) => self.finish(now, Ok(resp)),
+            // Not for us (a late or duplicated answer, another command): ignored,
+            // and it does not count as the BMS answering this request.
             Err(ResponseError::UnexpectedResponse { .. }) => self.stats.unsolicited += 1,
             Err(e) => {
+                // Our command, CRC-valid, but it does not fit the request (length,
+                // address echo): possibly a stale answer. Note it and wait for the
+                // deadline rather than re-sending while the real answer may still
+                // be coming.
+                p.heard = true;
                 self.stats.invalid_replies += 1;
-                if p.request.is_write() {
-                    // Something answered the write: re-sending it is not allowed.
-                    self.finish(now, Err(Failure::Invalid(e)));
-                } else {
-                    self.retry_or_fail(now, Failure::Invalid(e));
-                }
+                p.last_error = Some(Failure::Invalid(e));
             }
         }
     }

@@ -31,6 +31,7 @@ use esp_hal::Async;
 use protocol_core::events::OnlineStatus;
 use protocol_core::views::LiveSnapshot;
 use tinybms_firmware::config::Config as BridgeConfig;
+use tinybms_firmware::link::Failure;
 use tinybms_firmware::{profile, Action, Bridge, Level, Report};
 
 // ESP-IDF 2nd-stage bootloader requires an application descriptor in the image.
@@ -82,6 +83,8 @@ const BMS_BAUDRATE: u32 = 115_200;
 const MAX_WAIT: Duration = Duration::from_millis(500);
 /// Watchdog timeout (MWDT stage 0 → system reset). Fed by the bridge loop.
 const WDT_TIMEOUT: esp_hal::time::Duration = esp_hal::time::Duration::from_secs(4);
+/// UART receive errors are logged at most once per this period.
+const RX_ERROR_LOG_PERIOD: Duration = Duration::from_secs(10);
 /// Telemetry older than this is reported stale by the consumer task.
 const STALE_AFTER: Duration = Duration::from_secs(5);
 
@@ -147,6 +150,8 @@ async fn bridge_task(
     }
     let mut buf = [0u8; 128];
     let mut published_seq = 0u32;
+    let mut rx_errors = 0u32;
+    let mut next_rx_error_log = Instant::now();
 
     loop {
         wdt.feed();
@@ -171,7 +176,14 @@ async fn bridge_task(
                 // `read_async` is cancellation-safe: racing it against a timer loses nothing.
                 match select(rx.read_async(&mut buf), Timer::at(deadline)).await {
                     Either::First(Ok(n)) => bridge.handle_rx(now_us(), buf.get(..n).unwrap_or(&[])),
-                    Either::First(Err(e)) => warn!("uart rx error: {}", e),
+                    Either::First(Err(e)) => {
+                        // Rate-limited: a noisy line must not flood the log.
+                        rx_errors = rx_errors.wrapping_add(1);
+                        if Instant::now() >= next_rx_error_log {
+                            warn!("uart rx error: {} ({=u32} so far)", e, rx_errors);
+                            next_rx_error_log = Instant::now() + RX_ERROR_LOG_PERIOD;
+                        }
+                    }
                     Either::Second(()) => {}
                 }
             }
@@ -271,16 +283,42 @@ fn log_report(r: &Report) {
                 );
             }
         }
+        Report::EventHistory { count, newest } => match newest {
+            Some(e) => info!(
+                "event log: {=u8} recent events, newest t={=u32}s 0x{=u8:02X} {=str}",
+                count,
+                e.timestamp_s,
+                e.id.raw(),
+                e.id.name()
+            ),
+            None => info!("event log: {=u8} recent events", count),
+        },
         Report::LinkError {
             command,
             failure,
             suppressed,
-        } => warn!(
-            "link error cmd 0x{=u8:02X}: {=str} (+{=u32} more since the last line)",
-            command,
-            failure.name(),
-            suppressed
-        ),
+        } => {
+            let code = match failure {
+                Failure::Nack(c) => c.to_u8(),
+                _ => 0xFF,
+            };
+            if *suppressed > 0 {
+                warn!(
+                    "link error cmd 0x{=u8:02X}: {=str} (nack code 0x{=u8:02X}) (+{=u32} more since the last line)",
+                    command,
+                    failure.name(),
+                    code,
+                    suppressed
+                );
+            } else {
+                warn!(
+                    "link error cmd 0x{=u8:02X}: {=str} (nack code 0x{=u8:02X})",
+                    command,
+                    failure.name(),
+                    code
+                );
+            }
+        }
         Report::Offline { failures } => warn!("BMS offline after {=u8} failed requests", failures),
         Report::Online => info!("BMS online; re-reading version and settings"),
         Report::Version(v) => info!(
@@ -323,7 +361,14 @@ fn log_report(r: &Report) {
                 warn!("BMS reset not confirmed")
             }
         }
-        Report::Cleared { option, ok } => info!("clear option {=u8}: ok={=bool}", option, ok),
+        Report::Cleared { option, ok } => {
+            let what = if *option == 1 { "events" } else { "statistics" };
+            if *ok {
+                info!("clear {=str} ok", what);
+            } else {
+                warn!("clear {=str} failed", what);
+            }
+        }
         Report::LinkStats(s) => info!(
             "link: req {=u32} rep {=u32} timeouts {=u32} wake {=u32} retries {=u32} crc {=u32} framing {=u32} invalid {=u32} nack {=u32}/{=u32}/{=u32} skipped {=u32} unsolicited {=u32} failures {=u32} latency {=u32}/{=u32}/{=u32} us",
             s.requests,

@@ -97,6 +97,13 @@ pub enum Report {
     },
     /// An event not seen before.
     NewEvent(Event),
+    /// The first events read after start-up: the log's recent history, in one line.
+    EventHistory {
+        /// Events in that first reply.
+        count: u8,
+        /// The newest of them.
+        newest: Option<Event>,
+    },
     /// A transaction failed.
     LinkError {
         /// Command code of the request.
@@ -209,6 +216,19 @@ impl fmt::Display for Report {
                 e.id.raw(),
                 e.id.name()
             ),
+            Report::EventHistory { count, newest } => {
+                write!(f, "event log: {count} recent events")?;
+                if let Some(e) = newest {
+                    write!(
+                        f,
+                        ", newest t={}s 0x{:02X} {}",
+                        e.timestamp_s,
+                        e.id.raw(),
+                        e.id.name()
+                    )?;
+                }
+                Ok(())
+            }
             Report::LinkError {
                 command,
                 failure,

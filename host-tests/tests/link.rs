@@ -217,3 +217,101 @@ fn offline_after_consecutive_failures_and_back() {
     );
     assert!(link.is_online());
 }
+
+#[test]
+fn a_late_answer_is_never_taken_for_the_next_request() {
+    let mut link = Link::new(Config::default());
+    let reply = |v: u16| {
+        let req = Request::read_registers(300, 1).unwrap();
+        let resp = Response::Registers(protocol_core::response::RegisterBlock {
+            start: 300,
+            values: heapless::Vec::from_slice(&[v]).unwrap(),
+        });
+        encode(&resp.to_frame(&req).unwrap())
+    };
+    // First copy unanswered in time: wake-up resend, answered at once.
+    link.start(
+        0,
+        Request::read_registers(315, 1).unwrap(),
+        Silence::Failure,
+    );
+    assert!(matches!(link.step(0), LinkStep::Send(_)));
+    let LinkStep::WaitUntil(deadline) = link.step(0) else {
+        panic!()
+    };
+    assert!(matches!(link.step(deadline), LinkStep::Send(_)));
+    link.on_bytes(deadline + 2_000, &reply(3600));
+    assert!(matches!(link.step(deadline + 2_000), LinkStep::Done(c) if c.sends == 2));
+    // Next request (same shape: 0x03, one register): it waits until the answer to
+    // the first copy would have come...
+    let t = deadline + 3_000;
+    link.start(
+        t,
+        Request::read_registers(330, 1).unwrap(),
+        Silence::Failure,
+    );
+    let LinkStep::WaitUntil(quiet) = link.step(t) else {
+        panic!("sent during the quiet period")
+    };
+    assert!(quiet > t);
+    // ... which it does, late; it is counted, not used.
+    link.on_bytes(t + 10_000, &reply(3600));
+    assert_eq!(link.stats().unsolicited, 1);
+    assert!(matches!(link.step(quiet), LinkStep::Send(_)));
+    link.on_bytes(quiet + 2_000, &reply(0x0A01));
+    let LinkStep::Done(c) = link.step(quiet + 2_000) else {
+        panic!()
+    };
+    assert!(matches!(c.result, Ok(Response::Registers(b)) if b.values[0] == 0x0A01));
+}
+
+#[test]
+fn a_write_is_not_resent_once_anything_came_back() {
+    // A damaged echo: the write is not re-sent (the read-back will decide).
+    let w = Request::write_registers(315, &[3650]).unwrap();
+    let resp = Response::WriteEcho {
+        start: 315,
+        count: 1,
+    };
+    let mut echo = encode(&resp.to_frame(&w).unwrap());
+    let n = echo.len();
+    echo[n - 1] ^= 0x10;
+    let (r, sends, _) = run(w.clone(), Silence::Failure, |_| Some(echo.clone()));
+    assert!(matches!(r, Err(Failure::Corrupt(_))), "{r:?}");
+    assert_eq!(sends, 1);
+    // Total silence: no wake-up resend for a write, only the bounded retries.
+    let (r, sends, _) = run(w, Silence::Failure, |_| None);
+    assert_eq!(r, Err(Failure::Timeout));
+    assert_eq!(
+        sends,
+        1 + usize::from(tinybms_firmware::config::MAX_RETRIES)
+    );
+}
+
+#[test]
+fn a_frame_for_another_command_does_not_count_as_an_answer() {
+    // An unrelated frame during a reset's silence: still silence, no resend.
+    let (r, sends, link) = run(
+        Request::ResetClear(protocol_core::request::ResetOption::ResetBms),
+        Silence::Expected,
+        |_| Some(encode(&Frame::data(0x1B, &[1, 0, 2, 0, 3, 0]).unwrap())),
+    );
+    assert_eq!(r, Err(Failure::Silent));
+    assert_eq!(sends, 1);
+    assert_eq!(link.stats().unsolicited, 1);
+}
+
+#[test]
+fn a_wrong_length_answer_waits_for_the_deadline_before_retrying() {
+    let req = Request::read_registers(0, 2).unwrap();
+    let short = encode(&Frame::data(0x03, &[0, 1]).unwrap());
+    let mut link = Link::new(Config::default());
+    link.start(0, req, Silence::Failure);
+    assert!(matches!(link.step(0), LinkStep::Send(_)));
+    link.on_bytes(2_000, &short);
+    // Not re-sent at once: the real answer may still be coming.
+    assert!(matches!(link.step(2_000), LinkStep::WaitUntil(_)));
+    link.on_bytes(3_000, &live_reply());
+    assert!(matches!(link.step(3_000), LinkStep::Done(c) if c.result.is_ok() && c.sends == 1));
+    assert_eq!(link.stats().invalid_replies, 1);
+}

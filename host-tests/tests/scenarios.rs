@@ -491,8 +491,23 @@ fn clear_events_and_statistics() {
 fn faults_are_warnings_and_events_are_logged_once() {
     let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 13);
     h.run_until(10 * S);
+    // The log's history at start-up is one info line, not a burst of old events.
+    assert!(matches!(
+        h.log
+            .iter()
+            .find(|l| matches!(l.report, Report::EventHistory { .. }))
+            .map(|l| (&l.report, l.level)),
+        Some((
+            Report::EventHistory {
+                count: 1..,
+                newest: Some(_)
+            },
+            Level::Info
+        ))
+    ));
+    assert_eq!(count(&h, |r| matches!(r, Report::EventHistory { .. })), 1);
     let events_before = count(&h, |r| matches!(r, Report::NewEvent(_)));
-    assert!(events_before > 0);
+    assert_eq!(events_before, 0);
     h.sim.inject_fault_event(EventId::OverTemperatureCutoff);
     h.run_until(20 * S);
     h.sim.clear_fault();
@@ -581,4 +596,124 @@ fn faults_of_every_kind_never_publish_a_wrong_value() {
     }
     assert!(h.published.len() > 20 * 60 * 3);
     assert_published_are_genuine(&h);
+}
+
+#[test]
+fn a_lost_write_to_328_is_not_verified_by_its_marker() {
+    // 328 already reads 0xFFFF before the write; the write (0x10) is lost on every
+    // attempt, so the 0xFFFF read back afterwards proves nothing.
+    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 15);
+    h.run_until(S);
+    assert_eq!(h.sim.register(328), 0xFFFF);
+    h.sim.drop_next_requests(0x10, 10);
+    h.bridge
+        .submit(group(&[(SettingId::StateOfCharge, 40_000)]))
+        .unwrap();
+    h.run_until(4 * S);
+    assert_eq!(
+        writes(&h),
+        vec![(
+            SettingId::StateOfCharge,
+            40_000,
+            WriteOutcome::Failed(tinybms_firmware::link::Failure::Timeout)
+        )]
+    );
+    // Sent, unanswered, re-sent only while nothing at all came back.
+    assert_eq!(h.sim.stats().requests_by_command[&0x10], 3);
+}
+
+#[test]
+fn a_write_whose_echo_was_lost_is_decided_by_the_read_back() {
+    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 16);
+    h.run_until(S);
+    // The first write request is lost: the retry is applied and echoed.
+    h.sim.drop_next_requests(0x10, 1);
+    h.bridge
+        .submit(group(&[(SettingId::OverVoltageCutoff, 3620)]))
+        .unwrap();
+    h.run_until(3 * S);
+    assert_eq!(
+        writes(&h),
+        vec![(SettingId::OverVoltageCutoff, 3620, WriteOutcome::Verified)]
+    );
+    assert_eq!(h.sim.stats().requests_by_command[&0x10], 2);
+    assert_eq!(h.sim.register(315), 3620);
+}
+
+#[test]
+fn a_lost_reset_is_not_confirmed() {
+    let mut h = harness(PackProfile::LiIon_14S, SimConfig::default(), 17);
+    h.run_until(2 * S);
+    // Register 114 already says "software reset" from an earlier restart.
+    h.sim
+        .set_register(114, (h.sim.register(114) & 0xFF00) | 0x04);
+    h.sim.drop_next_requests(0x02, 1);
+    h.bridge.submit(Command::ResetBms).unwrap();
+    h.run_until(15 * S);
+    assert_eq!(h.sim.stats().reboots, 0);
+    assert_eq!(
+        h.sim.stats().requests_by_command.get(&0x02),
+        Some(&1),
+        "never re-sent"
+    );
+    assert_eq!(
+        count(&h, |r| matches!(r, Report::ResetDone { confirmed: false })),
+        1
+    );
+    assert_eq!(
+        count(&h, |r| matches!(r, Report::ResetDone { confirmed: true })),
+        0
+    );
+}
+
+#[test]
+fn a_bms_that_never_answers_0x1d_is_still_polled() {
+    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 18);
+    h.sim.ignore_command(0x1D);
+    h.run_until(30 * S);
+    assert_eq!(count(&h, |r| matches!(r, Report::Ready { .. })), 1);
+    assert!(h.published.len() > 100);
+    assert_eq!(
+        count(&h, |r| matches!(r, Report::Offline { .. })),
+        0,
+        "{}",
+        h.log_text()
+    );
+    assert!(h.bridge.telemetry().limits_max.is_none());
+    // Writes still validate against Rev D and go through write/verify.
+    h.bridge
+        .submit(group(&[(SettingId::OverVoltageCutoff, 3610)]))
+        .unwrap();
+    h.run_until(33 * S);
+    assert_eq!(
+        writes(&h),
+        vec![(SettingId::OverVoltageCutoff, 3610, WriteOutcome::Verified)]
+    );
+}
+
+#[test]
+fn a_long_group_does_not_stop_the_live_polling() {
+    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 19);
+    h.run_until(S);
+    let items: Vec<(SettingId, i32)> = (0..16)
+        .map(|i| (SettingId::ChargerStartupDelay, 10 + i))
+        .collect();
+    h.bridge.submit(group(&items)).unwrap();
+    h.run_until(8 * S);
+    assert_eq!(writes(&h).len(), 16);
+    assert!(writes(&h).iter().all(|w| w.2 == WriteOutcome::Verified));
+    let mut last = S;
+    for (t, _) in h.published.iter().filter(|(t, _)| *t > S) {
+        assert!(t - last < 700_000, "no snapshot between {last} and {t}");
+        last = *t;
+    }
+}
+
+#[test]
+fn event_timestamps_wrap_after_24_bits() {
+    use tinybms_firmware::bridge::ts_newer;
+    assert!(ts_newer(5, 0x00FF_FFF0));
+    assert!(!ts_newer(0x00FF_FFF0, 5));
+    assert!(ts_newer(0x10, 0x0F));
+    assert!(!ts_newer(7, 7));
 }

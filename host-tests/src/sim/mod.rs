@@ -251,6 +251,8 @@ pub struct SimBms {
     record: bool,
     sent_log: Vec<Frame>,
     ignored_writes: Vec<u16>,
+    ignored_commands: Vec<u8>,
+    drop_next: std::collections::BTreeMap<u8, u32>,
 }
 
 impl SimBms {
@@ -300,6 +302,8 @@ impl SimBms {
             record: false,
             sent_log: Vec::new(),
             ignored_writes: Vec::new(),
+            ignored_commands: Vec::new(),
+            drop_next: std::collections::BTreeMap::new(),
         };
         for &(ago, id) in profile::HISTORY {
             sim.push_event(Event {
@@ -453,6 +457,18 @@ impl SimBms {
     /// which changes the settings limits the BMS enforces and reports).
     pub fn config_mut(&mut self) -> &mut SimConfig {
         &mut self.config
+    }
+
+    /// Test hook: requests with this command byte are never answered and have no
+    /// effect (a BMS firmware without that command, answering nothing).
+    pub fn ignore_command(&mut self, command: u8) {
+        self.ignored_commands.push(command);
+    }
+
+    /// Test hook: the next `n` requests with this command byte are lost (no
+    /// answer, no effect), as if the line had swallowed them.
+    pub fn drop_next_requests(&mut self, command: u8, n: u32) {
+        self.drop_next.insert(command, n);
     }
 
     /// Test hook: keep a copy of every frame the BMS sends, as built, before any
@@ -774,6 +790,15 @@ impl SimBms {
         if t < self.busy_until {
             self.stats.busy_ignored += 1;
             return;
+        }
+        if self.ignored_commands.contains(&command) {
+            return;
+        }
+        if let Some(n) = self.drop_next.get_mut(&command) {
+            if *n > 0 {
+                *n -= 1;
+                return;
+            }
         }
         if self.rng_faults.chance(self.config.faults.no_reply) {
             self.stats.faults.no_reply += 1;
