@@ -23,7 +23,7 @@
 //! reported with a matching read-back.
 
 use heapless::{Deque, Vec};
-use protocol_core::events::{Event, EventId, OnlineStatus};
+use protocol_core::events::{Event, EventId};
 use protocol_core::request::{Request, ResetOption, SettingsOption};
 use protocol_core::response::{RegisterBlock, Response};
 use protocol_core::settings::{Setting, SettingId, ACCEPTED_MARKER};
@@ -993,17 +993,4 @@ pub fn snapshot_line(s: &LiveSnapshot) -> SnapshotLine {
         external_c: (s.external1_c(), s.external2_c()),
         status: s.status,
     }
-}
-
-/// True for the statuses worth a warning.
-pub fn is_fault(status: OnlineStatus) -> bool {
-    status == OnlineStatus::Fault
-}
-
-/// True for event IDs worth a warning.
-pub fn is_alarm(id: EventId) -> bool {
-    matches!(
-        id.severity(),
-        protocol_core::events::Severity::Fault | protocol_core::events::Severity::Warning
-    )
 }

@@ -500,14 +500,3 @@ fn count_unsolicited(stats: &mut LinkStats, item: Result<protocol_core::Frame, D
         Err(e) => count_decode_error(stats, &e),
     }
 }
-
-/// Helper for tests and the shell: the bytes of a step, if it is a send.
-pub fn sent_bytes(step: &LinkStep) -> Option<&[u8]> {
-    match step {
-        LinkStep::Send(b) => Some(b.as_slice()),
-        _ => None,
-    }
-}
-
-/// Compile-time check that a request fits the transmit buffer.
-const _: () = assert!(protocol_core::request::MAX_REQUEST_LEN <= 256);
