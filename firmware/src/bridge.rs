@@ -720,7 +720,11 @@ impl Bridge {
             });
         }
         if now >= self.next_snapshot_log {
-            self.next_snapshot_log = now + self.config.snapshot_log_period_us;
+            // Keep to the period's grid (a line every 10 s, not every 10.25 s).
+            let period = self.config.snapshot_log_period_us.max(1);
+            while self.next_snapshot_log <= now {
+                self.next_snapshot_log += period;
+            }
             self.report(Report::Snapshot(snapshot_line(&snap)));
         }
         self.telemetry.snapshot = Some(snap);

@@ -128,6 +128,16 @@ fn an_awake_bms_gets_every_request_exactly_once() {
     assert_eq!(u64::from(s.requests), h.sim.stats().requests);
     assert_eq!(s.wakeup_resends + s.retries + s.timeouts, 0, "{s:?}");
     assert!(h.published.len() >= 235);
+    // One snapshot line per 10 s (the default log period), on the grid.
+    let lines: Vec<u64> = h
+        .reports(|r| matches!(r, Report::Snapshot(_)))
+        .map(|l| l.at_us)
+        .collect();
+    assert_eq!(lines.len(), 6, "{lines:?}");
+    assert!(
+        lines.windows(2).all(|w| w[1] - w[0] < 10_100_000),
+        "{lines:?}"
+    );
     // 14S pack, cells in registers 2-15.
     let (_, last) = h.published.last().unwrap();
     assert_eq!((last.cells.first_register, last.cells.raw.len()), (2, 14));
