@@ -133,38 +133,24 @@ fn native_stream() -> (Vec<u8>, usize) {
     (s, 200)
 }
 
+/// Feeds `stream` in `chunk`-byte pieces through `Decoder::feed` (push/poll until
+/// every byte is taken) and counts the frames.
 fn decode_chunked(stream: &[u8], chunk: usize) -> usize {
     let mut dec = Decoder::new();
     let mut frames = 0usize;
     for piece in stream.chunks(chunk) {
-        let mut rest = piece;
-        while !rest.is_empty() {
-            let n = dec.push(rest);
-            rest = &rest[n..];
-            while let Some(r) = dec.poll() {
-                if let Ok(f) = r {
-                    black_box(&f);
-                    frames += 1;
-                }
+        dec.feed(piece, |r| {
+            if let Ok(f) = r {
+                black_box(&f);
+                frames += 1;
             }
-        }
+        });
     }
     frames
 }
 
 fn decode_bytewise(stream: &[u8]) -> usize {
-    let mut dec = Decoder::new();
-    let mut frames = 0usize;
-    for b in stream {
-        dec.push(core::slice::from_ref(b));
-        while let Some(r) = dec.poll() {
-            if let Ok(f) = r {
-                black_box(&f);
-                frames += 1;
-            }
-        }
-    }
-    frames
+    decode_chunked(stream, 1)
 }
 
 fn decoder_benches(c: &mut Criterion) {
