@@ -3,34 +3,51 @@
 //!
 //! ## Phases
 //! 1. **Sync** — at start-up, after reconnection, after a reset and after every
-//!    settings write: version (0x03 500-509), settings (0x03 300-343), the BMS's
-//!    own min and max (0x1D options 1 and 2). Telemetry is not published before
-//!    this completes ("ready").
-//! 2. **Running** — the live block (0x03 0-55) every [`Config::live_period_us`],
-//!    newest events (0x11) and statistics (0x03 100-117) slower; queued commands
-//!    (settings groups, reset, clear) run one at a time and take priority.
+//!    settings write: version (500-509), settings (300-343), the BMS's own min and
+//!    max (0x1D options 1 and 2). Telemetry is not published before this
+//!    completes ("ready").
+//! 2. **Running** — the live block (0-55) every [`Config::live_period_us`], the
+//!    event log and statistics (100-117) slower; queued commands (settings
+//!    groups, reset, clear) run one at a time between live reads.
 //!
 //! While the link is offline only a probe (the version block) is sent, at
 //! [`Config::offline_probe_period_us`].
+//!
+//! ## Only what the BMS sent
+//! * Register blocks are read through [`BlockRead`]: whole on a clean line, in
+//!   pieces on a bad one ([`LineQuality`]). Blocks that do not change by
+//!   themselves (version, settings, 0x1D limits, statistics, the event log) are
+//!   believed only when two complete reads in a row are identical.
+//! * A live block must pass [`checks::check_live`] and, against the last
+//!   published snapshot, [`checks::check_jump`]. One that fails is read again at
+//!   once; it is published only if an independent second read agrees with it (no
+//!   jump between the two, the same verdict), and then flagged with the check it
+//!   failed ([`Report::Flagged`]). The first snapshot after a (re)sync is always
+//!   confirmed by a second read.
 //!
 //! ## Write/verify
 //! For each setting of a group: validate against Rev D and the BMS-reported
 //! min/max → read the current value → skip when equal → write with 0x10 (byte
 //! fields read-modify-write, keeping the other byte) → echo, or NACK reported with
 //! its code → settle → read back → compare (0xFFFF counts as accepted for 323 and
-//! 328). A write to 340 restarts the BMS: the read-back waits for the restart. When
-//! the write's reply is lost, the read-back still decides: success is only ever
-//! reported with a matching read-back.
+//! 328). A write to 340 restarts the BMS: the read-back waits for the restart.
+//! Success is only ever reported with a matching read-back; "failed" only when
+//! the write never went out or the read-back shows the old value; when nothing
+//! could be read back the outcome is "unconfirmed" and the settings read that
+//! follows every write decides ([`Report::WriteFollowUp`]).
 
 use heapless::{Deque, Vec};
 use protocol_core::events::{Event, EventId};
 use protocol_core::request::{Request, ResetOption, SettingsOption};
 use protocol_core::response::{RegisterBlock, Response};
 use protocol_core::settings::{Setting, SettingId, ACCEPTED_MARKER};
-use protocol_core::views::{LiveSnapshot, Statistics, VersionInfo};
+use protocol_core::views::{event_log, LiveSnapshot, Statistics, VersionInfo};
 
+use crate::checks::{self, Check};
 use crate::config::{self, Config};
+use crate::event_log::{EventTracker, Found};
 use crate::link::{Completion, Failure, Link, LinkStep, Silence, Transmit};
+use crate::reader::{self, Assembled, BlockRead, LineQuality, Mode};
 use crate::report::{Report, SnapshotLine, WriteOutcome};
 use crate::Instant;
 
@@ -58,17 +75,36 @@ pub enum Command {
     ClearStatistics,
 }
 
+/// How the published live snapshot was obtained.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct LiveMeta {
+    /// Requests the block was assembled from (1 on a clean line).
+    pub pieces: u8,
+    /// First piece asked for to last piece received, µs.
+    pub span_us: u32,
+    /// A check the snapshot fails although a second read confirmed it.
+    pub flagged: Option<Check>,
+}
+
 /// The bridge's picture of the BMS.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Telemetry {
     /// Latest live snapshot.
     pub snapshot: Option<LiveSnapshot>,
+    /// Registers 0-55 it was decoded from (reserved registers read as 0 when the
+    /// block was assembled from pieces).
+    pub live_registers: Option<RegisterBlock>,
+    /// How it was read.
+    pub live: LiveMeta,
     /// When it was decoded.
     pub snapshot_at: Option<Instant>,
     /// Incremented at every new snapshot.
     pub snapshot_seq: u32,
     /// Latest statistics.
     pub statistics: Option<Statistics>,
+    /// Registers 100-117 they were decoded from.
+    pub statistics_registers: Option<RegisterBlock>,
     /// Version block.
     pub version: Option<VersionInfo>,
     /// Settings 300-343 as last read.
@@ -104,12 +140,22 @@ enum Phase {
     Running,
 }
 
+/// What a confirmed block read is for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Aux {
+    Version,
+    Settings,
+    Stats,
+    Events,
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Purpose {
-    Sync(SyncStep),
     Live,
-    Events,
-    Stats,
+    Aux(Aux),
+    Limits(SettingsOption),
+    NewestEvents,
+    EventSlot,
     Probe,
     Job,
 }
@@ -128,7 +174,7 @@ struct WriteJob {
     index: usize,
     step: WriteStep,
     current: Option<(u16, Option<u16>)>,
-    /// The write got no confirmation: the read-back decides, a mismatch is a failure.
+    /// The write got no confirmation: the read-back decides.
     unconfirmed: Option<Failure>,
     readback_attempts: u8,
     wrote_any: bool,
@@ -154,12 +200,32 @@ enum Job {
     Clear(ResetOption),
 }
 
+/// A write whose outcome the next settings read decides.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Unresolved {
+    setting: Setting,
+    /// First register before the write, when it was read.
+    old: Option<u16>,
+}
+
+/// A live block that failed a check, waiting for a second read.
+#[derive(Debug, Clone, PartialEq)]
+struct Suspect {
+    snapshot: LiveSnapshot,
+    at: Instant,
+    verdict: Result<(), Check>,
+    tries: u8,
+}
+
 /// Failed attempts at reading the BMS's settings limits (0x1D) before the bridge
-/// goes on without them.
+/// goes on without them (and tries again later, at the statistics period).
 const SYNC_LIMITS_ATTEMPTS: u8 = 3;
 
-/// Most event (timestamp, id) pairs remembered to recognise events already logged.
-const SEEN_EVENTS: usize = 64;
+/// Second reads of a suspect live block before it is dropped.
+const SUSPECT_TRIES: u8 = 3;
+
+/// Writes awaiting a follow-up outcome.
+const UNRESOLVED: usize = config::MAX_SETTINGS_GROUP;
 
 /// The bridge. See the module documentation.
 #[derive(Debug, Clone)]
@@ -180,14 +246,31 @@ pub struct Bridge {
     next_probe: Instant,
     next_snapshot_log: Instant,
     next_link_log: Instant,
+    next_quality_log: Instant,
     sync_retry_at: Instant,
     sync_failures: u8,
     limits_unsupported: bool,
-    newest_event: Option<u32>,
+    limits_retry_at: Option<Instant>,
+    limits_candidate: Option<RegisterBlock>,
     next_error_log: Instant,
     suppressed_errors: u32,
-    seen: Deque<(u32, u8), SEEN_EVENTS>,
     was_online: bool,
+    quality: LineQuality,
+    live_read: Option<BlockRead>,
+    aux_read: Option<(Aux, BlockRead)>,
+    live_turns: u8,
+    suspect: Option<Suspect>,
+    refused: u32,
+    refused_check: Option<Check>,
+    snapshots_in_window: u32,
+    flagged: Option<Check>,
+    events: EventTracker,
+    unresolved: Vec<Unresolved, UNRESOLVED>,
+    /// The published snapshot is from the current sync: jumps are checked
+    /// against it.
+    live_base_valid: bool,
+    /// When the last sync completed.
+    ready_at: Instant,
 }
 
 impl Bridge {
@@ -212,15 +295,29 @@ impl Bridge {
             next_stats: now,
             next_probe: now,
             next_snapshot_log: now,
-            next_link_log: now + config.link_stats_log_period_us,
+            next_link_log: now.saturating_add(config.link_stats_log_period_us),
+            next_quality_log: now.saturating_add(config.line_quality_log_period_us),
             sync_retry_at: now,
             sync_failures: 0,
             limits_unsupported: false,
-            newest_event: None,
+            limits_retry_at: None,
+            limits_candidate: None,
             next_error_log: now,
             suppressed_errors: 0,
-            seen: Deque::new(),
             was_online: true,
+            quality: LineQuality::default(),
+            live_read: None,
+            aux_read: None,
+            live_turns: 0,
+            suspect: None,
+            refused: 0,
+            refused_check: None,
+            snapshots_in_window: 0,
+            flagged: None,
+            events: EventTracker::new(),
+            unresolved: Vec::new(),
+            live_base_valid: false,
+            ready_at: now,
         }
     }
 
@@ -255,6 +352,16 @@ impl Bridge {
         self.link.stats()
     }
 
+    /// Registers per request the block reads use now (the line's quality).
+    pub fn piece_registers(&self) -> u16 {
+        self.quality.piece()
+    }
+
+    /// Replaces the link counters (see [`Link::preset_stats`]).
+    pub fn preset_link_stats(&mut self, stats: crate::link::LinkStats) {
+        self.link.preset_stats(stats);
+    }
+
     /// True while a command is queued or running.
     pub fn busy(&self) -> bool {
         self.job.is_some() || !self.commands.is_empty()
@@ -273,7 +380,7 @@ impl Bridge {
     fn report(&mut self, r: Report) {
         if self.reports.is_full() {
             let _oldest = self.reports.pop_front();
-            self.dropped += 1;
+            self.dropped = self.dropped.wrapping_add(1);
         }
         let _room = self.reports.push_back(r);
     }
@@ -286,25 +393,61 @@ impl Bridge {
     /// What to do next at `now`.
     pub fn poll(&mut self, now: Instant) -> Action {
         if now >= self.next_link_log {
-            self.next_link_log = now + self.config.link_stats_log_period_us;
+            self.next_link_log = now.saturating_add(self.config.link_stats_log_period_us);
             let s = self.link.stats();
             self.report(Report::LinkStats(s));
         }
+        if now >= self.next_quality_log {
+            self.next_quality_log = now.saturating_add(self.config.line_quality_log_period_us);
+            self.log_quality();
+        }
+        let next_log = self.next_link_log.min(self.next_quality_log);
         for _ in 0..16 {
             match self.link.step(now) {
                 LinkStep::Send(b) => return Action::Transmit(b),
                 LinkStep::Done(c) => self.on_completion(now, c),
-                LinkStep::WaitUntil(t) => return Action::WaitUntil(t.min(self.next_link_log)),
+                LinkStep::WaitUntil(t) => return Action::WaitUntil(t.min(next_log)),
                 LinkStep::Idle => match self.next_request(now) {
                     Some((req, silence, purpose)) => {
                         self.purpose = purpose;
-                        self.link.start(now, req, silence);
+                        // Pieces (0x09 block reads on a bad line, event slots)
+                        // are small: a lost answer is not waited for as long.
+                        let piece = matches!(
+                            purpose,
+                            Purpose::Live | Purpose::Aux(_) | Purpose::EventSlot
+                        ) && matches!(req, Request::ReadIndividual(_));
+                        let timeout = if piece {
+                            self.config.piece_response_timeout_us
+                        } else {
+                            self.config.response_timeout_us
+                        };
+                        self.link.start_with_timeout(now, req, silence, timeout);
                     }
-                    None => return Action::WaitUntil(self.next_wake(now).min(self.next_link_log)),
+                    None => return Action::WaitUntil(self.next_wake(now).min(next_log)),
                 },
             }
         }
         Action::WaitUntil(now)
+    }
+
+    fn log_quality(&mut self) {
+        let (attempts, clean) = self.quality.take_window();
+        let snapshots = core::mem::take(&mut self.snapshots_in_window);
+        if self.refused > 0 {
+            let count = core::mem::take(&mut self.refused);
+            let check = self.refused_check.take();
+            self.report(Report::Refused { check, count });
+        }
+        // A clean line says nothing; a degraded one says how degraded, once per
+        // period, instead of a line per failed request.
+        if attempts > clean || self.quality.level > 0 {
+            self.report(Report::LineQuality {
+                attempts,
+                clean,
+                piece_registers: self.quality.piece(),
+                snapshots,
+            });
+        }
     }
 
     fn next_wake(&self, now: Instant) -> Instant {
@@ -317,14 +460,18 @@ impl Bridge {
         match self.phase {
             Phase::Sync(_) => self.sync_retry_at,
             Phase::Running => {
+                let mut t = self.next_live.min(self.next_events).min(self.next_stats);
                 if let Some(Job::Write(WriteJob {
-                    step: WriteStep::Settle(t),
+                    step: WriteStep::Settle(s),
                     ..
                 })) = &self.job
                 {
-                    return *t;
+                    t = t.min(*s);
                 }
-                self.next_live.min(self.next_events).min(self.next_stats)
+                if let Some(r) = self.limits_retry_at {
+                    t = t.min(r);
+                }
+                t
             }
         }
         .max(now)
@@ -338,38 +485,44 @@ impl Bridge {
             if now < self.next_probe {
                 return None;
             }
-            self.next_probe = now + self.config.offline_probe_period_us;
+            self.next_probe = now.saturating_add(self.config.offline_probe_period_us);
             return Some((version_request(), Silence::Failure, Purpose::Probe));
         }
         if let Phase::Sync(step) = self.phase {
             if now < self.sync_retry_at {
                 return None;
             }
-            let req = match step {
-                SyncStep::Version => version_request(),
-                SyncStep::Settings => block(300, 44),
-                SyncStep::LimitsMin => Request::ReadSettings {
-                    option: SettingsOption::Min,
-                    count: 44,
-                },
-                SyncStep::LimitsMax => Request::ReadSettings {
-                    option: SettingsOption::Max,
-                    count: 44,
-                },
-            };
-            // A BMS that does not answer 0x1D is not absent: its other answers
-            // prove it is there, so that silence does not count towards offline.
-            let silence = match step {
-                SyncStep::LimitsMin | SyncStep::LimitsMax => Silence::Tolerated,
-                _ => Silence::Failure,
-            };
-            return Some((req, silence, Purpose::Sync(step)));
+            return Some(match step {
+                SyncStep::Version => self.aux_piece(now, Aux::Version),
+                SyncStep::Settings => self.aux_piece(now, Aux::Settings),
+                // A BMS that does not answer 0x1D is not absent: its other answers
+                // prove it is there, so that silence does not count towards offline.
+                SyncStep::LimitsMin => limits_request(SettingsOption::Min),
+                SyncStep::LimitsMax => limits_request(SettingsOption::Max),
+            });
         }
-        // Running. Between two settings of a group (or before a job starts) the
-        // live block still gets its turn, so a long group does not blind the bridge.
-        if now >= self.next_live && self.at_job_boundary() {
-            self.next_live = now + self.config.live_period_us;
-            return Some((block(0, 56), Silence::Failure, Purpose::Live));
+        self.running_request(now)
+    }
+
+    /// Running: what to read next. A live read in progress alternates with a
+    /// confirmed read in progress; between them, commands, the event log and the
+    /// statistics get their turn before the next live read starts, so that no
+    /// live period starves them.
+    fn running_request(&mut self, now: Instant) -> Option<(Request, Silence, Purpose)> {
+        let live_busy = self.live_read.is_some();
+        if live_busy && self.live_turns > 0 {
+            self.live_turns -= 1;
+            return Some(self.live_piece(now));
+        }
+        // Between two settings of a group (or before a job starts) a due live
+        // read goes first, so a long group does not blind the bridge.
+        if !live_busy && now >= self.next_live && self.at_job_boundary() && self.live_turns > 0 {
+            return Some(self.start_live(now));
+        }
+        // From here on, whatever goes out gives the live read its next turns.
+        self.live_turns = config::LIVE_SHARE;
+        if let Some((aux, _)) = self.aux_read {
+            return Some(self.aux_piece(now, aux));
         }
         for _ in 0..config::COMMAND_QUEUE + 1 {
             if self.job.is_none() {
@@ -380,7 +533,7 @@ impl Bridge {
             }
             match self.job_request(now) {
                 JobNext::Send(req, silence) => return Some((req, silence, Purpose::Job)),
-                JobNext::Wait => return None,
+                JobNext::Wait => break,
                 JobNext::Finished => {
                     self.job = None;
                     if matches!(self.phase, Phase::Sync(_)) {
@@ -390,19 +543,106 @@ impl Bridge {
                 }
             }
         }
-        if now >= self.next_live {
-            self.next_live = now + self.config.live_period_us;
-            return Some((block(0, 56), Silence::Failure, Purpose::Live));
+        if matches!(self.job, Some(Job::Reset(_) | Job::Clear(_))) {
+            // A reset or clear owns the link until it is done.
+            return None;
+        }
+        // After a (re)sync the first snapshot goes before the event log and the
+        // statistics (on a bad line those take many requests), unless the live
+        // data takes unusually long.
+        let first_snapshot_pending = !self.live_base_valid
+            && now
+                < self
+                    .ready_at
+                    .saturating_add(config::FIRST_SNAPSHOT_PRIORITY_US);
+        if first_snapshot_pending {
+            return Some(if live_busy {
+                self.live_piece(now)
+            } else {
+                self.start_live(now)
+            });
         }
         if now >= self.next_events {
-            self.next_events = now + self.config.events_period_us;
-            return Some((Request::ReadNewestEvents, Silence::Failure, Purpose::Events));
+            self.next_events = now.saturating_add(self.config.events_period_us);
+            if self.events.needs_full_read() {
+                if let Some(slot) = self.events.scan_slot() {
+                    return Some((slot_request(slot), Silence::Failure, Purpose::EventSlot));
+                }
+                return Some(self.aux_piece(now, Aux::Events));
+            }
+            return Some((
+                Request::ReadNewestEvents,
+                Silence::Failure,
+                Purpose::NewestEvents,
+            ));
         }
         if now >= self.next_stats {
-            self.next_stats = now + self.config.stats_period_us;
-            return Some((block(100, 18), Silence::Failure, Purpose::Stats));
+            self.next_stats = now.saturating_add(self.config.stats_period_us);
+            return Some(self.aux_piece(now, Aux::Stats));
+        }
+        if live_busy {
+            return Some(self.live_piece(now));
+        }
+        if now >= self.next_live {
+            return Some(self.start_live(now));
+        }
+        if let Some(t) = self.limits_retry_at {
+            if now >= t && self.job.is_none() {
+                self.limits_retry_at = None;
+                let option = if self.telemetry.limits_min.is_none() {
+                    SettingsOption::Min
+                } else {
+                    SettingsOption::Max
+                };
+                return Some(limits_request(option));
+            }
         }
         None
+    }
+
+    fn start_live(&mut self, now: Instant) -> (Request, Silence, Purpose) {
+        self.next_live = now.saturating_add(self.config.live_period_us);
+        let window = self
+            .config
+            .live_assembly_window_us
+            .max(self.config.live_period_us);
+        self.live_read = Some(BlockRead::new(
+            reader::LIVE_SEGMENTS,
+            Mode::Window(window),
+            now,
+        ));
+        self.live_turns = config::LIVE_SHARE.saturating_sub(1);
+        self.live_piece(now)
+    }
+
+    fn live_piece(&mut self, now: Instant) -> (Request, Silence, Purpose) {
+        let piece = self.quality.piece();
+        let req = match self.live_read.as_mut() {
+            Some(r) => r.next_request(now, piece),
+            None => block(0, 56),
+        };
+        (req, Silence::Failure, Purpose::Live)
+    }
+
+    fn aux_piece(&mut self, now: Instant, aux: Aux) -> (Request, Silence, Purpose) {
+        let piece = self.quality.piece();
+        let read = match &mut self.aux_read {
+            Some((a, r)) if *a == aux => r,
+            _ => {
+                let segments = match aux {
+                    Aux::Version => reader::VERSION_SEGMENTS,
+                    Aux::Settings => reader::SETTINGS_SEGMENTS,
+                    Aux::Stats => reader::STATS_SEGMENTS,
+                    Aux::Events => reader::EVENTS_SEGMENTS,
+                };
+                &mut self
+                    .aux_read
+                    .insert((aux, BlockRead::new(segments, Mode::Confirmed, now)))
+                    .1
+            }
+        };
+        let req = read.next_request(now, piece);
+        (req, Silence::Failure, Purpose::Aux(aux))
     }
 
     /// No job, or a settings group between two settings.
@@ -447,18 +687,6 @@ impl Bridge {
                 }
             }
         }
-    }
-
-    /// Rev D range and enumerations, then the BMS's own min/max when it reported
-    /// them (it may not support 0x1D; it still checks writes itself and NACKs).
-    fn check_setting(&self, s: &Setting) -> Result<(), protocol_core::settings::SettingError> {
-        s.validate()?;
-        if let (Some(min), Some(max)) = (&self.telemetry.limits_min, &self.telemetry.limits_max) {
-            if let Some((lo, hi)) = s.id.limits(min, max) {
-                s.check_limits(lo, hi)?;
-            }
-        }
-        Ok(())
     }
 
     fn job_request(&mut self, now: Instant) -> JobNext {
@@ -551,10 +779,27 @@ impl Bridge {
         }
         self.report(Report::Write { setting, outcome });
     }
+    /// Rev D range and enumerations, then the BMS's own min/max when it reported
+    /// them (it may not support 0x1D; it still checks writes itself and NACKs).
+    /// For the sensor-dependent settings (304, 305, 317, 318) the BMS's limits
+    /// replace Rev D's range when known.
+    fn check_setting(&self, s: &Setting) -> Result<(), protocol_core::settings::SettingError> {
+        let bms = match (&self.telemetry.limits_min, &self.telemetry.limits_max) {
+            (Some(min), Some(max)) => s.id.limits(min, max),
+            _ => None,
+        };
+        s.validate_with(bms)
+    }
 
     fn resync(&mut self) {
         self.phase = Phase::Sync(SyncStep::Version);
         self.telemetry.ready = false;
+        self.aux_read = None;
+        self.live_read = None;
+        self.suspect = None;
+        self.sync_failures = 0;
+        self.limits_candidate = None;
+        self.live_base_valid = false;
     }
 
     fn on_completion(&mut self, now: Instant, c: Completion) {
@@ -565,7 +810,7 @@ impl Bridge {
             });
             self.telemetry.online = false;
             self.resync();
-            self.next_probe = now + self.config.offline_probe_period_us;
+            self.next_probe = now.saturating_add(self.config.offline_probe_period_us);
             self.abort_job(c.result.clone().err().unwrap_or(Failure::Timeout));
         } else if !self.was_online && online {
             self.report(Report::Online);
@@ -573,18 +818,25 @@ impl Bridge {
             self.resync();
         }
         self.was_online = online;
+        let block_read = matches!(
+            self.purpose,
+            Purpose::Live | Purpose::Aux(_) | Purpose::EventSlot
+        );
+        if block_read {
+            self.quality.note(c.sends, c.result.is_ok());
+        }
         if let Err(f) = &c.result {
-            let limits = matches!(
-                self.purpose,
-                Purpose::Sync(SyncStep::LimitsMin | SyncStep::LimitsMax)
-            );
+            let limits = matches!(self.purpose, Purpose::Limits(_));
+            // Failed pieces of block reads are expected on a bad line and retried:
+            // they show up in the line quality figure, not one line each.
             let quiet = matches!(f, Failure::Silent)
                 || (!online && self.purpose == Purpose::Probe)
                 || self.purpose == Purpose::Job
-                || (limits && self.limits_unsupported);
+                || block_read
+                || (limits && (self.limits_unsupported || self.phase == Phase::Running));
             if !quiet {
                 if now >= self.next_error_log {
-                    self.next_error_log = now + self.config.link_error_log_period_us;
+                    self.next_error_log = now.saturating_add(self.config.link_error_log_period_us);
                     let suppressed = core::mem::take(&mut self.suppressed_errors);
                     self.report(Report::LinkError {
                         command: c.request.command(),
@@ -592,45 +844,135 @@ impl Bridge {
                         suppressed,
                     });
                 } else {
-                    self.suppressed_errors += 1;
+                    self.suppressed_errors = self.suppressed_errors.wrapping_add(1);
                 }
             }
         }
+        if !online {
+            return;
+        }
         match self.purpose {
-            Purpose::Sync(step) => self.on_sync(now, step, c.result),
-            Purpose::Live => {
-                if let Ok(Response::Registers(b)) = c.result {
-                    self.on_live(now, &b);
-                }
-            }
-            Purpose::Events => {
-                if let Ok(Response::Events(list)) = c.result {
-                    self.on_events(&list.events);
-                }
-            }
-            Purpose::Stats => {
-                if let Ok(Response::Registers(b)) = c.result {
-                    if let Ok(s) = Statistics::from_registers(&b) {
-                        self.telemetry.statistics = Some(s);
+            Purpose::Live => match c.result {
+                Ok(Response::Registers(_) | Response::Individual(_)) => {
+                    let done = self
+                        .live_read
+                        .as_mut()
+                        .and_then(|r| on_piece(r, now, &c.result));
+                    if let Some(a) = done {
+                        self.live_read = None;
+                        self.on_live(now, a);
                     }
+                }
+                _ => {
+                    if let Some(r) = self.live_read.as_mut() {
+                        r.on_failure();
+                    }
+                }
+            },
+            Purpose::Aux(aux) => {
+                let done = match (&c.result, self.aux_read.as_mut()) {
+                    (Ok(Response::Registers(_) | Response::Individual(_)), Some((a, r)))
+                        if *a == aux =>
+                    {
+                        on_piece(r, now, &c.result)
+                    }
+                    (_, Some((a, r))) if *a == aux => {
+                        r.on_failure();
+                        if matches!(self.phase, Phase::Sync(_)) {
+                            self.sync_retry_at =
+                                now.saturating_add(self.config.live_period_us.min(crate::SECOND));
+                        }
+                        None
+                    }
+                    _ => None,
+                };
+                if let Some(a) = done {
+                    self.aux_read = None;
+                    self.on_aux(now, aux, a.block);
+                }
+            }
+            Purpose::Limits(option) => self.on_limits(now, option, c.result),
+            Purpose::NewestEvents => {
+                // The BMS may mark events as read when it answers: a reply that was
+                // lost, or a request that went out twice, may have hidden some.
+                if c.sends > 1 || c.result.is_err() {
+                    self.events.reply_may_be_lost();
+                }
+                if let Ok(Response::Events(list)) = c.result {
+                    let expected = self.expected_bms_clock(now);
+                    if EventTracker::plausible(&list.events, list.bms_timestamp_s, expected) {
+                        let mut found: Vec<Found, { protocol_core::response::MAX_EVENTS }> =
+                            Vec::new();
+                        self.events.on_newest(&list.events, |f| {
+                            let _fits = found.push(f);
+                        });
+                        for f in found {
+                            self.on_found(f);
+                        }
+                    } else {
+                        self.events.reply_may_be_lost();
+                    }
+                }
+                if self.events.needs_full_read() {
+                    // Fill the gap now rather than at the next events period.
+                    self.next_events = now;
+                }
+            }
+            Purpose::EventSlot => {
+                if let Ok(Response::Individual(pairs)) = &c.result {
+                    if let [(_, first), (_, second)] = pairs.as_slice() {
+                        let mut found: Vec<Found, 1> = Vec::new();
+                        self.events.on_slot(*first, *second, |f| {
+                            let _fits = found.push(f);
+                        });
+                        for f in found {
+                            self.on_found(f);
+                        }
+                    }
+                }
+                if self.events.needs_full_read() {
+                    self.next_events = now; // go on with the scan / full read
                 }
             }
             Purpose::Probe => {}
-            Purpose::Job => {
-                if online {
-                    self.on_job(now, c);
-                }
-            }
+            Purpose::Job => self.on_job(now, c),
+        }
+    }
+
+    /// The BMS clock (lifetime counter) now, from the last snapshot.
+    fn expected_bms_clock(&self, now: Instant) -> Option<u32> {
+        let s = self.telemetry.snapshot.as_ref()?;
+        let at = self.telemetry.snapshot_at?;
+        let elapsed = now.saturating_sub(at) / crate::SECOND;
+        Some(
+            s.lifetime_s
+                .wrapping_add(elapsed.min(u64::from(u32::MAX)) as u32),
+        )
+    }
+
+    fn on_found(&mut self, f: Found) {
+        match f {
+            Found::New(e) => self.report(Report::NewEvent(e)),
+            Found::History { count, newest } => self.report(Report::EventHistory { count, newest }),
         }
     }
 
     fn abort_job(&mut self, failure: Failure) {
         match self.job.take() {
             Some(Job::Write(w)) => {
-                for s in w.items.iter().skip(w.index) {
+                for (i, s) in w.items.iter().enumerate().skip(w.index) {
+                    // The setting in flight may have been written already.
+                    let written = i == w.index
+                        && matches!(w.step, WriteStep::Settle(_) | WriteStep::ReadBack);
+                    let outcome = if written {
+                        self.remember_unresolved(*s, w.current.map(|(f, _)| f));
+                        WriteOutcome::Unconfirmed(failure)
+                    } else {
+                        WriteOutcome::Failed(failure)
+                    };
                     self.report(Report::Write {
                         setting: *s,
-                        outcome: WriteOutcome::Failed(failure),
+                        outcome,
                     });
                 }
             }
@@ -643,75 +985,251 @@ impl Bridge {
         }
     }
 
-    fn on_sync(&mut self, now: Instant, step: SyncStep, result: Result<Response, Failure>) {
-        let next = match (step, result) {
-            (SyncStep::Version, Ok(Response::Registers(b))) => {
+    fn remember_unresolved(&mut self, setting: Setting, old: Option<u16>) {
+        if self.unresolved.is_full() {
+            let _oldest = self.unresolved.remove(0);
+        }
+        let _fits = self.unresolved.push(Unresolved { setting, old });
+    }
+
+    /// A confirmed block read finished.
+    fn on_aux(&mut self, now: Instant, aux: Aux, b: RegisterBlock) {
+        match aux {
+            Aux::Version => {
                 if let Ok(v) = VersionInfo::from_registers(&b) {
                     self.telemetry.version = Some(v);
                     self.report(Report::Version(v));
                 }
-                Some(SyncStep::Settings)
+                self.sync_next(now, SyncStep::Settings);
             }
-            (SyncStep::Settings, Ok(Response::Registers(b))) => {
+            Aux::Settings => {
+                self.resolve_writes(&b);
                 self.telemetry.settings = Some(b);
                 if self.limits_unsupported {
-                    None // known not to answer 0x1D: do not ask at every sync
+                    // Known not to answer 0x1D: do not ask at every sync.
+                    self.sync_done(now);
                 } else {
-                    Some(SyncStep::LimitsMin)
+                    self.sync_next(now, SyncStep::LimitsMin);
                 }
             }
-            (SyncStep::LimitsMin, Ok(Response::Settings { values, .. })) => {
-                self.telemetry.limits_min = Some(values);
-                Some(SyncStep::LimitsMax)
+            Aux::Stats => {
+                if let Ok(s) = Statistics::from_registers(&b) {
+                    self.telemetry.statistics = Some(s);
+                    self.telemetry.statistics_registers = Some(b);
+                }
             }
-            (SyncStep::LimitsMax, Ok(Response::Settings { values, .. })) => {
-                self.telemetry.limits_max = Some(values);
-                None
-            }
-            // A BMS without 0x1D (NACK, or no valid answer after a few tries): go on
-            // without its limits; Rev D's ranges still apply and the BMS still
-            // checks writes itself.
-            (SyncStep::LimitsMin | SyncStep::LimitsMax, Err(f))
-                if matches!(f, Failure::Nack(_))
-                    || self.sync_failures + 1 >= SYNC_LIMITS_ATTEMPTS =>
-            {
-                self.limits_unsupported = true;
-                self.telemetry.limits_min = None;
-                self.telemetry.limits_max = None;
-                None
-            }
-            _ => {
-                self.sync_failures = self.sync_failures.saturating_add(1);
-                self.sync_retry_at = now + self.config.live_period_us;
-                return;
-            }
-        };
-        self.sync_failures = 0;
-        match next {
-            Some(s) => self.phase = Phase::Sync(s),
-            None => {
-                self.phase = Phase::Running;
-                self.telemetry.ready = true;
-                self.next_live = now;
-                self.next_events = now;
-                self.next_stats = now;
-                let cells = self
-                    .telemetry
-                    .settings
-                    .as_ref()
-                    .and_then(|b| b.get(307))
-                    .unwrap_or(0);
-                self.report(Report::Ready {
-                    series_cells: cells,
-                });
+            Aux::Events => {
+                if let Ok(slots) = event_log(&b) {
+                    let mut events: Vec<(u8, Event), { protocol_core::registers::EVENT_SLOTS }> =
+                        Vec::new();
+                    for s in &slots {
+                        let _fits = events.push((s.slot, s.event));
+                    }
+                    let mut found: Vec<Found, { protocol_core::response::MAX_EVENTS }> = Vec::new();
+                    self.events.on_full_slots(&events, |f| {
+                        let _fits = found.push(f);
+                    });
+                    for f in found {
+                        self.on_found(f);
+                    }
+                }
             }
         }
     }
 
-    fn on_live(&mut self, now: Instant, b: &RegisterBlock) {
-        let Ok(snap) = LiveSnapshot::from_registers(b) else {
+    /// The settings read after writes decides the unconfirmed ones.
+    fn resolve_writes(&mut self, settings: &RegisterBlock) {
+        let pending = core::mem::take(&mut self.unresolved);
+        for u in pending {
+            let a = u.setting.id.address();
+            let Some(first) = settings.get(a) else {
+                continue;
+            };
+            let second = if u.setting.id.register_count() == 2 {
+                settings.get(a + 1)
+            } else {
+                None
+            };
+            let marker_was_there =
+                u.setting.id.reads_back_marker() && u.old == Some(ACCEPTED_MARKER);
+            let outcome = if marker_was_there {
+                // 0xFFFF before and after: nothing proves either way.
+                WriteOutcome::Unconfirmed(Failure::Timeout)
+            } else if u.setting.matches_readback(first, second) {
+                WriteOutcome::Verified
+            } else if u.old == Some(first) {
+                WriteOutcome::Failed(Failure::Timeout)
+            } else {
+                WriteOutcome::Mismatch { read_back: first }
+            };
+            self.report(Report::WriteFollowUp {
+                setting: u.setting,
+                outcome,
+            });
+        }
+    }
+
+    fn sync_next(&mut self, now: Instant, step: SyncStep) {
+        if let Phase::Sync(_) = self.phase {
+            self.sync_failures = 0;
+            self.sync_retry_at = now;
+            self.phase = Phase::Sync(step);
+        }
+    }
+
+    fn sync_done(&mut self, now: Instant) {
+        if !matches!(self.phase, Phase::Sync(_)) {
+            return;
+        }
+        self.sync_failures = 0;
+        self.phase = Phase::Running;
+        self.telemetry.ready = true;
+        self.ready_at = now;
+        self.next_live = now;
+        self.next_events = now;
+        self.next_stats = now;
+        let cells = self
+            .telemetry
+            .settings
+            .as_ref()
+            .and_then(|b| b.get(307))
+            .unwrap_or(0);
+        self.report(Report::Ready {
+            series_cells: cells,
+        });
+    }
+
+    /// 0x1D replies: believed when two in a row are identical.
+    fn on_limits(
+        &mut self,
+        now: Instant,
+        option: SettingsOption,
+        result: Result<Response, Failure>,
+    ) {
+        let in_sync = matches!(self.phase, Phase::Sync(_));
+        match result {
+            Ok(Response::Settings { values, .. }) => {
+                if self.limits_candidate.as_ref() != Some(&values) {
+                    // First of two, or two that differ: ask again.
+                    self.limits_candidate = Some(values);
+                    if !in_sync {
+                        self.limits_retry_at = Some(now);
+                    }
+                    return;
+                }
+                self.limits_candidate = None;
+                self.sync_failures = 0;
+                match option {
+                    SettingsOption::Min => {
+                        self.telemetry.limits_min = Some(values);
+                        if in_sync {
+                            self.sync_next(now, SyncStep::LimitsMax);
+                        } else {
+                            self.limits_retry_at = Some(now);
+                        }
+                    }
+                    _ => {
+                        self.telemetry.limits_max = Some(values);
+                        self.sync_done(now);
+                    }
+                }
+            }
+            // A BMS without 0x1D: go on without its limits for good; Rev D's
+            // ranges still apply and the BMS still checks writes itself.
+            Err(Failure::Nack(_)) => {
+                self.limits_unsupported = true;
+                self.telemetry.limits_min = None;
+                self.telemetry.limits_max = None;
+                self.sync_done(now);
+            }
+            _ => {
+                self.sync_failures = self.sync_failures.saturating_add(1);
+                let retry = now.saturating_add(self.config.live_period_us);
+                if self.sync_failures >= SYNC_LIMITS_ATTEMPTS {
+                    // No valid answer on this line for now: go on without the
+                    // limits and ask again later.
+                    self.sync_failures = 0;
+                    self.limits_retry_at = Some(now.saturating_add(self.config.stats_period_us));
+                    self.sync_done(now);
+                } else if in_sync {
+                    self.sync_retry_at = retry;
+                } else {
+                    self.limits_retry_at = Some(retry);
+                }
+            }
+        }
+    }
+
+    /// A complete live block: check it, confirm it when it fails, publish it.
+    fn on_live(&mut self, now: Instant, a: Assembled) {
+        let Ok(snap) = LiveSnapshot::from_registers(&a.block) else {
             return;
         };
+        let ctx = checks::Context {
+            series_cells: self.telemetry.settings.as_ref().and_then(|b| b.get(307)),
+            assembled: a.pieces > 1,
+        };
+        let at = a.started_at;
+        let statics = checks::check_live(&a.block, &snap, ctx);
+        let jump = match (&self.telemetry.snapshot, self.telemetry.snapshot_at) {
+            (Some(p), Some(p_at)) if self.telemetry.ready && self.suspect_base_valid() => {
+                checks::check_jump(p, p_at, &snap, at)
+            }
+            _ => Ok(()),
+        };
+        let first = !self.suspect_base_valid();
+        let verdict = statics.and(jump);
+        let flag = match self.suspect.take() {
+            None if verdict.is_ok() && !first => Some(None),
+            None => {
+                self.suspect = Some(Suspect {
+                    snapshot: snap,
+                    at,
+                    verdict: statics,
+                    tries: 1,
+                });
+                self.next_live = now; // read again at once
+                return;
+            }
+            Some(_) if verdict.is_ok() && !first => Some(None),
+            Some(q) => {
+                let agrees = q.verdict == statics
+                    && checks::check_jump(&q.snapshot, q.at, &snap, at).is_ok();
+                if agrees {
+                    Some(verdict.err())
+                } else if q.tries < SUSPECT_TRIES {
+                    self.suspect = Some(Suspect {
+                        snapshot: snap,
+                        at,
+                        verdict: statics,
+                        tries: q.tries + 1,
+                    });
+                    self.next_live = now;
+                    return;
+                } else {
+                    self.refused = self.refused.wrapping_add(1);
+                    self.refused_check = verdict.err().or(q.verdict.err());
+                    None
+                }
+            }
+        };
+        let Some(flag) = flag else {
+            return;
+        };
+        if flag != self.flagged {
+            self.flagged = flag;
+            self.report(Report::Flagged(flag));
+        }
+        self.publish(now, snap, a, flag);
+    }
+
+    /// True when the last published snapshot is from this sync (jumps are
+    /// checked against it).
+    fn suspect_base_valid(&self) -> bool {
+        self.telemetry.snapshot.is_some() && self.live_base_valid
+    }
+
+    fn publish(&mut self, now: Instant, snap: LiveSnapshot, a: Assembled, flag: Option<Check>) {
         let previous = self.telemetry.snapshot.as_ref().map(|s| s.status);
         if previous != Some(snap.status) {
             self.report(Report::StatusChanged {
@@ -719,61 +1237,30 @@ impl Bridge {
                 to: snap.status,
             });
         }
-        if now >= self.next_snapshot_log {
-            // Keep to the period's grid (a line every 10 s, not every 10.25 s).
-            let period = self.config.snapshot_log_period_us.max(1);
-            while self.next_snapshot_log <= now {
-                self.next_snapshot_log += period;
-            }
+        let period = self.config.snapshot_log_period_us;
+        if period == 0 {
+            self.report(Report::Snapshot(snapshot_line(&snap)));
+        } else if now >= self.next_snapshot_log {
+            // Keep to the period's grid (a line every 10 s, not every 10.25 s),
+            // without walking it step by step after a long silence.
+            let behind = now - self.next_snapshot_log;
+            let steps = behind / period + 1;
+            self.next_snapshot_log = self
+                .next_snapshot_log
+                .saturating_add(steps.saturating_mul(period));
             self.report(Report::Snapshot(snapshot_line(&snap)));
         }
         self.telemetry.snapshot = Some(snap);
+        self.telemetry.live_registers = Some(a.block);
+        self.telemetry.live = LiveMeta {
+            pieces: a.pieces,
+            span_us: a.span_us.min(u64::from(u32::MAX)) as u32,
+            flagged: flag,
+        };
         self.telemetry.snapshot_at = Some(now);
         self.telemetry.snapshot_seq = self.telemetry.snapshot_seq.wrapping_add(1);
-    }
-
-    fn on_events(&mut self, events: &[Event]) {
-        let first_read = self.newest_event.is_none() && self.seen.is_empty();
-        let mut newest = self.newest_event;
-        let mut fresh = 0u8;
-        for e in events {
-            let key = (e.timestamp_s, e.id.raw());
-            if self.seen.iter().any(|k| *k == key) {
-                continue;
-            }
-            // Older than what was already seen: history, not news.
-            if let Some(n) = self.newest_event {
-                if ts_newer(n, e.timestamp_s) {
-                    continue;
-                }
-            }
-            if self.seen.is_full() {
-                let _oldest = self.seen.pop_front();
-            }
-            let _room = self.seen.push_back(key);
-            if newest.is_none_or(|n| ts_newer(e.timestamp_s, n)) {
-                newest = Some(e.timestamp_s);
-            }
-            fresh = fresh.saturating_add(1);
-            if !first_read {
-                self.report(Report::NewEvent(*e));
-            }
-        }
-        self.newest_event = newest;
-        if first_read {
-            // The log's history at start-up: one line, not a burst of old faults.
-            let last = events.iter().copied().reduce(|a, b| {
-                if ts_newer(b.timestamp_s, a.timestamp_s) {
-                    b
-                } else {
-                    a
-                }
-            });
-            self.report(Report::EventHistory {
-                count: fresh,
-                newest: last,
-            });
-        }
+        self.snapshots_in_window = self.snapshots_in_window.wrapping_add(1);
+        self.live_base_valid = true;
     }
 
     fn on_job(&mut self, now: Instant, c: Completion) {
@@ -806,7 +1293,7 @@ impl Bridge {
                     self.job = None;
                     self.report(Report::ResetDone { confirmed: false });
                 } else {
-                    self.hold_until = now + self.config.reboot_wait_us;
+                    self.hold_until = now.saturating_add(self.config.reboot_wait_us);
                     *job = Job::Reset(ResetStep::Confirm {
                         attempts: config::REBOOT_READBACK_ATTEMPTS,
                         last_start,
@@ -837,7 +1324,8 @@ impl Bridge {
                     }
                     _ if *attempts > 1 => {
                         *attempts -= 1;
-                        self.hold_until = now + self.config.live_period_us * 2;
+                        self.hold_until =
+                            now.saturating_add(self.config.live_period_us.saturating_mul(2));
                     }
                     _ => {
                         self.job = None;
@@ -888,17 +1376,20 @@ impl Bridge {
                             Ok(_) => w.unconfirmed = Some(Failure::Timeout),
                         }
                         if item.id.restarts_bms() {
-                            self.hold_until = now + self.config.reboot_wait_us;
+                            self.hold_until = now.saturating_add(self.config.reboot_wait_us);
                             w.readback_attempts = config::REBOOT_READBACK_ATTEMPTS;
                             w.step = WriteStep::ReadBack;
                         } else {
                             w.readback_attempts = 1;
-                            w.step = WriteStep::Settle(now + self.config.write_settle_us);
+                            w.step =
+                                WriteStep::Settle(now.saturating_add(self.config.write_settle_us));
                         }
                     }
                     (WriteStep::ReadBack, Ok(Response::Individual(pairs))) => {
                         let Some(first) = pair(&pairs, a) else {
-                            self.finish_item(item, WriteOutcome::Failed(Failure::Timeout));
+                            let old = w.current.map(|(f, _)| f);
+                            self.remember_unresolved(item, old);
+                            self.finish_item(item, WriteOutcome::Unconfirmed(Failure::Timeout));
                             return;
                         };
                         let second = pair(&pairs, a + 1);
@@ -909,13 +1400,23 @@ impl Bridge {
                             && w.current.map(|(f, _)| f) == Some(ACCEPTED_MARKER);
                         let proof = item.matches_readback(first, second)
                             && !(marker_was_there && w.unconfirmed.is_some());
+                        let old = w.current.map(|(f, _)| f);
                         let outcome = if proof {
                             WriteOutcome::Verified
+                        } else if marker_was_there && item.matches_readback(first, second) {
+                            // 0xFFFF before and after an unconfirmed write: the
+                            // read-back proves nothing either way.
+                            let f = w.unconfirmed.unwrap_or(Failure::Timeout);
+                            self.remember_unresolved(item, old);
+                            WriteOutcome::Unconfirmed(f)
                         } else {
                             match w.unconfirmed {
-                                Some(Failure::Nack(code)) => WriteOutcome::Nacked(code),
-                                Some(f) => WriteOutcome::Failed(f),
-                                None => WriteOutcome::Mismatch { read_back: first },
+                                // The read-back shows the old value: not applied.
+                                Some(Failure::Nack(code)) if old == Some(first) => {
+                                    WriteOutcome::Nacked(code)
+                                }
+                                Some(f) if old == Some(first) => WriteOutcome::Failed(f),
+                                _ => WriteOutcome::Mismatch { read_back: first },
                             }
                         };
                         self.finish_item(item, outcome);
@@ -923,13 +1424,20 @@ impl Bridge {
                     (WriteStep::ReadBack, Err(f)) => {
                         if w.readback_attempts > 1 {
                             w.readback_attempts -= 1;
-                            self.hold_until = now + self.config.live_period_us * 2;
+                            self.hold_until =
+                                now.saturating_add(self.config.live_period_us.saturating_mul(2));
                         } else {
-                            self.finish_item(item, WriteOutcome::Failed(f));
+                            // Written, nothing read back: the settings read that
+                            // follows the group decides.
+                            let old = w.current.map(|(f, _)| f);
+                            self.remember_unresolved(item, old);
+                            self.finish_item(item, WriteOutcome::Unconfirmed(f));
                         }
                     }
                     (WriteStep::ReadBack, Ok(_)) | (WriteStep::Settle(_), _) => {
-                        self.finish_item(item, WriteOutcome::Failed(Failure::Timeout));
+                        let old = w.current.map(|(f, _)| f);
+                        self.remember_unresolved(item, old);
+                        self.finish_item(item, WriteOutcome::Unconfirmed(Failure::Timeout));
                     }
                 }
             }
@@ -943,6 +1451,28 @@ enum JobNext {
     Finished,
 }
 
+/// Hands a piece's reply to its block read.
+fn on_piece(
+    read: &mut BlockRead,
+    now: Instant,
+    result: &Result<Response, Failure>,
+) -> Option<Assembled> {
+    match result {
+        Ok(Response::Registers(b)) => read.on_block(now, b),
+        Ok(Response::Individual(pairs)) => read.on_pairs(now, pairs),
+        _ => None,
+    }
+}
+
+/// A 0x09 read of one event slot (two registers).
+fn slot_request(slot: u8) -> Request {
+    let a = protocol_core::registers::EVENTS_FIRST + 2 * u16::from(slot);
+    let mut addresses = protocol_core::request::AddressList::new();
+    let _ = addresses.push(a);
+    let _ = addresses.push(a + 1);
+    Request::ReadIndividual(addresses)
+}
+
 fn block(start: u16, count: usize) -> Request {
     Request::ReadRegisters {
         start,
@@ -952,6 +1482,16 @@ fn block(start: u16, count: usize) -> Request {
 
 fn version_request() -> Request {
     block(500, 10)
+}
+
+/// A 0x1D read of the BMS's own limits. Silence is tolerated: a BMS that does
+/// not answer 0x1D is not absent (its other answers prove it is there).
+fn limits_request(option: SettingsOption) -> (Request, Silence, Purpose) {
+    (
+        Request::ReadSettings { option, count: 44 },
+        Silence::Tolerated,
+        Purpose::Limits(option),
+    )
 }
 
 /// A 0x09 read of the register(s) of a setting.

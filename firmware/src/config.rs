@@ -10,6 +10,20 @@ pub const BYTE_TIME_US: Instant = 87;
 /// time is added on top (a 56-register 0x03 reply is 117 bytes = 10.2 ms).
 pub const RESPONSE_TIMEOUT_US: Instant = 100 * MS;
 
+/// Response timeout of a piece (a 0x09 read of at most 15 registers, only used
+/// on a bad line): the BMS answers 1-2 ms after the request (HARDWARE-NOTES) and
+/// such a reply takes at most 6 ms on the wire; waiting 100 ms for an answer that
+/// was lost would cost more than the read itself.
+pub const PIECE_RESPONSE_TIMEOUT_US: Instant = 30 * MS;
+
+/// Live pieces sent per piece of another block read when both are in progress
+/// (the live data keeps flowing while statistics or the event log are read).
+pub const LIVE_SHARE: u8 = 6;
+
+/// After a (re)sync, how long the first snapshot has the link to itself before
+/// the event log and statistics reads start.
+pub const FIRST_SNAPSHOT_PRIORITY_US: Instant = 10 * SECOND;
+
 /// Once bytes of a reply have started to arrive, this much silence ends the
 /// attempt early (a corrupt reply need not wait for the full timeout). Replies
 /// stream back to back: 10 ms is over 100 byte times.
@@ -39,6 +53,14 @@ pub const STATS_PERIOD_US: Instant = 30 * SECOND;
 
 /// Period of the newest-events read (0x11).
 pub const EVENTS_PERIOD_US: Instant = 5 * SECOND;
+
+/// Longest a live block assembled from pieces may take, first piece to last:
+/// on a bad line the pieces of one snapshot are all read within this window (or
+/// the read starts over), so a snapshot never mixes values further apart.
+pub const LIVE_ASSEMBLY_WINDOW_US: Instant = 5 * SECOND;
+
+/// Period of the line quality line in the log (only logged when something failed).
+pub const LINE_QUALITY_LOG_PERIOD_US: Instant = 60 * SECOND;
 
 /// Period of the snapshot info line in the log.
 pub const SNAPSHOT_LOG_PERIOD_US: Instant = 10 * SECOND;
@@ -72,6 +94,8 @@ pub const REPORT_QUEUE: usize = 24;
 pub struct Config {
     /// See [`RESPONSE_TIMEOUT_US`].
     pub response_timeout_us: Instant,
+    /// See [`PIECE_RESPONSE_TIMEOUT_US`].
+    pub piece_response_timeout_us: Instant,
     /// See [`REPLY_IDLE_GAP_US`].
     pub reply_idle_gap_us: Instant,
     /// See [`MAX_RETRIES`].
@@ -88,6 +112,10 @@ pub struct Config {
     pub stats_period_us: Instant,
     /// See [`EVENTS_PERIOD_US`].
     pub events_period_us: Instant,
+    /// See [`LIVE_ASSEMBLY_WINDOW_US`] (at least the live period is used).
+    pub live_assembly_window_us: Instant,
+    /// See [`LINE_QUALITY_LOG_PERIOD_US`].
+    pub line_quality_log_period_us: Instant,
     /// See [`SNAPSHOT_LOG_PERIOD_US`]; 0 logs every snapshot.
     pub snapshot_log_period_us: Instant,
     /// See [`LINK_STATS_LOG_PERIOD_US`].
@@ -102,6 +130,7 @@ impl Default for Config {
     fn default() -> Self {
         Self {
             response_timeout_us: RESPONSE_TIMEOUT_US,
+            piece_response_timeout_us: PIECE_RESPONSE_TIMEOUT_US,
             reply_idle_gap_us: REPLY_IDLE_GAP_US,
             max_retries: MAX_RETRIES,
             offline_after_failures: OFFLINE_AFTER_FAILURES,
@@ -110,6 +139,8 @@ impl Default for Config {
             live_period_us: LIVE_PERIOD_US,
             stats_period_us: STATS_PERIOD_US,
             events_period_us: EVENTS_PERIOD_US,
+            live_assembly_window_us: LIVE_ASSEMBLY_WINDOW_US,
+            line_quality_log_period_us: LINE_QUALITY_LOG_PERIOD_US,
             snapshot_log_period_us: SNAPSHOT_LOG_PERIOD_US,
             link_stats_log_period_us: LINK_STATS_LOG_PERIOD_US,
             write_settle_us: WRITE_SETTLE_US,

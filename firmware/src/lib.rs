@@ -12,6 +12,12 @@
 //!   resend, bounded retries, offline detection, link statistics.
 //! * [`bridge`] — the poll schedule, telemetry model and the write/verify state
 //!   machine for settings, on top of the link.
+//! * [`reader`] — register blocks read whole on a clean line and in pieces on a
+//!   bad one, confirmed by a second read where the values do not change by
+//!   themselves.
+//! * [`checks`] — the consistency checks a live block must pass before it is
+//!   published.
+//! * [`event_log`] — every BMS event reported exactly once.
 //! * [`config`] — every default as a named, documented constant.
 //! * [`profile`] — the settings profile applied at start-up (empty by default).
 #![no_std]
@@ -34,12 +40,15 @@
 #![allow(clippy::large_enum_variant)]
 
 pub mod bridge;
+pub mod checks;
 pub mod config;
+pub mod event_log;
 pub mod link;
 pub mod profile;
+pub mod reader;
 pub mod report;
 
-pub use bridge::{Action, Bridge, Command, Telemetry};
+pub use bridge::{Action, Bridge, Command, LiveMeta, Telemetry};
 pub use link::{LinkStats, Transmit};
 pub use report::{Level, Report};
 

@@ -10,14 +10,20 @@
 //!   nothing at all came back (no ACK, NACK or 0x10 echo, not even a damaged
 //!   one), and never after anything did: then the read-back decides. A write
 //!   always follows a read the BMS just answered, so it gets no wake-up resend.
-//! * After a transaction that went out more than once, the next request waits
-//!   until an answer to the earlier copy would have arrived, so a late answer is
-//!   never taken for the answer to the next request (0x03 replies carry no
-//!   address).
-//! * After N consecutive transactions that got no answer at all (silence on every
-//!   attempt) the link is offline; the first valid reply brings it back (the bridge
-//!   then re-reads version and settings). Corrupt replies are failures too, but they
-//!   show the BMS is there: they do not count towards offline.
+//! * After a transaction that went out more than once, the next request of the
+//!   same command waits until an answer to the earlier copy would have arrived,
+//!   so a late answer is never taken for the answer to the next request (0x03
+//!   replies carry no address; 0x09 replies and 0x10 echoes do, and a reply to
+//!   another command is refused by its command byte).
+//! * After N consecutive transactions that heard nothing at all (not one byte on
+//!   any attempt) the link is offline; the first valid reply brings it back (the
+//!   bridge then re-reads version and settings). Any byte received during a
+//!   transaction — a corrupt reply, noise, an ASCII line — shows the BMS is there:
+//!   such a transaction may fail, but it does not count towards offline, even when
+//!   its last attempt got silence; and bytes arriving between transactions (a
+//!   late answer) reset the count of silent ones.
+//! * Counters wrap modulo 2^32 (like hardware counters): nothing here can
+//!   overflow-panic, in debug builds too, however long it runs. Times saturate.
 //! * Frames that do not answer the outstanding request are counted as
 //!   unsolicited and ignored.
 
@@ -93,7 +99,8 @@ pub struct Completion {
     pub sends: u8,
 }
 
-/// Link counters (logged periodically).
+/// Link counters (logged periodically). Every counter wraps modulo 2^32 by
+/// design; the latency sum restarts when the reply counter wraps.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct LinkStats {
@@ -151,13 +158,17 @@ struct Pending {
     silence: Silence,
     first_sent: Option<Instant>,
     deadline: Instant,
+    /// Bytes arrived during the current attempt.
     heard: bool,
+    /// Bytes arrived at any time during the transaction.
+    heard_any: bool,
     last_rx: Option<Instant>,
     wake_used: bool,
     retries_used: u8,
     last_error: Option<Failure>,
     sends: u8,
     last_sent: Instant,
+    timeout_us: Instant,
 }
 
 /// What the link wants next.
@@ -186,6 +197,8 @@ pub struct Link {
     online: bool,
     /// No request goes out before this time (see [`Link::step`]).
     quiet_until: Instant,
+    /// Command of the transaction that set [`Link::quiet_until`].
+    quiet_command: u8,
 }
 
 impl Link {
@@ -201,7 +214,14 @@ impl Link {
             consecutive_failures: 0,
             online: true,
             quiet_until: 0,
+            quiet_command: 0,
         }
+    }
+
+    /// Replaces the counters: carries them over a restart of the logic, or
+    /// presets them near the wrap point in tests.
+    pub fn preset_stats(&mut self, stats: LinkStats) {
+        self.stats = stats;
     }
 
     /// Counters.
@@ -230,7 +250,19 @@ impl Link {
     /// Starts a transaction. The request is validated and encoded here; an invalid
     /// one completes at once with [`Failure::Request`] and no byte is sent.
     pub fn start(&mut self, now: Instant, request: Request, silence: Silence) {
-        self.stats.requests += 1;
+        self.start_with_timeout(now, request, silence, self.config.response_timeout_us);
+    }
+
+    /// As [`Link::start`], with a response timeout of its own (small reads on a
+    /// bad line need not wait as long for an answer that is not coming).
+    pub fn start_with_timeout(
+        &mut self,
+        now: Instant,
+        request: Request,
+        silence: Silence,
+        timeout_us: Instant,
+    ) {
+        self.stats.requests = self.stats.requests.wrapping_add(1);
         match request.to_bytes() {
             Ok(bytes) => {
                 self.pending = Some(Pending {
@@ -240,12 +272,14 @@ impl Link {
                     first_sent: None,
                     deadline: now,
                     heard: false,
+                    heard_any: false,
                     last_rx: None,
                     wake_used: false,
                     retries_used: 0,
                     last_error: None,
                     sends: 0,
                     last_sent: now,
+                    timeout_us,
                 });
                 self.to_send = true;
             }
@@ -274,10 +308,18 @@ impl Link {
             if self.to_send {
                 // After a transaction that went out more than once, an answer to an
                 // earlier copy may still be on its way; 0x03 replies carry no
-                // address, so it could pass for the answer to the next request.
-                // Stay quiet until it would have arrived (frames meanwhile are
-                // counted as unsolicited).
-                if p.sends == 0 && now < self.quiet_until {
+                // address, so it could pass for the answer to the next request of
+                // the same command. Stay quiet until it would have arrived (frames
+                // meanwhile are counted as unsolicited). A reply to another
+                // command is refused by its command byte, and 0x09 replies and
+                // 0x10 echoes carry their addresses: no wait for those.
+                let command = p.request.command();
+                let self_identifying = matches!(command, 0x09 | 0x10);
+                if p.sends == 0
+                    && now < self.quiet_until
+                    && command == self.quiet_command
+                    && !self_identifying
+                {
                     return LinkStep::WaitUntil(self.quiet_until);
                 }
                 self.to_send = false;
@@ -289,13 +331,16 @@ impl Link {
                 p.first_sent.get_or_insert(now);
                 p.heard = false;
                 p.last_rx = None;
-                p.deadline =
-                    now + BYTE_TIME_US * p.bytes.len() as Instant + self.config.response_timeout_us;
+                p.deadline = now
+                    .saturating_add(BYTE_TIME_US * p.bytes.len() as Instant)
+                    .saturating_add(p.timeout_us);
                 self.decoder.expect(&p.request);
                 return LinkStep::Send(p.bytes.clone());
             }
             let deadline = match p.last_rx {
-                Some(t) => p.deadline.min(t + self.config.reply_idle_gap_us),
+                Some(t) => p
+                    .deadline
+                    .min(t.saturating_add(self.config.reply_idle_gap_us)),
                 None => p.deadline,
             };
             if now < deadline {
@@ -322,7 +367,7 @@ impl Link {
         if self.to_send {
             return; // on_item queued a retry
         }
-        self.stats.timeouts += 1;
+        self.stats.timeouts = self.stats.timeouts.wrapping_add(1);
         if !p.heard {
             if p.silence == Silence::Expected {
                 self.finish(now, Err(Failure::Silent));
@@ -332,7 +377,7 @@ impl Link {
             // so silence is not a wake-up case for a write.
             if !p.wake_used && !p.request.is_write() {
                 p.wake_used = true;
-                self.stats.wakeup_resends += 1;
+                self.stats.wakeup_resends = self.stats.wakeup_resends.wrapping_add(1);
                 self.to_send = true;
                 return;
             }
@@ -356,7 +401,7 @@ impl Link {
         if p.retries_used < self.config.max_retries {
             p.retries_used += 1;
             p.last_error = Some(err);
-            self.stats.retries += 1;
+            self.stats.retries = self.stats.retries.wrapping_add(1);
             self.to_send = true;
         } else {
             self.finish(now, Err(err));
@@ -370,30 +415,38 @@ impl Link {
         self.to_send = false;
         self.decoder.clear_expectation();
         if p.sends > 1 {
-            self.quiet_until = p.last_sent
-                + BYTE_TIME_US * p.bytes.len() as Instant
-                + self.config.response_timeout_us;
+            // An answer to the last copy may come as late as the full timeout.
+            self.quiet_command = p.request.command();
+            self.quiet_until = p
+                .last_sent
+                .saturating_add(BYTE_TIME_US * p.bytes.len() as Instant)
+                .saturating_add(self.config.response_timeout_us.max(p.timeout_us));
         }
         let latency_us = now.saturating_sub(p.first_sent.unwrap_or(now));
         match &result {
             Ok(_) | Err(Failure::Nack(_)) => {
                 self.consecutive_failures = 0;
                 self.online = true;
-                self.stats.replies += 1;
+                self.stats.replies = self.stats.replies.wrapping_add(1);
                 let l = latency_us.min(u64::from(u32::MAX)) as u32;
                 if self.stats.replies == 1 || l < self.stats.latency_min_us {
                     self.stats.latency_min_us = l;
                 }
                 self.stats.latency_max_us = self.stats.latency_max_us.max(l);
-                self.stats.latency_sum_us += u64::from(l);
+                self.stats.latency_sum_us = self.stats.latency_sum_us.wrapping_add(u64::from(l));
+                if self.stats.replies == 0 {
+                    // The reply counter wrapped: restart the mean with it.
+                    self.stats.latency_sum_us = 0;
+                }
             }
             Err(Failure::Silent) => {}
             Err(Failure::Timeout) if p.silence == Silence::Tolerated => {
-                self.stats.failures += 1;
+                self.stats.failures = self.stats.failures.wrapping_add(1);
             }
-            // Nothing at all came back: that is what counts towards "offline".
-            Err(Failure::Timeout) => {
-                self.stats.failures += 1;
+            // Nothing at all came back, on any attempt: that is what counts
+            // towards "offline".
+            Err(Failure::Timeout) if !p.heard_any => {
+                self.stats.failures = self.stats.failures.wrapping_add(1);
                 self.consecutive_failures = self.consecutive_failures.saturating_add(1);
                 if self.consecutive_failures >= self.config.offline_after_failures {
                     self.online = false;
@@ -402,7 +455,7 @@ impl Link {
             // Bytes came back, just never a valid answer: the BMS is there, the
             // line is noisy. A failure, but not a sign of absence.
             Err(_) => {
-                self.stats.failures += 1;
+                self.stats.failures = self.stats.failures.wrapping_add(1);
                 self.consecutive_failures = 0;
             }
         }
@@ -416,9 +469,19 @@ impl Link {
 
     /// Bytes received from the UART at `now`. Call [`Link::step`] afterwards.
     pub fn on_bytes(&mut self, now: Instant, bytes: &[u8]) {
+        if !bytes.is_empty() {
+            // Silence means no byte at all: a late answer between two silent
+            // transactions (a reply delayed past our timeout) shows the BMS is
+            // there just as well.
+            self.consecutive_failures = 0;
+        }
         if let Some(p) = self.pending.as_mut() {
-            if !self.to_send && !bytes.is_empty() {
-                p.last_rx = Some(now);
+            if !bytes.is_empty() {
+                // Whatever it is, the BMS (or at least the wire) is there.
+                p.heard_any = true;
+                if !self.to_send {
+                    p.last_rx = Some(now);
+                }
             }
         }
         let mut input = bytes;
@@ -458,9 +521,15 @@ impl Link {
             Ok(Response::Nack { code, .. }) => {
                 p.heard = true;
                 match code {
-                    NackCode::CommandError => self.stats.nacks_command += 1,
-                    NackCode::CrcError => self.stats.nacks_crc += 1,
-                    NackCode::Unknown(_) => self.stats.nacks_other += 1,
+                    NackCode::CommandError => {
+                        self.stats.nacks_command = self.stats.nacks_command.wrapping_add(1)
+                    }
+                    NackCode::CrcError => {
+                        self.stats.nacks_crc = self.stats.nacks_crc.wrapping_add(1)
+                    }
+                    NackCode::Unknown(_) => {
+                        self.stats.nacks_other = self.stats.nacks_other.wrapping_add(1)
+                    }
                 }
                 // The BMS got our request corrupted: a read may be re-sent (its
                 // NACK is complete, nothing else is coming). A write never is.
@@ -473,14 +542,16 @@ impl Link {
             Ok(resp) => self.finish(now, Ok(resp)),
             // Not for us (a late or duplicated answer, another command): ignored,
             // and it does not count as the BMS answering this request.
-            Err(ResponseError::UnexpectedResponse { .. }) => self.stats.unsolicited += 1,
+            Err(ResponseError::UnexpectedResponse { .. }) => {
+                self.stats.unsolicited = self.stats.unsolicited.wrapping_add(1)
+            }
             Err(e) => {
                 // Our command, CRC-valid, but it does not fit the request (length,
                 // address echo): possibly a stale answer. Note it and wait for the
                 // deadline rather than re-sending while the real answer may still
                 // be coming.
                 p.heard = true;
-                self.stats.invalid_replies += 1;
+                self.stats.invalid_replies = self.stats.invalid_replies.wrapping_add(1);
                 p.last_error = Some(Failure::Invalid(e));
             }
         }
@@ -489,14 +560,14 @@ impl Link {
 
 fn count_decode_error(stats: &mut LinkStats, e: &DecodeError) {
     match e {
-        DecodeError::Crc { .. } => stats.crc_errors += 1,
-        _ => stats.framing_errors += 1,
+        DecodeError::Crc { .. } => stats.crc_errors = stats.crc_errors.wrapping_add(1),
+        _ => stats.framing_errors = stats.framing_errors.wrapping_add(1),
     }
 }
 
 fn count_unsolicited(stats: &mut LinkStats, item: Result<protocol_core::Frame, DecodeError>) {
     match item {
-        Ok(_) => stats.unsolicited += 1,
+        Ok(_) => stats.unsolicited = stats.unsolicited.wrapping_add(1),
         Err(e) => count_decode_error(stats, &e),
     }
 }

@@ -9,6 +9,7 @@ use protocol_core::frame::NackCode;
 use protocol_core::settings::{Setting, SettingError, SettingId};
 use protocol_core::views::VersionInfo;
 
+use crate::checks::Check;
 use crate::link::{Failure, LinkStats};
 
 /// Log level of a report.
@@ -60,8 +61,12 @@ pub enum WriteOutcome {
     },
     /// The BMS refused the write.
     Nacked(NackCode),
-    /// The link failed before the outcome could be known.
+    /// Not applied: the link failed before the write went out, or the read-back
+    /// shows the old value.
     Failed(Failure),
+    /// Written, but nothing could be read back: the next settings read decides
+    /// (a [`Report::WriteFollowUp`] follows).
+    Unconfirmed(Failure),
 }
 
 impl WriteOutcome {
@@ -74,6 +79,7 @@ impl WriteOutcome {
             Self::Mismatch { .. } => "mismatch",
             Self::Nacked(_) => "nacked",
             Self::Failed(_) => "failed",
+            Self::Unconfirmed(_) => "unconfirmed",
         }
     }
     /// True for verified and unchanged: the BMS holds the value.
@@ -150,6 +156,36 @@ pub enum Report {
     LinkStats(LinkStats),
     /// Reports were dropped because nobody drained the queue.
     Dropped(u32),
+    /// The outcome of an earlier [`WriteOutcome::Unconfirmed`] write, from the
+    /// settings read that followed.
+    WriteFollowUp {
+        /// The setting and value asked for.
+        setting: Setting,
+        /// Verified, failed (old value), mismatch, or still unconfirmed.
+        outcome: WriteOutcome,
+    },
+    /// Snapshots are published flagged (`Some`): a live block failed a check and
+    /// an independent second reply confirmed it (a broken sense wire, a cell at
+    /// 0 V...). `None`: they pass every check again.
+    Flagged(Option<Check>),
+    /// Live blocks that failed a check and were not confirmed: not published.
+    Refused {
+        /// The last check failed.
+        check: Option<Check>,
+        /// Blocks refused since the previous line.
+        count: u32,
+    },
+    /// How well replies get through (logged when anything failed in the period).
+    LineQuality {
+        /// Block read requests in the period.
+        attempts: u32,
+        /// Answered at the first send.
+        clean: u32,
+        /// Registers per request now (the live block is 56).
+        piece_registers: u16,
+        /// Snapshots published in the period.
+        snapshots: u32,
+    },
 }
 
 impl Report {
@@ -163,12 +199,28 @@ impl Report {
                 Level::Warn
             }
             Report::LinkError { .. } | Report::Offline { .. } | Report::Dropped(_) => Level::Warn,
-            Report::Write { outcome, .. } if !outcome.is_success() => Level::Warn,
+            Report::Write { outcome, .. } | Report::WriteFollowUp { outcome, .. }
+                if !outcome.is_success() =>
+            {
+                Level::Warn
+            }
+            Report::Flagged(Some(_)) | Report::Refused { .. } => Level::Warn,
+            Report::LineQuality {
+                attempts, clean, ..
+            } if u64::from(*clean) * 10 < u64::from(*attempts) * 9 => Level::Warn,
             Report::ResetDone { confirmed: false } | Report::Cleared { ok: false, .. } => {
                 Level::Warn
             }
             _ => Level::Info,
         }
+    }
+}
+
+fn permille(part: u32, whole: u32) -> u64 {
+    if whole == 0 {
+        1000
+    } else {
+        u64::from(part) * 1000 / u64::from(whole)
     }
 }
 
@@ -262,10 +314,12 @@ impl fmt::Display for Report {
             Report::Ready { series_cells } => {
                 write!(f, "settings and limits read ({series_cells} cells): ready")
             }
-            Report::Write { setting, outcome } => {
+            Report::Write { setting, outcome } | Report::WriteFollowUp { setting, outcome } => {
+                let follow = matches!(self, Report::WriteFollowUp { .. });
                 write!(
                     f,
-                    "write {} ({}) = {}: {}",
+                    "write {}{} ({}) = {}: {}",
+                    if follow { "follow-up " } else { "" },
                     setting_name(setting.id),
                     setting.id.address(),
                     setting.value,
@@ -275,7 +329,9 @@ impl fmt::Display for Report {
                     WriteOutcome::Rejected(e) => write!(f, " ({})", e.reason()),
                     WriteOutcome::Mismatch { read_back } => write!(f, " (read back {read_back})"),
                     WriteOutcome::Nacked(c) => write!(f, " (code 0x{:02X})", c.to_u8()),
-                    WriteOutcome::Failed(e) => write!(f, " ({})", e.name()),
+                    WriteOutcome::Failed(e) | WriteOutcome::Unconfirmed(e) => {
+                        write!(f, " ({})", e.name())
+                    }
                     _ => Ok(()),
                 }
             }
@@ -312,6 +368,28 @@ impl fmt::Display for Report {
                 s.latency_max_us
             ),
             Report::Dropped(n) => write!(f, "{n} log reports dropped"),
+            Report::Flagged(Some(c)) => write!(
+                f,
+                "live data confirmed by a second read but fails check {}: published, flagged",
+                c.name()
+            ),
+            Report::Flagged(None) => f.write_str("live data passes every check again"),
+            Report::Refused { check, count } => write!(
+                f,
+                "{count} live block(s) failed check {} and were not confirmed: not published",
+                check.map(|c| c.name()).unwrap_or("first_read")
+            ),
+            Report::LineQuality {
+                attempts,
+                clean,
+                piece_registers,
+                snapshots,
+            } => write!(
+                f,
+                "line quality: {}.{} % of {attempts} reads answered at the first attempt; reading {piece_registers} registers per request; {snapshots} snapshots",
+                permille(*clean, *attempts) / 10,
+                permille(*clean, *attempts) % 10
+            ),
         }
     }
 }

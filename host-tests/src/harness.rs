@@ -3,11 +3,98 @@
 //! `bridge_task`, with the UART replaced by [`crate::sim::SimBms`] and the clock by
 //! a number. No threads, no sleeps: hours of polling run in seconds.
 
-use protocol_core::views::LiveSnapshot;
+use std::collections::HashMap;
+
+use protocol_core::events::Event;
+use protocol_core::request::SettingsOption;
+use protocol_core::response::RegisterBlock;
+use protocol_core::settings::Setting;
+use protocol_core::views::{LiveSnapshot, VersionInfo};
+use tinybms_firmware::bridge::ts_newer;
 use tinybms_firmware::config::{Config, BYTE_TIME_US};
+use tinybms_firmware::report::WriteOutcome;
 use tinybms_firmware::{Action, Bridge, Level, Report};
 
 use crate::sim::SimBms;
+use crate::truth;
+
+/// How long the simulator keeps the blocks it answered, for the ground-truth
+/// checks (a confirmed read on a bad line may take minutes).
+pub const TRUTH_WINDOW_US: u64 = 600 * 1_000_000;
+
+/// What [`Harness::checked`] found: every published value compared with what the
+/// simulated BMS really sent, every write outcome with its register file.
+#[derive(Debug, Clone, Default)]
+pub struct Soak {
+    /// Snapshots published.
+    pub published: u64,
+    /// Of which flagged (confirmed, but failing a check).
+    pub flagged: u64,
+    /// Published blocks (snapshots, settings, limits, statistics, version) with
+    /// a value the BMS never sent.
+    pub wrong: u64,
+    /// The first few of them, described.
+    pub wrong_examples: Vec<String>,
+    /// Blocks checked (snapshots and the others).
+    pub blocks_checked: u64,
+    /// "verified"/"unchanged" outcomes while the BMS did not hold the value.
+    pub false_successes: u64,
+    /// "failed"/"nacked" outcomes while the BMS did hold the new value.
+    pub false_failures: u64,
+    /// Write outcomes by name (first outcome and follow-ups together).
+    pub outcomes: HashMap<&'static str, u64>,
+    /// Follow-up outcomes.
+    pub follow_ups: u64,
+    /// Transitions to offline.
+    pub offline_transitions: u64,
+    /// Longest time without a new snapshot once the bridge was ready, µs.
+    pub longest_gap_us: u64,
+    /// Time of the first "ready".
+    pub ready_at: Option<u64>,
+    /// Event reports: key (timestamp, id) -> how many times reported.
+    pub events_reported: HashMap<(u32, u8), u32>,
+    /// The start-up history line: (time, count, newest).
+    pub history: Option<(u64, u8, Option<Event>)>,
+    /// Lines logged by level.
+    pub warn_lines: u64,
+    /// Lines logged in all.
+    pub lines: u64,
+    last_publish: Option<u64>,
+    last_settings: Option<RegisterBlock>,
+    last_limits: (Option<RegisterBlock>, Option<RegisterBlock>),
+    last_stats: Option<RegisterBlock>,
+    last_version: Option<VersionInfo>,
+}
+
+/// Events compared with what the simulated BMS logged.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct EventCheck {
+    /// Events the BMS logged after the start-up history.
+    pub logged: u64,
+    /// Of which reported exactly once.
+    pub reported_once: u64,
+    /// Logged but never reported.
+    pub missing: u64,
+    /// Reported more than once.
+    pub duplicated: u64,
+    /// Reported but never logged.
+    pub invented: u64,
+    /// Events in the start-up history line.
+    pub history: u64,
+}
+
+impl Soak {
+    fn wrong(&mut self, what: String) {
+        self.wrong += 1;
+        self.example(what);
+    }
+
+    fn example(&mut self, what: String) {
+        if self.wrong_examples.len() < 10 {
+            self.wrong_examples.push(what);
+        }
+    }
+}
 
 /// A UART read returns after at most this much wire time (≈ 16 bytes: the ESP32
 /// RX FIFO threshold / idle timeout behaviour), so replies arrive in chunks.
@@ -65,6 +152,11 @@ pub struct Harness {
     /// Live snapshot latencies, µs: first transmission of the 0x03 0-55 request to
     /// the snapshot being published.
     pub live_latencies: Vec<u64>,
+    /// Keep every log line and published snapshot (off for long soaks: the
+    /// counters of [`Harness::soak`] remain).
+    pub retain: bool,
+    /// Ground-truth checks, when made by [`Harness::checked`].
+    pub soak: Option<Soak>,
 }
 
 impl Harness {
@@ -92,7 +184,57 @@ impl Harness {
                 .unwrap_or_default(),
             live_sent_at: None,
             live_latencies: Vec::new(),
+            retain: true,
+            soak: None,
         }
+    }
+
+    /// A harness that checks every published value and write outcome against
+    /// the simulated BMS as it goes ([`Harness::soak`]).
+    pub fn checked(mut sim: SimBms, config: Config) -> Self {
+        sim.record_reads(TRUTH_WINDOW_US);
+        let mut h = Self::with_config(sim, config);
+        h.soak = Some(Soak::default());
+        h
+    }
+
+    /// Events reported compared with the events the simulated BMS logged.
+    pub fn event_check(&self) -> EventCheck {
+        let mut c = EventCheck::default();
+        let Some(soak) = &self.soak else {
+            return c;
+        };
+        let newest = soak.history.and_then(|(_, _, n)| n);
+        c.history = soak.history.map(|(_, n, _)| u64::from(n)).unwrap_or(0);
+        let mut logged: HashMap<(u32, u8), u32> = HashMap::new();
+        for (_, e) in self.sim.logged_events() {
+            let in_history = match newest {
+                Some(n) => !ts_newer(e.timestamp_s, n.timestamp_s),
+                None => soak.history.is_some_and(|(t, _, _)| t >= self.sim.now_us()),
+            };
+            if soak.history.is_some() && in_history {
+                continue;
+            }
+            *logged.entry((e.timestamp_s, e.id.raw())).or_default() += 1;
+        }
+        for (key, n) in &logged {
+            c.logged += u64::from(*n);
+            match soak.events_reported.get(key).copied().unwrap_or(0) {
+                0 => c.missing += u64::from(*n),
+                r if r == *n => c.reported_once += u64::from(*n),
+                r if r > *n => c.duplicated += u64::from(r - n),
+                r => {
+                    c.reported_once += u64::from(r);
+                    c.missing += u64::from(n - r);
+                }
+            }
+        }
+        for (key, r) in &soak.events_reported {
+            if !logged.contains_key(key) {
+                c.invented += u64::from(*r);
+            }
+        }
+        c
     }
 
     /// Runs until virtual time `end_us`.
@@ -145,17 +287,176 @@ impl Harness {
             if self.echo {
                 println!("{line}");
             }
-            self.log.push(line);
+            self.check_report(&line);
+            if self.retain {
+                self.log.push(line);
+            }
         }
         let t = self.bridge.telemetry();
         if t.snapshot_seq != self.seen_seq {
             self.seen_seq = t.snapshot_seq;
             if let (Some(s), Some(at)) = (&t.snapshot, t.snapshot_at) {
-                self.published.push((at, s.clone()));
+                if self.retain {
+                    self.published.push((at, s.clone()));
+                }
                 if let Some(sent) = self.live_sent_at.take() {
                     self.live_latencies.push(at - sent);
                 }
             }
+            self.check_snapshot();
+        }
+        self.check_blocks();
+    }
+
+    fn check_report(&mut self, line: &LogLine) {
+        let Some(soak) = self.soak.as_mut() else {
+            return;
+        };
+        soak.lines += 1;
+        if line.level == Level::Warn {
+            soak.warn_lines += 1;
+        }
+        match &line.report {
+            Report::Offline { .. } => soak.offline_transitions += 1,
+            Report::Ready { .. } => {
+                soak.ready_at.get_or_insert(line.at_us);
+                soak.last_publish.get_or_insert(line.at_us);
+            }
+            Report::NewEvent(e) => {
+                *soak
+                    .events_reported
+                    .entry((e.timestamp_s, e.id.raw()))
+                    .or_default() += 1;
+            }
+            Report::EventHistory { count, newest } => {
+                if soak.history.is_none() {
+                    soak.history = Some((line.at_us, *count, *newest));
+                }
+            }
+            Report::Write { setting, outcome } | Report::WriteFollowUp { setting, outcome } => {
+                if matches!(line.report, Report::WriteFollowUp { .. }) {
+                    soak.follow_ups += 1;
+                }
+                *soak.outcomes.entry(outcome.name()).or_default() += 1;
+                let holds = holds(&self.sim, setting);
+                // 323/328 read 0xFFFF whether or not a write was applied: a
+                // failure cannot be judged from the register file.
+                let judged = !setting.id.reads_back_marker();
+                match outcome {
+                    WriteOutcome::Verified | WriteOutcome::Unchanged if !holds => {
+                        soak.false_successes += 1;
+                        soak.example(format!(
+                            "{} at {} µs but the BMS holds {:04X}",
+                            line.report,
+                            line.at_us,
+                            self.sim.register(setting.id.address())
+                        ));
+                    }
+                    WriteOutcome::Failed(_) | WriteOutcome::Nacked(_) if holds && judged => {
+                        soak.false_failures += 1;
+                    }
+                    _ => {}
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn check_snapshot(&mut self) {
+        let Some(soak) = self.soak.as_mut() else {
+            return;
+        };
+        let t = self.bridge.telemetry();
+        let (Some(block), Some(at)) = (&t.live_registers, t.snapshot_at) else {
+            return;
+        };
+        soak.published += 1;
+        soak.blocks_checked += 1;
+        if t.live.flagged.is_some() {
+            soak.flagged += 1;
+        }
+        if let Some(last) = soak.last_publish {
+            soak.longest_gap_us = soak.longest_gap_us.max(at.saturating_sub(last));
+        }
+        soak.last_publish = Some(at);
+        if let Err(e) = truth::check_registers(block, self.sim.recent_reads()) {
+            let what = format!("snapshot at {at} µs ({} pieces): {e}", t.live.pieces);
+            soak.wrong(what);
+        }
+    }
+
+    fn check_blocks(&mut self) {
+        let Some(soak) = self.soak.as_mut() else {
+            return;
+        };
+        let t = self.bridge.telemetry();
+        let reads = self.sim.recent_reads();
+        if t.settings != soak.last_settings {
+            soak.last_settings = t.settings.clone();
+            if let Some(b) = &t.settings {
+                soak.blocks_checked += 1;
+                if let Err(e) = truth::check_registers(b, reads) {
+                    soak.wrong(format!("settings at {} µs: {e}", self.now));
+                }
+            }
+        }
+        if t.statistics_registers != soak.last_stats {
+            soak.last_stats = t.statistics_registers.clone();
+            if let Some(b) = &t.statistics_registers {
+                soak.blocks_checked += 1;
+                if let Err(e) = truth::check_registers(b, reads) {
+                    soak.wrong(format!("statistics at {} µs: {e}", self.now));
+                }
+            }
+        }
+        for (option, now) in [
+            (SettingsOption::Min, &t.limits_min),
+            (SettingsOption::Max, &t.limits_max),
+        ] {
+            let last = if option == SettingsOption::Min {
+                &mut soak.last_limits.0
+            } else {
+                &mut soak.last_limits.1
+            };
+            if now != last {
+                *last = now.clone();
+                if let Some(b) = now {
+                    soak.blocks_checked += 1;
+                    if let Err(e) = truth::check_table(b, option, reads) {
+                        soak.wrong(format!("limits at {} µs: {e}", self.now));
+                    }
+                }
+            }
+        }
+        if t.version != soak.last_version {
+            soak.last_version = t.version;
+            if let Some(v) = t.version {
+                soak.blocks_checked += 1;
+                let regs: heapless::Vec<u16, 127> =
+                    (500..=509).map(|a| self.sim.register(a)).collect();
+                let truth = VersionInfo::from_registers(&RegisterBlock {
+                    start: 500,
+                    values: regs,
+                });
+                if truth != Ok(v) {
+                    soak.wrong(format!("version at {} µs: {v:?}", self.now));
+                }
+            }
+        }
+    }
+
+    /// The longest time without a snapshot so far, counting the time since the
+    /// last one (µs), once the bridge was ready.
+    pub fn longest_gap_us(&self) -> u64 {
+        match &self.soak {
+            Some(s) => {
+                let open = s
+                    .last_publish
+                    .map(|t| self.now.saturating_sub(t))
+                    .unwrap_or(0);
+                s.longest_gap_us.max(open)
+            }
+            None => 0,
         }
     }
 
@@ -186,4 +487,12 @@ impl Harness {
     pub fn log_text(&self) -> String {
         self.log.iter().map(|l| format!("{l}\n")).collect()
     }
+}
+
+/// True when the simulated BMS holds the value of `s` now (0xFFFF counts for
+/// 323/328, as for the bridge).
+fn holds(sim: &SimBms, s: &Setting) -> bool {
+    let a = s.id.address();
+    let second = (s.id.register_count() == 2).then(|| sim.register(a + 1));
+    s.matches_readback(sim.register(a), second)
 }

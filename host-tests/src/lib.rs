@@ -7,3 +7,4 @@ pub mod harness;
 pub mod profile;
 pub mod replay;
 pub mod sim;
+pub mod truth;

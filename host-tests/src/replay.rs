@@ -155,7 +155,7 @@ fn current_sensor(c: CurrentSensor) -> String {
         CurrentSensor::InternalResistor => "internal_resistor".into(),
         CurrentSensor::InternalHall => "internal_hall".into(),
         CurrentSensor::External => "external".into(),
-        CurrentSensor::Unknown(v) => format!("unknown_{v}"),
+        CurrentSensor::Unknown(v) => unknown_hex(u32::from(v)),
     }
 }
 

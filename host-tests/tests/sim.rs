@@ -1154,6 +1154,7 @@ fn scripted_session(seed: u64) -> Vec<(u64, Vec<u8>)> {
         duplicate: 0.05,
         delay: 0.05,
         delay_us: 120_000,
+        ..FaultConfig::NONE
     };
     let config = SimConfig::default()
         .with_faults(faults)
@@ -1195,6 +1196,7 @@ fn polled_session(poll_us: u64) -> Vec<u8> {
         duplicate: 0.05,
         delay: 0.05,
         delay_us: 120_000,
+        ..FaultConfig::NONE
     };
     let config = SimConfig::default()
         .with_faults(faults)
@@ -1274,6 +1276,7 @@ fn random_input_never_panics() {
         duplicate: 0.1,
         delay: 0.1,
         delay_us: 50_000,
+        ..FaultConfig::NONE
     };
     for profile in [PackProfile::LiFePO4_16S, PackProfile::LiIon_14S] {
         let config = SimConfig::default()

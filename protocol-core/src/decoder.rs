@@ -115,6 +115,10 @@ impl DecodeError {
 }
 
 /// What the decoder has seen.
+///
+/// Every counter wraps modulo 2^32 by design (like a hardware counter): a
+/// decoder that runs for years never panics on overflow, in debug builds too.
+/// Compare two readings with `wrapping_sub`.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct DecoderStats {
@@ -149,8 +153,6 @@ pub struct Decoder {
     len: usize,
     asm: Option<Assembly>,
     expect: Option<(u8, Option<u16>)>,
-    /// A decode error happened since [`Decoder::expect`].
-    disturbed: bool,
     stats: DecoderStats,
 }
 
@@ -168,7 +170,6 @@ impl Decoder {
             len: 0,
             asm: None,
             expect: None,
-            disturbed: false,
             stats: DecoderStats {
                 bytes_in: 0,
                 skipped_bytes: 0,
@@ -206,18 +207,16 @@ impl Decoder {
             _ => None,
         };
         self.expect = Some((request.command(), len));
-        self.disturbed = false;
     }
 
     /// Forgets the outstanding request.
     pub fn clear_expectation(&mut self) {
         self.expect = None;
-        self.disturbed = false;
     }
 
     /// Forget buffered bytes and any partial reassembly (counted as skipped).
     pub fn reset(&mut self) {
-        self.stats.skipped_bytes = self.stats.skipped_bytes.saturating_add(self.len as u32);
+        self.stats.skipped_bytes = self.stats.skipped_bytes.wrapping_add(self.len as u32);
         self.len = 0;
         self.asm = None;
     }
@@ -231,7 +230,7 @@ impl Decoder {
         if let (Some(dst), Some(src)) = (self.buf.get_mut(self.len..self.len + n), input.get(..n)) {
             dst.copy_from_slice(src);
             self.len += n;
-            self.stats.bytes_in = self.stats.bytes_in.saturating_add(n as u32);
+            self.stats.bytes_in = self.stats.bytes_in.wrapping_add(n as u32);
             n
         } else {
             0
@@ -241,15 +240,7 @@ impl Decoder {
     /// The next frame or error found in the buffered bytes, or `None` when more
     /// bytes are needed.
     pub fn poll(&mut self) -> Option<Result<Frame, DecodeError>> {
-        let r = self.step(false);
-        self.note(&r);
-        r
-    }
-
-    fn note(&mut self, r: &Option<Result<Frame, DecodeError>>) {
-        if let Some(Err(_)) = r {
-            self.disturbed = true;
-        }
+        self.step(false)
     }
 
     /// Like [`Decoder::poll`], but treats the input as ended: an incomplete candidate
@@ -257,9 +248,7 @@ impl Decoder {
     /// byte), an unfinished reassembly as [`DecodeError::IncompletePackets`]. Call it
     /// until it returns `None` when a response deadline passes.
     pub fn flush(&mut self) -> Option<Result<Frame, DecodeError>> {
-        let r = self.step(true);
-        self.note(&r);
-        r
+        self.step(true)
     }
 
     /// Convenience: push all of `input`, calling `sink` with every result in order.
@@ -291,7 +280,7 @@ impl Decoder {
 
     fn skip(&mut self, n: usize) {
         self.drop_front(n);
-        self.stats.skipped_bytes = self.stats.skipped_bytes.saturating_add(n as u32);
+        self.stats.skipped_bytes = self.stats.skipped_bytes.wrapping_add(n as u32);
     }
 
     fn step(&mut self, ending: bool) -> Option<Result<Frame, DecodeError>> {
@@ -308,7 +297,7 @@ impl Decoder {
             if self.len == 0 {
                 if ending {
                     if let Some(asm) = self.asm.take() {
-                        self.stats.packet_errors += 1;
+                        self.stats.packet_errors = self.stats.packet_errors.wrapping_add(1);
                         return Some(Err(DecodeError::IncompletePackets {
                             command: asm.command,
                             packets: asm.packets,
@@ -326,13 +315,13 @@ impl Decoder {
                     let command = data.get(1).copied();
                     let have = self.len;
                     self.skip(1);
-                    self.stats.truncated += 1;
+                    self.stats.truncated = self.stats.truncated.wrapping_add(1);
                     return Some(Err(DecodeError::Truncated { command, have }));
                 }
                 Framing::NotAFrame => self.skip(1),
                 Framing::BadLength { command, pl } => {
                     self.skip(1);
-                    self.stats.length_errors += 1;
+                    self.stats.length_errors = self.stats.length_errors.wrapping_add(1);
                     return Some(Err(DecodeError::Length { command, pl }));
                 }
                 Framing::Complete(n) => {
@@ -346,7 +335,7 @@ impl Decoder {
                     let command = body.get(1).copied().unwrap_or(0);
                     if computed != received {
                         self.skip(1);
-                        self.stats.crc_errors += 1;
+                        self.stats.crc_errors = self.stats.crc_errors.wrapping_add(1);
                         return Some(Err(DecodeError::Crc {
                             command,
                             computed,
@@ -375,7 +364,7 @@ impl Decoder {
                     packets: asm.packets,
                 };
                 self.asm = None;
-                self.stats.packet_errors += 1;
+                self.stats.packet_errors = self.stats.packet_errors.wrapping_add(1);
                 // The frame stays in the buffer and is decoded on the next poll.
                 return Some(Err(err));
             }
@@ -418,7 +407,7 @@ impl Decoder {
         };
         self.drop_front(n);
         if let Some(Ok(_)) = result {
-            self.stats.frames += 1;
+            self.stats.frames = self.stats.frames.wrapping_add(1);
         }
         result
     }
@@ -438,7 +427,7 @@ impl Decoder {
             _ => got >= 4 && (got - 4).is_multiple_of(4), // events: timestamp + 4 per event
         };
         if !plausible || expected.is_some_and(|e| usize::from(e) != got) {
-            self.stats.packet_errors += 1;
+            self.stats.packet_errors = self.stats.packet_errors.wrapping_add(1);
             Some(DecodeError::PacketLength {
                 command,
                 expected,
@@ -455,7 +444,7 @@ impl Decoder {
         let mut asm = match self.asm.take() {
             Some(asm) => {
                 if more && id != asm.next_id {
-                    self.stats.packet_errors += 1;
+                    self.stats.packet_errors = self.stats.packet_errors.wrapping_add(1);
                     // This packet may be the start of a new reply: keep it.
                     self.asm = Some(Assembly {
                         command,
@@ -478,18 +467,9 @@ impl Decoder {
                     if let Some(err) = self.check_packetized(command, chunk.len()) {
                         return Some(Err(err));
                     }
-                    // Events have no length the request implies: after a decode
-                    // error in this exchange, a lone packet may be such a tail.
-                    let expected_here = matches!(self.expect, Some((c, _)) if c == command);
-                    let events = matches!(command, cmd::READ_NEWEST_EVENTS | cmd::READ_ALL_EVENTS);
-                    if expected_here && events && self.disturbed {
-                        self.stats.packet_errors += 1;
-                        return Some(Err(DecodeError::PacketLength {
-                            command,
-                            expected: None,
-                            got: chunk.len() as u16,
-                        }));
-                    }
+                    // Events have no length the request implies, but a tail left
+                    // after 1-3 lost 63-byte packets is never 4 + 4n bytes: the
+                    // layout check above already refuses it.
                     return Some(
                         Payload::from_slice(chunk)
                             .map(|payload| Frame::Data {
@@ -509,7 +489,7 @@ impl Decoder {
             }
         };
         if asm.payload.extend_from_slice(chunk).is_err() {
-            self.stats.packet_errors += 1;
+            self.stats.packet_errors = self.stats.packet_errors.wrapping_add(1);
             return Some(Err(DecodeError::PayloadOverflow { command }));
         }
         asm.packets = asm.packets.saturating_add(1);
@@ -708,30 +688,82 @@ mod tests {
     }
 
     #[test]
-    fn lone_event_packet_after_an_error_is_not_trusted() {
-        // The tail (4 bytes: looks like "timestamp, no events") of a 0x12 reply
-        // whose first packet was damaged.
+    fn valid_single_packet_event_reply_after_noise_is_accepted() {
+        // Line noise holding 0xAA and the response command byte, then the real,
+        // complete single-packet 0x11 reply (4 + 4n bytes). It must not be dropped
+        // as the tail of a lost reply.
+        let reply = Frame::data(0x11, &[1, 2, 3, 4, 10, 0, 0, 0x21]).unwrap();
+        let mut s = vec![0xAA, 0x11, 0x02, 0x01, 0x02, 0x03, 0x04];
+        s.extend(encode(&reply));
+        let mut d = Decoder::new();
+        d.expect(&crate::request::Request::ReadNewestEvents);
+        let mut got = Vec::new();
+        d.feed(&s, |r| got.push(r));
+        d.clear_expectation();
+        assert!(
+            got.iter().any(|r| r.is_err()),
+            "the noise is reported: {got:?}"
+        );
+        assert_eq!(got.last(), Some(&Ok(reply)));
+    }
+
+    #[test]
+    fn lone_event_tail_after_lost_packets_is_refused_by_its_layout() {
+        // A 0x12 reply of 20 events: 84 bytes = 63 + 21. With the first packet
+        // damaged, the 21-byte tail is not 4 + 4n: refused. With at most 49 events
+        // (200 bytes) a tail after 1-3 lost 63-byte packets never is.
+        let payload: Vec<u8> = (0..84u8).collect();
         let mut s = vec![0xAA, 0x12, 0x81];
-        s.extend_from_slice(&[0x55; 63]);
+        s.extend_from_slice(&payload[..63]);
         s.extend_from_slice(&[0, 0]); // wrong CRC
-        s.extend(encode(&Frame::data(0x12, &[1, 2, 3, 4]).unwrap()));
+        let mut tail = vec![0xAA, 0x12, 21];
+        tail.extend_from_slice(&payload[63..]);
+        let c = crc16(&tail);
+        tail.extend_from_slice(&c.to_le_bytes());
+        s.extend_from_slice(&tail);
         let mut d = Decoder::new();
         d.expect(&crate::request::Request::ReadAllEvents);
         let mut got = Vec::new();
         d.feed(&s, |r| got.push(r));
         assert!(got.iter().all(|r| r.is_err()), "{got:?}");
-        assert!(got.contains(&Err(DecodeError::PacketLength {
-            command: 0x12,
-            expected: None,
-            got: 4
-        })));
-        // The same packet after a clean exchange is a genuine reply.
-        d.expect(&crate::request::Request::ReadAllEvents);
+        for lost in 1..=3usize {
+            for n in 0..=49usize {
+                let len = 4 + 4 * n;
+                if len > 63 * lost {
+                    assert_ne!((len - 63 * lost) % 4, 0, "n {n} lost {lost}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn counters_wrap_instead_of_panicking() {
+        let mut d = Decoder::new();
+        d.stats = DecoderStats {
+            bytes_in: u32::MAX,
+            skipped_bytes: u32::MAX,
+            frames: u32::MAX,
+            crc_errors: u32::MAX,
+            length_errors: u32::MAX,
+            truncated: u32::MAX,
+            packet_errors: u32::MAX,
+        };
+        let good = encode(&Frame::Ack { command: 0x0D });
+        let mut bad = good.clone();
+        bad[3] ^= 0xFF;
+        let mut input = b"noise".to_vec();
+        input.extend_from_slice(&bad);
+        input.extend_from_slice(&good);
+        input.extend_from_slice(&[0xAA, 0x03, 0x0A, 1]);
         let mut got = Vec::new();
-        d.feed(&encode(&Frame::data(0x12, &[1, 2, 3, 4]).unwrap()), |r| {
-            got.push(r)
-        });
-        assert_eq!(got, vec![Ok(Frame::data(0x12, &[1, 2, 3, 4]).unwrap())]);
+        d.feed(&input, |r| got.push(r));
+        while let Some(r) = d.flush() {
+            got.push(r);
+        }
+        assert!(got.contains(&Ok(Frame::Ack { command: 0x0D })));
+        let s = d.stats();
+        assert_eq!(s.frames, 0, "wrapped");
+        assert!(s.bytes_in < 100 && s.crc_errors < 10 && s.truncated < 10);
     }
 
     #[test]

@@ -290,7 +290,9 @@ pub const CHARGER_DETECTION_OPTIONS: &[(u16, &str)] = &[
 /// Register 336 low byte.
 pub const SPEED_SENSOR_OPTIONS: &[(u16, &str)] =
     &[(0x00, "Disabled"), (0x01, "DIDO1"), (0x02, "DIDO2")];
-/// Register 337 low byte (Rev D lists 0x10, not 0x0A, for the last value).
+/// Register 337 low byte. Rev D lists 0x10 for "AIHO2 Active High", right
+/// after 0x09: almost surely decimal 10 (0x0A), a slip of the document. Both are
+/// accepted: 0x0A as the likely value, 0x10 as the document's.
 pub const PRECHARGE_PIN_OPTIONS: &[(u16, &str)] = &[
     (0x00, "Disabled"),
     (0x02, "Discharge FET"),
@@ -301,6 +303,7 @@ pub const PRECHARGE_PIN_OPTIONS: &[(u16, &str)] = &[
     (0x07, "AIHO1 Active Low"),
     (0x08, "AIHO1 Active High"),
     (0x09, "AIHO2 Active Low"),
+    (0x0A, "AIHO2 Active High"),
     (0x10, "AIHO2 Active High"),
 ];
 /// Register 338 low byte.

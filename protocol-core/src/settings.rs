@@ -258,13 +258,29 @@ impl Setting {
 
     /// Checks Rev D's range and enumerations.
     pub fn validate(&self) -> Result<(), SettingError> {
+        self.validate_with(None)
+    }
+
+    /// Checks a value before it is written, given the (min, max) the BMS
+    /// reported for this setting through 0x1D, when known.
+    ///
+    /// Rev D marks 304, 305, 317 and 318 as changed by the BMS "according to the
+    /// current sensor" (its `*` note), and HARDWARE-NOTES says to prefer the 0x1D
+    /// limits: for those, the BMS's limits replace the static range when known
+    /// (e.g. 317 = 900 A on a unit whose external sensor allows it). Every other
+    /// setting must pass both. Enumerations are always checked.
+    pub fn validate_with(&self, bms_limits: Option<(i32, i32)>) -> Result<(), SettingError> {
         let Some(r) = self.id.register() else {
             return Err(SettingError::NotAnOption {
                 id: self.id,
                 value: self.value,
             });
         };
-        if let Some((min, max)) = r.range {
+        let static_range = match bms_limits {
+            Some(_) if r.sensor_dependent => None,
+            _ => r.range,
+        };
+        if let Some((min, max)) = static_range {
             if self.value < min || self.value > max {
                 return Err(SettingError::OutOfRange {
                     id: self.id,
@@ -282,6 +298,9 @@ impl Setting {
                 id: self.id,
                 value: self.value,
             });
+        }
+        if let Some((min, max)) = bms_limits {
+            self.check_limits(min, max)?;
         }
         Ok(())
     }
@@ -417,5 +436,53 @@ mod tests {
         assert!(!soc.matches_readback(24999, None));
         let ov = Setting::new(SettingId::OverVoltageCutoff, 4200).unwrap();
         assert!(!ov.matches_readback(0xFFFF, None));
+    }
+
+    #[test]
+    fn sensor_dependent_settings_follow_the_bms_limits_when_known() {
+        for id in [
+            SettingId::DischargeOverCurrentCutoff,
+            SettingId::ChargeOverCurrentCutoff,
+        ] {
+            let r = id.register().unwrap();
+            assert!(r.sensor_dependent, "{id:?}");
+            let (_, rev_d_max) = r.range.unwrap();
+            let big = Setting {
+                id,
+                value: rev_d_max + 150,
+            };
+            // Unknown BMS limits: Rev D's range applies.
+            assert!(matches!(
+                big.validate_with(None),
+                Err(SettingError::OutOfRange { .. })
+            ));
+            // The BMS allows more with its sensor: its limits win.
+            assert_eq!(big.validate_with(Some((1, rev_d_max + 500))), Ok(()));
+            // ... and bind in both directions.
+            assert!(matches!(
+                big.validate_with(Some((1, rev_d_max + 100))),
+                Err(SettingError::OutsideBmsLimits { .. })
+            ));
+        }
+        // Not sensor-dependent: both the Rev D range and the BMS limits apply.
+        let ov = Setting {
+            id: SettingId::OverVoltageCutoff,
+            value: 5000,
+        };
+        assert!(matches!(
+            ov.validate_with(Some((1000, 6000))),
+            Err(SettingError::OutOfRange { .. })
+        ));
+    }
+
+    #[test]
+    fn precharge_pin_accepts_0x0a_and_the_documents_0x10() {
+        for v in [0x0A, 0x10] {
+            assert_eq!(
+                Setting::new(SettingId::PrechargePin, v).map(|s| s.value),
+                Ok(v)
+            );
+        }
+        assert!(Setting::new(SettingId::PrechargePin, 0x0B).is_err());
     }
 }

@@ -1,29 +1,45 @@
 //! `cargo run -p host-tests --bin sim -- [options]`: the firmware's bridge logic
 //! against the simulated TinyBMS, in virtual time. Prints the log lines the device
-//! would print, then a summary with the link figures.
+//! would print, then a summary: the link figures and the ground-truth checks
+//! (every published value compared with what the simulated BMS really sent before
+//! faults, every write outcome with its register file, every event logged with
+//! the events reported). Exits 1 when a wrong value or a false success occurred.
 
 use std::process::ExitCode;
 
-use host_tests::harness::Harness;
+use host_tests::harness::{Harness, Soak};
 use host_tests::profile::{parse_assignment, parse_profile};
 use host_tests::sim::{FaultConfig, PackProfile, SimBms, SimConfig};
+use protocol_core::settings::{Setting, SettingId};
 use tinybms_firmware::config::{Config, BYTE_TIME_US};
+use tinybms_firmware::Command;
 
 const USAGE: &str =
     "usage: sim [--duration 10m] [--fault-rate 0.01] [--profile FILE] [--set NAME=VALUE]...
-           [--pack lifepo4-16s|liion-14s] [--seed N] [--asleep] [--snapshot-every 10s] [--quiet]
+           [--pack lifepo4-16s|liion-14s] [--seed N | --seeds A..B] [--asleep]
+           [--snapshot-every 10s] [--live-period 250ms] [--write-every 1m] [--quiet]
 
-  --duration D       virtual time to run (e.g. 90s, 10m, 2h; default 60s)
-  --fault-rate R     per-byte corruption rate on the BMS's replies (bit flips and
-                     dropped bytes at R/2 each) plus R per reply of truncation,
-                     duplication, delay and lost requests (default 0)
+  --duration D       virtual time to run per seed (e.g. 90s, 10m, 2h; default 60s)
+  --fault-rate R     every fault kind at rate R: per reply byte, R corrupted
+                     (dropped, bit-flipped or a random byte inserted, R/3 each);
+                     per reply, R each of truncation, duplication, 150 ms delay,
+                     a noise burst, a repeated fragment of the previous reply;
+                     per request, R lost (default 0)
   --profile FILE     settings profile to apply at start (lines `name = value`)
   --set NAME=VALUE   one setting to apply (repeatable), e.g. over_voltage_cutoff=3650
   --pack P           simulated pack (default lifepo4-16s)
   --seed N           seed of the simulator (default 1)
+  --seeds A..B       run seeds A to B (inclusive) one after the other, summed up
   --asleep           the BMS starts asleep
-  --snapshot-every D log period of the snapshot line (default 10s)
-  --quiet            only print the summary";
+  --snapshot-every D log period of the snapshot line (default 10s; 0 = every one)
+  --live-period D    period of the live block read (default 250ms)
+  --write-every D    every D, change a harmless setting (cycles through four,
+                     alternating two values each) to exercise write/verify
+  --quiet            only print the summary
+  -h, --help         this text
+
+exit status: 0 when every published value was sent by the BMS and no write was
+reported successful that the BMS did not hold; 1 otherwise; 2 on a usage error";
 
 fn parse_duration(s: &str) -> Result<u64, String> {
     let (num, unit) = s
@@ -45,23 +61,32 @@ fn parse_duration(s: &str) -> Result<u64, String> {
 struct Options {
     duration_us: u64,
     fault_rate: f64,
-    profile: Vec<(protocol_core::settings::SettingId, i32)>,
+    profile: Vec<(SettingId, i32)>,
     pack: PackProfile,
-    seed: u64,
+    seeds: (u64, u64),
     asleep: bool,
     snapshot_every_us: u64,
+    live_period_us: u64,
+    write_every_us: Option<u64>,
     quiet: bool,
 }
 
-fn parse_args() -> Result<Options, String> {
+enum Parsed {
+    Run(Box<Options>),
+    Help,
+}
+
+fn parse_args() -> Result<Parsed, String> {
     let mut o = Options {
         duration_us: 60_000_000,
         fault_rate: 0.0,
         profile: Vec::new(),
         pack: PackProfile::LiFePO4_16S,
-        seed: 1,
+        seeds: (1, 1),
         asleep: false,
         snapshot_every_us: 10_000_000,
+        live_period_us: tinybms_firmware::config::LIVE_PERIOD_US,
+        write_every_us: None,
         quiet: false,
     };
     let mut args = std::env::args().skip(1);
@@ -92,74 +117,180 @@ fn parse_args() -> Result<Options, String> {
                 }
             }
             "--seed" => {
-                o.seed = value("--seed")?
+                let n = value("--seed")?
                     .parse()
-                    .map_err(|_| "bad --seed".to_string())?
+                    .map_err(|_| "bad --seed".to_string())?;
+                o.seeds = (n, n);
+            }
+            "--seeds" => {
+                let v = value("--seeds")?;
+                let (a, b) = v
+                    .split_once("..")
+                    .ok_or_else(|| format!("bad --seeds `{v}` (want A..B)"))?;
+                let a: u64 = a.parse().map_err(|_| format!("bad --seeds `{v}`"))?;
+                let b: u64 = b.parse().map_err(|_| format!("bad --seeds `{v}`"))?;
+                if b < a {
+                    return Err(format!("bad --seeds `{v}`: B < A"));
+                }
+                o.seeds = (a, b);
             }
             "--asleep" => o.asleep = true,
             "--snapshot-every" => {
                 o.snapshot_every_us = parse_duration(&value("--snapshot-every")?)?
             }
+            "--live-period" => {
+                o.live_period_us = parse_duration(&value("--live-period")?)?;
+                if o.live_period_us == 0 {
+                    return Err("--live-period must be above 0".into());
+                }
+            }
+            "--write-every" => {
+                let d = parse_duration(&value("--write-every")?)?;
+                if d == 0 {
+                    return Err("--write-every must be above 0".into());
+                }
+                o.write_every_us = Some(d);
+            }
             "--quiet" => o.quiet = true,
-            "-h" | "--help" => return Err(String::new()),
+            "-h" | "--help" => return Ok(Parsed::Help),
             other => return Err(format!("unknown option `{other}`")),
         }
     }
-    Ok(o)
+    Ok(Parsed::Run(Box::new(o)))
 }
 
-fn main() -> ExitCode {
-    let o = match parse_args() {
-        Ok(o) => o,
-        Err(e) => {
-            if !e.is_empty() {
-                eprintln!("sim: {e}");
-            }
-            eprintln!("{USAGE}");
-            return ExitCode::from(2);
-        }
-    };
-    let r = o.fault_rate;
-    let faults = FaultConfig {
-        drop_byte: r / 2.0,
-        bit_flip: r / 2.0,
-        truncate: r,
-        no_reply: r,
-        duplicate: r,
-        delay: r,
-        delay_us: 150_000,
-    };
+/// Harmless settings the `--write-every` cycle changes, with two values each.
+const WRITE_CYCLE: [(SettingId, i32, i32); 4] = [
+    (SettingId::BatteryMaximumCycles, 3000, 3001),
+    (SettingId::ChargerStartupDelay, 20, 21),
+    (SettingId::DischargeOverCurrentTimeout, 5, 6),
+    (SettingId::PulsesPerUnit, 1000, 1001),
+];
+
+/// Totals over the seeds.
+#[derive(Default)]
+struct Totals {
+    seconds: f64,
+    published: u64,
+    flagged: u64,
+    blocks: u64,
+    wrong: u64,
+    examples: Vec<String>,
+    false_successes: u64,
+    false_failures: u64,
+    outcomes: std::collections::BTreeMap<&'static str, u64>,
+    follow_ups: u64,
+    offline: u64,
+    longest_gap_us: u64,
+    never_ready: u64,
+    logged: u64,
+    reported_once: u64,
+    missing: u64,
+    duplicated: u64,
+    invented: u64,
+    history: u64,
+    lines: u64,
+    warn_lines: u64,
+    requests: u64,
+    clean_first: u64,
+    faults: u64,
+}
+
+fn run_seed(o: &Options, seed: u64, t: &mut Totals) -> Result<(), String> {
     let config = SimConfig {
         start_asleep: o.asleep,
         sleep_after_us: Some(30_000_000),
-        faults,
+        faults: FaultConfig::all(o.fault_rate),
         ..SimConfig::default()
     };
-    let sim = SimBms::new(o.pack, config, o.seed);
+    let sim = SimBms::new(o.pack, config, seed);
     let bridge_config = Config {
         snapshot_log_period_us: o.snapshot_every_us,
+        live_period_us: o.live_period_us,
         ..Config::default()
     };
-    let mut h = Harness::with_config(sim, bridge_config);
+    let mut h = Harness::checked(sim, bridge_config);
+    h.retain = false;
     h.echo = !o.quiet;
-    if let Err(e) = h.bridge.submit_profile(&o.profile) {
-        eprintln!("sim: profile does not fit the command queue: {e:?}");
-        return ExitCode::from(2);
+    h.bridge
+        .submit_profile(&o.profile)
+        .map_err(|e| format!("profile does not fit the command queue: {e:?}"))?;
+    match o.write_every_us {
+        None => h.run_until(o.duration_us),
+        Some(every) => {
+            let mut k = 0usize;
+            let mut at = every;
+            while at < o.duration_us {
+                h.run_until(at);
+                let (id, a, b) = WRITE_CYCLE[k % WRITE_CYCLE.len()];
+                let value = if (k / WRITE_CYCLE.len()) % 2 == 0 {
+                    a
+                } else {
+                    b
+                };
+                let mut items = heapless::Vec::new();
+                let _ = items.push(Setting { id, value });
+                // A full queue just skips this change.
+                let _ = h.bridge.submit(Command::ApplySettings(items));
+                k += 1;
+                at += every;
+            }
+            h.run_until(o.duration_us);
+        }
     }
-    h.run_until(o.duration_us);
+    let ev = h.event_check();
+    let gap = h.longest_gap_us();
+    let s: Soak = h.soak.clone().unwrap_or_default();
+    t.seconds += h.now as f64 / 1e6;
+    t.published += s.published;
+    t.flagged += s.flagged;
+    t.blocks += s.blocks_checked;
+    t.wrong += s.wrong;
+    for e in s.wrong_examples {
+        if t.examples.len() < 10 {
+            t.examples.push(format!("seed {seed}: {e}"));
+        }
+    }
+    t.false_successes += s.false_successes;
+    t.false_failures += s.false_failures;
+    for (k, v) in s.outcomes {
+        *t.outcomes.entry(k).or_default() += v;
+    }
+    t.follow_ups += s.follow_ups;
+    t.offline += s.offline_transitions;
+    if s.ready_at.is_none() {
+        t.never_ready += 1;
+        t.longest_gap_us = t.longest_gap_us.max(h.now);
+    } else {
+        t.longest_gap_us = t.longest_gap_us.max(gap);
+    }
+    t.logged += ev.logged;
+    t.reported_once += ev.reported_once;
+    t.missing += ev.missing;
+    t.duplicated += ev.duplicated;
+    t.invented += ev.invented;
+    t.history += ev.history;
+    t.lines += s.lines;
+    t.warn_lines += s.warn_lines;
+    let ls = h.bridge.link_stats();
+    t.requests += u64::from(ls.requests);
+    t.clean_first += u64::from(ls.replies);
+    t.faults += h.sim.stats().faults.total();
+    if o.seeds.0 == o.seeds.1 {
+        print_link(&h);
+    }
+    Ok(())
+}
 
+fn print_link(h: &Harness) {
     let s = h.bridge.link_stats();
     let secs = h.now as f64 / 1e6;
     let live_reply = 3 + 2 * 56 + 2;
     let live_request = 8;
-    println!("--- summary ---");
-    println!(
-        "virtual time {secs:.1} s, snapshots published {}",
-        h.published.len()
-    );
+    println!("--- link ---");
     println!("{}", tinybms_firmware::Report::LinkStats(s));
     println!(
-        "bytes on the wire per live snapshot: {} request + {} reply = {} ({:.1} ms at 115200 8N1)",
+        "bytes on the wire per live snapshot on a clean line: {} request + {} reply = {} ({:.1} ms at 115200 8N1)",
         live_request,
         live_reply,
         live_request + live_reply,
@@ -176,10 +307,92 @@ fn main() -> ExitCode {
     }
     let busy = (h.tx_bytes + h.rx_bytes) as f64 * BYTE_TIME_US as f64;
     println!(
-        "bus utilisation: {:.1} % ({} bytes sent, {} received in {secs:.1} s)",
+        "bus utilisation: {:.1} % ({} bytes sent, {} received in {secs:.1} s); reading {} registers per request at the end",
         100.0 * busy / h.now.max(1) as f64,
         h.tx_bytes,
-        h.rx_bytes
+        h.rx_bytes,
+        h.bridge.piece_registers()
     );
+}
+
+fn main() -> ExitCode {
+    let o = match parse_args() {
+        Ok(Parsed::Run(o)) => o,
+        Ok(Parsed::Help) => {
+            println!("{USAGE}");
+            return ExitCode::SUCCESS;
+        }
+        Err(e) => {
+            eprintln!("sim: {e}");
+            eprintln!("{USAGE}");
+            return ExitCode::from(2);
+        }
+    };
+    let mut t = Totals::default();
+    for seed in o.seeds.0..=o.seeds.1 {
+        if let Err(e) = run_seed(&o, seed, &mut t) {
+            eprintln!("sim: {e}");
+            return ExitCode::from(2);
+        }
+    }
+    let seeds = o.seeds.1 - o.seeds.0 + 1;
+    println!("--- summary ---");
+    println!(
+        "{seeds} seed(s) x {:.1} h of virtual time at fault rate {} ({:.1} h in all; {} faults injected)",
+        o.duration_us as f64 / 3.6e9,
+        o.fault_rate,
+        t.seconds / 3600.0,
+        t.faults
+    );
+    println!(
+        "snapshots published {} ({:.2}/s), flagged {}; blocks checked against the BMS {}",
+        t.published,
+        t.published as f64 / t.seconds.max(1e-9),
+        t.flagged,
+        t.blocks
+    );
+    println!("wrong values published: {}", t.wrong);
+    for e in &t.examples {
+        println!("  {e}");
+    }
+    let outcomes: Vec<String> = t.outcomes.iter().map(|(k, v)| format!("{k} {v}")).collect();
+    println!(
+        "write outcomes: {} (follow-ups {}); false successes {}; reported failed but applied {}",
+        if outcomes.is_empty() {
+            "none".to_string()
+        } else {
+            outcomes.join(", ")
+        },
+        t.follow_ups,
+        t.false_successes,
+        t.false_failures
+    );
+    println!("offline transitions: {}", t.offline);
+    println!(
+        "longest telemetry gap: {:.1} s{}",
+        t.longest_gap_us as f64 / 1e6,
+        if t.never_ready > 0 {
+            format!(
+                " ({} seed(s) never completed the initial sync)",
+                t.never_ready
+            )
+        } else {
+            String::new()
+        }
+    );
+    println!(
+        "events: {} logged after the start-up history ({} in it), {} reported exactly once, {} missing, {} duplicated, {} invented",
+        t.logged, t.history, t.reported_once, t.missing, t.duplicated, t.invented
+    );
+    println!(
+        "log: {} lines, {} warnings ({:.1} per hour)",
+        t.lines,
+        t.warn_lines,
+        t.warn_lines as f64 / (t.seconds / 3600.0).max(1e-9)
+    );
+    if t.wrong > 0 || t.false_successes > 0 {
+        println!("FAIL: a value or a write success the BMS never sent was reported");
+        return ExitCode::from(1);
+    }
     ExitCode::SUCCESS
 }

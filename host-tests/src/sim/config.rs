@@ -79,6 +79,16 @@ pub struct FaultConfig {
     pub delay: f64,
     /// Extra delay of a delayed reply, µs.
     pub delay_us: u64,
+    /// Per reply byte: a random byte is inserted after it (a glitch on the line
+    /// read as a start bit).
+    pub insert_byte: f64,
+    /// Per reply: a burst of 1-16 random bytes lands at a random point of it.
+    pub noise_burst: f64,
+    /// Per reply: a fragment of the previous reply (random start and length) is
+    /// sent right before or after it — the pattern that makes a damaged reply run
+    /// into bytes that look like the start of a frame, and now and then yields a
+    /// CRC-valid frame that was never sent.
+    pub repeat_fragment: f64,
 }
 
 impl FaultConfig {
@@ -91,7 +101,29 @@ impl FaultConfig {
         duplicate: 0.0,
         delay: 0.0,
         delay_us: 0,
+        insert_byte: 0.0,
+        noise_burst: 0.0,
+        repeat_fragment: 0.0,
     };
+
+    /// Every fault kind at once, as the `sim` command's `--fault-rate R` sets
+    /// them: R per reply byte corrupted (dropped, flipped or an extra byte
+    /// inserted, a third each), and R per reply of truncation, lost request,
+    /// duplicate, delay (150 ms), noise burst and repeated fragment.
+    pub fn all(r: f64) -> Self {
+        Self {
+            drop_byte: r / 3.0,
+            bit_flip: r / 3.0,
+            insert_byte: r / 3.0,
+            truncate: r,
+            no_reply: r,
+            duplicate: r,
+            delay: r,
+            delay_us: 150_000,
+            noise_burst: r,
+            repeat_fragment: r,
+        }
+    }
 }
 
 /// Simulator configuration. `SimConfig::default()` is an awake, fault-free BMS

@@ -205,6 +205,18 @@ enum Ev {
     Broadcast,
 }
 
+/// A block the simulated BMS answered, before any fault: 0x03/0x07 registers
+/// (`option` `None`) or a 0x1D table.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TrueRead {
+    /// Virtual time of the answer.
+    pub at_us: u64,
+    /// The 0x1D option, for a settings table.
+    pub option: Option<SettingsOption>,
+    /// The values.
+    pub block: RegisterBlock,
+}
+
 /// The simulated TinyBMS. See the [module documentation](self).
 #[derive(Debug, Clone)]
 pub struct SimBms {
@@ -245,11 +257,16 @@ pub struct SimBms {
 
     rng_faults: Rng,
     rng_latency: Rng,
+    /// The previous reply as encoded (for the repeated-fragment fault).
+    last_reply: Vec<u8>,
     stats: SimStats,
 
     // Test hooks.
     record: bool,
     sent_log: Vec<Frame>,
+    record_reads: Option<u64>,
+    recent_reads: VecDeque<TrueRead>,
+    logged: Vec<(u64, Event)>,
     ignored_writes: Vec<u16>,
     ignored_commands: Vec<u8>,
     drop_next: std::collections::BTreeMap<u8, u32>,
@@ -298,9 +315,13 @@ impl SimBms {
             newest_read_seq: 0,
             rng_faults,
             rng_latency,
+            last_reply: Vec::new(),
             stats: SimStats::default(),
             record: false,
             sent_log: Vec::new(),
+            record_reads: None,
+            recent_reads: VecDeque::new(),
+            logged: Vec::new(),
             ignored_writes: Vec::new(),
             ignored_commands: Vec::new(),
             drop_next: std::collections::BTreeMap::new(),
@@ -475,6 +496,24 @@ impl SimBms {
     /// fault is applied — the ground truth a test compares decoded values with.
     pub fn record_frames(&mut self, on: bool) {
         self.record = on;
+    }
+
+    /// Test hook: keep every register block and 0x1D table the BMS answers, as
+    /// built before any fault, for `window_us` of virtual time (bounded memory
+    /// for long soaks). The ground truth of [`crate::truth`].
+    pub fn record_reads(&mut self, window_us: u64) {
+        self.record_reads = Some(window_us);
+    }
+
+    /// Blocks recorded by [`SimBms::record_reads`], oldest first.
+    pub fn recent_reads(&self) -> &VecDeque<TrueRead> {
+        &self.recent_reads
+    }
+
+    /// Every event logged since the BMS was created (the start-up history
+    /// included), with the virtual time it was logged.
+    pub fn logged_events(&self) -> &[(u64, Event)] {
+        &self.logged
     }
 
     /// The frames recorded since [`SimBms::record_frames`] was turned on.
@@ -921,6 +960,38 @@ impl SimBms {
                 time_left_s: self.u32_at(34),
             }),
         };
+        if let (Some(window), Some(r)) = (self.record_reads, &response) {
+            let read = match r {
+                Response::Registers(b) => Some((None, b.clone())),
+                Response::Settings { option, values } => Some((Some(*option), values.clone())),
+                // 0x09 of consecutive addresses (the bridge's pieces).
+                Response::Individual(pairs) => pairs.first().and_then(|&(start, _)| {
+                    let consecutive = pairs
+                        .iter()
+                        .enumerate()
+                        .all(|(i, &(a, _))| usize::from(a) == usize::from(start) + i);
+                    consecutive.then(|| {
+                        let values = pairs.iter().map(|&(_, v)| v).collect();
+                        (None, RegisterBlock { start, values })
+                    })
+                }),
+                _ => None,
+            };
+            if let Some((option, block)) = read {
+                self.recent_reads.push_back(TrueRead {
+                    at_us: t,
+                    option,
+                    block,
+                });
+                while self
+                    .recent_reads
+                    .front()
+                    .is_some_and(|r| r.at_us.saturating_add(window) < t)
+                {
+                    self.recent_reads.pop_front();
+                }
+            }
+        }
         let frame = match response.map(|r| r.to_frame(req)) {
             Some(Ok(f)) => f,
             Some(Err(_)) => {
@@ -1050,6 +1121,7 @@ impl SimBms {
     }
 
     fn push_event(&mut self, e: Event) {
+        self.logged.push((self.now, e));
         self.event_seq += 1;
         self.events.push_back((self.event_seq, e));
         while self.events.len() > EVENT_SLOTS {
@@ -1178,6 +1250,38 @@ impl SimBms {
             self.stats.faults.duplicated += 1;
             buf.extend_from_within(..);
         }
+        let clean = buf.clone();
+        if faults.insert_byte > 0.0 {
+            let mut out = Vec::with_capacity(buf.len() + 4);
+            for &b in &buf {
+                out.push(b);
+                if self.rng_faults.chance(faults.insert_byte) {
+                    self.stats.faults.inserted_bytes += 1;
+                    out.push(self.rng_faults.below(256) as u8);
+                }
+            }
+            buf = out;
+        }
+        if self.rng_faults.chance(faults.noise_burst) {
+            self.stats.faults.noise_bursts += 1;
+            let n = 1 + self.rng_faults.below(16) as usize;
+            let at = self.rng_faults.below(buf.len() as u64 + 1) as usize;
+            let noise: Vec<u8> = (0..n).map(|_| self.rng_faults.below(256) as u8).collect();
+            buf.splice(at..at, noise);
+        }
+        if !self.last_reply.is_empty() && self.rng_faults.chance(faults.repeat_fragment) {
+            self.stats.faults.repeated_fragments += 1;
+            let len = self.last_reply.len() as u64;
+            let from = self.rng_faults.below(len) as usize;
+            let n = 1 + self.rng_faults.below(len - from as u64) as usize;
+            let fragment = self.last_reply[from..from + n].to_vec();
+            if self.rng_faults.chance(0.5) {
+                buf.splice(0..0, fragment);
+            } else {
+                buf.extend_from_slice(&fragment);
+            }
+        }
+        self.last_reply = clean;
         let start = start.max(self.out_free);
         Some(self.transmit(start, &buf))
     }

@@ -17,6 +17,12 @@ pub struct FaultCounts {
     pub duplicated: u64,
     /// Replies delayed.
     pub delayed: u64,
+    /// Random bytes inserted into replies.
+    pub inserted_bytes: u64,
+    /// Bursts of noise into replies.
+    pub noise_bursts: u64,
+    /// Fragments of an earlier reply repeated.
+    pub repeated_fragments: u64,
 }
 
 impl FaultCounts {
@@ -28,6 +34,9 @@ impl FaultCounts {
             + self.no_reply
             + self.duplicated
             + self.delayed
+            + self.inserted_bytes
+            + self.noise_bursts
+            + self.repeated_fragments
     }
 }
 

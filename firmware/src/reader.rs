@@ -1,0 +1,351 @@
+//! Block reads that survive a bad line: a register range read in one request on a
+//! clean line, in smaller pieces when replies keep failing, and (for blocks that
+//! do not change by themselves) confirmed by a second complete read.
+//!
+//! Why pieces: with a per-byte error rate `p`, a reply of `n` bytes survives with
+//! probability `(1 - p)^n`. At 5 % a 117-byte live reply gets through 0.25 % of
+//! the time (one snapshot every ~30 s); a 9-byte reply of 2 registers 63 %. The
+//! piece size follows the line: [`LineQuality`] moves one level smaller after a
+//! failed or repeated attempt and one level larger after a run of clean ones.
+//!
+//! A piece never splits a multi-register value (32-bit values, the serial
+//! number, an event slot): every published value comes from one reply.
+//!
+//! The whole span goes out as one 0x03 read; pieces go out as 0x09 reads, whose
+//! replies echo every address. A 0x03 reply carries no address, so a late,
+//! duplicated or repeated reply to the previous piece of the same length would
+//! pass for this piece's — with 0x09 it is refused by its addresses. (Whole-span
+//! reads differ in length between blocks, and a stale one of the same block is
+//! still a value the BMS sent for those registers.)
+
+use protocol_core::command::MAX_READ_MODBUS;
+use protocol_core::registers::{self, ValueType};
+use protocol_core::request::Request;
+use protocol_core::response::{RegisterBlock, Words};
+
+use crate::Instant;
+
+/// Registers per request at each level; level 0 reads the whole span at once
+/// (0x03), the others in 0x09 pieces (at most 15 addresses: one 63-byte packet).
+pub const PIECE_REGISTERS: [u16; 4] = [MAX_READ_MODBUS as u16, 15, 6, 2];
+
+/// The deepest level.
+pub const MAX_LEVEL: u8 = (PIECE_REGISTERS.len() - 1) as u8;
+
+/// Consecutive clean attempts (first send answered, valid) before the pieces
+/// grow by one level.
+pub const CLEAN_TO_GROW: u16 = 12;
+
+/// The live block's ranges (registers 16-31 are reserved).
+pub const LIVE_SEGMENTS: &[(u16, u16)] = &[(0, 15), (32, 55)];
+/// Statistics.
+pub const STATS_SEGMENTS: &[(u16, u16)] = &[(100, 117)];
+/// Settings.
+pub const SETTINGS_SEGMENTS: &[(u16, u16)] = &[(300, 343)];
+/// Version and serial number.
+pub const VERSION_SEGMENTS: &[(u16, u16)] = &[(500, 509)];
+/// The event log registers.
+pub const EVENTS_SEGMENTS: &[(u16, u16)] = &[(200, 297)];
+
+/// How well replies get through, and the piece size that follows from it.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct LineQuality {
+    /// Current level (index into [`PIECE_REGISTERS`]).
+    pub level: u8,
+    clean_streak: u16,
+    /// Requests (block reads) since the last [`LineQuality::take_window`].
+    pub requests: u32,
+    /// Of which answered at the first send.
+    pub clean: u32,
+}
+
+impl LineQuality {
+    /// Registers per request now.
+    pub fn piece(&self) -> u16 {
+        PIECE_REGISTERS
+            .get(usize::from(self.level))
+            .copied()
+            .unwrap_or(2)
+    }
+
+    /// A block read finished: `sends` requests went out, `ok` tells whether a
+    /// valid reply came back. Silence says nothing about size, but a lost reply
+    /// still costs a piece: treated like a damaged one.
+    pub fn note(&mut self, sends: u8, ok: bool) {
+        self.requests = self.requests.wrapping_add(1);
+        if ok && sends <= 1 {
+            self.clean = self.clean.wrapping_add(1);
+            self.clean_streak = self.clean_streak.saturating_add(1);
+            if self.clean_streak >= CLEAN_TO_GROW && self.level > 0 {
+                self.level -= 1;
+                self.clean_streak = 0;
+            }
+        } else {
+            self.clean_streak = 0;
+            if self.level < MAX_LEVEL {
+                self.level += 1;
+            }
+        }
+    }
+
+    /// (requests, clean) since the previous call, and starts a new window.
+    pub fn take_window(&mut self) -> (u32, u32) {
+        let w = (self.requests, self.clean);
+        self.requests = 0;
+        self.clean = 0;
+        w
+    }
+}
+
+/// True when a piece may not end at `address` because `address + 1` continues
+/// the value that starts at or before `address`.
+fn continues_after(address: u16) -> bool {
+    let next = address.wrapping_add(1);
+    if (registers::EVENTS_FIRST..=registers::EVENTS_LAST).contains(&next) {
+        // Event slots are two registers, from 200.
+        return (next - registers::EVENTS_FIRST) % 2 == 1;
+    }
+    registers::lookup(next)
+        .iter()
+        .any(|r| r.value_type == ValueType::Continuation)
+}
+
+/// What a block read is for: how its pieces are accepted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Mode {
+    /// Values that change by themselves (live): one pass, every piece read within
+    /// `window_us` of the first, else the read starts over.
+    Window(Instant),
+    /// Values that do not change by themselves (settings, version, statistics,
+    /// the event log): complete passes until two in a row are identical.
+    Confirmed,
+}
+
+/// A read of one or more register ranges, in pieces.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BlockRead {
+    segments: &'static [(u16, u16)],
+    mode: Mode,
+    /// Next address to read.
+    cursor: u16,
+    /// Address of the piece in flight, and its length.
+    in_flight: Option<(u16, u16)>,
+    values: Words,
+    previous_pass: Option<Words>,
+    started_at: Instant,
+    pieces: u8,
+    passes: u8,
+}
+
+/// A finished block read.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Assembled {
+    /// Every register of the span (reserved gaps read as 0).
+    pub block: RegisterBlock,
+    /// Requests that made it up (in the last pass).
+    pub pieces: u8,
+    /// First piece sent to last piece received, µs.
+    pub span_us: Instant,
+    /// When the first piece of the (last) pass was asked for.
+    pub started_at: Instant,
+}
+
+impl BlockRead {
+    /// A read of `segments` (ascending, inclusive ranges).
+    pub fn new(segments: &'static [(u16, u16)], mode: Mode, now: Instant) -> Self {
+        let mut r = Self {
+            segments,
+            mode,
+            cursor: 0,
+            in_flight: None,
+            values: Words::new(),
+            previous_pass: None,
+            started_at: now,
+            pieces: 0,
+            passes: 0,
+        };
+        r.restart(now);
+        r
+    }
+
+    /// First address of the span.
+    pub fn first(&self) -> u16 {
+        self.segments.first().map(|s| s.0).unwrap_or(0)
+    }
+
+    fn last(&self) -> u16 {
+        self.segments.last().map(|s| s.1).unwrap_or(0)
+    }
+
+    fn restart(&mut self, now: Instant) {
+        self.cursor = self.first();
+        self.in_flight = None;
+        self.values.clear();
+        let len = usize::from(self.last().saturating_sub(self.first())) + 1;
+        for _ in 0..len.min(MAX_READ_MODBUS) {
+            let _fits = self.values.push(0);
+        }
+        self.started_at = now;
+        self.pieces = 0;
+    }
+
+    /// The piece in flight failed: it is asked again next time.
+    pub fn on_failure(&mut self) {
+        self.in_flight = None;
+    }
+
+    /// Complete passes so far.
+    pub fn passes(&self) -> u8 {
+        self.passes
+    }
+
+    /// The request for the next piece, at the given piece size. The same piece is
+    /// asked again until [`BlockRead::on_reply`] accepts it.
+    pub fn next_request(&mut self, now: Instant, piece: u16) -> Request {
+        let (start, count) = self.next_piece(now, piece);
+        if usize::from(count) == usize::from(self.last() - self.first()) + 1
+            && start == self.first()
+            || count > 15
+        {
+            return Request::ReadRegisters {
+                start,
+                count: count as u8,
+            };
+        }
+        let mut addresses = protocol_core::request::AddressList::new();
+        for a in start..start + count {
+            let _fits = addresses.push(a); // count <= 15 < 31
+        }
+        Request::ReadIndividual(addresses)
+    }
+
+    fn next_piece(&mut self, now: Instant, piece: u16) -> (u16, u16) {
+        if let Mode::Window(w) = self.mode {
+            if self.cursor != self.first() && now.saturating_sub(self.started_at) > w {
+                // Too slow: the pieces would describe different moments.
+                self.restart(now);
+            }
+        }
+        if self.cursor == self.first() && self.in_flight.is_none() {
+            self.started_at = now;
+        }
+        let (start, count) = self.piece_at(self.cursor, piece);
+        self.in_flight = Some((start, count));
+        (start, count)
+    }
+
+    fn piece_at(&self, cursor: u16, piece: u16) -> (u16, u16) {
+        let first = self.first();
+        let last = self.last();
+        if usize::from(piece) >= MAX_READ_MODBUS && cursor == first {
+            // Level 0: the whole span in one request.
+            let n = (last - first + 1).min(MAX_READ_MODBUS as u16);
+            return (first, n);
+        }
+        let seg_end = self
+            .segments
+            .iter()
+            .find(|(a, b)| (*a..=*b).contains(&cursor))
+            .map(|s| s.1)
+            .unwrap_or(last);
+        let piece = piece.clamp(2, MAX_READ_MODBUS as u16);
+        let mut end = cursor.saturating_add(piece - 1).min(seg_end);
+        while end > cursor && continues_after(end) {
+            end -= 1;
+        }
+        if continues_after(end) {
+            // A value wider than the piece (the serial number): take all of it.
+            while end < seg_end && continues_after(end) {
+                end += 1;
+            }
+        }
+        (cursor, end - cursor + 1)
+    }
+
+    /// The reply (0x03 block) to the piece in flight. Returns the assembled block
+    /// when the read is complete.
+    pub fn on_block(&mut self, now: Instant, reply: &RegisterBlock) -> Option<Assembled> {
+        let (start, count) = self.in_flight?;
+        if reply.start != start || reply.values.len() != usize::from(count) {
+            self.in_flight = None;
+            return None;
+        }
+        self.store(now, reply.iter())
+    }
+
+    /// The reply (0x09 address/value pairs) to the piece in flight.
+    pub fn on_pairs(&mut self, now: Instant, pairs: &[(u16, u16)]) -> Option<Assembled> {
+        let (start, count) = self.in_flight?;
+        let expected = pairs.len() == usize::from(count)
+            && pairs
+                .iter()
+                .enumerate()
+                .all(|(i, (a, _))| *a == start + i as u16);
+        if !expected {
+            self.in_flight = None;
+            return None;
+        }
+        self.store(now, pairs.iter().copied())
+    }
+
+    fn store(
+        &mut self,
+        now: Instant,
+        values: impl Iterator<Item = (u16, u16)>,
+    ) -> Option<Assembled> {
+        let (start, count) = self.in_flight.take()?;
+        let first = self.first();
+        for (a, v) in values {
+            if let Some(slot) = a
+                .checked_sub(first)
+                .and_then(|i| self.values.get_mut(usize::from(i)))
+            {
+                *slot = v;
+            }
+        }
+        self.pieces = self.pieces.saturating_add(1);
+        let next = start.saturating_add(count);
+        // Segments ascend: the first one holding `next` or starting after it.
+        let cursor = self.segments.iter().find_map(|&(a, b)| {
+            if (a..=b).contains(&next) {
+                Some(next)
+            } else {
+                (a >= next).then_some(a)
+            }
+        });
+        match cursor {
+            Some(c) => {
+                self.cursor = c;
+                None
+            }
+            None => self.complete(now),
+        }
+    }
+
+    fn complete(&mut self, now: Instant) -> Option<Assembled> {
+        self.passes = self.passes.saturating_add(1);
+        let done = Assembled {
+            block: RegisterBlock {
+                start: self.first(),
+                values: self.values.clone(),
+            },
+            pieces: self.pieces,
+            span_us: now.saturating_sub(self.started_at),
+            started_at: self.started_at,
+        };
+        match self.mode {
+            Mode::Window(_) => {
+                self.restart(now);
+                Some(done)
+            }
+            Mode::Confirmed => {
+                let same = self.previous_pass.as_ref() == Some(&self.values);
+                self.previous_pass = Some(self.values.clone());
+                self.restart(now);
+                same.then_some(done)
+            }
+        }
+    }
+}
