@@ -250,7 +250,10 @@ pub struct Bridge {
     sync_retry_at: Instant,
     sync_failures: u8,
     limits_unsupported: bool,
-    limits_retry_at: Option<Instant>,
+    /// A 0x1D read to make while running, and when.
+    limits_due: Option<(SettingsOption, Instant)>,
+    /// Settings were written: read them again before the next command.
+    settings_stale: bool,
     limits_candidate: Option<RegisterBlock>,
     next_error_log: Instant,
     suppressed_errors: u32,
@@ -300,7 +303,8 @@ impl Bridge {
             sync_retry_at: now,
             sync_failures: 0,
             limits_unsupported: false,
-            limits_retry_at: None,
+            limits_due: None,
+            settings_stale: false,
             limits_candidate: None,
             next_error_log: now,
             suppressed_errors: 0,
@@ -468,7 +472,7 @@ impl Bridge {
                 {
                     t = t.min(*s);
                 }
-                if let Some(r) = self.limits_retry_at {
+                if let Some((_, r)) = self.limits_due {
                     t = t.min(r);
                 }
                 t
@@ -524,6 +528,10 @@ impl Bridge {
         if let Some((aux, _)) = self.aux_read {
             return Some(self.aux_piece(now, aux));
         }
+        if self.settings_stale && self.job.is_none() {
+            // Settings are read again after writes before the next command runs.
+            return Some(self.aux_piece(now, Aux::Settings));
+        }
         for _ in 0..config::COMMAND_QUEUE + 1 {
             if self.job.is_none() {
                 let Some(cmd) = self.commands.pop_front() else {
@@ -536,7 +544,7 @@ impl Bridge {
                 JobNext::Wait => break,
                 JobNext::Finished => {
                     self.job = None;
-                    if matches!(self.phase, Phase::Sync(_)) {
+                    if matches!(self.phase, Phase::Sync(_)) || self.settings_stale {
                         // Re-read settings before the next command runs.
                         return self.next_request(now);
                     }
@@ -586,14 +594,8 @@ impl Bridge {
         if now >= self.next_live {
             return Some(self.start_live(now));
         }
-        if let Some(t) = self.limits_retry_at {
+        if let Some((option, t)) = self.limits_due {
             if now >= t && self.job.is_none() {
-                self.limits_retry_at = None;
-                let option = if self.telemetry.limits_min.is_none() {
-                    SettingsOption::Min
-                } else {
-                    SettingsOption::Max
-                };
                 return Some(limits_request(option));
             }
         }
@@ -708,8 +710,14 @@ impl Bridge {
             Job::Write(w) => {
                 let Some(item) = w.items.get(w.index).copied() else {
                     let wrote = w.wrote_any;
-                    if wrote {
+                    let restarted = w.items.iter().any(|s| s.id.restarts_bms());
+                    if wrote && restarted {
+                        // The BMS restarted (340): everything is read again.
                         self.resync();
+                    } else if wrote {
+                        // The settings (and the unconfirmed outcomes) are read
+                        // again; the live data keeps flowing meanwhile.
+                        self.settings_stale = true;
                     }
                     return JobNext::Finished;
                 };
@@ -800,6 +808,7 @@ impl Bridge {
         self.sync_failures = 0;
         self.limits_candidate = None;
         self.live_base_valid = false;
+        self.settings_stale = false;
     }
 
     fn on_completion(&mut self, now: Instant, c: Completion) {
@@ -968,7 +977,7 @@ impl Bridge {
                         self.remember_unresolved(*s, w.current.map(|(f, _)| f));
                         WriteOutcome::Unconfirmed(failure)
                     } else {
-                        WriteOutcome::Failed(failure)
+                        WriteOutcome::NotWritten(failure)
                     };
                     self.report(Report::Write {
                         setting: *s,
@@ -1005,7 +1014,13 @@ impl Bridge {
             Aux::Settings => {
                 self.resolve_writes(&b);
                 self.telemetry.settings = Some(b);
-                if self.limits_unsupported {
+                self.settings_stale = false;
+                if self.phase == Phase::Running {
+                    if !self.limits_unsupported {
+                        self.limits_candidate = None;
+                        self.limits_due = Some((SettingsOption::Min, now));
+                    }
+                } else if self.limits_unsupported {
                     // Known not to answer 0x1D: do not ask at every sync.
                     self.sync_done(now);
                 } else {
@@ -1100,37 +1115,23 @@ impl Bridge {
     }
 
     /// 0x1D replies: believed when two in a row are identical.
-    fn on_limits(
-        &mut self,
-        now: Instant,
-        option: SettingsOption,
-        result: Result<Response, Failure>,
-    ) {
+    fn on_limits(&mut self, now: Instant, option: SettingsOption, result: Result<Response, Failure>) {
         let in_sync = matches!(self.phase, Phase::Sync(_));
-        match result {
+        let next = match result {
             Ok(Response::Settings { values, .. }) => {
                 if self.limits_candidate.as_ref() != Some(&values) {
                     // First of two, or two that differ: ask again.
                     self.limits_candidate = Some(values);
-                    if !in_sync {
-                        self.limits_retry_at = Some(now);
-                    }
-                    return;
-                }
-                self.limits_candidate = None;
-                self.sync_failures = 0;
-                match option {
-                    SettingsOption::Min => {
+                    Some((option, now))
+                } else {
+                    self.limits_candidate = None;
+                    self.sync_failures = 0;
+                    if option == SettingsOption::Min {
                         self.telemetry.limits_min = Some(values);
-                        if in_sync {
-                            self.sync_next(now, SyncStep::LimitsMax);
-                        } else {
-                            self.limits_retry_at = Some(now);
-                        }
-                    }
-                    _ => {
+                        Some((SettingsOption::Max, now))
+                    } else {
                         self.telemetry.limits_max = Some(values);
-                        self.sync_done(now);
+                        None
                     }
                 }
             }
@@ -1140,23 +1141,38 @@ impl Bridge {
                 self.limits_unsupported = true;
                 self.telemetry.limits_min = None;
                 self.telemetry.limits_max = None;
-                self.sync_done(now);
+                None
             }
             _ => {
                 self.sync_failures = self.sync_failures.saturating_add(1);
-                let retry = now.saturating_add(self.config.live_period_us);
                 if self.sync_failures >= SYNC_LIMITS_ATTEMPTS {
                     // No valid answer on this line for now: go on without the
-                    // limits and ask again later.
+                    // limits (or with the ones read before) and ask again later.
                     self.sync_failures = 0;
-                    self.limits_retry_at = Some(now.saturating_add(self.config.stats_period_us));
-                    self.sync_done(now);
-                } else if in_sync {
-                    self.sync_retry_at = retry;
+                    self.limits_candidate = None;
+                    let later = now.saturating_add(self.config.stats_period_us);
+                    if in_sync {
+                        self.limits_due = Some((option, later));
+                        self.sync_done(now);
+                        return;
+                    }
+                    Some((option, later))
                 } else {
-                    self.limits_retry_at = Some(retry);
+                    Some((option, now.saturating_add(self.config.live_period_us)))
                 }
             }
+        };
+        if in_sync {
+            match next {
+                Some((SettingsOption::Max, t)) => {
+                    self.phase = Phase::Sync(SyncStep::LimitsMax);
+                    self.sync_retry_at = t;
+                }
+                Some((_, t)) => self.sync_retry_at = t,
+                None => self.sync_done(now),
+            }
+        } else {
+            self.limits_due = next;
         }
     }
 
@@ -1342,7 +1358,7 @@ impl Bridge {
                 match (w.step, c.result) {
                     (WriteStep::ReadCurrent, Ok(Response::Individual(pairs))) => {
                         let (Some(first), second) = (pair(&pairs, a), pair(&pairs, a + 1)) else {
-                            self.finish_item(item, WriteOutcome::Failed(Failure::Timeout));
+                            self.finish_item(item, WriteOutcome::NotWritten(Failure::Timeout));
                             return;
                         };
                         // Skip only on true equality (not on 323/328's 0xFFFF marker).
@@ -1354,10 +1370,10 @@ impl Bridge {
                         }
                     }
                     (WriteStep::ReadCurrent, Err(f)) => {
-                        self.finish_item(item, WriteOutcome::Failed(f));
+                        self.finish_item(item, WriteOutcome::NotWritten(f));
                     }
                     (WriteStep::ReadCurrent, Ok(_)) => {
-                        self.finish_item(item, WriteOutcome::Failed(Failure::Timeout));
+                        self.finish_item(item, WriteOutcome::NotWritten(Failure::Timeout));
                     }
                     (WriteStep::Write, result) => {
                         w.wrote_any = true;

@@ -61,8 +61,10 @@ pub enum WriteOutcome {
     },
     /// The BMS refused the write.
     Nacked(NackCode),
-    /// Not applied: the link failed before the write went out, or the read-back
-    /// shows the old value.
+    /// Not written: the link failed before the write went out (the current value
+    /// could not be read); the BMS keeps whatever it held.
+    NotWritten(Failure),
+    /// Not applied: the read-back after the write shows the old value.
     Failed(Failure),
     /// Written, but nothing could be read back: the next settings read decides
     /// (a [`Report::WriteFollowUp`] follows).
@@ -78,6 +80,7 @@ impl WriteOutcome {
             Self::Rejected(_) => "rejected",
             Self::Mismatch { .. } => "mismatch",
             Self::Nacked(_) => "nacked",
+            Self::NotWritten(_) => "not_written",
             Self::Failed(_) => "failed",
             Self::Unconfirmed(_) => "unconfirmed",
         }
@@ -329,7 +332,9 @@ impl fmt::Display for Report {
                     WriteOutcome::Rejected(e) => write!(f, " ({})", e.reason()),
                     WriteOutcome::Mismatch { read_back } => write!(f, " (read back {read_back})"),
                     WriteOutcome::Nacked(c) => write!(f, " (code 0x{:02X})", c.to_u8()),
-                    WriteOutcome::Failed(e) | WriteOutcome::Unconfirmed(e) => {
+                    WriteOutcome::Failed(e)
+                    | WriteOutcome::Unconfirmed(e)
+                    | WriteOutcome::NotWritten(e) => {
                         write!(f, " ({})", e.name())
                     }
                     _ => Ok(()),

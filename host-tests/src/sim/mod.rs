@@ -270,6 +270,10 @@ pub struct SimBms {
     ignored_writes: Vec<u16>,
     ignored_commands: Vec<u8>,
     drop_next: std::collections::BTreeMap<u8, u32>,
+    drop_replies: std::collections::BTreeMap<u8, u32>,
+    forged: Option<Vec<u8>>,
+    pinned: Vec<(u16, u16)>,
+    limit_overrides: Vec<(u16, u16, u16)>,
 }
 
 impl SimBms {
@@ -325,6 +329,10 @@ impl SimBms {
             ignored_writes: Vec::new(),
             ignored_commands: Vec::new(),
             drop_next: std::collections::BTreeMap::new(),
+            drop_replies: std::collections::BTreeMap::new(),
+            forged: None,
+            pinned: Vec::new(),
+            limit_overrides: Vec::new(),
         };
         for &(ago, id) in profile::HISTORY {
             sim.push_event(Event {
@@ -498,6 +506,39 @@ impl SimBms {
         self.record = on;
     }
 
+    /// Test hook: the next `n` requests of `command` are executed (a write is
+    /// applied) but their replies are lost on the wire.
+    pub fn drop_next_replies(&mut self, command: u8, n: u32) {
+        self.drop_replies.insert(command, n);
+    }
+
+    /// Test hook: the next reply (of any command) is replaced by these bytes on
+    /// the wire — e.g. a CRC-valid frame the BMS never built, as a CRC collision
+    /// on a noisy line produces. The ground truth keeps the real answer.
+    pub fn forge_next_reply(&mut self, bytes: Vec<u8>) {
+        self.forged = Some(bytes);
+    }
+
+    /// Test hook: register `addr` reads `value` whatever the live model computes
+    /// (a broken sense wire reads 0 V on its cell).
+    pub fn pin_register(&mut self, addr: u16, value: u16) {
+        self.pinned.retain(|&(a, _)| a != addr);
+        self.pinned.push((addr, value));
+        self.set_reg(addr, value);
+    }
+
+    /// Test hook: the BMS reports (0x1D) and enforces these limits for setting
+    /// `addr` instead of its table's (another current sensor, say).
+    pub fn override_limits(&mut self, addr: u16, min: u16, max: u16) {
+        self.limit_overrides.retain(|&(a, _, _)| a != addr);
+        self.limit_overrides.push((addr, min, max));
+    }
+
+    /// Test hook: empties the event log (no "Events Cleared" entry).
+    pub fn clear_event_log(&mut self) {
+        self.clear_events();
+    }
+
     /// Test hook: keep every register block and 0x1D table the BMS answers, as
     /// built before any fault, for `window_us` of virtual time (bounded memory
     /// for long soaks). The ground truth of [`crate::truth`].
@@ -619,12 +660,25 @@ impl SimBms {
                 (SettingsOption::Current, _) => self.register(addr),
                 (_, None) => 0,
                 (_, Some(s)) if s.kind == settings::Kind::Reserved => 0,
+                (SettingsOption::Min, _) if self.limit(addr).is_some() => {
+                    self.limit(addr).map_or(0, |l| l.0)
+                }
+                (SettingsOption::Max, _) if self.limit(addr).is_some() => {
+                    self.limit(addr).map_or(0, |l| l.1)
+                }
                 (SettingsOption::Min, Some(s)) => s.min,
                 (SettingsOption::Max, Some(s)) => s.max,
                 (SettingsOption::Default, Some(s)) => s.default,
             };
         }
         v
+    }
+
+    fn limit(&self, addr: u16) -> Option<(u16, u16)> {
+        self.limit_overrides
+            .iter()
+            .find(|&&(a, _, _)| a == addr)
+            .map(|&(_, lo, hi)| (lo, hi))
     }
 
     /// The pack profile.
@@ -694,6 +748,11 @@ impl SimBms {
         let mut events = Vec::new();
         self.live.step(&params, &mut events);
         self.live.publish(&mut self.regs, &params);
+        for &(a, v) in &self.pinned {
+            if let Some(r) = self.regs.get_mut(usize::from(a)) {
+                *r = v;
+            }
+        }
         for id in events {
             match id {
                 EventId::ChargingStarted => self.set_reg(111, self.register(111).saturating_add(1)),
@@ -1017,10 +1076,11 @@ impl SimBms {
                 }
             }
         }
-        if writes
-            .iter()
-            .any(|&(a, _)| settings::check(a, &candidate, sensor).is_err())
-        {
+        let refused_value = |a: u16, v: u16| match self.limit(a) {
+            Some((lo, hi)) => !(lo..=hi).contains(&v),
+            None => settings::check(a, &candidate, sensor).is_err(),
+        };
+        if writes.iter().any(|&(a, v)| refused_value(a, v)) {
             self.send_frame(t, &refused);
             return;
         }
@@ -1234,6 +1294,15 @@ impl SimBms {
                     renumber_packets(&mut buf, self.config.first_packet_id);
                 }
             }
+        }
+        if let Some(n) = self.drop_replies.get_mut(&frame.command()) {
+            if *n > 0 {
+                *n -= 1;
+                return None;
+            }
+        }
+        if let Some(forged) = self.forged.take() {
+            buf = forged;
         }
         let faults = self.config.faults;
         let mut start = t.saturating_add(self.draw_latency());
