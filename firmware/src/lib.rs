@@ -14,6 +14,7 @@
 //!   machine for settings, on top of the link.
 //! * [`config`] — every default as a named, documented constant.
 //! * [`profile`] — the settings profile applied at start-up (empty by default).
+//! * [`boards`] — the supported boards' pins and log paths, checked at compile time.
 #![no_std]
 #![deny(missing_docs)]
 #![deny(
@@ -33,6 +34,7 @@
 )]
 #![allow(clippy::large_enum_variant)]
 
+pub mod boards;
 pub mod bridge;
 pub mod config;
 pub mod link;

@@ -6,16 +6,27 @@
 //! bytes and time between UART1 and the bridge, logs its reports and shares the
 //! latest telemetry through an embassy-sync `Watch`.
 //!
-//! Logging: defmt over RTT (`defmt-rtt`), read with `probe-rs run` (see .cargo/config.toml).
+//! Board: the pins come from `tinybms_firmware::boards::SELECTED`, chosen by one
+//! `board-…` feature and checked at compile time (no strapping, flash, USB, UART0 or
+//! on-board-part pin). Logging: defmt over RTT (`log-rtt`, read with `probe-rs run`)
+//! or defmt frames on UART0 (`log-uart`, read with `espflash flash --monitor
+//! --log-format defmt`). See README, "Boards, log paths and the first flash".
 
 #![no_std]
 #![no_main]
 
 #[cfg(all(feature = "esp32c3", feature = "esp32c6"))]
 compile_error!("features `esp32c3` and `esp32c6` are mutually exclusive");
+#[cfg(all(feature = "log-rtt", feature = "log-uart"))]
+compile_error!("features `log-rtt` and `log-uart` are mutually exclusive (use --no-default-features to drop the default `log-rtt`)");
+#[cfg(not(any(feature = "log-rtt", feature = "log-uart")))]
+compile_error!(
+    "select a log path: feature `log-rtt` (RTT via probe-rs) or `log-uart` (UART0 via espflash)"
+);
 
 use defmt::{info, warn};
-use defmt_rtt as _; // defmt global logger (RTT transport)
+#[cfg(feature = "log-rtt")]
+use defmt_rtt as _; // defmt global logger: RTT
 use embassy_executor::Spawner;
 use embassy_futures::select::{select, Either};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
@@ -23,13 +34,16 @@ use embassy_sync::watch::Watch;
 use embassy_time::{with_timeout, Duration, Instant, Timer};
 use esp_backtrace as _; // panic handler (prints via defmt)
 use esp_hal::clock::CpuClock;
-use esp_hal::gpio::Pin;
+use esp_hal::gpio::AnyPin;
 use esp_hal::peripherals::TIMG0;
 use esp_hal::timer::timg::{MwdtStage, TimerGroup, Wdt};
 use esp_hal::uart::{Config as UartConfig, Uart, UartRx, UartTx};
 use esp_hal::Async;
+#[cfg(feature = "log-uart")]
+use esp_println as _; // defmt global logger: UART0, espflash's defmt framing
 use protocol_core::events::OnlineStatus;
 use protocol_core::views::LiveSnapshot;
+use tinybms_firmware::boards::{self, Board, Chip, LogPath};
 use tinybms_firmware::config::Config as BridgeConfig;
 use tinybms_firmware::link::Failure;
 use tinybms_firmware::{profile, Action, Bridge, Level, Report};
@@ -38,44 +52,31 @@ use tinybms_firmware::{profile, Action, Bridge, Level, Report};
 esp_bootloader_esp_idf::esp_app_desc!();
 
 // ---------------------------------------------------------------------------
-// Board wiring (TinyBMS UART, 115200 8N1, 3.3 V logic)
+// Board wiring (TinyBMS UART, 115200 8N1, 3.3 V logic): see firmware/src/boards.rs
 // ---------------------------------------------------------------------------
-//
-// ESP32-C3: GPIO20/21 are the UART0 console pins, GPIO18/19 are USB (USB-Serial-JTAG,
-//           used by probe-rs), GPIO2/8/9 are strapping pins, GPIO12-17 are SPI flash.
-//           → TX = GPIO7, RX = GPIO6 (pad-JTAG pins, free when the built-in USB-JTAG is used).
-// ESP32-C6: GPIO16/17 are the UART0 console pins, GPIO12/13 are USB, GPIO8/9/15 are
-//           strapping pins, GPIO24-30 are SPI flash.
-//           → TX = GPIO5, RX = GPIO4 (MTDI/MTMS: pad-JTAG, only sampled at reset for SDIO
-//           slave timing; free when the built-in USB-JTAG is used).
-//
-// The `bms_uart_pins!` macro must select the same GPIOs as the constants (checked at boot).
 
-/// GPIO number of the UART TX line (ESP32 TX → TinyBMS RX).
+/// The board this image is built for (`board-…` feature).
+const BOARD: Board = boards::SELECTED;
+// The table is checked as a whole in the library; checked again here so the error
+// names this build's board if the selection logic ever picks something else.
+const _: () = boards::assert_valid(&BOARD);
 #[cfg(feature = "esp32c3")]
-pub const BMS_UART_TX_GPIO: u8 = 7;
-/// GPIO number of the UART RX line (TinyBMS TX → ESP32 RX).
-#[cfg(feature = "esp32c3")]
-pub const BMS_UART_RX_GPIO: u8 = 6;
-#[cfg(feature = "esp32c3")]
-macro_rules! bms_uart_pins {
-    ($p:ident) => {
-        ($p.GPIO7, $p.GPIO6)
-    };
-}
+const _: () = assert!(
+    matches!(BOARD.chip, Chip::Esp32c3),
+    "the selected board is not an ESP32-C3 board"
+);
+#[cfg(feature = "esp32c6")]
+const _: () = assert!(
+    matches!(BOARD.chip, Chip::Esp32c6),
+    "the selected board is not an ESP32-C6 board"
+);
 
-/// GPIO number of the UART TX line (ESP32 TX → TinyBMS RX).
-#[cfg(feature = "esp32c6")]
-pub const BMS_UART_TX_GPIO: u8 = 5;
-/// GPIO number of the UART RX line (TinyBMS TX → ESP32 RX).
-#[cfg(feature = "esp32c6")]
-pub const BMS_UART_RX_GPIO: u8 = 4;
-#[cfg(feature = "esp32c6")]
-macro_rules! bms_uart_pins {
-    ($p:ident) => {
-        ($p.GPIO5, $p.GPIO4)
-    };
-}
+/// Where this image sends its logs.
+const LOG_PATH: LogPath = if cfg!(feature = "log-uart") {
+    LogPath::Uart0
+} else {
+    LogPath::Rtt
+};
 
 /// TinyBMS UART baud rate (8N1 is the esp-hal default frame format; Rev D §1).
 const BMS_BAUDRATE: u32 = 115_200;
@@ -103,7 +104,16 @@ async fn main(spawner: Spawner) {
     let config = esp_hal::Config::default().with_cpu_clock(CpuClock::max());
     let p = esp_hal::init(config);
 
-    info!("tinybms-firmware {} starting", env!("CARGO_PKG_VERSION"));
+    info!(
+        "tinybms-firmware {} on {=str} ({=str}), logs over {=str}",
+        env!("CARGO_PKG_VERSION"),
+        BOARD.name,
+        BOARD.chip.name(),
+        match LOG_PATH {
+            LogPath::Rtt => "RTT",
+            LogPath::Uart0 => "UART0",
+        }
+    );
 
     // esp-rtos: TIMG0 timer0 as time base + FROM_CPU_INTR0 software interrupt.
     let timg0 = TimerGroup::new(p.TIMG0);
@@ -114,18 +124,22 @@ async fn main(spawner: Spawner) {
     wdt.set_timeout(MwdtStage::Stage0, WDT_TIMEOUT);
     wdt.enable();
 
-    // UART1 to the TinyBMS.
-    let (tx_pin, rx_pin) = bms_uart_pins!(p);
-    assert!(tx_pin.number() == BMS_UART_TX_GPIO && rx_pin.number() == BMS_UART_RX_GPIO);
-    let uart = Uart::new(p.UART1, UartConfig::default().with_baudrate(BMS_BAUDRATE))
+    // UART1 to the TinyBMS, on the board's pins.
+    // SAFETY: `AnyPin::steal` hands out a second handle to a GPIO. These two GPIOs
+    // are used nowhere else: this file never touches `p.GPIOn`, and the board
+    // check (const, above) guarantees they exist on the chip, are distinct from
+    // each other and from the CAN pins, and are not flash/USB/UART0 pins.
+    let (tx_pin, rx_pin) = unsafe { (AnyPin::steal(BOARD.bms_tx), AnyPin::steal(BOARD.bms_rx)) };
+    let uart_config = UartConfig::default().with_baudrate(BMS_BAUDRATE);
+    let uart = Uart::new(p.UART1, uart_config)
         .expect("UART1 config")
         .with_tx(tx_pin)
         .with_rx(rx_pin)
         .into_async();
     let (rx, tx) = uart.split();
     info!(
-        "UART1 {} 8N1 TX=GPIO{} RX=GPIO{}",
-        BMS_BAUDRATE, BMS_UART_TX_GPIO, BMS_UART_RX_GPIO
+        "UART1 {} 8N1 TX=GPIO{=u8} RX=GPIO{=u8}; CAN reserved TX=GPIO{=u8} RX=GPIO{=u8}",
+        BMS_BAUDRATE, BOARD.bms_tx, BOARD.bms_rx, BOARD.can_tx, BOARD.can_rx
     );
 
     spawner.spawn(bridge_task(rx, tx, wdt).expect("spawn bridge_task"));
