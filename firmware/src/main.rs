@@ -1,6 +1,6 @@
 //! TinyBMS firmware — chip-specific shell (ESP32-C3 / ESP32-C6).
 //!
-//! Structure: init (clocks, esp-rtos, watchdog, UART1) → spawn `bridge_task(rx, tx, wdt)`
+//! Structure: init (clocks, watchdog, esp-rtos, UART1) → spawn `bridge_task(rx, tx, wdt)`
 //! and `consumer_task()`. All protocol and state-machine logic lives in the library
 //! (`tinybms_firmware::Bridge`, sans-IO, tested on the host); this file only moves
 //! bytes and time between UART1 and the bridge, logs its reports and shares the
@@ -32,7 +32,7 @@ use embassy_futures::select::{select, Either};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::watch::Watch;
 use embassy_time::{with_timeout, Duration, Instant, Timer};
-use esp_backtrace as _; // panic handler (prints via defmt)
+use esp_backtrace as _; // panic handler (prints via defmt, then calls `custom_halt`)
 use esp_hal::clock::CpuClock;
 use esp_hal::gpio::AnyPin;
 use esp_hal::peripherals::TIMG0;
@@ -84,6 +84,10 @@ const BMS_BAUDRATE: u32 = 115_200;
 const MAX_WAIT: Duration = Duration::from_millis(500);
 /// Watchdog timeout (MWDT stage 0 → system reset). Fed by the bridge loop.
 const WDT_TIMEOUT: esp_hal::time::Duration = esp_hal::time::Duration::from_secs(4);
+/// After a panic, time for the log reader to fetch the message and backtrace
+/// before the reset (RTT is polled by the host; UART0 drains its FIFO). Shorter
+/// than [`WDT_TIMEOUT`], so the watchdog is only the fallback.
+const PANIC_RESET_DELAY_US: u32 = 1_000_000;
 /// UART receive errors are logged at most once per this period.
 const RX_ERROR_LOG_PERIOD: Duration = Duration::from_secs(10);
 /// Telemetry older than this is reported stale by the consumer task.
@@ -99,10 +103,33 @@ struct SharedSnapshot {
 /// Latest telemetry for the other tasks: one sender (bridge_task), up to 2 receivers.
 static TELEMETRY: Watch<CriticalSectionRawMutex, SharedSnapshot, 2> = Watch::new();
 
+/// The end of every panic: esp-backtrace (feature `custom-halt`) calls this after it
+/// logged the panic message and the backtrace. Wait for the log to get out, then
+/// reset, so a panic anywhere — including in `esp_hal::init` before any watchdog is
+/// armed — ends in a reset rather than a hang.
+#[no_mangle]
+pub extern "Rust" fn custom_halt() -> ! {
+    esp_hal::rom::ets_delay_us(PANIC_RESET_DELAY_US);
+    esp_hal::system::software_reset()
+}
+
 #[esp_rtos::main]
 async fn main(spawner: Spawner) {
+    // Watchdog coverage at boot:
+    //  - until `esp_hal::init` disables it, the 2nd-stage bootloader's RTC watchdog
+    //    (ESP-IDF default CONFIG_BOOTLOADER_WDT_ENABLE, 9 s; depends on the
+    //    bootloader image espflash/probe-rs flash — not verified on hardware);
+    //  - any panic, from the first instruction on, resets through `custom_halt`;
+    //  - a hang after `init`: the MWDT, armed right below before anything else runs.
     let config = esp_hal::Config::default().with_cpu_clock(CpuClock::max());
     let p = esp_hal::init(config);
+
+    // Main watchdog of TIMG0 (esp_hal::init disabled it; re-armed before any boot
+    // code that can fail or wait).
+    let timg0 = TimerGroup::new(p.TIMG0);
+    let mut wdt = timg0.wdt;
+    wdt.set_timeout(MwdtStage::Stage0, WDT_TIMEOUT);
+    wdt.enable();
 
     info!(
         "tinybms-firmware {} on {=str} ({=str}), logs over {=str}",
@@ -116,13 +143,7 @@ async fn main(spawner: Spawner) {
     );
 
     // esp-rtos: TIMG0 timer0 as time base + FROM_CPU_INTR0 software interrupt.
-    let timg0 = TimerGroup::new(p.TIMG0);
     esp_rtos::start(timg0.timer0, p.FROM_CPU_INTR0);
-
-    // Main watchdog of TIMG0 (esp_hal::init disabled it; we re-arm it).
-    let mut wdt = timg0.wdt;
-    wdt.set_timeout(MwdtStage::Stage0, WDT_TIMEOUT);
-    wdt.enable();
 
     // UART1 to the TinyBMS, on the board's pins.
     // SAFETY: `AnyPin::steal` hands out a second handle to a GPIO. These two GPIOs
