@@ -37,7 +37,7 @@ use esp_hal::clock::CpuClock;
 use esp_hal::gpio::AnyPin;
 use esp_hal::peripherals::TIMG0;
 use esp_hal::timer::timg::{MwdtStage, TimerGroup, Wdt};
-use esp_hal::uart::{Config as UartConfig, Uart, UartRx, UartTx};
+use esp_hal::uart::{Config as UartConfig, RxConfig, RxError, Uart, UartRx, UartTx};
 use esp_hal::Async;
 #[cfg(feature = "log-uart")]
 use esp_println as _; // defmt global logger: UART0, espflash's defmt framing
@@ -80,6 +80,17 @@ const LOG_PATH: LogPath = if cfg!(feature = "log-uart") {
 
 /// TinyBMS UART baud rate (8N1 is the esp-hal default frame format; Rev D §1).
 const BMS_BAUDRATE: u32 = 115_200;
+/// UART1 RX FIFO "full" interrupt level, bytes (of the 128-byte FIFO).
+///
+/// esp-hal's default is 120, which leaves 8 bytes (≈ 0.7 ms at 115 200 Bd) between
+/// the interrupt and an overflow; replies longer than 120 bytes exist (0x03 with
+/// ≥ 58 registers, packetized events). An overflow resets the FIFO: a CRC error
+/// and a retry. At 64 the task has 64 bytes ≈ 5.5 ms to read (issue 11).
+const RX_FIFO_FULL_THRESHOLD: u16 = 64;
+/// Most `read_buffered` calls when draining the FIFO at a deadline (128-byte FIFO,
+/// 128-byte buffer: one call empties it; the bound only guards against a line
+/// that keeps delivering).
+const DEADLINE_DRAIN_READS: usize = 4;
 /// Longest the bridge task sleeps without feeding the watchdog.
 const MAX_WAIT: Duration = Duration::from_millis(500);
 /// Watchdog timeout (MWDT stage 0 → system reset). Fed by the bridge loop.
@@ -151,7 +162,9 @@ async fn main(spawner: Spawner) {
     // check (const, above) guarantees they exist on the chip, are distinct from
     // each other and from the CAN pins, and are not flash/USB/UART0 pins.
     let (tx_pin, rx_pin) = unsafe { (AnyPin::steal(BOARD.bms_tx), AnyPin::steal(BOARD.bms_rx)) };
-    let uart_config = UartConfig::default().with_baudrate(BMS_BAUDRATE);
+    let uart_config = UartConfig::default()
+        .with_baudrate(BMS_BAUDRATE)
+        .with_rx(RxConfig::default().with_fifo_full_threshold(RX_FIFO_FULL_THRESHOLD));
     let uart = Uart::new(p.UART1, uart_config)
         .expect("UART1 config")
         .with_tx(tx_pin)
@@ -159,8 +172,13 @@ async fn main(spawner: Spawner) {
         .into_async();
     let (rx, tx) = uart.split();
     info!(
-        "UART1 {} 8N1 TX=GPIO{=u8} RX=GPIO{=u8}; CAN reserved TX=GPIO{=u8} RX=GPIO{=u8}",
-        BMS_BAUDRATE, BOARD.bms_tx, BOARD.bms_rx, BOARD.can_tx, BOARD.can_rx
+        "UART1 {} 8N1 TX=GPIO{=u8} RX=GPIO{=u8} (rx fifo threshold {=u16}); CAN reserved TX=GPIO{=u8} RX=GPIO{=u8}",
+        BMS_BAUDRATE,
+        BOARD.bms_tx,
+        BOARD.bms_rx,
+        RX_FIFO_FULL_THRESHOLD,
+        BOARD.can_tx,
+        BOARD.can_rx
     );
 
     spawner.spawn(bridge_task(rx, tx, wdt).expect("spawn bridge_task"));
@@ -171,7 +189,45 @@ fn now_us() -> u64 {
     Instant::now().as_micros()
 }
 
+/// UART receive errors, counted as they happen and logged (rate-limited) with the
+/// reports, i.e. never while a reply is arriving.
+struct RxErrors {
+    count: u32,
+    last: Option<RxError>,
+    next_log: Instant,
+}
+
+impl RxErrors {
+    fn record(&mut self, e: RxError) {
+        self.count = self.count.wrapping_add(1);
+        self.last = Some(e);
+    }
+
+    fn log(&mut self) {
+        if let Some(e) = self.last {
+            if Instant::now() >= self.next_log {
+                warn!("uart rx error: {} ({=u32} so far)", e, self.count);
+                self.next_log = Instant::now() + RX_ERROR_LOG_PERIOD;
+                self.last = None;
+            }
+        }
+    }
+}
+
 /// Moves bytes and time between UART1 and the sans-IO bridge; logs its reports.
+///
+/// Two timing rules (issue 11):
+/// * Reports are logged just before the next request goes out, never right after
+///   one: the reply starts 1-2 ms after the request's last byte (HARDWARE-NOTES
+///   "Timing"), and a defmt write can block (RTT with probe-rs attached waits for
+///   the host; UART0 logging writes byte by byte at 115 200 Bd). Logging then
+///   would delay reading the RX FIFO while the reply fills it. The cost: a report
+///   reaches the log up to one request later (≤ 250 ms online, ≤ 2 s offline).
+/// * When the timer wins the race against `read_async`, bytes may already be in the
+///   FIFO: below the full threshold, the RX-timeout interrupt (10 symbols ≈ 0.9 ms)
+///   has not fired yet. They are drained with `read_buffered` and handed to the
+///   bridge *before* `poll` handles the deadline, so a reply that ends just at the
+///   deadline still completes its transaction (host-tests/tests/deadline_drain.rs).
 #[embassy_executor::task]
 async fn bridge_task(
     mut rx: UartRx<'static, Async>,
@@ -185,13 +241,21 @@ async fn bridge_task(
     }
     let mut buf = [0u8; 128];
     let mut published_seq = 0u32;
-    let mut rx_errors = 0u32;
-    let mut next_rx_error_log = Instant::now();
+    let mut rx_errors = RxErrors {
+        count: 0,
+        last: None,
+        next_log: Instant::now(),
+    };
 
     loop {
         wdt.feed();
         match bridge.poll(now_us()) {
             Action::Transmit(bytes) => {
+                // The line is quiet now: log what the last exchanges produced.
+                while let Some(report) = bridge.next_report() {
+                    log_report(&report);
+                }
+                rx_errors.log();
                 let mut rest: &[u8] = &bytes;
                 while !rest.is_empty() {
                     match tx.write_async(rest).await {
@@ -211,21 +275,25 @@ async fn bridge_task(
                 // `read_async` is cancellation-safe: racing it against a timer loses nothing.
                 match select(rx.read_async(&mut buf), Timer::at(deadline)).await {
                     Either::First(Ok(n)) => bridge.handle_rx(now_us(), buf.get(..n).unwrap_or(&[])),
-                    Either::First(Err(e)) => {
-                        // Rate-limited: a noisy line must not flood the log.
-                        rx_errors = rx_errors.wrapping_add(1);
-                        if Instant::now() >= next_rx_error_log {
-                            warn!("uart rx error: {} ({=u32} so far)", e, rx_errors);
-                            next_rx_error_log = Instant::now() + RX_ERROR_LOG_PERIOD;
+                    Either::First(Err(e)) => rx_errors.record(e),
+                    Either::Second(()) => {
+                        // Bytes already received but not yet signalled go in before
+                        // the deadline is handled by the next `poll`.
+                        for _ in 0..DEADLINE_DRAIN_READS {
+                            match rx.read_buffered(&mut buf) {
+                                Ok(0) => break,
+                                Ok(n) => bridge.handle_rx(now_us(), buf.get(..n).unwrap_or(&[])),
+                                Err(e) => {
+                                    rx_errors.record(e);
+                                    break;
+                                }
+                            }
                         }
                     }
-                    Either::Second(()) => {}
                 }
             }
         }
-        while let Some(report) = bridge.next_report() {
-            log_report(&report);
-        }
+        // Publishing is a copy into the Watch, no I/O: done on every step.
         let t = bridge.telemetry();
         if t.snapshot_seq != published_seq {
             published_seq = t.snapshot_seq;
