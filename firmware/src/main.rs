@@ -57,8 +57,8 @@ esp_bootloader_esp_idf::esp_app_desc!();
 
 /// The board this image is built for (`board-…` feature).
 const BOARD: Board = boards::SELECTED;
-// The table is checked as a whole in the library; checked again here so the error
-// names this build's board if the selection logic ever picks something else.
+// The library checks the whole table; checked again here for the board this image
+// actually uses (the error then points at this line).
 const _: () = boards::assert_valid(&BOARD);
 #[cfg(feature = "esp32c3")]
 const _: () = assert!(
