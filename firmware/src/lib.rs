@@ -20,6 +20,7 @@
 //! * [`event_log`] — every BMS event reported exactly once.
 //! * [`config`] — every default as a named, documented constant.
 //! * [`profile`] — the settings profile applied at start-up (empty by default).
+//! * [`boards`] — the supported boards' pins and log paths, checked at compile time.
 #![no_std]
 #![deny(missing_docs)]
 #![deny(
@@ -39,6 +40,7 @@
 )]
 #![allow(clippy::large_enum_variant)]
 
+pub mod boards;
 pub mod bridge;
 pub mod checks;
 pub mod config;

@@ -1,35 +1,49 @@
 //! TinyBMS firmware — chip-specific shell (ESP32-C3 / ESP32-C6).
 //!
-//! Structure: init (clocks, esp-rtos, watchdog, UART1) → spawn `bridge_task(rx, tx, wdt)`
+//! Structure: init (clocks, watchdog, esp-rtos, UART1) → spawn `bridge_task(rx, tx, wdt)`
 //! and `consumer_task()`. All protocol and state-machine logic lives in the library
 //! (`tinybms_firmware::Bridge`, sans-IO, tested on the host); this file only moves
 //! bytes and time between UART1 and the bridge, logs its reports and shares the
 //! latest telemetry through an embassy-sync `Watch`.
 //!
-//! Logging: defmt over RTT (`defmt-rtt`), read with `probe-rs run` (see .cargo/config.toml).
+//! Board: the pins come from `tinybms_firmware::boards::SELECTED`, chosen by one
+//! `board-…` feature and checked at compile time (no strapping, flash, USB, UART0 or
+//! on-board-part pin). Logging: defmt over RTT (`log-rtt`, read with `probe-rs run`)
+//! or defmt frames on UART0 (`log-uart`, read with `espflash flash --monitor
+//! --log-format defmt`). See README, "Boards, log paths and the first flash".
 
 #![no_std]
 #![no_main]
 
 #[cfg(all(feature = "esp32c3", feature = "esp32c6"))]
 compile_error!("features `esp32c3` and `esp32c6` are mutually exclusive");
+#[cfg(all(feature = "log-rtt", feature = "log-uart"))]
+compile_error!("features `log-rtt` and `log-uart` are mutually exclusive (use --no-default-features to drop the default `log-rtt`)");
+#[cfg(not(any(feature = "log-rtt", feature = "log-uart")))]
+compile_error!(
+    "select a log path: feature `log-rtt` (RTT via probe-rs) or `log-uart` (UART0 via espflash)"
+);
 
 use defmt::{info, warn};
-use defmt_rtt as _; // defmt global logger (RTT transport)
+#[cfg(feature = "log-rtt")]
+use defmt_rtt as _; // defmt global logger: RTT
 use embassy_executor::Spawner;
 use embassy_futures::select::{select, Either};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::watch::Watch;
 use embassy_time::{with_timeout, Duration, Instant, Timer};
-use esp_backtrace as _; // panic handler (prints via defmt)
+use esp_backtrace as _; // panic handler (prints via defmt, then calls `custom_halt`)
 use esp_hal::clock::CpuClock;
-use esp_hal::gpio::Pin;
+use esp_hal::gpio::AnyPin;
 use esp_hal::peripherals::TIMG0;
 use esp_hal::timer::timg::{MwdtStage, TimerGroup, Wdt};
-use esp_hal::uart::{Config as UartConfig, Uart, UartRx, UartTx};
+use esp_hal::uart::{Config as UartConfig, RxConfig, RxError, Uart, UartRx, UartTx};
 use esp_hal::Async;
+#[cfg(feature = "log-uart")]
+use esp_println as _; // defmt global logger: UART0, espflash's defmt framing
 use protocol_core::events::OnlineStatus;
 use protocol_core::views::LiveSnapshot;
+use tinybms_firmware::boards::{self, Board, Chip, LogPath};
 use tinybms_firmware::config::Config as BridgeConfig;
 use tinybms_firmware::link::Failure;
 use tinybms_firmware::{profile, Action, Bridge, Level, Report};
@@ -38,51 +52,53 @@ use tinybms_firmware::{profile, Action, Bridge, Level, Report};
 esp_bootloader_esp_idf::esp_app_desc!();
 
 // ---------------------------------------------------------------------------
-// Board wiring (TinyBMS UART, 115200 8N1, 3.3 V logic)
+// Board wiring (TinyBMS UART, 115200 8N1, 3.3 V logic): see firmware/src/boards.rs
 // ---------------------------------------------------------------------------
-//
-// ESP32-C3: GPIO20/21 are the UART0 console pins, GPIO18/19 are USB (USB-Serial-JTAG,
-//           used by probe-rs), GPIO2/8/9 are strapping pins, GPIO12-17 are SPI flash.
-//           → TX = GPIO7, RX = GPIO6 (pad-JTAG pins, free when the built-in USB-JTAG is used).
-// ESP32-C6: GPIO16/17 are the UART0 console pins, GPIO12/13 are USB, GPIO8/9/15 are
-//           strapping pins, GPIO24-30 are SPI flash.
-//           → TX = GPIO5, RX = GPIO4 (MTDI/MTMS: pad-JTAG, only sampled at reset for SDIO
-//           slave timing; free when the built-in USB-JTAG is used).
-//
-// The `bms_uart_pins!` macro must select the same GPIOs as the constants (checked at boot).
 
-/// GPIO number of the UART TX line (ESP32 TX → TinyBMS RX).
+/// The board this image is built for (`board-…` feature).
+const BOARD: Board = boards::SELECTED;
+// The library checks the whole table; checked again here for the board this image
+// actually uses (the error then points at this line).
+const _: () = boards::assert_valid(&BOARD);
 #[cfg(feature = "esp32c3")]
-pub const BMS_UART_TX_GPIO: u8 = 7;
-/// GPIO number of the UART RX line (TinyBMS TX → ESP32 RX).
-#[cfg(feature = "esp32c3")]
-pub const BMS_UART_RX_GPIO: u8 = 6;
-#[cfg(feature = "esp32c3")]
-macro_rules! bms_uart_pins {
-    ($p:ident) => {
-        ($p.GPIO7, $p.GPIO6)
-    };
-}
+const _: () = assert!(
+    matches!(BOARD.chip, Chip::Esp32c3),
+    "the selected board is not an ESP32-C3 board"
+);
+#[cfg(feature = "esp32c6")]
+const _: () = assert!(
+    matches!(BOARD.chip, Chip::Esp32c6),
+    "the selected board is not an ESP32-C6 board"
+);
 
-/// GPIO number of the UART TX line (ESP32 TX → TinyBMS RX).
-#[cfg(feature = "esp32c6")]
-pub const BMS_UART_TX_GPIO: u8 = 5;
-/// GPIO number of the UART RX line (TinyBMS TX → ESP32 RX).
-#[cfg(feature = "esp32c6")]
-pub const BMS_UART_RX_GPIO: u8 = 4;
-#[cfg(feature = "esp32c6")]
-macro_rules! bms_uart_pins {
-    ($p:ident) => {
-        ($p.GPIO5, $p.GPIO4)
-    };
-}
+/// Where this image sends its logs.
+const LOG_PATH: LogPath = if cfg!(feature = "log-uart") {
+    LogPath::Uart0
+} else {
+    LogPath::Rtt
+};
 
 /// TinyBMS UART baud rate (8N1 is the esp-hal default frame format; Rev D §1).
 const BMS_BAUDRATE: u32 = 115_200;
+/// UART1 RX FIFO "full" interrupt level, bytes (of the 128-byte FIFO).
+///
+/// esp-hal's default is 120, which leaves 8 bytes (≈ 0.7 ms at 115 200 Bd) between
+/// the interrupt and an overflow; replies longer than 120 bytes exist (0x03 with
+/// ≥ 58 registers, packetized events). An overflow resets the FIFO: a CRC error
+/// and a retry. At 64 the task has 64 bytes ≈ 5.5 ms to read (issue 11).
+const RX_FIFO_FULL_THRESHOLD: u16 = 64;
+/// Most `read_buffered` calls when draining the FIFO at a deadline (128-byte FIFO,
+/// 128-byte buffer: one call empties it; the bound only guards against a line
+/// that keeps delivering).
+const DEADLINE_DRAIN_READS: usize = 4;
 /// Longest the bridge task sleeps without feeding the watchdog.
 const MAX_WAIT: Duration = Duration::from_millis(500);
 /// Watchdog timeout (MWDT stage 0 → system reset). Fed by the bridge loop.
 const WDT_TIMEOUT: esp_hal::time::Duration = esp_hal::time::Duration::from_secs(4);
+/// After a panic, time for the log reader to fetch the message and backtrace
+/// before the reset (RTT is polled by the host; UART0 drains its FIFO). Shorter
+/// than [`WDT_TIMEOUT`], so the watchdog is only the fallback.
+const PANIC_RESET_DELAY_US: u32 = 1_000_000;
 /// UART receive errors are logged at most once per this period.
 const RX_ERROR_LOG_PERIOD: Duration = Duration::from_secs(10);
 /// Telemetry older than this is reported stale by the consumer task.
@@ -98,34 +114,71 @@ struct SharedSnapshot {
 /// Latest telemetry for the other tasks: one sender (bridge_task), up to 2 receivers.
 static TELEMETRY: Watch<CriticalSectionRawMutex, SharedSnapshot, 2> = Watch::new();
 
+/// The end of every panic: esp-backtrace (feature `custom-halt`) calls this after it
+/// logged the panic message and the backtrace. Wait for the log to get out, then
+/// reset, so a panic anywhere — including in `esp_hal::init` before any watchdog is
+/// armed — ends in a reset rather than a hang.
+#[no_mangle]
+pub extern "Rust" fn custom_halt() -> ! {
+    esp_hal::rom::ets_delay_us(PANIC_RESET_DELAY_US);
+    esp_hal::system::software_reset()
+}
+
 #[esp_rtos::main]
 async fn main(spawner: Spawner) {
+    // Watchdog coverage at boot:
+    //  - until `esp_hal::init` disables it, the 2nd-stage bootloader's RTC watchdog
+    //    (ESP-IDF default CONFIG_BOOTLOADER_WDT_ENABLE, 9 s; depends on the
+    //    bootloader image espflash/probe-rs flash — not verified on hardware);
+    //  - any panic, from the first instruction on, resets through `custom_halt`;
+    //  - a hang after `init`: the MWDT, armed right below before anything else runs.
     let config = esp_hal::Config::default().with_cpu_clock(CpuClock::max());
     let p = esp_hal::init(config);
 
-    info!("tinybms-firmware {} starting", env!("CARGO_PKG_VERSION"));
-
-    // esp-rtos: TIMG0 timer0 as time base + FROM_CPU_INTR0 software interrupt.
+    // Main watchdog of TIMG0 (esp_hal::init disabled it; re-armed before any boot
+    // code that can fail or wait).
     let timg0 = TimerGroup::new(p.TIMG0);
-    esp_rtos::start(timg0.timer0, p.FROM_CPU_INTR0);
-
-    // Main watchdog of TIMG0 (esp_hal::init disabled it; we re-arm it).
     let mut wdt = timg0.wdt;
     wdt.set_timeout(MwdtStage::Stage0, WDT_TIMEOUT);
     wdt.enable();
 
-    // UART1 to the TinyBMS.
-    let (tx_pin, rx_pin) = bms_uart_pins!(p);
-    assert!(tx_pin.number() == BMS_UART_TX_GPIO && rx_pin.number() == BMS_UART_RX_GPIO);
-    let uart = Uart::new(p.UART1, UartConfig::default().with_baudrate(BMS_BAUDRATE))
+    info!(
+        "tinybms-firmware {} on {=str} ({=str}), logs over {=str}",
+        env!("CARGO_PKG_VERSION"),
+        BOARD.name,
+        BOARD.chip.name(),
+        match LOG_PATH {
+            LogPath::Rtt => "RTT",
+            LogPath::Uart0 => "UART0",
+        }
+    );
+
+    // esp-rtos: TIMG0 timer0 as time base + FROM_CPU_INTR0 software interrupt.
+    esp_rtos::start(timg0.timer0, p.FROM_CPU_INTR0);
+
+    // UART1 to the TinyBMS, on the board's pins.
+    // SAFETY: `AnyPin::steal` hands out a second handle to a GPIO. These two GPIOs
+    // are used nowhere else: this file never touches `p.GPIOn`, and the board
+    // check (const, above) guarantees they exist on the chip, are distinct from
+    // each other and from the CAN pins, and are not flash/USB/UART0 pins.
+    let (tx_pin, rx_pin) = unsafe { (AnyPin::steal(BOARD.bms_tx), AnyPin::steal(BOARD.bms_rx)) };
+    let uart_config = UartConfig::default()
+        .with_baudrate(BMS_BAUDRATE)
+        .with_rx(RxConfig::default().with_fifo_full_threshold(RX_FIFO_FULL_THRESHOLD));
+    let uart = Uart::new(p.UART1, uart_config)
         .expect("UART1 config")
         .with_tx(tx_pin)
         .with_rx(rx_pin)
         .into_async();
     let (rx, tx) = uart.split();
     info!(
-        "UART1 {} 8N1 TX=GPIO{} RX=GPIO{}",
-        BMS_BAUDRATE, BMS_UART_TX_GPIO, BMS_UART_RX_GPIO
+        "UART1 {} 8N1 TX=GPIO{=u8} RX=GPIO{=u8} (rx fifo threshold {=u16}); CAN reserved TX=GPIO{=u8} RX=GPIO{=u8}",
+        BMS_BAUDRATE,
+        BOARD.bms_tx,
+        BOARD.bms_rx,
+        RX_FIFO_FULL_THRESHOLD,
+        BOARD.can_tx,
+        BOARD.can_rx
     );
 
     spawner.spawn(bridge_task(rx, tx, wdt).expect("spawn bridge_task"));
@@ -136,7 +189,45 @@ fn now_us() -> u64 {
     Instant::now().as_micros()
 }
 
+/// UART receive errors, counted as they happen and logged (rate-limited) with the
+/// reports, i.e. never while a reply is arriving.
+struct RxErrors {
+    count: u32,
+    last: Option<RxError>,
+    next_log: Instant,
+}
+
+impl RxErrors {
+    fn record(&mut self, e: RxError) {
+        self.count = self.count.wrapping_add(1);
+        self.last = Some(e);
+    }
+
+    fn log(&mut self) {
+        if let Some(e) = self.last {
+            if Instant::now() >= self.next_log {
+                warn!("uart rx error: {} ({=u32} so far)", e, self.count);
+                self.next_log = Instant::now() + RX_ERROR_LOG_PERIOD;
+                self.last = None;
+            }
+        }
+    }
+}
+
 /// Moves bytes and time between UART1 and the sans-IO bridge; logs its reports.
+///
+/// Two timing rules (issue 11):
+/// * Reports are logged just before the next request goes out, never right after
+///   one: the reply starts 1-2 ms after the request's last byte (HARDWARE-NOTES
+///   "Timing"), and a defmt write can block (RTT with probe-rs attached waits for
+///   the host; UART0 logging writes byte by byte at 115 200 Bd). Logging then
+///   would delay reading the RX FIFO while the reply fills it. The cost: a report
+///   reaches the log up to one request later (≤ 250 ms online, ≤ 2 s offline).
+/// * When the timer wins the race against `read_async`, bytes may already be in the
+///   FIFO: below the full threshold, the RX-timeout interrupt (10 symbols ≈ 0.9 ms)
+///   has not fired yet. They are drained with `read_buffered` and handed to the
+///   bridge *before* `poll` handles the deadline, so a reply that ends just at the
+///   deadline still completes its transaction (host-tests/tests/deadline_drain.rs).
 #[embassy_executor::task]
 async fn bridge_task(
     mut rx: UartRx<'static, Async>,
@@ -150,13 +241,21 @@ async fn bridge_task(
     }
     let mut buf = [0u8; 128];
     let mut published_seq = 0u32;
-    let mut rx_errors = 0u32;
-    let mut next_rx_error_log = Instant::now();
+    let mut rx_errors = RxErrors {
+        count: 0,
+        last: None,
+        next_log: Instant::now(),
+    };
 
     loop {
         wdt.feed();
         match bridge.poll(now_us()) {
             Action::Transmit(bytes) => {
+                // The line is quiet now: log what the last exchanges produced.
+                while let Some(report) = bridge.next_report() {
+                    log_report(&report);
+                }
+                rx_errors.log();
                 let mut rest: &[u8] = &bytes;
                 while !rest.is_empty() {
                     match tx.write_async(rest).await {
@@ -176,21 +275,25 @@ async fn bridge_task(
                 // `read_async` is cancellation-safe: racing it against a timer loses nothing.
                 match select(rx.read_async(&mut buf), Timer::at(deadline)).await {
                     Either::First(Ok(n)) => bridge.handle_rx(now_us(), buf.get(..n).unwrap_or(&[])),
-                    Either::First(Err(e)) => {
-                        // Rate-limited: a noisy line must not flood the log.
-                        rx_errors = rx_errors.wrapping_add(1);
-                        if Instant::now() >= next_rx_error_log {
-                            warn!("uart rx error: {} ({=u32} so far)", e, rx_errors);
-                            next_rx_error_log = Instant::now() + RX_ERROR_LOG_PERIOD;
+                    Either::First(Err(e)) => rx_errors.record(e),
+                    Either::Second(()) => {
+                        // Bytes already received but not yet signalled go in before
+                        // the deadline is handled by the next `poll`.
+                        for _ in 0..DEADLINE_DRAIN_READS {
+                            match rx.read_buffered(&mut buf) {
+                                Ok(0) => break,
+                                Ok(n) => bridge.handle_rx(now_us(), buf.get(..n).unwrap_or(&[])),
+                                Err(e) => {
+                                    rx_errors.record(e);
+                                    break;
+                                }
+                            }
                         }
                     }
-                    Either::Second(()) => {}
                 }
             }
         }
-        while let Some(report) = bridge.next_report() {
-            log_report(&report);
-        }
+        // Publishing is a copy into the Watch, no I/O: done on every step.
         let t = bridge.telemetry();
         if t.snapshot_seq != published_seq {
             published_seq = t.snapshot_seq;

@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# Builds the release firmware for every board and both log paths, and prints the
+# size of each image (size-report.sh).
+#
+# Usage: ./build-boards.sh
+# Boards: every `board-… = ["esp32c3"|"esp32c6"]` feature line of Cargo.toml (the host
+# test host-tests/tests/boards.rs checks that those lines and firmware/src/boards.rs
+# list the same boards). Log paths: log-rtt and log-uart.
+# Images are kept as target/boards/tinybms-firmware-<board>-<log>.elf.
+# Exit status: 0 = all built and within budget; 1 = some image over budget;
+# anything else = a build or tool failure.
+#
+# Board features only change this crate, so after the first build per (chip, log
+# path) each further board only recompiles and links tinybms-firmware.
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")"
+
+out=target/boards
+mkdir -p "$out"
+
+boards=$(sed -n 's/^\(board-[a-z0-9-]*\) = \["\(esp32c[36]\)"\]$/\1:\2/p' Cargo.toml)
+if [[ -z $boards ]]; then
+    echo "build-boards: no board features found in Cargo.toml" >&2
+    exit 2
+fi
+
+status=0
+summary=()
+for entry in $boards; do
+    board=${entry%%:*}
+    chip=${entry##*:}
+    case $chip in
+        esp32c3) target=riscv32imc-unknown-none-elf ;;
+        esp32c6) target=riscv32imac-unknown-none-elf ;;
+    esac
+    for log in log-rtt log-uart; do
+        echo "== $board ($chip), $log"
+        cargo build --release --quiet --no-default-features --features "$board,$log" --target "$target"
+        elf="$out/tinybms-firmware-$board-$log.elf"
+        cp "target/$target/release/tinybms-firmware" "$elf"
+        if report=$(./size-report.sh "$elf"); then :; else
+            rc=$?
+            status=$(( rc > status ? rc : status ))
+        fi
+        echo "$report"
+        summary+=("$(printf '%-22s %-9s %s' "$board" "$log" "$(head -n1 <<<"$report")")")
+    done
+done
+
+echo "== sizes (board, log path, chip: flash, static RAM)"
+printf '%s\n' "${summary[@]}"
+exit "$status"
