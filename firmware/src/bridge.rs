@@ -608,11 +608,11 @@ impl Bridge {
             .config
             .live_assembly_window_us
             .max(self.config.live_period_us);
-        self.live_read = Some(BlockRead::new(
-            reader::LIVE_SEGMENTS,
-            Mode::Window(window),
-            now,
-        ));
+        let reference = self.telemetry.live_registers.clone();
+        self.live_read = Some(
+            BlockRead::new(reader::LIVE_SEGMENTS, Mode::Window(window), now)
+                .with_guard(reader::LIVE_GUARDED, reference),
+        );
         self.live_turns = config::LIVE_SHARE.saturating_sub(1);
         self.live_piece(now)
     }
@@ -1115,7 +1115,12 @@ impl Bridge {
     }
 
     /// 0x1D replies: believed when two in a row are identical.
-    fn on_limits(&mut self, now: Instant, option: SettingsOption, result: Result<Response, Failure>) {
+    fn on_limits(
+        &mut self,
+        now: Instant,
+        option: SettingsOption,
+        result: Result<Response, Failure>,
+    ) {
         let in_sync = matches!(self.phase, Phase::Sync(_));
         let next = match result {
             Ok(Response::Settings { values, .. }) => {

@@ -437,10 +437,16 @@ fn log_report(r: &Report) {
         Report::Ready { series_cells } => {
             info!("settings and limits read ({=u16} cells): ready", series_cells)
         }
-        Report::Write { setting, outcome } => {
+        Report::Write { setting, outcome } | Report::WriteFollowUp { setting, outcome } => {
+            let follow = if matches!(r, Report::WriteFollowUp { .. }) {
+                "follow-up "
+            } else {
+                ""
+            };
             if outcome.is_success() {
                 info!(
-                    "write {=str} ({=u16}) = {=i32}: {=str}",
+                    "write {=str}{=str} ({=u16}) = {=i32}: {=str}",
+                    follow,
                     setting.id.name(),
                     setting.id.address(),
                     setting.value,
@@ -448,12 +454,46 @@ fn log_report(r: &Report) {
                 );
             } else {
                 warn!(
-                    "write {=str} ({=u16}) = {=i32}: {=str} {}",
+                    "write {=str}{=str} ({=u16}) = {=i32}: {=str} {}",
+                    follow,
                     setting.id.name(),
                     setting.id.address(),
                     setting.value,
                     outcome.name(),
                     outcome
+                );
+            }
+        }
+        Report::Flagged(Some(c)) => warn!(
+            "live data confirmed by a second read but fails check {=str}: published, flagged",
+            c.name()
+        ),
+        Report::Flagged(None) => info!("live data passes every check again"),
+        Report::Refused { check, count } => warn!(
+            "{=u32} live block(s) failed check {=str} and were not confirmed: not published",
+            count,
+            check.map(|c| c.name()).unwrap_or("first_read")
+        ),
+        Report::LineQuality {
+            attempts,
+            clean,
+            piece_registers,
+            snapshots,
+        } => {
+            let permille = if *attempts == 0 {
+                1000
+            } else {
+                (u64::from(*clean) * 1000 / u64::from(*attempts)) as u32
+            };
+            if r.level() == Level::Warn {
+                warn!(
+                    "line quality: {=u32} permille of {=u32} reads answered at the first attempt; {=u16} registers per request; {=u32} snapshots",
+                    permille, attempts, piece_registers, snapshots
+                );
+            } else {
+                info!(
+                    "line quality: {=u32} permille of {=u32} reads answered at the first attempt; {=u16} registers per request; {=u32} snapshots",
+                    permille, attempts, piece_registers, snapshots
                 );
             }
         }

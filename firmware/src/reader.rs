@@ -38,6 +38,12 @@ pub const CLEAN_TO_GROW: u16 = 12;
 
 /// The live block's ranges (registers 16-31 are reserved).
 pub const LIVE_SEGMENTS: &[(u16, u16)] = &[(0, 15), (32, 55)];
+/// Live registers that no consistency check covers (estimated time left,
+/// distance left, balancing bits, speed). A piece holding one of them is
+/// believed when its values equal the last published ones, or when two reads in
+/// a row agree: a CRC-16 lets a damaged frame through with probability 2^-16,
+/// and on a bad line millions of damaged pieces go by.
+pub const LIVE_GUARDED: &[u16] = &[34, 35, 44, 51, 52, 54, 55];
 /// Statistics.
 pub const STATS_SEGMENTS: &[(u16, u16)] = &[(100, 117)];
 /// Settings.
@@ -137,6 +143,12 @@ pub struct BlockRead {
     started_at: Instant,
     pieces: u8,
     passes: u8,
+    guarded: &'static [u16],
+    /// Values believed without a second read (the last published block).
+    reference: Option<RegisterBlock>,
+    /// First read of the guarded piece in flight, waiting for a second.
+    first_read: Option<heapless::Vec<(u16, u16), 16>>,
+    second_reads: u32,
 }
 
 /// A finished block read.
@@ -165,6 +177,10 @@ impl BlockRead {
             started_at: now,
             pieces: 0,
             passes: 0,
+            guarded: &[],
+            reference: None,
+            first_read: None,
+            second_reads: 0,
         };
         r.restart(now);
         r
@@ -194,6 +210,19 @@ impl BlockRead {
     /// The piece in flight failed: it is asked again next time.
     pub fn on_failure(&mut self) {
         self.in_flight = None;
+    }
+
+    /// Pieces holding any of `guarded` are believed when their values equal
+    /// `reference`'s, or when two reads in a row agree (see [`LIVE_GUARDED`]).
+    pub fn with_guard(mut self, guarded: &'static [u16], reference: Option<RegisterBlock>) -> Self {
+        self.guarded = guarded;
+        self.reference = reference;
+        self
+    }
+
+    /// Second reads made for guarded pieces.
+    pub fn second_reads(&self) -> u32 {
+        self.second_reads
     }
 
     /// Complete passes so far.
@@ -232,6 +261,12 @@ impl BlockRead {
             self.started_at = now;
         }
         let (start, count) = self.piece_at(self.cursor, piece);
+        if let Some(f) = &self.first_read {
+            // A first read waits for a second one of the same piece only.
+            if f.first().map(|p| p.0) != Some(start) || f.len() != usize::from(count) {
+                self.first_read = None;
+            }
+        }
         self.in_flight = Some((start, count));
         (start, count)
     }
@@ -287,6 +322,25 @@ impl BlockRead {
             self.in_flight = None;
             return None;
         }
+        let guarded = pairs.iter().any(|(a, _)| self.guarded.contains(a));
+        if guarded {
+            let unchanged = self
+                .reference
+                .as_ref()
+                .is_some_and(|r| pairs.iter().all(|&(a, v)| r.get(a) == Some(v)));
+            let confirmed = self
+                .first_read
+                .as_ref()
+                .is_some_and(|f| f.as_slice() == pairs);
+            if !unchanged && !confirmed {
+                // Ask again; believed when the next read agrees.
+                self.first_read = heapless::Vec::from_slice(pairs).ok();
+                self.second_reads = self.second_reads.wrapping_add(1);
+                self.in_flight = None;
+                return None;
+            }
+        }
+        self.first_read = None;
         self.store(now, pairs.iter().copied())
     }
 

@@ -328,10 +328,8 @@ impl Harness {
                     .entry((e.timestamp_s, e.id.raw()))
                     .or_default() += 1;
             }
-            Report::EventHistory { count, newest } => {
-                if soak.history.is_none() {
-                    soak.history = Some((line.at_us, *count, *newest));
-                }
+            Report::EventHistory { count, newest } if soak.history.is_none() => {
+                soak.history = Some((line.at_us, *count, *newest));
             }
             Report::Write { setting, outcome } | Report::WriteFollowUp { setting, outcome } => {
                 if matches!(line.report, Report::WriteFollowUp { .. }) {
@@ -380,6 +378,12 @@ impl Harness {
         }
         soak.last_publish = Some(at);
         if let Err(e) = truth::check_registers(block, self.sim.recent_reads()) {
+            if std::env::var_os("TINYBMS_DEBUG").is_some() {
+                for r in self.sim.recent_reads().iter().rev().take(60) {
+                    eprintln!("DBG {} {:?} {:?}", r.at_us, r.option, r.block);
+                }
+                eprintln!("DBG published {block:?}");
+            }
             let what = format!("snapshot at {at} µs ({} pieces): {e}", t.live.pieces);
             soak.wrong(what);
         }

@@ -1044,6 +1044,8 @@ mod tests {
             online_status(OnlineStatus::from_raw(0x1234)),
             json!("unknown_0x1234")
         );
+        // One style for every unknown value, the current sensor's included.
+        assert_eq!(current_sensor(CurrentSensor::Unknown(3)), "unknown_0x03");
     }
 
     #[test]

@@ -21,7 +21,11 @@ pub fn fields(first: u16, last: u16) -> Vec<(u16, u16)> {
     let mut a = first;
     while a <= last {
         if (EVENTS_FIRST..=EVENTS_LAST).contains(&a) {
-            let width = if (a - EVENTS_FIRST) % 2 == 0 { 2 } else { 1 };
+            let width = if (a - EVENTS_FIRST).is_multiple_of(2) {
+                2
+            } else {
+                1
+            };
             out.push((a, width.min(last - a + 1)));
             a += width;
             continue;

@@ -45,12 +45,14 @@ fn reply_to(req: &[u8]) -> Vec<u8> {
     out
 }
 
-fn drain_reports(bridge: &mut Bridge) -> Vec<Report> {
-    std::iter::from_fn(|| bridge.next_report()).collect()
-}
-
-fn has_version(reports: &[Report]) -> bool {
-    reports.iter().any(|r| matches!(r, Report::Version(_)))
+/// The version reply was taken as the answer to the request (the bridge
+/// believes the version block once a second read agrees, so the first accepted
+/// reply shows as a reply in the link counters and as no link error).
+fn accepted(bridge: &mut Bridge) -> bool {
+    let errors = std::iter::from_fn(|| bridge.next_report())
+        .filter(|r| matches!(r, Report::LinkError { .. }))
+        .count();
+    bridge.link_stats().replies >= 1 && errors == 0
 }
 
 /// The reply was fully received just before the response deadline, but below the
@@ -64,17 +66,23 @@ fn a_whole_reply_in_the_fifo_at_the_response_deadline_completes_its_request() {
 
     // Drain, then poll (bridge_task now).
     bridge.handle_rx(deadline, &reply);
-    let next = bridge.poll(deadline);
-    if let Action::Transmit(b) = &next {
-        assert_ne!(
-            b.as_slice(),
-            req.as_slice(),
-            "the answered request is not resent"
-        );
-    }
+    // The next request may be the same read again: the bridge believes the
+    // version block once a second read agrees. It is a new transaction, not a
+    // resend: no timeout, no wake-up resend, no retry.
+    let _next = bridge.poll(deadline);
     let s = bridge.link_stats();
-    assert_eq!((s.replies, s.timeouts, s.wakeup_resends), (1, 0, 0));
-    assert!(has_version(&drain_reports(&mut bridge)));
+    assert_eq!(
+        (
+            s.requests,
+            s.replies,
+            s.timeouts,
+            s.wakeup_resends,
+            s.retries
+        ),
+        (2, 1, 0, 0, 0)
+    );
+    let _ = &req;
+    assert!(accepted(&mut bridge));
 }
 
 #[test]
@@ -95,7 +103,7 @@ fn the_same_reply_handed_in_after_the_deadline_costs_a_resend_answered_twice() {
     let _ = bridge.poll(resent_at);
     let s = bridge.link_stats();
     assert_eq!((s.timeouts, s.wakeup_resends), (1, 1));
-    assert!(has_version(&drain_reports(&mut bridge)));
+    assert!(accepted(&mut bridge));
     // ...and the awake BMS answers the second copy as well: a stray reply on the
     // line (what HARDWARE-NOTES "Sleep" warns about).
     let unsolicited_before = s.unsolicited;
@@ -124,16 +132,20 @@ fn the_rest_of_a_reply_in_the_fifo_at_the_idle_gap_deadline_completes_it() {
     let (req, _, tail, gap_deadline) = split_reply(&mut bridge);
 
     bridge.handle_rx(gap_deadline, &tail);
-    let next = bridge.poll(gap_deadline);
-    if let Action::Transmit(b) = &next {
-        assert_ne!(b.as_slice(), req.as_slice());
-    }
+    let _next = bridge.poll(gap_deadline);
     let s = bridge.link_stats();
     assert_eq!(
-        (s.replies, s.retries, s.crc_errors, s.framing_errors),
-        (1, 0, 0, 0)
+        (
+            s.replies,
+            s.retries,
+            s.timeouts,
+            s.crc_errors,
+            s.framing_errors
+        ),
+        (1, 0, 0, 0, 0)
     );
-    assert!(has_version(&drain_reports(&mut bridge)));
+    let _ = &req;
+    assert!(accepted(&mut bridge));
 }
 
 #[test]
@@ -154,5 +166,5 @@ fn the_rest_handed_in_after_the_idle_gap_deadline_is_lost_and_the_read_retried()
         s.crc_errors + s.framing_errors + s.skipped_bytes > 0,
         "the cut-off head and the orphan tail show up as line errors"
     );
-    assert!(!has_version(&drain_reports(&mut bridge)));
+    assert!(!accepted(&mut bridge));
 }

@@ -72,10 +72,14 @@ fn forged_live_blocks_with_a_valid_crc_are_never_published() {
     // Each forgery is a CRC-valid reply of the right length that the simulated
     // BMS never built: the kinds the soaks found (SOC 352 %, 18 cells on a 16S
     // pack, a pack of 806 669 647 872 V, a 76.1 °C jump).
-    let forgeries: Vec<(&str, Box<dyn Fn(&mut [u16; 56])>)> = vec![
+    type Edit = Box<dyn Fn(&mut [u16; 56])>;
+    let forgeries: Vec<(&str, Edit)> = vec![
         ("soc", Box::new(|r| set32(r, 46, 352_000_000))),
         ("cells", Box::new(|r| r[53] = 18)),
-        ("pack", Box::new(|r| set32(r, 36, 806_669_647_872f32.to_bits()))),
+        (
+            "pack",
+            Box::new(|r| set32(r, 36, 806_669_647_872f32.to_bits())),
+        ),
         ("jump", Box::new(|r| r[48] = 761)),
         ("shifted cell", Box::new(|r| r[5] = r[5].rotate_left(8))),
     ];
@@ -452,7 +456,13 @@ fn an_applied_write_whose_replies_were_lost_is_unconfirmed_then_verified() {
     h.run_until(8 * S);
     let o = outcomes(&h);
     assert!(
-        matches!(o.as_slice(), [(false, WriteOutcome::Unconfirmed(_)), (true, WriteOutcome::Verified)]),
+        matches!(
+            o.as_slice(),
+            [
+                (false, WriteOutcome::Unconfirmed(_)),
+                (true, WriteOutcome::Verified)
+            ]
+        ),
         "{o:?}"
     );
     assert_eq!(h.sim.register(315), 3620);
@@ -497,7 +507,11 @@ fn at_5_percent_no_write_is_reported_failed_that_was_applied() {
     let s = h.soak.as_ref().unwrap();
     assert_eq!(s.false_failures, 0, "{:?}", s.outcomes);
     assert_eq!(s.false_successes, 0);
-    assert!(s.outcomes.get("verified").copied().unwrap_or(0) > 30, "{:?}", s.outcomes);
+    assert!(
+        s.outcomes.get("verified").copied().unwrap_or(0) > 30,
+        "{:?}",
+        s.outcomes
+    );
     genuine(&h);
 }
 
@@ -593,10 +607,7 @@ fn a_sensor_dependent_setting_follows_the_bms_limits() {
     h.run_until(10 * S);
     let o = outcomes(&h);
     assert_eq!(o[0], (false, WriteOutcome::Verified), "{o:?}");
-    assert!(
-        matches!(o[1], (false, WriteOutcome::Rejected(_))),
-        "{o:?}"
-    );
+    assert!(matches!(o[1], (false, WriteOutcome::Rejected(_))), "{o:?}");
     assert_eq!(h.sim.register(317), 900);
     let _ = registers::lookup(317);
 }
@@ -610,8 +621,5 @@ fn register_337_accepts_0x0a() {
         .unwrap();
     h.run_until(6 * S);
     let o = outcomes(&h);
-    assert!(
-        !matches!(o[0].1, WriteOutcome::Rejected(_)),
-        "{o:?}"
-    );
+    assert!(!matches!(o[0].1, WriteOutcome::Rejected(_)), "{o:?}");
 }

@@ -223,7 +223,7 @@ fn run_seed(o: &Options, seed: u64, t: &mut Totals) -> Result<(), String> {
             while at < o.duration_us {
                 h.run_until(at);
                 let (id, a, b) = WRITE_CYCLE[k % WRITE_CYCLE.len()];
-                let value = if (k / WRITE_CYCLE.len()) % 2 == 0 {
+                let value = if (k / WRITE_CYCLE.len()).is_multiple_of(2) {
                     a
                 } else {
                     b

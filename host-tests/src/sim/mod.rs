@@ -1020,35 +1020,44 @@ impl SimBms {
             }),
         };
         if let (Some(window), Some(r)) = (self.record_reads, &response) {
-            let read = match r {
-                Response::Registers(b) => Some((None, b.clone())),
-                Response::Settings { option, values } => Some((Some(*option), values.clone())),
-                // 0x09 of consecutive addresses (the bridge's pieces).
-                Response::Individual(pairs) => pairs.first().and_then(|&(start, _)| {
-                    let consecutive = pairs
-                        .iter()
-                        .enumerate()
-                        .all(|(i, &(a, _))| usize::from(a) == usize::from(start) + i);
-                    consecutive.then(|| {
-                        let values = pairs.iter().map(|&(_, v)| v).collect();
-                        (None, RegisterBlock { start, values })
-                    })
-                }),
-                _ => None,
-            };
-            if let Some((option, block)) = read {
+            let mut reads: Vec<(Option<SettingsOption>, RegisterBlock)> = Vec::new();
+            match r {
+                Response::Registers(b) => reads.push((None, b.clone())),
+                Response::Settings { option, values } => {
+                    reads.push((Some(*option), values.clone()))
+                }
+                // 0x09: each run of consecutive addresses is one block.
+                Response::Individual(pairs) => {
+                    for &(a, v) in pairs {
+                        match reads.last_mut() {
+                            Some((None, b))
+                                if usize::from(b.start) + b.values.len() == usize::from(a) =>
+                            {
+                                let _ = b.values.push(v);
+                            }
+                            _ => {
+                                let mut values = Words::new();
+                                let _ = values.push(v);
+                                reads.push((None, RegisterBlock { start: a, values }));
+                            }
+                        }
+                    }
+                }
+                _ => {}
+            }
+            for (option, block) in reads {
                 self.recent_reads.push_back(TrueRead {
                     at_us: t,
                     option,
                     block,
                 });
-                while self
-                    .recent_reads
-                    .front()
-                    .is_some_and(|r| r.at_us.saturating_add(window) < t)
-                {
-                    self.recent_reads.pop_front();
-                }
+            }
+            while self
+                .recent_reads
+                .front()
+                .is_some_and(|r| r.at_us.saturating_add(window) < t)
+            {
+                self.recent_reads.pop_front();
             }
         }
         let frame = match response.map(|r| r.to_frame(req)) {
@@ -1343,7 +1352,7 @@ impl SimBms {
             let len = self.last_reply.len() as u64;
             let from = self.rng_faults.below(len) as usize;
             let n = 1 + self.rng_faults.below(len - from as u64) as usize;
-            let fragment = self.last_reply[from..from + n].to_vec();
+            let fragment = self.last_reply.get(from..from + n).unwrap_or(&[]).to_vec();
             if self.rng_faults.chance(0.5) {
                 buf.splice(0..0, fragment);
             } else {
