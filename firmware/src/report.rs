@@ -219,6 +219,33 @@ impl Report {
     }
 }
 
+/// A document name, or `unknown_0xNN` for a value no table knows (one style
+/// everywhere: the log, `replay`, the simulator).
+struct Name(&'static str, Option<u16>);
+
+impl fmt::Display for Name {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.1 {
+            Some(raw) => write!(f, "unknown_0x{raw:02X}"),
+            None => f.write_str(self.0),
+        }
+    }
+}
+
+fn status(s: OnlineStatus) -> Name {
+    match s {
+        OnlineStatus::Unknown(raw) => Name("", Some(raw)),
+        known => Name(known.name(), None),
+    }
+}
+
+fn event(id: protocol_core::events::EventId) -> Name {
+    match id {
+        protocol_core::events::EventId::Unknown(raw) => Name("", Some(u16::from(raw))),
+        known => Name(known.name(), None),
+    }
+}
+
 fn permille(part: u32, whole: u32) -> u64 {
     if whole == 0 {
         1000
@@ -257,11 +284,11 @@ impl fmt::Display for Report {
                 s.internal_c,
                 OptC(s.external_c.0),
                 OptC(s.external_c.1),
-                s.status.name()
+                status(s.status)
             ),
             Report::StatusChanged { from, to } => match from {
-                Some(from) => write!(f, "status {} -> {}", from.name(), to.name()),
-                None => write!(f, "status {}", to.name()),
+                Some(from) => write!(f, "status {} -> {}", status(*from), status(*to)),
+                None => write!(f, "status {}", status(*to)),
             },
             Report::NewEvent(e) => write!(
                 f,
@@ -269,7 +296,7 @@ impl fmt::Display for Report {
                 e.id.severity().name(),
                 e.timestamp_s,
                 e.id.raw(),
-                e.id.name()
+                event(e.id)
             ),
             Report::EventHistory { count, newest } => {
                 write!(f, "event log: {count} recent events")?;
@@ -279,7 +306,7 @@ impl fmt::Display for Report {
                         ", newest t={}s 0x{:02X} {}",
                         e.timestamp_s,
                         e.id.raw(),
-                        e.id.name()
+                        event(e.id)
                     )?;
                 }
                 Ok(())

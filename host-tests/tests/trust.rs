@@ -623,3 +623,18 @@ fn register_337_accepts_0x0a() {
     let o = outcomes(&h);
     assert!(!matches!(o[0].1, WriteOutcome::Rejected(_)), "{o:?}");
 }
+
+#[test]
+fn unknown_values_print_as_unknown_0x_everywhere() {
+    use protocol_core::events::{Event, OnlineStatus};
+    let status = Report::StatusChanged {
+        from: Some(OnlineStatus::Idle),
+        to: OnlineStatus::from_raw(0x9C),
+    };
+    assert_eq!(status.to_string(), "status Idle -> unknown_0x9C");
+    let e = Report::NewEvent(Event {
+        timestamp_s: 5,
+        id: EventId::from_raw(0x99),
+    });
+    assert!(e.to_string().ends_with("0x99 unknown_0x99"), "{e}");
+}
