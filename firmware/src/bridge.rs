@@ -1258,17 +1258,12 @@ impl Bridge {
                 to: snap.status,
             });
         }
-        let period = self.config.snapshot_log_period_us;
-        if period == 0 {
-            self.report(Report::Snapshot(snapshot_line(&snap)));
-        } else if now >= self.next_snapshot_log {
-            // Keep to the period's grid (a line every 10 s, not every 10.25 s),
-            // without walking it step by step after a long silence.
-            let behind = now - self.next_snapshot_log;
-            let steps = behind / period + 1;
-            self.next_snapshot_log = self
-                .next_snapshot_log
-                .saturating_add(steps.saturating_mul(period));
+        if let Some(next) = snapshot_log_due(
+            self.next_snapshot_log,
+            now,
+            self.config.snapshot_log_period_us,
+        ) {
+            self.next_snapshot_log = next;
             self.report(Report::Snapshot(snapshot_line(&snap)));
         }
         self.telemetry.snapshot = Some(snap);
@@ -1483,6 +1478,22 @@ fn on_piece(
         Ok(Response::Individual(pairs)) => read.on_pairs(now, pairs),
         _ => None,
     }
+}
+
+/// Whether a snapshot line is due at `now` when the next one was planned for
+/// `next`, and when the one after it is: `Some(next line time)` or `None`.
+/// Period 0 logs every snapshot. Otherwise lines keep to the period's grid (a
+/// line every 10 s, not every 10.25 s), and after a long silence the next grid
+/// point is computed at once, not walked to step by step.
+pub fn snapshot_log_due(next: Instant, now: Instant, period: Instant) -> Option<Instant> {
+    if period == 0 {
+        return Some(now);
+    }
+    if now < next {
+        return None;
+    }
+    let steps = (now - next) / period + 1;
+    Some(next.saturating_add(steps.saturating_mul(period)))
 }
 
 /// A 0x09 read of one event slot (two registers).

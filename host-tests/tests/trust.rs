@@ -259,6 +259,39 @@ fn a_noisy_line_never_goes_offline() {
 }
 
 #[test]
+fn a_late_answer_between_silent_transactions_resets_the_offline_count() {
+    use tinybms_firmware::link::{Link, LinkStep, Silence};
+    let mut link = Link::new(Config::default());
+    let mut now = 0u64;
+    let req = Request::read_registers(0, 2).unwrap();
+    let mut silent = |link: &mut Link, now: &mut u64| {
+        link.start(*now, req.clone(), Silence::Failure);
+        loop {
+            match link.step(*now) {
+                LinkStep::Send(_) => {}
+                LinkStep::WaitUntil(t) => *now = t,
+                LinkStep::Done(c) => break c,
+                LinkStep::Idle => panic!("idle"),
+            }
+        }
+    };
+    for _ in 0..2 {
+        let _ = silent(&mut link, &mut now);
+    }
+    assert_eq!(link.consecutive_failures(), 2);
+    // A reply delayed past the timeout arrives between transactions.
+    now += 50_000;
+    link.on_bytes(now, &[0xAA, 0x03, 0x04, 1, 2]);
+    assert_eq!(link.consecutive_failures(), 0);
+    for _ in 0..2 {
+        let _ = silent(&mut link, &mut now);
+    }
+    assert!(link.is_online(), "2 silent since the late bytes, not 4");
+    let _ = silent(&mut link, &mut now);
+    assert!(!link.is_online(), "3 silent in a row: offline");
+}
+
+#[test]
 fn a_corrupt_reply_then_silence_does_not_count_towards_offline() {
     use protocol_core::frame::Frame;
     use tinybms_firmware::link::{Link, LinkStep, Silence};
@@ -470,6 +503,36 @@ fn an_applied_write_whose_replies_were_lost_is_unconfirmed_then_verified() {
 }
 
 #[test]
+fn a_lost_write_with_lost_read_backs_is_unconfirmed_then_failed() {
+    // Nothing reaches the BMS and no read-back answers: "unconfirmed"; the
+    // settings read after the group shows the old value: the follow-up says
+    // "failed" (not applied) — never "verified".
+    let mut h = checked(PackProfile::LiFePO4_16S, SimConfig::default(), 41);
+    h.run_until(2 * S);
+    let old = h.sim.register(315);
+    h.sim.drop_next_requests(0x10, 10);
+    h.bridge
+        .submit(group(SettingId::OverVoltageCutoff, 3620))
+        .unwrap();
+    h.run_until(2 * S + 150_000);
+    h.sim.drop_next_replies(0x09, 12);
+    h.run_until(8 * S);
+    let o = outcomes(&h);
+    assert!(
+        matches!(
+            o.as_slice(),
+            [
+                (false, WriteOutcome::Unconfirmed(_)),
+                (true, WriteOutcome::Failed(_))
+            ]
+        ),
+        "{o:?}"
+    );
+    assert_eq!(h.sim.register(315), old);
+    genuine(&h);
+}
+
+#[test]
 fn a_lost_write_whose_read_back_shows_the_old_value_is_failed() {
     let mut h = checked(PackProfile::LiFePO4_16S, SimConfig::default(), 34);
     h.run_until(2 * S);
@@ -567,6 +630,21 @@ fn snapshot_log_period_0_logs_every_snapshot_without_catching_up() {
     let lines = count(&h, |r| matches!(r, Report::Snapshot(_)));
     assert_eq!(lines, h.published.len());
     assert!(lines > 100);
+}
+
+#[test]
+fn the_snapshot_log_grid_is_computed_not_walked() {
+    use tinybms_firmware::bridge::snapshot_log_due;
+    // Ten years late with a 1 µs period: a loop stepping the grid would take
+    // 3e14 iterations; the computation answers at once.
+    let ten_years = 10 * 365 * 24 * 3600 * S;
+    assert_eq!(snapshot_log_due(0, ten_years, 1), Some(ten_years + 1));
+    assert_eq!(snapshot_log_due(0, ten_years, 0), Some(ten_years));
+    // On the grid: due at 10 s, next at 20 s; 25 s late -> next at 40 s.
+    assert_eq!(snapshot_log_due(10 * S, 9 * S, 10 * S), None);
+    assert_eq!(snapshot_log_due(10 * S, 10 * S, 10 * S), Some(20 * S));
+    assert_eq!(snapshot_log_due(10 * S, 35 * S, 10 * S), Some(40 * S));
+    assert_eq!(snapshot_log_due(u64::MAX - 5, u64::MAX, 10), Some(u64::MAX));
 }
 
 #[test]
