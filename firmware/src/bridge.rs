@@ -909,7 +909,11 @@ impl Bridge {
                 }
                 if let Ok(Response::Events(list)) = c.result {
                     let expected = self.expected_bms_clock(now);
-                    if EventTracker::plausible(&list.events, list.bms_timestamp_s, expected) {
+                    let fresh = self.events.fresh_clock(list.bms_timestamp_s);
+                    if fresh
+                        && EventTracker::plausible(&list.events, list.bms_timestamp_s, expected)
+                    {
+                        self.events.accept_clock(list.bms_timestamp_s);
                         let mut found: Vec<Found, { protocol_core::response::MAX_EVENTS }> =
                             Vec::new();
                         self.events.on_newest(&list.events, |f| {

@@ -70,6 +70,8 @@ pub struct EventTracker {
     anchor: Option<(u8, Event)>,
     gap: bool,
     scan: Scan,
+    /// BMS clock of the last 0x11 reply believed.
+    last_clock: Option<u32>,
 }
 
 impl EventTracker {
@@ -82,7 +84,21 @@ impl EventTracker {
             anchor: None,
             gap: false,
             scan: Scan::Off,
+            last_clock: None,
         }
+    }
+
+    /// A 0x11 reply's clock must be newer than the last one believed: an older
+    /// or equal one is a stale copy (a repeated or duplicated earlier reply taken
+    /// for this one), and then this request's real answer — whose events the BMS
+    /// may have marked as read — was lost: treat it so.
+    pub fn fresh_clock(&self, bms_clock_s: u32) -> bool {
+        self.last_clock.is_none_or(|c| bms_clock_s > c)
+    }
+
+    /// Remembers the clock of a believed 0x11 reply.
+    pub fn accept_clock(&mut self, bms_clock_s: u32) {
+        self.last_clock = Some(bms_clock_s);
     }
 
     /// A gap or the start-up history is open: the next events read is a scan or

@@ -22,6 +22,10 @@ use crate::truth;
 /// checks (a confirmed read on a bad line may take minutes).
 pub const TRUTH_WINDOW_US: u64 = 600 * 1_000_000;
 
+/// Events logged this close to the end of a run and not reported yet are
+/// "pending", not "missing" (on a bad line a gap fill takes seconds).
+pub const EVENT_REPORT_GRACE_US: u64 = 60 * 1_000_000;
+
 /// What [`Harness::checked`] found: every published value compared with what the
 /// simulated BMS really sent, every write outcome with its register file.
 #[derive(Debug, Clone, Default)]
@@ -75,6 +79,8 @@ pub struct EventCheck {
     pub reported_once: u64,
     /// Logged but never reported.
     pub missing: u64,
+    /// Logged in the last minute of the run and not reported yet.
+    pub pending: u64,
     /// Reported more than once.
     pub duplicated: u64,
     /// Reported but never logged.
@@ -207,6 +213,14 @@ impl Harness {
         let newest = soak.history.and_then(|(_, _, n)| n);
         c.history = soak.history.map(|(_, n, _)| u64::from(n)).unwrap_or(0);
         let mut logged: HashMap<(u32, u8), u32> = HashMap::new();
+        // Logged in the last minute of the run: maybe not read yet.
+        let recent: Vec<(u32, u8)> = self
+            .sim
+            .logged_events()
+            .iter()
+            .filter(|(t, _)| t.saturating_add(EVENT_REPORT_GRACE_US) > self.now)
+            .map(|(_, e)| (e.timestamp_s, e.id.raw()))
+            .collect();
         for (_, e) in self.sim.logged_events() {
             let in_history = match newest {
                 Some(n) => !ts_newer(e.timestamp_s, n.timestamp_s),
@@ -220,6 +234,7 @@ impl Harness {
         for (key, n) in &logged {
             c.logged += u64::from(*n);
             match soak.events_reported.get(key).copied().unwrap_or(0) {
+                0 if recent.contains(key) => c.pending += u64::from(*n),
                 0 => c.missing += u64::from(*n),
                 r if r == *n => c.reported_once += u64::from(*n),
                 r if r > *n => c.duplicated += u64::from(r - n),

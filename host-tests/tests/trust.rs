@@ -264,7 +264,7 @@ fn a_late_answer_between_silent_transactions_resets_the_offline_count() {
     let mut link = Link::new(Config::default());
     let mut now = 0u64;
     let req = Request::read_registers(0, 2).unwrap();
-    let mut silent = |link: &mut Link, now: &mut u64| {
+    let silent = |link: &mut Link, now: &mut u64| {
         link.start(*now, req.clone(), Silence::Failure);
         loop {
             match link.step(*now) {

@@ -186,6 +186,7 @@ struct Totals {
     logged: u64,
     reported_once: u64,
     missing: u64,
+    pending: u64,
     duplicated: u64,
     invented: u64,
     history: u64,
@@ -267,6 +268,7 @@ fn run_seed(o: &Options, seed: u64, t: &mut Totals) -> Result<(), String> {
     t.logged += ev.logged;
     t.reported_once += ev.reported_once;
     t.missing += ev.missing;
+    t.pending += ev.pending;
     t.duplicated += ev.duplicated;
     t.invented += ev.invented;
     t.history += ev.history;
@@ -381,8 +383,8 @@ fn main() -> ExitCode {
         }
     );
     println!(
-        "events: {} logged after the start-up history ({} in it), {} reported exactly once, {} missing, {} duplicated, {} invented",
-        t.logged, t.history, t.reported_once, t.missing, t.duplicated, t.invented
+        "events: {} logged after the start-up history ({} in it), {} reported exactly once, {} missing, {} duplicated, {} invented, {} logged in the last minute not reported yet",
+        t.logged, t.history, t.reported_once, t.missing, t.duplicated, t.invented, t.pending
     );
     println!(
         "log: {} lines, {} warnings ({:.1} per hour)",
