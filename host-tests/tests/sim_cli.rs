@@ -72,3 +72,19 @@ fn usage_errors_exit_2() {
         assert!(err.contains("usage"), "{err}");
     }
 }
+
+#[test]
+fn a_forgery_no_bridge_can_detect_is_caught_by_the_checker_and_exits_1() {
+    // The self-test of the ground truth: forged live replies that pass every
+    // consistency check are published (nothing could tell), and the sim command
+    // must say so and fail.
+    let (code, out, err) = sim(&["--duration", "2m", "--forge-every", "20s", "--quiet"]);
+    assert_eq!(code, 1, "{out}{err}");
+    assert!(out.contains("FAIL"), "{out}");
+    let wrong: u64 = out
+        .lines()
+        .find_map(|l| l.strip_prefix("wrong values published: "))
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap();
+    assert!(wrong >= 1, "{out}");
+}

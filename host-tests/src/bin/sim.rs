@@ -35,6 +35,10 @@ const USAGE: &str =
   --live-period D    period of the live block read (default 250ms)
   --write-every D    every D, change a harmless setting (cycles through four,
                      alternating two values each) to exercise write/verify
+  --forge-every D    self-test of the checks: every D, the next whole live reply is
+                     replaced by a CRC-valid forgery that passes every consistency
+                     check (one cell 1 mV off) -- no bridge can tell, so the run
+                     must report wrong values and exit 1
   --quiet            only print the summary
   -h, --help         this text
 
@@ -68,6 +72,7 @@ struct Options {
     snapshot_every_us: u64,
     live_period_us: u64,
     write_every_us: Option<u64>,
+    forge_every_us: Option<u64>,
     quiet: bool,
 }
 
@@ -87,6 +92,7 @@ fn parse_args() -> Result<Parsed, String> {
         snapshot_every_us: 10_000_000,
         live_period_us: tinybms_firmware::config::LIVE_PERIOD_US,
         write_every_us: None,
+        forge_every_us: None,
         quiet: false,
     };
     let mut args = std::env::args().skip(1);
@@ -150,6 +156,13 @@ fn parse_args() -> Result<Parsed, String> {
                     return Err("--write-every must be above 0".into());
                 }
                 o.write_every_us = Some(d);
+            }
+            "--forge-every" => {
+                let d = parse_duration(&value("--forge-every")?)?;
+                if d == 0 {
+                    return Err("--forge-every must be above 0".into());
+                }
+                o.forge_every_us = Some(d);
             }
             "--quiet" => o.quiet = true,
             "-h" | "--help" => return Ok(Parsed::Help),
@@ -216,13 +229,21 @@ fn run_seed(o: &Options, seed: u64, t: &mut Totals) -> Result<(), String> {
     h.bridge
         .submit_profile(&o.profile)
         .map_err(|e| format!("profile does not fit the command queue: {e:?}"))?;
-    match o.write_every_us {
-        None => h.run_until(o.duration_us),
-        Some(every) => {
-            let mut k = 0usize;
-            let mut at = every;
-            while at < o.duration_us {
-                h.run_until(at);
+    let mut next_write = o.write_every_us;
+    let mut next_forge = o.forge_every_us;
+    let mut k = 0usize;
+    loop {
+        let at = [next_write, next_forge, Some(o.duration_us)]
+            .into_iter()
+            .flatten()
+            .min()
+            .unwrap_or(o.duration_us);
+        h.run_until(at);
+        if at >= o.duration_us {
+            break;
+        }
+        if let (Some(t), Some(every)) = (next_write, o.write_every_us) {
+            if t == at {
                 let (id, a, b) = WRITE_CYCLE[k % WRITE_CYCLE.len()];
                 let value = if (k / WRITE_CYCLE.len()).is_multiple_of(2) {
                     a
@@ -234,9 +255,15 @@ fn run_seed(o: &Options, seed: u64, t: &mut Totals) -> Result<(), String> {
                 // A full queue just skips this change.
                 let _ = h.bridge.submit(Command::ApplySettings(items));
                 k += 1;
-                at += every;
+                next_write = Some(t + every);
             }
-            h.run_until(o.duration_us);
+        }
+        if let (Some(t), Some(every)) = (next_forge, o.forge_every_us) {
+            if t == at {
+                let bytes = plausible_forgery(&h.sim);
+                h.sim.forge_next_live_reply(bytes);
+                next_forge = Some(t + every);
+            }
         }
     }
     let ev = h.event_check();
@@ -282,6 +309,35 @@ fn run_seed(o: &Options, seed: u64, t: &mut Totals) -> Result<(), String> {
         print_link(&h);
     }
     Ok(())
+}
+
+/// A whole live reply (0x03, registers 0-55) built from the simulated BMS's
+/// registers now, with the first cell 1 mV higher: CRC-valid and consistent
+/// with every check, yet never sent by the BMS.
+fn plausible_forgery(sim: &SimBms) -> Vec<u8> {
+    use protocol_core::request::Request;
+    use protocol_core::response::{RegisterBlock, Response};
+    let mut values = heapless::Vec::new();
+    for a in 0..56u16 {
+        let _ = values.push(sim.register(a));
+    }
+    let first = values.iter().position(|&v| v != 0).unwrap_or(0);
+    if let Some(c) = values.get_mut(first) {
+        *c = c.wrapping_add(10);
+    }
+    let resp = Response::Registers(RegisterBlock { start: 0, values });
+    let Ok(req) = Request::read_registers(0, 56) else {
+        return Vec::new();
+    };
+    let Ok(frame) = resp.to_frame(&req) else {
+        return Vec::new();
+    };
+    let mut buf = vec![0u8; frame.encoded_len().unwrap_or(0)];
+    match frame.encode(&mut buf) {
+        Ok(n) => buf.truncate(n),
+        Err(_) => buf.clear(),
+    }
+    buf
 }
 
 fn print_link(h: &Harness) {

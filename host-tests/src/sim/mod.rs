@@ -272,6 +272,7 @@ pub struct SimBms {
     drop_next: std::collections::BTreeMap<u8, u32>,
     drop_replies: std::collections::BTreeMap<u8, u32>,
     forged: Option<Vec<u8>>,
+    forged_live: Option<Vec<u8>>,
     pinned: Vec<(u16, u16)>,
     limit_overrides: Vec<(u16, u16, u16)>,
 }
@@ -331,6 +332,7 @@ impl SimBms {
             drop_next: std::collections::BTreeMap::new(),
             drop_replies: std::collections::BTreeMap::new(),
             forged: None,
+            forged_live: None,
             pinned: Vec::new(),
             limit_overrides: Vec::new(),
         };
@@ -517,6 +519,12 @@ impl SimBms {
     /// on a noisy line produces. The ground truth keeps the real answer.
     pub fn forge_next_reply(&mut self, bytes: Vec<u8>) {
         self.forged = Some(bytes);
+    }
+
+    /// Test hook: the next 0x03 reply carrying 56 registers (a whole live block)
+    /// is replaced by these bytes on the wire.
+    pub fn forge_next_live_reply(&mut self, bytes: Vec<u8>) {
+        self.forged_live = Some(bytes);
     }
 
     /// Test hook: register `addr` reads `value` whatever the live model computes
@@ -1312,6 +1320,11 @@ impl SimBms {
         }
         if let Some(forged) = self.forged.take() {
             buf = forged;
+        } else if matches!(frame, Frame::Data { command: 0x03, payload, .. } if payload.len() == 112)
+        {
+            if let Some(forged) = self.forged_live.take() {
+                buf = forged;
+            }
         }
         let faults = self.config.faults;
         let mut start = t.saturating_add(self.draw_latency());
