@@ -18,6 +18,8 @@
 //! * [`checks`] — the consistency checks a live block must pass before it is
 //!   published.
 //! * [`event_log`] — every BMS event reported exactly once.
+//! * [`inverter`] — charge control and the inverter CAN protocols (Victron,
+//!   SMA Sunny Island).
 //! * [`config`] — every default as a named, documented constant.
 //! * [`profile`] — the settings profile applied at start-up (empty by default).
 //! * [`boards`] — the supported boards' pins and log paths, checked at compile time.
@@ -45,6 +47,7 @@ pub mod bridge;
 pub mod checks;
 pub mod config;
 pub mod event_log;
+pub mod inverter;
 pub mod link;
 pub mod profile;
 pub mod reader;

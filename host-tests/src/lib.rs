@@ -3,6 +3,7 @@
 //! firmware's bridge logic against it.
 
 pub mod capture;
+pub mod closed_loop;
 pub mod harness;
 pub mod profile;
 pub mod replay;

@@ -131,6 +131,13 @@ pub(crate) struct Live {
     ext2_connected: bool,
     pub(crate) lifetime_s: u32,
     rng: Rng,
+    /// Closed loop: the current is imposed from outside (an inverter model), A.
+    pub(crate) forced_current: Option<f64>,
+    /// Closed loop: the temperatures are imposed, °C.
+    pub(crate) forced_temp: Option<f64>,
+    /// Charge pushed in past 100 % SOC, Ah: the voltage knee of a full cell.
+    over_ah: f64,
+    capacity_ah: f64,
 }
 
 impl Live {
@@ -169,6 +176,10 @@ impl Live {
             ext2_connected: profile == PackProfile::LiFePO4_16S,
             lifetime_s,
             rng,
+            forced_current: None,
+            forced_temp: None,
+            over_ah: 0.0,
+            capacity_ah,
         };
         live.compute_cells(0.0);
         live
@@ -180,8 +191,23 @@ impl Live {
         self.full = self.soc >= 99.9;
     }
 
+    /// Sets the fixed offset of cell `i` (a runner), volts.
+    pub(crate) fn set_offset(&mut self, i: usize, v: f64) {
+        if let Some(o) = self.offsets_v.get_mut(i) {
+            *o = v;
+        }
+        self.compute_cells(0.0);
+    }
+
     fn compute_cells(&mut self, noise_v: f64) {
-        let base = ocv(self.curve, self.soc) + self.current * self.r_cell;
+        // A full cell's voltage climbs steeply with every Ah pushed past 100 %
+        // (the knee at the top of the OCV curve): 0.15 V per 0.1 % of capacity.
+        let knee = if self.capacity_ah > 0.0 {
+            (self.over_ah / self.capacity_ah * 1000.0 * 0.15).min(1.5)
+        } else {
+            0.0
+        };
+        let base = ocv(self.curve, self.soc) + knee + self.current * self.r_cell;
         for i in 0..self.cells.min(16) {
             let noise = if noise_v > 0.0 {
                 self.rng.range_f64(-noise_v, noise_v)
@@ -282,6 +308,30 @@ impl Live {
             }
         };
         let target = if p.fault { 0.0 } else { target };
+        if let Some(forced) = self.forced_current {
+            // Closed loop: the inverter decides (the BMS's switches still cut
+            // it on a fault).
+            let i = if p.fault { 0.0 } else { forced };
+            self.current = i + self.rng.range_f64(-0.02, 0.02);
+            let soc = self.soc + self.current * dt / 3600.0 / p.capacity_ah * 100.0;
+            if soc > 100.0 {
+                self.over_ah += (soc - 100.0) / 100.0 * p.capacity_ah;
+            } else if self.current < 0.0 {
+                self.over_ah = (self.over_ah + self.current * dt / 3600.0).max(0.0);
+            }
+            if self.current <= 0.05 {
+                // Relaxation of the knee at rest, a few minutes.
+                self.over_ah *= 0.995;
+            }
+            self.soc = soc.clamp(0.0, 100.0);
+            self.full = self.soc >= 99.9;
+            if let Some(t) = self.forced_temp {
+                self.t_int = t + 2.0;
+                self.t_ext1 = t;
+            }
+            self.compute_cells(0.0003);
+            return;
+        }
         let noise_a = if target == 0.0 {
             0.05
         } else {

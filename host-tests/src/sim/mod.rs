@@ -542,6 +542,29 @@ impl SimBms {
         self.limit_overrides.push((addr, min, max));
     }
 
+    /// Closed loop: the pack current is imposed by an inverter model from now on
+    /// (`None` gives it back to the built-in load/charge profile), A, positive =
+    /// charging. The BMS's switches still cut it while a fault is latched.
+    pub fn set_external_current(&mut self, amps: Option<f64>) {
+        self.live.forced_current = amps;
+    }
+
+    /// Closed loop: the pack temperature is imposed (external sensors; the
+    /// BMS's own sensor reads 2 °C more), °C.
+    pub fn force_temperature(&mut self, celsius: Option<f64>) {
+        self.live.forced_temp = celsius;
+    }
+
+    /// Closed loop: cell `index` (0-based) runs `mv` millivolts above the others.
+    pub fn set_cell_offset_mv(&mut self, index: usize, mv: f64) {
+        self.live.set_offset(index, mv / 1000.0);
+    }
+
+    /// Sets the state of charge, %.
+    pub fn set_soc_percent(&mut self, soc: f64) {
+        self.live.set_soc(soc);
+    }
+
     /// Test hook: empties the event log (no "Events Cleared" entry).
     pub fn clear_event_log(&mut self) {
         self.clear_events();

@@ -1,0 +1,626 @@
+//! Charge control: the limits an inverter/charger must obey (CVL, CCL, DCL) and
+//! the alarms and warnings it is told about, from the BMS's own values.
+//!
+//! This is where a bridge can hurt a battery, so every rule is here, in one
+//! deterministic function of its inputs and a little state, with its reason:
+//!
+//! * **CVL = cells × per-cell target** — never a per-cell value, never 0, always
+//!   within cells × [316, 315]. The absorption target defaults to the BMS's own
+//!   "fully charged voltage" (300), kept [`ChargeConfig::absorption_margin_mv`]
+//!   below the over-voltage cutoff (315); the float target is configurable
+//!   (default 15/16 of absorption). No cell is ever pushed above the *ceiling*,
+//!   315 − [`ChargeConfig::ov_margin_mv`].
+//! * **Absorption → float** once the highest cell is at the target and the current
+//!   has tapered below [`ChargeConfig::tail_current_a`] for
+//!   [`ChargeConfig::full_hold_us`]; back to absorption below
+//!   [`ChargeConfig::rebulk_soc_pct`].
+//! * **A cell running ahead** lowers CVL: while the highest cell is above the
+//!   target, CVL = cells × (target − its lead over the average cell, less
+//!   [`ChargeConfig::runner_tolerance_mv`]), so the runner — not the average —
+//!   settles at the target; released once the runner is 5 mV below the target
+//!   (and then only as fast as CVL may rise). A whole pack above a lower target
+//!   (float after absorption) is no runner: CVL stays cells × target.
+//! * **CCL** from the charge over-current cutoff (318), capped by configuration;
+//!   **DCL** from 317. Never from the statistics registers 102/103 (peaks seen).
+//! * **Tapers:** CCL goes linearly to 0 as the highest cell climbs through the
+//!   [`ChargeConfig::ccl_taper_mv`] window below the ceiling (so a cell at the
+//!   ceiling gets no current at all); DCL to 0 as the lowest cell falls through
+//!   [`ChargeConfig::dcl_taper_mv`] above 316 + [`ChargeConfig::uv_margin_mv`].
+//! * **Temperature:** no charge at or below the low-temperature charge cutoff
+//!   (320) nor at or above over-heat (319), linear in between over
+//!   [`ChargeConfig::temp_margin_c`]; DCL derated the same way near over-heat.
+//! * **Faults:** BMS status "fault" → CCL 0 and DCL 0 (the BMS has opened its
+//!   switches: nothing to ask of the inverter); a charge-side fault event (over-
+//!   voltage, charge over-current, low temperature) → CCL 0 until it recovers.
+//! * **Hold and ramp:** after a cut (a limit forced to 0: fault, temperature,
+//!   a cell at the ceiling), the limit comes back only [`ChargeConfig::hold_us`]
+//!   after the cause ended, and then rises at most [`ChargeConfig::ramp_da_per_s`];
+//!   lowering is always immediate. CVL is raised at most
+//!   once per [`ChargeConfig::cvl_raise_interval_us`]; lowering is immediate.
+//! * **Alarms and warnings** from cells vs cutoffs, temperatures vs cutoffs,
+//!   currents vs cutoffs, cell imbalance (308), BMS fault status and link loss;
+//!   warnings come before alarms (a margin inside each cutoff).
+
+use crate::Instant;
+
+/// Charge control settings; [`Default`] gives the documented defaults.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct ChargeConfig {
+    /// Absorption target per cell, mV; `None` = the BMS's "fully charged
+    /// voltage" (300). Always kept [`ChargeConfig::absorption_margin_mv`] below
+    /// 315.
+    pub absorption_mv: Option<u16>,
+    /// How far below the over-voltage cutoff (315) the absorption target stays
+    /// at least, mV.
+    pub absorption_margin_mv: u16,
+    /// Float target per cell, mV; `None` = 15/16 of the absorption target.
+    pub float_mv: Option<u16>,
+    /// The ceiling: how far below the over-voltage cutoff (315) the highest cell
+    /// is always kept (CCL is 0 there), mV.
+    pub ov_margin_mv: u16,
+    /// How far above the under-voltage cutoff (316) discharge stops, mV.
+    pub uv_margin_mv: u16,
+    /// CCL goes from full to 0 over this window below (315 − margin), mV.
+    pub ccl_taper_mv: u16,
+    /// DCL goes from full to 0 over this window above (316 + margin), mV.
+    pub dcl_taper_mv: u16,
+    /// The highest cell may sit this far above the target before CVL is lowered
+    /// for it (the ordinary spread of a balanced pack), mV.
+    pub runner_tolerance_mv: u16,
+    /// Charge current below which a full pack counts as tapered, A.
+    pub tail_current_a: f32,
+    /// How long the pack must be at the target and tapered before float, µs.
+    pub full_hold_us: Instant,
+    /// Below this SOC the float phase ends, %.
+    pub rebulk_soc_pct: f32,
+    /// Cap on CCL, 0.1 A (`None` = 318 alone).
+    pub ccl_cap_da: Option<u16>,
+    /// Cap on DCL, 0.1 A (`None` = 317 alone).
+    pub dcl_cap_da: Option<u16>,
+    /// Temperature derating window inside each cutoff, °C.
+    pub temp_margin_c: i16,
+    /// After a limit was lowered, how long before it may rise again, µs.
+    pub hold_us: Instant,
+    /// How fast a limit may rise, 0.1 A per second.
+    pub ramp_da_per_s: u16,
+    /// CVL is raised at most this often, µs (lowering is immediate).
+    pub cvl_raise_interval_us: Instant,
+    /// Warnings start this far inside a voltage cutoff, mV.
+    pub warn_margin_mv: u16,
+    /// Warnings start at this fraction of a current cutoff, percent.
+    pub warn_current_pct: u8,
+}
+
+impl Default for ChargeConfig {
+    fn default() -> Self {
+        Self {
+            absorption_mv: None,
+            absorption_margin_mv: 100,
+            float_mv: None,
+            ov_margin_mv: 50,
+            uv_margin_mv: 100,
+            ccl_taper_mv: 100,
+            dcl_taper_mv: 200,
+            runner_tolerance_mv: 10,
+            tail_current_a: 5.0,
+            full_hold_us: 120 * crate::SECOND,
+            rebulk_soc_pct: 90.0,
+            ccl_cap_da: None,
+            dcl_cap_da: None,
+            temp_margin_c: 5,
+            hold_us: 30 * crate::SECOND,
+            ramp_da_per_s: 20,
+            cvl_raise_interval_us: 20 * crate::SECOND,
+            warn_margin_mv: 50,
+            warn_current_pct: 90,
+        }
+    }
+}
+
+/// The BMS settings charge control needs (Rev D §3.4), as read from 300-343.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct PackSettings {
+    /// 300: fully charged voltage per cell, mV.
+    pub fully_charged_mv: u16,
+    /// 306: capacity, 0.01 Ah.
+    pub capacity_cah: u16,
+    /// 307: series cells.
+    pub cells: u16,
+    /// 308: allowed disbalance, mV.
+    pub allowed_disbalance_mv: u16,
+    /// 315: over-voltage cutoff per cell, mV.
+    pub ov_cutoff_mv: u16,
+    /// 316: under-voltage cutoff per cell, mV.
+    pub uv_cutoff_mv: u16,
+    /// 317: discharge over-current cutoff, A.
+    pub discharge_cutoff_a: u16,
+    /// 318: charge over-current cutoff, A.
+    pub charge_cutoff_a: u16,
+    /// 319: over-heat cutoff, °C.
+    pub overheat_c: i16,
+    /// 320: low-temperature charger cutoff, °C.
+    pub low_temp_charge_c: i16,
+}
+
+impl PackSettings {
+    /// From a settings block (registers 300-343); `None` when a needed register
+    /// is missing or the values make no sense (no cells, cutoffs inverted).
+    pub fn from_registers(b: &protocol_core::response::RegisterBlock) -> Option<Self> {
+        let s = Self {
+            fully_charged_mv: b.get(300)?,
+            capacity_cah: b.get(306)?,
+            cells: b.get(307)?,
+            allowed_disbalance_mv: b.get(308)?,
+            ov_cutoff_mv: b.get(315)?,
+            uv_cutoff_mv: b.get(316)?,
+            discharge_cutoff_a: b.get(317)?,
+            charge_cutoff_a: b.get(318)?,
+            overheat_c: b.get(319)? as i16,
+            low_temp_charge_c: b.get(320)? as i16,
+        };
+        let sane = (1..=16).contains(&s.cells)
+            && s.uv_cutoff_mv >= 1000
+            && s.ov_cutoff_mv > s.uv_cutoff_mv
+            && s.ov_cutoff_mv <= 5000
+            && s.overheat_c > s.low_temp_charge_c;
+        sane.then_some(s)
+    }
+}
+
+/// What charge control reads from a live snapshot.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct PackState {
+    /// Lowest cell, mV.
+    pub min_cell_mv: u16,
+    /// Highest cell, mV.
+    pub max_cell_mv: u16,
+    /// Pack voltage, V.
+    pub pack_v: f32,
+    /// Pack current, A (positive = charging).
+    pub current_a: f32,
+    /// SOC, %.
+    pub soc_pct: f32,
+    /// SOH, %.
+    pub soh_pct: f32,
+    /// Lowest temperature of the sensors, °C.
+    pub min_temp_c: f32,
+    /// Highest temperature of the sensors, °C.
+    pub max_temp_c: f32,
+    /// BMS status register 50 says "fault".
+    pub fault: bool,
+    /// A charge-side fault event is latched (over-voltage, charge over-current,
+    /// low-temperature cutoff) and not yet recovered.
+    pub charge_blocked: bool,
+}
+
+impl PackState {
+    /// From a published snapshot.
+    pub fn from_snapshot(s: &protocol_core::views::LiveSnapshot) -> Self {
+        let mut min_t = s.internal_c();
+        let mut max_t = min_t;
+        for t in [s.external1_c(), s.external2_c()].into_iter().flatten() {
+            min_t = min_t.min(t);
+            max_t = max_t.max(t);
+        }
+        let mv = |raw: u16| raw.saturating_add(5) / 10;
+        Self {
+            min_cell_mv: s.cells.min().map(|(_, r)| mv(r)).unwrap_or(s.min_cell_mv),
+            max_cell_mv: s.cells.max().map(|(_, r)| mv(r)).unwrap_or(s.max_cell_mv),
+            pack_v: s.pack_voltage_v,
+            current_a: s.pack_current_a,
+            soc_pct: s.soc_percent(),
+            soh_pct: s.soh_percent(),
+            min_temp_c: min_t,
+            max_temp_c: max_t,
+            fault: s.status == protocol_core::events::OnlineStatus::Fault,
+            charge_blocked: false,
+        }
+    }
+}
+
+/// Absorption or float.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Phase {
+    /// Charging to the absorption target.
+    Absorption,
+    /// Holding the float target.
+    Float,
+}
+
+/// Level of one alarm/warning condition.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Level {
+    /// Fine.
+    Ok,
+    /// Near a limit.
+    Warning,
+    /// At or past a limit.
+    Alarm,
+}
+
+/// The conditions inverters are told about (the fields of 0x35A).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Conditions {
+    /// Cells vs the over-voltage cutoff.
+    pub high_voltage: u8,
+    /// Cells vs the under-voltage cutoff.
+    pub low_voltage: u8,
+    /// Temperatures vs over-heat.
+    pub high_temperature: u8,
+    /// Temperatures vs the low-temperature cutoff (any current).
+    pub low_temperature: u8,
+    /// Charging while hot.
+    pub high_temperature_charge: u8,
+    /// Charging while cold.
+    pub low_temperature_charge: u8,
+    /// Discharge current vs 317.
+    pub high_discharge_current: u8,
+    /// Charge current vs 318.
+    pub high_charge_current: u8,
+    /// BMS fault status.
+    pub bms_internal: u8,
+    /// Spread of the cells vs 308.
+    pub cell_imbalance: u8,
+    /// Telemetry stale (the BMS link is lost).
+    pub link_lost: u8,
+}
+
+impl Conditions {
+    /// The level of a field (0 ok, 1 warning, 2 alarm).
+    pub fn level(v: u8) -> Level {
+        match v {
+            0 => Level::Ok,
+            1 => Level::Warning,
+            _ => Level::Alarm,
+        }
+    }
+    /// Every field, for "any alarm" / "any warning".
+    pub fn all(&self) -> [u8; 11] {
+        [
+            self.high_voltage,
+            self.low_voltage,
+            self.high_temperature,
+            self.low_temperature,
+            self.high_temperature_charge,
+            self.low_temperature_charge,
+            self.high_discharge_current,
+            self.high_charge_current,
+            self.bms_internal,
+            self.cell_imbalance,
+            self.link_lost,
+        ]
+    }
+    /// Highest level of any field.
+    pub fn worst(&self) -> Level {
+        Self::level(self.all().into_iter().max().unwrap_or(0))
+    }
+}
+
+fn level(alarm: bool, warning: bool) -> u8 {
+    if alarm {
+        2
+    } else if warning {
+        1
+    } else {
+        0
+    }
+}
+
+/// The limits sent to the inverter.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Limits {
+    /// Charge voltage limit for the pack, 0.1 V.
+    pub cvl_dv: u16,
+    /// Charge current limit, 0.1 A (≥ 0).
+    pub ccl_da: u16,
+    /// Discharge current limit, 0.1 A (≥ 0).
+    pub dcl_da: u16,
+    /// Discharge voltage (cells × (316 + margin)), 0.1 V.
+    pub discharge_dv: u16,
+}
+
+/// The charge controller. Call [`ChargeControl::update`] with each new snapshot.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ChargeControl {
+    config: ChargeConfig,
+    phase: Phase,
+    full_since: Option<Instant>,
+    /// CVL correction for a runner cell, mV (pack).
+    runner_offset_mv: u32,
+    last_cvl_dv: Option<u16>,
+    last_cvl_raise: Option<Instant>,
+    ccl: Ramp,
+    dcl: Ramp,
+    last_update: Option<Instant>,
+}
+
+/// A limit that falls at once, rises at a bounded rate, and after being cut to
+/// 0 waits a hold time before it rises.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Ramp {
+    value_da: u16,
+    cut_at: Option<Instant>,
+    started: bool,
+}
+
+impl Ramp {
+    const fn new() -> Self {
+        Self {
+            value_da: 0,
+            cut_at: None,
+            started: false,
+        }
+    }
+
+    fn step(&mut self, now: Instant, target: u16, dt_us: Instant, c: &ChargeConfig) -> u16 {
+        if !self.started {
+            // First value: allowed at once (nothing was cut).
+            self.started = true;
+            self.value_da = target;
+            return target;
+        }
+        if target == 0 {
+            // Cut: the hold runs from the last moment the cause was there.
+            self.cut_at = Some(now);
+        }
+        if target < self.value_da {
+            self.value_da = target;
+        } else if target > self.value_da {
+            let held = self
+                .cut_at
+                .is_none_or(|t| now.saturating_sub(t) >= c.hold_us);
+            if held {
+                let step = (u64::from(c.ramp_da_per_s) * dt_us / crate::SECOND).max(1);
+                let step = step.min(u64::from(u16::MAX)) as u16;
+                self.value_da = self.value_da.saturating_add(step).min(target);
+            }
+        }
+        self.value_da
+    }
+}
+
+/// Linear factor in 0..=1000 (per mille): 0 at `zero`, 1000 at `full` and
+/// beyond (either direction).
+fn ramp_permille(x: i32, zero: i32, full: i32) -> u32 {
+    if zero == full {
+        return if (full > zero && x >= full) || (full <= zero && x <= full) {
+            1000
+        } else {
+            0
+        };
+    }
+    let f = i64::from(x - zero) * 1000 / i64::from(full - zero);
+    f.clamp(0, 1000) as u32
+}
+
+impl ChargeControl {
+    /// A controller in absorption.
+    pub const fn new(config: ChargeConfig) -> Self {
+        Self {
+            config,
+            phase: Phase::Absorption,
+            full_since: None,
+            runner_offset_mv: 0,
+            last_cvl_dv: None,
+            last_cvl_raise: None,
+            ccl: Ramp::new(),
+            dcl: Ramp::new(),
+            last_update: None,
+        }
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &ChargeConfig {
+        &self.config
+    }
+
+    /// Absorption or float.
+    pub fn phase(&self) -> Phase {
+        self.phase
+    }
+
+    /// Per-cell targets (absorption, float), mV, for these settings.
+    pub fn targets_mv(&self, s: &PackSettings) -> (u16, u16) {
+        let top = s
+            .ov_cutoff_mv
+            .saturating_sub(
+                self.config
+                    .absorption_margin_mv
+                    .max(self.config.ov_margin_mv),
+            )
+            .max(s.uv_cutoff_mv);
+        let absorption = self
+            .config
+            .absorption_mv
+            .unwrap_or(s.fully_charged_mv)
+            .clamp(s.uv_cutoff_mv, top);
+        let float = self
+            .config
+            .float_mv
+            .unwrap_or((u32::from(absorption) * 15 / 16) as u16)
+            .clamp(s.uv_cutoff_mv, absorption);
+        (absorption, float)
+    }
+
+    /// New limits and conditions from a snapshot taken at `now`.
+    pub fn update(
+        &mut self,
+        now: Instant,
+        s: &PackSettings,
+        p: &PackState,
+    ) -> (Limits, Conditions) {
+        let c = self.config;
+        let dt_us = self
+            .last_update
+            .map_or(crate::SECOND, |t| now.saturating_sub(t))
+            .min(60 * crate::SECOND);
+        self.last_update = Some(now);
+        let n = u32::from(s.cells.clamp(1, 16));
+        let (absorption, float) = self.targets_mv(s);
+
+        // Phase.
+        match self.phase {
+            Phase::Absorption => {
+                // At the target: the highest cell there, or the pack held at CVL
+                // (the average cell within 15 mV of the target).
+                let avg_mv = (p.pack_v * 1000.0 / n as f32) as i32;
+                let at_target = p.max_cell_mv.saturating_add(10) >= absorption
+                    || avg_mv + 15 >= i32::from(absorption);
+                let tapered = p.current_a < c.tail_current_a;
+                if at_target && tapered {
+                    let since = *self.full_since.get_or_insert(now);
+                    if now.saturating_sub(since) >= c.full_hold_us {
+                        self.phase = Phase::Float;
+                        self.full_since = None;
+                    }
+                } else {
+                    self.full_since = None;
+                }
+            }
+            Phase::Float => {
+                if p.soc_pct < c.rebulk_soc_pct {
+                    self.phase = Phase::Absorption;
+                }
+            }
+        }
+        let target = match self.phase {
+            Phase::Absorption => absorption,
+            Phase::Float => float,
+        };
+
+        // A runner: when the highest cell is above the target because it runs
+        // ahead of the others (not because the whole pack is above a lower
+        // float target), lower CVL so that the runner — not the average —
+        // settles at the target (+ tolerance). Released once the runner is
+        // clearly below the target (and then only as fast as CVL may rise).
+        let avg_mv = (p.pack_v.max(0.0) * 1000.0 / n as f32) as u32;
+        let lead_mv = u32::from(p.max_cell_mv).saturating_sub(avg_mv);
+        if p.max_cell_mv > target {
+            self.runner_offset_mv = n * lead_mv.saturating_sub(u32::from(c.runner_tolerance_mv));
+        } else if p.max_cell_mv.saturating_add(5) < target {
+            self.runner_offset_mv = 0;
+        }
+        let floor_mv = n * u32::from(s.uv_cutoff_mv);
+        let ceil_mv = n * u32::from(s.ov_cutoff_mv);
+        let cvl_mv = (n * u32::from(target))
+            .saturating_sub(self.runner_offset_mv)
+            .clamp(floor_mv, ceil_mv);
+        let mut cvl_dv = (cvl_mv / 100).max(1) as u16;
+        // Raised at most once per interval; lowered at once.
+        if let Some(last) = self.last_cvl_dv {
+            if cvl_dv > last {
+                let may = self
+                    .last_cvl_raise
+                    .is_none_or(|t| now.saturating_sub(t) >= c.cvl_raise_interval_us);
+                if may {
+                    self.last_cvl_raise = Some(now);
+                } else {
+                    cvl_dv = last;
+                }
+            }
+        }
+        self.last_cvl_dv = Some(cvl_dv);
+
+        // Current limits before tapers.
+        let cap = |cutoff_a: u16, cap: Option<u16>| {
+            let da = u32::from(cutoff_a)
+                .saturating_mul(10)
+                .min(u32::from(u16::MAX)) as u16;
+            cap.map_or(da, |c| c.min(da))
+        };
+        let ccl_max = cap(s.charge_cutoff_a, c.ccl_cap_da);
+        let dcl_max = cap(s.discharge_cutoff_a, c.dcl_cap_da);
+
+        // Tapers by cell voltage.
+        let stop_mv = i32::from(s.ov_cutoff_mv) - i32::from(c.ov_margin_mv);
+        let ccl_v = ramp_permille(
+            i32::from(p.max_cell_mv),
+            stop_mv,
+            stop_mv - i32::from(c.ccl_taper_mv),
+        );
+        let dstop_mv = i32::from(s.uv_cutoff_mv) + i32::from(c.uv_margin_mv);
+        let dcl_v = ramp_permille(
+            i32::from(p.min_cell_mv),
+            dstop_mv,
+            dstop_mv + i32::from(c.dcl_taper_mv),
+        );
+        // Temperature (°C ×10 to keep tenths).
+        let t = |x: f32| (x * 10.0) as i32;
+        let m = i32::from(c.temp_margin_c) * 10;
+        let cold = i32::from(s.low_temp_charge_c) * 10;
+        let hot = i32::from(s.overheat_c) * 10;
+        let ccl_cold = ramp_permille(t(p.min_temp_c), cold, cold + m);
+        let ccl_hot = ramp_permille(t(p.max_temp_c), hot, hot - m);
+        let dcl_hot = ramp_permille(t(p.max_temp_c), hot, hot - m);
+        let scale = |x: u16, f: u32| (u32::from(x) * f / 1000) as u16;
+        let mut ccl_target = scale(scale(scale(ccl_max, ccl_v), ccl_cold), ccl_hot);
+        let mut dcl_target = scale(scale(dcl_max, dcl_v), dcl_hot);
+        if p.fault {
+            ccl_target = 0;
+            dcl_target = 0;
+        }
+        if p.charge_blocked {
+            ccl_target = 0;
+        }
+        let ccl_da = self.ccl.step(now, ccl_target, dt_us, &c);
+        let dcl_da = self.dcl.step(now, dcl_target, dt_us, &c);
+
+        let discharge_mv = (n * u32::from(dstop_mv.max(0) as u16)).clamp(floor_mv, ceil_mv);
+        let limits = Limits {
+            cvl_dv,
+            ccl_da,
+            dcl_da,
+            discharge_dv: (discharge_mv / 100) as u16,
+        };
+
+        // Alarms and warnings: warnings a margin inside each limit.
+        let w = c.warn_margin_mv;
+        let pct = |a: u16| u32::from(a) * u32::from(c.warn_current_pct) / 100;
+        let spread = p.max_cell_mv.saturating_sub(p.min_cell_mv);
+        let charging = p.current_a > 0.5;
+        let conditions = Conditions {
+            high_voltage: level(
+                p.max_cell_mv >= s.ov_cutoff_mv,
+                p.max_cell_mv.saturating_add(w) >= s.ov_cutoff_mv,
+            ),
+            low_voltage: level(
+                p.min_cell_mv <= s.uv_cutoff_mv,
+                p.min_cell_mv <= s.uv_cutoff_mv.saturating_add(w),
+            ),
+            high_temperature: level(t(p.max_temp_c) >= hot, t(p.max_temp_c) >= hot - m),
+            // Rev D has no low-temperature discharge cutoff: below the charge
+            // cutoff is a warning (charging is blocked), never an alarm.
+            low_temperature: level(false, t(p.min_temp_c) <= cold),
+            high_temperature_charge: level(
+                charging && t(p.max_temp_c) >= hot,
+                charging && t(p.max_temp_c) >= hot - m,
+            ),
+            low_temperature_charge: level(
+                charging && t(p.min_temp_c) <= cold,
+                charging && t(p.min_temp_c) <= cold + m,
+            ),
+            high_discharge_current: level(
+                -p.current_a >= f32::from(s.discharge_cutoff_a),
+                -p.current_a >= pct(s.discharge_cutoff_a) as f32,
+            ),
+            high_charge_current: level(
+                p.current_a >= f32::from(s.charge_cutoff_a),
+                p.current_a >= pct(s.charge_cutoff_a) as f32,
+            ),
+            bms_internal: level(p.fault, false),
+            cell_imbalance: level(
+                s.allowed_disbalance_mv > 0 && spread >= s.allowed_disbalance_mv.saturating_mul(4),
+                s.allowed_disbalance_mv > 0 && spread >= s.allowed_disbalance_mv.saturating_mul(2),
+            ),
+            link_lost: 0,
+        };
+        (limits, conditions)
+    }
+}

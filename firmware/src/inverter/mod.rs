@@ -1,0 +1,476 @@
+//! The inverter output: the BMS's telemetry and settings in, CAN frames out,
+//! sans-IO like the bridge. The chip shell moves frames between this and the
+//! TWAI controller; the host runs it against a simulated pack and inverter.
+//!
+//! * [`control`] — the charge limits and alarms (the part that protects cells).
+//! * [`frames`] — the Victron and SMA Sunny Island frame layouts.
+//!
+//! Inputs: [`Inverter::on_snapshot`] (each published snapshot, with the
+//! settings), [`Inverter::on_event`] (BMS events), [`Inverter::on_received`]
+//! (frames from the bus), [`Inverter::on_tx`] / [`Inverter::on_bus_off`] (what the
+//! controller reports). Output: [`Inverter::poll`] says "send this frame now",
+//! "recover the bus now" or "wake me at T", and [`Inverter::next_report`] says
+//! what to log.
+//!
+//! **Stale data is never sent as fresh.** When the newest snapshot is older than
+//! [`InverterConfig::stale_after_us`], the configured [`StalePolicy`] applies.
+//! The default, [`StalePolicy::StopSending`], sends nothing more: a Victron GX
+//! stops charging and discharging 3 s after the last 0x351 (what Victron's own
+//! devices do on a lost battery), a Sunny Island goes to standby after 60 s
+//! without 0x355. [`StalePolicy::HoldChargeZero`] keeps the inverter running on
+//! the battery for a bounded time: CCL 0, DCL and CVL as last computed, the
+//! alarm frame saying "BMS link lost", no measurement frames; then it stops too.
+
+pub mod control;
+pub mod frames;
+
+use heapless::Deque;
+use protocol_core::events::{Event, EventId};
+use protocol_core::response::RegisterBlock;
+use protocol_core::views::{LiveSnapshot, VersionInfo};
+
+use self::control::{ChargeConfig, ChargeControl, Conditions, Limits, PackSettings, PackState};
+use self::frames::CanFrame;
+use crate::Instant;
+
+/// Which inverter protocol.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Protocol {
+    /// Victron-compatible CAN-bus BMS (500 kbit/s).
+    Victron,
+    /// SMA Sunny Island (500 kbit/s).
+    SmaSunnyIsland,
+}
+
+/// What happens when the telemetry goes stale (see the module documentation).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum StalePolicy {
+    /// Stop sending at once: the inverter sees the battery as lost and stops.
+    StopSending,
+    /// Keep sending CCL = 0 (discharge allowed) for at most this long, µs.
+    HoldChargeZero(Instant),
+}
+
+/// Inverter output settings; [`Default`] gives the documented defaults.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct InverterConfig {
+    /// CAN output on at all.
+    pub enabled: bool,
+    /// Protocol.
+    pub protocol: Protocol,
+    /// Charge control.
+    pub charge: ChargeConfig,
+    /// Telemetry older than this is stale, µs (default 5 s: 20 live periods).
+    pub stale_after_us: Instant,
+    /// What to do then.
+    pub stale_policy: StalePolicy,
+    /// Period of 0x351, 0x355, 0x356, 0x35A, µs (1 s).
+    pub fast_period_us: Instant,
+    /// Period of the other frames, µs (5 s).
+    pub slow_period_us: Instant,
+    /// The GX counts as lost after this long without its keep-alive, µs.
+    pub inverter_timeout_us: Instant,
+    /// Pause after a bus-off before the controller is recovered, µs (doubles
+    /// up to 16 × on repeated bus-offs).
+    pub bus_off_backoff_us: Instant,
+}
+
+impl Default for InverterConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            protocol: Protocol::Victron,
+            charge: ChargeConfig::default(),
+            stale_after_us: 5 * crate::SECOND,
+            stale_policy: StalePolicy::StopSending,
+            fast_period_us: crate::SECOND,
+            slow_period_us: 5 * crate::SECOND,
+            inverter_timeout_us: 5 * crate::SECOND,
+            bus_off_backoff_us: crate::SECOND,
+        }
+    }
+}
+
+/// What the shell must do next.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum InverterAction {
+    /// Transmit this frame now; report the result with [`Inverter::on_tx`].
+    Send(CanFrame),
+    /// Start the controller's bus-off recovery now.
+    Recover,
+    /// Nothing until this time (or until something is reported).
+    WaitUntil(Instant),
+}
+
+/// Result of one transmission.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum TxResult {
+    /// Sent (acknowledged by another node).
+    Sent,
+    /// Not acknowledged / error: the controller counts it (error-passive when no
+    /// other node is on the bus).
+    Failed,
+}
+
+/// What the inverter output tells the log.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum InverterReport {
+    /// The inverter's keep-alive is heard.
+    InverterSeen,
+    /// No keep-alive for the timeout.
+    InverterLost,
+    /// Telemetry stale: what is being done about it.
+    Stale {
+        /// Age of the newest snapshot, ms.
+        age_ms: u32,
+        /// The policy applied.
+        policy: StalePolicy,
+    },
+    /// Hold-charge-zero time is up: sending stopped.
+    StaleHoldEnded,
+    /// Fresh telemetry again: sending resumed.
+    Fresh,
+    /// Transmissions fail (no other node acknowledges: error-passive).
+    NoAck {
+        /// Failed transmissions in a row.
+        failures: u32,
+    },
+    /// Transmissions succeed again.
+    BusOk,
+    /// The controller went bus-off; recovery is scheduled.
+    BusOff {
+        /// Bus-offs so far.
+        count: u32,
+        /// Pause before recovery, ms.
+        backoff_ms: u32,
+    },
+    /// New limits (logged when they change).
+    Limits(Limits),
+}
+
+/// Frames in one burst at most.
+const QUEUE: usize = 10;
+/// Failed transmissions in a row before "no ACK" is reported (and sending slows
+/// to the fast period only).
+const NO_ACK_AFTER: u32 = 8;
+
+/// The inverter output. See the module documentation.
+#[derive(Debug, Clone)]
+pub struct Inverter {
+    config: InverterConfig,
+    control: ChargeControl,
+    settings: Option<PackSettings>,
+    state: Option<(PackState, Instant)>,
+    firmware: u16,
+    hardware: u16,
+    limits: Option<Limits>,
+    logged_limits: Option<Limits>,
+    conditions: Conditions,
+    charge_blocked: Option<EventId>,
+    queue: Deque<CanFrame, QUEUE>,
+    next_fast: Instant,
+    next_slow: Instant,
+    stale_since: Option<Instant>,
+    hold_ended: bool,
+    inverter_seen_at: Option<Instant>,
+    inverter_seen: bool,
+    tx_failures: u32,
+    no_ack_reported: bool,
+    bus_off: Option<Instant>,
+    bus_offs: u32,
+    frames_sent: u32,
+    reports: Deque<InverterReport, 8>,
+}
+
+impl Inverter {
+    /// An inverter output at `now`, with nothing to send until the first
+    /// snapshot with settings.
+    pub fn new(config: InverterConfig, now: Instant) -> Self {
+        Self {
+            config,
+            control: ChargeControl::new(config.charge),
+            settings: None,
+            state: None,
+            firmware: 0,
+            hardware: 0,
+            limits: None,
+            logged_limits: None,
+            conditions: Conditions::default(),
+            charge_blocked: None,
+            queue: Deque::new(),
+            next_fast: now,
+            next_slow: now,
+            stale_since: None,
+            hold_ended: false,
+            inverter_seen_at: None,
+            inverter_seen: false,
+            tx_failures: 0,
+            no_ack_reported: false,
+            bus_off: None,
+            bus_offs: 0,
+            frames_sent: 0,
+            reports: Deque::new(),
+        }
+    }
+
+    /// The limits last computed.
+    pub fn limits(&self) -> Option<Limits> {
+        self.limits
+    }
+
+    /// Alarms and warnings last computed.
+    pub fn conditions(&self) -> Conditions {
+        self.conditions
+    }
+
+    /// Absorption or float.
+    pub fn phase(&self) -> control::Phase {
+        self.control.phase()
+    }
+
+    /// Frames transmitted successfully.
+    pub fn frames_sent(&self) -> u32 {
+        self.frames_sent
+    }
+
+    /// The next report to log.
+    pub fn next_report(&mut self) -> Option<InverterReport> {
+        self.reports.pop_front()
+    }
+
+    fn report(&mut self, r: InverterReport) {
+        if self.reports.is_full() {
+            let _ = self.reports.pop_front();
+        }
+        let _ = self.reports.push_back(r);
+    }
+
+    /// A published snapshot, decoded at `taken_at`, with the settings block
+    /// (300-343) and the version when known.
+    pub fn on_snapshot(
+        &mut self,
+        taken_at: Instant,
+        snapshot: &LiveSnapshot,
+        settings: &RegisterBlock,
+        version: Option<&VersionInfo>,
+    ) {
+        if let Some(s) = PackSettings::from_registers(settings) {
+            self.settings = Some(s);
+        }
+        let mut p = PackState::from_snapshot(snapshot);
+        if !p.fault {
+            // The fault cleared: so did any charge-side fault event.
+            self.charge_blocked = None;
+        }
+        p.charge_blocked = self.charge_blocked.is_some();
+        self.state = Some((p, taken_at));
+        if let Some(v) = version {
+            self.firmware = u16::from(v.firmware_public);
+            self.hardware = u16::from_le_bytes([v.hardware, v.hardware_changes]);
+        }
+    }
+
+    /// A BMS event: charge-side fault events block charging until the BMS
+    /// reports the matching recovery (or its status leaves "fault").
+    pub fn on_event(&mut self, e: &Event) {
+        match e.id {
+            EventId::OverVoltageCutoff
+            | EventId::ChargingOverCurrentCutoff
+            | EventId::LowTemperatureCutoff
+            | EventId::RegenerationOverCurrentCutoff => self.charge_blocked = Some(e.id),
+            EventId::RecoveredOverVoltage
+            | EventId::RecoveredChargingOverCurrent
+            | EventId::RecoveredLowTemperatureFault
+            | EventId::RecoveredRegenerationOverCurrent => self.charge_blocked = None,
+            _ => {}
+        }
+    }
+
+    /// A frame from the bus (the GX keep-alive).
+    pub fn on_received(&mut self, now: Instant, id: u16, _data: &[u8]) {
+        if id == frames::ID_GX_KEEPALIVE || id == frames::ID_GX_KEEPALIVE_2 {
+            self.inverter_seen_at = Some(now);
+            if !self.inverter_seen {
+                self.inverter_seen = true;
+                self.report(InverterReport::InverterSeen);
+            }
+        }
+    }
+
+    /// Result of the last [`InverterAction::Send`].
+    pub fn on_tx(&mut self, _now: Instant, result: TxResult) {
+        match result {
+            TxResult::Sent => {
+                self.frames_sent = self.frames_sent.wrapping_add(1);
+                if self.no_ack_reported {
+                    self.report(InverterReport::BusOk);
+                }
+                self.tx_failures = 0;
+                self.no_ack_reported = false;
+            }
+            TxResult::Failed => {
+                self.tx_failures = self.tx_failures.saturating_add(1);
+                if self.tx_failures >= NO_ACK_AFTER && !self.no_ack_reported {
+                    self.no_ack_reported = true;
+                    let failures = self.tx_failures;
+                    self.report(InverterReport::NoAck { failures });
+                }
+                // Whatever was queued is not retried: the next period sends
+                // fresh values (never stale ones late).
+                self.queue.clear();
+            }
+        }
+    }
+
+    /// The controller went bus-off.
+    pub fn on_bus_off(&mut self, now: Instant) {
+        self.bus_offs = self.bus_offs.saturating_add(1);
+        let shift = self.bus_offs.saturating_sub(1).min(4);
+        let backoff = self.config.bus_off_backoff_us.saturating_mul(1 << shift);
+        self.bus_off = Some(now.saturating_add(backoff));
+        self.queue.clear();
+        let count = self.bus_offs;
+        self.report(InverterReport::BusOff {
+            count,
+            backoff_ms: (backoff / crate::MS).min(u64::from(u32::MAX)) as u32,
+        });
+    }
+
+    /// What to do now.
+    pub fn poll(&mut self, now: Instant) -> InverterAction {
+        if !self.config.enabled {
+            return InverterAction::WaitUntil(Instant::MAX);
+        }
+        self.check_inverter(now);
+        if let Some(t) = self.bus_off {
+            if now < t {
+                return InverterAction::WaitUntil(t);
+            }
+            self.bus_off = None;
+            return InverterAction::Recover;
+        }
+        if let Some(f) = self.queue.pop_front() {
+            return InverterAction::Send(f);
+        }
+        if now >= self.next_fast {
+            self.next_fast = now.saturating_add(self.config.fast_period_us);
+            let slow = now >= self.next_slow;
+            if slow {
+                self.next_slow = now.saturating_add(self.config.slow_period_us);
+            }
+            self.fill(now, slow);
+            if let Some(f) = self.queue.pop_front() {
+                return InverterAction::Send(f);
+            }
+        }
+        let mut wake = self.next_fast;
+        if let Some(t) = self.inverter_seen_at {
+            if self.inverter_seen {
+                wake = wake.min(t.saturating_add(self.config.inverter_timeout_us));
+            }
+        }
+        InverterAction::WaitUntil(wake.max(now.saturating_add(1)))
+    }
+
+    fn check_inverter(&mut self, now: Instant) {
+        if let Some(t) = self.inverter_seen_at {
+            if self.inverter_seen && now.saturating_sub(t) >= self.config.inverter_timeout_us {
+                self.inverter_seen = false;
+                self.report(InverterReport::InverterLost);
+            }
+        }
+    }
+
+    /// Computes the limits and queues this period's frames.
+    fn fill(&mut self, now: Instant, slow: bool) {
+        let (Some(settings), Some((state, taken_at))) = (self.settings, self.state) else {
+            return; // nothing the BMS said yet: nothing to send
+        };
+        let age = now.saturating_sub(taken_at);
+        let stale = age > self.config.stale_after_us;
+        if stale {
+            let since = *self.stale_since.get_or_insert(now);
+            if since == now {
+                self.report(InverterReport::Stale {
+                    age_ms: (age / crate::MS).min(u64::from(u32::MAX)) as u32,
+                    policy: self.config.stale_policy,
+                });
+            }
+            match self.config.stale_policy {
+                StalePolicy::StopSending => {}
+                StalePolicy::HoldChargeZero(max) => {
+                    if now.saturating_sub(since) <= max {
+                        self.queue_hold();
+                    } else if !self.hold_ended {
+                        self.hold_ended = true;
+                        self.report(InverterReport::StaleHoldEnded);
+                    }
+                }
+            }
+            return;
+        }
+        if self.stale_since.take().is_some() {
+            self.hold_ended = false;
+            self.report(InverterReport::Fresh);
+        }
+        let (limits, mut conditions) = self.control.update(now, &settings, &state);
+        conditions.link_lost = 0;
+        self.limits = Some(limits);
+        self.conditions = conditions;
+        if self.logged_limits != Some(limits) {
+            self.logged_limits = Some(limits);
+            self.report(InverterReport::Limits(limits));
+        }
+        let capacity_ah = settings.capacity_cah / 100;
+        let mut push = |f: CanFrame| {
+            let _ = self.queue.push_back(f);
+        };
+        push(frames::limits(&limits));
+        match self.config.protocol {
+            Protocol::Victron => {
+                push(frames::victron_alarms(&conditions));
+                push(frames::soc(&state));
+                push(frames::measurements(&state));
+                if slow {
+                    push(frames::name());
+                    push(frames::victron_info(self.firmware, capacity_ah));
+                    push(frames::modules(&limits, true));
+                    push(frames::cell_extremes(&state));
+                    push(frames::capacity(capacity_ah));
+                }
+            }
+            Protocol::SmaSunnyIsland => {
+                push(frames::sma_alarms(&conditions));
+                push(frames::soc(&state));
+                push(frames::measurements(&state));
+                if slow {
+                    push(frames::name());
+                    push(frames::sma_info(self.hardware, capacity_ah, self.firmware));
+                }
+            }
+        }
+    }
+
+    /// Stale, holding: CCL 0, the rest as last computed, "link lost" flagged;
+    /// no measurement frame (those would be stale values sent as fresh).
+    fn queue_hold(&mut self) {
+        let Some(last) = self.limits else {
+            return;
+        };
+        let held = Limits { ccl_da: 0, ..last };
+        self.limits = Some(held);
+        let mut c = self.conditions;
+        c.link_lost = 1;
+        let _ = self.queue.push_back(frames::limits(&held));
+        let alarms = match self.config.protocol {
+            Protocol::Victron => frames::victron_alarms(&c),
+            Protocol::SmaSunnyIsland => frames::sma_alarms(&c),
+        };
+        let _ = self.queue.push_back(alarms);
+    }
+}

@@ -1,0 +1,347 @@
+//! The inverter output in a closed loop, on the desk: the firmware's bridge
+//! reads the simulated TinyBMS, the firmware's [`Inverter`] turns its telemetry
+//! into CAN frames, and an inverter/charger model obeys those frames the way a
+//! Victron system does and drives the simulated pack's current. Everything in
+//! virtual time.
+//!
+//! The inverter model: it charges at min(CCL, charger maximum) until the pack
+//! reaches CVL, then holds CVL with a tapering current (a constant-voltage
+//! stage); a load discharges within DCL; without a 0x351 for 3 s it stops
+//! charging and discharging (what a GX does on a lost battery).
+
+use std::collections::BTreeMap;
+use std::io::Write;
+
+use tinybms_firmware::config::Config;
+use tinybms_firmware::inverter::frames::{self, CanFrame};
+use tinybms_firmware::inverter::{
+    Inverter, InverterAction, InverterConfig, InverterReport, TxResult,
+};
+use tinybms_firmware::Report;
+
+use crate::harness::Harness;
+use crate::sim::{PackProfile, SimBms, SimConfig};
+
+/// How often the loop advances, µs (the inverter model's control step).
+pub const STEP_US: u64 = 100_000;
+
+/// A Victron-like inverter/charger.
+#[derive(Debug, Clone)]
+pub struct InverterModel {
+    /// Largest charge current the charger can deliver, A.
+    pub charger_max_a: f64,
+    /// Discharge demand of the loads, A.
+    pub load_a: f64,
+    /// Pack resistance it assumes for its constant-voltage stage, Ω.
+    pub r_pack: f64,
+    /// Last 0x351: (CVL V, CCL A, DCL A) and when it came.
+    pub last_limits: Option<(f64, f64, f64, u64)>,
+    /// The current it draws now, A (positive = charging the pack).
+    pub current_a: f64,
+}
+
+/// Gain of the model's constant-voltage regulator, A per volt of error per
+/// second.
+pub const CV_GAIN_A_PER_V_S: f64 = 40.0;
+
+/// A GX stops charging and discharging when 0x351 is missing this long, µs.
+pub const GX_LIMITS_TIMEOUT_US: u64 = 3_000_000;
+
+impl InverterModel {
+    /// A charger of `charger_max_a` with no load.
+    pub fn new(charger_max_a: f64, r_pack: f64) -> Self {
+        Self {
+            charger_max_a,
+            load_a: 0.0,
+            r_pack,
+            last_limits: None,
+            current_a: 0.0,
+        }
+    }
+
+    /// A frame the bridge sent.
+    pub fn on_frame(&mut self, now: u64, f: &CanFrame) {
+        if f.id == frames::ID_LIMITS && f.len >= 6 {
+            let d = f.data;
+            let cvl = f64::from(u16::from_le_bytes([d[0], d[1]])) * 0.1;
+            let ccl = f64::from(i16::from_le_bytes([d[2], d[3]])) * 0.1;
+            let dcl = f64::from(i16::from_le_bytes([d[4], d[5]])) * 0.1;
+            self.last_limits = Some((cvl, ccl.max(0.0), dcl.max(0.0), now));
+        }
+    }
+
+    /// The current for the next step, given the pack voltage the inverter
+    /// measures (it uses its own readings, like a real one).
+    pub fn step(&mut self, now: u64, pack_v: f64) -> f64 {
+        let Some((cvl, ccl, dcl, at)) = self.last_limits else {
+            self.current_a = 0.0;
+            return 0.0;
+        };
+        if now.saturating_sub(at) > GX_LIMITS_TIMEOUT_US {
+            self.current_a = 0.0;
+            return 0.0;
+        }
+        let i = if self.load_a > 0.0 {
+            -self.load_a.min(dcl)
+        } else {
+            // Constant current up to CVL, then constant voltage: an integrating
+            // voltage regulator (as a charger's CV stage), bounded by CCL and the
+            // charger's maximum.
+            let dt_s = STEP_US as f64 / 1e6;
+            let next = self.current_a.max(0.0) + CV_GAIN_A_PER_V_S * (cvl - pack_v) * dt_s;
+            next.clamp(0.0, self.charger_max_a.min(ccl))
+        };
+        self.current_a = i;
+        i
+    }
+}
+
+/// Figures of one closed-loop run.
+#[derive(Debug, Clone, Default)]
+pub struct LoopFigures {
+    /// Highest cell seen in any snapshot, mV.
+    pub max_cell_mv: u16,
+    /// Highest cell allowed (315 − margin), mV.
+    pub max_allowed_mv: u16,
+    /// Lowest CVL sent, 0.1 V.
+    pub min_cvl_dv: Option<u16>,
+    /// Highest CVL sent, 0.1 V.
+    pub max_cvl_dv: Option<u16>,
+    /// CVL changes sent.
+    pub cvl_changes: u32,
+    /// Time of the switch to float, µs.
+    pub float_at_us: Option<u64>,
+    /// Frames on the bus.
+    pub frames: u64,
+    /// Bits on the bus (frames with stuffing estimated at 20 %).
+    pub bits: u64,
+    /// 0x351 frames sent while the telemetry was stale.
+    pub stale_frames: u64,
+    /// Reports of the inverter output.
+    pub reports: Vec<(u64, InverterReport)>,
+}
+
+impl LoopFigures {
+    /// Bus load at 500 kbit/s over `duration_us`, percent.
+    pub fn bus_load_percent(&self, duration_us: u64) -> f64 {
+        if duration_us == 0 {
+            return 0.0;
+        }
+        self.bits as f64 / (duration_us as f64 / 1e6 * 500_000.0) * 100.0
+    }
+    /// CVL changes per hour over `duration_us`.
+    pub fn cvl_changes_per_hour(&self, duration_us: u64) -> f64 {
+        self.cvl_changes as f64 / (duration_us as f64 / 3.6e9).max(1e-9)
+    }
+}
+
+/// Bits of a classic base-format CAN frame with `len` data bytes: 47 + 8·len,
+/// plus about 20 % bit stuffing.
+pub fn frame_bits(len: u8) -> u64 {
+    let raw = 47 + 8 * u64::from(len);
+    raw + raw / 5
+}
+
+/// The bridge, the simulated BMS, the inverter output and the inverter model.
+pub struct ClosedLoop {
+    /// Bridge and simulated BMS.
+    pub h: Harness,
+    /// The firmware's inverter output.
+    pub inverter: Inverter,
+    /// The inverter/charger.
+    pub model: InverterModel,
+    /// Figures so far.
+    pub figures: LoopFigures,
+    /// Every limits frame (time, CVL dV, CCL dA, DCL dA) as sent.
+    pub sent_limits: Vec<(u64, u16, u16, u16)>,
+    /// A candump log being written (`--can-log`).
+    pub can_log: Option<Box<dyn Write>>,
+    /// A JSON Lines log being written (`--json`).
+    pub json_log: Option<Box<dyn Write>>,
+    /// The CAN controller is bus-off until this time (a scenario's fault).
+    pub bus_off_until: Option<u64>,
+    seen_seq: u32,
+    log_seen: usize,
+    last_cvl: Option<u16>,
+}
+
+/// Epoch of the candump timestamps (virtual time 0), s.
+pub const CANDUMP_EPOCH_S: u64 = 1_700_000_000;
+
+impl ClosedLoop {
+    /// A loop with a simulated 16S LiFePO4 pack (or `profile`) and a charger.
+    pub fn new(
+        profile: PackProfile,
+        seed: u64,
+        inverter: InverterConfig,
+        charger_max_a: f64,
+    ) -> Self {
+        let mut sim = SimBms::new(profile, SimConfig::default(), seed);
+        sim.set_external_current(Some(0.0));
+        let cells = profile.cell_count() as f64;
+        let r_cell = match profile {
+            PackProfile::LiFePO4_16S => 0.0003,
+            PackProfile::LiIon_14S => 0.0015,
+        };
+        let mut h = Harness::with_config(sim, Config::default());
+        h.retain = true;
+        Self {
+            h,
+            inverter: Inverter::new(inverter, 0),
+            model: InverterModel::new(charger_max_a, (cells * r_cell).max(0.001)),
+            figures: LoopFigures::default(),
+            sent_limits: Vec::new(),
+            can_log: None,
+            json_log: None,
+            bus_off_until: None,
+            seen_seq: 0,
+            log_seen: 0,
+            last_cvl: None,
+        }
+    }
+
+    /// Runs until virtual time `end_us`.
+    pub fn run_until(&mut self, end_us: u64) {
+        while self.h.now < end_us {
+            let t = (self.h.now + STEP_US).min(end_us);
+            self.h.run_until(t);
+            self.feed_inverter();
+            self.pump_can(t);
+            let pack_v = f64::from(
+                self.h
+                    .bridge
+                    .telemetry()
+                    .snapshot
+                    .as_ref()
+                    .map_or(0.0, |s| s.pack_voltage_v),
+            );
+            let i = self.model.step(t, pack_v);
+            self.h.sim.set_external_current(Some(i));
+        }
+    }
+
+    fn feed_inverter(&mut self) {
+        // Events from the bridge's log.
+        while self.log_seen < self.h.log.len() {
+            if let Some(Report::NewEvent(e)) = self.h.log.get(self.log_seen).map(|l| &l.report) {
+                self.inverter.on_event(e);
+            }
+            self.log_seen += 1;
+        }
+        let t = self.h.bridge.telemetry();
+        if t.snapshot_seq == self.seen_seq {
+            return;
+        }
+        self.seen_seq = t.snapshot_seq;
+        let (Some(s), Some(at), Some(settings)) = (&t.snapshot, t.snapshot_at, &t.settings) else {
+            return;
+        };
+        let mv = |raw: u16| raw.saturating_add(5) / 10;
+        if let Some((_, raw)) = s.cells.max() {
+            self.figures.max_cell_mv = self.figures.max_cell_mv.max(mv(raw));
+        }
+        self.inverter
+            .on_snapshot(at, s, settings, t.version.as_ref());
+        if let Some(w) = self.json_log.as_mut() {
+            if let Some(b) = &t.live_registers {
+                let regs: BTreeMap<u16, u16> = b.iter().collect();
+                let mut v = crate::replay::register_values(&regs);
+                v.insert("t_s".into(), serde_json::json!(at as f64 / 1e6));
+                if let Some(l) = self.inverter.limits() {
+                    v.insert(
+                        "cvl_v".into(),
+                        serde_json::json!(f64::from(l.cvl_dv) / 10.0),
+                    );
+                    v.insert(
+                        "ccl_a".into(),
+                        serde_json::json!(f64::from(l.ccl_da) / 10.0),
+                    );
+                    v.insert(
+                        "dcl_a".into(),
+                        serde_json::json!(f64::from(l.dcl_da) / 10.0),
+                    );
+                }
+                let _ = writeln!(w, "{}", serde_json::Value::Object(v));
+            }
+        }
+    }
+
+    fn pump_can(&mut self, now: u64) {
+        if let Some(until) = self.bus_off_until {
+            if now < until {
+                // Frames fail while the bus is down; the controller went bus-off.
+                return;
+            }
+            self.bus_off_until = None;
+        }
+        for _ in 0..32 {
+            match self.inverter.poll(now) {
+                InverterAction::Send(f) => {
+                    self.inverter.on_tx(now, TxResult::Sent);
+                    self.figures.frames += 1;
+                    self.figures.bits += frame_bits(f.len);
+                    self.model.on_frame(now, &f);
+                    if f.id == frames::ID_LIMITS {
+                        let d = f.data;
+                        let cvl = u16::from_le_bytes([d[0], d[1]]);
+                        let ccl = u16::from_le_bytes([d[2], d[3]]);
+                        let dcl = u16::from_le_bytes([d[4], d[5]]);
+                        self.sent_limits.push((now, cvl, ccl, dcl));
+                        self.figures.min_cvl_dv =
+                            Some(self.figures.min_cvl_dv.map_or(cvl, |m| m.min(cvl)));
+                        self.figures.max_cvl_dv =
+                            Some(self.figures.max_cvl_dv.map_or(cvl, |m| m.max(cvl)));
+                        if self.last_cvl.is_some_and(|c| c != cvl) {
+                            self.figures.cvl_changes += 1;
+                        }
+                        self.last_cvl = Some(cvl);
+                        let stale = self
+                            .h
+                            .bridge
+                            .telemetry()
+                            .snapshot_age_us(now)
+                            .is_none_or(|a| a > 5_000_000);
+                        if stale {
+                            self.figures.stale_frames += 1;
+                        }
+                    }
+                    if let Some(w) = self.can_log.as_mut() {
+                        let _ = writeln!(w, "{}", candump_line(now, &f));
+                    }
+                }
+                InverterAction::Recover => {}
+                InverterAction::WaitUntil(_) => break,
+            }
+        }
+        while let Some(r) = self.inverter.next_report() {
+            if self.figures.float_at_us.is_none()
+                && self.inverter.phase() == tinybms_firmware::inverter::control::Phase::Float
+            {
+                self.figures.float_at_us = Some(now);
+            }
+            self.figures.reports.push((now, r));
+        }
+        if self.figures.float_at_us.is_none()
+            && self.inverter.phase() == tinybms_firmware::inverter::control::Phase::Float
+        {
+            self.figures.float_at_us = Some(now);
+        }
+    }
+
+    /// The CAN controller goes bus-off now for `duration_us` (the inverter
+    /// output is told; the loop delivers nothing meanwhile).
+    pub fn bus_off(&mut self, duration_us: u64) {
+        let now = self.h.now;
+        self.inverter.on_bus_off(now);
+        self.bus_off_until = Some(now + duration_us);
+    }
+}
+
+/// One line of a candump log file (`candump -l` format), readable by can-utils'
+/// `canplayer`/`log2asc`, python-can and cantools.
+pub fn candump_line(now_us: u64, f: &CanFrame) -> String {
+    let secs = CANDUMP_EPOCH_S + now_us / 1_000_000;
+    let micros = now_us % 1_000_000;
+    let data: String = f.bytes().iter().map(|b| format!("{b:02X}")).collect();
+    format!("({secs}.{micros:06}) can0 {:03X}#{data}", f.id)
+}
