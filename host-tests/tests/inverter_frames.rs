@@ -1,0 +1,529 @@
+//! The inverter frames byte by byte, the DBC files against the encoder, and the
+//! properties of charge control.
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    clippy::indexing_slicing
+)]
+
+use std::collections::BTreeMap;
+
+use proptest::prelude::*;
+use tinybms_firmware::inverter::control::{
+    ChargeConfig, ChargeControl, Conditions, Limits, PackSettings, PackState,
+};
+use tinybms_firmware::inverter::frames::{self, CanFrame};
+
+const S: u64 = 1_000_000;
+
+fn lfp_settings() -> PackSettings {
+    PackSettings {
+        fully_charged_mv: 3650,
+        capacity_cah: 28000,
+        cells: 16,
+        allowed_disbalance_mv: 15,
+        ov_cutoff_mv: 3650,
+        uv_cutoff_mv: 2500,
+        discharge_cutoff_a: 150,
+        charge_cutoff_a: 90,
+        overheat_c: 60,
+        low_temp_charge_c: 0,
+    }
+}
+
+fn state() -> PackState {
+    PackState {
+        min_cell_mv: 3301,
+        max_cell_mv: 3312,
+        pack_v: 52.91,
+        current_a: -25.5,
+        soc_pct: 65.4,
+        soh_pct: 97.0,
+        min_temp_c: 24.5,
+        max_temp_c: 27.0,
+        fault: false,
+        charge_blocked: false,
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Byte-exact vectors (little-endian; worked by hand).
+// ---------------------------------------------------------------------------
+
+#[test]
+fn frame_0x351_limits() {
+    // CVL 56.8 V = 568 = 0x0238; CCL 60.0 A = 600 = 0x0258; DCL 150.0 A =
+    // 1500 = 0x05DC; discharge voltage 41.6 V = 416 = 0x01A0.
+    let f = frames::limits(&Limits {
+        cvl_dv: 568,
+        ccl_da: 600,
+        dcl_da: 1500,
+        discharge_dv: 416,
+    });
+    assert_eq!((f.id, f.len), (0x351, 8));
+    assert_eq!(f.bytes(), &[0x38, 0x02, 0x58, 0x02, 0xDC, 0x05, 0xA0, 0x01]);
+}
+
+#[test]
+fn frame_0x355_soc() {
+    // SOC 65 % (65.4 rounded down), SOH 97 %, SOC 65.40 % = 6540 = 0x198C.
+    let f = frames::soc(&state());
+    assert_eq!((f.id, f.len), (0x355, 6));
+    assert_eq!(f.bytes(), &[0x41, 0x00, 0x61, 0x00, 0x8C, 0x19]);
+}
+
+#[test]
+fn frame_0x356_measurements() {
+    // 52.91 V = 5291 = 0x14AB; -25.5 A = -255 = 0xFF01; 27.0 °C = 270 = 0x010E.
+    let f = frames::measurements(&state());
+    assert_eq!((f.id, f.len), (0x356, 6));
+    assert_eq!(f.bytes(), &[0xAB, 0x14, 0x01, 0xFF, 0x0E, 0x01]);
+}
+
+#[test]
+fn frame_0x35a_victron_all_ok() {
+    // Every supported field OK (0b10); contactor and short circuit not
+    // supported (0b00); system status OK: byte 0 = 10 10 10 10 = 0xAA, byte 1 =
+    // 0xAA, byte 2 = 10 00 00 10 = 0x82, byte 3 = 0x02; warnings the same, and
+    // byte 7 also has the system-status OK (bits 2-3 = 10): 0x0A.
+    let f = frames::victron_alarms(&Conditions::default());
+    assert_eq!((f.id, f.len), (0x35A, 8));
+    assert_eq!(f.bytes(), &[0xAA, 0xAA, 0x82, 0x02, 0xAA, 0xAA, 0x82, 0x0A]);
+}
+
+#[test]
+fn frame_0x35a_victron_high_voltage_alarm_and_imbalance_warning() {
+    let c = Conditions {
+        high_voltage: 2,
+        cell_imbalance: 1,
+        link_lost: 1,
+        ..Conditions::default()
+    };
+    let f = frames::victron_alarms(&c);
+    // Byte 0: general active (01), high voltage active (01 << 2), low voltage
+    // OK (10 << 4), high temperature OK (10 << 6) = 0b10_10_01_01 = 0xA5.
+    // Byte 3: imbalance alarm OK = 0x02; byte 7: imbalance warning active (01),
+    // system status offline active (01 << 2) = 0x05. Byte 4: general warning
+    // active, high voltage warning active = 0xA5.
+    assert_eq!(f.bytes(), &[0xA5, 0xAA, 0x82, 0x02, 0xA5, 0xAA, 0x82, 0x05]);
+}
+
+#[test]
+fn frame_0x35a_sma_flags_only_real_faults_as_alarms() {
+    // Over-heat alarm (a real fault): alarm flag bit 6 of byte 0 + general
+    // (bit 0); warning flags the same. A charge over-current alarm is a warning
+    // only for the Sunny Island (any alarm stops it until a manual restart).
+    let c = Conditions {
+        high_temperature: 2,
+        high_charge_current: 2,
+        ..Conditions::default()
+    };
+    let f = frames::sma_alarms(&c);
+    assert_eq!((f.id, f.len), (0x35A, 8));
+    assert_eq!(f.bytes(), &[0x41, 0x00, 0x00, 0x00, 0x41, 0x00, 0x01, 0x00]);
+    let ok = frames::sma_alarms(&Conditions::default());
+    assert_eq!(ok.bytes(), &[0; 8]);
+}
+
+#[test]
+fn frame_0x35e_name_is_not_pylon() {
+    let f = frames::name();
+    assert_eq!((f.id, f.len), (0x35E, 8));
+    assert_eq!(f.bytes(), b"TINYBMS ");
+}
+
+#[test]
+fn frame_0x35f_victron_and_sma() {
+    // Victron: model 0, firmware 20 = 0x0014, capacity 280 Ah = 0x0118.
+    let v = frames::victron_info(20, 280);
+    assert_eq!((v.id, v.len), (0x35F, 6));
+    assert_eq!(v.bytes(), &[0x00, 0x00, 0x14, 0x00, 0x18, 0x01]);
+    // SMA: "Li", hardware 1.0 = 0x0001, 280 Ah, software 20.
+    let s = frames::sma_info(0x0001, 280, 20);
+    assert_eq!((s.id, s.len), (0x35F, 8));
+    assert_eq!(s.bytes(), &[b'L', b'i', 0x01, 0x00, 0x18, 0x01, 0x14, 0x00]);
+}
+
+#[test]
+fn frames_0x372_0x373_0x379() {
+    let l = Limits {
+        cvl_dv: 568,
+        ccl_da: 0,
+        dcl_da: 1500,
+        discharge_dv: 416,
+    };
+    // One module online, blocking charge (CCL 0), not discharge, none offline.
+    let m = frames::modules(&l, true);
+    assert_eq!((m.id, m.len), (0x372, 8));
+    assert_eq!(m.bytes(), &[1, 0, 1, 0, 0, 0, 0, 0]);
+    // 3301 mV = 0x0CE5, 3312 mV = 0x0CF0, 24.5 °C = 297.65 K -> 298 = 0x012A,
+    // 27.0 °C = 300.15 K -> 300 = 0x012C.
+    let c = frames::cell_extremes(&state());
+    assert_eq!((c.id, c.len), (0x373, 8));
+    assert_eq!(c.bytes(), &[0xE5, 0x0C, 0xF0, 0x0C, 0x2A, 0x01, 0x2C, 0x01]);
+    let k = frames::capacity(280);
+    assert_eq!((k.id, k.len), (0x379, 2));
+    assert_eq!(k.bytes(), &[0x18, 0x01]);
+}
+
+#[test]
+fn candump_lines_are_what_can_utils_write() {
+    let f = frames::limits(&Limits {
+        cvl_dv: 568,
+        ccl_da: 600,
+        dcl_da: 1500,
+        discharge_dv: 416,
+    });
+    assert_eq!(
+        host_tests::closed_loop::candump_line(1_250_000, &f),
+        "(1700000001.250000) can0 351#38025802DC05A001"
+    );
+}
+
+// ---------------------------------------------------------------------------
+// The DBC files describe exactly what the encoder sends.
+// ---------------------------------------------------------------------------
+
+#[derive(Debug)]
+struct Signal {
+    name: String,
+    start: u32,
+    len: u32,
+    signed: bool,
+    factor: f64,
+    offset: f64,
+}
+
+fn parse_dbc(text: &str) -> BTreeMap<u16, (u8, Vec<Signal>)> {
+    let mut out = BTreeMap::new();
+    let mut current: Option<u16> = None;
+    for line in text.lines() {
+        let t = line.trim();
+        if let Some(rest) = t.strip_prefix("BO_ ") {
+            let mut it = rest.split_whitespace();
+            let id: u16 = it.next().unwrap().parse().unwrap();
+            let dlc: u8 = it.nth(1).unwrap().parse().unwrap();
+            out.insert(id, (dlc, Vec::new()));
+            current = Some(id);
+        } else if let Some(rest) = t.strip_prefix("SG_ ") {
+            let (name, def) = rest.split_once(" : ").unwrap();
+            let (pos, rest) = def.split_once('@').unwrap();
+            let (start, len) = pos.split_once('|').unwrap();
+            assert!(rest.starts_with('1'), "little-endian only: {t}");
+            let signed = rest[1..].starts_with('-');
+            let scale = &rest[rest.find('(').unwrap() + 1..rest.find(')').unwrap()];
+            let (factor, offset) = scale.split_once(',').unwrap();
+            out.get_mut(&current.unwrap()).unwrap().1.push(Signal {
+                name: name.trim().to_string(),
+                start: start.parse().unwrap(),
+                len: len.parse().unwrap(),
+                signed,
+                factor: factor.parse().unwrap(),
+                offset: offset.parse().unwrap(),
+            });
+        } else if t.is_empty() {
+            current = None;
+        }
+    }
+    out
+}
+
+fn decode(f: &CanFrame, s: &Signal) -> f64 {
+    let raw = u64::from_le_bytes(f.data);
+    let mask = if s.len == 64 {
+        u64::MAX
+    } else {
+        (1u64 << s.len) - 1
+    };
+    let v = (raw >> s.start) & mask;
+    let v = if s.signed && v >> (s.len - 1) & 1 == 1 {
+        v as i64 - (1i64 << s.len)
+    } else {
+        v as i64
+    };
+    v as f64 * s.factor + s.offset
+}
+
+fn check_dbc(path: &str, sent: &[CanFrame], expect: &[(&str, f64)]) {
+    let text = std::fs::read_to_string(path).unwrap();
+    let dbc = parse_dbc(&text);
+    let mut seen = Vec::new();
+    for f in sent {
+        let (dlc, signals) = dbc
+            .get(&f.id)
+            .unwrap_or_else(|| panic!("{:03X} not in {path}", f.id));
+        assert_eq!(*dlc, f.len, "{:03X} length in {path}", f.id);
+        // Every bit the encoder may set is described by some signal.
+        let mut covered = 0u64;
+        for s in signals {
+            let mask = if s.len == 64 {
+                u64::MAX
+            } else {
+                ((1u64 << s.len) - 1) << s.start
+            };
+            covered |= mask;
+        }
+        let used = u64::from_le_bytes(f.data);
+        assert_eq!(
+            used & !covered,
+            0,
+            "{:03X}: undocumented bits in {path}",
+            f.id
+        );
+        for s in signals {
+            seen.push((s.name.clone(), decode(f, s)));
+        }
+    }
+    for (name, want) in expect {
+        let got = seen
+            .iter()
+            .find(|(n, _)| n == name)
+            .unwrap_or_else(|| panic!("{name} not in {path}"))
+            .1;
+        assert!(
+            (got - want).abs() < 1e-6,
+            "{name}: {got} != {want} ({path})"
+        );
+    }
+    // No message of the DBC that the encoder never sends.
+    for id in dbc.keys() {
+        assert!(
+            sent.iter().any(|f| f.id == *id),
+            "{id:03X} unused in {path}"
+        );
+    }
+}
+
+fn frames_for(protocol: &str) -> Vec<CanFrame> {
+    let l = Limits {
+        cvl_dv: 568,
+        ccl_da: 600,
+        dcl_da: 1500,
+        discharge_dv: 416,
+    };
+    let c = Conditions {
+        high_voltage: 2,
+        cell_imbalance: 1,
+        ..Conditions::default()
+    };
+    let p = state();
+    match protocol {
+        "victron" => vec![
+            frames::limits(&l),
+            frames::soc(&p),
+            frames::measurements(&p),
+            frames::victron_alarms(&c),
+            frames::name(),
+            frames::victron_info(20, 280),
+            frames::modules(&l, true),
+            frames::cell_extremes(&p),
+            frames::capacity(280),
+        ],
+        _ => vec![
+            frames::limits(&l),
+            frames::soc(&p),
+            frames::measurements(&p),
+            frames::sma_alarms(&c),
+            frames::name(),
+            frames::sma_info(1, 280, 20),
+        ],
+    }
+}
+
+#[test]
+fn the_victron_dbc_and_the_encoder_agree() {
+    check_dbc(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/can/tinybms-victron.dbc"),
+        &frames_for("victron"),
+        &[
+            ("ChargeVoltageLimit", 56.8),
+            ("ChargeCurrentLimit", 60.0),
+            ("DischargeCurrentLimit", 150.0),
+            ("DischargeVoltage", 41.6),
+            ("StateOfCharge", 65.0),
+            ("StateOfHealth", 97.0),
+            ("StateOfChargeHighRes", 65.4),
+            ("BatteryVoltage", 52.91),
+            ("BatteryCurrent", -25.5),
+            ("BatteryTemperature", 27.0),
+            ("AlarmHighVoltage", 1.0),
+            ("AlarmLowVoltage", 2.0),
+            ("AlarmContactor", 0.0),
+            ("WarningCellImbalance", 1.0),
+            ("AlarmCellImbalance", 2.0),
+            ("SystemOffline", 2.0),
+            ("FirmwareVersion", 20.0),
+            ("OnlineCapacity", 280.0),
+            ("ModulesOnline", 1.0),
+            ("MinCellVoltage", 3.301),
+            ("MaxCellVoltage", 3.312),
+            ("MaxCellTemperature", 300.0 - 273.15),
+            ("InstalledCapacity", 280.0),
+        ],
+    );
+}
+
+#[test]
+fn the_sma_dbc_and_the_encoder_agree() {
+    check_dbc(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/can/tinybms-sma.dbc"),
+        &frames_for("sma"),
+        &[
+            ("ChargeVoltageLimit", 56.8),
+            ("ChargeCurrentLimit", 60.0),
+            ("DischargeCurrentLimit", 150.0),
+            ("BatteryCurrent", -25.5),
+            ("AlarmHighVoltage", 1.0),
+            ("AlarmGeneral", 1.0),
+            ("WarningCellImbalance", 1.0),
+            ("AlarmCellImbalance", 0.0),
+            ("Chemistry", f64::from(u16::from_le_bytes(*b"Li"))),
+            ("Capacity", 280.0),
+            ("SoftwareVersion", 20.0),
+        ],
+    );
+}
+
+// ---------------------------------------------------------------------------
+// Properties of charge control.
+// ---------------------------------------------------------------------------
+
+fn arb_settings() -> impl Strategy<Value = PackSettings> {
+    (
+        1u16..=16,
+        2000u16..3200,
+        300u16..1500,
+        1u16..750,
+        1u16..750,
+        40i16..90,
+        -40i16..10,
+    )
+        .prop_map(|(cells, uv, span, doc, coc, hot, cold)| {
+            let ov = (uv + span).min(4500);
+            PackSettings {
+                fully_charged_mv: ov,
+                capacity_cah: 10000,
+                cells,
+                allowed_disbalance_mv: 20,
+                ov_cutoff_mv: ov,
+                uv_cutoff_mv: uv,
+                discharge_cutoff_a: doc,
+                charge_cutoff_a: coc,
+                overheat_c: hot,
+                low_temp_charge_c: cold,
+            }
+        })
+}
+
+fn arb_state(s: PackSettings) -> impl Strategy<Value = PackState> {
+    let (lo, hi) = (
+        i32::from(s.uv_cutoff_mv) - 300,
+        i32::from(s.ov_cutoff_mv) + 300,
+    );
+    (
+        lo..hi,
+        0i32..200,
+        -200.0f32..200.0,
+        0.0f32..100.0,
+        -30.0f32..80.0,
+        any::<bool>(),
+    )
+        .prop_map(move |(min, spread, i, soc, t, fault)| {
+            let min = min.max(0) as u16;
+            let max = min.saturating_add(spread as u16);
+            PackState {
+                min_cell_mv: min,
+                max_cell_mv: max,
+                pack_v: f32::from(min) * f32::from(s.cells) / 1000.0,
+                current_a: i,
+                soc_pct: soc,
+                soh_pct: 100.0,
+                min_temp_c: t,
+                max_temp_c: t + 2.0,
+                fault,
+                charge_blocked: false,
+            }
+        })
+}
+
+proptest! {
+    #[test]
+    fn cvl_is_never_0_always_cell_count_scaled_and_limits_within_caps(
+        (s, states) in arb_settings().prop_flat_map(|s| (Just(s), proptest::collection::vec(arb_state(s), 1..40))),
+        cap in proptest::option::of(1u16..5000),
+    ) {
+        let config = ChargeConfig { ccl_cap_da: cap, dcl_cap_da: cap, ..ChargeConfig::default() };
+        let mut c = ChargeControl::new(config);
+        let n = u32::from(s.cells);
+        for (k, p) in states.iter().enumerate() {
+            let (l, _) = c.update(k as u64 * S, &s, p);
+            prop_assert!(l.cvl_dv > 0);
+            let cvl_mv = u32::from(l.cvl_dv) * 100;
+            // Within cells × [316, 315] (0.1 V resolution).
+            prop_assert!(cvl_mv + 100 > n * u32::from(s.uv_cutoff_mv), "{:?}", l);
+            prop_assert!(cvl_mv <= n * u32::from(s.ov_cutoff_mv), "{:?}", l);
+            let ccl_max = (u32::from(s.charge_cutoff_a) * 10).min(u32::from(cap.unwrap_or(u16::MAX)));
+            let dcl_max = (u32::from(s.discharge_cutoff_a) * 10).min(u32::from(cap.unwrap_or(u16::MAX)));
+            prop_assert!(u32::from(l.ccl_da) <= ccl_max);
+            prop_assert!(u32::from(l.dcl_da) <= dcl_max);
+            if p.fault {
+                prop_assert_eq!((l.ccl_da, l.dcl_da), (0, 0));
+            }
+            // The ceiling: a cell at or above 315 - margin gets no charge current.
+            if p.max_cell_mv + config.ov_margin_mv >= s.ov_cutoff_mv {
+                prop_assert_eq!(l.ccl_da, 0);
+            }
+            if p.min_temp_c <= f32::from(s.low_temp_charge_c) || p.max_temp_c >= f32::from(s.overheat_c) {
+                prop_assert_eq!(l.ccl_da, 0);
+            }
+        }
+    }
+
+    #[test]
+    fn tapers_are_monotonic(s in arb_settings(), a in 0u16..5000, b in 0u16..5000, t in -20.0f32..70.0) {
+        // Fresh controllers (no ramp history): CCL never rises when the highest
+        // cell is higher; DCL never falls when the lowest cell is higher.
+        let (lo, hi) = (a.min(b), a.max(b));
+        let p = |min: u16, max: u16| PackState {
+            min_cell_mv: min, max_cell_mv: max,
+            pack_v: f32::from(min) * f32::from(s.cells) / 1000.0,
+            current_a: 0.0, soc_pct: 50.0, soh_pct: 100.0,
+            min_temp_c: t, max_temp_c: t, fault: false, charge_blocked: false,
+        };
+        let ccl = |max: u16| ChargeControl::new(ChargeConfig::default()).update(0, &s, &p(max, max)).0.ccl_da;
+        let dcl = |min: u16| ChargeControl::new(ChargeConfig::default()).update(0, &s, &p(min, min)).0.dcl_da;
+        prop_assert!(ccl(hi) <= ccl(lo));
+        prop_assert!(dcl(hi) >= dcl(lo));
+        // Temperature: warmer never means less charge below 25 °C, never more above.
+        let at = |temp: f32| {
+            let q = PackState { min_temp_c: temp, max_temp_c: temp, ..p(3300, 3300) };
+            ChargeControl::new(ChargeConfig::default()).update(0, &s, &q).0.ccl_da
+        };
+        prop_assert!(at(t.min(25.0)) <= at(t.min(25.0) + 1.0) || t.min(25.0) + 1.0 > 25.0);
+        prop_assert!(at(t.max(25.0)) >= at(t.max(25.0) + 1.0));
+    }
+
+    #[test]
+    fn cvl_rises_at_most_once_per_20_s(steps in proptest::collection::vec((3000u16..3700, 0u64..5), 2..80)) {
+        let s = lfp_settings();
+        let mut c = ChargeControl::new(ChargeConfig::default());
+        let mut now = 0u64;
+        let mut last: Option<(u16, u64)> = None;
+        let mut last_rise: Option<u64> = None;
+        for (max, dt) in steps {
+            now += dt * S;
+            let st = PackState { max_cell_mv: max, min_cell_mv: 3300, pack_v: 52.8, ..state() };
+            let (l, _) = c.update(now, &s, &st);
+            if let Some((prev, _)) = last {
+                if l.cvl_dv > prev {
+                    if let Some(r) = last_rise {
+                        prop_assert!(now - r >= 20 * S, "rise at {} after {}", now, r);
+                    }
+                    last_rise = Some(now);
+                }
+            }
+            last = Some((l.cvl_dv, now));
+        }
+    }
+}
