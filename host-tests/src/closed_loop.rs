@@ -345,3 +345,86 @@ pub fn candump_line(now_us: u64, f: &CanFrame) -> String {
     let data: String = f.bytes().iter().map(|b| format!("{b:02X}")).collect();
     format!("({secs}.{micros:06}) can0 {:03X}#{data}", f.id)
 }
+
+/// The closed-loop scenarios of the `sim` command (and of the tests).
+pub const SCENARIOS: [&str; 7] = [
+    "full-charge",
+    "runner",
+    "cold-morning",
+    "hot-pack",
+    "bms-fault",
+    "uart-lost",
+    "bus-off",
+];
+
+/// Runs one named scenario (see [`SCENARIOS`]) to its end and returns the loop
+/// and its duration, µs. `None` for an unknown name.
+pub fn run_scenario(
+    name: &str,
+    inverter: InverterConfig,
+    mut on_start: impl FnMut(&mut ClosedLoop),
+) -> Option<(ClosedLoop, u64)> {
+    const S: u64 = 1_000_000;
+    const MIN: u64 = 60 * S;
+    const H: u64 = 3600 * S;
+    let mut l = ClosedLoop::new(PackProfile::LiFePO4_16S, 1, inverter, 100.0);
+    on_start(&mut l);
+    let end = match name {
+        "full-charge" => {
+            l.h.sim.set_soc_percent(20.0);
+            l.run_until(6 * H);
+            6 * H
+        }
+        "runner" => {
+            l.h.sim.set_soc_percent(60.0);
+            l.h.sim.set_cell_offset_mv(7, 30.0);
+            l.run_until(5 * H);
+            5 * H
+        }
+        "cold-morning" => {
+            l.h.sim.set_soc_percent(40.0);
+            l.h.sim.force_temperature(Some(-5.0));
+            l.run_until(10 * MIN);
+            for k in 0..20 {
+                l.h.sim.force_temperature(Some(f64::from(k)));
+                let t = l.h.now + 3 * MIN;
+                l.run_until(t);
+            }
+            l.h.now
+        }
+        "hot-pack" => {
+            l.h.sim.set_soc_percent(40.0);
+            for (k, t) in [30.0, 45.0, 55.0, 57.5, 61.0, 50.0].into_iter().enumerate() {
+                l.h.sim.force_temperature(Some(t));
+                l.run_until((k as u64 + 1) * 5 * MIN);
+            }
+            30 * MIN
+        }
+        "bms-fault" => {
+            l.h.sim.set_soc_percent(40.0);
+            l.run_until(5 * MIN);
+            l.h.sim
+                .inject_fault_event(protocol_core::events::EventId::DischargingOverCurrentCutoff);
+            l.run_until(7 * MIN);
+            l.h.sim.clear_fault();
+            l.run_until(15 * MIN);
+            15 * MIN
+        }
+        "uart-lost" => {
+            l.h.sim.set_soc_percent(40.0);
+            l.run_until(5 * MIN);
+            l.h.sim.set_silent_until(5 * MIN + 30 * S);
+            l.run_until(10 * MIN);
+            10 * MIN
+        }
+        "bus-off" => {
+            l.h.sim.set_soc_percent(40.0);
+            l.run_until(5 * MIN);
+            l.bus_off(10 * S);
+            l.run_until(10 * MIN);
+            10 * MIN
+        }
+        _ => return None,
+    };
+    Some((l, end))
+}

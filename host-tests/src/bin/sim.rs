@@ -7,11 +7,13 @@
 
 use std::process::ExitCode;
 
+use host_tests::closed_loop::{run_scenario, ClosedLoop, SCENARIOS};
 use host_tests::harness::{Harness, Soak};
 use host_tests::profile::{parse_assignment, parse_profile};
 use host_tests::sim::{FaultConfig, PackProfile, SimBms, SimConfig};
 use protocol_core::settings::{Setting, SettingId};
 use tinybms_firmware::config::{Config, BYTE_TIME_US};
+use tinybms_firmware::inverter::{InverterConfig, Protocol, StalePolicy};
 use tinybms_firmware::Command;
 
 const USAGE: &str =
@@ -41,6 +43,17 @@ const USAGE: &str =
                      must report wrong values and exit 1
   --quiet            only print the summary
   -h, --help         this text
+
+inverter output (charge control over CAN, in a closed loop with a simulated
+pack and an inverter/charger that obeys the frames):
+  --inverter P       victron (default) or sma; runs the closed loop instead of
+                     the soak (16S LiFePO4 from 20 % SOC, 100 A charger)
+  --scenario NAME    one of full-charge, runner, cold-morning, hot-pack,
+                     bms-fault, uart-lost, bus-off, or all (prints a table)
+  --can-log FILE     every frame sent, in candump log format
+  --json FILE        every published snapshot and the limits, JSON Lines with
+                     the field names of `replay`
+  --stale-policy P   stop (default) or hold:DURATION (CCL 0, keep discharging)
 
 exit status: 0 when every published value was sent by the BMS and no write was
 reported successful that the BMS did not hold; 1 otherwise; 2 on a usage error";
@@ -74,6 +87,11 @@ struct Options {
     write_every_us: Option<u64>,
     forge_every_us: Option<u64>,
     quiet: bool,
+    inverter: Option<Protocol>,
+    scenario: Option<String>,
+    can_log: Option<String>,
+    json: Option<String>,
+    stale_policy: StalePolicy,
 }
 
 enum Parsed {
@@ -94,6 +112,11 @@ fn parse_args() -> Result<Parsed, String> {
         write_every_us: None,
         forge_every_us: None,
         quiet: false,
+        inverter: None,
+        scenario: None,
+        can_log: None,
+        json: None,
+        stale_policy: StalePolicy::StopSending,
     };
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
@@ -165,6 +188,37 @@ fn parse_args() -> Result<Parsed, String> {
                 o.forge_every_us = Some(d);
             }
             "--quiet" => o.quiet = true,
+            "--inverter" => {
+                o.inverter = Some(match value("--inverter")?.as_str() {
+                    "victron" => Protocol::Victron,
+                    "sma" => Protocol::SmaSunnyIsland,
+                    other => return Err(format!("unknown inverter `{other}`")),
+                })
+            }
+            "--scenario" => {
+                let v = value("--scenario")?;
+                if v != "all" && !SCENARIOS.contains(&v.as_str()) {
+                    return Err(format!("unknown scenario `{v}`"));
+                }
+                o.scenario = Some(v);
+                o.inverter.get_or_insert(Protocol::Victron);
+            }
+            "--can-log" => {
+                o.can_log = Some(value("--can-log")?);
+                o.inverter.get_or_insert(Protocol::Victron);
+            }
+            "--json" => {
+                o.json = Some(value("--json")?);
+                o.inverter.get_or_insert(Protocol::Victron);
+            }
+            "--stale-policy" => {
+                let v = value("--stale-policy")?;
+                o.stale_policy = match v.split_once(':') {
+                    None if v == "stop" => StalePolicy::StopSending,
+                    Some(("hold", d)) => StalePolicy::HoldChargeZero(parse_duration(d)?),
+                    _ => return Err(format!("bad --stale-policy `{v}` (stop or hold:60s)")),
+                };
+            }
             "-h" | "--help" => return Ok(Parsed::Help),
             other => return Err(format!("unknown option `{other}`")),
         }
@@ -386,6 +440,9 @@ fn main() -> ExitCode {
             return ExitCode::from(2);
         }
     };
+    if let Some(protocol) = o.inverter {
+        return run_inverter(&o, protocol);
+    }
     let mut t = Totals::default();
     for seed in o.seeds.0..=o.seeds.1 {
         if let Err(e) = run_seed(&o, seed, &mut t) {
@@ -453,4 +510,124 @@ fn main() -> ExitCode {
         return ExitCode::from(1);
     }
     ExitCode::SUCCESS
+}
+
+fn open_log(path: &Option<String>) -> Result<Option<Box<dyn std::io::Write>>, String> {
+    match path {
+        None => Ok(None),
+        Some(p) => std::fs::File::create(p)
+            .map(|f| Some(Box::new(std::io::BufWriter::new(f)) as Box<dyn std::io::Write>))
+            .map_err(|e| format!("{p}: {e}")),
+    }
+}
+
+/// The closed loop: one scenario, all of them, or a plain charge for
+/// `--duration`. Prints the figures; exits 1 if a cell went over the ceiling or
+/// a CVL was 0 or per-cell-sized.
+fn run_inverter(o: &Options, protocol: Protocol) -> ExitCode {
+    let config = InverterConfig {
+        protocol,
+        stale_policy: o.stale_policy,
+        ..InverterConfig::default()
+    };
+    let names: Vec<String> = match &o.scenario {
+        Some(s) if s == "all" => SCENARIOS.iter().map(|s| s.to_string()).collect(),
+        Some(s) => vec![s.clone()],
+        None => vec![String::new()],
+    };
+    let (can_log, json_log) = match (open_log(&o.can_log), open_log(&o.json)) {
+        (Ok(c), Ok(j)) => (c, j),
+        (Err(e), _) | (_, Err(e)) => {
+            eprintln!("sim: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    let mut can_log = can_log;
+    let mut json_log = json_log;
+    println!(
+        "{:<13} {:>9} {:>8} {:>9} {:>9} {:>10} {:>12} {:>9} {:>6}",
+        "scenario",
+        "max cell",
+        "ceiling",
+        "min CVL",
+        "max CVL",
+        "CVL ch/h",
+        "time to full",
+        "bus load",
+        "ok"
+    );
+    let mut all_ok = true;
+    for name in names {
+        let mut start = |l: &mut ClosedLoop| {
+            l.can_log = can_log.take();
+            l.json_log = json_log.take();
+            l.h.echo = !o.quiet;
+        };
+        let (mut l, end) = if name.is_empty() {
+            let mut l = ClosedLoop::new(o.pack, o.seeds.0, config, 100.0);
+            start(&mut l);
+            l.h.sim.set_soc_percent(20.0);
+            l.run_until(o.duration_us);
+            (l, o.duration_us)
+        } else {
+            match run_scenario(&name, config, start) {
+                Some(r) => r,
+                None => {
+                    eprintln!("sim: unknown scenario `{name}`");
+                    return ExitCode::from(2);
+                }
+            }
+        };
+        let ceiling =
+            l.h.bridge
+                .telemetry()
+                .settings
+                .as_ref()
+                .and_then(|b| b.get(315))
+                .map_or(0, |ov| ov.saturating_sub(config.charge.ov_margin_mv));
+        let cells = l.h.sim.register(307).max(1);
+        let f = &l.figures;
+        let cvl_ok = l.sent_limits.iter().all(|&(_, cvl, _, _)| {
+            let mv = u32::from(cvl) * 100;
+            cvl > 0
+                && mv + 100 > u32::from(cells) * u32::from(l.h.sim.register(316))
+                && mv <= u32::from(cells) * u32::from(l.h.sim.register(315))
+        });
+        let ok = f.max_cell_mv <= ceiling && cvl_ok && !l.sent_limits.is_empty();
+        all_ok &= ok;
+        let v = |dv: Option<u16>| {
+            dv.map_or("-".to_string(), |d| format!("{:.1} V", f64::from(d) / 10.0))
+        };
+        println!(
+            "{:<13} {:>6} mV {:>5} mV {:>9} {:>9} {:>10.1} {:>12} {:>7.2} % {:>6}",
+            if name.is_empty() {
+                "charge"
+            } else {
+                name.as_str()
+            },
+            f.max_cell_mv,
+            ceiling,
+            v(f.min_cvl_dv),
+            v(f.max_cvl_dv),
+            f.cvl_changes_per_hour(end),
+            f.float_at_us
+                .map_or("-".to_string(), |t| format!("{:.2} h", t as f64 / 3.6e9)),
+            f.bus_load_percent(end),
+            if ok { "yes" } else { "NO" }
+        );
+        can_log = l.can_log.take();
+        json_log = l.json_log.take();
+        if let Some(w) = can_log.as_mut() {
+            let _ = w.flush();
+        }
+        if let Some(w) = json_log.as_mut() {
+            let _ = w.flush();
+        }
+    }
+    if all_ok {
+        ExitCode::SUCCESS
+    } else {
+        println!("FAIL: a cell above the ceiling, or a CVL of 0 or per-cell size");
+        ExitCode::from(1)
+    }
 }
