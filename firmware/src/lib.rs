@@ -22,6 +22,8 @@
 //!   SMA Sunny Island).
 //! * [`config`] — every default as a named, documented constant.
 //! * [`profile`] — the settings profile applied at start-up (empty by default).
+//! * [`site`] — the inverter output of this installation (protocol, stale policy,
+//!   CAN on/off).
 //! * [`boards`] — the supported boards' pins and log paths, checked at compile time.
 #![no_std]
 #![deny(missing_docs)]
@@ -52,6 +54,7 @@ pub mod link;
 pub mod profile;
 pub mod reader;
 pub mod report;
+pub mod site;
 
 pub use bridge::{Action, Bridge, Command, LiveMeta, Telemetry};
 pub use link::{LinkStats, Transmit};

@@ -240,8 +240,8 @@ impl ClosedLoop {
         if let Some((_, raw)) = s.cells.max() {
             self.figures.max_cell_mv = self.figures.max_cell_mv.max(mv(raw));
         }
-        self.inverter
-            .on_snapshot(at, s, settings, t.version.as_ref());
+        let pack = tinybms_firmware::inverter::control::PackSettings::from_registers(settings);
+        self.inverter.on_snapshot(at, s, pack, t.version.as_ref());
         if let Some(w) = self.json_log.as_mut() {
             if let Some(b) = &t.live_registers {
                 let regs: BTreeMap<u16, u16> = b.iter().collect();

@@ -26,7 +26,6 @@ pub mod frames;
 
 use heapless::Deque;
 use protocol_core::events::{Event, EventId};
-use protocol_core::response::RegisterBlock;
 use protocol_core::views::{LiveSnapshot, VersionInfo};
 
 use self::control::{ChargeConfig, ChargeControl, Conditions, Limits, PackSettings, PackState};
@@ -250,16 +249,16 @@ impl Inverter {
         let _ = self.reports.push_back(r);
     }
 
-    /// A published snapshot, decoded at `taken_at`, with the settings block
-    /// (300-343) and the version when known.
+    /// A published snapshot, decoded at `taken_at`, with the BMS settings
+    /// (see [`PackSettings::from_registers`]) and the version when known.
     pub fn on_snapshot(
         &mut self,
         taken_at: Instant,
         snapshot: &LiveSnapshot,
-        settings: &RegisterBlock,
+        settings: Option<PackSettings>,
         version: Option<&VersionInfo>,
     ) {
-        if let Some(s) = PackSettings::from_registers(settings) {
+        if let Some(s) = settings {
             self.settings = Some(s);
         }
         let mut p = PackState::from_snapshot(snapshot);
