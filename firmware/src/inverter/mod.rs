@@ -292,6 +292,9 @@ impl Inverter {
 
     /// A frame from the bus (the GX keep-alive).
     pub fn on_received(&mut self, now: Instant, id: u16, _data: &[u8]) {
+        if !self.config.enabled {
+            return; // output off: the bus is none of our business
+        }
         if id == frames::ID_GX_KEEPALIVE || id == frames::ID_GX_KEEPALIVE_2 {
             self.inverter_seen_at = Some(now);
             if !self.inverter_seen {

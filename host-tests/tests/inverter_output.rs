@@ -1,0 +1,180 @@
+//! The inverter output's scheduler through its sans-IO interface: what goes on
+//! the bus, when, and what is logged.
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    clippy::indexing_slicing
+)]
+
+use host_tests::sim::{PackProfile, SimBms, SimConfig};
+use protocol_core::response::RegisterBlock;
+use protocol_core::views::LiveSnapshot;
+use tinybms_firmware::inverter::control::PackSettings;
+use tinybms_firmware::inverter::frames;
+use tinybms_firmware::inverter::{
+    Inverter, InverterAction, InverterConfig, InverterReport, Protocol, TxResult,
+};
+
+const S: u64 = 1_000_000;
+
+fn inputs() -> (LiveSnapshot, PackSettings) {
+    let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 1);
+    let block = |first: u16, n: u16| RegisterBlock {
+        start: first,
+        values: (first..first + n).map(|a| sim.register(a)).collect(),
+    };
+    let snap = LiveSnapshot::from_registers(&block(0, 56)).unwrap();
+    let settings = PackSettings::from_registers(&block(300, 44)).unwrap();
+    (snap, settings)
+}
+
+/// Runs the output for `secs`, feeding a fresh snapshot each second and
+/// acknowledging every frame with `tx`; returns the frames sent and the reports.
+fn run(
+    config: InverterConfig,
+    secs: u64,
+    mut tx: impl FnMut(u64) -> TxResult,
+    keepalive: impl Fn(u64) -> bool,
+) -> (Vec<(u64, u16)>, Vec<InverterReport>) {
+    let (snap, settings) = inputs();
+    let mut inv = Inverter::new(config, 0);
+    let mut sent = Vec::new();
+    let mut reports = Vec::new();
+    let mut now = 0u64;
+    while now < secs * S {
+        if now.is_multiple_of(S) {
+            inv.on_snapshot(now, &snap, Some(settings), None);
+            if keepalive(now) {
+                inv.on_received(now, frames::ID_GX_KEEPALIVE_2, b"\x12\x34\x56\x78VIC\x00");
+            }
+        }
+        match inv.poll(now) {
+            InverterAction::Send(f) => {
+                let r = tx(now);
+                if r == TxResult::Sent {
+                    sent.push((now, f.id));
+                }
+                inv.on_tx(now, r);
+            }
+            InverterAction::Recover => {}
+            InverterAction::WaitUntil(t) => now = t.min((now / S + 1) * S),
+        }
+        while let Some(r) = inv.next_report() {
+            reports.push(r);
+        }
+    }
+    (sent, reports)
+}
+
+#[test]
+fn victron_frames_go_out_at_their_periods() {
+    let (sent, _) = run(InverterConfig::default(), 20, |_| TxResult::Sent, |_| true);
+    let count = |id: u16| sent.iter().filter(|s| s.1 == id).count();
+    for id in [0x351, 0x355, 0x356, 0x35A] {
+        assert!((19..=21).contains(&count(id)), "{id:03X}: {}", count(id));
+    }
+    for id in [0x35E, 0x35F, 0x372, 0x373, 0x379] {
+        assert!((4..=5).contains(&count(id)), "{id:03X}: {}", count(id));
+    }
+}
+
+#[test]
+fn sma_gets_only_its_frames() {
+    let config = InverterConfig {
+        protocol: Protocol::SmaSunnyIsland,
+        ..InverterConfig::default()
+    };
+    let (sent, _) = run(config, 10, |_| TxResult::Sent, |_| false);
+    let ids: std::collections::BTreeSet<u16> = sent.iter().map(|s| s.1).collect();
+    assert_eq!(
+        ids.into_iter().collect::<Vec<_>>(),
+        vec![0x351, 0x355, 0x356, 0x35A, 0x35E, 0x35F]
+    );
+}
+
+#[test]
+fn can_output_switched_off_sends_nothing() {
+    let config = InverterConfig {
+        enabled: false,
+        ..InverterConfig::default()
+    };
+    let (sent, reports) = run(config, 10, |_| TxResult::Sent, |_| true);
+    assert!(sent.is_empty());
+    assert!(reports.is_empty());
+}
+
+#[test]
+fn the_gx_keepalive_is_seen_and_its_loss_logged_once() {
+    let (_, reports) = run(
+        InverterConfig::default(),
+        30,
+        |_| TxResult::Sent,
+        |t| t < 10 * S,
+    );
+    let seen = reports
+        .iter()
+        .filter(|r| **r == InverterReport::InverterSeen)
+        .count();
+    let lost = reports
+        .iter()
+        .filter(|r| **r == InverterReport::InverterLost)
+        .count();
+    assert_eq!((seen, lost), (1, 1));
+}
+
+#[test]
+fn no_other_node_is_logged_once_and_the_recovery_too() {
+    // Nothing acknowledges for 20 s (no other node: error-passive), then it does.
+    let (sent, reports) = run(
+        InverterConfig::default(),
+        40,
+        |t| {
+            if t < 20 * S {
+                TxResult::Failed
+            } else {
+                TxResult::Sent
+            }
+        },
+        |_| true,
+    );
+    let no_ack = reports
+        .iter()
+        .filter(|r| matches!(r, InverterReport::NoAck { .. }))
+        .count();
+    let ok = reports
+        .iter()
+        .filter(|r| **r == InverterReport::BusOk)
+        .count();
+    assert_eq!((no_ack, ok), (1, 1), "{reports:?}");
+    // Failed frames are not retried late: fresh ones go out at the next period.
+    assert!(sent.iter().all(|s| s.0 >= 20 * S));
+    assert!(sent.len() > 50);
+}
+
+#[test]
+fn nothing_is_sent_before_the_bms_said_anything() {
+    let mut inv = Inverter::new(InverterConfig::default(), 0);
+    for t in 0..10 {
+        assert!(matches!(inv.poll(t * S), InverterAction::WaitUntil(_)));
+    }
+}
+
+#[test]
+fn repeated_bus_offs_back_off_longer() {
+    let mut inv = Inverter::new(InverterConfig::default(), 0);
+    let mut backoffs = Vec::new();
+    for k in 0..6 {
+        inv.on_bus_off(k * 100 * S);
+        while let Some(r) = inv.next_report() {
+            if let InverterReport::BusOff { backoff_ms, .. } = r {
+                backoffs.push(backoff_ms);
+            }
+        }
+    }
+    assert_eq!(backoffs, vec![1000, 2000, 4000, 8000, 16000, 16000]);
+    // During the backoff nothing is sent; then the controller is recovered.
+    let t = 500 * S;
+    assert!(matches!(inv.poll(t), InverterAction::WaitUntil(w) if w == t + 16 * S));
+    assert_eq!(inv.poll(t + 16 * S), InverterAction::Recover);
+}
