@@ -416,6 +416,16 @@ impl ChargeControl {
         }
     }
 
+    /// The inverter was without limits (stale telemetry, a bus-off): treat it
+    /// as a cut, so the current limits come back only after the hold, ramping.
+    pub fn cut(&mut self, now: Instant) {
+        for r in [&mut self.ccl, &mut self.dcl] {
+            r.value_da = 0;
+            r.cut_at = Some(now);
+            r.started = true;
+        }
+    }
+
     /// The configuration.
     pub fn config(&self) -> &ChargeConfig {
         &self.config

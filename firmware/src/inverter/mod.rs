@@ -354,6 +354,8 @@ impl Inverter {
                 return InverterAction::WaitUntil(t);
             }
             self.bus_off = None;
+            // The inverter saw no limits meanwhile: they ramp back.
+            self.control.cut(now);
             return InverterAction::Recover;
         }
         if let Some(f) = self.queue.pop_front() {
@@ -418,6 +420,8 @@ impl Inverter {
         }
         if self.stale_since.take().is_some() {
             self.hold_ended = false;
+            // The inverter stopped (or ran without charge): limits ramp back.
+            self.control.cut(now);
             self.report(InverterReport::Fresh);
         }
         let (limits, mut conditions) = self.control.update(now, &settings, &state);
