@@ -157,6 +157,9 @@ pub struct Harness {
     pub retain: bool,
     /// Ground-truth checks, when made by [`Harness::checked`].
     pub soak: Option<Soak>,
+    /// When set, every call made to the bridge is appended here in the format of
+    /// [`crate::trace`] (the recorded trace the RISC-V cost benchmark replays).
+    pub trace: Option<Vec<u8>>,
 }
 
 impl Harness {
@@ -186,6 +189,7 @@ impl Harness {
             live_latencies: Vec::new(),
             retain: true,
             soak: None,
+            trace: None,
         }
     }
 
@@ -241,7 +245,11 @@ impl Harness {
     pub fn run_until(&mut self, end_us: u64) {
         let mut rx = Vec::new();
         while self.now < end_us {
-            match self.bridge.poll(self.now) {
+            let action = self.bridge.poll(self.now);
+            if let Some(t) = self.trace.as_mut() {
+                crate::trace::record_poll(t, self.now, &action);
+            }
+            match action {
                 Action::Transmit(bytes) => {
                     if bytes.as_slice() == self.live_request.as_slice() {
                         match self.live_sent_at {
@@ -268,6 +276,9 @@ impl Harness {
                     self.sim.take_output(self.now, &mut rx);
                     if !rx.is_empty() {
                         self.rx_bytes += rx.len() as u64;
+                        if let Some(t) = self.trace.as_mut() {
+                            crate::trace::record_rx(t, self.now, &rx);
+                        }
                         self.bridge.handle_rx(self.now, &rx);
                     }
                 }
