@@ -613,7 +613,11 @@ impl Bridge {
             BlockRead::new(reader::LIVE_SEGMENTS, Mode::Window(window), now)
                 .with_guard(reader::LIVE_GUARDED, reference),
         );
-        self.live_turns = config::LIVE_SHARE.saturating_sub(1);
+        // A new read uses up a turn, it does not start a fresh share: at a live
+        // period shorter than a read, live reads follow each other back to back,
+        // and the event log and the statistics get their turn every
+        // LIVE_SHARE live requests all the same.
+        self.live_turns = self.live_turns.saturating_sub(1);
         self.live_piece(now)
     }
 

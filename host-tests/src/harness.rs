@@ -147,11 +147,16 @@ pub struct Harness {
     /// Print each log line to stdout as it happens.
     pub echo: bool,
     seen_seq: u32,
-    live_request: Vec<u8>,
-    live_sent_at: Option<u64>,
-    /// Live snapshot latencies, µs: first transmission of the 0x03 0-55 request to
-    /// the snapshot being published.
+    /// Live snapshot latencies, µs: the first request byte of the live read that
+    /// produced the snapshot (whole block, pieces or a confirming read alike) to
+    /// the snapshot being published. The bridge's reader stamps the time its first
+    /// piece is handed to the UART (`LiveMeta::span_us` runs from it to the last
+    /// piece received, which is when the snapshot is published).
     pub live_latencies: Vec<u64>,
+    /// Statistics reads started (requests whose first register is 100).
+    pub stats_reads: u64,
+    /// Event-log reads started (0x11 / 0x12, or a 0x03 / 0x09 read from register 200).
+    pub event_reads: u64,
     /// Keep every log line and published snapshot (off for long soaks: the
     /// counters of [`Harness::soak`] remain).
     pub retain: bool,
@@ -181,12 +186,9 @@ impl Harness {
             tx_busy_us: 0,
             echo: false,
             seen_seq: 0,
-            live_request: protocol_core::request::Request::read_registers(0, 56)
-                .and_then(|r| r.to_bytes())
-                .map(|b| b.to_vec())
-                .unwrap_or_default(),
-            live_sent_at: None,
             live_latencies: Vec::new(),
+            stats_reads: 0,
+            event_reads: 0,
             retain: true,
             soak: None,
             trace: None,
@@ -251,12 +253,7 @@ impl Harness {
             }
             match action {
                 Action::Transmit(bytes) => {
-                    if bytes.as_slice() == self.live_request.as_slice() {
-                        match self.live_sent_at {
-                            Some(t) if self.now - t < 1_000_000 => {}
-                            _ => self.live_sent_at = Some(self.now),
-                        }
-                    }
+                    self.count_request(&bytes);
                     self.sim.host_send(self.now, &bytes);
                     self.tx_bytes += bytes.len() as u64;
                     // write + flush: the task resumes when the last byte left.
@@ -288,6 +285,21 @@ impl Harness {
         self.sim.advance(self.now);
     }
 
+    fn count_request(&mut self, bytes: &[u8]) {
+        use protocol_core::request::Request;
+        let first = match Request::parse(bytes) {
+            Ok(Request::ReadNewestEvents | Request::ReadAllEvents) => Some(200),
+            Ok(Request::ReadRegisters { start, .. }) => Some(start),
+            Ok(Request::ReadIndividual(a)) => a.first().copied(),
+            _ => None,
+        };
+        match first {
+            Some(100) => self.stats_reads += 1,
+            Some(200) => self.event_reads += 1,
+            _ => {}
+        }
+    }
+
     fn drain(&mut self) {
         while let Some(report) = self.bridge.next_report() {
             let line = LogLine {
@@ -310,9 +322,7 @@ impl Harness {
                 if self.retain {
                     self.published.push((at, s.clone()));
                 }
-                if let Some(sent) = self.live_sent_at.take() {
-                    self.live_latencies.push(at - sent);
-                }
+                self.live_latencies.push(u64::from(t.live.span_us));
             }
             self.check_snapshot();
         }
