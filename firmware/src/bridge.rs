@@ -46,7 +46,7 @@ use protocol_core::views::{event_log, LiveSnapshot, Statistics, VersionInfo};
 use crate::checks::{self, Check};
 use crate::config::{self, Config};
 use crate::event_log::{EventTracker, Found};
-use crate::link::{Completion, Failure, Link, LinkStep, Silence, Transmit};
+use crate::link::{Completion, Failure, Link, Next, Silence, Transmit};
 use crate::reader::{self, Assembled, BlockRead, LineQuality, Mode};
 use crate::report::{Report, SnapshotLine, WriteOutcome};
 use crate::Instant;
@@ -259,7 +259,10 @@ pub struct Bridge {
     suppressed_errors: u32,
     was_online: bool,
     quality: LineQuality,
-    live_read: Option<BlockRead>,
+    /// The live read (reused from one snapshot to the next, see
+    /// [`BlockRead::reset`]); in progress while `live_active`.
+    live_read: BlockRead,
+    live_active: bool,
     aux_read: Option<(Aux, BlockRead)>,
     live_turns: u8,
     suspect: Option<Suspect>,
@@ -310,7 +313,12 @@ impl Bridge {
             suppressed_errors: 0,
             was_online: true,
             quality: LineQuality::default(),
-            live_read: None,
+            live_read: BlockRead::new(
+                reader::LIVE_SEGMENTS,
+                Mode::Window(config.live_period_us),
+                now,
+            ),
+            live_active: false,
             aux_read: None,
             live_turns: 0,
             suspect: None,
@@ -407,11 +415,19 @@ impl Bridge {
         }
         let next_log = self.next_link_log.min(self.next_quality_log);
         for _ in 0..16 {
-            match self.link.step(now) {
-                LinkStep::Send(b) => return Action::Transmit(b),
-                LinkStep::Done(c) => self.on_completion(now, c),
-                LinkStep::WaitUntil(t) => return Action::WaitUntil(t.min(next_log)),
-                LinkStep::Idle => match self.next_request(now) {
+            match self.link.next(now) {
+                Next::Send => {
+                    if let Some(b) = self.link.transmit() {
+                        return Action::Transmit(b.clone());
+                    }
+                }
+                Next::Done => {
+                    if let Some(c) = self.link.take_completion() {
+                        self.on_completion(now, &c);
+                    }
+                }
+                Next::WaitUntil(t) => return Action::WaitUntil(t.min(next_log)),
+                Next::Idle => match self.next_request(now) {
                     Some((req, silence, purpose)) => {
                         self.purpose = purpose;
                         // Pieces (0x09 block reads on a bad line, event slots)
@@ -513,7 +529,7 @@ impl Bridge {
     /// statistics get their turn before the next live read starts, so that no
     /// live period starves them.
     fn running_request(&mut self, now: Instant) -> Option<(Request, Silence, Purpose)> {
-        let live_busy = self.live_read.is_some();
+        let live_busy = self.live_active;
         if live_busy && self.live_turns > 0 {
             self.live_turns -= 1;
             return Some(self.live_piece(now));
@@ -608,11 +624,11 @@ impl Bridge {
             .config
             .live_assembly_window_us
             .max(self.config.live_period_us);
-        let reference = self.telemetry.live_registers.clone();
-        self.live_read = Some(
-            BlockRead::new(reader::LIVE_SEGMENTS, Mode::Window(window), now)
-                .with_guard(reader::LIVE_GUARDED, reference),
-        );
+        self.live_read
+            .reset(reader::LIVE_SEGMENTS, Mode::Window(window), now);
+        self.live_read
+            .guard(reader::LIVE_GUARDED, self.telemetry.live_registers.as_ref());
+        self.live_active = true;
         // A new read uses up a turn, it does not start a fresh share: at a live
         // period shorter than a read, live reads follow each other back to back,
         // and the event log and the statistics get their turn every
@@ -623,9 +639,10 @@ impl Bridge {
 
     fn live_piece(&mut self, now: Instant) -> (Request, Silence, Purpose) {
         let piece = self.quality.piece();
-        let req = match self.live_read.as_mut() {
-            Some(r) => r.next_request(now, piece),
-            None => block(0, 56),
+        let req = if self.live_active {
+            self.live_read.next_request(now, piece)
+        } else {
+            block(0, 56)
         };
         (req, Silence::Failure, Purpose::Live)
     }
@@ -807,7 +824,7 @@ impl Bridge {
         self.phase = Phase::Sync(SyncStep::Version);
         self.telemetry.ready = false;
         self.aux_read = None;
-        self.live_read = None;
+        self.live_active = false;
         self.suspect = None;
         self.sync_failures = 0;
         self.limits_candidate = None;
@@ -815,7 +832,7 @@ impl Bridge {
         self.settings_stale = false;
     }
 
-    fn on_completion(&mut self, now: Instant, c: Completion) {
+    fn on_completion(&mut self, now: Instant, c: &Completion) {
         let online = self.link.is_online();
         if self.was_online && !online {
             self.report(Report::Offline {
@@ -865,20 +882,21 @@ impl Bridge {
             return;
         }
         match self.purpose {
-            Purpose::Live => match c.result {
+            Purpose::Live => match &c.result {
                 Ok(Response::Registers(_) | Response::Individual(_)) => {
-                    let done = self
-                        .live_read
-                        .as_mut()
-                        .and_then(|r| on_piece(r, now, &c.result));
+                    let done = if self.live_active {
+                        on_piece(&mut self.live_read, now, &c.result)
+                    } else {
+                        None
+                    };
                     if let Some(a) = done {
-                        self.live_read = None;
+                        self.live_active = false;
                         self.on_live(now, a);
                     }
                 }
                 _ => {
-                    if let Some(r) = self.live_read.as_mut() {
-                        r.on_failure();
+                    if self.live_active {
+                        self.live_read.on_failure();
                     }
                 }
             },
@@ -904,14 +922,14 @@ impl Bridge {
                     self.on_aux(now, aux, a.block);
                 }
             }
-            Purpose::Limits(option) => self.on_limits(now, option, c.result),
+            Purpose::Limits(option) => self.on_limits(now, option, &c.result),
             Purpose::NewestEvents => {
                 // The BMS may mark events as read when it answers: a reply that was
                 // lost, or a request that went out twice, may have hidden some.
                 if c.sends > 1 || c.result.is_err() {
                     self.events.reply_may_be_lost();
                 }
-                if let Ok(Response::Events(list)) = c.result {
+                if let Ok(Response::Events(list)) = &c.result {
                     let expected = self.expected_bms_clock(now);
                     if EventTracker::plausible(&list.events, list.bms_timestamp_s, expected) {
                         let mut found: Vec<Found, { protocol_core::response::MAX_EVENTS }> =
@@ -1123,23 +1141,23 @@ impl Bridge {
         &mut self,
         now: Instant,
         option: SettingsOption,
-        result: Result<Response, Failure>,
+        result: &Result<Response, Failure>,
     ) {
         let in_sync = matches!(self.phase, Phase::Sync(_));
         let next = match result {
             Ok(Response::Settings { values, .. }) => {
-                if self.limits_candidate.as_ref() != Some(&values) {
+                if self.limits_candidate.as_ref() != Some(values) {
                     // First of two, or two that differ: ask again.
-                    self.limits_candidate = Some(values);
+                    self.limits_candidate = Some(values.clone());
                     Some((option, now))
                 } else {
                     self.limits_candidate = None;
                     self.sync_failures = 0;
                     if option == SettingsOption::Min {
-                        self.telemetry.limits_min = Some(values);
+                        self.telemetry.limits_min = Some(values.clone());
                         Some((SettingsOption::Max, now))
                     } else {
-                        self.telemetry.limits_max = Some(values);
+                        self.telemetry.limits_max = Some(values.clone());
                         None
                     }
                 }
@@ -1288,7 +1306,7 @@ impl Bridge {
         self.live_base_valid = true;
     }
 
-    fn on_job(&mut self, now: Instant, c: Completion) {
+    fn on_job(&mut self, now: Instant, c: &Completion) {
         let Some(job) = self.job.as_mut() else {
             return;
         };
@@ -1364,7 +1382,7 @@ impl Bridge {
                     return;
                 };
                 let a = item.id.address();
-                match (w.step, c.result) {
+                match (w.step, &c.result) {
                     (WriteStep::ReadCurrent, Ok(Response::Individual(pairs))) => {
                         let (Some(first), second) = (pair(&pairs, a), pair(&pairs, a + 1)) else {
                             self.finish_item(item, WriteOutcome::NotWritten(Failure::Timeout));
@@ -1379,7 +1397,7 @@ impl Bridge {
                         }
                     }
                     (WriteStep::ReadCurrent, Err(f)) => {
-                        self.finish_item(item, WriteOutcome::NotWritten(f));
+                        self.finish_item(item, WriteOutcome::NotWritten(*f));
                     }
                     (WriteStep::ReadCurrent, Ok(_)) => {
                         self.finish_item(item, WriteOutcome::NotWritten(Failure::Timeout));
@@ -1390,14 +1408,14 @@ impl Bridge {
                             Ok(Response::WriteEcho { .. }) => {}
                             // Refused at the first attempt: nothing was written.
                             Err(Failure::Nack(code)) if c.sends <= 1 => {
-                                self.finish_item(item, WriteOutcome::Nacked(code));
+                                self.finish_item(item, WriteOutcome::Nacked(*code));
                                 return;
                             }
                             // No clear confirmation (lost, damaged, or a NACK after an
                             // unanswered first attempt that may have been applied):
                             // the read-back decides.
                             Err(Failure::Silent) => w.unconfirmed = Some(Failure::Timeout),
-                            Err(f) => w.unconfirmed = Some(f),
+                            Err(f) => w.unconfirmed = Some(*f),
                             Ok(_) => w.unconfirmed = Some(Failure::Timeout),
                         }
                         if item.id.restarts_bms() {
@@ -1456,7 +1474,7 @@ impl Bridge {
                             // follows the group decides.
                             let old = w.current.map(|(f, _)| f);
                             self.remember_unresolved(item, old);
-                            self.finish_item(item, WriteOutcome::Unconfirmed(f));
+                            self.finish_item(item, WriteOutcome::Unconfirmed(*f));
                         }
                     }
                     (WriteStep::ReadBack, Ok(_)) | (WriteStep::Settle(_), _) => {

@@ -184,6 +184,23 @@ pub enum LinkStep {
     Idle,
 }
 
+/// What the link wants next, as [`LinkStep`] without the payloads: the bytes to
+/// send stay in the link ([`Link::transmit`]) and so does the finished
+/// transaction until taken ([`Link::take_completion`]). This is what the bridge
+/// uses: a [`Completion`] holds a whole [`Response`] (about 500 bytes), and
+/// moving it through return values costs more than decoding it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Next {
+    /// Transmit [`Link::transmit`] now.
+    Send,
+    /// A transaction finished: [`Link::take_completion`].
+    Done,
+    /// Nothing until this time (or until bytes arrive).
+    WaitUntil(Instant),
+    /// No transaction in progress.
+    Idle,
+}
+
 /// The link engine.
 #[derive(Debug, Clone)]
 pub struct Link {
@@ -297,13 +314,41 @@ impl Link {
     /// What to do now. Call after [`Link::start`], after bytes arrived and when a
     /// deadline passed.
     pub fn step(&mut self, now: Instant) -> LinkStep {
+        match self.next(now) {
+            Next::Send => match self.transmit() {
+                Some(b) => LinkStep::Send(b.clone()),
+                None => LinkStep::Idle,
+            },
+            Next::Done => match self.take_completion() {
+                Some(c) => LinkStep::Done(c),
+                None => LinkStep::Idle,
+            },
+            Next::WaitUntil(t) => LinkStep::WaitUntil(t),
+            Next::Idle => LinkStep::Idle,
+        }
+    }
+
+    /// The bytes of the request in progress (to send after [`Next::Send`]).
+    pub fn transmit(&self) -> Option<&Transmit> {
+        self.pending.as_ref().map(|p| &p.bytes)
+    }
+
+    /// The finished transaction, after [`Next::Done`]. Until it is taken,
+    /// [`Link::next`] keeps answering [`Next::Done`].
+    pub fn take_completion(&mut self) -> Option<Completion> {
+        self.done.take()
+    }
+
+    /// As [`Link::step`], leaving the bytes to send and the finished transaction
+    /// in the link (see [`Next`]).
+    pub fn next(&mut self, now: Instant) -> Next {
         // Bounded: each pass either returns or changes the state towards a return.
         for _ in 0..4 {
-            if let Some(done) = self.done.take() {
-                return LinkStep::Done(done);
+            if self.done.is_some() {
+                return Next::Done;
             }
             let Some(p) = self.pending.as_mut() else {
-                return LinkStep::Idle;
+                return Next::Idle;
             };
             if self.to_send {
                 // After a transaction that went out more than once, an answer to an
@@ -320,7 +365,7 @@ impl Link {
                     && command == self.quiet_command
                     && !self_identifying
                 {
-                    return LinkStep::WaitUntil(self.quiet_until);
+                    return Next::WaitUntil(self.quiet_until);
                 }
                 self.to_send = false;
                 p.sends = p.sends.saturating_add(1);
@@ -335,7 +380,7 @@ impl Link {
                     .saturating_add(BYTE_TIME_US * p.bytes.len() as Instant)
                     .saturating_add(p.timeout_us);
                 self.decoder.expect(&p.request);
-                return LinkStep::Send(p.bytes.clone());
+                return Next::Send;
             }
             let deadline = match p.last_rx {
                 Some(t) => p
@@ -344,11 +389,11 @@ impl Link {
                 None => p.deadline,
             };
             if now < deadline {
-                return LinkStep::WaitUntil(deadline);
+                return Next::WaitUntil(deadline);
             }
             self.on_deadline(now);
         }
-        LinkStep::WaitUntil(now)
+        Next::WaitUntil(now)
     }
 
     /// The response deadline passed.
