@@ -121,8 +121,8 @@ fn decode_frame(decoder: &mut Decoder, reply: &[u8]) -> bool {
     loop {
         let n = decoder.push(input);
         input = input.get(n..).unwrap_or(&[]);
-        while let Some(item) = decoder.poll() {
-            ok |= black_box(&item).is_ok();
+        while let Some(item) = &decoder.poll() {
+            ok |= black_box(item).is_ok();
         }
         if input.is_empty() {
             break;
@@ -139,10 +139,10 @@ fn decode_typed(decoder: &mut Decoder, request: &Request, reply: &[u8]) -> Optio
     loop {
         let n = decoder.push(input);
         input = input.get(n..).unwrap_or(&[]);
-        while let Some(item) = decoder.poll() {
+        while let Some(item) = &decoder.poll() {
             if let Ok(frame) = item {
-                if let Ok(Response::Registers(block)) = Response::decode(request, &frame) {
-                    out = LiveSnapshot::from_registers(&block).ok();
+                if let Ok(Response::Registers(block)) = &Response::decode(request, frame) {
+                    out = LiveSnapshot::from_registers(block).ok();
                 }
             }
         }

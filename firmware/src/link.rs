@@ -372,7 +372,7 @@ impl Link {
                 p.last_sent = now;
                 // Whatever is still buffered belongs to no one now.
                 let stats = &mut self.stats;
-                self.decoder.finish(|r| count_unsolicited(stats, r));
+                self.decoder.finish(|r| count_unsolicited(stats, &r));
                 p.first_sent.get_or_insert(now);
                 p.heard = false;
                 p.last_rx = None;
@@ -400,7 +400,9 @@ impl Link {
     fn on_deadline(&mut self, now: Instant) {
         // Whatever is half-received is cut off; a complete frame it reveals may
         // still be the answer.
-        while let Some(item) = self.decoder.flush() {
+        // Items are handled where the decoder returned them (a frame is 264
+        // bytes: not moved again).
+        while let Some(item) = &self.decoder.flush() {
             self.on_item(now, item);
             if self.pending.is_none() || self.to_send {
                 break;
@@ -533,7 +535,7 @@ impl Link {
         loop {
             let n = self.decoder.push(input);
             input = input.get(n..).unwrap_or(&[]);
-            while let Some(item) = self.decoder.poll() {
+            while let Some(item) = &self.decoder.poll() {
                 self.on_item(now, item);
             }
             if input.is_empty() {
@@ -542,7 +544,7 @@ impl Link {
         }
     }
 
-    fn on_item(&mut self, now: Instant, item: Result<protocol_core::Frame, DecodeError>) {
+    fn on_item(&mut self, now: Instant, item: &Result<protocol_core::Frame, DecodeError>) {
         let Some(p) = self.pending.as_mut() else {
             count_unsolicited(&mut self.stats, item);
             return;
@@ -557,12 +559,12 @@ impl Link {
             Err(e) => {
                 // Probably our answer, damaged: the BMS is talking.
                 p.heard = true;
-                count_decode_error(&mut self.stats, &e);
-                p.last_error = Some(Failure::Corrupt(e));
+                count_decode_error(&mut self.stats, e);
+                p.last_error = Some(Failure::Corrupt(*e));
                 return; // keep waiting: a good frame may follow
             }
         };
-        match Response::decode(&p.request, &frame) {
+        match Response::decode(&p.request, frame) {
             Ok(Response::Nack { code, .. }) => {
                 p.heard = true;
                 match code {
@@ -610,7 +612,7 @@ fn count_decode_error(stats: &mut LinkStats, e: &DecodeError) {
     }
 }
 
-fn count_unsolicited(stats: &mut LinkStats, item: Result<protocol_core::Frame, DecodeError>) {
+fn count_unsolicited(stats: &mut LinkStats, item: &Result<protocol_core::Frame, DecodeError>) {
     match item {
         Ok(_) => stats.unsolicited = stats.unsolicited.wrapping_add(1),
         Err(e) => count_decode_error(stats, &e),

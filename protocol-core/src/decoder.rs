@@ -342,8 +342,10 @@ impl Decoder {
                             received,
                         }));
                     }
-                    if let Some(result) = self.accept(n) {
-                        return Some(result);
+                    // Passed through as is: re-wrapping would move the frame.
+                    let result = self.accept(n);
+                    if result.is_some() {
+                        return result;
                     }
                 }
             }
@@ -393,16 +395,19 @@ impl Decoder {
             }
             c => {
                 let skip_pl = matches!(crate::frame::layout(c), crate::frame::Layout::Counted(_));
-                let payload = body.get(if skip_pl { 3 } else { 2 }..).unwrap_or(&[]);
-                Some(
-                    Payload::from_slice(payload)
-                        .map(|payload| Frame::Data {
-                            command: c,
-                            payload,
-                            packets: 1,
-                        })
-                        .map_err(|_| DecodeError::PayloadOverflow { command: c }),
-                )
+                let bytes = body.get(if skip_pl { 3 } else { 2 }..).unwrap_or(&[]);
+                // Filled in place in the value returned (a frame is 264 bytes).
+                let mut out = Some(Ok(Frame::Data {
+                    command: c,
+                    payload: Payload::new(),
+                    packets: 1,
+                }));
+                if let Some(Ok(Frame::Data { payload, .. })) = &mut out {
+                    if payload.extend_from_slice(bytes).is_err() {
+                        out = Some(Err(DecodeError::PayloadOverflow { command: c }));
+                    }
+                }
+                out
             }
         };
         self.drop_front(n);
