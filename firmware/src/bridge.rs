@@ -1384,7 +1384,7 @@ impl Bridge {
                 let a = item.id.address();
                 match (w.step, &c.result) {
                     (WriteStep::ReadCurrent, Ok(Response::Individual(pairs))) => {
-                        let (Some(first), second) = (pair(&pairs, a), pair(&pairs, a + 1)) else {
+                        let (Some(first), second) = (pair(pairs, a), pair(pairs, a + 1)) else {
                             self.finish_item(item, WriteOutcome::NotWritten(Failure::Timeout));
                             return;
                         };
@@ -1429,13 +1429,13 @@ impl Bridge {
                         }
                     }
                     (WriteStep::ReadBack, Ok(Response::Individual(pairs))) => {
-                        let Some(first) = pair(&pairs, a) else {
+                        let Some(first) = pair(pairs, a) else {
                             let old = w.current.map(|(f, _)| f);
                             self.remember_unresolved(item, old);
                             self.finish_item(item, WriteOutcome::Unconfirmed(Failure::Timeout));
                             return;
                         };
-                        let second = pair(&pairs, a + 1);
+                        let second = pair(pairs, a + 1);
                         // 323/328 read 0xFFFF once a write is accepted; when they
                         // already did before and the write was not confirmed, the
                         // marker proves nothing.

@@ -615,6 +615,6 @@ fn count_decode_error(stats: &mut LinkStats, e: &DecodeError) {
 fn count_unsolicited(stats: &mut LinkStats, item: &Result<protocol_core::Frame, DecodeError>) {
     match item {
         Ok(_) => stats.unsolicited = stats.unsolicited.wrapping_add(1),
-        Err(e) => count_decode_error(stats, &e),
+        Err(e) => count_decode_error(stats, e),
     }
 }
