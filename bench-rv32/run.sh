@@ -46,6 +46,7 @@ printf '  %-52s %7s\n' "+ Response::decode + LiveSnapshot view" "$(per 3 "$reps"
 printf '  %-52s %7s\n' "+ the snapshot summary line" "$(per 4 "$reps")"
 printf '  %-52s %7s  (%s snapshots, %s calls, %s instructions)\n' "whole Bridge on the recorded 40 s trace, per snapshot" \
     "$(per 5 "$snaps")" "$snaps" "$(( $(get polls) + $(get rx_calls) ))" "$(get phase5)"
-echo "  Bridge value: $(get bridge_bytes) bytes; replay mismatches: $mism"
+echo "  sizes (bytes): Bridge $(get bridge_bytes), Response $(get response_bytes), Frame $(get frame_bytes), link Completion $(get completion_bytes), Action $(get action_bytes)"
+echo "  replay mismatches: $mism"
 [ "$mism" = 0 ] || { echo "run.sh: the replay diverged from the recorded trace" >&2; exit 1; }
 grep -q '^decoded_ok' "$tmp/out" && [ "$(get decoded_ok)" = $((3 * reps)) ] || { echo "run.sh: a reply did not decode" >&2; exit 1; }

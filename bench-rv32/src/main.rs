@@ -285,6 +285,16 @@ pub extern "C" fn _start() -> ! {
     put("reports", r.reports);
     put("mismatches", r.mismatches);
     put("bridge_bytes", core::mem::size_of::<Bridge>() as u64);
+    put("response_bytes", core::mem::size_of::<Response>() as u64);
+    put(
+        "frame_bytes",
+        core::mem::size_of::<protocol_core::Frame>() as u64,
+    );
+    put(
+        "completion_bytes",
+        core::mem::size_of::<tinybms_firmware::link::Completion>() as u64,
+    );
+    put("action_bytes", core::mem::size_of::<Action>() as u64);
     if r.malformed {
         write(b"bench-rv32: trace.bin: malformed\n");
         exit(2);
