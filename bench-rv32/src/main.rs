@@ -11,7 +11,9 @@
 //! 4. `summary`  as `typed` + the snapshot's log summary line;
 //! 5. `bridge`   the whole `Bridge` replaying the recorded 40 s trace
 //!    (`trace.bin`, from `cargo run -p host-tests --bin bench-trace`): every
-//!    `poll` and `handle_rx` call the host made, every answer compared.
+//!    `poll` and `handle_rx` call the host made, every answer compared;
+//! 6. `parse`    the same walk over the trace without the bridge (the replay's own
+//!    cost, subtracted by the runner).
 #![no_std]
 #![no_main]
 
@@ -234,6 +236,43 @@ fn replay(body: &mut Cursor<'_>) -> Replay {
     r
 }
 
+/// The replay's own work, measured apart: the same walk over the trace with
+/// every record parsed, and no bridge. Subtracted from the `bridge` phase.
+#[inline(never)]
+fn parse_only(body: &mut Cursor<'_>) -> u64 {
+    let mut records = 0u64;
+    loop {
+        match body.u8() {
+            Some(b'P') => {
+                let (Some(now), Some(kind)) = (body.u64(), body.u8()) else {
+                    break;
+                };
+                black_box(now);
+                match kind {
+                    b'T' => {
+                        let n = body.u8().unwrap_or(0) as usize;
+                        black_box(body.take(n));
+                    }
+                    b'W' => {
+                        black_box(body.u64());
+                    }
+                    _ => break,
+                }
+            }
+            Some(b'R') => {
+                let Some(now) = body.u64() else {
+                    break;
+                };
+                let n = body.u16().unwrap_or(0) as usize;
+                black_box((now, body.take(n)));
+            }
+            _ => break,
+        }
+        records += 1;
+    }
+    records
+}
+
 #[no_mangle]
 pub extern "C" fn _start() -> ! {
     let mut c = Cursor { b: TRACE, i: 0 };
@@ -272,9 +311,16 @@ pub extern "C" fn _start() -> ! {
             ok += 1;
         }
     }
+    let body_at = c.i;
     bench_mark(5);
     let r = replay(&mut c);
     bench_mark(6);
+    let records = parse_only(&mut Cursor {
+        b: TRACE,
+        i: body_at,
+    });
+    bench_mark(7);
+    put("records", records);
 
     put("reps", u64::from(REPS));
     put("reply_bytes", reply.len() as u64);
