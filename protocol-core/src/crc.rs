@@ -80,9 +80,17 @@ impl Crc16 {
     }
     /// Feed more bytes.
     pub fn update(&mut self, data: &[u8]) {
-        for &b in data {
-            self.0 = step(self.0, b);
+        // As `crc16`: two bytes per pass.
+        let mut crc = self.0;
+        let mut rest = data;
+        while let [a, b, tail @ ..] = rest {
+            crc = step(step(crc, *a), *b);
+            rest = tail;
         }
+        if let [last] = rest {
+            crc = step(crc, *last);
+        }
+        self.0 = crc;
     }
     /// The CRC of everything fed so far.
     pub const fn value(&self) -> u16 {
