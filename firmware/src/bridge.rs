@@ -228,10 +228,24 @@ const SUSPECT_TRIES: u8 = 3;
 const UNRESOLVED: usize = config::MAX_SETTINGS_GROUP;
 
 /// The bridge. See the module documentation.
+///
+/// The link and the rest are apart so that a finished transaction (a whole
+/// `Response`, hundreds of bytes) is handled by reference where the link keeps
+/// it, instead of being moved out to satisfy the borrow of `&mut self`.
 #[derive(Debug, Clone)]
 pub struct Bridge {
-    config: Config,
     link: Link,
+    s: State,
+}
+
+/// Everything of the bridge but the link.
+#[derive(Debug, Clone)]
+struct State {
+    config: Config,
+    /// `Link::is_online`, refreshed after every call into the link.
+    link_online: bool,
+    /// `Link::consecutive_failures`, refreshed with `link_online`.
+    link_failures: u8,
     phase: Phase,
     purpose: Purpose,
     telemetry: Telemetry,
@@ -282,9 +296,129 @@ pub struct Bridge {
 impl Bridge {
     /// A bridge at time `now`, about to sync with the BMS.
     pub fn new(config: Config, now: Instant) -> Self {
+        let link = Link::new(config);
+        let mut s = State::new(config, now);
+        s.link_online = link.is_online();
+        s.link_failures = link.consecutive_failures();
+        Self { link, s }
+    }
+
+    /// Queues a command; gives it back when the queue is full.
+    #[allow(clippy::result_large_err)] // the command itself is handed back
+    pub fn submit(&mut self, command: Command) -> Result<(), Command> {
+        self.s.submit(command)
+    }
+
+    /// Queues the settings of a profile (see [`crate::profile`]) as one group. An
+    /// empty profile queues nothing. Entries beyond [`config::MAX_SETTINGS_GROUP`]
+    /// are queued as further groups.
+    #[allow(clippy::result_large_err)] // the command itself is handed back
+    pub fn submit_profile(&mut self, profile: &[(SettingId, i32)]) -> Result<(), Command> {
+        self.s.submit_profile(profile)
+    }
+
+    /// The current picture of the BMS.
+    pub fn telemetry(&self) -> &Telemetry {
+        &self.s.telemetry
+    }
+
+    /// Link counters.
+    pub fn link_stats(&self) -> crate::link::LinkStats {
+        self.link.stats()
+    }
+
+    /// Registers per request the block reads use now (the line's quality).
+    pub fn piece_registers(&self) -> u16 {
+        self.s.quality.piece()
+    }
+
+    /// Replaces the link counters (see [`Link::preset_stats`]).
+    pub fn preset_link_stats(&mut self, stats: crate::link::LinkStats) {
+        self.link.preset_stats(stats);
+    }
+
+    /// True while a command is queued or running.
+    pub fn busy(&self) -> bool {
+        self.s.busy()
+    }
+
+    /// The next report to log, oldest first.
+    pub fn next_report(&mut self) -> Option<Report> {
+        self.s.next_report()
+    }
+
+    /// Bytes received from the UART at `now`.
+    pub fn handle_rx(&mut self, now: Instant, bytes: &[u8]) {
+        self.link.on_bytes(now, bytes);
+        self.refresh_link();
+    }
+
+    fn refresh_link(&mut self) {
+        self.s.link_online = self.link.is_online();
+        self.s.link_failures = self.link.consecutive_failures();
+    }
+
+    /// What to do next at `now`.
+    pub fn poll(&mut self, now: Instant) -> Action {
+        self.refresh_link();
+        let s = &mut self.s;
+        if now >= s.next_link_log {
+            s.next_link_log = now.saturating_add(s.config.link_stats_log_period_us);
+            let stats = self.link.stats();
+            s.report(Report::LinkStats(stats));
+        }
+        if now >= s.next_quality_log {
+            s.next_quality_log = now.saturating_add(s.config.line_quality_log_period_us);
+            s.log_quality();
+        }
+        let next_log = s.next_link_log.min(s.next_quality_log);
+        for _ in 0..16 {
+            let next = self.link.next(now);
+            self.refresh_link();
+            match next {
+                Next::Send => {
+                    if let Some(b) = self.link.transmit() {
+                        return Action::Transmit(b.clone());
+                    }
+                }
+                Next::Done => {
+                    // Handled where the link keeps it, then dropped.
+                    if let Some(c) = self.link.completion() {
+                        self.s.on_completion(now, c);
+                    }
+                    self.link.clear_completion();
+                }
+                Next::WaitUntil(t) => return Action::WaitUntil(t.min(next_log)),
+                Next::Idle => match self.s.next_request(now) {
+                    Some((req, silence, purpose)) => {
+                        self.s.purpose = purpose;
+                        // Pieces (0x09 block reads on a bad line, event slots)
+                        // are small: a lost answer is not waited for as long.
+                        let piece = matches!(
+                            purpose,
+                            Purpose::Live | Purpose::Aux(_) | Purpose::EventSlot
+                        ) && matches!(req, Request::ReadIndividual(_));
+                        let timeout = if piece {
+                            self.s.config.piece_response_timeout_us
+                        } else {
+                            self.s.config.response_timeout_us
+                        };
+                        self.link.start_with_timeout(now, req, silence, timeout);
+                    }
+                    None => return Action::WaitUntil(self.s.next_wake(now).min(next_log)),
+                },
+            }
+        }
+        Action::WaitUntil(now)
+    }
+}
+
+impl State {
+    fn new(config: Config, now: Instant) -> Self {
         Self {
             config,
-            link: Link::new(config),
+            link_online: true,
+            link_failures: 0,
             phase: Phase::Sync(SyncStep::Version),
             purpose: Purpose::Probe,
             telemetry: Telemetry {
@@ -354,26 +488,6 @@ impl Bridge {
         Ok(())
     }
 
-    /// The current picture of the BMS.
-    pub fn telemetry(&self) -> &Telemetry {
-        &self.telemetry
-    }
-
-    /// Link counters.
-    pub fn link_stats(&self) -> crate::link::LinkStats {
-        self.link.stats()
-    }
-
-    /// Registers per request the block reads use now (the line's quality).
-    pub fn piece_registers(&self) -> u16 {
-        self.quality.piece()
-    }
-
-    /// Replaces the link counters (see [`Link::preset_stats`]).
-    pub fn preset_link_stats(&mut self, stats: crate::link::LinkStats) {
-        self.link.preset_stats(stats);
-    }
-
     /// True while a command is queued or running.
     pub fn busy(&self) -> bool {
         self.job.is_some() || !self.commands.is_empty()
@@ -395,59 +509,6 @@ impl Bridge {
             self.dropped = self.dropped.wrapping_add(1);
         }
         let _room = self.reports.push_back(r);
-    }
-
-    /// Bytes received from the UART at `now`.
-    pub fn handle_rx(&mut self, now: Instant, bytes: &[u8]) {
-        self.link.on_bytes(now, bytes);
-    }
-
-    /// What to do next at `now`.
-    pub fn poll(&mut self, now: Instant) -> Action {
-        if now >= self.next_link_log {
-            self.next_link_log = now.saturating_add(self.config.link_stats_log_period_us);
-            let s = self.link.stats();
-            self.report(Report::LinkStats(s));
-        }
-        if now >= self.next_quality_log {
-            self.next_quality_log = now.saturating_add(self.config.line_quality_log_period_us);
-            self.log_quality();
-        }
-        let next_log = self.next_link_log.min(self.next_quality_log);
-        for _ in 0..16 {
-            match self.link.next(now) {
-                Next::Send => {
-                    if let Some(b) = self.link.transmit() {
-                        return Action::Transmit(b.clone());
-                    }
-                }
-                Next::Done => {
-                    if let Some(c) = self.link.take_completion() {
-                        self.on_completion(now, &c);
-                    }
-                }
-                Next::WaitUntil(t) => return Action::WaitUntil(t.min(next_log)),
-                Next::Idle => match self.next_request(now) {
-                    Some((req, silence, purpose)) => {
-                        self.purpose = purpose;
-                        // Pieces (0x09 block reads on a bad line, event slots)
-                        // are small: a lost answer is not waited for as long.
-                        let piece = matches!(
-                            purpose,
-                            Purpose::Live | Purpose::Aux(_) | Purpose::EventSlot
-                        ) && matches!(req, Request::ReadIndividual(_));
-                        let timeout = if piece {
-                            self.config.piece_response_timeout_us
-                        } else {
-                            self.config.response_timeout_us
-                        };
-                        self.link.start_with_timeout(now, req, silence, timeout);
-                    }
-                    None => return Action::WaitUntil(self.next_wake(now).min(next_log)),
-                },
-            }
-        }
-        Action::WaitUntil(now)
     }
 
     fn log_quality(&mut self) {
@@ -474,7 +535,7 @@ impl Bridge {
         if now < self.hold_until {
             return self.hold_until;
         }
-        if !self.link.is_online() {
+        if !self.link_online {
             return self.next_probe;
         }
         match self.phase {
@@ -501,7 +562,7 @@ impl Bridge {
         if now < self.hold_until {
             return None;
         }
-        if !self.link.is_online() {
+        if !self.link_online {
             if now < self.next_probe {
                 return None;
             }
@@ -833,10 +894,10 @@ impl Bridge {
     }
 
     fn on_completion(&mut self, now: Instant, c: &Completion) {
-        let online = self.link.is_online();
+        let online = self.link_online;
         if self.was_online && !online {
             self.report(Report::Offline {
-                failures: self.link.consecutive_failures(),
+                failures: self.link_failures,
             });
             self.telemetry.online = false;
             self.resync();

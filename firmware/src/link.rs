@@ -333,6 +333,16 @@ impl Link {
         self.pending.as_ref().map(|p| &p.bytes)
     }
 
+    /// The finished transaction, after [`Next::Done`], where the link keeps it.
+    pub fn completion(&self) -> Option<&Completion> {
+        self.done.as_ref()
+    }
+
+    /// Drops the finished transaction (after [`Link::completion`]).
+    pub fn clear_completion(&mut self) {
+        self.done = None;
+    }
+
     /// The finished transaction, after [`Next::Done`]. Until it is taken,
     /// [`Link::next`] keeps answering [`Next::Done`].
     pub fn take_completion(&mut self) -> Option<Completion> {
