@@ -466,8 +466,30 @@ impl Link {
     }
 
     fn finish(&mut self, now: Instant, result: Result<Response, Failure>) {
-        let Some(p) = self.pending.take() else {
+        if self.pending.is_none() {
             return;
+        }
+        let done = self.done.insert(Completion {
+            request: Request::ReadVersion,
+            result: Err(Failure::Silent),
+            latency_us: 0,
+            sends: 0,
+        });
+        done.result = result;
+        self.finish_in_place(now);
+    }
+
+    /// Finishes the transaction whose result is already in `self.done` (see
+    /// [`Link::on_item`]: a decoded response is written there in place).
+    fn finish_in_place(&mut self, now: Instant) {
+        let Some(p) = self.pending.take() else {
+            self.done = None;
+            return;
+        };
+        let outcome = match self.done.as_ref().map(|d| &d.result) {
+            Some(Ok(_)) => Ok(()),
+            Some(Err(f)) => Err(*f),
+            None => return,
         };
         self.to_send = false;
         self.decoder.clear_expectation();
@@ -480,8 +502,8 @@ impl Link {
                 .saturating_add(self.config.response_timeout_us.max(p.timeout_us));
         }
         let latency_us = now.saturating_sub(p.first_sent.unwrap_or(now));
-        match &result {
-            Ok(_) | Err(Failure::Nack(_)) => {
+        match outcome {
+            Ok(()) | Err(Failure::Nack(_)) => {
                 self.consecutive_failures = 0;
                 self.online = true;
                 self.stats.replies = self.stats.replies.wrapping_add(1);
@@ -516,12 +538,11 @@ impl Link {
                 self.consecutive_failures = 0;
             }
         }
-        self.done = Some(Completion {
-            request: p.request,
-            result,
-            latency_us,
-            sends: p.sends,
-        });
+        if let Some(d) = self.done.as_mut() {
+            d.request = p.request;
+            d.latency_us = latency_us;
+            d.sends = p.sends;
+        }
     }
 
     /// Bytes received from the UART at `now`. Call [`Link::step`] afterwards.
@@ -574,8 +595,29 @@ impl Link {
                 return; // keep waiting: a good frame may follow
             }
         };
-        match Response::decode(&p.request, frame) {
-            Ok(Response::Nack { code, .. }) => {
+        // Decoded straight into the completion slot (no `Response` moved); the
+        // slot is emptied again unless the reply finishes the transaction.
+        let decoded = {
+            let done = self.done.insert(Completion {
+                request: Request::ReadVersion,
+                result: Ok(Response::Ack { command: 0 }),
+                latency_us: 0,
+                sends: 0,
+            });
+            match &mut done.result {
+                Ok(r) => Response::decode_into(&p.request, frame, r),
+                Err(_) => Ok(()),
+            }
+        };
+        let nack = match (&decoded, self.done.as_ref().map(|d| &d.result)) {
+            (Ok(()), Some(Ok(Response::Nack { code, .. }))) => Some(*code),
+            _ => None,
+        };
+        if decoded.is_err() || nack.is_some() {
+            self.done = None;
+        }
+        match decoded.map(|()| nack) {
+            Ok(Some(code)) => {
                 p.heard = true;
                 match code {
                     NackCode::CommandError => {
@@ -596,7 +638,7 @@ impl Link {
                     self.finish(now, Err(Failure::Nack(code)));
                 }
             }
-            Ok(resp) => self.finish(now, Ok(resp)),
+            Ok(None) => self.finish_in_place(now),
             // Not for us (a late or duplicated answer, another command): ignored,
             // and it does not count as the BMS answering this request.
             Err(ResponseError::UnexpectedResponse { .. }) => {
