@@ -153,6 +153,10 @@ pub struct Decoder {
     len: usize,
     asm: Option<Assembly>,
     expect: Option<(u8, Option<u16>)>,
+    /// Total length of the candidate at the front of the buffer, once its header
+    /// told (0: not known). Until that many bytes are buffered, `poll` answers at
+    /// once instead of scanning the same header again after every chunk.
+    need: usize,
     stats: DecoderStats,
 }
 
@@ -170,6 +174,7 @@ impl Decoder {
             len: 0,
             asm: None,
             expect: None,
+            need: 0,
             stats: DecoderStats {
                 bytes_in: 0,
                 skipped_bytes: 0,
@@ -218,6 +223,7 @@ impl Decoder {
     pub fn reset(&mut self) {
         self.stats.skipped_bytes = self.stats.skipped_bytes.wrapping_add(self.len as u32);
         self.len = 0;
+        self.need = 0;
         self.asm = None;
     }
 
@@ -273,6 +279,7 @@ impl Decoder {
     }
 
     fn drop_front(&mut self, n: usize) {
+        self.need = 0;
         let n = n.min(self.len);
         self.buf.copy_within(n..self.len, 0);
         self.len -= n;
@@ -284,6 +291,9 @@ impl Decoder {
     }
 
     fn step(&mut self, ending: bool) -> Option<Result<Frame, DecodeError>> {
+        if !ending && self.len < self.need {
+            return None; // the candidate at the front is still short
+        }
         loop {
             // Drop everything before the next preamble.
             let data = self.buf.get(..self.len).unwrap_or(&[]);
@@ -308,8 +318,11 @@ impl Decoder {
             }
             let data = self.buf.get(..self.len).unwrap_or(&[]);
             match framing(data) {
-                Framing::NeedMore => {
+                f @ (Framing::NeedMore | Framing::Short(_)) => {
                     if !ending {
+                        if let Framing::Short(n) = f {
+                            self.need = n;
+                        }
                         return None;
                     }
                     let command = data.get(1).copied();
