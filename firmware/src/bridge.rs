@@ -46,7 +46,7 @@ use protocol_core::views::{event_log, LiveSnapshot, Statistics, VersionInfo};
 use crate::checks::{self, Check};
 use crate::config::{self, Config};
 use crate::event_log::{EventTracker, Found};
-use crate::link::{Completion, Failure, Link, LinkStep, Silence, Transmit};
+use crate::link::{Completion, Failure, Link, Next, Silence, Transmit};
 use crate::reader::{self, Assembled, BlockRead, LineQuality, Mode};
 use crate::report::{Report, SnapshotLine, WriteOutcome};
 use crate::Instant;
@@ -228,10 +228,24 @@ const SUSPECT_TRIES: u8 = 3;
 const UNRESOLVED: usize = config::MAX_SETTINGS_GROUP;
 
 /// The bridge. See the module documentation.
+///
+/// The link and the rest are apart so that a finished transaction (a whole
+/// `Response`, hundreds of bytes) is handled by reference where the link keeps
+/// it, instead of being moved out to satisfy the borrow of `&mut self`.
 #[derive(Debug, Clone)]
 pub struct Bridge {
-    config: Config,
     link: Link,
+    s: State,
+}
+
+/// Everything of the bridge but the link.
+#[derive(Debug, Clone)]
+struct State {
+    config: Config,
+    /// `Link::is_online`, refreshed after every call into the link.
+    link_online: bool,
+    /// `Link::consecutive_failures`, refreshed with `link_online`.
+    link_failures: u8,
     phase: Phase,
     purpose: Purpose,
     telemetry: Telemetry,
@@ -259,7 +273,10 @@ pub struct Bridge {
     suppressed_errors: u32,
     was_online: bool,
     quality: LineQuality,
-    live_read: Option<BlockRead>,
+    /// The live read (reused from one snapshot to the next, see
+    /// [`BlockRead::reset`]); in progress while `live_active`.
+    live_read: BlockRead,
+    live_active: bool,
     aux_read: Option<(Aux, BlockRead)>,
     live_turns: u8,
     suspect: Option<Suspect>,
@@ -279,9 +296,129 @@ pub struct Bridge {
 impl Bridge {
     /// A bridge at time `now`, about to sync with the BMS.
     pub fn new(config: Config, now: Instant) -> Self {
+        let link = Link::new(config);
+        let mut s = State::new(config, now);
+        s.link_online = link.is_online();
+        s.link_failures = link.consecutive_failures();
+        Self { link, s }
+    }
+
+    /// Queues a command; gives it back when the queue is full.
+    #[allow(clippy::result_large_err)] // the command itself is handed back
+    pub fn submit(&mut self, command: Command) -> Result<(), Command> {
+        self.s.submit(command)
+    }
+
+    /// Queues the settings of a profile (see [`crate::profile`]) as one group. An
+    /// empty profile queues nothing. Entries beyond [`config::MAX_SETTINGS_GROUP`]
+    /// are queued as further groups.
+    #[allow(clippy::result_large_err)] // the command itself is handed back
+    pub fn submit_profile(&mut self, profile: &[(SettingId, i32)]) -> Result<(), Command> {
+        self.s.submit_profile(profile)
+    }
+
+    /// The current picture of the BMS.
+    pub fn telemetry(&self) -> &Telemetry {
+        &self.s.telemetry
+    }
+
+    /// Link counters.
+    pub fn link_stats(&self) -> crate::link::LinkStats {
+        self.link.stats()
+    }
+
+    /// Registers per request the block reads use now (the line's quality).
+    pub fn piece_registers(&self) -> u16 {
+        self.s.quality.piece()
+    }
+
+    /// Replaces the link counters (see [`Link::preset_stats`]).
+    pub fn preset_link_stats(&mut self, stats: crate::link::LinkStats) {
+        self.link.preset_stats(stats);
+    }
+
+    /// True while a command is queued or running.
+    pub fn busy(&self) -> bool {
+        self.s.busy()
+    }
+
+    /// The next report to log, oldest first.
+    pub fn next_report(&mut self) -> Option<Report> {
+        self.s.next_report()
+    }
+
+    /// Bytes received from the UART at `now`.
+    pub fn handle_rx(&mut self, now: Instant, bytes: &[u8]) {
+        self.link.on_bytes(now, bytes);
+        self.refresh_link();
+    }
+
+    fn refresh_link(&mut self) {
+        self.s.link_online = self.link.is_online();
+        self.s.link_failures = self.link.consecutive_failures();
+    }
+
+    /// What to do next at `now`.
+    pub fn poll(&mut self, now: Instant) -> Action {
+        self.refresh_link();
+        let s = &mut self.s;
+        if now >= s.next_link_log {
+            s.next_link_log = now.saturating_add(s.config.link_stats_log_period_us);
+            let stats = self.link.stats();
+            s.report(Report::LinkStats(stats));
+        }
+        if now >= s.next_quality_log {
+            s.next_quality_log = now.saturating_add(s.config.line_quality_log_period_us);
+            s.log_quality();
+        }
+        let next_log = s.next_link_log.min(s.next_quality_log);
+        for _ in 0..16 {
+            let next = self.link.next(now);
+            self.refresh_link();
+            match next {
+                Next::Send => {
+                    if let Some(b) = self.link.transmit() {
+                        return Action::Transmit(b.clone());
+                    }
+                }
+                Next::Done => {
+                    // Handled where the link keeps it, then dropped.
+                    if let Some(c) = self.link.completion() {
+                        self.s.on_completion(now, c);
+                    }
+                    self.link.clear_completion();
+                }
+                Next::WaitUntil(t) => return Action::WaitUntil(t.min(next_log)),
+                Next::Idle => match self.s.next_request(now) {
+                    Some((req, silence, purpose)) => {
+                        self.s.purpose = purpose;
+                        // Pieces (0x09 block reads on a bad line, event slots)
+                        // are small: a lost answer is not waited for as long.
+                        let piece = matches!(
+                            purpose,
+                            Purpose::Live | Purpose::Aux(_) | Purpose::EventSlot
+                        ) && matches!(req, Request::ReadIndividual(_));
+                        let timeout = if piece {
+                            self.s.config.piece_response_timeout_us
+                        } else {
+                            self.s.config.response_timeout_us
+                        };
+                        self.link.start_with_timeout(now, req, silence, timeout);
+                    }
+                    None => return Action::WaitUntil(self.s.next_wake(now).min(next_log)),
+                },
+            }
+        }
+        Action::WaitUntil(now)
+    }
+}
+
+impl State {
+    fn new(config: Config, now: Instant) -> Self {
         Self {
             config,
-            link: Link::new(config),
+            link_online: true,
+            link_failures: 0,
             phase: Phase::Sync(SyncStep::Version),
             purpose: Purpose::Probe,
             telemetry: Telemetry {
@@ -310,7 +447,12 @@ impl Bridge {
             suppressed_errors: 0,
             was_online: true,
             quality: LineQuality::default(),
-            live_read: None,
+            live_read: BlockRead::new(
+                reader::LIVE_SEGMENTS,
+                Mode::Window(config.live_period_us),
+                now,
+            ),
+            live_active: false,
             aux_read: None,
             live_turns: 0,
             suspect: None,
@@ -346,26 +488,6 @@ impl Bridge {
         Ok(())
     }
 
-    /// The current picture of the BMS.
-    pub fn telemetry(&self) -> &Telemetry {
-        &self.telemetry
-    }
-
-    /// Link counters.
-    pub fn link_stats(&self) -> crate::link::LinkStats {
-        self.link.stats()
-    }
-
-    /// Registers per request the block reads use now (the line's quality).
-    pub fn piece_registers(&self) -> u16 {
-        self.quality.piece()
-    }
-
-    /// Replaces the link counters (see [`Link::preset_stats`]).
-    pub fn preset_link_stats(&mut self, stats: crate::link::LinkStats) {
-        self.link.preset_stats(stats);
-    }
-
     /// True while a command is queued or running.
     pub fn busy(&self) -> bool {
         self.job.is_some() || !self.commands.is_empty()
@@ -387,51 +509,6 @@ impl Bridge {
             self.dropped = self.dropped.wrapping_add(1);
         }
         let _room = self.reports.push_back(r);
-    }
-
-    /// Bytes received from the UART at `now`.
-    pub fn handle_rx(&mut self, now: Instant, bytes: &[u8]) {
-        self.link.on_bytes(now, bytes);
-    }
-
-    /// What to do next at `now`.
-    pub fn poll(&mut self, now: Instant) -> Action {
-        if now >= self.next_link_log {
-            self.next_link_log = now.saturating_add(self.config.link_stats_log_period_us);
-            let s = self.link.stats();
-            self.report(Report::LinkStats(s));
-        }
-        if now >= self.next_quality_log {
-            self.next_quality_log = now.saturating_add(self.config.line_quality_log_period_us);
-            self.log_quality();
-        }
-        let next_log = self.next_link_log.min(self.next_quality_log);
-        for _ in 0..16 {
-            match self.link.step(now) {
-                LinkStep::Send(b) => return Action::Transmit(b),
-                LinkStep::Done(c) => self.on_completion(now, c),
-                LinkStep::WaitUntil(t) => return Action::WaitUntil(t.min(next_log)),
-                LinkStep::Idle => match self.next_request(now) {
-                    Some((req, silence, purpose)) => {
-                        self.purpose = purpose;
-                        // Pieces (0x09 block reads on a bad line, event slots)
-                        // are small: a lost answer is not waited for as long.
-                        let piece = matches!(
-                            purpose,
-                            Purpose::Live | Purpose::Aux(_) | Purpose::EventSlot
-                        ) && matches!(req, Request::ReadIndividual(_));
-                        let timeout = if piece {
-                            self.config.piece_response_timeout_us
-                        } else {
-                            self.config.response_timeout_us
-                        };
-                        self.link.start_with_timeout(now, req, silence, timeout);
-                    }
-                    None => return Action::WaitUntil(self.next_wake(now).min(next_log)),
-                },
-            }
-        }
-        Action::WaitUntil(now)
     }
 
     fn log_quality(&mut self) {
@@ -458,7 +535,7 @@ impl Bridge {
         if now < self.hold_until {
             return self.hold_until;
         }
-        if !self.link.is_online() {
+        if !self.link_online {
             return self.next_probe;
         }
         match self.phase {
@@ -485,7 +562,7 @@ impl Bridge {
         if now < self.hold_until {
             return None;
         }
-        if !self.link.is_online() {
+        if !self.link_online {
             if now < self.next_probe {
                 return None;
             }
@@ -513,7 +590,7 @@ impl Bridge {
     /// statistics get their turn before the next live read starts, so that no
     /// live period starves them.
     fn running_request(&mut self, now: Instant) -> Option<(Request, Silence, Purpose)> {
-        let live_busy = self.live_read.is_some();
+        let live_busy = self.live_active;
         if live_busy && self.live_turns > 0 {
             self.live_turns -= 1;
             return Some(self.live_piece(now));
@@ -608,20 +685,25 @@ impl Bridge {
             .config
             .live_assembly_window_us
             .max(self.config.live_period_us);
-        let reference = self.telemetry.live_registers.clone();
-        self.live_read = Some(
-            BlockRead::new(reader::LIVE_SEGMENTS, Mode::Window(window), now)
-                .with_guard(reader::LIVE_GUARDED, reference),
-        );
-        self.live_turns = config::LIVE_SHARE.saturating_sub(1);
+        self.live_read
+            .reset(reader::LIVE_SEGMENTS, Mode::Window(window), now);
+        self.live_read
+            .guard(reader::LIVE_GUARDED, self.telemetry.live_registers.as_ref());
+        self.live_active = true;
+        // A new read uses up a turn, it does not start a fresh share: at a live
+        // period shorter than a read, live reads follow each other back to back,
+        // and the event log and the statistics get their turn every
+        // LIVE_SHARE live requests all the same.
+        self.live_turns = self.live_turns.saturating_sub(1);
         self.live_piece(now)
     }
 
     fn live_piece(&mut self, now: Instant) -> (Request, Silence, Purpose) {
         let piece = self.quality.piece();
-        let req = match self.live_read.as_mut() {
-            Some(r) => r.next_request(now, piece),
-            None => block(0, 56),
+        let req = if self.live_active {
+            self.live_read.next_request(now, piece)
+        } else {
+            block(0, 56)
         };
         (req, Silence::Failure, Purpose::Live)
     }
@@ -803,7 +885,7 @@ impl Bridge {
         self.phase = Phase::Sync(SyncStep::Version);
         self.telemetry.ready = false;
         self.aux_read = None;
-        self.live_read = None;
+        self.live_active = false;
         self.suspect = None;
         self.sync_failures = 0;
         self.limits_candidate = None;
@@ -811,11 +893,11 @@ impl Bridge {
         self.settings_stale = false;
     }
 
-    fn on_completion(&mut self, now: Instant, c: Completion) {
-        let online = self.link.is_online();
+    fn on_completion(&mut self, now: Instant, c: &Completion) {
+        let online = self.link_online;
         if self.was_online && !online {
             self.report(Report::Offline {
-                failures: self.link.consecutive_failures(),
+                failures: self.link_failures,
             });
             self.telemetry.online = false;
             self.resync();
@@ -861,20 +943,21 @@ impl Bridge {
             return;
         }
         match self.purpose {
-            Purpose::Live => match c.result {
+            Purpose::Live => match &c.result {
                 Ok(Response::Registers(_) | Response::Individual(_)) => {
-                    let done = self
-                        .live_read
-                        .as_mut()
-                        .and_then(|r| on_piece(r, now, &c.result));
+                    let done = if self.live_active {
+                        on_piece(&mut self.live_read, now, &c.result)
+                    } else {
+                        None
+                    };
                     if let Some(a) = done {
-                        self.live_read = None;
+                        self.live_active = false;
                         self.on_live(now, a);
                     }
                 }
                 _ => {
-                    if let Some(r) = self.live_read.as_mut() {
-                        r.on_failure();
+                    if self.live_active {
+                        self.live_read.on_failure();
                     }
                 }
             },
@@ -900,14 +983,14 @@ impl Bridge {
                     self.on_aux(now, aux, a.block);
                 }
             }
-            Purpose::Limits(option) => self.on_limits(now, option, c.result),
+            Purpose::Limits(option) => self.on_limits(now, option, &c.result),
             Purpose::NewestEvents => {
                 // The BMS may mark events as read when it answers: a reply that was
                 // lost, or a request that went out twice, may have hidden some.
                 if c.sends > 1 || c.result.is_err() {
                     self.events.reply_may_be_lost();
                 }
-                if let Ok(Response::Events(list)) = c.result {
+                if let Ok(Response::Events(list)) = &c.result {
                     let expected = self.expected_bms_clock(now);
                     let fresh = self.events.fresh_clock(list.bms_timestamp_s);
                     if fresh
@@ -1123,23 +1206,23 @@ impl Bridge {
         &mut self,
         now: Instant,
         option: SettingsOption,
-        result: Result<Response, Failure>,
+        result: &Result<Response, Failure>,
     ) {
         let in_sync = matches!(self.phase, Phase::Sync(_));
         let next = match result {
             Ok(Response::Settings { values, .. }) => {
-                if self.limits_candidate.as_ref() != Some(&values) {
+                if self.limits_candidate.as_ref() != Some(values) {
                     // First of two, or two that differ: ask again.
-                    self.limits_candidate = Some(values);
+                    self.limits_candidate = Some(values.clone());
                     Some((option, now))
                 } else {
                     self.limits_candidate = None;
                     self.sync_failures = 0;
                     if option == SettingsOption::Min {
-                        self.telemetry.limits_min = Some(values);
+                        self.telemetry.limits_min = Some(values.clone());
                         Some((SettingsOption::Max, now))
                     } else {
-                        self.telemetry.limits_max = Some(values);
+                        self.telemetry.limits_max = Some(values.clone());
                         None
                     }
                 }
@@ -1283,7 +1366,7 @@ impl Bridge {
         self.live_base_valid = true;
     }
 
-    fn on_job(&mut self, now: Instant, c: Completion) {
+    fn on_job(&mut self, now: Instant, c: &Completion) {
         let Some(job) = self.job.as_mut() else {
             return;
         };
@@ -1359,9 +1442,9 @@ impl Bridge {
                     return;
                 };
                 let a = item.id.address();
-                match (w.step, c.result) {
+                match (w.step, &c.result) {
                     (WriteStep::ReadCurrent, Ok(Response::Individual(pairs))) => {
-                        let (Some(first), second) = (pair(&pairs, a), pair(&pairs, a + 1)) else {
+                        let (Some(first), second) = (pair(pairs, a), pair(pairs, a + 1)) else {
                             self.finish_item(item, WriteOutcome::NotWritten(Failure::Timeout));
                             return;
                         };
@@ -1374,7 +1457,7 @@ impl Bridge {
                         }
                     }
                     (WriteStep::ReadCurrent, Err(f)) => {
-                        self.finish_item(item, WriteOutcome::NotWritten(f));
+                        self.finish_item(item, WriteOutcome::NotWritten(*f));
                     }
                     (WriteStep::ReadCurrent, Ok(_)) => {
                         self.finish_item(item, WriteOutcome::NotWritten(Failure::Timeout));
@@ -1385,14 +1468,14 @@ impl Bridge {
                             Ok(Response::WriteEcho { .. }) => {}
                             // Refused at the first attempt: nothing was written.
                             Err(Failure::Nack(code)) if c.sends <= 1 => {
-                                self.finish_item(item, WriteOutcome::Nacked(code));
+                                self.finish_item(item, WriteOutcome::Nacked(*code));
                                 return;
                             }
                             // No clear confirmation (lost, damaged, or a NACK after an
                             // unanswered first attempt that may have been applied):
                             // the read-back decides.
                             Err(Failure::Silent) => w.unconfirmed = Some(Failure::Timeout),
-                            Err(f) => w.unconfirmed = Some(f),
+                            Err(f) => w.unconfirmed = Some(*f),
                             Ok(_) => w.unconfirmed = Some(Failure::Timeout),
                         }
                         if item.id.restarts_bms() {
@@ -1406,13 +1489,13 @@ impl Bridge {
                         }
                     }
                     (WriteStep::ReadBack, Ok(Response::Individual(pairs))) => {
-                        let Some(first) = pair(&pairs, a) else {
+                        let Some(first) = pair(pairs, a) else {
                             let old = w.current.map(|(f, _)| f);
                             self.remember_unresolved(item, old);
                             self.finish_item(item, WriteOutcome::Unconfirmed(Failure::Timeout));
                             return;
                         };
-                        let second = pair(&pairs, a + 1);
+                        let second = pair(pairs, a + 1);
                         // 323/328 read 0xFFFF once a write is accepted; when they
                         // already did before and the write was not confirmed, the
                         // marker proves nothing.
@@ -1451,7 +1534,7 @@ impl Bridge {
                             // follows the group decides.
                             let old = w.current.map(|(f, _)| f);
                             self.remember_unresolved(item, old);
-                            self.finish_item(item, WriteOutcome::Unconfirmed(f));
+                            self.finish_item(item, WriteOutcome::Unconfirmed(*f));
                         }
                     }
                     (WriteStep::ReadBack, Ok(_)) | (WriteStep::Settle(_), _) => {

@@ -184,6 +184,23 @@ pub enum LinkStep {
     Idle,
 }
 
+/// What the link wants next, as [`LinkStep`] without the payloads: the bytes to
+/// send stay in the link ([`Link::transmit`]) and so does the finished
+/// transaction until taken ([`Link::take_completion`]). This is what the bridge
+/// uses: a [`Completion`] holds a whole [`Response`] (about 500 bytes), and
+/// moving it through return values costs more than decoding it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Next {
+    /// Transmit [`Link::transmit`] now.
+    Send,
+    /// A transaction finished: [`Link::take_completion`].
+    Done,
+    /// Nothing until this time (or until bytes arrive).
+    WaitUntil(Instant),
+    /// No transaction in progress.
+    Idle,
+}
+
 /// The link engine.
 #[derive(Debug, Clone)]
 pub struct Link {
@@ -297,13 +314,51 @@ impl Link {
     /// What to do now. Call after [`Link::start`], after bytes arrived and when a
     /// deadline passed.
     pub fn step(&mut self, now: Instant) -> LinkStep {
+        match self.next(now) {
+            Next::Send => match self.transmit() {
+                Some(b) => LinkStep::Send(b.clone()),
+                None => LinkStep::Idle,
+            },
+            Next::Done => match self.take_completion() {
+                Some(c) => LinkStep::Done(c),
+                None => LinkStep::Idle,
+            },
+            Next::WaitUntil(t) => LinkStep::WaitUntil(t),
+            Next::Idle => LinkStep::Idle,
+        }
+    }
+
+    /// The bytes of the request in progress (to send after [`Next::Send`]).
+    pub fn transmit(&self) -> Option<&Transmit> {
+        self.pending.as_ref().map(|p| &p.bytes)
+    }
+
+    /// The finished transaction, after [`Next::Done`], where the link keeps it.
+    pub fn completion(&self) -> Option<&Completion> {
+        self.done.as_ref()
+    }
+
+    /// Drops the finished transaction (after [`Link::completion`]).
+    pub fn clear_completion(&mut self) {
+        self.done = None;
+    }
+
+    /// The finished transaction, after [`Next::Done`]. Until it is taken,
+    /// [`Link::next`] keeps answering [`Next::Done`].
+    pub fn take_completion(&mut self) -> Option<Completion> {
+        self.done.take()
+    }
+
+    /// As [`Link::step`], leaving the bytes to send and the finished transaction
+    /// in the link (see [`Next`]).
+    pub fn next(&mut self, now: Instant) -> Next {
         // Bounded: each pass either returns or changes the state towards a return.
         for _ in 0..4 {
-            if let Some(done) = self.done.take() {
-                return LinkStep::Done(done);
+            if self.done.is_some() {
+                return Next::Done;
             }
             let Some(p) = self.pending.as_mut() else {
-                return LinkStep::Idle;
+                return Next::Idle;
             };
             if self.to_send {
                 // After a transaction that went out more than once, an answer to an
@@ -320,14 +375,14 @@ impl Link {
                     && command == self.quiet_command
                     && !self_identifying
                 {
-                    return LinkStep::WaitUntil(self.quiet_until);
+                    return Next::WaitUntil(self.quiet_until);
                 }
                 self.to_send = false;
                 p.sends = p.sends.saturating_add(1);
                 p.last_sent = now;
                 // Whatever is still buffered belongs to no one now.
                 let stats = &mut self.stats;
-                self.decoder.finish(|r| count_unsolicited(stats, r));
+                self.decoder.finish(|r| count_unsolicited(stats, &r));
                 p.first_sent.get_or_insert(now);
                 p.heard = false;
                 p.last_rx = None;
@@ -335,7 +390,7 @@ impl Link {
                     .saturating_add(BYTE_TIME_US * p.bytes.len() as Instant)
                     .saturating_add(p.timeout_us);
                 self.decoder.expect(&p.request);
-                return LinkStep::Send(p.bytes.clone());
+                return Next::Send;
             }
             let deadline = match p.last_rx {
                 Some(t) => p
@@ -344,18 +399,20 @@ impl Link {
                 None => p.deadline,
             };
             if now < deadline {
-                return LinkStep::WaitUntil(deadline);
+                return Next::WaitUntil(deadline);
             }
             self.on_deadline(now);
         }
-        LinkStep::WaitUntil(now)
+        Next::WaitUntil(now)
     }
 
     /// The response deadline passed.
     fn on_deadline(&mut self, now: Instant) {
         // Whatever is half-received is cut off; a complete frame it reveals may
         // still be the answer.
-        while let Some(item) = self.decoder.flush() {
+        // Items are handled where the decoder returned them (a frame is 264
+        // bytes: not moved again).
+        while let Some(item) = &self.decoder.flush() {
             self.on_item(now, item);
             if self.pending.is_none() || self.to_send {
                 break;
@@ -409,8 +466,30 @@ impl Link {
     }
 
     fn finish(&mut self, now: Instant, result: Result<Response, Failure>) {
-        let Some(p) = self.pending.take() else {
+        if self.pending.is_none() {
             return;
+        }
+        let done = self.done.insert(Completion {
+            request: Request::ReadVersion,
+            result: Err(Failure::Silent),
+            latency_us: 0,
+            sends: 0,
+        });
+        done.result = result;
+        self.finish_in_place(now);
+    }
+
+    /// Finishes the transaction whose result is already in `self.done` (see
+    /// [`Link::on_item`]: a decoded response is written there in place).
+    fn finish_in_place(&mut self, now: Instant) {
+        let Some(p) = self.pending.take() else {
+            self.done = None;
+            return;
+        };
+        let outcome = match self.done.as_ref().map(|d| &d.result) {
+            Some(Ok(_)) => Ok(()),
+            Some(Err(f)) => Err(*f),
+            None => return,
         };
         self.to_send = false;
         self.decoder.clear_expectation();
@@ -423,8 +502,8 @@ impl Link {
                 .saturating_add(self.config.response_timeout_us.max(p.timeout_us));
         }
         let latency_us = now.saturating_sub(p.first_sent.unwrap_or(now));
-        match &result {
-            Ok(_) | Err(Failure::Nack(_)) => {
+        match outcome {
+            Ok(()) | Err(Failure::Nack(_)) => {
                 self.consecutive_failures = 0;
                 self.online = true;
                 self.stats.replies = self.stats.replies.wrapping_add(1);
@@ -459,12 +538,11 @@ impl Link {
                 self.consecutive_failures = 0;
             }
         }
-        self.done = Some(Completion {
-            request: p.request,
-            result,
-            latency_us,
-            sends: p.sends,
-        });
+        if let Some(d) = self.done.as_mut() {
+            d.request = p.request;
+            d.latency_us = latency_us;
+            d.sends = p.sends;
+        }
     }
 
     /// Bytes received from the UART at `now`. Call [`Link::step`] afterwards.
@@ -488,7 +566,7 @@ impl Link {
         loop {
             let n = self.decoder.push(input);
             input = input.get(n..).unwrap_or(&[]);
-            while let Some(item) = self.decoder.poll() {
+            while let Some(item) = &self.decoder.poll() {
                 self.on_item(now, item);
             }
             if input.is_empty() {
@@ -497,7 +575,7 @@ impl Link {
         }
     }
 
-    fn on_item(&mut self, now: Instant, item: Result<protocol_core::Frame, DecodeError>) {
+    fn on_item(&mut self, now: Instant, item: &Result<protocol_core::Frame, DecodeError>) {
         let Some(p) = self.pending.as_mut() else {
             count_unsolicited(&mut self.stats, item);
             return;
@@ -512,13 +590,34 @@ impl Link {
             Err(e) => {
                 // Probably our answer, damaged: the BMS is talking.
                 p.heard = true;
-                count_decode_error(&mut self.stats, &e);
-                p.last_error = Some(Failure::Corrupt(e));
+                count_decode_error(&mut self.stats, e);
+                p.last_error = Some(Failure::Corrupt(*e));
                 return; // keep waiting: a good frame may follow
             }
         };
-        match Response::decode(&p.request, &frame) {
-            Ok(Response::Nack { code, .. }) => {
+        // Decoded straight into the completion slot (no `Response` moved); the
+        // slot is emptied again unless the reply finishes the transaction.
+        let decoded = {
+            let done = self.done.insert(Completion {
+                request: Request::ReadVersion,
+                result: Ok(Response::Ack { command: 0 }),
+                latency_us: 0,
+                sends: 0,
+            });
+            match &mut done.result {
+                Ok(r) => Response::decode_into(&p.request, frame, r),
+                Err(_) => Ok(()),
+            }
+        };
+        let nack = match (&decoded, self.done.as_ref().map(|d| &d.result)) {
+            (Ok(()), Some(Ok(Response::Nack { code, .. }))) => Some(*code),
+            _ => None,
+        };
+        if decoded.is_err() || nack.is_some() {
+            self.done = None;
+        }
+        match decoded.map(|()| nack) {
+            Ok(Some(code)) => {
                 p.heard = true;
                 match code {
                     NackCode::CommandError => {
@@ -539,7 +638,7 @@ impl Link {
                     self.finish(now, Err(Failure::Nack(code)));
                 }
             }
-            Ok(resp) => self.finish(now, Ok(resp)),
+            Ok(None) => self.finish_in_place(now),
             // Not for us (a late or duplicated answer, another command): ignored,
             // and it does not count as the BMS answering this request.
             Err(ResponseError::UnexpectedResponse { .. }) => {
@@ -565,9 +664,9 @@ fn count_decode_error(stats: &mut LinkStats, e: &DecodeError) {
     }
 }
 
-fn count_unsolicited(stats: &mut LinkStats, item: Result<protocol_core::Frame, DecodeError>) {
+fn count_unsolicited(stats: &mut LinkStats, item: &Result<protocol_core::Frame, DecodeError>) {
     match item {
         Ok(_) => stats.unsolicited = stats.unsolicited.wrapping_add(1),
-        Err(e) => count_decode_error(stats, &e),
+        Err(e) => count_decode_error(stats, e),
     }
 }

@@ -33,7 +33,6 @@ use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::channel::Channel;
 use embassy_sync::watch::Watch;
 use embassy_time::{with_timeout, Duration, Instant, Timer};
-use esp_backtrace as _; // panic handler (prints via defmt, then calls `custom_halt`)
 use esp_hal::clock::CpuClock;
 use esp_hal::gpio::AnyPin;
 use esp_hal::peripherals::TIMG0;
@@ -138,12 +137,22 @@ const CAN_MAX_WAIT: Duration = Duration::from_millis(200);
 /// Bus-off recovery: how long to wait for the controller to come back.
 const CAN_RECOVERY_WAIT: Duration = Duration::from_millis(500);
 
-/// The end of every panic: esp-backtrace (feature `custom-halt`) calls this after it
-/// logged the panic message and the backtrace. Wait for the log to get out, then
-/// reset, so a panic anywhere — including in `esp_hal::init` before any watchdog is
-/// armed — ends in a reset rather than a hang.
-#[no_mangle]
-pub extern "Rust" fn custom_halt() -> ! {
+/// Every panic ends here: log where it happened and the backtrace (return
+/// addresses from the frame-pointer walk; `addr2line -e <elf>` turns them into
+/// file:line), wait for the log to get out, then reset, so a panic anywhere —
+/// including in `esp_hal::init` before any watchdog is armed — ends in a reset
+/// rather than a hang. The panic message is deliberately not logged: formatting
+/// it would link `core::fmt` (about 18 KB of flash) for a line nobody can act on
+/// without the location, which is logged.
+#[panic_handler]
+fn panic(info: &core::panic::PanicInfo) -> ! {
+    match info.location() {
+        Some(l) => defmt::error!("panic at {=str}:{=u32}", l.file(), l.line()),
+        None => defmt::error!("panic"),
+    }
+    for frame in esp_backtrace::Backtrace::capture().frames() {
+        defmt::error!("  backtrace 0x{=usize:08x}", frame.program_counter());
+    }
     esp_hal::rom::ets_delay_us(PANIC_RESET_DELAY_US);
     esp_hal::system::software_reset()
 }
@@ -154,7 +163,7 @@ async fn main(spawner: Spawner) {
     //  - until `esp_hal::init` disables it, the 2nd-stage bootloader's RTC watchdog
     //    (ESP-IDF default CONFIG_BOOTLOADER_WDT_ENABLE, 9 s; depends on the
     //    bootloader image espflash/probe-rs flash — not verified on hardware);
-    //  - any panic, from the first instruction on, resets through `custom_halt`;
+    //  - any panic, from the first instruction on, resets through the panic handler;
     //  - a hang after `init`: the MWDT, armed right below before anything else runs.
     let config = esp_hal::Config::default().with_cpu_clock(CpuClock::max());
     let p = esp_hal::init(config);

@@ -186,6 +186,25 @@ impl BlockRead {
         r
     }
 
+    /// Makes this read what [`BlockRead::new`] returns, in place: the live read
+    /// is restarted at every snapshot, and building a new one (about 900 bytes)
+    /// and moving it into place cost more than the rest of the read.
+    pub fn reset(&mut self, segments: &'static [(u16, u16)], mode: Mode, now: Instant) {
+        self.segments = segments;
+        self.mode = mode;
+        self.cursor = 0;
+        self.in_flight = None;
+        self.previous_pass = None;
+        self.started_at = now;
+        self.pieces = 0;
+        self.passes = 0;
+        self.guarded = &[];
+        self.reference = None;
+        self.first_read = None;
+        self.second_reads = 0;
+        self.restart(now);
+    }
+
     /// First address of the span.
     pub fn first(&self) -> u16 {
         self.segments.first().map(|s| s.0).unwrap_or(0)
@@ -200,9 +219,7 @@ impl BlockRead {
         self.in_flight = None;
         self.values.clear();
         let len = usize::from(self.last().saturating_sub(self.first())) + 1;
-        for _ in 0..len.min(MAX_READ_MODBUS) {
-            let _fits = self.values.push(0);
-        }
+        let _fits = self.values.resize(len.min(MAX_READ_MODBUS), 0); // min: fits
         self.started_at = now;
         self.pieces = 0;
     }
@@ -218,6 +235,17 @@ impl BlockRead {
         self.guarded = guarded;
         self.reference = reference;
         self
+    }
+
+    /// As [`BlockRead::with_guard`], on a read in place, with the reference copied
+    /// from `reference` (no block moved through the stack on the live path).
+    pub fn guard(&mut self, guarded: &'static [u16], reference: Option<&RegisterBlock>) {
+        self.guarded = guarded;
+        match (reference, &mut self.reference) {
+            (Some(r), Some(mine)) => mine.clone_from(r),
+            (Some(r), mine) => *mine = Some(r.clone()),
+            (None, mine) => *mine = None,
+        }
     }
 
     /// Second reads made for guarded pieces.

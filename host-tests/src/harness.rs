@@ -153,16 +153,24 @@ pub struct Harness {
     /// Print each log line to stdout as it happens.
     pub echo: bool,
     seen_seq: u32,
-    live_request: Vec<u8>,
-    live_sent_at: Option<u64>,
-    /// Live snapshot latencies, µs: first transmission of the 0x03 0-55 request to
-    /// the snapshot being published.
+    /// Live snapshot latencies, µs: the first request byte of the live read that
+    /// produced the snapshot (whole block, pieces or a confirming read alike) to
+    /// the snapshot being published. The bridge's reader stamps the time its first
+    /// piece is handed to the UART (`LiveMeta::span_us` runs from it to the last
+    /// piece received, which is when the snapshot is published).
     pub live_latencies: Vec<u64>,
+    /// Statistics reads started (requests whose first register is 100).
+    pub stats_reads: u64,
+    /// Event-log reads started (0x11 / 0x12, or a 0x03 / 0x09 read from register 200).
+    pub event_reads: u64,
     /// Keep every log line and published snapshot (off for long soaks: the
     /// counters of [`Harness::soak`] remain).
     pub retain: bool,
     /// Ground-truth checks, when made by [`Harness::checked`].
     pub soak: Option<Soak>,
+    /// When set, every call made to the bridge is appended here in the format of
+    /// [`crate::trace`] (the recorded trace the RISC-V cost benchmark replays).
+    pub trace: Option<Vec<u8>>,
 }
 
 impl Harness {
@@ -184,14 +192,12 @@ impl Harness {
             tx_busy_us: 0,
             echo: false,
             seen_seq: 0,
-            live_request: protocol_core::request::Request::read_registers(0, 56)
-                .and_then(|r| r.to_bytes())
-                .map(|b| b.to_vec())
-                .unwrap_or_default(),
-            live_sent_at: None,
             live_latencies: Vec::new(),
+            stats_reads: 0,
+            event_reads: 0,
             retain: true,
             soak: None,
+            trace: None,
         }
     }
 
@@ -256,14 +262,13 @@ impl Harness {
     pub fn run_until(&mut self, end_us: u64) {
         let mut rx = Vec::new();
         while self.now < end_us {
-            match self.bridge.poll(self.now) {
+            let action = self.bridge.poll(self.now);
+            if let Some(t) = self.trace.as_mut() {
+                crate::trace::record_poll(t, self.now, &action);
+            }
+            match action {
                 Action::Transmit(bytes) => {
-                    if bytes.as_slice() == self.live_request.as_slice() {
-                        match self.live_sent_at {
-                            Some(t) if self.now - t < 1_000_000 => {}
-                            _ => self.live_sent_at = Some(self.now),
-                        }
-                    }
+                    self.count_request(&bytes);
                     self.sim.host_send(self.now, &bytes);
                     self.tx_bytes += bytes.len() as u64;
                     // write + flush: the task resumes when the last byte left.
@@ -283,6 +288,9 @@ impl Harness {
                     self.sim.take_output(self.now, &mut rx);
                     if !rx.is_empty() {
                         self.rx_bytes += rx.len() as u64;
+                        if let Some(t) = self.trace.as_mut() {
+                            crate::trace::record_rx(t, self.now, &rx);
+                        }
                         self.bridge.handle_rx(self.now, &rx);
                     }
                 }
@@ -290,6 +298,21 @@ impl Harness {
             self.drain();
         }
         self.sim.advance(self.now);
+    }
+
+    fn count_request(&mut self, bytes: &[u8]) {
+        use protocol_core::request::Request;
+        let first = match Request::parse(bytes) {
+            Ok(Request::ReadNewestEvents | Request::ReadAllEvents) => Some(200),
+            Ok(Request::ReadRegisters { start, .. }) => Some(start),
+            Ok(Request::ReadIndividual(a)) => a.first().copied(),
+            _ => None,
+        };
+        match first {
+            Some(100) => self.stats_reads += 1,
+            Some(200) => self.event_reads += 1,
+            _ => {}
+        }
     }
 
     fn drain(&mut self) {
@@ -314,9 +337,7 @@ impl Harness {
                 if self.retain {
                     self.published.push((at, s.clone()));
                 }
-                if let Some(sent) = self.live_sent_at.take() {
-                    self.live_latencies.push(at - sent);
-                }
+                self.live_latencies.push(u64::from(t.live.span_us));
             }
             self.check_snapshot();
         }

@@ -8,4 +8,5 @@ pub mod harness;
 pub mod profile;
 pub mod replay;
 pub mod sim;
+pub mod trace;
 pub mod truth;

@@ -3,6 +3,11 @@
 //! and byte by byte as an interrupt handler would).
 //!
 //! `cargo bench -p protocol-core --bench throughput -- --warm-up-time 1 --measurement-time 3`
+//!
+//! First, the fair comparison: the decoder and the CRC alone on the same bytes,
+//! chunked the same way, timed alternately in one run, and the ratio of their
+//! throughputs printed (`cargo bench -p protocol-core --bench throughput -- ratio`
+//! prints only that: the filter matches no criterion benchmark).
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,
@@ -13,7 +18,7 @@
 use std::hint::black_box;
 
 use criterion::{BenchmarkId, Criterion, Throughput};
-use protocol_core::crc::crc16;
+use protocol_core::crc::{crc16, Crc16};
 use protocol_core::events::{Event, EventId, OnlineStatus};
 use protocol_core::request::Request;
 use protocol_core::response::{EventList, RegisterBlock, Response, Temperatures, Words};
@@ -176,7 +181,75 @@ fn decoder_benches(c: &mut Criterion) {
     g.finish();
 }
 
+/// CRC-only baseline: one running CRC over the stream, fed the same chunks, the
+/// least any decoder must do with the same bytes handed over the same way. (A
+/// fresh CRC per chunk would be an unfair baseline: independent short CRCs
+/// overlap in an out-of-order CPU, a frame's CRC cannot.)
+fn crc_chunked(stream: &[u8], chunk: usize) -> u16 {
+    let mut crc = Crc16::new();
+    for piece in stream.chunks(chunk) {
+        crc.update(black_box(piece));
+    }
+    crc.value()
+}
+
+/// Best time of `rounds` runs of `f`, in seconds, with the runs of `g` interleaved
+/// (so both see the same machine state).
+fn best_of_alternating(rounds: usize, mut f: impl FnMut(), mut g: impl FnMut()) -> (f64, f64) {
+    let (mut bf, mut bg) = (f64::MAX, f64::MAX);
+    for _ in 0..rounds {
+        let t = std::time::Instant::now();
+        f();
+        bf = bf.min(t.elapsed().as_secs_f64());
+        let t = std::time::Instant::now();
+        g();
+        bg = bg.min(t.elapsed().as_secs_f64());
+    }
+    (bf, bg)
+}
+
+/// Decoder throughput as a fraction of the CRC-only throughput on the same bytes.
+fn ratio_report() {
+    let (poll, poll_frames) = poll_stream();
+    let live: Vec<u8> = (0..EXCHANGES)
+        .flat_map(|i| poll_exchange(i)[..117].to_vec())
+        .collect();
+    println!("decoder vs CRC alone, same bytes, same chunks (best of 30 alternating runs):");
+    println!(
+        "  {:<22} {:>6} {:>12} {:>12} {:>8}",
+        "stream", "chunk", "decoder MB/s", "CRC MB/s", "ratio"
+    );
+    for (name, stream, frames) in [
+        ("poll stream (5 % noise)", &poll, poll_frames),
+        ("0x03 live replies", &live, EXCHANGES),
+    ] {
+        for chunk in [1usize, 16, 64, 256] {
+            assert_eq!(decode_chunked(stream, chunk), frames);
+            let (dec, crc) = best_of_alternating(
+                30,
+                || {
+                    black_box(decode_chunked(black_box(stream), chunk));
+                },
+                || {
+                    black_box(crc_chunked(black_box(stream), chunk));
+                },
+            );
+            let mbs = |t: f64| stream.len() as f64 / t / 1e6;
+            println!(
+                "  {:<22} {:>6} {:>12.1} {:>12.1} {:>7.2}x",
+                name,
+                chunk,
+                mbs(dec),
+                mbs(crc),
+                crc / dec
+            );
+        }
+    }
+    println!("  (ratio = decoder throughput / CRC-only throughput; goal >= 0.80x at 16-byte chunks and above)");
+}
+
 fn main() {
+    ratio_report();
     let mut c = Criterion::default().without_plots().configure_from_args();
     crc_benches(&mut c);
     decoder_benches(&mut c);

@@ -153,6 +153,10 @@ pub struct Decoder {
     len: usize,
     asm: Option<Assembly>,
     expect: Option<(u8, Option<u16>)>,
+    /// Total length of the candidate at the front of the buffer, once its header
+    /// told (0: not known). Until that many bytes are buffered, `poll` answers at
+    /// once instead of scanning the same header again after every chunk.
+    need: usize,
     stats: DecoderStats,
 }
 
@@ -170,6 +174,7 @@ impl Decoder {
             len: 0,
             asm: None,
             expect: None,
+            need: 0,
             stats: DecoderStats {
                 bytes_in: 0,
                 skipped_bytes: 0,
@@ -218,6 +223,7 @@ impl Decoder {
     pub fn reset(&mut self) {
         self.stats.skipped_bytes = self.stats.skipped_bytes.wrapping_add(self.len as u32);
         self.len = 0;
+        self.need = 0;
         self.asm = None;
     }
 
@@ -273,6 +279,7 @@ impl Decoder {
     }
 
     fn drop_front(&mut self, n: usize) {
+        self.need = 0;
         let n = n.min(self.len);
         self.buf.copy_within(n..self.len, 0);
         self.len -= n;
@@ -284,6 +291,9 @@ impl Decoder {
     }
 
     fn step(&mut self, ending: bool) -> Option<Result<Frame, DecodeError>> {
+        if !ending && self.len < self.need {
+            return None; // the candidate at the front is still short
+        }
         loop {
             // Drop everything before the next preamble.
             let data = self.buf.get(..self.len).unwrap_or(&[]);
@@ -308,8 +318,11 @@ impl Decoder {
             }
             let data = self.buf.get(..self.len).unwrap_or(&[]);
             match framing(data) {
-                Framing::NeedMore => {
+                f @ (Framing::NeedMore | Framing::Short(_)) => {
                     if !ending {
+                        if let Framing::Short(n) = f {
+                            self.need = n;
+                        }
                         return None;
                     }
                     let command = data.get(1).copied();
@@ -342,8 +355,10 @@ impl Decoder {
                             received,
                         }));
                     }
-                    if let Some(result) = self.accept(n) {
-                        return Some(result);
+                    // Passed through as is: re-wrapping would move the frame.
+                    let result = self.accept(n);
+                    if result.is_some() {
+                        return result;
                     }
                 }
             }
@@ -393,16 +408,19 @@ impl Decoder {
             }
             c => {
                 let skip_pl = matches!(crate::frame::layout(c), crate::frame::Layout::Counted(_));
-                let payload = body.get(if skip_pl { 3 } else { 2 }..).unwrap_or(&[]);
-                Some(
-                    Payload::from_slice(payload)
-                        .map(|payload| Frame::Data {
-                            command: c,
-                            payload,
-                            packets: 1,
-                        })
-                        .map_err(|_| DecodeError::PayloadOverflow { command: c }),
-                )
+                let bytes = body.get(if skip_pl { 3 } else { 2 }..).unwrap_or(&[]);
+                // Filled in place in the value returned (a frame is 264 bytes).
+                let mut out = Some(Ok(Frame::Data {
+                    command: c,
+                    payload: Payload::new(),
+                    packets: 1,
+                }));
+                if let Some(Ok(Frame::Data { payload, .. })) = &mut out {
+                    if payload.extend_from_slice(bytes).is_err() {
+                        out = Some(Err(DecodeError::PayloadOverflow { command: c }));
+                    }
+                }
+                out
             }
         };
         self.drop_front(n);

@@ -365,6 +365,8 @@ pub(crate) const fn layout(command: u8) -> Layout {
 pub(crate) enum Framing {
     /// Not enough bytes yet to know.
     NeedMore,
+    /// Not enough bytes yet: the candidate is complete at this total length.
+    Short(usize),
     /// A candidate frame of this total length.
     Complete(usize),
     /// The command byte cannot start a response: skip the preamble silently.
@@ -382,7 +384,7 @@ pub(crate) fn framing(buf: &[u8]) -> Framing {
         if buf.len() >= n {
             Framing::Complete(n)
         } else {
-            Framing::NeedMore
+            Framing::Short(n)
         }
     };
     match command {
@@ -459,6 +461,6 @@ mod tests {
                 pl: 0x40
             }
         );
-        assert_eq!(framing(&[0xAA, 0x03, 0x0A]), Framing::NeedMore);
+        assert_eq!(framing(&[0xAA, 0x03, 0x0A]), Framing::Short(15));
     }
 }

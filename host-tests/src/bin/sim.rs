@@ -410,13 +410,28 @@ fn print_link(h: &Harness) {
     );
     if let Some(l) = h.live_latency() {
         println!(
-            "snapshot latency (request start -> snapshot decoded): min {:.2} ms, mean {:.2} ms, max {:.2} ms over {} snapshots",
+            "snapshot latency (first request byte of the live read -> snapshot published): min {:.2} ms, mean {:.2} ms, max {:.2} ms over {} snapshots",
             l.0 as f64 / 1000.0,
             l.1 as f64 / 1000.0,
             l.2 as f64 / 1000.0,
             l.3
         );
     }
+    let per = |n: u64| {
+        if n == 0 {
+            "never".to_string()
+        } else {
+            format!("every {:.2} s", secs / n as f64)
+        }
+    };
+    println!(
+        "schedule: {:.1} snapshots/s; event-log reads {} ({}), statistics read passes {} ({}; a confirmed read is two)",
+        h.live_latencies.len() as f64 / secs.max(1e-9),
+        h.event_reads,
+        per(h.event_reads),
+        h.stats_reads,
+        per(h.stats_reads)
+    );
     let busy = (h.tx_bytes + h.rx_bytes) as f64 * BYTE_TIME_US as f64;
     println!(
         "bus utilisation: {:.1} % ({} bytes sent, {} received in {secs:.1} s); reading {} registers per request at the end",
