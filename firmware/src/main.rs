@@ -397,14 +397,14 @@ async fn can_task(mut twai: Twai<'static, Async>) {
                 else {
                     continue;
                 };
-                match with_timeout(CAN_TX_TIMEOUT, twai.transmit_async(&frame)).await {
-                    Ok(Ok(())) => inverter.on_tx(now_us(), TxResult::Sent),
-                    Ok(Err(EspTwaiError::BusOff)) => inverter.on_bus_off(now_us()),
-                    // Not acknowledged (no other node: error-passive), or too slow.
-                    Ok(Err(_)) | Err(_) => inverter.on_tx(now_us(), TxResult::Failed),
-                }
-                if twai.is_bus_off() {
+                let result = with_timeout(CAN_TX_TIMEOUT, twai.transmit_async(&frame)).await;
+                if matches!(result, Ok(Err(EspTwaiError::BusOff))) || twai.is_bus_off() {
                     inverter.on_bus_off(now_us());
+                } else if matches!(result, Ok(Ok(()))) {
+                    inverter.on_tx(now_us(), TxResult::Sent);
+                } else {
+                    // Not acknowledged (no other node: error-passive), or too slow.
+                    inverter.on_tx(now_us(), TxResult::Failed);
                 }
             }
             InverterAction::Recover => {

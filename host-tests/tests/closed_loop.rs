@@ -233,6 +233,52 @@ fn with_hold_charge_zero_the_inverter_keeps_discharging_for_a_bounded_time() {
 }
 
 #[test]
+fn after_a_hold_the_discharge_limit_is_not_cut_when_the_link_returns() {
+    let config = InverterConfig {
+        stale_policy: StalePolicy::HoldChargeZero(10 * MIN),
+        ..InverterConfig::default()
+    };
+    let mut l = ClosedLoop::new(PackProfile::LiFePO4_16S, 7, config, 100.0);
+    l.h.sim.set_soc_percent(60.0);
+    l.model.load_a = 30.0;
+    l.run_until(5 * MIN);
+    let lost_at = l.h.now;
+    l.h.sim.set_silent_until(lost_at + 40 * S);
+    l.run_until(lost_at + 3 * MIN);
+    // DCL never 0 (a Victron inverter would switch off), the load kept running.
+    assert!(l
+        .sent_limits
+        .iter()
+        .filter(|s| s.0 > lost_at)
+        .all(|s| s.3 > 0));
+    assert!(l.model.current_a < -25.0);
+}
+
+#[test]
+fn sma_with_stale_telemetry_is_told_to_stop_at_once() {
+    let config = InverterConfig {
+        protocol: Protocol::SmaSunnyIsland,
+        ..InverterConfig::default()
+    };
+    let mut l = ClosedLoop::new(PackProfile::LiFePO4_16S, 10, config, 100.0);
+    l.h.sim.set_soc_percent(40.0);
+    l.run_until(3 * MIN);
+    assert!(l.model.current_a > 40.0);
+    let lost_at = l.h.now;
+    l.h.sim.set_silent_until(lost_at + 30 * S);
+    l.run_until(lost_at + 15 * S);
+    // Limits frames while stale are stop commands only: CCL 0 and DCL 0.
+    let stale: Vec<_> = l
+        .sent_limits
+        .iter()
+        .filter(|s| s.0 > lost_at + 6 * S)
+        .collect();
+    assert!(!stale.is_empty());
+    assert!(stale.iter().all(|s| s.2 == 0 && s.3 == 0), "{stale:?}");
+    assert_eq!(l.model.current_a, 0.0);
+}
+
+#[test]
 fn a_can_bus_off_pauses_and_recovers() {
     let mut l = lfp(8, 100.0);
     l.h.sim.set_soc_percent(40.0);

@@ -127,6 +127,66 @@ fn frame_0x35a_sma_flags_only_real_faults_as_alarms() {
 }
 
 #[test]
+fn frame_0x35a_sma_bms_fault_status_is_a_warning_not_an_alarm() {
+    // The TinyBMS clears its own fault status after an over-current trip or a
+    // cold-morning cutoff; a Sunny Island alarm would need a manual restart.
+    let f = frames::sma_alarms(&Conditions {
+        bms_internal: 2,
+        ..Conditions::default()
+    });
+    assert_eq!(&f.bytes()[..4], &[0, 0, 0, 0], "no alarm flag");
+    assert_eq!(&f.bytes()[4..], &[0x01, 0x00, 0x40, 0x00], "warnings");
+}
+
+#[test]
+fn frame_0x356_sma_current_is_positive_when_discharging() {
+    // -25.5 A (discharging) is sent as +255 = 0x00FF to the Sunny Island.
+    let f = frames::sma_measurements(&state());
+    assert_eq!(f.bytes(), &[0xAB, 0x14, 0xFF, 0x00, 0x0E, 0x01]);
+}
+
+#[test]
+fn settings_with_zero_current_cutoffs_are_refused() {
+    let regs = |coc: u16| {
+        let mut v = [0u16; 44];
+        for (a, x) in [
+            (300, 3650),
+            (306, 28000),
+            (307, 16),
+            (315, 3650),
+            (316, 2500),
+            (317, 150),
+            (318, coc),
+            (319, 60),
+        ] {
+            v[a - 300] = x;
+        }
+        protocol_core::response::RegisterBlock {
+            start: 300,
+            values: heapless::Vec::from_slice(&v).unwrap(),
+        }
+    };
+    assert!(PackSettings::from_registers(&regs(90)).is_some());
+    assert!(PackSettings::from_registers(&regs(0)).is_none());
+}
+
+#[test]
+fn a_cut_on_the_first_update_is_held_too() {
+    let s = lfp_settings();
+    let mut c = ChargeControl::new(ChargeConfig::default());
+    let faulty = PackState {
+        fault: true,
+        ..state()
+    };
+    assert_eq!(c.update(0, &s, &faulty).0.ccl_da, 0);
+    // The fault clears at once: still held for 30 s, then ramping.
+    assert_eq!(c.update(S, &s, &state()).0.ccl_da, 0);
+    assert_eq!(c.update(20 * S, &s, &state()).0.ccl_da, 0);
+    let after = c.update(32 * S, &s, &state()).0.ccl_da;
+    assert!(after > 0 && after <= 20 * 12, "{after}");
+}
+
+#[test]
 fn frame_0x35e_name_is_not_pylon() {
     let f = frames::name();
     assert_eq!((f.id, f.len), (0x35E, 8));
@@ -452,8 +512,19 @@ proptest! {
     fn cvl_is_never_0_always_cell_count_scaled_and_limits_within_caps(
         (s, states) in arb_settings().prop_flat_map(|s| (Just(s), proptest::collection::vec(arb_state(s), 1..40))),
         cap in proptest::option::of(1u16..5000),
+        (ccl_taper, dcl_taper, temp_margin, ov_margin) in (0u16..300, 0u16..300, -10i16..15, 0u16..200),
     ) {
-        let config = ChargeConfig { ccl_cap_da: cap, dcl_cap_da: cap, ..ChargeConfig::default() };
+        // Any configuration, zero and negative widths included: the safety rules
+        // hold whatever the user typed.
+        let config = ChargeConfig {
+            ccl_cap_da: cap,
+            dcl_cap_da: cap,
+            ccl_taper_mv: ccl_taper,
+            dcl_taper_mv: dcl_taper,
+            temp_margin_c: temp_margin,
+            ov_margin_mv: ov_margin,
+            ..ChargeConfig::default()
+        };
         let mut c = ChargeControl::new(config);
         let n = u32::from(s.cells);
         for (k, p) in states.iter().enumerate() {
@@ -476,6 +547,13 @@ proptest! {
             }
             if p.min_temp_c <= f32::from(s.low_temp_charge_c) || p.max_temp_c >= f32::from(s.overheat_c) {
                 prop_assert_eq!(l.ccl_da, 0);
+            }
+            if p.max_temp_c >= f32::from(s.overheat_c) {
+                prop_assert_eq!(l.dcl_da, 0);
+            }
+            // Discharge stops at or below 316 + margin.
+            if p.min_cell_mv <= s.uv_cutoff_mv + config.uv_margin_mv {
+                prop_assert_eq!(l.dcl_da, 0);
             }
         }
     }

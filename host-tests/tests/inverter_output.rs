@@ -178,3 +178,28 @@ fn repeated_bus_offs_back_off_longer() {
     assert!(matches!(inv.poll(t), InverterAction::WaitUntil(w) if w == t + 16 * S));
     assert_eq!(inv.poll(t + 16 * S), InverterAction::Recover);
 }
+
+#[test]
+fn a_charge_side_fault_event_blocks_charging_until_its_own_recovery() {
+    use protocol_core::events::{Event, EventId};
+    let (snap, settings) = inputs();
+    let mut inv = Inverter::new(InverterConfig::default(), 0);
+    let ccl_at = |inv: &mut Inverter, t: u64| {
+        inv.on_snapshot(t, &snap, Some(settings), None);
+        while !matches!(inv.poll(t), InverterAction::WaitUntil(_)) {}
+        inv.limits().unwrap().ccl_da
+    };
+    assert!(ccl_at(&mut inv, 0) > 0);
+    let ev = |id| Event { timestamp_s: 1, id };
+    // The status is not "fault" (the BMS already recovered its switches), yet
+    // the over-voltage event blocks charging.
+    inv.on_event(&ev(EventId::OverVoltageCutoff));
+    assert_eq!(ccl_at(&mut inv, 2 * S), 0);
+    // Another fault's recovery does not lift it...
+    inv.on_event(&ev(EventId::RecoveredLowTemperatureFault));
+    assert_eq!(ccl_at(&mut inv, 4 * S), 0);
+    // ...its own does (then the hold and the ramp).
+    inv.on_event(&ev(EventId::RecoveredOverVoltage));
+    assert_eq!(ccl_at(&mut inv, 6 * S), 0, "held after the cut");
+    assert!(ccl_at(&mut inv, 40 * S) > 0);
+}

@@ -161,6 +161,8 @@ impl PackSettings {
             low_temp_charge_c: b.get(320)? as i16,
         };
         let sane = (1..=16).contains(&s.cells)
+            && s.charge_cutoff_a >= 1
+            && s.discharge_cutoff_a >= 1
             && s.uv_cutoff_mv >= 1000
             && s.ov_cutoff_mv > s.uv_cutoff_mv
             && s.ov_cutoff_mv <= 5000
@@ -361,9 +363,13 @@ impl Ramp {
 
     fn step(&mut self, now: Instant, target: u16, dt_us: Instant, c: &ChargeConfig) -> u16 {
         if !self.started {
-            // First value: allowed at once (nothing was cut).
+            // First value: allowed at once (nothing was cut before) — but a first
+            // value of 0 is a cut like any other.
             self.started = true;
             self.value_da = target;
+            if target == 0 {
+                self.cut_at = Some(now);
+            }
             return target;
         }
         if target == 0 {
@@ -386,17 +392,20 @@ impl Ramp {
     }
 }
 
-/// Linear factor in 0..=1000 (per mille): 0 at `zero`, 1000 at `full` and
-/// beyond (either direction).
-fn ramp_permille(x: i32, zero: i32, full: i32) -> u32 {
-    if zero == full {
-        return if (full > zero && x >= full) || (full <= zero && x <= full) {
-            1000
-        } else {
-            0
-        };
-    }
-    let f = i64::from(x - zero) * 1000 / i64::from(full - zero);
+/// Linear factor in 0..=1000 (per mille) that falls with `x`: 1000 at or below
+/// `stop − width`, 0 at or above `stop`. A width below 1 counts as 1, so a zero
+/// or negative setting can never turn the direction round.
+fn falling_permille(x: i32, stop: i32, width: i32) -> u32 {
+    let w = i64::from(width.max(1));
+    let f = (i64::from(stop) - i64::from(x)) * 1000 / w;
+    f.clamp(0, 1000) as u32
+}
+
+/// Linear factor in 0..=1000 that rises with `x`: 0 at or below `stop`, 1000 at
+/// or above `stop + width` (width at least 1).
+fn rising_permille(x: i32, stop: i32, width: i32) -> u32 {
+    let w = i64::from(width.max(1));
+    let f = (i64::from(x) - i64::from(stop)) * 1000 / w;
     f.clamp(0, 1000) as u32
 }
 
@@ -426,6 +435,14 @@ impl ChargeControl {
         }
     }
 
+    /// The inverter ran with CCL 0 but its last DCL (the hold policy): only the
+    /// charge limit comes back after the hold; the discharge limit is kept.
+    pub fn cut_charge(&mut self, now: Instant) {
+        self.ccl.value_da = 0;
+        self.ccl.cut_at = Some(now);
+        self.ccl.started = true;
+    }
+
     /// The configuration.
     pub fn config(&self) -> &ChargeConfig {
         &self.config
@@ -450,12 +467,14 @@ impl ChargeControl {
             .config
             .absorption_mv
             .unwrap_or(s.fully_charged_mv)
-            .clamp(s.uv_cutoff_mv, top);
+            .max(s.uv_cutoff_mv)
+            .min(top);
         let float = self
             .config
             .float_mv
             .unwrap_or((u32::from(absorption) * 15 / 16) as u16)
-            .clamp(s.uv_cutoff_mv, absorption);
+            .max(s.uv_cutoff_mv)
+            .min(absorption);
         (absorption, float)
     }
 
@@ -482,7 +501,7 @@ impl ChargeControl {
                 // (the average cell within 15 mV of the target).
                 let avg_mv = (p.pack_v * 1000.0 / n as f32) as i32;
                 let at_target = p.max_cell_mv.saturating_add(10) >= absorption
-                    || avg_mv + 15 >= i32::from(absorption);
+                    || avg_mv.saturating_add(15) >= i32::from(absorption);
                 let tapered = p.current_a < c.tail_current_a;
                 if at_target && tapered {
                     let since = *self.full_since.get_or_insert(now);
@@ -521,8 +540,15 @@ impl ChargeControl {
         let ceil_mv = n * u32::from(s.ov_cutoff_mv);
         let cvl_mv = (n * u32::from(target))
             .saturating_sub(self.runner_offset_mv)
-            .clamp(floor_mv, ceil_mv);
-        let mut cvl_dv = (cvl_mv / 100).max(1) as u16;
+            .max(floor_mv)
+            .min(ceil_mv);
+        // 0.1 V steps, rounded towards the inside of cells × [316, 315].
+        let mut cvl_dv = if cvl_mv <= floor_mv {
+            cvl_mv.div_ceil(100)
+        } else {
+            cvl_mv / 100
+        }
+        .max(1) as u16;
         // Raised at most once per interval; lowered at once.
         if let Some(last) = self.last_cvl_dv {
             if cvl_dv > last {
@@ -550,25 +576,21 @@ impl ChargeControl {
 
         // Tapers by cell voltage.
         let stop_mv = i32::from(s.ov_cutoff_mv) - i32::from(c.ov_margin_mv);
-        let ccl_v = ramp_permille(
-            i32::from(p.max_cell_mv),
-            stop_mv,
-            stop_mv - i32::from(c.ccl_taper_mv),
-        );
+        let ccl_v = falling_permille(i32::from(p.max_cell_mv), stop_mv, i32::from(c.ccl_taper_mv));
         let dstop_mv = i32::from(s.uv_cutoff_mv) + i32::from(c.uv_margin_mv);
-        let dcl_v = ramp_permille(
+        let dcl_v = rising_permille(
             i32::from(p.min_cell_mv),
             dstop_mv,
-            dstop_mv + i32::from(c.dcl_taper_mv),
+            i32::from(c.dcl_taper_mv),
         );
         // Temperature (°C ×10 to keep tenths).
         let t = |x: f32| (x * 10.0) as i32;
-        let m = i32::from(c.temp_margin_c) * 10;
+        let m = i32::from(c.temp_margin_c.max(1)) * 10;
         let cold = i32::from(s.low_temp_charge_c) * 10;
         let hot = i32::from(s.overheat_c) * 10;
-        let ccl_cold = ramp_permille(t(p.min_temp_c), cold, cold + m);
-        let ccl_hot = ramp_permille(t(p.max_temp_c), hot, hot - m);
-        let dcl_hot = ramp_permille(t(p.max_temp_c), hot, hot - m);
+        let ccl_cold = rising_permille(t(p.min_temp_c), cold, m);
+        let ccl_hot = falling_permille(t(p.max_temp_c), hot, m);
+        let dcl_hot = falling_permille(t(p.max_temp_c), hot, m);
         let scale = |x: u16, f: u32| (u32::from(x) * f / 1000) as u16;
         let mut ccl_target = scale(scale(scale(ccl_max, ccl_v), ccl_cold), ccl_hot);
         let mut dcl_target = scale(scale(dcl_max, dcl_v), dcl_hot);
@@ -582,7 +604,9 @@ impl ChargeControl {
         let ccl_da = self.ccl.step(now, ccl_target, dt_us, &c);
         let dcl_da = self.dcl.step(now, dcl_target, dt_us, &c);
 
-        let discharge_mv = (n * u32::from(dstop_mv.max(0) as u16)).clamp(floor_mv, ceil_mv);
+        let discharge_mv = (n * u32::from(dstop_mv.max(0) as u16))
+            .max(floor_mv)
+            .min(ceil_mv);
         let limits = Limits {
             cvl_dv,
             ccl_da,

@@ -189,12 +189,23 @@ pub fn soc(p: &PackState) -> CanFrame {
     frame(ID_SOC, &d[..6])
 }
 
-/// 0x356: pack voltage 0.01 V, current 0.1 A (positive = charging, as the
-/// TinyBMS reports it), the highest sensor temperature 0.1 °C.
+/// 0x356: pack voltage 0.01 V, current 0.1 A (Victron: positive = charging,
+/// as the TinyBMS reports it), the highest sensor temperature 0.1 °C.
 pub fn measurements(p: &PackState) -> CanFrame {
+    measurements_signed(p, 1.0)
+}
+
+/// SMA 0x356: as [`measurements`] with the current's sign turned round
+/// (positive = discharging), as clarkni5/tinybms `tiny2si` sends it and its
+/// design notes describe; the Sunny Island uses its own shunt for control.
+pub fn sma_measurements(p: &PackState) -> CanFrame {
+    measurements_signed(p, -1.0)
+}
+
+fn measurements_signed(p: &PackState, sign: f32) -> CanFrame {
     let mut d = [0u8; 8];
     put16(&mut d, 0, clamp_i16(p.pack_v * 100.0) as u16);
-    put16(&mut d, 2, clamp_i16(p.current_a * 10.0) as u16);
+    put16(&mut d, 2, clamp_i16(sign * p.current_a * 10.0) as u16);
     put16(&mut d, 4, clamp_i16(p.max_temp_c * 10.0) as u16);
     frame(ID_MEASUREMENTS, &d[..6])
 }
@@ -233,8 +244,10 @@ pub fn victron_alarms(c: &Conditions) -> CanFrame {
 
 /// SMA 0x35A: one flag per even bit, the same field order; alarm flags only for
 /// real faults (any alarm flag stops the Sunny Island until a manual restart):
-/// cell over/under-voltage at the cutoff, over-heat, BMS fault. Everything else
-/// is at most a warning.
+/// a cell over the over-voltage or under the under-voltage cutoff, over-heat.
+/// Everything else — the BMS's own fault status included, which it clears by
+/// itself after an over-current trip or a cold-morning cutoff — is at most a
+/// warning (CCL/DCL = 0 already protects the pack).
 pub fn sma_alarms(c: &Conditions) -> CanFrame {
     let mut d = [0u8; 8];
     for (f, byte, bit) in FIELDS_35A {
@@ -243,17 +256,10 @@ pub fn sma_alarms(c: &Conditions) -> CanFrame {
         };
         let real_fault = matches!(
             f,
-            Field::HighVoltage
-                | Field::LowVoltage
-                | Field::HighTemperature
-                | Field::BmsInternal
-                | Field::General
+            Field::HighVoltage | Field::LowVoltage | Field::HighTemperature | Field::General
         );
         let general_alarm = f == Field::General
-            && (c.high_voltage >= 2
-                || c.low_voltage >= 2
-                || c.high_temperature >= 2
-                || c.bms_internal >= 2);
+            && (c.high_voltage >= 2 || c.low_voltage >= 2 || c.high_temperature >= 2);
         let alarm = if f == Field::General {
             general_alarm
         } else {

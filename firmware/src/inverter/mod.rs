@@ -14,10 +14,11 @@
 //!
 //! **Stale data is never sent as fresh.** When the newest snapshot is older than
 //! [`InverterConfig::stale_after_us`], the configured [`StalePolicy`] applies.
-//! The default, [`StalePolicy::StopSending`], sends nothing more: a Victron GX
-//! stops charging and discharging 3 s after the last 0x351 (what Victron's own
-//! devices do on a lost battery), a Sunny Island goes to standby after 60 s
-//! without 0x355. [`StalePolicy::HoldChargeZero`] keeps the inverter running on
+//! The default, [`StalePolicy::StopSending`], sends nothing more to a Victron
+//! GX: it stops charging and discharging 3 s after the last 0x351 (what
+//! Victron's own devices do on a lost battery). A Sunny Island would keep
+//! obeying the last 0x351 until 0x355 has been missing for 60 s, so it gets
+//! 0x351 with CCL 0 and DCL 0 (and no measurement frames: standby after 60 s). [`StalePolicy::HoldChargeZero`] keeps the inverter running on
 //! the battery for a bounded time: CCL 0, DCL and CVL as last computed, the
 //! alarm frame saying "BMS link lost", no measurement frames; then it stops too.
 
@@ -152,6 +153,10 @@ pub enum InverterReport {
     Limits(Limits),
 }
 
+/// A charge block whose recovery event never arrived ends after the BMS has
+/// been out of "fault" this long, µs.
+pub const CHARGE_BLOCK_TIMEOUT_US: Instant = 5 * 60 * crate::SECOND;
+
 /// Frames in one burst at most.
 const QUEUE: usize = 10;
 /// Failed transmissions in a row before "no ACK" is reported (and sending slows
@@ -171,6 +176,7 @@ pub struct Inverter {
     logged_limits: Option<Limits>,
     conditions: Conditions,
     charge_blocked: Option<EventId>,
+    fault_clear_since: Option<Instant>,
     queue: Deque<CanFrame, QUEUE>,
     next_fast: Instant,
     next_slow: Instant,
@@ -201,6 +207,7 @@ impl Inverter {
             logged_limits: None,
             conditions: Conditions::default(),
             charge_blocked: None,
+            fault_clear_since: None,
             queue: Deque::new(),
             next_fast: now,
             next_slow: now,
@@ -262,9 +269,16 @@ impl Inverter {
             self.settings = Some(s);
         }
         let mut p = PackState::from_snapshot(snapshot);
-        if !p.fault {
-            // The fault cleared: so did any charge-side fault event.
-            self.charge_blocked = None;
+        // A charge block ends with its own recovery event (see `on_event`); if
+        // that event never reaches us, after the BMS has been out of "fault" for
+        // CHARGE_BLOCK_TIMEOUT_US.
+        if p.fault {
+            self.fault_clear_since = None;
+        } else if self.charge_blocked.is_some() {
+            let since = *self.fault_clear_since.get_or_insert(taken_at);
+            if taken_at.saturating_sub(since) >= CHARGE_BLOCK_TIMEOUT_US {
+                self.charge_blocked = None;
+            }
         }
         p.charge_blocked = self.charge_blocked.is_some();
         self.state = Some((p, taken_at));
@@ -275,17 +289,24 @@ impl Inverter {
     }
 
     /// A BMS event: charge-side fault events block charging until the BMS
-    /// reports the matching recovery (or its status leaves "fault").
+    /// reports the matching recovery (or, failing that, see
+    /// [`CHARGE_BLOCK_TIMEOUT_US`]).
     pub fn on_event(&mut self, e: &Event) {
+        let recovers = |blocked: EventId| match blocked {
+            EventId::OverVoltageCutoff => EventId::RecoveredOverVoltage,
+            EventId::ChargingOverCurrentCutoff => EventId::RecoveredChargingOverCurrent,
+            EventId::LowTemperatureCutoff => EventId::RecoveredLowTemperatureFault,
+            _ => EventId::RecoveredRegenerationOverCurrent,
+        };
         match e.id {
             EventId::OverVoltageCutoff
             | EventId::ChargingOverCurrentCutoff
             | EventId::LowTemperatureCutoff
-            | EventId::RegenerationOverCurrentCutoff => self.charge_blocked = Some(e.id),
-            EventId::RecoveredOverVoltage
-            | EventId::RecoveredChargingOverCurrent
-            | EventId::RecoveredLowTemperatureFault
-            | EventId::RecoveredRegenerationOverCurrent => self.charge_blocked = None,
+            | EventId::RegenerationOverCurrentCutoff => {
+                self.charge_blocked = Some(e.id);
+                self.fault_clear_since = None;
+            }
+            id if self.charge_blocked.map(recovers) == Some(id) => self.charge_blocked = None,
             _ => {}
         }
     }
@@ -406,6 +427,12 @@ impl Inverter {
                 });
             }
             match self.config.stale_policy {
+                // A Sunny Island keeps obeying the last 0x351 until 0x355 has been
+                // missing for 60 s: tell it to stop at once (CCL 0, DCL 0, no
+                // measurement frames, so it goes to standby after 60 s as well).
+                StalePolicy::StopSending if self.config.protocol == Protocol::SmaSunnyIsland => {
+                    self.queue_stop();
+                }
                 StalePolicy::StopSending => {}
                 StalePolicy::HoldChargeZero(max) => {
                     if now.saturating_sub(since) <= max {
@@ -419,9 +446,17 @@ impl Inverter {
             return;
         }
         if self.stale_since.take().is_some() {
+            // The inverter stopped (or ran without charge): limits ramp back —
+            // only CCL after a hold that kept discharging (a DCL of 0 would switch
+            // a Victron inverter off just as the link is back).
+            let held = matches!(self.config.stale_policy, StalePolicy::HoldChargeZero(_))
+                && !self.hold_ended;
+            if held {
+                self.control.cut_charge(now);
+            } else {
+                self.control.cut(now);
+            }
             self.hold_ended = false;
-            // The inverter stopped (or ran without charge): limits ramp back.
-            self.control.cut(now);
             self.report(InverterReport::Fresh);
         }
         let (limits, mut conditions) = self.control.update(now, &settings, &state);
@@ -453,13 +488,29 @@ impl Inverter {
             Protocol::SmaSunnyIsland => {
                 push(frames::sma_alarms(&conditions));
                 push(frames::soc(&state));
-                push(frames::measurements(&state));
+                push(frames::sma_measurements(&state));
                 if slow {
                     push(frames::name());
                     push(frames::sma_info(self.hardware, capacity_ah, self.firmware));
                 }
             }
         }
+    }
+
+    /// Stale, SMA: CCL 0 and DCL 0, "link lost" flagged, nothing else.
+    fn queue_stop(&mut self) {
+        let Some(last) = self.limits else {
+            return;
+        };
+        let stop = Limits {
+            ccl_da: 0,
+            dcl_da: 0,
+            ..last
+        };
+        let mut c = self.conditions;
+        c.link_lost = 1;
+        let _ = self.queue.push_back(frames::limits(&stop));
+        let _ = self.queue.push_back(frames::sma_alarms(&c));
     }
 
     /// Stale, holding: CCL 0, the rest as last computed, "link lost" flagged;
