@@ -1,4 +1,4 @@
-//! The recorded bridge trace replayed by the RISC-V cost benchmark (`bench-rv32/`).
+//! The recorded bridge trace replayed by the RISC-V cost benchmark (`host-tests/bench-rv32/`).
 //!
 //! A trace is every call the harness made to [`tinybms_firmware::Bridge`] during a
 //! simulated run, with what `poll` answered, so that the benchmark drives the

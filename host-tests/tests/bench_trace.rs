@@ -1,4 +1,4 @@
-//! The trace the RISC-V cost benchmark replays (`bench-rv32/trace.bin`) is what
+//! The trace the RISC-V cost benchmark replays (`host-tests/bench-rv32/trace.bin`) is what
 //! the bridge does today: regenerate it with
 //! `cargo run -p host-tests --bin bench-trace` when the bridge's decisions change.
 
@@ -6,12 +6,12 @@ use host_tests::trace::{find_live_reply, record_clean, BENCH_TRACE_SEED, BENCH_T
 
 #[test]
 fn bench_trace_is_current() {
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../bench-rv32/trace.bin");
-    let on_disk = std::fs::read(path).expect("bench-rv32/trace.bin");
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/bench-rv32/trace.bin");
+    let on_disk = std::fs::read(path).expect("host-tests/bench-rv32/trace.bin");
     let fresh = record_clean(BENCH_TRACE_SEED, BENCH_TRACE_US).expect("a live reply");
     assert!(
         on_disk == fresh,
-        "bench-rv32/trace.bin is stale: run `cargo run -p host-tests --bin bench-trace`"
+        "host-tests/bench-rv32/trace.bin is stale: run `cargo run -p host-tests --bin bench-trace`"
     );
 }
 
