@@ -274,6 +274,31 @@ fn byte(p: &[u8], i: usize) -> u8 {
     p.get(i).copied().unwrap_or(0)
 }
 
+/// Appends `count` register words of `payload` to `values`: big-endian words
+/// for 0x03 (`big`), little-endian for the native commands. The caller has
+/// checked the payload length.
+fn fill_words(
+    values: &mut Words,
+    payload: &[u8],
+    count: usize,
+    big: bool,
+    command: u8,
+) -> Result<(), ResponseError> {
+    for i in 0..count {
+        let w = if big {
+            be16(payload, 2 * i)
+        } else {
+            le16(payload, 2 * i)
+        };
+        values.push(w).map_err(|_| ResponseError::Length {
+            command,
+            expected: 2 * cmd::MAX_READ_MODBUS,
+            actual: payload.len(),
+        })?;
+    }
+    Ok(())
+}
+
 impl Response {
     /// As [`Response::decode`], into `out`: a register block (the live path) is
     /// filled in place, so that a caller keeping the response in a long-lived
@@ -306,18 +331,7 @@ impl Response {
                     values: Words::new(),
                 });
                 if let Response::Registers(block) = out {
-                    for i in 0..count {
-                        let w = if big {
-                            be16(payload, 2 * i)
-                        } else {
-                            le16(payload, 2 * i)
-                        };
-                        block.values.push(w).map_err(|_| ResponseError::Length {
-                            command,
-                            expected: 2 * cmd::MAX_READ_MODBUS,
-                            actual: payload.len(),
-                        })?;
-                    }
+                    fill_words(&mut block.values, payload, count, big, command)?;
                 }
                 return Ok(());
             }
@@ -379,18 +393,7 @@ impl Response {
         let words = |big: bool, start: u16, count: usize| -> Result<RegisterBlock, ResponseError> {
             need(2 * count)?;
             let mut values = Words::new();
-            for i in 0..count {
-                let w = if big {
-                    be16(payload, 2 * i)
-                } else {
-                    le16(payload, 2 * i)
-                };
-                values.push(w).map_err(|_| ResponseError::Length {
-                    command,
-                    expected: 2 * cmd::MAX_READ_MODBUS,
-                    actual: payload.len(),
-                })?;
-            }
+            fill_words(&mut values, payload, count, big, command)?;
             Ok(RegisterBlock { start, values })
         };
         // Register blocks (the live path) are filled in place in the value
@@ -406,27 +409,14 @@ impl Response {
                 values: Words::new(),
             }));
             if let Ok(Response::Registers(block)) = &mut out {
-                for i in 0..count {
-                    let w = if big {
-                        be16(payload, 2 * i)
-                    } else {
-                        le16(payload, 2 * i)
-                    };
-                    block.values.push(w).map_err(|_| ResponseError::Length {
-                        command,
-                        expected: 2 * cmd::MAX_READ_MODBUS,
-                        actual: payload.len(),
-                    })?;
-                }
+                fill_words(&mut block.values, payload, count, big, command)?;
             }
             return out;
         }
         Ok(match request {
-            Request::ReadRegisters { start, count } => {
-                Response::Registers(words(true, *start, *count as usize)?)
-            }
-            Request::ReadRegistersNative { start, count } => {
-                Response::Registers(words(false, *start, *count as usize)?)
+            // Handled above, in place.
+            Request::ReadRegisters { .. } | Request::ReadRegistersNative { .. } => {
+                return Err(ResponseError::UnexpectedKind { command })
             }
             Request::ReadSettings { option, count } => Response::Settings {
                 option: *option,
