@@ -13,7 +13,7 @@
 use protocol_core::events::OnlineStatus;
 use protocol_core::registers::MAX_CELLS;
 use protocol_core::response::RegisterBlock;
-use protocol_core::views::LiveSnapshot;
+use protocol_core::views::{cell_mv, LiveSnapshot};
 
 use crate::Instant;
 
@@ -162,11 +162,10 @@ pub fn check_live(block: &RegisterBlock, s: &LiveSnapshot, ctx: Context) -> Resu
     } else {
         MIN_MAX_TOLERANCE_MV
     };
-    let mv = |raw: u16| raw.saturating_add(5) / 10;
     let (Some((_, lo)), Some((_, hi))) = (s.cells.min(), s.cells.max()) else {
         return Err(Check::CellCount);
     };
-    if mv(lo).abs_diff(s.min_cell_mv) > tol || mv(hi).abs_diff(s.max_cell_mv) > tol {
+    if cell_mv(lo).abs_diff(s.min_cell_mv) > tol || cell_mv(hi).abs_diff(s.max_cell_mv) > tol {
         return Err(Check::MinMaxCell);
     }
     // Pack voltage against the sum of the cells.

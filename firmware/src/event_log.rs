@@ -269,7 +269,12 @@ impl EventTracker {
     }
 
     fn report_new(&mut self, events: &[Event], mut found: impl FnMut(Found)) {
-        // Oldest first, whatever order the reply has.
+        self.take_new(events, |e| found(Found::New(e)));
+    }
+
+    /// Raises the mark over every event not seen before, oldest first whatever
+    /// order `events` has, calling `taken` for each.
+    fn take_new(&mut self, events: &[Event], mut taken: impl FnMut(Event)) {
         let mut sorted: Vec<Event, { protocol_core::response::MAX_EVENTS }> = Vec::new();
         for e in events {
             let _fits = sorted.push(*e);
@@ -278,7 +283,7 @@ impl EventTracker {
         for e in &sorted {
             if self.is_new(e) {
                 self.take(e);
-                found(Found::New(*e));
+                taken(*e);
             }
         }
     }
@@ -315,16 +320,7 @@ impl EventTracker {
                 }
             }
             // Everything in the log now is history: raise the mark over all of it.
-            let mut sorted: Vec<Event, { protocol_core::response::MAX_EVENTS }> = Vec::new();
-            for e in events {
-                let _fits = sorted.push(*e);
-            }
-            sort_by_time(&mut sorted);
-            for e in &sorted {
-                if self.is_new(e) {
-                    self.take(e);
-                }
-            }
+            self.take_new(events, |_| {});
             self.history_done = true;
             found(Found::History {
                 count: events.len().min(usize::from(u8::MAX)) as u8,

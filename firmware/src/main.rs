@@ -635,11 +635,7 @@ fn log_report(r: &Report) {
             piece_registers,
             snapshots,
         } => {
-            let permille = if *attempts == 0 {
-                1000
-            } else {
-                (u64::from(*clean) * 1000 / u64::from(*attempts)) as u32
-            };
+            let permille = tinybms_firmware::report::permille(*clean, *attempts);
             if r.level() == Level::Warn {
                 warn!(
                     "line quality: {=u32} permille of {=u32} reads answered at the first attempt; {=u16} registers per request; {=u32} snapshots",

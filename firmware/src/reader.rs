@@ -19,7 +19,7 @@
 //! still a value the BMS sent for those registers.)
 
 use protocol_core::command::MAX_READ_MODBUS;
-use protocol_core::registers::{self, ValueType};
+use protocol_core::registers;
 use protocol_core::request::Request;
 use protocol_core::response::{RegisterBlock, Words};
 
@@ -107,14 +107,7 @@ impl LineQuality {
 /// True when a piece may not end at `address` because `address + 1` continues
 /// the value that starts at or before `address`.
 fn continues_after(address: u16) -> bool {
-    let next = address.wrapping_add(1);
-    if (registers::EVENTS_FIRST..=registers::EVENTS_LAST).contains(&next) {
-        // Event slots are two registers, from 200.
-        return (next - registers::EVENTS_FIRST) % 2 == 1;
-    }
-    registers::lookup(next)
-        .iter()
-        .any(|r| r.value_type == ValueType::Continuation)
+    registers::is_continuation(address.wrapping_add(1))
 }
 
 /// What a block read is for: how its pieces are accepted.

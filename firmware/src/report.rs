@@ -246,11 +246,13 @@ fn event(id: protocol_core::events::EventId) -> Name {
     }
 }
 
-fn permille(part: u32, whole: u32) -> u64 {
+/// `part` of `whole` in per mille (1000 when `whole` is 0: nothing failed). The
+/// line quality figure, shared by the log of the chip and of the simulator.
+pub fn permille(part: u32, whole: u32) -> u32 {
     if whole == 0 {
         1000
     } else {
-        u64::from(part) * 1000 / u64::from(whole)
+        (u64::from(part) * 1000 / u64::from(whole)).min(1000) as u32
     }
 }
 

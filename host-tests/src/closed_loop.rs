@@ -12,6 +12,8 @@
 use std::collections::BTreeMap;
 use std::io::Write;
 
+use protocol_core::views::cell_mv;
+
 use tinybms_firmware::config::Config;
 use tinybms_firmware::inverter::frames::{self, CanFrame};
 use tinybms_firmware::inverter::{
@@ -236,9 +238,8 @@ impl ClosedLoop {
         let (Some(s), Some(at), Some(settings)) = (&t.snapshot, t.snapshot_at, &t.settings) else {
             return;
         };
-        let mv = |raw: u16| raw.saturating_add(5) / 10;
         if let Some((_, raw)) = s.cells.max() {
-            self.figures.max_cell_mv = self.figures.max_cell_mv.max(mv(raw));
+            self.figures.max_cell_mv = self.figures.max_cell_mv.max(cell_mv(raw));
         }
         let pack = tinybms_firmware::inverter::control::PackSettings::from_registers(settings);
         self.inverter.on_snapshot(at, s, pack, t.version.as_ref());

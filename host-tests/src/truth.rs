@@ -35,11 +35,7 @@ pub fn fields(first: u16, last: u16) -> Vec<(u16, u16)> {
             .iter()
             .all(|r| matches!(r.value_type, ValueType::Reserved | ValueType::Continuation));
         let mut width = 1;
-        while a + width <= last
-            && registers::lookup(a + width)
-                .iter()
-                .any(|r| r.value_type == ValueType::Continuation)
-        {
+        while a + width <= last && registers::is_continuation(a + width) {
             width += 1;
         }
         if !reserved {

@@ -612,6 +612,20 @@ pub const REGISTERS: &[Register] = &[
     cont(509, "Product Serial Number (continued)", Access::Read),
 ];
 
+/// True when `address` carries the rest of a value that starts at a lower
+/// address: the high word of a 32-bit value, a later register of the serial
+/// number, the second register of an event slot. A read that splits a value
+/// must not end just before such an address.
+pub fn is_continuation(address: u16) -> bool {
+    if (EVENTS_FIRST..=EVENTS_LAST).contains(&address) {
+        // Event slots are two registers, from 200.
+        return (address - EVENTS_FIRST) % 2 == 1;
+    }
+    lookup(address)
+        .iter()
+        .any(|r| r.value_type == ValueType::Continuation)
+}
+
 /// The table rows for `address` (one or two fields), or an event slot / reserved
 /// description built by rule. Returns at most two rows.
 pub fn lookup(address: u16) -> heapless::Vec<Register, 2> {

@@ -33,6 +33,12 @@ pub struct Cells {
     pub raw: heapless::Vec<u16, MAX_CELLS>,
 }
 
+/// A cell reading (0.1 mV) in mV, rounded to the nearest: the unit of the
+/// min/max cell registers 40/41.
+pub const fn cell_mv(raw: u16) -> u16 {
+    raw.saturating_add(5) / 10
+}
+
 impl Cells {
     /// Picks the measured cells out of registers 0-15.
     ///

@@ -41,6 +41,8 @@
 //!   currents vs cutoffs, cell imbalance (308), BMS fault status and link loss;
 //!   warnings come before alarms (a margin inside each cutoff).
 
+use protocol_core::views::cell_mv;
+
 use crate::Instant;
 
 /// Charge control settings; [`Default`] gives the documented defaults.
@@ -207,10 +209,17 @@ impl PackState {
             min_t = min_t.min(t);
             max_t = max_t.max(t);
         }
-        let mv = |raw: u16| raw.saturating_add(5) / 10;
         Self {
-            min_cell_mv: s.cells.min().map(|(_, r)| mv(r)).unwrap_or(s.min_cell_mv),
-            max_cell_mv: s.cells.max().map(|(_, r)| mv(r)).unwrap_or(s.max_cell_mv),
+            min_cell_mv: s
+                .cells
+                .min()
+                .map(|(_, r)| cell_mv(r))
+                .unwrap_or(s.min_cell_mv),
+            max_cell_mv: s
+                .cells
+                .max()
+                .map(|(_, r)| cell_mv(r))
+                .unwrap_or(s.max_cell_mv),
             pack_v: s.pack_voltage_v,
             current_a: s.pack_current_a,
             soc_pct: s.soc_percent(),
