@@ -431,12 +431,12 @@ impl Inverter {
                 // missing for 60 s: tell it to stop at once (CCL 0, DCL 0, no
                 // measurement frames, so it goes to standby after 60 s as well).
                 StalePolicy::StopSending if self.config.protocol == Protocol::SmaSunnyIsland => {
-                    self.queue_stop();
+                    self.queue_stale(true);
                 }
                 StalePolicy::StopSending => {}
                 StalePolicy::HoldChargeZero(max) => {
                     if now.saturating_sub(since) <= max {
-                        self.queue_hold();
+                        self.queue_stale(false);
                     } else if !self.hold_ended {
                         self.hold_ended = true;
                         self.report(InverterReport::StaleHoldEnded);
@@ -497,33 +497,27 @@ impl Inverter {
         }
     }
 
-    /// Stale, SMA: CCL 0 and DCL 0, "link lost" flagged, nothing else.
-    fn queue_stop(&mut self) {
+    /// Stale: the limits frame with CCL 0 (and DCL 0 when `stop_discharge`),
+    /// the rest as last computed, and the alarm frame with "link lost" flagged.
+    /// No measurement frame: those would be stale values sent as fresh. Used by
+    /// the hold policy (CCL 0 only) and by "stop sending" towards a Sunny
+    /// Island (both 0), which would otherwise obey the last limits for 60 s.
+    fn queue_stale(&mut self, stop_discharge: bool) {
         let Some(last) = self.limits else {
             return;
         };
-        let stop = Limits {
+        let stale = Limits {
             ccl_da: 0,
-            dcl_da: 0,
+            dcl_da: if stop_discharge { 0 } else { last.dcl_da },
             ..last
         };
+        if !stop_discharge {
+            // The hold keeps these limits (only CCL ramps back afterwards).
+            self.limits = Some(stale);
+        }
         let mut c = self.conditions;
         c.link_lost = 1;
-        let _ = self.queue.push_back(frames::limits(&stop));
-        let _ = self.queue.push_back(frames::sma_alarms(&c));
-    }
-
-    /// Stale, holding: CCL 0, the rest as last computed, "link lost" flagged;
-    /// no measurement frame (those would be stale values sent as fresh).
-    fn queue_hold(&mut self) {
-        let Some(last) = self.limits else {
-            return;
-        };
-        let held = Limits { ccl_da: 0, ..last };
-        self.limits = Some(held);
-        let mut c = self.conditions;
-        c.link_lost = 1;
-        let _ = self.queue.push_back(frames::limits(&held));
+        let _ = self.queue.push_back(frames::limits(&stale));
         let alarms = match self.config.protocol {
             Protocol::Victron => frames::victron_alarms(&c),
             Protocol::SmaSunnyIsland => frames::sma_alarms(&c),
