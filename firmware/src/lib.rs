@@ -10,8 +10,12 @@
 //!
 //! * [`link`] — one outstanding request at a time, response timeout, wake-up
 //!   resend, bounded retries, offline detection, link statistics.
-//! * [`bridge`] — the poll schedule, telemetry model and the write/verify state
-//!   machine for settings, on top of the link.
+//! * [`bridge`] — on top of the link: the poll schedule, the sync phase, the
+//!   telemetry model, the write/verify machine for settings (and the reset and
+//!   clear commands), each in its own file under `bridge/`, and a thin
+//!   coordinator whose narrow interface every consumer uses: read
+//!   [`Bridge::telemetry`], act with [`Bridge::submit`], hear outcomes from
+//!   [`Bridge::next_report`].
 //! * [`reader`] — register blocks read whole on a clean line and in pieces on a
 //!   bad one, confirmed by a second read where the values do not change by
 //!   themselves.

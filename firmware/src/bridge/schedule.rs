@@ -1,0 +1,365 @@
+//! The poll schedule: what to ask the BMS next, and when.
+//!
+//! [`Schedule`] owns the timers (live block, event log, statistics, the offline
+//! probe, the hold after a restart), the block reads in progress — the live block
+//! and one confirmed block (version, settings, statistics or the event log) — with
+//! the line's quality that sets their piece size, and the live share.
+//!
+//! `State::next_request` (below) is the priority list, read top to
+//! bottom: a hold sends nothing; an offline link gets only the probe; the sync
+//! phase its steps ([`super::sync`]); running, in this order —
+//! 1. the live read in progress, while it has turns left ([`config::LIVE_SHARE`]);
+//! 2. a due live read, between two settings of a group;
+//! 3. the confirmed read in progress, then the settings read after writes;
+//! 4. the command queue ([`super::writes`]); a reset or clear owns the link;
+//! 5. the first snapshot after a (re)sync (for up to
+//!    [`config::FIRST_SNAPSHOT_PRIORITY_US`]);
+//! 6. the event log and the statistics when due;
+//! 7. the live read (in progress, or due);
+//! 8. a 0x1D limits read left over from the sync.
+//!
+//! Whatever goes out after step 2 gives the live read its next turns, so that
+//! neither the live data nor the slower reads starve.
+
+use protocol_core::request::{Request, SettingsOption};
+use protocol_core::response::{RegisterBlock, Response};
+
+use super::events::slot_request;
+use super::sync::{limits_request, version_request, Phase, SyncStep};
+use super::writes::JobNext;
+use super::State;
+use crate::config::{self, Config};
+use crate::link::{Failure, Silence};
+use crate::reader::{self, Assembled, BlockRead, LineQuality, Mode};
+use crate::Instant;
+
+/// A request, how its silence counts, and what its answer is for.
+pub(super) type Ask = (Request, Silence, Purpose);
+
+/// What a confirmed block read is for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Aux {
+    Version,
+    Settings,
+    Stats,
+    Events,
+}
+
+/// What the request in flight is for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Purpose {
+    Live,
+    Aux(Aux),
+    Limits(SettingsOption),
+    NewestEvents,
+    EventSlot,
+    Probe,
+    Job,
+}
+
+/// The timers and the block reads in progress.
+#[derive(Debug, Clone)]
+pub(super) struct Schedule {
+    /// Nothing is sent before this (a restart in progress, a read-back retry).
+    pub(super) hold_until: Instant,
+    pub(super) next_live: Instant,
+    pub(super) next_events: Instant,
+    pub(super) next_stats: Instant,
+    /// Offline: the next probe.
+    pub(super) next_probe: Instant,
+    /// Sets the piece size of the block reads.
+    pub(super) quality: LineQuality,
+    /// The live read (reused from one snapshot to the next, see
+    /// [`BlockRead::reset`]); in progress while `live_active`.
+    live_read: BlockRead,
+    live_active: bool,
+    aux_read: Option<(Aux, BlockRead)>,
+    /// Live requests left before the other reads get a turn.
+    live_turns: u8,
+}
+
+impl Schedule {
+    pub(super) fn new(config: &Config, now: Instant) -> Self {
+        Self {
+            hold_until: now,
+            next_live: now,
+            next_events: now,
+            next_stats: now,
+            next_probe: now,
+            quality: LineQuality::default(),
+            live_read: BlockRead::new(
+                reader::LIVE_SEGMENTS,
+                Mode::Window(config.live_period_us),
+                now,
+            ),
+            live_active: false,
+            aux_read: None,
+            live_turns: 0,
+        }
+    }
+
+    /// The sync is done: the live data, the event log and the statistics are
+    /// due at once.
+    pub(super) fn start_running(&mut self, now: Instant) {
+        self.next_live = now;
+        self.next_events = now;
+        self.next_stats = now;
+    }
+
+    /// A (re)sync: the reads in progress are dropped.
+    pub(super) fn forget_reads(&mut self) {
+        self.aux_read = None;
+        self.live_active = false;
+    }
+
+    /// Starts a live read; `published` are the registers of the published
+    /// snapshot (see [`BlockRead::guard`]).
+    fn start_live(
+        &mut self,
+        now: Instant,
+        config: &Config,
+        published: Option<&RegisterBlock>,
+    ) -> Ask {
+        self.next_live = now.saturating_add(config.live_period_us);
+        let window = config.live_assembly_window_us.max(config.live_period_us);
+        self.live_read
+            .reset(reader::LIVE_SEGMENTS, Mode::Window(window), now);
+        self.live_read.guard(reader::LIVE_GUARDED, published);
+        self.live_active = true;
+        // A new read uses up a turn, it does not start a fresh share: at a live
+        // period shorter than a read, live reads follow each other back to back,
+        // and the event log and the statistics get their turn every
+        // LIVE_SHARE live requests all the same.
+        self.live_turns = self.live_turns.saturating_sub(1);
+        self.live_piece(now)
+    }
+
+    fn live_piece(&mut self, now: Instant) -> Ask {
+        let piece = self.quality.piece();
+        let req = if self.live_active {
+            self.live_read.next_request(now, piece)
+        } else {
+            Request::ReadRegisters {
+                start: 0,
+                count: 56,
+            }
+        };
+        (req, Silence::Failure, Purpose::Live)
+    }
+
+    fn aux_piece(&mut self, now: Instant, aux: Aux) -> Ask {
+        let piece = self.quality.piece();
+        let read = match &mut self.aux_read {
+            Some((a, r)) if *a == aux => r,
+            _ => {
+                let segments = match aux {
+                    Aux::Version => reader::VERSION_SEGMENTS,
+                    Aux::Settings => reader::SETTINGS_SEGMENTS,
+                    Aux::Stats => reader::STATS_SEGMENTS,
+                    Aux::Events => reader::EVENTS_SEGMENTS,
+                };
+                &mut self
+                    .aux_read
+                    .insert((aux, BlockRead::new(segments, Mode::Confirmed, now)))
+                    .1
+            }
+        };
+        let req = read.next_request(now, piece);
+        (req, Silence::Failure, Purpose::Aux(aux))
+    }
+
+    /// The live read, while one is in progress.
+    pub(super) fn live_read(&mut self) -> Option<&mut BlockRead> {
+        self.live_active.then_some(&mut self.live_read)
+    }
+
+    /// The live read is complete.
+    pub(super) fn live_done(&mut self) {
+        self.live_active = false;
+    }
+
+    /// The confirmed read in progress, if it is the one for `aux`.
+    pub(super) fn aux_read(&mut self, aux: Aux) -> Option<&mut BlockRead> {
+        match &mut self.aux_read {
+            Some((a, r)) if *a == aux => Some(r),
+            _ => None,
+        }
+    }
+
+    /// The confirmed read is complete.
+    pub(super) fn aux_done(&mut self) {
+        self.aux_read = None;
+    }
+}
+
+/// Hands a piece's reply to its block read.
+pub(super) fn on_piece(
+    read: &mut BlockRead,
+    now: Instant,
+    result: &Result<Response, Failure>,
+) -> Option<Assembled> {
+    match result {
+        Ok(Response::Registers(b)) => read.on_block(now, b),
+        Ok(Response::Individual(pairs)) => read.on_pairs(now, pairs),
+        _ => None,
+    }
+}
+
+/// The decision over every part: see the module documentation.
+impl State {
+    /// When [`Self::next_request`] may have something to send.
+    pub(super) fn next_wake(&self, now: Instant) -> Instant {
+        let sc = &self.schedule;
+        if now < sc.hold_until {
+            return sc.hold_until;
+        }
+        if !self.link_online {
+            return sc.next_probe;
+        }
+        match self.sync.phase {
+            Phase::Sync(_) => self.sync.retry_at,
+            Phase::Running => {
+                let mut t = sc.next_live.min(sc.next_events).min(sc.next_stats);
+                if let Some(s) = self.writes.settle_until() {
+                    t = t.min(s);
+                }
+                if let Some((_, r)) = self.sync.limits_due {
+                    t = t.min(r);
+                }
+                t
+            }
+        }
+        .max(now)
+    }
+
+    /// The next request to send at `now`, if any.
+    pub(super) fn next_request(&mut self, now: Instant) -> Option<Ask> {
+        if now < self.schedule.hold_until {
+            return None;
+        }
+        if !self.link_online {
+            if now < self.schedule.next_probe {
+                return None;
+            }
+            self.schedule.next_probe = now.saturating_add(self.config.offline_probe_period_us);
+            return Some((version_request(), Silence::Failure, Purpose::Probe));
+        }
+        if let Phase::Sync(step) = self.sync.phase {
+            if now < self.sync.retry_at {
+                return None;
+            }
+            return Some(match step {
+                SyncStep::Version => self.schedule.aux_piece(now, Aux::Version),
+                SyncStep::Settings => self.schedule.aux_piece(now, Aux::Settings),
+                // A BMS that does not answer 0x1D is not absent: its other answers
+                // prove it is there, so that silence does not count towards offline.
+                SyncStep::LimitsMin => limits_request(SettingsOption::Min),
+                SyncStep::LimitsMax => limits_request(SettingsOption::Max),
+            });
+        }
+        self.running_request(now)
+    }
+
+    /// Running: what to read next. A live read in progress alternates with a
+    /// confirmed read in progress; between them, commands, the event log and the
+    /// statistics get their turn before the next live read starts, so that no
+    /// live period starves them.
+    fn running_request(&mut self, now: Instant) -> Option<Ask> {
+        let live_busy = self.schedule.live_active;
+        if live_busy && self.schedule.live_turns > 0 {
+            self.schedule.live_turns -= 1;
+            return Some(self.schedule.live_piece(now));
+        }
+        // Between two settings of a group (or before a job starts) a due live
+        // read goes first, so a long group does not blind the bridge.
+        if !live_busy
+            && now >= self.schedule.next_live
+            && self.writes.at_boundary()
+            && self.schedule.live_turns > 0
+        {
+            return Some(self.start_live(now));
+        }
+        // From here on, whatever goes out gives the live read its next turns.
+        self.schedule.live_turns = config::LIVE_SHARE;
+        if let Some((aux, _)) = self.schedule.aux_read {
+            return Some(self.schedule.aux_piece(now, aux));
+        }
+        if self.sync.settings_stale && self.writes.idle() {
+            // Settings are read again after writes before the next command runs.
+            return Some(self.schedule.aux_piece(now, Aux::Settings));
+        }
+        for _ in 0..config::COMMAND_QUEUE + 1 {
+            if !self.writes.start_next(&self.model.telemetry, &mut self.out) {
+                break;
+            }
+            match self.writes.next_request(now, &mut self.out) {
+                JobNext::Send(req, silence) => return Some((req, silence, Purpose::Job)),
+                JobNext::Wait => break,
+                JobNext::Finished(effect) => {
+                    if let Some(e) = effect {
+                        self.apply(e);
+                    }
+                    if self.sync.syncing() || self.sync.settings_stale {
+                        // Re-read settings before the next command runs.
+                        return self.next_request(now);
+                    }
+                }
+            }
+        }
+        if self.writes.owns_link() {
+            // A reset or clear owns the link until it is done.
+            return None;
+        }
+        // After a (re)sync the first snapshot goes before the event log and the
+        // statistics (on a bad line those take many requests), unless the live
+        // data takes unusually long.
+        let first_snapshot_pending = !self.model.live_base_valid()
+            && now
+                < self
+                    .sync
+                    .ready_at
+                    .saturating_add(config::FIRST_SNAPSHOT_PRIORITY_US);
+        if first_snapshot_pending {
+            return Some(if live_busy {
+                self.schedule.live_piece(now)
+            } else {
+                self.start_live(now)
+            });
+        }
+        if now >= self.schedule.next_events {
+            self.schedule.next_events = now.saturating_add(self.config.events_period_us);
+            if self.events.needs_full_read() {
+                if let Some(slot) = self.events.scan_slot() {
+                    return Some((slot_request(slot), Silence::Failure, Purpose::EventSlot));
+                }
+                return Some(self.schedule.aux_piece(now, Aux::Events));
+            }
+            return Some((
+                Request::ReadNewestEvents,
+                Silence::Failure,
+                Purpose::NewestEvents,
+            ));
+        }
+        if now >= self.schedule.next_stats {
+            self.schedule.next_stats = now.saturating_add(self.config.stats_period_us);
+            return Some(self.schedule.aux_piece(now, Aux::Stats));
+        }
+        if live_busy {
+            return Some(self.schedule.live_piece(now));
+        }
+        if now >= self.schedule.next_live {
+            return Some(self.start_live(now));
+        }
+        if let Some((option, t)) = self.sync.limits_due {
+            if now >= t && self.writes.idle() {
+                return Some(limits_request(option));
+            }
+        }
+        None
+    }
+
+    fn start_live(&mut self, now: Instant) -> Ask {
+        let published = self.model.telemetry.live_registers.as_ref();
+        self.schedule.start_live(now, &self.config, published)
+    }
+}
