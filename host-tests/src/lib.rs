@@ -6,6 +6,8 @@ pub mod capture;
 pub mod closed_loop;
 pub mod harness;
 pub mod profile;
+pub mod pty;
+pub mod realtime;
 pub mod replay;
 pub mod sim;
 pub mod trace;
