@@ -112,6 +112,12 @@ fn parse_bytes(text: &str) -> Result<Vec<u8>, String> {
     Ok(out)
 }
 
+/// Parses bytes written as in a capture line (`AA 03 00`), as the bridge's
+/// `raw` lines carry them.
+pub fn parse_hex(text: &str) -> Result<Vec<u8>, String> {
+    parse_bytes(text)
+}
+
 /// Parses a whole capture. The first malformed line is reported with its number.
 pub fn parse_capture(text: &str) -> Result<Capture, CaptureError> {
     let mut lines = Vec::new();

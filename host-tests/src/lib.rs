@@ -10,5 +10,6 @@ pub mod pty;
 pub mod realtime;
 pub mod replay;
 pub mod sim;
+pub mod tool;
 pub mod trace;
 pub mod truth;

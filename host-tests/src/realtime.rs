@@ -162,8 +162,14 @@ impl BytePort for SimPort {
     }
 }
 
-/// Called with each report the bridge produces, and the time.
-pub type ReportSink<'a> = Box<dyn FnMut(Instant, &Report) + Send + 'a>;
+/// What [`Driver::service`] tells its caller about.
+#[derive(Debug)]
+pub enum Happened<'a> {
+    /// These bytes were sent to the BMS.
+    Tx(&'a [u8]),
+    /// The bridge reported this, at this time.
+    Report(Instant, &'a Report),
+}
 
 /// The firmware's [`Bridge`] on a [`BytePort`], in real time.
 pub struct Driver<P: BytePort> {
@@ -214,14 +220,9 @@ impl<P: BytePort> Driver<P> {
         Some(c)
     }
 
-    /// Does what the bridge asks until it waits (transmits go out, each to
-    /// `on_tx` too), and drains its reports into `on_report`. Returns the
-    /// bridge's next deadline.
-    pub fn service(
-        &mut self,
-        mut on_tx: impl FnMut(&[u8]),
-        mut on_report: impl FnMut(Instant, &Report),
-    ) -> io::Result<Instant> {
+    /// Does what the bridge asks until it waits (transmits go out) and drains
+    /// its reports; both are told to `on`. Returns the bridge's next deadline.
+    pub fn service(&mut self, mut on: impl FnMut(Happened<'_>)) -> io::Result<Instant> {
         loop {
             let now = self.clock.now();
             match self.bridge.poll(now) {
@@ -231,7 +232,7 @@ impl<P: BytePort> Driver<P> {
                     if let Some(c) = self.capture.as_mut() {
                         c.tx(&bytes)?;
                     }
-                    on_tx(&bytes);
+                    on(Happened::Tx(&bytes));
                 }
                 Action::WaitUntil(t) => {
                     self.deadline = t;
@@ -241,7 +242,7 @@ impl<P: BytePort> Driver<P> {
         }
         let now = self.clock.now();
         while let Some(r) = self.bridge.next_report() {
-            on_report(now, &r);
+            on(Happened::Report(now, &r));
         }
         Ok(self.deadline)
     }
@@ -277,10 +278,13 @@ impl<P: BytePort> Driver<P> {
     ) -> io::Result<()> {
         let end = self.clock.now() + duration.as_micros() as u64;
         while self.clock.now() < end && !stop.load(Ordering::Relaxed) {
-            self.service(|_| {}, &mut on_report)?;
+            self.service(|h| {
+                if let Happened::Report(t, r) = h {
+                    on_report(t, r)
+                }
+            })?;
             self.receive(MAX_SLICE, |_| {})?;
         }
-        self.service(|_| {}, &mut on_report)?;
         Ok(())
     }
 }
