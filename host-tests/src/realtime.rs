@@ -385,3 +385,61 @@ pub fn serve_sim_pty(
 pub const fn wire_time_us(n: usize) -> u64 {
     BYTE_TIME_US * n as u64
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn durations() {
+        assert_eq!(parse_duration("250ms").unwrap(), Duration::from_millis(250));
+        assert_eq!(parse_duration("10").unwrap(), Duration::from_secs(10));
+        assert_eq!(parse_duration("1.5m").unwrap(), Duration::from_secs(90));
+        assert!(parse_duration("5 parsecs").is_err());
+        assert!(parse_duration("-1s").is_err());
+    }
+
+    /// The firmware's bridge on the simulated BMS in real time: asleep at
+    /// first, woken by the bridge's own resend, then ready with a snapshot.
+    /// Bounded wait, no timing assertion.
+    #[test]
+    fn the_driver_wakes_the_sim_and_publishes() {
+        let sim = SimOptions {
+            config: SimConfig {
+                start_asleep: true,
+                ..SimOptions::default().config
+            },
+            ..SimOptions::default()
+        }
+        .build()
+        .unwrap();
+        let mut d = Driver::new(SimPort::new(sim), Config::default());
+        let stop = AtomicBool::new(false);
+        let mut reports = Vec::new();
+        let end = std::time::Instant::now() + Duration::from_secs(60);
+        while d.bridge.telemetry().snapshot.is_none() && std::time::Instant::now() < end {
+            d.run_for(Duration::from_millis(200), &stop, |_, r| {
+                reports.push(r.to_string())
+            })
+            .unwrap();
+        }
+        let t = d.bridge.telemetry();
+        assert!(t.ready && t.snapshot.is_some(), "{reports:#?}");
+        assert!(d.bridge.link_stats().wakeup_resends >= 1, "{reports:#?}");
+        assert!(d.tx_bytes > 0 && d.rx_bytes > 0);
+    }
+
+    #[test]
+    fn settings_of_the_options_are_held_by_the_sim() {
+        let o = SimOptions {
+            settings: vec![(SettingId::OverVoltageCutoff, 3600)],
+            ..SimOptions::default()
+        };
+        assert_eq!(o.build().unwrap().register(315), 3600);
+        let bad = SimOptions {
+            settings: vec![(SettingId::OverVoltageCutoff, 9999)],
+            ..SimOptions::default()
+        };
+        assert!(bad.build().is_err());
+    }
+}

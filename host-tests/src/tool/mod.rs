@@ -263,6 +263,7 @@ fn run(argv: &[String]) -> ToolResult<()> {
                 period_ms: a
                     .period
                     .map_or(1000, |d| d.as_millis().clamp(100, 60_000) as u32),
+                ready_timeout: ready_timeout(&a),
             };
             let mut c = connect(&a)?;
             monitor::run(&mut c, &o)

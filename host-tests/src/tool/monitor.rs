@@ -59,6 +59,8 @@ pub struct MonitorOptions {
     pub duration: Option<Duration>,
     /// Telemetry push period asked of the bridge.
     pub period_ms: u32,
+    /// How long to wait for the BMS to be ready.
+    pub ready_timeout: Duration,
 }
 
 /// UTC time `2024-05-01T12:00:00.123Z` (no dependency for one format).
@@ -375,8 +377,9 @@ pub fn run(client: &mut Client, o: &MonitorOptions) -> ToolResult<()> {
         let _ = write!(out, "{CLEAR}{HOME}");
         let _ = out.flush();
     }
-    // A first picture at once, without waiting for the first push.
-    let first = client.get_one("snapshot")?;
+    // A first picture at once, without waiting for the first push; a BMS that
+    // does not answer is explained here rather than shown as an empty screen.
+    let first = client.wait_ready(o.ready_timeout)?;
     client.pushed.push_front(first);
     loop {
         if end.is_some_and(|e| Instant::now() >= e) || o.count.is_some_and(|c| updates >= c) {
