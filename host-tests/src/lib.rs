@@ -6,6 +6,7 @@ pub mod capture;
 pub mod closed_loop;
 pub mod harness;
 pub mod host_link;
+pub mod hosted;
 pub mod profile;
 pub mod pty;
 pub mod realtime;

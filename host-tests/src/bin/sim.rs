@@ -9,6 +9,7 @@ use std::process::ExitCode;
 
 use host_tests::closed_loop::{run_scenario, ClosedLoop, SCENARIOS};
 use host_tests::harness::{Harness, Soak};
+use host_tests::hosted::{serve_bridge_pty, BridgePtyOptions};
 use host_tests::profile::{parse_assignment, parse_profile};
 use host_tests::realtime::{serve_sim_pty, SimOptions};
 use host_tests::sim::{FaultConfig, PackProfile, SimBms, SimConfig};
@@ -596,7 +597,20 @@ fn run_realtime(o: &Options) -> ExitCode {
         Ok(bms) if o.pty => {
             serve_sim_pty(bms, duration, &stop, &mut out).map_err(|e| e.to_string())
         }
-        Ok(_bms) => Err("--bridge-pty: TODO host link".to_string()),
+        Ok(bms) => {
+            let opts = BridgePtyOptions {
+                read_only: o.read_only,
+                stream_period_ms: o.stream_period_ms,
+                profile: o.profile.clone(),
+                bridge: Config {
+                    snapshot_log_period_us: o.snapshot_every_us,
+                    live_period_us: o.live_period_us,
+                    ..Config::default()
+                },
+                log: !o.quiet,
+            };
+            serve_bridge_pty(bms, &opts, duration, &stop, &mut out).map_err(|e| e.to_string())
+        }
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -399,6 +399,11 @@ pub fn run(client: &mut Client, o: &MonitorOptions) -> ToolResult<()> {
         if v["type"] != "telemetry" {
             continue;
         }
+        // The first picture answered our `get`: print it like the pushes.
+        let mut v = v;
+        if let Some(m) = v.as_object_mut() {
+            m.remove("req");
+        }
         let received = Instant::now();
         let mut counted = false;
         if let Some(l) = logger.as_mut() {

@@ -271,7 +271,13 @@ pub fn probe(
     let mut buf = [0u8; 512];
     // JSON lines that are not a hello (telemetry pushed by a bridge) mean a
     // bridge is there, maybe slow to answer: then wait three times as long.
-    while start.elapsed() < if result.json_lines > 0 { time * 3 } else { time } {
+    while start.elapsed()
+        < if result.json_lines > 0 {
+            time * 3
+        } else {
+            time
+        }
+    {
         if sent == 0 || (sent == 1 && start.elapsed() >= time / 2) {
             // The leading newline ends whatever partial line the bridge holds.
             port.write_all(b"\n{\"cmd\":\"hello\"}\n")
