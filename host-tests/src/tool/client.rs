@@ -14,6 +14,9 @@ use super::{ToolError, ToolResult};
 /// How long a plain `get` may take (the bridge answers from memory).
 pub const GET_TIMEOUT: Duration = Duration::from_secs(10);
 
+/// Stops an in-process bridge; returns its bytes sent and received.
+pub type Finish = Box<dyn FnMut() -> ToolResult<(u64, u64)> + Send>;
+
 /// A connected bridge (real, simulated or in-process).
 pub struct Client {
     lines: Box<dyn Lines>,
@@ -30,7 +33,7 @@ pub struct Client {
     pub garbage_lines: u64,
     /// Direct mode: stops the in-process bridge, returns its bytes sent and
     /// received.
-    pub finish: Option<Box<dyn FnMut() -> ToolResult<(u64, u64)> + Send>>,
+    pub finish: Option<Finish>,
 }
 
 /// An `error` line as a tool error, with a hint where one helps.

@@ -325,7 +325,7 @@ impl Logger {
         match self.format {
             LogFormat::Csv => {
                 let n = t["cell_count"].as_u64().unwrap_or(0) as usize;
-                let cells = *self.cells.get_or_insert_with(|| n);
+                let cells = *self.cells.get_or_insert(n);
                 if self.out.get_ref().metadata().map(|m| m.len()).unwrap_or(0) == 0 {
                     writeln!(self.out, "{}", csv_header(cells)).map_err(err)?;
                 }
@@ -363,24 +363,40 @@ pub fn run(client: &mut Client, o: &MonitorOptions) -> ToolResult<()> {
             })
         }
     };
-    let screen = !o.json;
-    let stdout = std::io::stdout();
-    let header = format!("monitor — {} — {}", client.port, client.mode.describe());
     let start = Instant::now();
     let end = o.duration.map(|d| start + d);
     client.stream(o.period_ms)?;
-    let mut link: Option<Value> = None;
-    let mut next_link = Instant::now();
-    let mut updates = 0u64;
-    if screen {
-        let mut out = stdout.lock();
-        let _ = write!(out, "{CLEAR}{HOME}");
-        let _ = out.flush();
-    }
     // A first picture at once, without waiting for the first push; a BMS that
     // does not answer is explained here rather than shown as an empty screen.
     let first = client.wait_ready(o.ready_timeout)?;
     client.pushed.push_front(first);
+    if !o.json {
+        let stdout = std::io::stdout();
+        let mut out = stdout.lock();
+        let _ = write!(out, "{CLEAR}{HOME}");
+        let _ = out.flush();
+    }
+    let result = watch(client, o, &mut logger, end);
+    // A bridge keeps streaming at whatever period it was last asked for: give
+    // it back the one it announced.
+    if let Some(p) = client.hello["stream_period_ms"].as_u64() {
+        let _ = client.stream(p as u32);
+    }
+    result
+}
+
+fn watch(
+    client: &mut Client,
+    o: &MonitorOptions,
+    logger: &mut Option<Logger>,
+    end: Option<Instant>,
+) -> ToolResult<()> {
+    let screen = !o.json;
+    let stdout = std::io::stdout();
+    let header = format!("monitor — {} — {}", client.port, client.mode.describe());
+    let mut link: Option<Value> = None;
+    let mut next_link = Instant::now();
+    let mut updates = 0u64;
     loop {
         if end.is_some_and(|e| Instant::now() >= e) || o.count.is_some_and(|c| updates >= c) {
             break;
