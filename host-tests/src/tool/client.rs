@@ -47,9 +47,17 @@ pub fn protocol_error(v: &Value) -> ToolError {
         "not_ready" => " (the bridge has not read the settings and their limits yet: try again in a few seconds)",
         "busy" => " (the bridge's command queue is full: try again when the running writes are done)",
         "unknown_setting" => " (`tinybms settings PORT` lists the names)",
+        "out_of_range" => {
+            " (`tinybms settings PORT` shows each setting's Rev D range and the BMS's own min..max)"
+        }
         _ => "",
     };
-    ToolError::failed(format!("the bridge refused: {code}: {detail}{hint}"))
+    let detail = if detail.is_empty() {
+        String::new()
+    } else {
+        format!(" ({detail})")
+    };
+    ToolError::failed(format!("the bridge refused: {code}{detail}{hint}"))
 }
 
 impl Client {

@@ -499,7 +499,10 @@ fn write_settings(c: &mut Client, items: &[(String, f64)], raw: bool) -> ToolRes
             "{bad} of {count} settings not verified on the BMS"
         )));
     }
-    println!("{count} settings verified");
+    println!(
+        "{count} setting{} verified",
+        if count == 1 { "" } else { "s" }
+    );
     Ok(())
 }
 

@@ -177,11 +177,15 @@ pub fn render_screen(
         temp("external_temperature_2_c"),
     ));
     if let Some(left) = t["estimated_time_left_s"].as_u64() {
+        let life = t["lifetime_s"].as_u64().unwrap_or(0);
         line(format!(
-            "Time left {}h{:02}   Lifetime {} s",
+            "Time left {}h{:02}   BMS lifetime {}d {:02}:{:02}:{:02}",
             left / 3600,
             left / 60 % 60,
-            t["lifetime_s"].as_u64().unwrap_or(0)
+            life / 86_400,
+            life / 3600 % 24,
+            life / 60 % 60,
+            life % 60
         ));
     }
     line(String::new());
@@ -418,7 +422,7 @@ fn watch(
         // The first picture answered our `get`: print it like the pushes.
         let mut v = v;
         if let Some(m) = v.as_object_mut() {
-            m.remove("req");
+            m.shift_remove("req");
         }
         let received = Instant::now();
         let mut counted = false;

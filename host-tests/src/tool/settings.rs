@@ -29,7 +29,9 @@ pub fn physical(id: SettingId, raw: i64) -> String {
                     return format!("{name} ({raw})");
                 }
             }
-            let v = raw as f64 * f64::from(r.scale);
+            // The f32 scale's shortest decimal form (0.01, not 0.0099999998).
+            let scale: f64 = r.scale.to_string().parse().unwrap_or(f64::from(r.scale));
+            let v = raw as f64 * scale;
             if r.unit.is_empty() {
                 short(v)
             } else {
@@ -63,10 +65,12 @@ pub fn render_table(lines: &[Value]) -> String {
             Some(v) => format!("{} {unit}", short(v)),
             None => "-".into(),
         };
+        let raw = l["raw"].as_i64().unwrap_or(0);
         let value = match find_setting(l["name"].as_str().unwrap_or("")) {
-            Some(id) if id.register().is_some_and(|r| !r.options.is_empty()) => {
-                physical(id, l["raw"].as_i64().unwrap_or(0))
+            Some(id) if id.reads_back_marker() && raw == 0xFFFF => {
+                "- (write-only: reads 0xFFFF)".to_string()
             }
+            Some(id) if id.register().is_some_and(|r| !r.options.is_empty()) => physical(id, raw),
             _ => value,
         };
         rows.push([
