@@ -53,6 +53,7 @@ pub mod bridge;
 pub mod checks;
 pub mod config;
 pub mod event_log;
+pub mod host_link;
 pub mod inverter;
 pub mod link;
 pub mod profile;

@@ -112,6 +112,12 @@ fn parse_bytes(text: &str) -> Result<Vec<u8>, String> {
     Ok(out)
 }
 
+/// Parses bytes written as in a capture line (`AA 03 00`), as the bridge's
+/// `raw` lines carry them.
+pub fn parse_hex(text: &str) -> Result<Vec<u8>, String> {
+    parse_bytes(text)
+}
+
 /// Parses a whole capture. The first malformed line is reported with its number.
 pub fn parse_capture(text: &str) -> Result<Capture, CaptureError> {
     let mut lines = Vec::new();
@@ -185,6 +191,49 @@ pub fn hex(bytes: &[u8]) -> String {
         s.push_str(&format!("{b:02X}"));
     }
     s
+}
+
+/// Writes a capture as it happens: each transmission is one `>` line, each
+/// received chunk one `<` line (consecutive chunks are one stream, as the
+/// format says), so `replay` reads the file back.
+pub struct CaptureWriter {
+    out: Box<dyn std::io::Write + Send>,
+}
+
+impl CaptureWriter {
+    /// A writer on `out`, starting with `header` as `#` comment lines.
+    pub fn new(mut out: Box<dyn std::io::Write + Send>, header: &str) -> std::io::Result<Self> {
+        for line in header.lines() {
+            writeln!(out, "# {line}")?;
+        }
+        Ok(Self { out })
+    }
+
+    /// One request sent to the BMS.
+    pub fn tx(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        if bytes.is_empty() {
+            return Ok(());
+        }
+        writeln!(self.out, "> {}", hex(bytes))
+    }
+
+    /// A chunk received from the BMS.
+    pub fn rx(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        if bytes.is_empty() {
+            return Ok(());
+        }
+        writeln!(self.out, "< {}", hex(bytes))
+    }
+
+    /// A `#` comment line.
+    pub fn comment(&mut self, text: &str) -> std::io::Result<()> {
+        writeln!(self.out, "# {text}")
+    }
+
+    /// Flushes the underlying writer.
+    pub fn flush(&mut self) -> std::io::Result<()> {
+        self.out.flush()
+    }
 }
 
 #[cfg(test)]
@@ -267,6 +316,43 @@ mod tests {
         // An earlier syntax error wins.
         let e = parse_capture_bytes(b"? x\n< AA\n< \xFF\n").unwrap_err();
         assert_eq!(e.line, 1);
+    }
+
+    #[test]
+    fn the_writer_writes_what_the_parser_reads() {
+        #[derive(Clone, Default)]
+        struct Shared(std::sync::Arc<std::sync::Mutex<Vec<u8>>>);
+        impl std::io::Write for Shared {
+            fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+                self.0.lock().unwrap().extend_from_slice(b);
+                Ok(b.len())
+            }
+            fn flush(&mut self) -> std::io::Result<()> {
+                Ok(())
+            }
+        }
+        let buf = Shared::default();
+        let mut w = CaptureWriter::new(Box::new(buf.clone()), "two\nlines").unwrap();
+        w.tx(&[0xAA, 0x14, 0x7F, 0x1F]).unwrap();
+        w.rx(&[0xAA, 0x14]).unwrap();
+        w.rx(&[]).unwrap();
+        w.comment("gap").unwrap();
+        w.rx(&[0xB8]).unwrap();
+        let text = String::from_utf8(buf.0.lock().unwrap().clone()).unwrap();
+        assert!(
+            text.starts_with("# two\n# lines\n> AA 14 7F 1F\n"),
+            "{text}"
+        );
+        let c = parse_capture(&text).unwrap();
+        let entries: Vec<Entry> = c.lines.into_iter().map(|l| l.entry).collect();
+        assert_eq!(
+            entries,
+            vec![
+                Entry::Tx(vec![0xAA, 0x14, 0x7F, 0x1F]),
+                Entry::Rx(vec![0xAA, 0x14]),
+                Entry::Rx(vec![0xB8])
+            ]
+        );
     }
 
     #[test]

@@ -5,8 +5,13 @@
 pub mod capture;
 pub mod closed_loop;
 pub mod harness;
+pub mod host_link;
+pub mod hosted;
 pub mod profile;
+pub mod pty;
+pub mod realtime;
 pub mod replay;
 pub mod sim;
+pub mod tool;
 pub mod trace;
 pub mod truth;

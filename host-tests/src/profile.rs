@@ -7,64 +7,43 @@
 //! 316 = 2700                     # the register address (whole-register settings)
 //! ```
 //! Values are raw register units (mV, A, s, enumeration values), as in Rev D §3.4.
+//!
+//! The parser is the firmware's own (`tinybms_firmware::profile`, no_std): the
+//! firmware's start-up profile `firmware/profile.txt`, `sim --profile` and the
+//! desktop tool read the same format with the same code. These wrappers turn its
+//! errors into messages.
 
-use protocol_core::registers::Field;
 use protocol_core::settings::SettingId;
+use tinybms_firmware::profile::{self as fw, ProfileError};
 
 /// snake_case name of a setting (`OverVoltageCutoff` → `over_voltage_cutoff`).
 pub fn snake_name(id: SettingId) -> String {
-    let debug = format!("{id:?}");
-    let mut out = String::new();
-    for (i, c) in debug.chars().enumerate() {
-        if c.is_ascii_uppercase() {
-            if i > 0 {
-                out.push('_');
-            }
-            out.push(c.to_ascii_lowercase());
-        } else {
-            out.push(c);
-        }
-    }
-    out
+    fw::setting_key(id).to_string()
 }
 
 /// Finds a setting by snake_case name, Rev D name (case-insensitive) or address.
 pub fn find_setting(name: &str) -> Option<SettingId> {
-    let n = name.trim();
-    if let Ok(addr) = n.parse::<u16>() {
-        return SettingId::from_address(addr, Field::Whole)
-            .or_else(|| SettingId::from_address(addr, Field::LowByte));
+    fw::find_setting(name)
+}
+
+fn message(e: &ProfileError<'_>) -> String {
+    match e.kind {
+        fw::ProfileErrorKind::ExpectedAssignment => format!("`{}`: expected NAME=VALUE", e.text),
+        fw::ProfileErrorKind::UnknownSetting => format!("`{}`: no such setting", e.text),
+        fw::ProfileErrorKind::BadValue => format!("`{}`: not an integer (i32)", e.text),
     }
-    SettingId::ALL
-        .iter()
-        .copied()
-        .find(|id| snake_name(*id) == n.to_ascii_lowercase() || id.name().eq_ignore_ascii_case(n))
 }
 
 /// Parses one `name=value` assignment.
 pub fn parse_assignment(s: &str) -> Result<(SettingId, i32), String> {
-    let (name, value) = s
-        .split_once('=')
-        .ok_or_else(|| format!("`{s}`: expected NAME=VALUE"))?;
-    let id = find_setting(name).ok_or_else(|| format!("`{}`: no such setting", name.trim()))?;
-    let value = value
-        .trim()
-        .parse::<i32>()
-        .map_err(|e| format!("`{}`: {e}", value.trim()))?;
-    Ok((id, value))
+    fw::parse_assignment(s).map_err(|e| message(&e))
 }
 
 /// Parses a profile file.
 pub fn parse_profile(text: &str) -> Result<Vec<(SettingId, i32)>, String> {
-    let mut out = Vec::new();
-    for (i, line) in text.lines().enumerate() {
-        let line = line.split('#').next().unwrap_or("").trim();
-        if line.is_empty() {
-            continue;
-        }
-        out.push(parse_assignment(line).map_err(|e| format!("line {}: {e}", i + 1))?);
-    }
-    Ok(out)
+    fw::entries(text)
+        .map(|e| e.map_err(|e| format!("line {}: {}", e.line, message(&e))))
+        .collect()
 }
 
 #[cfg(test)]
@@ -97,5 +76,47 @@ mod tests {
         );
         assert!(parse_profile("a = b").unwrap_err().starts_with("line 1"));
         assert!(parse_assignment("over_voltage_cutoff=x").is_err());
+    }
+
+    #[test]
+    fn keys_are_the_variant_names_in_snake_case() {
+        for &id in SettingId::ALL {
+            let debug = format!("{id:?}");
+            let mut want = String::new();
+            for (i, c) in debug.chars().enumerate() {
+                if c.is_ascii_uppercase() {
+                    if i > 0 {
+                        want.push('_');
+                    }
+                    want.push(c.to_ascii_lowercase());
+                } else {
+                    want.push(c);
+                }
+            }
+            assert_eq!(snake_name(id), want);
+            assert_eq!(find_setting(&want), Some(id));
+            assert_eq!(find_setting(id.name()), Some(id));
+        }
+    }
+
+    #[test]
+    fn the_firmware_profile_parses() {
+        let text = tinybms_firmware::profile::PROFILE_TEXT;
+        let entries = parse_profile(text).unwrap();
+        // Shipped empty: out of the box the firmware never writes to the BMS.
+        assert!(entries.is_empty(), "{entries:?}");
+        assert!(tinybms_firmware::profile::parse::<
+            { tinybms_firmware::profile::MAX_PROFILE_ENTRIES },
+        >(text)
+        .unwrap()
+        .is_empty());
+        // The commented example in it parses once uncommented.
+        let example: String = text
+            .lines()
+            .filter_map(|l| l.strip_prefix("# "))
+            .filter(|l| l.contains(" = ") && !l.contains('`'))
+            .map(|l| format!("{l}\n"))
+            .collect();
+        assert_eq!(parse_profile(&example).unwrap().len(), 4, "{example}");
     }
 }

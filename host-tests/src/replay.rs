@@ -125,7 +125,8 @@ fn wakeup_reason(r: WakeupReason) -> String {
     }
 }
 
-fn event_json(e: &Event) -> Map<String, Value> {
+/// An event as replay prints it (`timestamp_s`, `id`, `name`, `severity`).
+pub fn event_json(e: &Event) -> Map<String, Value> {
     let mut m = Map::new();
     m.insert("timestamp_s".into(), json!(e.timestamp_s));
     m.insert("id".into(), json!(e.id.raw()));

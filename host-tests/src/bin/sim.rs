@@ -9,7 +9,9 @@ use std::process::ExitCode;
 
 use host_tests::closed_loop::{run_scenario, ClosedLoop, SCENARIOS};
 use host_tests::harness::{Harness, Soak};
+use host_tests::hosted::{serve_bridge_pty, BridgePtyOptions};
 use host_tests::profile::{parse_assignment, parse_profile};
+use host_tests::realtime::{serve_sim_pty, SimOptions};
 use host_tests::sim::{FaultConfig, PackProfile, SimBms, SimConfig};
 use protocol_core::settings::{Setting, SettingId};
 use tinybms_firmware::config::{Config, BYTE_TIME_US};
@@ -43,6 +45,19 @@ const USAGE: &str =
                      must report wrong values and exit 1
   --quiet            only print the summary
   -h, --help         this text
+
+real time, on a pseudo-terminal (Linux; the first line of stdout is the pty's
+path, e.g. /dev/pts/7; runs until stopped, or for --duration if given):
+  --pty              the simulated TinyBMS, 115200 8N1 as over a USB-UART
+                     adapter: open the path with `tinybms`, a serial terminal or
+                     your own code. Applies --pack, --seed, --fault-rate,
+                     --asleep; --profile/--set are the settings it holds
+  --bridge-pty       the firmware's bridge and host link against the simulated
+                     BMS; the path speaks the bridge's USB protocol (JSON Lines,
+                     firmware/src/host_link/PROTOCOL.md). --profile/--set are
+                     written through write/verify at start, as on the device
+  --read-only        (--bridge-pty) refuse host writes
+  --stream-period D  (--bridge-pty) telemetry push period (default 1s; 0 = off)
 
 inverter output (charge control over CAN, in a closed loop with a simulated
 pack and an inverter/charger that obeys the frames):
@@ -92,6 +107,11 @@ struct Options {
     can_log: Option<String>,
     json: Option<String>,
     stale_policy: StalePolicy,
+    duration_given: bool,
+    pty: bool,
+    bridge_pty: bool,
+    read_only: bool,
+    stream_period_ms: u32,
 }
 
 enum Parsed {
@@ -117,12 +137,30 @@ fn parse_args() -> Result<Parsed, String> {
         can_log: None,
         json: None,
         stale_policy: StalePolicy::StopSending,
+        duration_given: false,
+        pty: false,
+        bridge_pty: false,
+        read_only: false,
+        stream_period_ms: 1000,
     };
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut value = |name: &str| args.next().ok_or_else(|| format!("{name} needs a value"));
         match a.as_str() {
-            "--duration" => o.duration_us = parse_duration(&value("--duration")?)?,
+            "--duration" => {
+                o.duration_us = parse_duration(&value("--duration")?)?;
+                o.duration_given = true;
+            }
+            "--pty" => o.pty = true,
+            "--bridge-pty" => o.bridge_pty = true,
+            "--read-only" => o.read_only = true,
+            "--stream-period" => {
+                let d = parse_duration(&value("--stream-period")?)? / 1000;
+                if d != 0 && !(100..=60_000).contains(&d) {
+                    return Err("--stream-period must be 0 or within 100ms..60s".into());
+                }
+                o.stream_period_ms = d as u32;
+            }
             "--fault-rate" => {
                 o.fault_rate = value("--fault-rate")?
                     .parse()
@@ -222,6 +260,12 @@ fn parse_args() -> Result<Parsed, String> {
             "-h" | "--help" => return Ok(Parsed::Help),
             other => return Err(format!("unknown option `{other}`")),
         }
+    }
+    if o.pty && o.bridge_pty {
+        return Err("--pty and --bridge-pty exclude each other".into());
+    }
+    if o.read_only && !o.bridge_pty {
+        return Err("--read-only goes with --bridge-pty".into());
     }
     Ok(Parsed::Run(Box::new(o)))
 }
@@ -455,6 +499,9 @@ fn main() -> ExitCode {
             return ExitCode::from(2);
         }
     };
+    if o.pty || o.bridge_pty {
+        return run_realtime(&o);
+    }
     if let Some(protocol) = o.inverter {
         return run_inverter(&o, protocol);
     }
@@ -525,6 +572,53 @@ fn main() -> ExitCode {
         return ExitCode::from(1);
     }
     ExitCode::SUCCESS
+}
+
+/// `--pty` / `--bridge-pty`: real time on a pseudo-terminal (logic in
+/// `host_tests::realtime`).
+fn run_realtime(o: &Options) -> ExitCode {
+    let sim = SimOptions {
+        pack: o.pack,
+        config: SimConfig {
+            start_asleep: o.asleep,
+            faults: FaultConfig::all(o.fault_rate),
+            ..SimOptions::default().config
+        },
+        seed: o.seeds.0,
+        settings: if o.pty { o.profile.clone() } else { Vec::new() },
+    };
+    let duration = o
+        .duration_given
+        .then(|| std::time::Duration::from_micros(o.duration_us));
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    let mut out = std::io::stdout();
+    let result = match sim.build() {
+        Err(e) => Err(e),
+        Ok(bms) if o.pty => {
+            serve_sim_pty(bms, duration, &stop, &mut out).map_err(|e| e.to_string())
+        }
+        Ok(bms) => {
+            let opts = BridgePtyOptions {
+                read_only: o.read_only,
+                stream_period_ms: o.stream_period_ms,
+                profile: o.profile.clone(),
+                bridge: Config {
+                    snapshot_log_period_us: o.snapshot_every_us,
+                    live_period_us: o.live_period_us,
+                    ..Config::default()
+                },
+                log: !o.quiet,
+            };
+            serve_bridge_pty(bms, &opts, duration, &stop, &mut out).map_err(|e| e.to_string())
+        }
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("sim: {e}");
+            ExitCode::from(2)
+        }
+    }
 }
 
 fn open_log(path: &Option<String>) -> Result<Option<Box<dyn std::io::Write>>, String> {

@@ -1,0 +1,809 @@
+//! Output lines: one JSON object per line, written with `serde` + `serde-json-core`
+//! into a caller's buffer. No allocation, no `core::fmt`.
+//!
+//! Numbers print as `replay` prints them (host-tests/src/replay.rs): fixed-point
+//! register values as `raw / 10^k` rounded to k decimals ([`fixed`]), f32
+//! quantities rounded to [`FLOAT_DECIMALS`] ([`rounded`]), serialized with the
+//! shortest round-trip representation (`ryu`, as `serde_json` does).
+
+use heapless::String;
+use protocol_core::events::{Event, EventId, OnlineStatus, ResetReason, WakeupReason};
+use protocol_core::registers::Register;
+use protocol_core::settings::{Setting, SettingId};
+use protocol_core::views::{CurrentSensor, LiveSnapshot, Statistics, VersionInfo};
+use serde::ser::{Serialize, SerializeSeq, Serializer};
+
+use crate::link::LinkStats;
+use crate::report::WriteOutcome;
+
+/// Decimals of f32 quantities (pack voltage, current, speed): replay's
+/// `FLOAT_DECIMALS`.
+pub const FLOAT_DECIMALS: u32 = 4;
+
+/// 10^k for k = 0..=9, exact in f64 (what `10f64.powi(k)` gives).
+const POW10: [f64; 10] = [1.0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9];
+
+fn pow10(k: u32) -> f64 {
+    POW10.get(k as usize).copied().unwrap_or(1e9)
+}
+
+fn abs(x: f64) -> f64 {
+    if x < 0.0 {
+        -x
+    } else {
+        x
+    }
+}
+
+/// `x` rounded half away from zero to an integer (`f64::round`, which `core`
+/// lacks). Exact: for |x| < 2^52, `x - trunc(x)` is representable.
+pub fn round(x: f64) -> f64 {
+    if !x.is_finite() || abs(x) >= 4_503_599_627_370_496.0 {
+        return x;
+    }
+    let t = x as i64 as f64;
+    let d = x - t;
+    if d >= 0.5 {
+        t + 1.0
+    } else if d <= -0.5 {
+        t - 1.0
+    } else {
+        t
+    }
+}
+
+/// `x` rounded half away from zero to `decimals`, `None` (JSON `null`) when not
+/// finite, never `-0.0`: replay's `rounded`.
+pub fn rounded(x: f64, decimals: u32) -> Option<f64> {
+    if !x.is_finite() {
+        return None;
+    }
+    let p = pow10(decimals);
+    let r = round(x * p) / p;
+    Some(if r == 0.0 { 0.0 } else { r })
+}
+
+/// Fixed-point value `raw * 10^-decimals`, printed exactly at that resolution:
+/// replay's `fixed` (raw 33125 at 4 decimals → `3.3125`).
+pub fn fixed(raw: i64, decimals: u32) -> Option<f64> {
+    rounded(raw as f64 / pow10(decimals), decimals)
+}
+
+/// A register's scale as an integer step and a number of decimals:
+/// `scale = step * 10^-decimals` (0.001 → (1, 3), 0.002 → (2, 3), 1.0 → (1, 0)).
+pub fn scale_parts(r: &Register) -> (i64, u32) {
+    let scale = f64::from(r.scale);
+    for k in 0..=6u32 {
+        let m = scale * pow10(k);
+        let step = round(m);
+        if step >= 1.0 && abs(m - step) < 1e-6 * m {
+            return (step as i64, k);
+        }
+    }
+    (1, 0)
+}
+
+/// A setting's raw value in its physical unit ([`Register::unit`]).
+pub fn physical(id: SettingId, raw: i32) -> Option<f64> {
+    let (step, k) = id.register().map(scale_parts).unwrap_or((1, 0));
+    fixed(i64::from(raw).saturating_mul(step), k)
+}
+
+/// The raw value nearest to a physical value, `None` when there is none in
+/// `i32` (not finite, too large).
+pub fn raw_from_physical(id: SettingId, value: f64) -> Option<i32> {
+    let (step, k) = id.register().map(scale_parts).unwrap_or((1, 0));
+    let raw = round(value * pow10(k) / step as f64);
+    if raw.is_finite() && raw >= f64::from(i32::MIN) && raw <= f64::from(i32::MAX) {
+        Some(raw as i32)
+    } else {
+        None
+    }
+}
+
+/// `unknown_0xNN` (at least two upper-case hex digits, as replay prints).
+fn unknown_hex(raw: u16) -> String<14> {
+    let mut s = String::new();
+    let _ = s.push_str("unknown_0x");
+    let digits = if raw > 0xFFF {
+        4
+    } else if raw > 0xFF {
+        3
+    } else {
+        2
+    };
+    for i in (0..digits).rev() {
+        let _ = s.push(hex_digit((raw >> (4 * i)) as u8));
+    }
+    s
+}
+
+fn hex_digit(n: u8) -> char {
+    char::from(
+        b"0123456789ABCDEF"
+            .get(usize::from(n & 0xF))
+            .copied()
+            .unwrap_or(b'0'),
+    )
+}
+
+/// A name from a table, or `unknown_0xNN`.
+#[derive(Debug, Clone, Copy)]
+pub enum Name {
+    /// Known.
+    Known(&'static str),
+    /// Known, printed as replay's snake_case key of the document name
+    /// ("POR/PDR reset" → `por_pdr_reset`).
+    Snake(&'static str),
+    /// Not in the table.
+    Unknown(u16),
+}
+
+impl Serialize for Name {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match *self {
+            Name::Known(n) => s.serialize_str(n),
+            Name::Snake(n) => {
+                let mut out: String<64> = String::new();
+                for c in n.bytes() {
+                    if c.is_ascii_alphanumeric() {
+                        let _ = out.push(char::from(c.to_ascii_lowercase()));
+                    } else if !out.is_empty() && !out.ends_with('_') {
+                        let _ = out.push('_');
+                    }
+                }
+                while out.ends_with('_') {
+                    out.pop();
+                }
+                s.serialize_str(&out)
+            }
+            Name::Unknown(raw) => s.serialize_str(&unknown_hex(raw)),
+        }
+    }
+}
+
+fn status_name(st: OnlineStatus) -> Name {
+    st.key().map_or(Name::Unknown(st.raw()), Name::Known)
+}
+
+fn event_name(id: EventId) -> Name {
+    match id {
+        EventId::Unknown(v) => Name::Unknown(u16::from(v)),
+        id => Name::Known(id.name()),
+    }
+}
+
+fn reset_name(r: ResetReason) -> Name {
+    match r {
+        ResetReason::Unknown(v) => Name::Unknown(u16::from(v)),
+        r => Name::Snake(r.name()),
+    }
+}
+
+fn wakeup_name(r: WakeupReason) -> Name {
+    match r {
+        WakeupReason::Unknown(v) => Name::Unknown(u16::from(v)),
+        r => Name::Snake(r.name()),
+    }
+}
+
+fn sensor_name(c: CurrentSensor) -> Name {
+    match c {
+        CurrentSensor::InternalResistor => Name::Known("internal_resistor"),
+        CurrentSensor::InternalHall => Name::Known("internal_hall"),
+        CurrentSensor::External => Name::Known("external"),
+        CurrentSensor::Unknown(v) => Name::Unknown(u16::from(v)),
+    }
+}
+
+/// Cell voltages (0.1 mV) as a JSON array of volts.
+struct Cells<'a>(&'a [u16]);
+
+impl Serialize for Cells<'_> {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        let mut seq = s.serialize_seq(Some(self.0.len()))?;
+        for &c in self.0 {
+            seq.serialize_element(&fixed(i64::from(c), 4))?;
+        }
+        seq.end()
+    }
+}
+
+/// Upper-case hex, bytes separated by spaces (the capture format's).
+struct Hex<'a>(&'a [u8], bool);
+
+impl Serialize for Hex<'_> {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        let mut out: String<{ 3 * super::RAW_CHUNK }> = String::new();
+        for (i, &b) in self.0.iter().enumerate() {
+            if i > 0 && self.1 {
+                let _ = out.push(' ');
+            }
+            let _ = out.push(hex_digit(b >> 4));
+            let _ = out.push(hex_digit(b));
+        }
+        s.serialize_str(&out)
+    }
+}
+
+/// Serializes `v` and a `\n` into `out`; `None` when it does not fit.
+fn line<T: Serialize>(v: &T, out: &mut [u8]) -> Option<usize> {
+    let n = serde_json_core::to_slice(v, out).ok()?;
+    *out.get_mut(n)? = b'\n';
+    Some(n + 1)
+}
+
+/// `hello`.
+#[derive(serde::Serialize)]
+struct HelloLine<'a> {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    protocol: u32,
+    firmware: &'a str,
+    chip: &'a str,
+    read_only: bool,
+    stream_period_ms: u32,
+}
+
+/// Writes a `hello` line.
+pub fn hello(
+    out: &mut [u8],
+    req: Option<u32>,
+    firmware: &str,
+    chip: &str,
+    read_only: bool,
+    stream_period_ms: u32,
+) -> Option<usize> {
+    line(
+        &HelloLine {
+            ty: "hello",
+            req,
+            protocol: super::PROTOCOL_VERSION,
+            firmware,
+            chip,
+            read_only,
+            stream_period_ms,
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+/// A `telemetry` line before the first snapshot.
+struct TelemetryLine {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    seq: u32,
+    age_ms: Option<u64>,
+    online: bool,
+    ready: bool,
+}
+
+/// A `telemetry` line with the live fields, in replay's names and units.
+#[derive(serde::Serialize)]
+struct TelemetryFull<'a> {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    seq: u32,
+    age_ms: Option<u64>,
+    online: bool,
+    ready: bool,
+    pack_voltage_v: Option<f64>,
+    pack_current_a: Option<f64>,
+    min_cell_voltage_v: Option<f64>,
+    max_cell_voltage_v: Option<f64>,
+    cell_voltages_v: Cells<'a>,
+    cell_first_register: u8,
+    cell_count: u16,
+    soc_percent: Option<f64>,
+    soh_percent: Option<f64>,
+    lifetime_s: u32,
+    estimated_time_left_s: u32,
+    internal_temperature_c: Option<f64>,
+    external_temperature_1_c: Option<f64>,
+    external_temperature_2_c: Option<f64>,
+    online_status: Name,
+    balancing_decision_bits: u16,
+    real_balancing_bits: u16,
+    speed_kmh: Option<f64>,
+    distance_left_km: u16,
+    flagged: Option<&'static str>,
+}
+
+/// What a `telemetry` line says besides the snapshot.
+#[derive(Debug, Clone, Copy)]
+pub struct TelemetryHead {
+    /// Echoed request id.
+    pub req: Option<u32>,
+    /// [`crate::Telemetry::snapshot_seq`].
+    pub seq: u32,
+    /// Snapshot age, ms.
+    pub age_ms: Option<u64>,
+    /// Link up.
+    pub online: bool,
+    /// Settings and limits read.
+    pub ready: bool,
+}
+
+/// Writes a `telemetry` line: the head, and the snapshot's fields when there is
+/// one.
+pub fn telemetry(
+    out: &mut [u8],
+    head: TelemetryHead,
+    snapshot: Option<&LiveSnapshot>,
+    flagged: Option<&'static str>,
+) -> Option<usize> {
+    let Some(s) = snapshot else {
+        return line(
+            &TelemetryLine {
+                ty: "telemetry",
+                req: head.req,
+                seq: head.seq,
+                age_ms: head.age_ms,
+                online: head.online,
+                ready: head.ready,
+            },
+            out,
+        );
+    };
+    let f32v = |x: f32| rounded(f64::from(x), FLOAT_DECIMALS);
+    let ext = |t: Option<i16>| t.and_then(|t| fixed(i64::from(t), 1));
+    line(
+        &TelemetryFull {
+            ty: "telemetry",
+            req: head.req,
+            seq: head.seq,
+            age_ms: head.age_ms,
+            online: head.online,
+            ready: head.ready,
+            pack_voltage_v: f32v(s.pack_voltage_v),
+            pack_current_a: f32v(s.pack_current_a),
+            min_cell_voltage_v: fixed(i64::from(s.min_cell_mv), 3),
+            max_cell_voltage_v: fixed(i64::from(s.max_cell_mv), 3),
+            cell_voltages_v: Cells(&s.cells.raw),
+            cell_first_register: s.cells.first_register,
+            cell_count: s.cell_count,
+            soc_percent: fixed(i64::from(s.soc_raw), 6),
+            soh_percent: rounded(f64::from(s.soh_raw) / 500.0, 3),
+            lifetime_s: s.lifetime_s,
+            estimated_time_left_s: s.estimated_time_left_s,
+            internal_temperature_c: fixed(i64::from(s.internal_dc), 1),
+            external_temperature_1_c: ext(s.external1_dc),
+            external_temperature_2_c: ext(s.external2_dc),
+            online_status: status_name(s.status),
+            balancing_decision_bits: s.balancing_decision_bits,
+            real_balancing_bits: s.real_balancing_bits,
+            speed_kmh: f32v(s.speed_kmh),
+            distance_left_km: s.distance_left_km,
+            flagged,
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct SettingLine<'a> {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    name: &'static str,
+    address: u16,
+    raw: Option<i32>,
+    value: Option<f64>,
+    unit: &'a str,
+    min: Option<f64>,
+    max: Option<f64>,
+    bms_min: Option<f64>,
+    bms_max: Option<f64>,
+}
+
+/// Writes a `setting` line: the current raw value (when read), its physical
+/// value, Rev D's range and the BMS's own limits, all in the setting's unit.
+pub fn setting(
+    out: &mut [u8],
+    req: Option<u32>,
+    id: SettingId,
+    raw: Option<i32>,
+    bms_limits: Option<(i32, i32)>,
+) -> Option<usize> {
+    let r = id.register();
+    let range = r.and_then(|r| r.range);
+    line(
+        &SettingLine {
+            ty: "setting",
+            req,
+            name: crate::profile::setting_key(id),
+            address: id.address(),
+            raw,
+            value: raw.and_then(|v| physical(id, v)),
+            unit: r.map(|r| r.unit).unwrap_or(""),
+            min: range.and_then(|(lo, _)| physical(id, lo)),
+            max: range.and_then(|(_, hi)| physical(id, hi)),
+            bms_min: bms_limits.and_then(|(lo, _)| physical(id, lo)),
+            bms_max: bms_limits.and_then(|(_, hi)| physical(id, hi)),
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct EndLine {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    count: u32,
+}
+
+/// Writes the line that closes a listing (`settings_end`, `events_end`).
+pub fn end(out: &mut [u8], ty: &'static str, req: Option<u32>, count: u32) -> Option<usize> {
+    line(&EndLine { ty, req, count }, out)
+}
+
+#[derive(serde::Serialize)]
+struct StatisticsLine {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    total_distance_km: Option<f64>,
+    max_discharge_current_a: Option<f64>,
+    max_charge_current_a: Option<f64>,
+    max_cell_voltage_difference_v: Option<f64>,
+    under_voltage_count: u16,
+    over_voltage_count: u16,
+    discharge_over_current_count: u16,
+    charge_over_current_count: u16,
+    over_heat_count: u16,
+    charging_count: u16,
+    full_charge_count: u16,
+    min_pack_temperature_c: i8,
+    max_pack_temperature_c: i8,
+    last_reset: Name,
+    last_wakeup: Name,
+    stats_cleared_at_s: u32,
+}
+
+/// Writes a `statistics` line (replay's statistics fields).
+pub fn statistics(out: &mut [u8], req: Option<u32>, s: &Statistics) -> Option<usize> {
+    line(
+        &StatisticsLine {
+            ty: "statistics",
+            req,
+            total_distance_km: fixed(i64::from(s.total_distance_raw), 2),
+            max_discharge_current_a: fixed(i64::from(s.max_discharge_current_da), 1),
+            max_charge_current_a: fixed(i64::from(s.max_charge_current_da), 1),
+            max_cell_voltage_difference_v: fixed(i64::from(s.max_cell_difference_raw), 4),
+            under_voltage_count: s.under_voltage_count,
+            over_voltage_count: s.over_voltage_count,
+            discharge_over_current_count: s.discharge_over_current_count,
+            charge_over_current_count: s.charge_over_current_count,
+            over_heat_count: s.over_heat_count,
+            charging_count: s.charging_count,
+            full_charge_count: s.full_charge_count,
+            min_pack_temperature_c: s.min_pack_temperature_c,
+            max_pack_temperature_c: s.max_pack_temperature_c,
+            last_reset: reset_name(s.last_reset),
+            last_wakeup: wakeup_name(s.last_wakeup),
+            stats_cleared_at_s: s.stats_cleared_at_s,
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct VersionLine<'a> {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    hardware_version: u8,
+    hardware_changes_version: u8,
+    firmware_public_version: u8,
+    high_power: bool,
+    current_sensor: Name,
+    firmware_internal_version: u16,
+    bootloader_version: u8,
+    profile_version: u8,
+    serial_number: Hex<'a>,
+}
+
+/// Writes a `version` line (replay's version fields).
+pub fn version(out: &mut [u8], req: Option<u32>, v: &VersionInfo) -> Option<usize> {
+    line(
+        &VersionLine {
+            ty: "version",
+            req,
+            hardware_version: v.hardware,
+            hardware_changes_version: v.hardware_changes,
+            firmware_public_version: v.firmware_public,
+            high_power: v.high_power,
+            current_sensor: sensor_name(v.current_sensor),
+            firmware_internal_version: v.firmware_internal,
+            bootloader_version: v.bootloader,
+            profile_version: v.profile,
+            serial_number: Hex(&v.serial, false),
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct EventLine {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    timestamp_s: u32,
+    id: u8,
+    name: Name,
+    severity: &'static str,
+    #[serde(skip_serializing_if = "core::ops::Not::not")]
+    history: bool,
+}
+
+/// Writes an `event` line (replay's event fields; `history` on `get events`).
+pub fn event(out: &mut [u8], req: Option<u32>, e: &Event, history: bool) -> Option<usize> {
+    line(
+        &EventLine {
+            ty: "event",
+            req,
+            timestamp_s: e.timestamp_s,
+            id: e.id.raw(),
+            name: event_name(e.id),
+            severity: e.id.severity().name(),
+            history,
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct LinkLine {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    requests: u32,
+    replies: u32,
+    timeouts: u32,
+    wakeup_resends: u32,
+    retries: u32,
+    crc_errors: u32,
+    framing_errors: u32,
+    invalid_replies: u32,
+    nacks_command: u32,
+    nacks_crc: u32,
+    nacks_other: u32,
+    skipped_bytes: u32,
+    unsolicited: u32,
+    failures: u32,
+    latency_min_us: u32,
+    latency_mean_us: u32,
+    latency_max_us: u32,
+    online: bool,
+    piece_registers: u16,
+    lines_in: u32,
+    errors: u32,
+    dropped_lines: u32,
+}
+
+/// Writes a `link` line: the UART link's counters and the host link's own.
+pub fn link(
+    out: &mut [u8],
+    req: Option<u32>,
+    s: &LinkStats,
+    online: bool,
+    piece_registers: u16,
+    host: &super::HostLinkStats,
+) -> Option<usize> {
+    line(
+        &LinkLine {
+            ty: "link",
+            req,
+            requests: s.requests,
+            replies: s.replies,
+            timeouts: s.timeouts,
+            wakeup_resends: s.wakeup_resends,
+            retries: s.retries,
+            crc_errors: s.crc_errors,
+            framing_errors: s.framing_errors,
+            invalid_replies: s.invalid_replies,
+            nacks_command: s.nacks_command,
+            nacks_crc: s.nacks_crc,
+            nacks_other: s.nacks_other,
+            skipped_bytes: s.skipped_bytes,
+            unsolicited: s.unsolicited,
+            failures: s.failures,
+            latency_min_us: s.latency_min_us,
+            latency_mean_us: s.latency_mean_us(),
+            latency_max_us: s.latency_max_us,
+            online,
+            piece_registers,
+            lines_in: host.lines_in,
+            errors: host.errors,
+            dropped_lines: host.dropped_lines,
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct AcceptedLine {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    cmd: &'static str,
+}
+
+/// Writes an `accepted` line.
+pub fn accepted(out: &mut [u8], req: Option<u32>, cmd: &'static str) -> Option<usize> {
+    line(
+        &AcceptedLine {
+            ty: "accepted",
+            req,
+            cmd,
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct OutcomeLine {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    name: &'static str,
+    raw: i32,
+    value: Option<f64>,
+    outcome: &'static str,
+    detail: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    read_back: Option<u16>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    nack_code: Option<u8>,
+    #[serde(skip_serializing_if = "core::ops::Not::not")]
+    follow_up: bool,
+}
+
+/// Writes an `outcome` line for one setting through write/verify.
+pub fn outcome(
+    out: &mut [u8],
+    req: Option<u32>,
+    setting: &Setting,
+    outcome: &WriteOutcome,
+    follow_up: bool,
+) -> Option<usize> {
+    let (detail, read_back, nack_code) = match outcome {
+        WriteOutcome::Verified | WriteOutcome::Unchanged => (None, None, None),
+        WriteOutcome::Rejected(e) => (Some(e.reason()), None, None),
+        WriteOutcome::Mismatch { read_back } => (Some("read_back_differs"), Some(*read_back), None),
+        WriteOutcome::Nacked(c) => (Some(c.name()), None, Some(c.to_u8())),
+        WriteOutcome::NotWritten(f) | WriteOutcome::Failed(f) | WriteOutcome::Unconfirmed(f) => {
+            (Some(f.name()), None, None)
+        }
+    };
+    line(
+        &OutcomeLine {
+            ty: "outcome",
+            req,
+            name: crate::profile::setting_key(setting.id),
+            raw: setting.value,
+            value: physical(setting.id, setting.value),
+            outcome: outcome.name(),
+            detail,
+            read_back,
+            nack_code,
+            follow_up,
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct ResetDoneLine {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    confirmed: bool,
+}
+
+/// Writes a `reset_done` line.
+pub fn reset_done(out: &mut [u8], req: Option<u32>, confirmed: bool) -> Option<usize> {
+    line(
+        &ResetDoneLine {
+            ty: "reset_done",
+            req,
+            confirmed,
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct ClearedLine {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    what: &'static str,
+    ok: bool,
+}
+
+/// Writes a `cleared` line.
+pub fn cleared(out: &mut [u8], req: Option<u32>, what: &'static str, ok: bool) -> Option<usize> {
+    line(
+        &ClearedLine {
+            ty: "cleared",
+            req,
+            what,
+            ok,
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct RawLine<'a> {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    dir: &'static str,
+    hex: Hex<'a>,
+}
+
+/// Writes a `raw` line (UART bytes while capture is on).
+pub fn raw(out: &mut [u8], dir: &'static str, bytes: &[u8]) -> Option<usize> {
+    line(
+        &RawLine {
+            ty: "raw",
+            dir,
+            hex: Hex(bytes, true),
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct ErrorLine<'a> {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    req: Option<u32>,
+    error: &'static str,
+    detail: &'a str,
+}
+
+/// Writes an `error` line; `detail` is the reason, followed by `: subject` (the
+/// offending name) when there is one.
+pub fn error(
+    out: &mut [u8],
+    req: Option<u32>,
+    code: &'static str,
+    detail: &'static str,
+    subject: &str,
+) -> Option<usize> {
+    let mut d: String<{ 2 + 48 + super::SUBJECT_MAX }> = String::new();
+    let _ = d.push_str(detail);
+    if !subject.is_empty() {
+        let _ = d.push_str(": ");
+        let _ = d.push_str(subject);
+    }
+    line(
+        &ErrorLine {
+            ty: "error",
+            req,
+            error: code,
+            detail: &d,
+        },
+        out,
+    )
+}

@@ -1,0 +1,775 @@
+//! The host link: JSON Lines over the chip's USB (USB-Serial-JTAG, CDC-ACM) to a
+//! computer. The protocol is [PROTOCOL.md](https://example.invalid/) in this
+//! folder (`firmware/src/host_link/PROTOCOL.md`); this module is its sans-IO
+//! implementation, like the bridge:
+//!
+//! * bytes from the host go in through [`HostLink::handle_rx`]: a bounded
+//!   [`line::LineAssembler`] (256-byte lines, an over-long line is discarded up to
+//!   the next newline), [`command::parse`], then dispatch to the [`Bridge`]
+//!   through its public interface only (`submit`, `telemetry`, `link_stats`,
+//!   `piece_registers`);
+//! * every bridge [`Report`] goes in through [`HostLink::on_report`]: write
+//!   outcomes come back as `outcome` lines carrying the `req` of the `set` that
+//!   asked for them, new BMS events as `event` lines;
+//! * UART bytes go in through [`HostLink::on_uart_tx`] / [`HostLink::on_uart_rx`]
+//!   (`raw` lines while capture is on);
+//! * time goes in through [`HostLink::poll`] (the telemetry stream), which returns
+//!   when it wants to be called again;
+//! * output comes out one line at a time from [`HostLink::next_line`], encoded
+//!   only then (listings such as `get settings` are generated lazily, one line per
+//!   call), so the queue holds small items instead of text.
+//!
+//! Nothing here waits: a missing or slow host only fills a bounded queue. Streamed
+//! telemetry and `raw` lines are the first to go (counted in `dropped_lines`);
+//! answers, outcomes and events have a queue of their own. A command that fails
+//! to parse or validate sends nothing to the BMS. With
+//! [`HostLinkConfig::read_only`], `set`, `reset` and `clear` are refused.
+//!
+//! No allocation, no panic on any input (the crate denies `unwrap`, `expect`,
+//! `panic` and indexing); property tests and a fuzz target feed it arbitrary bytes.
+
+pub mod command;
+pub mod encode;
+pub mod line;
+
+use heapless::{Deque, String, Vec};
+use protocol_core::events::Event;
+use protocol_core::settings::Setting;
+
+use crate::bridge::{Bridge, Command};
+use crate::config::MAX_SETTINGS_GROUP;
+use crate::report::{Report, WriteOutcome};
+use crate::Instant;
+use command::{ClearWhat, HostCommand, SetValues, What};
+use line::{LineAssembler, Piece};
+
+/// Protocol version in the `hello` line.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// Buffer size [`HostLink::next_line`] needs: the longest line it writes (a
+/// `telemetry` line with 16 cells and every value at its widest is about 700
+/// bytes), `\n` included. A line that does not fit a smaller buffer is dropped
+/// and counted.
+pub const OUT_LINE_MAX: usize = 1024;
+
+/// Lines (or listings) waiting for the host: answers, outcomes and events.
+pub const QUEUE: usize = 32;
+
+/// Answers to host commands (`accepted`, `error`, `get` results) are queued only
+/// while fewer than this many lines wait: the rest of [`QUEUE`] is kept for
+/// what the bridge reports (outcomes, events, resets, clears), so a host that
+/// sends without reading loses its own answers, never an outcome.
+pub const ANSWERS_MAX: usize = QUEUE / 2;
+
+/// `raw` lines waiting for the host (capture), [`RAW_CHUNK`] bytes each.
+pub const RAW_QUEUE: usize = 8;
+
+/// UART bytes per `raw` line.
+pub const RAW_CHUNK: usize = 32;
+
+/// BMS events kept for `get events` (the newest).
+pub const EVENTS_KEPT: usize = 32;
+
+/// Settings whose outcome is awaited (2 full groups; a `set` beyond is `busy`).
+pub const PENDING_WRITES: usize = 2 * MAX_SETTINGS_GROUP;
+
+/// Resets and clears whose result is awaited.
+pub const PENDING_OTHERS: usize = 4;
+
+/// Longest offending name echoed in an error's detail (longer ones are cut).
+pub const SUBJECT_MAX: usize = 32;
+
+/// Default telemetry stream period, ms.
+pub const DEFAULT_STREAM_PERIOD_MS: u32 = 1_000;
+
+/// Error codes of `error` lines (PROTOCOL.md).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum ErrorCode {
+    /// The line is not a JSON object.
+    MalformedJson,
+    /// The line is longer than [`line::LINE_MAX`] bytes.
+    LineTooLong,
+    /// No such command.
+    UnknownCommand,
+    /// A member no command has, or one this command does not take.
+    UnknownField,
+    /// A member the command needs is missing.
+    MissingField,
+    /// A member has the wrong type or an invalid value.
+    InvalidValue,
+    /// No setting by that name.
+    UnknownSetting,
+    /// A value outside its range (Rev D, the BMS's own limits, the protocol's).
+    OutOfRange,
+    /// Host writes are switched off.
+    ReadOnly,
+    /// A queue is full: try again later.
+    Busy,
+    /// Settings and limits are not read yet (or the asked block is not).
+    NotReady,
+}
+
+impl ErrorCode {
+    /// The code as printed.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::MalformedJson => "malformed_json",
+            Self::LineTooLong => "line_too_long",
+            Self::UnknownCommand => "unknown_command",
+            Self::UnknownField => "unknown_field",
+            Self::MissingField => "missing_field",
+            Self::InvalidValue => "invalid_value",
+            Self::UnknownSetting => "unknown_setting",
+            Self::OutOfRange => "out_of_range",
+            Self::ReadOnly => "read_only",
+            Self::Busy => "busy",
+            Self::NotReady => "not_ready",
+        }
+    }
+}
+
+/// Configuration of the host link.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct HostLinkConfig {
+    /// Refuse `set`, `reset` and `clear` (a read-only bridge).
+    pub read_only: bool,
+    /// Telemetry stream period at start, ms (0: off; else 100-60000).
+    pub stream_period_ms: u32,
+    /// Firmware version for `hello`.
+    pub firmware: &'static str,
+    /// Chip name for `hello` (`esp32c3`, `esp32c6`, `sim`).
+    pub chip: &'static str,
+}
+
+impl Default for HostLinkConfig {
+    fn default() -> Self {
+        Self {
+            read_only: false,
+            stream_period_ms: DEFAULT_STREAM_PERIOD_MS,
+            firmware: env!("CARGO_PKG_VERSION"),
+            chip: "unknown",
+        }
+    }
+}
+
+/// The host link's own counters (in the `link` line).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct HostLinkStats {
+    /// Lines received (blank lines not counted).
+    pub lines_in: u32,
+    /// `error` lines queued.
+    pub errors: u32,
+    /// Output lines dropped: queue full, superseded streamed telemetry, or too
+    /// long for the caller's buffer.
+    pub dropped_lines: u32,
+}
+
+/// Direction of captured UART bytes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Dir {
+    Tx,
+    Rx,
+}
+
+/// One line (or listing) waiting to be encoded.
+#[derive(Debug, Clone, PartialEq)]
+enum Out {
+    Hello(Option<u32>),
+    Telemetry(Option<u32>),
+    Error {
+        req: Option<u32>,
+        code: ErrorCode,
+        detail: &'static str,
+        subject: String<SUBJECT_MAX>,
+    },
+    Accepted(Option<u32>, &'static str),
+    Outcome {
+        req: Option<u32>,
+        setting: Setting,
+        outcome: WriteOutcome,
+        follow_up: bool,
+    },
+    Event(Event),
+    /// `get events`: events `next..end` (sequence numbers), `sent` so far.
+    Events {
+        req: Option<u32>,
+        next: u32,
+        end: u32,
+        sent: u32,
+    },
+    /// `get settings`: the next index into `SettingId::ALL`.
+    Settings {
+        req: Option<u32>,
+        next: u8,
+    },
+    Statistics(Option<u32>),
+    Version(Option<u32>),
+    Link(Option<u32>),
+    ResetDone(Option<u32>, bool),
+    Cleared(Option<u32>, u8, bool),
+}
+
+/// The host link. See the module documentation.
+#[derive(Debug, Clone)]
+pub struct HostLink {
+    lines: LineAssembler,
+    s: State,
+}
+
+#[derive(Debug, Clone)]
+struct State {
+    config: HostLinkConfig,
+    stream_period_ms: u32,
+    next_stream: Option<Instant>,
+    stream_due: bool,
+    capture: bool,
+    queue: Deque<Out, QUEUE>,
+    raw: Deque<(Dir, Vec<u8, RAW_CHUNK>), RAW_QUEUE>,
+    events: Deque<Event, EVENTS_KEPT>,
+    /// Events recorded since start (the sequence number of the next one).
+    events_total: u32,
+    writes: Vec<(Option<u32>, Setting), PENDING_WRITES>,
+    follow_ups: Vec<(Option<u32>, Setting), PENDING_WRITES>,
+    resets: Deque<Option<u32>, PENDING_OTHERS>,
+    clears: Vec<(Option<u32>, u8), PENDING_OTHERS>,
+    stats: HostLinkStats,
+}
+
+fn ms(t: u32) -> Instant {
+    Instant::from(t) * crate::MS
+}
+
+fn subject(s: &str) -> String<SUBJECT_MAX> {
+    let mut out = String::new();
+    for c in s.chars() {
+        if out.push(c).is_err() {
+            break;
+        }
+    }
+    out
+}
+
+impl HostLink {
+    /// A host link at time `now`. Nothing is queued until [`HostLink::connected`]
+    /// or a command.
+    pub fn new(config: HostLinkConfig, now: Instant) -> Self {
+        let period = match config.stream_period_ms {
+            0 => 0,
+            p => p.clamp(command::STREAM_PERIOD_MS.0, command::STREAM_PERIOD_MS.1),
+        };
+        Self {
+            lines: LineAssembler::new(),
+            s: State {
+                config,
+                stream_period_ms: period,
+                next_stream: (period > 0).then(|| now.saturating_add(ms(period))),
+                stream_due: false,
+                capture: false,
+                queue: Deque::new(),
+                raw: Deque::new(),
+                events: Deque::new(),
+                events_total: 0,
+                writes: Vec::new(),
+                follow_ups: Vec::new(),
+                resets: Deque::new(),
+                clears: Vec::new(),
+                stats: HostLinkStats::default(),
+            },
+        }
+    }
+
+    /// The host opened the port (or may have): a `hello` line goes first.
+    pub fn connected(&mut self, _now: Instant) {
+        if self.s.queue.push_front(Out::Hello(None)).is_err() {
+            self.s.stats.dropped_lines = self.s.stats.dropped_lines.wrapping_add(1);
+        }
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> HostLinkStats {
+        self.s.stats
+    }
+
+    /// Current stream period, ms (0: off).
+    pub fn stream_period_ms(&self) -> u32 {
+        self.s.stream_period_ms
+    }
+
+    /// True while capture (`raw` lines) is on.
+    pub fn capturing(&self) -> bool {
+        self.s.capture
+    }
+
+    /// True when lines are waiting for [`HostLink::next_line`].
+    pub fn has_output(&self) -> bool {
+        !self.s.queue.is_empty() || self.s.stream_due || !self.s.raw.is_empty()
+    }
+
+    /// Bytes from the host at `now`, in any chunks. Complete lines are parsed and
+    /// dispatched to `bridge` at once.
+    pub fn handle_rx(&mut self, now: Instant, bytes: &[u8], bridge: &mut Bridge) {
+        let mut rest = bytes;
+        while !rest.is_empty() {
+            let (used, piece) = self.lines.push(rest);
+            match piece {
+                Some(Piece::Line(l)) => {
+                    if l.iter().all(u8::is_ascii_whitespace) {
+                        // Blank lines (keep-alives) are ignored.
+                    } else {
+                        self.s.stats.lines_in = self.s.stats.lines_in.wrapping_add(1);
+                        self.s.dispatch(now, l, bridge);
+                    }
+                }
+                Some(Piece::TooLong) => {
+                    self.s.stats.lines_in = self.s.stats.lines_in.wrapping_add(1);
+                    self.s.error(
+                        None,
+                        ErrorCode::LineTooLong,
+                        "longer than 256 bytes: discarded up to the next newline",
+                        "",
+                    );
+                }
+                None => {}
+            }
+            rest = rest.get(used.max(1)..).unwrap_or(&[]);
+        }
+    }
+
+    /// Every report of the bridge, in order (the shell hands each one here as
+    /// well as to its log).
+    pub fn on_report(&mut self, report: &Report) {
+        self.s.on_report(report);
+    }
+
+    /// Bytes sent to the BMS (for capture).
+    pub fn on_uart_tx(&mut self, bytes: &[u8]) {
+        self.s.capture_bytes(Dir::Tx, bytes);
+    }
+
+    /// Bytes received from the BMS (for capture).
+    pub fn on_uart_rx(&mut self, bytes: &[u8]) {
+        self.s.capture_bytes(Dir::Rx, bytes);
+    }
+
+    /// Timers: queues streamed telemetry when due. Returns when to call again
+    /// (`Instant::MAX` while streaming is off).
+    pub fn poll(&mut self, now: Instant, _bridge: &Bridge) -> Instant {
+        let s = &mut self.s;
+        match s.next_stream {
+            Some(t) if now >= t => {
+                if s.stream_due {
+                    // The previous one never left: superseded.
+                    s.stats.dropped_lines = s.stats.dropped_lines.wrapping_add(1);
+                }
+                s.stream_due = true;
+                let period = ms(s.stream_period_ms);
+                let next = t.saturating_add(period);
+                let next = if next <= now {
+                    now.saturating_add(period)
+                } else {
+                    next
+                };
+                s.next_stream = Some(next);
+                next
+            }
+            Some(t) => t,
+            None => Instant::MAX,
+        }
+    }
+
+    /// Encodes the next output line into `out` (at least [`OUT_LINE_MAX`] bytes),
+    /// `\n`-terminated; returns its length, or `None` when nothing is waiting.
+    /// Order: answers, outcomes and events first, then streamed telemetry, then
+    /// `raw` lines.
+    pub fn next_line(&mut self, now: Instant, bridge: &Bridge, out: &mut [u8]) -> Option<usize> {
+        loop {
+            let written = if !self.s.queue.is_empty() {
+                self.s.encode_front(now, bridge, out)
+            } else if self.s.stream_due {
+                self.s.stream_due = false;
+                telemetry(now, bridge, None, out)
+            } else if let Some((dir, bytes)) = self.s.raw.pop_front() {
+                let dir = match dir {
+                    Dir::Tx => "tx",
+                    Dir::Rx => "rx",
+                };
+                encode::raw(out, dir, &bytes)
+            } else {
+                return None;
+            };
+            match written {
+                Some(n) => return Some(n),
+                None => {
+                    self.s.stats.dropped_lines = self.s.stats.dropped_lines.wrapping_add(1);
+                }
+            }
+        }
+    }
+}
+
+fn telemetry(now: Instant, bridge: &Bridge, req: Option<u32>, out: &mut [u8]) -> Option<usize> {
+    let t = bridge.telemetry();
+    let head = encode::TelemetryHead {
+        req,
+        seq: t.snapshot_seq,
+        age_ms: t.snapshot_age_us(now).map(|a| a / crate::MS),
+        online: t.online,
+        ready: t.ready,
+    };
+    encode::telemetry(
+        out,
+        head,
+        t.snapshot.as_ref(),
+        t.live.flagged.map(|c| c.name()),
+    )
+}
+
+impl State {
+    /// Queues an answer to a host command.
+    fn push(&mut self, item: Out) {
+        if self.queue.len() >= ANSWERS_MAX {
+            self.stats.dropped_lines = self.stats.dropped_lines.wrapping_add(1);
+            return;
+        }
+        self.report(item);
+    }
+
+    /// Queues a line about something the bridge reported.
+    fn report(&mut self, item: Out) {
+        if self.queue.push_back(item).is_err() {
+            self.stats.dropped_lines = self.stats.dropped_lines.wrapping_add(1);
+        }
+    }
+
+    fn error(&mut self, req: Option<u32>, code: ErrorCode, detail: &'static str, subj: &str) {
+        self.stats.errors = self.stats.errors.wrapping_add(1);
+        self.push(Out::Error {
+            req,
+            code,
+            detail,
+            subject: subject(subj),
+        });
+    }
+
+    fn capture_bytes(&mut self, dir: Dir, bytes: &[u8]) {
+        if !self.capture {
+            return;
+        }
+        for chunk in bytes.chunks(RAW_CHUNK) {
+            let mut v = Vec::new();
+            let _ = v.extend_from_slice(chunk);
+            if self.raw.push_back((dir, v)).is_err() {
+                self.stats.dropped_lines = self.stats.dropped_lines.wrapping_add(1);
+            }
+        }
+    }
+
+    fn record_event(&mut self, e: Event) {
+        if self.events.is_full() {
+            self.events.pop_front();
+        }
+        let _ = self.events.push_back(e);
+        self.events_total = self.events_total.wrapping_add(1);
+    }
+
+    fn dispatch(&mut self, now: Instant, line: &[u8], bridge: &mut Bridge) {
+        let parsed = match command::parse(line) {
+            Ok(p) => p,
+            Err(e) => return self.error(e.req, e.code, e.detail, e.subject),
+        };
+        let req = parsed.req;
+        let writes = matches!(
+            parsed.command,
+            HostCommand::Set(_) | HostCommand::Reset | HostCommand::Clear(_)
+        );
+        if writes && self.config.read_only {
+            return self.error(req, ErrorCode::ReadOnly, "host writes are switched off", "");
+        }
+        match parsed.command {
+            HostCommand::Hello => self.push(Out::Hello(req)),
+            HostCommand::Get(what) => self.get(req, what, bridge),
+            HostCommand::Set(values) => self.set(req, &values, bridge),
+            HostCommand::Reset => {
+                if self.resets.is_full() {
+                    return self.error(req, ErrorCode::Busy, "resets pending", "");
+                }
+                if bridge.submit(Command::ResetBms).is_err() {
+                    return self.error(req, ErrorCode::Busy, "command queue full", "");
+                }
+                let _ = self.resets.push_back(req);
+                self.push(Out::Accepted(req, "reset"));
+            }
+            HostCommand::Clear(what) => {
+                let (command, option) = match what {
+                    ClearWhat::Events => (Command::ClearEvents, 1),
+                    ClearWhat::Statistics => (Command::ClearStatistics, 2),
+                };
+                if self.clears.is_full() {
+                    return self.error(req, ErrorCode::Busy, "clears pending", "");
+                }
+                if bridge.submit(command).is_err() {
+                    return self.error(req, ErrorCode::Busy, "command queue full", "");
+                }
+                let _ = self.clears.push((req, option));
+                self.push(Out::Accepted(req, "clear"));
+            }
+            HostCommand::Stream(period) => {
+                self.stream_period_ms = period;
+                self.next_stream = (period > 0).then(|| now.saturating_add(ms(period)));
+                self.push(Out::Accepted(req, "stream"));
+            }
+            HostCommand::Capture(on) => {
+                self.capture = on;
+                if !on {
+                    self.raw.clear();
+                }
+                self.push(Out::Accepted(req, "capture"));
+            }
+        }
+    }
+
+    fn get(&mut self, req: Option<u32>, what: What, bridge: &Bridge) {
+        let t = bridge.telemetry();
+        match what {
+            What::Snapshot => self.push(Out::Telemetry(req)),
+            What::Settings if t.settings.is_none() => {
+                self.error(req, ErrorCode::NotReady, "settings not read yet", "")
+            }
+            What::Settings => self.push(Out::Settings { req, next: 0 }),
+            What::Statistics if t.statistics.is_none() => {
+                self.error(req, ErrorCode::NotReady, "statistics not read yet", "")
+            }
+            What::Statistics => self.push(Out::Statistics(req)),
+            What::Version if t.version.is_none() => {
+                self.error(req, ErrorCode::NotReady, "version not read yet", "")
+            }
+            What::Version => self.push(Out::Version(req)),
+            What::Link => self.push(Out::Link(req)),
+            What::Events => {
+                let end = self.events_total;
+                let next = end.wrapping_sub(self.events.len() as u32);
+                self.push(Out::Events {
+                    req,
+                    next,
+                    end,
+                    sent: 0,
+                });
+            }
+        }
+    }
+
+    fn set(&mut self, req: Option<u32>, values: &SetValues<'_>, bridge: &mut Bridge) {
+        let t = bridge.telemetry();
+        if !t.ready || t.settings.is_none() {
+            return self.error(
+                req,
+                ErrorCode::NotReady,
+                "settings and limits not read yet",
+                "",
+            );
+        }
+        let (pairs, physical) = match values {
+            SetValues::Physical(p) => (p, true),
+            SetValues::Raw(p) => (p, false),
+        };
+        let mut items: Vec<Setting, MAX_SETTINGS_GROUP> = Vec::new();
+        for &(name, value) in pairs {
+            let Some(id) = crate::profile::find_setting(name) else {
+                return self.error(req, ErrorCode::UnknownSetting, "no such setting", name);
+            };
+            let raw = if physical {
+                encode::raw_from_physical(id, value)
+            } else if encode::round(value) == value
+                && value >= f64::from(i32::MIN)
+                && value <= f64::from(i32::MAX)
+            {
+                Some(value as i32)
+            } else {
+                None
+            };
+            let Some(raw) = raw else {
+                return self.error(req, ErrorCode::OutOfRange, "not a raw value", name);
+            };
+            let setting = Setting { id, value: raw };
+            let limits = match (&t.limits_min, &t.limits_max) {
+                (Some(lo), Some(hi)) => id.limits(lo, hi),
+                _ => None,
+            };
+            if let Err(e) = setting.validate_with(limits) {
+                return self.error(req, ErrorCode::OutOfRange, e.reason(), name);
+            }
+            if items.push(setting).is_err() {
+                return self.error(req, ErrorCode::InvalidValue, "too many settings", "");
+            }
+        }
+        if self.writes.len() + items.len() > PENDING_WRITES {
+            return self.error(req, ErrorCode::Busy, "writes pending", "");
+        }
+        if bridge
+            .submit(Command::ApplySettings(items.clone()))
+            .is_err()
+        {
+            return self.error(req, ErrorCode::Busy, "command queue full", "");
+        }
+        for s in items {
+            let _ = self.writes.push((req, s));
+        }
+        self.push(Out::Accepted(req, "set"));
+    }
+
+    fn on_report(&mut self, report: &Report) {
+        match report {
+            Report::Write { setting, outcome } => {
+                let req = take(&mut self.writes, setting);
+                if matches!(outcome, WriteOutcome::Unconfirmed(_)) {
+                    if self.follow_ups.is_full() {
+                        self.follow_ups.remove(0);
+                    }
+                    let _ = self.follow_ups.push((req, *setting));
+                }
+                self.report(Out::Outcome {
+                    req,
+                    setting: *setting,
+                    outcome: *outcome,
+                    follow_up: false,
+                });
+            }
+            Report::WriteFollowUp { setting, outcome } => {
+                let req = take(&mut self.follow_ups, setting);
+                self.report(Out::Outcome {
+                    req,
+                    setting: *setting,
+                    outcome: *outcome,
+                    follow_up: true,
+                });
+            }
+            Report::NewEvent(e) => {
+                self.record_event(*e);
+                self.report(Out::Event(*e));
+            }
+            Report::EventHistory {
+                newest: Some(e), ..
+            } => self.record_event(*e),
+            Report::ResetDone { confirmed } => {
+                let req = self.resets.pop_front().flatten();
+                self.report(Out::ResetDone(req, *confirmed));
+            }
+            Report::Cleared { option, ok } => {
+                let req = match self.clears.iter().position(|(_, o)| o == option) {
+                    Some(i) => self.clears.remove(i).0,
+                    None => None,
+                };
+                self.report(Out::Cleared(req, *option, *ok));
+            }
+            _ => {}
+        }
+    }
+
+    /// Encodes the front item; pops it unless it is a listing with more to say.
+    fn encode_front(&mut self, now: Instant, bridge: &Bridge, out: &mut [u8]) -> Option<usize> {
+        let t = bridge.telemetry();
+        let first_seq = self.events_total.wrapping_sub(self.events.len() as u32);
+        let front = self.queue.front_mut()?;
+        let n = match front {
+            Out::Settings { req, next } => {
+                let ids = protocol_core::settings::SettingId::ALL;
+                match ids.get(usize::from(*next)) {
+                    Some(&id) => {
+                        *next = next.saturating_add(1);
+                        let raw = t.settings.as_ref().and_then(|b| id.read(b));
+                        let limits = match (&t.limits_min, &t.limits_max) {
+                            (Some(lo), Some(hi)) => id.limits(lo, hi),
+                            _ => None,
+                        };
+                        return encode::setting(out, *req, id, raw, limits);
+                    }
+                    None => encode::end(out, "settings_end", *req, ids.len() as u32),
+                }
+            }
+            Out::Events {
+                req,
+                next,
+                end,
+                sent,
+            } => {
+                // Events evicted since the listing began are skipped.
+                if next.wrapping_sub(first_seq) > u32::MAX / 2 {
+                    *next = first_seq;
+                }
+                let remaining = end.wrapping_sub(*next);
+                let e = if remaining > 0 && remaining <= u32::MAX / 2 {
+                    self.events
+                        .get(next.wrapping_sub(first_seq) as usize)
+                        .copied()
+                } else {
+                    None
+                };
+                if let Some(e) = e {
+                    *next = next.wrapping_add(1);
+                    *sent = sent.wrapping_add(1);
+                    return encode::event(out, *req, &e, true);
+                }
+                encode::end(out, "events_end", *req, *sent)
+            }
+            Out::Hello(req) => encode::hello(
+                out,
+                *req,
+                self.config.firmware,
+                self.config.chip,
+                self.config.read_only,
+                self.stream_period_ms,
+            ),
+            Out::Telemetry(req) => telemetry(now, bridge, *req, out),
+            Out::Error {
+                req,
+                code,
+                detail,
+                subject,
+            } => encode::error(out, *req, code.name(), detail, subject.as_str()),
+            Out::Accepted(req, cmd) => encode::accepted(out, *req, cmd),
+            Out::Outcome {
+                req,
+                setting,
+                outcome,
+                follow_up,
+            } => encode::outcome(out, *req, setting, outcome, *follow_up),
+            Out::Event(e) => encode::event(out, None, e, false),
+            Out::Statistics(req) => match &t.statistics {
+                Some(s) => encode::statistics(out, *req, s),
+                None => None,
+            },
+            Out::Version(req) => match &t.version {
+                Some(v) => encode::version(out, *req, v),
+                None => None,
+            },
+            Out::Link(req) => encode::link(
+                out,
+                *req,
+                &bridge.link_stats(),
+                t.online,
+                bridge.piece_registers(),
+                &self.stats,
+            ),
+            Out::ResetDone(req, confirmed) => encode::reset_done(out, *req, *confirmed),
+            Out::Cleared(req, option, ok) => encode::cleared(
+                out,
+                *req,
+                if *option == 1 { "events" } else { "statistics" },
+                *ok,
+            ),
+        };
+        self.queue.pop_front();
+        n
+    }
+}
+
+/// Removes the oldest pending entry for `setting` and returns its request id.
+fn take(
+    pending: &mut Vec<(Option<u32>, Setting), PENDING_WRITES>,
+    setting: &Setting,
+) -> Option<u32> {
+    let i = pending.iter().position(|(_, s)| s == setting)?;
+    Some(pending.remove(i).0).flatten()
+}

@@ -1,0 +1,7 @@
+//! `tinybms`: the desktop tool (`cargo tinybms --help`). Everything is in
+//! `host_tests::tool`.
+
+fn main() -> std::process::ExitCode {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    host_tests::tool::main(&args)
+}

@@ -1,0 +1,868 @@
+//! The host link (JSON Lines over USB, firmware/src/host_link/PROTOCOL.md) on the
+//! real bridge against the simulated TinyBMS, in virtual time: every command,
+//! every error code, outcome correlation, read-only, a slow host, telemetry equal
+//! to replay's output for the same registers, and property tests of the line
+//! assembler and the whole input path.
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    clippy::indexing_slicing
+)]
+
+use std::collections::BTreeMap;
+
+use host_tests::host_link::{check_line, config, fuzz_one, Rig};
+use host_tests::replay::{event_json, register_values};
+use proptest::prelude::*;
+use protocol_core::events::{Event, EventId};
+use protocol_core::response::RegisterBlock;
+use protocol_core::settings::SettingId;
+use serde_json::{json, Value};
+use tinybms_firmware::host_link::encode;
+use tinybms_firmware::host_link::line::{LineAssembler, Piece, LINE_MAX};
+use tinybms_firmware::host_link::{HostLink, OUT_LINE_MAX};
+use tinybms_firmware::report::WriteOutcome;
+use tinybms_firmware::{Report, MS, SECOND};
+
+fn ready() -> Rig {
+    let mut r = Rig::ready(config(false, 0));
+    r.drain();
+    r
+}
+
+fn of_type<'a>(lines: &'a [Value], ty: &str) -> Vec<&'a Value> {
+    lines.iter().filter(|l| l["type"] == ty).collect()
+}
+
+fn only(lines: &[Value]) -> &Value {
+    assert_eq!(lines.len(), 1, "{lines:#?}");
+    &lines[0]
+}
+
+/// The error line for `line`, checking that nothing reached the bridge.
+fn error_for(r: &mut Rig, line: &str) -> Value {
+    r.line(line);
+    assert!(!r.h.bridge.busy(), "{line}: a command reached the bridge");
+    let out = r.drain();
+    let e = only(&out).clone();
+    assert_eq!(e["type"], "error", "{line}: {e}");
+    e
+}
+
+fn assert_error(r: &mut Rig, line: &str, code: &str) -> Value {
+    let e = error_for(r, line);
+    assert_eq!(e["error"], code, "{line}: {e}");
+    assert!(e["detail"].as_str().is_some_and(|d| !d.is_empty()), "{e}");
+    e
+}
+
+// ---------------------------------------------------------------- line assembler
+
+fn assemble(chunks: &[&[u8]]) -> Vec<Option<Vec<u8>>> {
+    let mut a = LineAssembler::new();
+    let mut out = Vec::new();
+    for chunk in chunks {
+        let mut rest: &[u8] = chunk;
+        while !rest.is_empty() {
+            let (n, p) = a.push(rest);
+            assert!(n >= 1 && n <= rest.len());
+            match p {
+                Some(Piece::Line(l)) => out.push(Some(l.to_vec())),
+                Some(Piece::TooLong) => out.push(None),
+                None => {}
+            }
+            rest = &rest[n..];
+        }
+    }
+    out
+}
+
+#[test]
+fn lines_crlf_split_and_empty() {
+    assert_eq!(
+        assemble(&[b"ab\r", b"\ncd\n\n"]),
+        vec![Some(b"ab".to_vec()), Some(b"cd".to_vec()), Some(vec![])]
+    );
+}
+
+#[test]
+fn longest_line_fits_with_and_without_cr() {
+    let max = vec![b'x'; LINE_MAX];
+    let mut crlf = max.clone();
+    crlf.extend_from_slice(b"\r\n");
+    let mut lf = max.clone();
+    lf.push(b'\n');
+    assert_eq!(assemble(&[&crlf]), vec![Some(max.clone())]);
+    assert_eq!(assemble(&[&lf]), vec![Some(max)]);
+    let mut one_more = vec![b'x'; LINE_MAX + 1];
+    one_more.push(b'\n');
+    assert_eq!(assemble(&[&one_more]), vec![None]);
+}
+
+#[test]
+fn too_long_resyncs_at_the_newline() {
+    let mut very = vec![b'x'; 3 * LINE_MAX];
+    very.extend_from_slice(b"\nok\n");
+    assert_eq!(assemble(&[&very]), vec![None, Some(b"ok".to_vec())]);
+}
+
+// ---------------------------------------------------------------- numbers
+
+#[test]
+fn fixed_point_prints_like_replay() {
+    let text = |v: Option<f64>| {
+        serde_json_core::to_string::<_, 32>(&v)
+            .unwrap()
+            .as_str()
+            .to_owned()
+    };
+    assert_eq!(text(encode::fixed(33125, 4)), "3.3125");
+    assert_eq!(text(encode::fixed(3650, 3)), "3.65");
+    assert_eq!(text(encode::fixed(-105, 1)), "-10.5");
+    assert_eq!(text(encode::fixed(0, 1)), "0.0");
+    assert_eq!(text(encode::fixed(50_000_000, 6)), "50.0");
+    assert_eq!(text(encode::rounded(f64::NAN, 4)), "null");
+    assert_eq!(text(encode::rounded(-0.00001, 4)), "0.0");
+    // Against replay's own serde_json output, over many raw values and decimals.
+    for decimals in 0..=6u32 {
+        for raw in (-70_000i64..70_000).step_by(7).chain([i64::from(u32::MAX)]) {
+            let ours = text(encode::fixed(raw, decimals));
+            let p = 10f64.powi(decimals as i32);
+            let x = raw as f64 / p;
+            let r = (x * p).round() / p;
+            let theirs = serde_json::to_string(&json!(if r == 0.0 { 0.0 } else { r })).unwrap();
+            assert_eq!(ours, theirs, "raw {raw} decimals {decimals}");
+        }
+    }
+    for x in [3.3125f32, 52.81, -12.34567, 0.00005, 1234.5678, 1e-7] {
+        let ours = text(encode::rounded(f64::from(x), 4));
+        let theirs = serde_json::to_string(&host_tests::replay::rounded(f64::from(x), 4)).unwrap();
+        assert_eq!(ours, theirs, "{x}");
+    }
+}
+
+#[test]
+fn physical_and_raw_conversions() {
+    use SettingId::*;
+    assert_eq!(encode::physical(OverVoltageCutoff, 3650), Some(3.65));
+    assert_eq!(
+        encode::raw_from_physical(OverVoltageCutoff, 3.65),
+        Some(3650)
+    );
+    assert_eq!(
+        encode::raw_from_physical(OverVoltageCutoff, 3.6504),
+        Some(3650)
+    );
+    assert_eq!(encode::physical(StateOfHealth, 50_000), Some(100.0));
+    assert_eq!(
+        encode::raw_from_physical(StateOfHealth, 99.998),
+        Some(49_999)
+    );
+    assert_eq!(encode::physical(BatteryCapacity, 10_000), Some(100.0));
+    assert_eq!(encode::raw_from_physical(OverHeatCutoff, -5.0), Some(-5));
+    assert_eq!(encode::raw_from_physical(OverVoltageCutoff, 1e300), None);
+    for &id in SettingId::ALL {
+        let (lo, hi) = id.register().unwrap().range.unwrap_or((0, 100));
+        for raw in [lo, (lo + hi) / 2, hi] {
+            let v = encode::physical(id, raw).unwrap();
+            assert_eq!(encode::raw_from_physical(id, v), Some(raw), "{id:?} {raw}");
+        }
+    }
+}
+
+// ---------------------------------------------------------------- errors
+
+#[test]
+fn every_error_code() {
+    let mut r = Rig::new(config(false, 0));
+    // Before the bridge is ready.
+    let e = assert_error(
+        &mut r,
+        r#"{"cmd":"set","req":3,"values":{"over_voltage_cutoff":3.6}}"#,
+        "not_ready",
+    );
+    assert_eq!(e["req"], 3);
+    assert_error(&mut r, r#"{"cmd":"get","what":"settings"}"#, "not_ready");
+    // The BMS's own limit for 315 is below Rev D's maximum.
+    r.h.sim.override_limits(315, 3000, 3700);
+    r.run(6 * SECOND);
+    r.drain();
+
+    for bad in [
+        "{",
+        "[1]",
+        "hello",
+        r#"{"cmd":"hello"} x"#,
+        r#"{"cmd":"hello",}"#,
+        r#"{"cmd":"hello","cmd":"get"}"#,
+        r#"{"a":[[[[[1]]]]]}"#,
+        "{\"cmd\":\"he\u{1}llo\"\u{ff}",
+    ] {
+        let e = assert_error(&mut r, bad, "malformed_json");
+        assert_eq!(e["req"], Value::Null, "{bad}");
+    }
+    let e = assert_error(&mut r, r#"{"req":9,"cmd":"fly"}"#, "unknown_command");
+    assert_eq!(e["req"], 9);
+    assert!(e["detail"].as_str().unwrap().contains("fly"));
+    let e = assert_error(
+        &mut r,
+        r#"{"cmd":"hello","req":4,"colour":"red"}"#,
+        "unknown_field",
+    );
+    assert!(e["detail"].as_str().unwrap().contains("colour"), "{e}");
+    assert_error(&mut r, r#"{"cmd":"hello","what":"link"}"#, "unknown_field");
+    assert_error(&mut r, r#"{"req":1}"#, "missing_field");
+    assert_error(&mut r, r#"{"cmd":"get"}"#, "missing_field");
+    assert_error(&mut r, r#"{"cmd":"set"}"#, "missing_field");
+    assert_error(&mut r, r#"{"cmd":"stream"}"#, "missing_field");
+    assert_error(&mut r, r#"{"cmd":"capture"}"#, "missing_field");
+    assert_error(&mut r, r#"{"cmd":"clear"}"#, "missing_field");
+    for bad in [
+        r#"{"cmd":"get","what":"everything"}"#,
+        r#"{"cmd":"clear","what":"settings"}"#,
+        r#"{"cmd":"hello","req":-1}"#,
+        r#"{"cmd":"hello","req":"x"}"#,
+        r#"{"cmd":"stream","period_ms":1.5}"#,
+        r#"{"cmd":"capture","on":1}"#,
+        r#"{"cmd":"set","values":{}}"#,
+        r#"{"cmd":"set","values":{"over_voltage_cutoff":"3.6"}}"#,
+        r#"{"cmd":"set","values":{"a":1,"b":2,"c":3,"d":4,"e":5,"f":6,"g":7,"h":8,"i":9}}"#,
+        r#"{"cmd":"set","values":{"over_voltage_cutoff":3.6},"raw":{"over_voltage_cutoff":3600}}"#,
+    ] {
+        assert_error(&mut r, bad, "invalid_value");
+    }
+    let e = assert_error(
+        &mut r,
+        r#"{"cmd":"set","req":5,"values":{"over_voltage_cutoff":3.6,"warp_drive":1}}"#,
+        "unknown_setting",
+    );
+    assert_eq!(e["req"], 5);
+    assert!(e["detail"].as_str().unwrap().contains("warp_drive"));
+    for bad in [
+        r#"{"cmd":"set","values":{"over_voltage_cutoff":9.9}}"#,
+        r#"{"cmd":"set","values":{"over_voltage_cutoff":1e300}}"#,
+        r#"{"cmd":"set","raw":{"over_voltage_cutoff":9900}}"#,
+        r#"{"cmd":"set","raw":{"over_voltage_cutoff":3600.5}}"#,
+        r#"{"cmd":"set","raw":{"charger_type":7}}"#,
+        r#"{"cmd":"set","raw":{"under_voltage_cutoff":2800,"over_voltage_cutoff":9900}}"#,
+        r#"{"cmd":"stream","period_ms":50}"#,
+        r#"{"cmd":"stream","period_ms":60001}"#,
+    ] {
+        assert_error(&mut r, bad, "out_of_range");
+    }
+    // Outside the BMS's own 0x1D limits, inside Rev D's range.
+    let e = assert_error(
+        &mut r,
+        r#"{"cmd":"set","values":{"over_voltage_cutoff":3.9}}"#,
+        "out_of_range",
+    );
+    assert!(
+        e["detail"].as_str().unwrap().contains("outside_bms_limits"),
+        "{e}"
+    );
+
+    let mut long = vec![b' '; 300];
+    long.push(b'\n');
+    r.send(&long);
+    let e = only(&r.drain()).clone();
+    assert_eq!(e["error"], "line_too_long");
+    assert_eq!(e["req"], Value::Null);
+
+    // busy: the bridge's command queue is full (nothing polls it meanwhile).
+    let mut busy = None;
+    for i in 0..8 {
+        r.line(&format!(
+            r#"{{"cmd":"clear","what":"statistics","req":{i}}}"#
+        ));
+        let out = r.drain();
+        if out[0]["type"] == "error" {
+            busy = Some(out[0].clone());
+            break;
+        }
+        assert_eq!(out[0]["type"], "accepted");
+    }
+    assert_eq!(busy.expect("queue never full")["error"], "busy");
+
+    let mut ro = Rig::ready(config(true, 0));
+    ro.drain();
+    assert_error(&mut ro, r#"{"cmd":"reset"}"#, "read_only");
+
+    let stats = r.link.stats();
+    assert!(
+        stats.errors >= 30 && stats.lines_in >= stats.errors,
+        "{stats:?}"
+    );
+}
+
+#[test]
+fn over_long_line_then_resync() {
+    let mut r = ready();
+    // A valid command that is too long (padding) must not run, even in part.
+    let mut long = br#"{"cmd":"reset","req":1}"#.to_vec();
+    long.extend(std::iter::repeat_n(b' ', 400));
+    long.extend_from_slice(b"\r\n");
+    long.extend_from_slice(b"{\"cmd\":\"hello\",\"req\":2}\r\n");
+    for chunk in long.chunks(7) {
+        r.send(chunk);
+    }
+    assert!(!r.h.bridge.busy());
+    let out = r.drain();
+    assert_eq!(out.len(), 2, "{out:#?}");
+    assert_eq!(out[0]["error"], "line_too_long");
+    assert_eq!(out[1]["type"], "hello");
+    assert_eq!(out[1]["req"], 2);
+}
+
+// ---------------------------------------------------------------- commands
+
+#[test]
+fn hello_on_connect_and_on_request() {
+    let mut r = Rig::new(config(false, 1000));
+    r.link.connected(0);
+    let h = only(&r.drain()).clone();
+    assert_eq!(
+        h,
+        json!({"type":"hello","protocol":1,"firmware":"test","chip":"sim","read_only":false,"stream_period_ms":1000})
+    );
+    r.line(r#"{"cmd":"hello","req":77}"#);
+    assert_eq!(only(&r.drain())["req"], 77);
+}
+
+#[test]
+fn get_everything() {
+    let mut r = ready();
+    for (what, ty) in [
+        ("snapshot", "telemetry"),
+        ("statistics", "statistics"),
+        ("version", "version"),
+        ("link", "link"),
+    ] {
+        r.line(&format!(r#"{{"cmd":"get","what":"{what}","req":11}}"#));
+        let l = only(&r.drain()).clone();
+        assert_eq!(l["type"], ty, "{l}");
+        assert_eq!(l["req"], 11);
+    }
+    r.line(r#"{"cmd":"get","what":"settings","req":12}"#);
+    let out = r.drain();
+    let settings = of_type(&out, "setting");
+    assert_eq!(settings.len(), SettingId::ALL.len());
+    let end = out.last().unwrap();
+    assert_eq!(
+        *end,
+        json!({"type":"settings_end","req":12,"count":SettingId::ALL.len()})
+    );
+    let t = r.h.bridge.telemetry();
+    for (s, &id) in settings.iter().zip(SettingId::ALL) {
+        assert_eq!(s["name"], tinybms_firmware::profile::setting_key(id));
+        assert_eq!(s["address"], id.address());
+        let raw = id.read(t.settings.as_ref().unwrap()).unwrap();
+        assert_eq!(s["raw"], raw);
+        assert_eq!(s["value"], json!(encode::physical(id, raw).unwrap()));
+        assert_eq!(s["unit"], id.register().unwrap().unit);
+        let (lo, hi) = id
+            .limits(
+                t.limits_min.as_ref().unwrap(),
+                t.limits_max.as_ref().unwrap(),
+            )
+            .unwrap();
+        assert_eq!(
+            s["bms_min"],
+            json!(encode::physical(id, lo).unwrap()),
+            "{s}"
+        );
+        assert_eq!(
+            s["bms_max"],
+            json!(encode::physical(id, hi).unwrap()),
+            "{s}"
+        );
+    }
+    let ovc = settings
+        .iter()
+        .find(|s| s["name"] == "over_voltage_cutoff")
+        .unwrap();
+    assert_eq!(ovc["unit"], "V");
+    assert_eq!(ovc["min"], 1.2);
+    assert_eq!(ovc["max"], 4.5);
+
+    // Events: the history's newest and every new one, oldest first.
+    r.h.sim.inject_fault_event(EventId::OverVoltageCutoff);
+    r.run(8 * SECOND);
+    let pushed = r.drain();
+    let ev = of_type(&pushed, "event");
+    assert!(!ev.is_empty(), "{pushed:#?}");
+    assert_eq!(ev[0]["name"], EventId::OverVoltageCutoff.name());
+    assert!(ev[0].get("history").is_none());
+    r.line(r#"{"cmd":"get","what":"events","req":13}"#);
+    let out = r.drain();
+    let listed = of_type(&out, "event");
+    assert!(listed.len() > ev.len(), "{out:#?}");
+    assert!(listed
+        .iter()
+        .all(|e| e["history"] == true && e["req"] == 13));
+    assert_eq!(
+        *out.last().unwrap(),
+        json!({"type":"events_end","req":13,"count":listed.len()})
+    );
+    let last = listed.last().unwrap();
+    assert_eq!(last["name"], ev.last().unwrap()["name"]);
+}
+
+#[test]
+fn event_lines_are_replays_events() {
+    let mut link = HostLink::new(config(false, 0), 0);
+    let bridge = tinybms_firmware::Bridge::new(tinybms_firmware::config::Config::default(), 0);
+    let events = [
+        Event {
+            timestamp_s: 12345,
+            id: EventId::SystemStarted,
+        },
+        Event {
+            timestamp_s: 0xFF_FFFF,
+            id: EventId::Unknown(0x7E),
+        },
+    ];
+    for e in events {
+        link.on_report(&Report::NewEvent(e));
+    }
+    let mut buf = [0u8; OUT_LINE_MAX];
+    for e in events {
+        let n = link.next_line(0, &bridge, &mut buf).unwrap();
+        let mut v: serde_json::Map<String, Value> =
+            serde_json::from_str(&check_line(&buf[..n])).unwrap();
+        assert_eq!(v.remove("type").unwrap(), "event");
+        assert_eq!(v, event_json(&e));
+    }
+}
+
+#[test]
+fn set_reset_clear_and_outcome_correlation() {
+    let mut r = ready();
+    let ovc = r.h.sim.register(315);
+    let target = if ovc == 3600 { 3650 } else { 3600 };
+    r.line(&format!(
+        r#"{{"cmd":"set","req":7,"values":{{"over_voltage_cutoff":{},"under_voltage_cutoff":2.8}}}}"#,
+        f64::from(target) / 1000.0
+    ));
+    r.line(r#"{"cmd":"set","req":8,"raw":{"Charge Restart Level":80}}"#);
+    let acc = r.drain();
+    assert_eq!(
+        acc,
+        vec![
+            json!({"type":"accepted","req":7,"cmd":"set"}),
+            json!({"type":"accepted","req":8,"cmd":"set"})
+        ]
+    );
+    r.run(10 * SECOND);
+    let out = r.drain();
+    let outcomes = of_type(&out, "outcome");
+    assert_eq!(outcomes.len(), 3, "{out:#?}");
+    assert_eq!(outcomes[0]["req"], 7);
+    assert_eq!(outcomes[0]["name"], "over_voltage_cutoff");
+    assert_eq!(outcomes[0]["raw"], target);
+    assert_eq!(outcomes[0]["outcome"], "verified");
+    assert_eq!(outcomes[1]["req"], 7);
+    assert_eq!(outcomes[1]["name"], "under_voltage_cutoff");
+    assert_eq!(outcomes[1]["raw"], 2800);
+    assert_eq!(outcomes[2]["req"], 8);
+    assert_eq!(outcomes[2]["name"], "charge_restart_level");
+    assert_eq!(r.h.sim.register(315), target);
+
+    r.line(r#"{"cmd":"clear","what":"events","req":20}"#);
+    r.line(r#"{"cmd":"clear","what":"statistics","req":21}"#);
+    r.line(r#"{"cmd":"reset","req":22}"#);
+    r.run(30 * SECOND);
+    let out = r.drain();
+    assert_eq!(of_type(&out, "accepted").len(), 3);
+    let cleared = of_type(&out, "cleared");
+    assert_eq!(
+        *cleared[0],
+        json!({"type":"cleared","req":20,"what":"events","ok":true})
+    );
+    assert_eq!(
+        *cleared[1],
+        json!({"type":"cleared","req":21,"what":"statistics","ok":true})
+    );
+    let done = only(
+        &of_type(&out, "reset_done")
+            .into_iter()
+            .cloned()
+            .collect::<Vec<_>>(),
+    )
+    .clone();
+    assert_eq!(done["req"], 22);
+
+    // Outcomes of writes the host did not ask for carry no req.
+    let mut link = HostLink::new(config(false, 0), 0);
+    let setting = protocol_core::settings::Setting {
+        id: SettingId::OverVoltageCutoff,
+        value: 3650,
+    };
+    link.on_report(&Report::Write {
+        setting,
+        outcome: WriteOutcome::Unconfirmed(tinybms_firmware::link::Failure::Timeout),
+    });
+    link.on_report(&Report::WriteFollowUp {
+        setting,
+        outcome: WriteOutcome::Verified,
+    });
+    let mut buf = [0u8; OUT_LINE_MAX];
+    let bridge = tinybms_firmware::Bridge::new(tinybms_firmware::config::Config::default(), 0);
+    let mut next = || {
+        let n = link.next_line(0, &bridge, &mut buf).unwrap();
+        serde_json::from_str::<Value>(&check_line(&buf[..n])).unwrap()
+    };
+    let a = next();
+    let b = next();
+    assert_eq!(
+        a,
+        json!({"type":"outcome","name":"over_voltage_cutoff","raw":3650,"value":3.65,"outcome":"unconfirmed","detail":"timeout"})
+    );
+    assert_eq!(b["follow_up"], true);
+    assert!(b.get("req").is_none());
+}
+
+#[test]
+fn follow_up_outcome_keeps_the_req() {
+    let mut r = ready();
+    let target = if r.h.sim.register(315) == 3600 {
+        3650
+    } else {
+        3600
+    };
+    // The read-back after the write is lost: unconfirmed, then settled by the
+    // settings read that follows.
+    r.line(&format!(
+        r#"{{"cmd":"set","req":31,"raw":{{"315":{target}}}}}"#
+    ));
+    let mut seen = Vec::new();
+    let mut dropped = false;
+    for _ in 0..400 {
+        r.run(25 * MS);
+        if !dropped
+            && r.h
+                .sim
+                .stats()
+                .requests_by_command
+                .get(&0x10)
+                .copied()
+                .unwrap_or(0)
+                > 0
+        {
+            r.h.sim.drop_next_replies(0x09, 50);
+            dropped = true;
+        }
+        seen.extend(r.drain());
+    }
+    let outcomes = of_type(&seen, "outcome");
+    assert!(!outcomes.is_empty());
+    assert!(outcomes.iter().all(|o| o["req"] == 31), "{outcomes:#?}");
+}
+
+#[test]
+fn read_only_refuses_writes() {
+    let mut r = Rig::ready(config(true, 0));
+    r.line(r#"{"cmd":"hello"}"#);
+    assert_eq!(only(&r.drain())["read_only"], true);
+    for cmd in [
+        r#"{"cmd":"set","req":1,"values":{"over_voltage_cutoff":3.6}}"#,
+        r#"{"cmd":"set","raw":{"over_voltage_cutoff":3600}}"#,
+        r#"{"cmd":"reset"}"#,
+        r#"{"cmd":"clear","what":"events"}"#,
+        r#"{"cmd":"clear","what":"statistics"}"#,
+    ] {
+        assert_error(&mut r, cmd, "read_only");
+    }
+    let before = r.h.sim.stats().requests_by_command.clone();
+    r.run(5 * SECOND);
+    for c in [0x02u8, 0x0B, 0x0D, 0x10] {
+        assert_eq!(
+            r.h.sim.stats().requests_by_command.get(&c),
+            before.get(&c),
+            "command 0x{c:02X}"
+        );
+    }
+    // Reading still works.
+    r.line(r#"{"cmd":"get","what":"snapshot"}"#);
+    assert_eq!(only(&r.drain())["type"], "telemetry");
+}
+
+#[test]
+fn stream_and_capture() {
+    let mut r = Rig::new(config(false, 1000));
+    // Before the first snapshot: the head only.
+    r.line(r#"{"cmd":"get","what":"snapshot"}"#);
+    let t = only(&r.drain()).clone();
+    assert_eq!(
+        t,
+        json!({"type":"telemetry","seq":0,"age_ms":null,"online":true,"ready":false})
+    );
+    let out = r.run_reading(9 * SECOND);
+    let tel = of_type(&out, "telemetry");
+    assert!((8..=10).contains(&tel.len()), "{}", tel.len());
+    assert!(tel
+        .iter()
+        .all(|t| t["ready"] == true && t.get("pack_voltage_v").is_some()));
+    r.line(r#"{"cmd":"stream","period_ms":200,"req":1}"#);
+    let out = r.run_reading(2 * SECOND);
+    assert_eq!(out[0], json!({"type":"accepted","req":1,"cmd":"stream"}));
+    assert!((9..=11).contains(&of_type(&out, "telemetry").len()));
+    r.line(r#"{"cmd":"stream","period_ms":0}"#);
+    assert_eq!(of_type(&r.run_reading(3 * SECOND), "telemetry").len(), 0);
+
+    r.line(r#"{"cmd":"capture","on":true}"#);
+    r.link
+        .on_uart_tx(&[0xAA, 0x03, 0x00, 0x00, 0x00, 0x38, 0x0D, 0xD7]);
+    r.link.on_uart_rx(&[0xAA; 40]);
+    let out = r.drain();
+    assert_eq!(out[0]["type"], "accepted");
+    assert_eq!(
+        out[1],
+        json!({"type":"raw","dir":"tx","hex":"AA 03 00 00 00 38 0D D7"})
+    );
+    assert_eq!(out[2]["dir"], "rx");
+    assert_eq!(out[2]["hex"].as_str().unwrap().len(), 32 * 3 - 1);
+    assert_eq!(out[3]["hex"], "AA AA AA AA AA AA AA AA");
+    r.line(r#"{"cmd":"capture","on":false}"#);
+    r.link.on_uart_tx(&[0xAA]);
+    assert_eq!(of_type(&r.drain(), "raw").len(), 0);
+}
+
+#[test]
+fn slow_host_loses_telemetry_not_outcomes() {
+    let mut r = Rig::ready(config(false, 100));
+    r.drain();
+    let target = if r.h.sim.register(315) == 3600 {
+        3650
+    } else {
+        3600
+    };
+    r.line(&format!(
+        r#"{{"cmd":"set","req":5,"raw":{{"over_voltage_cutoff":{target}}}}}"#
+    ));
+    // Also fill the output with errors while nobody reads.
+    for _ in 0..40 {
+        r.line("nonsense");
+    }
+    r.run(20 * SECOND);
+    let stats = r.link.stats();
+    assert!(stats.dropped_lines >= 150, "{stats:?}");
+    let out = r.drain();
+    assert_eq!(out[0], json!({"type":"accepted","req":5,"cmd":"set"}));
+    let outcome = of_type(&out, "outcome");
+    assert_eq!(outcome.len(), 1, "{out:#?}");
+    assert_eq!(outcome[0]["req"], 5);
+    assert_eq!(outcome[0]["outcome"], "verified");
+    assert!(of_type(&out, "telemetry").len() <= 1);
+    // The host reads again: the stream resumes.
+    assert!(of_type(&r.run_reading(SECOND), "telemetry").len() >= 9);
+}
+
+// ---------------------------------------------------------------- replay's names and values
+
+fn regs(block: &RegisterBlock) -> BTreeMap<u16, u16> {
+    block
+        .values
+        .iter()
+        .enumerate()
+        .map(|(i, &v)| (block.start + i as u16, v))
+        .collect()
+}
+
+fn assert_fields_equal(line: &Value, replay: &serde_json::Map<String, Value>, skip: &[&str]) {
+    let obj = line.as_object().unwrap();
+    for (k, v) in replay {
+        assert_eq!(obj.get(k), Some(v), "field {k}: {line}");
+    }
+    for k in obj.keys() {
+        assert!(
+            replay.contains_key(k) || skip.contains(&k.as_str()),
+            "field {k} is not replay's"
+        );
+    }
+}
+
+#[test]
+fn telemetry_statistics_and_version_are_replays_values() {
+    let mut r = ready();
+    // Several snapshots, currents of both signs, a disconnected sensor.
+    for step in 0..6 {
+        r.h.sim
+            .set_external_current(Some(if step % 2 == 0 { -23.4 } else { 51.7 }));
+        if step == 3 {
+            r.h.sim.force_temperature(None);
+        }
+        r.run(2 * SECOND);
+        r.line(r#"{"cmd":"get","what":"snapshot"}"#);
+        let line = only(&r.drain()).clone();
+        let t = r.h.bridge.telemetry();
+        let replay = register_values(&regs(t.live_registers.as_ref().unwrap()));
+        assert!(replay.len() >= 18, "{replay:?}");
+        assert_fields_equal(
+            &line,
+            &replay,
+            &["type", "seq", "age_ms", "online", "ready", "flagged"],
+        );
+        assert_eq!(line["seq"], t.snapshot_seq);
+        assert_eq!(line["flagged"], Value::Null);
+    }
+
+    r.run(40 * SECOND);
+    r.drain();
+    r.line(r#"{"cmd":"get","what":"statistics"}"#);
+    let line = only(&r.drain()).clone();
+    let t = r.h.bridge.telemetry();
+    let replay = register_values(&regs(t.statistics_registers.as_ref().unwrap()));
+    assert_fields_equal(&line, &replay, &["type"]);
+
+    r.line(r#"{"cmd":"get","what":"version"}"#);
+    let line = only(&r.drain()).clone();
+    let version: BTreeMap<u16, u16> = (500..=509).map(|a| (a, r.h.sim.register(a))).collect();
+    let replay = register_values(&version);
+    assert_fields_equal(&line, &replay, &["type"]);
+}
+
+#[test]
+fn link_line_counts() {
+    let mut r = ready();
+    r.line("oops");
+    r.line(r#"{"cmd":"get","what":"link","req":2}"#);
+    let out = r.drain();
+    let l = out[1].clone();
+    assert_eq!(l["type"], "link");
+    let s = r.h.bridge.link_stats();
+    assert_eq!(l["requests"], s.requests);
+    assert_eq!(l["online"], true);
+    assert_eq!(l["piece_registers"], r.h.bridge.piece_registers());
+    assert_eq!(l["lines_in"], 2);
+    assert_eq!(l["errors"], 1);
+    assert_eq!(l["dropped_lines"], 0);
+}
+
+#[test]
+fn longest_telemetry_line_fits() {
+    // 16 cells and every value at its widest.
+    let mut block = RegisterBlock {
+        start: 0,
+        values: Default::default(),
+    };
+    for a in 0..56u16 {
+        let v = match a {
+            0..=15 => 49_999,
+            36..=39 => 0xBF7F, // f32 halves
+            53 => 16,
+            48 | 42 | 43 => 0x8001,
+            _ => 0xFFFF,
+        };
+        block.values.push(v).unwrap();
+    }
+    let snapshot = protocol_core::views::LiveSnapshot::from_registers(&block).unwrap();
+    let mut buf = [0u8; OUT_LINE_MAX];
+    let head = encode::TelemetryHead {
+        req: Some(u32::MAX),
+        seq: u32::MAX,
+        age_ms: Some(u64::MAX),
+        online: true,
+        ready: true,
+    };
+    let n =
+        encode::telemetry(&mut buf, head, Some(&snapshot), Some("cell_count_mismatch")).unwrap();
+    assert!(n < OUT_LINE_MAX * 3 / 4, "{n}");
+    check_line(&buf[..n]);
+}
+
+// ---------------------------------------------------------------- properties
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 256, .. ProptestConfig::default() })]
+
+    #[test]
+    fn lines_do_not_depend_on_chunking(
+        input in proptest::collection::vec(prop_oneof![Just(b'\n'), Just(b'\r'), Just(b'{'), any::<u8>()], 0..1200),
+        cuts in proptest::collection::vec(1usize..64, 1..40),
+    ) {
+        let whole = assemble(&[&input]);
+        let mut chunks: Vec<&[u8]> = Vec::new();
+        let mut rest: &[u8] = &input;
+        for c in cuts.iter().cycle() {
+            if rest.is_empty() { break; }
+            let n = (*c).min(rest.len());
+            chunks.push(&rest[..n]);
+            rest = &rest[n..];
+        }
+        prop_assert_eq!(assemble(&chunks), whole.clone());
+        // Every line handed out is a real line of the input, at most LINE_MAX.
+        for l in whole.iter().flatten() {
+            prop_assert!(l.len() <= LINE_MAX);
+            prop_assert!(!l.contains(&b'\n'));
+        }
+    }
+
+    #[test]
+    fn over_long_lines_never_yield_commands(
+        pad in LINE_MAX..(3 * LINE_MAX),
+        cut in 1usize..50,
+        cmd in prop::sample::select(vec![
+            r#"{"cmd":"reset"}"#,
+            r#"{"cmd":"clear","what":"events"}"#,
+            r#"{"cmd":"set","raw":{"over_voltage_cutoff":3600}}"#,
+        ]),
+    ) {
+        let mut input = cmd.as_bytes().to_vec();
+        input.extend(std::iter::repeat_n(b' ', pad));
+        input.push(b'\n');
+        // Also the command after the padding, on the same line.
+        let mut tail = vec![b' '; pad];
+        tail.extend_from_slice(cmd.as_bytes());
+        tail.push(b'\n');
+        for bytes in [input, tail] {
+            let mut data = vec![cut as u8, 0];
+            data.extend_from_slice(&bytes);
+            fuzz_one(&data);
+            let pieces = assemble(&[&bytes]);
+            prop_assert_eq!(pieces, vec![None]);
+        }
+    }
+
+    #[test]
+    fn arbitrary_bytes_never_panic(
+        chunk in any::<u8>(),
+        flags in 0u8..4,
+        input in proptest::collection::vec(
+            prop_oneof![
+                4 => any::<u8>(),
+                1 => Just(b'\n'),
+                1 => prop::sample::select(b"{}[]\":,0123456789.-eE ".to_vec()),
+            ],
+            0..2000,
+        ),
+    ) {
+        let mut data = vec![chunk, flags];
+        data.extend_from_slice(&input);
+        fuzz_one(&data);
+    }
+
+    #[test]
+    fn command_shaped_lines_never_panic(
+        chunk in any::<u8>(),
+        flags in 0u8..4,
+        lines in proptest::collection::vec(
+            (
+                prop::sample::select(vec!["hello", "get", "set", "reset", "clear", "stream", "capture", "x"]),
+                prop::sample::select(vec!["what", "values", "raw", "period_ms", "on", "req", "zz"]),
+                prop::sample::select(vec![
+                    "\"snapshot\"", "\"settings\"", "\"events\"", "\"statistics\"", "\"version\"", "\"link\"",
+                    "{\"over_voltage_cutoff\":3.6}", "{\"315\":3600,\"charger_type\":1}", "{}", "true", "0",
+                    "150", "-1", "1e9", "null", "[1,2]", "\"\\u0041\"",
+                ]),
+            ),
+            1..12,
+        ),
+    ) {
+        let mut data = vec![chunk, flags];
+        for (cmd, key, value) in lines {
+            data.extend_from_slice(format!("{{\"cmd\":\"{cmd}\",\"req\":1,\"{key}\":{value}}}\n").as_bytes());
+        }
+        fuzz_one(&data);
+    }
+}

@@ -1,0 +1,468 @@
+//! End to end: the built `tinybms` binary against `sim --pty` (direct mode: the
+//! firmware's bridge runs inside the tool, on a real tty) and `sim
+//! --bridge-pty` (through the bridge: the firmware's bridge and host link in the
+//! sim process, the tool on the host link's pty).
+//!
+//! Robust on a busy machine: every wait is generous and bounded, nothing
+//! asserts on timing, and every child is killed when its guard drops.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+
+/// Longest any one tool run may take before the test fails (not a timing
+/// assertion: only a bound so a hang fails instead of blocking CI).
+const RUN_LIMIT: Duration = Duration::from_secs(120);
+
+/// A running `sim`, killed on drop.
+struct Sim {
+    child: Child,
+    path: String,
+}
+
+impl Sim {
+    fn start(args: &[&str]) -> Sim {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_sim"))
+            .args(args)
+            // A safety net: the sim ends by itself even if this process dies.
+            .args(["--duration", "600s"])
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("start sim");
+        let stdout = child.stdout.take().unwrap();
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            let mut r = BufReader::new(stdout);
+            let mut line = String::new();
+            let _ = r.read_line(&mut line);
+            let _ = tx.send(line);
+            // Keep draining so the sim never blocks on a full pipe.
+            let mut sink = Vec::new();
+            let _ = r.read_to_end(&mut sink);
+        });
+        let line = rx
+            .recv_timeout(Duration::from_secs(60))
+            .expect("sim printed its pty path");
+        let path = line.trim().to_string();
+        assert!(path.starts_with("/dev/"), "first line: {line:?}");
+        Sim { child, path }
+    }
+}
+
+impl Drop for Sim {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+struct Out {
+    code: i32,
+    stdout: String,
+    stderr: String,
+}
+
+impl std::fmt::Display for Out {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "exit {}\n--- stdout\n{}\n--- stderr\n{}",
+            self.code, self.stdout, self.stderr
+        )
+    }
+}
+
+/// Runs `tinybms args`, with `input` on stdin, killed after [`RUN_LIMIT`].
+fn tinybms_with_input(args: &[&str], input: &str) -> Out {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_tinybms"))
+        .args(args)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start tinybms");
+    let mut stdin = child.stdin.take().unwrap();
+    let _ = stdin.write_all(input.as_bytes());
+    drop(stdin);
+    let mut out = child.stdout.take().unwrap();
+    let mut err = child.stderr.take().unwrap();
+    let t_out = std::thread::spawn(move || {
+        let mut s = Vec::new();
+        let _ = out.read_to_end(&mut s);
+        s
+    });
+    let t_err = std::thread::spawn(move || {
+        let mut s = Vec::new();
+        let _ = err.read_to_end(&mut s);
+        s
+    });
+    let start = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if start.elapsed() > RUN_LIMIT {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("tinybms {args:?} did not finish within {RUN_LIMIT:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    Out {
+        code: status.code().unwrap_or(-1),
+        stdout: String::from_utf8_lossy(&t_out.join().unwrap()).into_owned(),
+        stderr: String::from_utf8_lossy(&t_err.join().unwrap()).into_owned(),
+    }
+}
+
+fn tinybms(args: &[&str]) -> Out {
+    tinybms_with_input(args, "")
+}
+
+fn json_lines(text: &str) -> Vec<Value> {
+    text.lines()
+        .filter(|l| !l.trim().is_empty())
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
+        .collect()
+}
+
+fn tmp(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("tinybms-e2e-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+#[test]
+fn missing_port_lists_the_ports() {
+    let o = tinybms(&["monitor", "/dev/tinybms-no-such-port"]);
+    assert_eq!(o.code, 3, "{o}");
+    assert!(
+        o.stderr
+            .contains("there is no serial port `/dev/tinybms-no-such-port`"),
+        "{o}"
+    );
+    assert!(
+        o.stderr.contains("Serial ports present") || o.stderr.contains("No serial port"),
+        "{o}"
+    );
+}
+
+#[test]
+fn usage_errors_exit_2() {
+    let o = tinybms(&["frobnicate"]);
+    assert_eq!(o.code, 2, "{o}");
+    let o = tinybms(&["set", "/dev/null", "no_such_setting=1"]);
+    assert_eq!(o.code, 2, "{o}");
+    assert!(o.stderr.contains("no such setting"), "{o}");
+    let o = tinybms(&["--help"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("record PORT FILE.tbms"), "{o}");
+}
+
+#[test]
+fn direct_monitor_json_and_screen() {
+    let sim = Sim::start(&["--pty"]);
+    let o = tinybms(&[
+        "monitor", &sim.path, "--json", "--count", "3", "--period", "200ms",
+    ]);
+    assert_eq!(o.code, 0, "{o}");
+    let lines = json_lines(&o.stdout);
+    assert_eq!(lines.len(), 3, "{o}");
+    for t in &lines {
+        assert_eq!(t["type"], "telemetry", "{t}");
+        assert_eq!(
+            t["cell_voltages_v"].as_array().map(Vec::len),
+            Some(16),
+            "{t}"
+        );
+        let v = t["pack_voltage_v"].as_f64().unwrap();
+        assert!((40.0..60.0).contains(&v), "{t}");
+        assert!(t["soc_percent"].is_number(), "{t}");
+    }
+    let o = tinybms(&["monitor", &sim.path, "--count", "2", "--period", "200ms"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("\x1b[H"), "cursor home: {o}");
+    for part in [
+        "Pack",
+        "SOC",
+        "SOH",
+        "Cells (16)",
+        "Temperatures",
+        "Data age",
+        "direct",
+    ] {
+        assert!(o.stdout.contains(part), "{part}: {o}");
+    }
+}
+
+#[test]
+fn direct_monitor_logs_csv() {
+    let sim = Sim::start(&["--pty"]);
+    let log = tmp("monitor.csv");
+    let _ = std::fs::remove_file(&log);
+    let o = tinybms(&[
+        "monitor",
+        &sim.path,
+        "--log",
+        log.to_str().unwrap(),
+        "--every",
+        "200ms",
+        "--count",
+        "2",
+        "--period",
+        "100ms",
+    ]);
+    assert_eq!(o.code, 0, "{o}");
+    let text = std::fs::read_to_string(&log).unwrap();
+    let rows: Vec<&str> = text.lines().collect();
+    assert_eq!(rows.len(), 3, "{text}");
+    assert!(rows[0].starts_with("time,seq,"), "{text}");
+    assert!(rows[0].ends_with("cell_16_v"), "{text}");
+    assert_eq!(
+        rows[1].split(',').count(),
+        rows[0].split(',').count(),
+        "{text}"
+    );
+}
+
+#[test]
+fn direct_settings_dump_save_apply_verify() {
+    let sim = Sim::start(&["--pty"]);
+    let profile = tmp("settings.txt");
+    let o = tinybms(&["settings", &sim.path, "--save", profile.to_str().unwrap()]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("over_voltage_cutoff"), "{o}");
+    assert!(o.stdout.contains("Rev D range"), "{o}");
+    let saved = std::fs::read_to_string(&profile).unwrap();
+    let parsed = host_tests::profile::parse_profile(&saved).unwrap();
+    assert!(parsed.len() > 20, "{saved}");
+    let ov = parsed
+        .iter()
+        .find(|(id, _)| *id == protocol_core::settings::SettingId::OverVoltageCutoff)
+        .unwrap()
+        .1;
+    // Change one setting by editing the saved profile, apply it.
+    let new = if ov == 3600 { 3610 } else { 3600 };
+    let edited = saved.replace(
+        &format!("over_voltage_cutoff = {ov} "),
+        &format!("over_voltage_cutoff = {new} "),
+    );
+    assert_ne!(edited, saved);
+    std::fs::write(&profile, &edited).unwrap();
+    let o = tinybms(&["apply", &sim.path, profile.to_str().unwrap(), "--dry-run"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("1 to change"), "{o}");
+    assert!(o.stdout.contains("dry run"), "{o}");
+    let o = tinybms(&["apply", &sim.path, profile.to_str().unwrap()]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("over_voltage_cutoff"), "{o}");
+    assert!(o.stdout.contains("verified"), "{o}");
+    // Read back by another run.
+    let o = tinybms(&["apply", &sim.path, profile.to_str().unwrap(), "--dry-run"]);
+    assert!(o.stdout.contains("0 to change"), "{o}");
+}
+
+#[test]
+fn direct_refused_value_and_physical_set() {
+    let sim = Sim::start(&["--pty"]);
+    let o = tinybms(&["set", &sim.path, "over_voltage_cutoff=9.9V"]);
+    assert_ne!(o.code, 0, "{o}");
+    assert!(
+        o.stderr.contains("out_of_range") || o.stdout.contains("rejected"),
+        "{o}"
+    );
+    let o = tinybms(&["set", &sim.path, "over_voltage_cutoff=3.62V"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("3620"), "{o}");
+    assert!(o.stdout.contains("verified"), "{o}");
+}
+
+#[test]
+fn direct_events_stats_version() {
+    let sim = Sim::start(&["--pty"]);
+    let o = tinybms(&["version", &sim.path, "--mode", "direct"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("serial_number"), "{o}");
+    let o = tinybms(&["events", &sim.path, "--mode", "direct"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.lines().count() >= 1, "{o}");
+    let o = tinybms(&["stats", &sim.path, "--mode", "direct"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("charging_count"), "{o}");
+    // Refused without confirmation, done with it.
+    let o = tinybms_with_input(&["clear-events", &sim.path, "--mode", "direct"], "no\n");
+    assert_eq!(o.code, 1, "{o}");
+    assert!(o.stderr.contains("not confirmed"), "{o}");
+    let o = tinybms_with_input(&["clear-events", &sim.path, "--mode", "direct"], "yes\n");
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("cleared"), "{o}");
+}
+
+#[test]
+fn direct_record_replays() {
+    let sim = Sim::start(&["--pty"]);
+    let file = tmp("direct.tbms");
+    let o = tinybms(&[
+        "record",
+        &sim.path,
+        file.to_str().unwrap(),
+        "--duration",
+        "3s",
+    ]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("direct"), "{o}");
+    check_capture(&file);
+}
+
+fn check_capture(file: &std::path::Path) {
+    let text = std::fs::read_to_string(file).unwrap();
+    let out = host_tests::replay::replay_text(&text).unwrap();
+    let lines = json_lines(&out);
+    let live = lines
+        .iter()
+        .filter(|l| l["dir"] == "rx" && l["values"]["cell_count"] == 16)
+        .count();
+    assert!(live >= 1, "no live block replayed from:\n{text}");
+    let summary = lines.last().unwrap();
+    assert_eq!(summary["kind"], "summary");
+    assert!(summary["frames"].as_u64().unwrap() >= 2, "{summary}");
+}
+
+#[test]
+fn nothing_answers_explains_the_wiring() {
+    // A pty nobody answers on: no hello, and the direct bridge hears nothing.
+    let pty = host_tests::pty::Pty::open().unwrap();
+    let path = pty.path().to_str().unwrap().to_string();
+    let o = tinybms(&["version", &path, "--timeout", "3s"]);
+    assert_eq!(o.code, 3, "{o}");
+    assert!(o.stderr.contains("nothing answers"), "{o}");
+    assert!(o.stderr.contains("TX and RX"), "{o}");
+    assert!(o.stderr.contains("ground"), "{o}");
+}
+
+#[test]
+fn different_device_is_named() {
+    // A pty that answers every byte with text that is neither JSON nor frames.
+    let pty = host_tests::pty::Pty::open().unwrap();
+    let path = pty.path().to_str().unwrap().to_string();
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let s = stop.clone();
+    let chatter = std::thread::spawn(move || {
+        let mut buf = [0u8; 256];
+        while !s.load(std::sync::atomic::Ordering::Relaxed) {
+            if pty.read(&mut buf, Duration::from_millis(50)).unwrap_or(0) > 0 {
+                let _ = pty.write(b"AT OK garbage \x01\x02\x03 ERROR\r\n");
+            }
+        }
+    });
+    let o = tinybms(&["version", &path, "--timeout", "4s"]);
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    chatter.join().unwrap();
+    assert_eq!(o.code, 3, "{o}");
+    assert!(o.stderr.contains("not with TinyBMS frames"), "{o}");
+}
+
+#[test]
+fn bridge_monitor_settings_set_record() {
+    let sim = Sim::start(&["--bridge-pty", "--stream-period", "200ms"]);
+    let o = tinybms(&["monitor", &sim.path, "--json", "--count", "2"]);
+    assert_eq!(o.code, 0, "{o}");
+    let lines = json_lines(&o.stdout);
+    assert_eq!(lines.len(), 2, "{o}");
+    assert!(lines.iter().all(|t| t["type"] == "telemetry"), "{o}");
+    let o = tinybms(&["monitor", &sim.path, "--count", "1"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("through the bridge"), "{o}");
+    assert!(o.stdout.contains("Cells (16)"), "{o}");
+    let o = tinybms(&["settings", &sim.path, "--mode", "bridge"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("over_voltage_cutoff"), "{o}");
+    let o = tinybms(&["set", &sim.path, "--raw", "charger_startup_delay=21"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("verified"), "{o}");
+    let o = tinybms(&["set", &sim.path, "--raw", "over_voltage_cutoff=9999"]);
+    assert_ne!(o.code, 0, "{o}");
+    let file = tmp("bridge.tbms");
+    let o = tinybms(&[
+        "record",
+        &sim.path,
+        file.to_str().unwrap(),
+        "--duration",
+        "3s",
+    ]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("through the bridge"), "{o}");
+    check_capture(&file);
+}
+
+#[test]
+fn read_only_bridge_refuses_writes() {
+    let sim = Sim::start(&["--bridge-pty", "--read-only"]);
+    let o = tinybms(&["set", &sim.path, "over_voltage_cutoff=3.6"]);
+    assert_eq!(o.code, 1, "{o}");
+    assert!(o.stderr.contains("read_only"), "{o}");
+    // Reading still works.
+    let o = tinybms(&["version", &sim.path]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("serial_number"), "{o}");
+}
+
+#[test]
+fn malformed_and_over_long_lines_into_the_bridge() {
+    let sim = Sim::start(&["--bridge-pty", "--stream-period", "0"]);
+    let mut port = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&sim.path)
+        .unwrap();
+    let long = format!("{{\"cmd\":\"get\",\"what\":\"{}\"}}\n", "x".repeat(400));
+    let input = format!(
+        "this is not json\n{{\"cmd\":\"fly\",\"req\":7}}\n{long}{{\"cmd\":\"get\",\"what\":\"version\",\"bogus\":1,\"req\":8}}\n{{\"cmd\":\"hello\",\"req\":9}}\n"
+    );
+    port.write_all(input.as_bytes()).unwrap();
+    let (tx, rx) = mpsc::channel();
+    let reader = port.try_clone().unwrap();
+    std::thread::spawn(move || {
+        for line in BufReader::new(reader).lines() {
+            let Ok(line) = line else { break };
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let mut errors = Vec::new();
+    let end = Instant::now() + Duration::from_secs(60);
+    let mut hello = false;
+    while Instant::now() < end && !hello {
+        let Ok(line) = rx.recv_timeout(Duration::from_secs(1)) else {
+            continue;
+        };
+        let Ok(v) = serde_json::from_str::<Value>(&line) else {
+            continue;
+        };
+        if v["type"] == "error" {
+            errors.push(v.clone());
+        }
+        hello = v["type"] == "hello" && v["req"] == 9;
+    }
+    assert!(
+        hello,
+        "the bridge went on answering after the bad lines: {errors:?}"
+    );
+    let codes: Vec<&str> = errors.iter().filter_map(|e| e["error"].as_str()).collect();
+    assert!(codes.contains(&"malformed_json"), "{errors:?}");
+    assert!(codes.contains(&"line_too_long"), "{errors:?}");
+    assert!(codes.contains(&"unknown_command"), "{errors:?}");
+    assert!(codes.contains(&"unknown_field"), "{errors:?}");
+    let unknown = errors
+        .iter()
+        .find(|e| e["error"] == "unknown_command")
+        .unwrap();
+    assert_eq!(unknown["req"], 7, "{unknown}");
+}
