@@ -585,8 +585,10 @@ fn follow_up_outcome_keeps_the_req() {
         seen.extend(r.drain());
     }
     let outcomes = of_type(&seen, "outcome");
-    assert!(!outcomes.is_empty());
     assert!(outcomes.iter().all(|o| o["req"] == 31), "{outcomes:#?}");
+    assert_eq!(outcomes.len(), 2, "{outcomes:#?}");
+    assert_eq!(outcomes[0]["outcome"], "unconfirmed", "{outcomes:#?}");
+    assert_eq!(outcomes[1]["follow_up"], true, "{outcomes:#?}");
 }
 
 #[test]
