@@ -1,10 +1,19 @@
 //! TinyBMS firmware — chip-specific shell (ESP32-C3 / ESP32-C6).
 //!
-//! Structure: init (clocks, watchdog, esp-rtos, UART1) → spawn `bridge_task(rx, tx, wdt)`
-//! and `consumer_task()`. All protocol and state-machine logic lives in the library
-//! (`tinybms_firmware::Bridge`, sans-IO, tested on the host); this file only moves
-//! bytes and time between UART1 and the bridge, logs its reports and shares the
-//! latest telemetry through an embassy-sync `Watch`.
+//! Structure: init (clocks, watchdog, esp-rtos, UART1, TWAI, USB-Serial-JTAG) → spawn
+//! `bridge_task(rx, tx, wdt)`, `consumer_task()`, `can_task(twai)`, `usb_rx_task` and
+//! `usb_tx_task`. All protocol and state-machine logic lives in the library
+//! (`tinybms_firmware::Bridge` and `tinybms_firmware::host_link::HostLink`, sans-IO,
+//! tested on the host); this file only moves bytes and time between UART1, the USB
+//! port and them, logs the bridge's reports and shares the latest telemetry through
+//! an embassy-sync `Watch`.
+//!
+//! Host link (JSON Lines on the USB cable): the `HostLink` lives in the bridge task
+//! next to the bridge. Host bytes come in through the `HOST_RX` pipe (filled by
+//! `usb_rx_task`); encoded lines go out through the `HOST_TX` pipe, taken only while
+//! it has room for a whole line, to `usb_tx_task`, which writes them with a timeout.
+//! The bridge task never awaits the host: a missing or slow host fills the pipe, then
+//! the host link's bounded queue, which drops streamed telemetry first.
 //!
 //! Board: the pins come from `tinybms_firmware::boards::SELECTED`, chosen by one
 //! `board-…` feature and checked at compile time (no strapping, flash, USB, UART0 or
@@ -28,9 +37,11 @@ use defmt::{info, warn};
 #[cfg(feature = "log-rtt")]
 use defmt_rtt as _; // defmt global logger: RTT
 use embassy_executor::Spawner;
-use embassy_futures::select::{select, Either};
+use embassy_futures::select::{select, select3, Either, Either3};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::channel::Channel;
+use embassy_sync::pipe::Pipe;
+use embassy_sync::signal::Signal;
 use embassy_sync::watch::Watch;
 use embassy_time::{with_timeout, Duration, Instant, Timer};
 use esp_hal::clock::CpuClock;
@@ -41,6 +52,7 @@ use esp_hal::twai::{
     BaudRate, EspTwaiError, EspTwaiFrame, Id, StandardId, Twai, TwaiConfiguration, TwaiMode,
 };
 use esp_hal::uart::{Config as UartConfig, RxConfig, RxError, Uart, UartRx, UartTx};
+use esp_hal::usb::usb_serial_jtag::{UsbSerialJtag, UsbSerialJtagRx, UsbSerialJtagTx};
 use esp_hal::Async;
 #[cfg(feature = "log-uart")]
 use esp_println as _; // defmt global logger: UART0, espflash's defmt framing
@@ -49,6 +61,7 @@ use protocol_core::events::OnlineStatus;
 use protocol_core::views::{LiveSnapshot, VersionInfo};
 use tinybms_firmware::boards::{self, Board, Chip, LogPath};
 use tinybms_firmware::config::Config as BridgeConfig;
+use tinybms_firmware::host_link::{HostLink, OUT_LINE_MAX};
 use tinybms_firmware::inverter::control::PackSettings;
 use tinybms_firmware::inverter::{Inverter, InverterAction, InverterReport, Protocol, TxResult};
 use tinybms_firmware::link::Failure;
@@ -127,6 +140,26 @@ static TELEMETRY: Watch<CriticalSectionRawMutex, SharedSnapshot, 3> = Watch::new
 /// New BMS events for the CAN output (charge-blocking faults); a full channel
 /// drops the event for it (the BMS status still says "fault").
 static EVENTS: Channel<CriticalSectionRawMutex, Event, 8> = Channel::new();
+
+/// Bytes from the host (USB-Serial-JTAG → bridge task). When full, `usb_rx_task`
+/// waits, and the USB endpoint makes the host wait: nothing is lost.
+static HOST_RX: Pipe<CriticalSectionRawMutex, HOST_RX_PIPE> = Pipe::new();
+/// Encoded lines for the host (bridge task → `usb_tx_task`).
+static HOST_TX: Pipe<CriticalSectionRawMutex, HOST_TX_PIPE> = Pipe::new();
+/// `usb_tx_task` saw a write go through after none could (at boot, or after a
+/// timeout): a host has (re)opened the port. The bridge task then queues `hello`.
+static HOST_CONNECTED: Signal<CriticalSectionRawMutex, ()> = Signal::new();
+
+/// Size of [`HOST_RX`], bytes.
+const HOST_RX_PIPE: usize = 256;
+/// Size of [`HOST_TX`], bytes: two of the longest lines.
+const HOST_TX_PIPE: usize = 2 * OUT_LINE_MAX;
+/// Longest a write of one chunk to the USB port may take (the host reads the IN
+/// endpoint every millisecond while the port is open). On timeout the chunk is
+/// dropped and the host is deemed gone until a write goes through again.
+const USB_WRITE_TIMEOUT: Duration = Duration::from_millis(50);
+/// Bytes written to the USB port at once (the endpoint's FIFO is 64 bytes).
+const USB_WRITE_CHUNK: usize = 256;
 
 /// CAN bit rate of both inverter protocols.
 const CAN_BAUDRATE: BaudRate = BaudRate::B500K;
@@ -236,7 +269,23 @@ async fn main(spawner: Spawner) {
         }
     );
 
+    // The host link on the USB cable (USB-Serial-JTAG, CDC-ACM). Its JTAG side
+    // (probe-rs, RTT) is a separate USB interface of the same device: both run
+    // together (README, "Host link").
+    let (usb_rx, usb_tx) = UsbSerialJtag::new(p.USB_DEVICE).into_async().split();
+    info!(
+        "host link on USB-Serial-JTAG: {=str}, telemetry every {=u32} ms",
+        if tinybms_firmware::site::HOST_READ_ONLY {
+            "read-only"
+        } else {
+            "read-write"
+        },
+        tinybms_firmware::site::HOST_STREAM_PERIOD_MS
+    );
+
     spawner.spawn(bridge_task(rx, tx, wdt).expect("spawn bridge_task"));
+    spawner.spawn(usb_rx_task(usb_rx).expect("spawn usb_rx_task"));
+    spawner.spawn(usb_tx_task(usb_tx).expect("spawn usb_tx_task"));
     spawner.spawn(consumer_task().expect("spawn consumer_task"));
     spawner.spawn(can_task(twai).expect("spawn can_task"));
 }
@@ -292,9 +341,13 @@ async fn bridge_task(
 ) {
     let sender = TELEMETRY.sender();
     let mut bridge = Bridge::new(BridgeConfig::default(), now_us());
-    if bridge.submit_profile(profile::PROFILE).is_err() {
-        warn!("settings profile too long for the command queue");
-    }
+    submit_profile(&mut bridge);
+    let mut host = HostLink::new(
+        tinybms_firmware::site::host_link_config(BOARD.chip.name()),
+        now_us(),
+    );
+    let mut host_buf = [0u8; 64];
+    let mut line = [0u8; OUT_LINE_MAX];
     let mut buf = [0u8; 128];
     let mut published_seq = 0u32;
     let mut rx_errors = RxErrors {
@@ -312,9 +365,11 @@ async fn bridge_task(
                     if let Report::NewEvent(e) = &report {
                         let _ = EVENTS.try_send(*e);
                     }
+                    host.on_report(&report);
                     log_report(&report);
                 }
                 rx_errors.log();
+                host.on_uart_tx(&bytes);
                 let mut rest: &[u8] = &bytes;
                 while !rest.is_empty() {
                     match tx.write_async(rest).await {
@@ -330,18 +385,37 @@ async fn bridge_task(
                 }
             }
             Action::WaitUntil(t) => {
+                let t = t.min(host.poll(now_us(), &bridge));
                 let deadline = Instant::from_micros(t).min(Instant::now() + MAX_WAIT);
-                // `read_async` is cancellation-safe: racing it against a timer loses nothing.
-                match select(rx.read_async(&mut buf), Timer::at(deadline)).await {
-                    Either::First(Ok(n)) => bridge.handle_rx(now_us(), buf.get(..n).unwrap_or(&[])),
-                    Either::First(Err(e)) => rx_errors.record(e),
-                    Either::Second(()) => {
+                // `read_async` and `Pipe::read` are cancellation-safe: racing them
+                // against a timer loses nothing.
+                match select3(
+                    rx.read_async(&mut buf),
+                    Timer::at(deadline),
+                    HOST_RX.read(&mut host_buf),
+                )
+                .await
+                {
+                    Either3::First(Ok(n)) => {
+                        let got = buf.get(..n).unwrap_or(&[]);
+                        bridge.handle_rx(now_us(), got);
+                        host.on_uart_rx(got);
+                    }
+                    Either3::First(Err(e)) => rx_errors.record(e),
+                    Either3::Third(n) => {
+                        host.handle_rx(now_us(), host_buf.get(..n).unwrap_or(&[]), &mut bridge)
+                    }
+                    Either3::Second(()) => {
                         // Bytes already received but not yet signalled go in before
                         // the deadline is handled by the next `poll`.
                         for _ in 0..DEADLINE_DRAIN_READS {
                             match rx.read_buffered(&mut buf) {
                                 Ok(0) => break,
-                                Ok(n) => bridge.handle_rx(now_us(), buf.get(..n).unwrap_or(&[])),
+                                Ok(n) => {
+                                    let got = buf.get(..n).unwrap_or(&[]);
+                                    bridge.handle_rx(now_us(), got);
+                                    host.on_uart_rx(got);
+                                }
                                 Err(e) => {
                                     rx_errors.record(e);
                                     break;
@@ -351,6 +425,19 @@ async fn bridge_task(
                     }
                 }
             }
+        }
+        // The host link: a (re)connected host gets `hello`; streamed telemetry when
+        // due; encoded lines move to the USB writer while its pipe has room for a
+        // whole one (no I/O here, never a wait).
+        if HOST_CONNECTED.try_take().is_some() {
+            host.connected(now_us());
+        }
+        host.poll(now_us(), &bridge);
+        while HOST_TX.free_capacity() >= OUT_LINE_MAX {
+            let Some(n) = host.next_line(now_us(), &bridge, &mut line) else {
+                break;
+            };
+            let _ = HOST_TX.try_write(line.get(..n).unwrap_or(&[]));
         }
         // Publishing is a copy into the Watch, no I/O: done on every step.
         let t = bridge.telemetry();
@@ -364,6 +451,72 @@ async fn bridge_task(
                     version: t.version,
                 });
             }
+        }
+    }
+}
+
+/// Queues the start-up profile (`firmware/profile.txt`, parsed here): every
+/// assignment, or nothing when a line does not parse.
+fn submit_profile(bridge: &mut Bridge) {
+    use tinybms_firmware::profile::{ParseError, MAX_PROFILE_ENTRIES};
+    match profile::parse::<MAX_PROFILE_ENTRIES>(profile::PROFILE_TEXT) {
+        Ok(entries) if entries.is_empty() => info!("settings profile empty: nothing written"),
+        Ok(entries) => {
+            info!("settings profile: {=usize} settings", entries.len());
+            if bridge.submit_profile(&entries).is_err() {
+                warn!("settings profile too long for the command queue");
+            }
+        }
+        Err(ParseError::Line(e)) => warn!(
+            "settings profile line {=u32}: {=str} ({=str}): nothing written",
+            e.line,
+            e.kind.reason(),
+            e.text
+        ),
+        Err(ParseError::TooMany { line }) => warn!(
+            "settings profile: more than {=usize} settings (line {=u32}): nothing written",
+            MAX_PROFILE_ENTRIES, line
+        ),
+    }
+}
+
+/// Host → bridge: bytes from the USB port into [`HOST_RX`]. Waits (and so makes
+/// the host wait) while the bridge task has not taken the previous ones.
+#[embassy_executor::task]
+async fn usb_rx_task(mut rx: UsbSerialJtagRx<'static, Async>) {
+    use embedded_io_async::Read;
+    let mut buf = [0u8; 64];
+    loop {
+        let Ok(n) = rx.read(&mut buf).await; // the error type is `Infallible`
+        HOST_RX.write_all(buf.get(..n).unwrap_or(&[])).await;
+    }
+}
+
+/// Bridge → host: lines from [`HOST_TX`] to the USB port, each chunk with a
+/// timeout. A chunk that times out is dropped (the host sees a cut line and
+/// resyncs at the next newline); the first write that goes through afterwards
+/// (and the first one after boot) signals [`HOST_CONNECTED`].
+#[embassy_executor::task]
+async fn usb_tx_task(mut tx: UsbSerialJtagTx<'static, Async>) {
+    use embedded_io_async::Write;
+    let mut buf = [0u8; USB_WRITE_CHUNK];
+    let mut reading = false;
+    loop {
+        let n = HOST_TX.read(&mut buf).await;
+        let chunk = buf.get(..n).unwrap_or(&[]);
+        let sent = with_timeout(USB_WRITE_TIMEOUT, async {
+            tx.write_all(chunk).await?;
+            tx.flush().await
+        })
+        .await;
+        match sent {
+            Ok(Ok(())) => {
+                if !reading {
+                    reading = true;
+                    HOST_CONNECTED.signal(());
+                }
+            }
+            _ => reading = false,
         }
     }
 }

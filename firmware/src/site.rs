@@ -1,6 +1,8 @@
-//! What this installation wants from the inverter output: edit and reflash.
-//! (The settings written to the BMS are in [`crate::profile`].)
+//! What this installation wants from the inverter output and the host link:
+//! edit and reflash. (The settings written to the BMS are in `firmware/profile.txt`,
+//! see [`crate::profile`].)
 
+use crate::host_link::HostLinkConfig;
 use crate::inverter::control::ChargeConfig;
 use crate::inverter::{InverterConfig, Protocol, StalePolicy};
 
@@ -25,5 +27,25 @@ pub fn inverter_config() -> InverterConfig {
         stale_policy: STALE_POLICY,
         charge: ChargeConfig::default(),
         ..InverterConfig::default()
+    }
+}
+
+/// Host link (JSON Lines over the USB cable, `firmware/src/host_link/PROTOCOL.md`):
+/// `true` refuses `set`, `reset` and `clear` from the computer (a read-only
+/// bridge); reading, streaming and capture still work.
+pub const HOST_READ_ONLY: bool = false;
+
+/// Host link: telemetry stream period at start, ms (0: off; else 100-60000). The
+/// host can change it (`stream`) until the next restart.
+pub const HOST_STREAM_PERIOD_MS: u32 = crate::host_link::DEFAULT_STREAM_PERIOD_MS;
+
+/// The host link's configuration: the constants above, this firmware's version
+/// and the chip's name.
+pub fn host_link_config(chip: &'static str) -> HostLinkConfig {
+    HostLinkConfig {
+        read_only: HOST_READ_ONLY,
+        stream_period_ms: HOST_STREAM_PERIOD_MS,
+        firmware: env!("CARGO_PKG_VERSION"),
+        chip,
     }
 }

@@ -111,8 +111,8 @@ fn too_long_resyncs_at_the_newline() {
 
 #[test]
 fn fixed_point_prints_like_replay() {
-    let text = |v: Option<f64>| {
-        serde_json_core::to_string::<_, 32>(&v)
+    let text = |v: Option<encode::Dec>| {
+        serde_json_core::to_string::<_, 64>(&v)
             .unwrap()
             .as_str()
             .to_owned()
@@ -126,7 +126,22 @@ fn fixed_point_prints_like_replay() {
     assert_eq!(text(encode::rounded(-0.00001, 4)), "0.0");
     // Against replay's own serde_json output, over many raw values and decimals.
     for decimals in 0..=6u32 {
-        for raw in (-70_000i64..70_000).step_by(7).chain([i64::from(u32::MAX)]) {
+        let special = [
+            1,
+            5,
+            10,
+            99,
+            100_000,
+            1_000_000,
+            123_456_789_012,
+            -3,
+            i64::from(u32::MAX),
+        ];
+        for raw in (-70_000i64..70_000)
+            .step_by(7)
+            .chain(special)
+            .chain((0..16).map(|e| 10i64.pow(e)))
+        {
             let ours = text(encode::fixed(raw, decimals));
             let p = 10f64.powi(decimals as i32);
             let x = raw as f64 / p;
@@ -135,7 +150,10 @@ fn fixed_point_prints_like_replay() {
             assert_eq!(ours, theirs, "raw {raw} decimals {decimals}");
         }
     }
-    for x in [3.3125f32, 52.81, -12.34567, 0.00005, 1234.5678, 1e-7] {
+    for x in [
+        3.3125f32, 52.81, -12.34567, 0.00005, 0.00015, 1234.5678, 1e-7, -0.00004, 51.7, -23.4,
+        6.5e8,
+    ] {
         let ours = text(encode::rounded(f64::from(x), 4));
         let theirs = serde_json::to_string(&host_tests::replay::rounded(f64::from(x), 4)).unwrap();
         assert_eq!(ours, theirs, "{x}");
@@ -145,7 +163,10 @@ fn fixed_point_prints_like_replay() {
 #[test]
 fn physical_and_raw_conversions() {
     use SettingId::*;
-    assert_eq!(encode::physical(OverVoltageCutoff, 3650), Some(3.65));
+    assert_eq!(
+        encode::physical(OverVoltageCutoff, 3650).map(encode::Dec::as_f64),
+        Some(3.65)
+    );
     assert_eq!(
         encode::raw_from_physical(OverVoltageCutoff, 3.65),
         Some(3650)
@@ -154,18 +175,24 @@ fn physical_and_raw_conversions() {
         encode::raw_from_physical(OverVoltageCutoff, 3.6504),
         Some(3650)
     );
-    assert_eq!(encode::physical(StateOfHealth, 50_000), Some(100.0));
+    assert_eq!(
+        encode::physical(StateOfHealth, 50_000).map(encode::Dec::as_f64),
+        Some(100.0)
+    );
     assert_eq!(
         encode::raw_from_physical(StateOfHealth, 99.998),
         Some(49_999)
     );
-    assert_eq!(encode::physical(BatteryCapacity, 10_000), Some(100.0));
+    assert_eq!(
+        encode::physical(BatteryCapacity, 10_000).map(encode::Dec::as_f64),
+        Some(100.0)
+    );
     assert_eq!(encode::raw_from_physical(OverHeatCutoff, -5.0), Some(-5));
     assert_eq!(encode::raw_from_physical(OverVoltageCutoff, 1e300), None);
     for &id in SettingId::ALL {
         let (lo, hi) = id.register().unwrap().range.unwrap_or((0, 100));
         for raw in [lo, (lo + hi) / 2, hi] {
-            let v = encode::physical(id, raw).unwrap();
+            let v = encode::physical(id, raw).unwrap().as_f64();
             assert_eq!(encode::raw_from_physical(id, v), Some(raw), "{id:?} {raw}");
         }
     }
@@ -358,7 +385,10 @@ fn get_everything() {
         assert_eq!(s["address"], id.address());
         let raw = id.read(t.settings.as_ref().unwrap()).unwrap();
         assert_eq!(s["raw"], raw);
-        assert_eq!(s["value"], json!(encode::physical(id, raw).unwrap()));
+        assert_eq!(
+            s["value"],
+            json!(encode::physical(id, raw).unwrap().as_f64())
+        );
         assert_eq!(s["unit"], id.register().unwrap().unit);
         let (lo, hi) = id
             .limits(
@@ -368,12 +398,12 @@ fn get_everything() {
             .unwrap();
         assert_eq!(
             s["bms_min"],
-            json!(encode::physical(id, lo).unwrap()),
+            json!(encode::physical(id, lo).unwrap().as_f64()),
             "{s}"
         );
         assert_eq!(
             s["bms_max"],
-            json!(encode::physical(id, hi).unwrap()),
+            json!(encode::physical(id, hi).unwrap().as_f64()),
             "{s}"
         );
     }
@@ -555,8 +585,10 @@ fn follow_up_outcome_keeps_the_req() {
         seen.extend(r.drain());
     }
     let outcomes = of_type(&seen, "outcome");
-    assert!(!outcomes.is_empty());
     assert!(outcomes.iter().all(|o| o["req"] == 31), "{outcomes:#?}");
+    assert_eq!(outcomes.len(), 2, "{outcomes:#?}");
+    assert_eq!(outcomes[0]["outcome"], "unconfirmed", "{outcomes:#?}");
+    assert_eq!(outcomes[1]["follow_up"], true, "{outcomes:#?}");
 }
 
 #[test]
@@ -865,4 +897,18 @@ proptest! {
         }
         fuzz_one(&data);
     }
+}
+
+#[test]
+fn fuzz_seeds_pass() {
+    let dir = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../protocol-core/fuzz/seeds/host_link"
+    );
+    let mut n = 0;
+    for entry in std::fs::read_dir(dir).unwrap() {
+        fuzz_one(&std::fs::read(entry.unwrap().path()).unwrap());
+        n += 1;
+    }
+    assert!(n >= 4);
 }

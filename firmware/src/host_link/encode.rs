@@ -52,21 +52,144 @@ pub fn round(x: f64) -> f64 {
     }
 }
 
+/// A decimal number `n * 10^-k`, printed exactly as `serde_json` (through `ryu`'s
+/// shortest representation) prints the f64 nearest to it, which is that decimal
+/// itself while `|n| < 2^53`: `3.3125`, `50.0`, `0.0`, `-10.5`, `1e-6`. Written
+/// as raw JSON (`serialize_bytes`, serde-json-core's way to emit a number it did
+/// not format) so that no float formatting code is linked.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Dec {
+    /// Digits.
+    pub n: i64,
+    /// Decimals.
+    pub k: u32,
+}
+
+impl Dec {
+    /// The value as f64 (`n as f64 / 10^k`, what replay computes).
+    pub fn as_f64(self) -> f64 {
+        self.n as f64 / pow10(self.k)
+    }
+}
+
+/// Largest |n| printed exactly (2^53: every integer up to it is an f64).
+const EXACT: i64 = 1 << 53;
+
+impl Serialize for Dec {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        let mut out: String<40> = String::new();
+        write_dec(&mut out, self.n, self.k);
+        s.serialize_bytes(out.as_bytes())
+    }
+}
+
+/// `ryu`'s formatting of the decimal `n * 10^-k` (its `format64` rules: plain
+/// digits up to 16 before the point, `0.0000ddd` down to 5 zeros, else
+/// scientific `d.ddde-7`).
+fn write_dec(out: &mut String<40>, n: i64, k: u32) {
+    if n == 0 {
+        let _ = out.push_str("0.0");
+        return;
+    }
+    if n < 0 {
+        let _ = out.push('-');
+    }
+    // Digits of |n| without trailing zeros; value = digits * 10^exp.
+    let mut m = n.unsigned_abs();
+    let mut exp = -(k as i32);
+    while m.is_multiple_of(10) {
+        m /= 10;
+        exp += 1;
+    }
+    let mut digits = [0u8; 20];
+    let mut len = 0usize;
+    while m > 0 {
+        if let Some(d) = digits.get_mut(len) {
+            *d = b'0' + (m % 10) as u8;
+        }
+        m /= 10;
+        len += 1;
+    }
+    digits.get_mut(..len).unwrap_or(&mut []).reverse();
+    let d = digits.get(..len).unwrap_or(&[]);
+    let push = |out: &mut String<40>, b: &[u8]| {
+        for &c in b {
+            let _ = out.push(char::from(c));
+        }
+    };
+    let olen = len as i32;
+    let kk = olen + exp;
+    if exp >= 0 && kk <= 16 {
+        push(out, d);
+        for _ in 0..exp {
+            let _ = out.push('0');
+        }
+        let _ = out.push_str(".0");
+    } else if kk > 0 && kk <= 16 {
+        let (int, frac) = d.split_at((kk as usize).min(d.len()));
+        push(out, int);
+        let _ = out.push('.');
+        push(out, frac);
+    } else if kk > -5 && kk <= 0 {
+        let _ = out.push_str("0.");
+        for _ in 0..(-kk) {
+            let _ = out.push('0');
+        }
+        push(out, d);
+    } else {
+        let (first, rest) = d.split_at(1.min(d.len()));
+        push(out, first);
+        if !rest.is_empty() {
+            let _ = out.push('.');
+            push(out, rest);
+        }
+        let _ = out.push('e');
+        let mut e = kk - 1;
+        if e < 0 {
+            let _ = out.push('-');
+            e = -e;
+        }
+        let mut buf = [0u8; 4];
+        let mut i = buf.len();
+        loop {
+            i -= 1;
+            if let Some(b) = buf.get_mut(i) {
+                *b = b'0' + (e % 10) as u8;
+            }
+            e /= 10;
+            if e == 0 || i == 0 {
+                break;
+            }
+        }
+        push(out, buf.get(i..).unwrap_or(&[]));
+    }
+}
+
 /// `x` rounded half away from zero to `decimals`, `None` (JSON `null`) when not
-/// finite, never `-0.0`: replay's `rounded`.
-pub fn rounded(x: f64, decimals: u32) -> Option<f64> {
+/// finite: replay's `rounded`. Values too large to print exactly (|x| ≥ 2^53 /
+/// 10^decimals, e.g. a corrupt f32 of 1e30) are `None` too: there replay prints
+/// ryu's digits of the f64, which only a float formatter could reproduce.
+pub fn rounded(x: f64, decimals: u32) -> Option<Dec> {
     if !x.is_finite() {
         return None;
     }
-    let p = pow10(decimals);
-    let r = round(x * p) / p;
-    Some(if r == 0.0 { 0.0 } else { r })
+    let r = round(x * pow10(decimals));
+    if abs(r) >= EXACT as f64 {
+        return None;
+    }
+    Some(Dec {
+        n: r as i64,
+        k: decimals,
+    })
 }
 
 /// Fixed-point value `raw * 10^-decimals`, printed exactly at that resolution:
 /// replay's `fixed` (raw 33125 at 4 decimals → `3.3125`).
-pub fn fixed(raw: i64, decimals: u32) -> Option<f64> {
-    rounded(raw as f64 / pow10(decimals), decimals)
+pub fn fixed(raw: i64, decimals: u32) -> Option<Dec> {
+    (raw.unsigned_abs() < EXACT as u64).then_some(Dec {
+        n: raw,
+        k: decimals,
+    })
 }
 
 /// A register's scale as an integer step and a number of decimals:
@@ -84,7 +207,7 @@ pub fn scale_parts(r: &Register) -> (i64, u32) {
 }
 
 /// A setting's raw value in its physical unit ([`Register::unit`]).
-pub fn physical(id: SettingId, raw: i32) -> Option<f64> {
+pub fn physical(id: SettingId, raw: i32) -> Option<Dec> {
     let (step, k) = id.register().map(scale_parts).unwrap_or((1, 0));
     fixed(i64::from(raw).saturating_mul(step), k)
 }
@@ -294,24 +417,24 @@ struct TelemetryFull<'a> {
     age_ms: Option<u64>,
     online: bool,
     ready: bool,
-    pack_voltage_v: Option<f64>,
-    pack_current_a: Option<f64>,
-    min_cell_voltage_v: Option<f64>,
-    max_cell_voltage_v: Option<f64>,
+    pack_voltage_v: Option<Dec>,
+    pack_current_a: Option<Dec>,
+    min_cell_voltage_v: Option<Dec>,
+    max_cell_voltage_v: Option<Dec>,
     cell_voltages_v: Cells<'a>,
     cell_first_register: u8,
     cell_count: u16,
-    soc_percent: Option<f64>,
-    soh_percent: Option<f64>,
+    soc_percent: Option<Dec>,
+    soh_percent: Option<Dec>,
     lifetime_s: u32,
     estimated_time_left_s: u32,
-    internal_temperature_c: Option<f64>,
-    external_temperature_1_c: Option<f64>,
-    external_temperature_2_c: Option<f64>,
+    internal_temperature_c: Option<Dec>,
+    external_temperature_1_c: Option<Dec>,
+    external_temperature_2_c: Option<Dec>,
     online_status: Name,
     balancing_decision_bits: u16,
     real_balancing_bits: u16,
-    speed_kmh: Option<f64>,
+    speed_kmh: Option<Dec>,
     distance_left_km: u16,
     flagged: Option<&'static str>,
 }
@@ -370,7 +493,8 @@ pub fn telemetry(
             cell_first_register: s.cells.first_register,
             cell_count: s.cell_count,
             soc_percent: fixed(i64::from(s.soc_raw), 6),
-            soh_percent: rounded(f64::from(s.soh_raw) / 500.0, 3),
+            // 0.002 %: replay's rounded(raw / 500, 3), exactly.
+            soh_percent: fixed(2 * i64::from(s.soh_raw), 3),
             lifetime_s: s.lifetime_s,
             estimated_time_left_s: s.estimated_time_left_s,
             internal_temperature_c: fixed(i64::from(s.internal_dc), 1),
@@ -396,12 +520,12 @@ struct SettingLine<'a> {
     name: &'static str,
     address: u16,
     raw: Option<i32>,
-    value: Option<f64>,
+    value: Option<Dec>,
     unit: &'a str,
-    min: Option<f64>,
-    max: Option<f64>,
-    bms_min: Option<f64>,
-    bms_max: Option<f64>,
+    min: Option<Dec>,
+    max: Option<Dec>,
+    bms_min: Option<Dec>,
+    bms_max: Option<Dec>,
 }
 
 /// Writes a `setting` line: the current raw value (when read), its physical
@@ -453,10 +577,10 @@ struct StatisticsLine {
     ty: &'static str,
     #[serde(skip_serializing_if = "Option::is_none")]
     req: Option<u32>,
-    total_distance_km: Option<f64>,
-    max_discharge_current_a: Option<f64>,
-    max_charge_current_a: Option<f64>,
-    max_cell_voltage_difference_v: Option<f64>,
+    total_distance_km: Option<Dec>,
+    max_discharge_current_a: Option<Dec>,
+    max_charge_current_a: Option<Dec>,
+    max_cell_voltage_difference_v: Option<Dec>,
     under_voltage_count: u16,
     over_voltage_count: u16,
     discharge_over_current_count: u16,
@@ -664,7 +788,7 @@ struct OutcomeLine {
     req: Option<u32>,
     name: &'static str,
     raw: i32,
-    value: Option<f64>,
+    value: Option<Dec>,
     outcome: &'static str,
     detail: Option<&'static str>,
     #[serde(skip_serializing_if = "Option::is_none")]

@@ -1,6 +1,6 @@
 //! The host link: JSON Lines over the chip's USB (USB-Serial-JTAG, CDC-ACM) to a
-//! computer. The protocol is [PROTOCOL.md](https://example.invalid/) in this
-//! folder (`firmware/src/host_link/PROTOCOL.md`); this module is its sans-IO
+//! computer. The protocol is `PROTOCOL.md` in this folder
+//! (`firmware/src/host_link/PROTOCOL.md`); this module is its sans-IO
 //! implementation, like the bridge:
 //!
 //! * bytes from the host go in through [`HostLink::handle_rx`]: a bounded
@@ -58,7 +58,9 @@ pub const QUEUE: usize = 32;
 /// Answers to host commands (`accepted`, `error`, `get` results) are queued only
 /// while fewer than this many lines wait: the rest of [`QUEUE`] is kept for
 /// what the bridge reports (outcomes, events, resets, clears), so a host that
-/// sends without reading loses its own answers, never an outcome.
+/// sends without reading loses its own answers, never an outcome. A command that
+/// arrives while this many lines wait is not carried out at all (its answer could
+/// not be queued): nothing is ever done without its `accepted` line.
 pub const ANSWERS_MAX: usize = QUEUE / 2;
 
 /// `raw` lines waiting for the host (capture), [`RAW_CHUNK`] bytes each.
@@ -475,6 +477,12 @@ impl State {
     }
 
     fn dispatch(&mut self, now: Instant, line: &[u8], bridge: &mut Bridge) {
+        if self.queue.len() >= ANSWERS_MAX {
+            // The host sends without reading: its answer could not be queued, so
+            // the command is not carried out at all (counted as a dropped line).
+            self.stats.dropped_lines = self.stats.dropped_lines.wrapping_add(1);
+            return;
+        }
         let parsed = match command::parse(line) {
             Ok(p) => p,
             Err(e) => return self.error(e.req, e.code, e.detail, e.subject),
