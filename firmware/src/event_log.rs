@@ -332,7 +332,7 @@ impl EventTracker {
 }
 
 /// Insertion sort by timestamp (serial-number order), stable; at most 63 items.
-fn sort_by_time(v: &mut [Event]) {
+pub(crate) fn sort_by_time(v: &mut [Event]) {
     for i in 1..v.len() {
         let mut j = i;
         while j > 0 {

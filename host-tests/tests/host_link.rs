@@ -912,3 +912,79 @@ fn fuzz_seeds_pass() {
     }
     assert!(n >= 4);
 }
+
+/// The BMS's event log (registers 200-297 of the simulated BMS), oldest first.
+fn sim_log(r: &Rig) -> Vec<Event> {
+    let mut values = protocol_core::response::Words::new();
+    for a in 200..=297u16 {
+        values.push(r.h.sim.register(a)).unwrap();
+    }
+    let block = RegisterBlock { start: 200, values };
+    let mut events: Vec<Event> = protocol_core::views::event_log(&block)
+        .unwrap()
+        .iter()
+        .map(|s| s.event)
+        .collect();
+    events.sort_by_key(|e| e.timestamp_s);
+    events
+}
+
+fn listed_events(r: &mut Rig, req: u32) -> Vec<Value> {
+    r.line(&format!(r#"{{"cmd":"get","what":"events","req":{req}}}"#));
+    let lines = r.drain();
+    let end = lines.last().unwrap();
+    assert_eq!(end["type"], "events_end", "{lines:?}");
+    assert_eq!(end["req"], req);
+    let events: Vec<Value> = lines[..lines.len() - 1].to_vec();
+    assert_eq!(end["count"], events.len());
+    for e in &events {
+        assert_eq!(e["type"], "event");
+        assert_eq!(e["history"], true);
+        assert_eq!(e["req"], req);
+    }
+    events
+}
+
+#[test]
+fn get_events_lists_the_whole_log_then_nothing_after_a_clear() {
+    let mut r = Rig::ready(config(false, 0));
+    // The first event-log turn reads the whole log (the start-up history).
+    r.run(12 * SECOND);
+    let truth = sim_log(&r);
+    assert!(truth.len() >= 3, "the simulated BMS starts with a history");
+    let listed = listed_events(&mut r, 1);
+    let expected: Vec<Value> = truth
+        .iter()
+        .map(|e| {
+            let mut m = event_json(e);
+            m.insert("type".into(), json!("event"));
+            m.insert("req".into(), json!(1));
+            m.insert("history".into(), json!(true));
+            Value::Object(m)
+        })
+        .collect();
+    let strip = |v: &Value| {
+        let mut m = v.as_object().unwrap().clone();
+        m.retain(|k, _| ["timestamp_s", "id", "name", "severity"].contains(&k.as_str()));
+        m
+    };
+    assert_eq!(
+        listed.iter().map(strip).collect::<Vec<_>>(),
+        expected.iter().map(strip).collect::<Vec<_>>(),
+        "the whole log, oldest first"
+    );
+    assert_eq!(r.h.bridge.events().len(), truth.len());
+
+    // A clear that the BMS ACKs empties what the bridge knows.
+    r.line(r#"{"cmd":"clear","what":"events","req":2}"#);
+    r.run(3 * SECOND);
+    let out = r.drain();
+    assert!(
+        out.iter()
+            .any(|l| l["type"] == "cleared" && l["ok"] == true && l["req"] == 2),
+        "{out:?}"
+    );
+    let after = listed_events(&mut r, 3);
+    let now_in_log = sim_log(&r);
+    assert!(after.len() <= now_in_log.len(), "{after:?} vs {now_in_log:?}");
+}

@@ -5,22 +5,74 @@
 //!
 //! When to read (the event log period, a gap to fill at once) is the schedule's
 //! business ([`super::schedule`]); which of the three reads is the tracker's.
+//!
+//! What was found is also kept in [`KnownEvents`]: the log as far as the bridge
+//! knows it, for consumers that list it (the host link's `get events`).
 
-use heapless::Vec;
+use heapless::{Deque, Vec};
 use protocol_core::events::Event;
 use protocol_core::request::{AddressList, Request};
 use protocol_core::response::{RegisterBlock, Response};
 use protocol_core::views::event_log;
 
 use super::Reports;
-use crate::event_log::{EventTracker, Found};
+use crate::event_log::{sort_by_time, EventTracker, Found};
 use crate::link::{Completion, Failure};
 use crate::report::Report;
+
+/// The BMS event log as far as the bridge knows it: the start-up history (the
+/// confirmed full read of registers 200-297) and every event found since,
+/// oldest first, the newest [`EVENT_SLOTS`](protocol_core::registers::EVENT_SLOTS)
+/// kept (as many as the BMS's log holds). Emptied when a clear of the BMS's log
+/// is ACKed.
+#[derive(Debug, Clone, Default)]
+pub struct KnownEvents {
+    list: Deque<Event, { protocol_core::registers::EVENT_SLOTS }>,
+    total: u32,
+}
+
+impl KnownEvents {
+    /// Events kept, oldest first.
+    pub fn iter(&self) -> impl Iterator<Item = &Event> {
+        self.list.iter()
+    }
+    /// The `i`-th kept event, oldest first.
+    pub fn get(&self, i: usize) -> Option<&Event> {
+        self.list.iter().nth(i)
+    }
+    /// Events kept.
+    pub fn len(&self) -> usize {
+        self.list.len()
+    }
+    /// No event kept.
+    pub fn is_empty(&self) -> bool {
+        self.list.is_empty()
+    }
+    /// Events recorded since start (wrapping): the sequence number the next one
+    /// gets. The kept ones are `total - len .. total`.
+    pub fn total(&self) -> u32 {
+        self.total
+    }
+
+    fn push(&mut self, e: Event) {
+        if self.list.is_full() {
+            let _oldest = self.list.pop_front();
+        }
+        let _fits = self.list.push_back(e);
+        self.total = self.total.wrapping_add(1);
+    }
+
+    /// The BMS's log was cleared.
+    pub(super) fn clear(&mut self) {
+        self.list.clear();
+    }
+}
 
 /// A reply to 0x11 (the newest events). `expected_clock` is the BMS clock now
 /// from the last snapshot, if any (see [`EventTracker::plausible`]).
 pub(super) fn on_newest(
     tracker: &mut EventTracker,
+    known: &mut KnownEvents,
     c: &Completion,
     expected_clock: impl FnOnce() -> Option<u32>,
     out: &mut Reports,
@@ -40,7 +92,7 @@ pub(super) fn on_newest(
                 let _fits = found.push(f);
             });
             for f in found {
-                report(f, out);
+                report(f, known, out);
             }
         } else {
             tracker.reply_may_be_lost();
@@ -51,6 +103,7 @@ pub(super) fn on_newest(
 /// A reply to the 0x09 read of one event slot (two registers).
 pub(super) fn on_slot(
     tracker: &mut EventTracker,
+    known: &mut KnownEvents,
     result: &Result<Response, Failure>,
     out: &mut Reports,
 ) {
@@ -61,14 +114,19 @@ pub(super) fn on_slot(
                 let _fits = found.push(f);
             });
             for f in found {
-                report(f, out);
+                report(f, known, out);
             }
         }
     }
 }
 
 /// The whole event log, read and confirmed as a register block.
-pub(super) fn on_full(tracker: &mut EventTracker, b: &RegisterBlock, out: &mut Reports) {
+pub(super) fn on_full(
+    tracker: &mut EventTracker,
+    known: &mut KnownEvents,
+    b: &RegisterBlock,
+    out: &mut Reports,
+) {
     if let Ok(slots) = event_log(b) {
         let mut events: Vec<(u8, Event), { protocol_core::registers::EVENT_SLOTS }> = Vec::new();
         for s in &slots {
@@ -79,14 +137,26 @@ pub(super) fn on_full(tracker: &mut EventTracker, b: &RegisterBlock, out: &mut R
             let _fits = found.push(f);
         });
         for f in found {
-            report(f, out);
+            if let Found::History { .. } = f {
+                // The whole log is the history: keep it, oldest first.
+                let mut history: Vec<Event, { protocol_core::registers::EVENT_SLOTS }> =
+                    events.iter().map(|(_, e)| *e).collect();
+                sort_by_time(&mut history);
+                for e in history {
+                    known.push(e);
+                }
+            }
+            report(f, known, out);
         }
     }
 }
 
-fn report(f: Found, out: &mut Reports) {
+fn report(f: Found, known: &mut KnownEvents, out: &mut Reports) {
     match f {
-        Found::New(e) => out.push(Report::NewEvent(e)),
+        Found::New(e) => {
+            known.push(e);
+            out.push(Report::NewEvent(e));
+        }
         Found::History { count, newest } => out.push(Report::EventHistory { count, newest }),
     }
 }

@@ -98,6 +98,7 @@ use crate::link::{Completion, Failure, Link, Next, Transmit};
 use crate::report::Report;
 use crate::Instant;
 
+pub use self::events::KnownEvents;
 pub use self::reset::ts_newer;
 pub use self::telemetry::{snapshot_line, snapshot_log_due, LiveMeta, Telemetry};
 
@@ -154,6 +155,7 @@ struct State {
     model: TelemetryModel,
     writes: Writes,
     events: EventTracker,
+    known_events: KnownEvents,
     out: Reports,
 }
 
@@ -191,6 +193,12 @@ impl Bridge {
     /// The current picture of the BMS.
     pub fn telemetry(&self) -> &Telemetry {
         &self.s.model.telemetry
+    }
+
+    /// The BMS event log as far as the bridge knows it (the start-up history and
+    /// every event since, oldest first).
+    pub fn events(&self) -> &KnownEvents {
+        &self.s.known_events
     }
 
     /// The settings the bridge runs with.
@@ -300,6 +308,7 @@ impl State {
             model: TelemetryModel::new(now),
             writes: Writes::new(),
             events: EventTracker::new(),
+            known_events: KnownEvents::default(),
             out: Reports::new(&config, now),
         }
     }
@@ -347,6 +356,7 @@ impl State {
             Effect::Hold(until) => self.schedule.hold_until = until,
             Effect::Resync => self.resync(),
             Effect::RereadSettings => self.sync.settings_stale = true,
+            Effect::EventsCleared => self.known_events.clear(),
         }
     }
 
@@ -441,14 +451,25 @@ impl State {
             Purpose::NewestEvents => {
                 let model = &self.model;
                 let expected = || model.expected_bms_clock(now);
-                events::on_newest(&mut self.events, c, expected, &mut self.out);
+                events::on_newest(
+                    &mut self.events,
+                    &mut self.known_events,
+                    c,
+                    expected,
+                    &mut self.out,
+                );
                 if self.events.needs_full_read() {
                     // Fill the gap now rather than at the next events period.
                     self.schedule.next_events = now;
                 }
             }
             Purpose::EventSlot => {
-                events::on_slot(&mut self.events, &c.result, &mut self.out);
+                events::on_slot(
+                    &mut self.events,
+                    &mut self.known_events,
+                    &c.result,
+                    &mut self.out,
+                );
                 if self.events.needs_full_read() {
                     self.schedule.next_events = now; // go on with the scan / full read
                 }
@@ -485,7 +506,9 @@ impl State {
                     self.model.telemetry.statistics_registers = Some(b);
                 }
             }
-            Aux::Events => events::on_full(&mut self.events, &b, &mut self.out),
+            Aux::Events => {
+                events::on_full(&mut self.events, &mut self.known_events, &b, &mut self.out)
+            }
         }
     }
 }

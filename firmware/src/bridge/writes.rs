@@ -76,6 +76,8 @@ pub(super) enum Effect {
     Resync,
     /// Settings were written: read them again before the next command.
     RereadSettings,
+    /// The BMS's event log was cleared (ACKed).
+    EventsCleared,
 }
 
 /// The running job's next step.
@@ -330,9 +332,10 @@ impl Writes {
             Job::Clear(opt) => {
                 let ok = matches!(c.result, Ok(Response::Ack { .. }));
                 let option = opt.to_u8();
+                let events = *opt == ResetOption::ClearEvents;
                 self.job = None;
                 out.push(Report::Cleared { option, ok });
-                None
+                (ok && events).then_some(Effect::EventsCleared)
             }
             Job::Reset(step) => {
                 let (done, effect) = step.on_reply(now, c, config, out);

@@ -69,8 +69,6 @@ pub const RAW_QUEUE: usize = 8;
 /// UART bytes per `raw` line.
 pub const RAW_CHUNK: usize = 32;
 
-/// BMS events kept for `get events` (the newest).
-pub const EVENTS_KEPT: usize = 32;
 
 /// Settings whose outcome is awaited (2 full groups; a `set` beyond is `busy`).
 pub const PENDING_WRITES: usize = 2 * MAX_SETTINGS_GROUP;
@@ -229,9 +227,6 @@ struct State {
     capture: bool,
     queue: Deque<Out, QUEUE>,
     raw: Deque<(Dir, Vec<u8, RAW_CHUNK>), RAW_QUEUE>,
-    events: Deque<Event, EVENTS_KEPT>,
-    /// Events recorded since start (the sequence number of the next one).
-    events_total: u32,
     writes: Vec<(Option<u32>, Setting), PENDING_WRITES>,
     follow_ups: Vec<(Option<u32>, Setting), PENDING_WRITES>,
     resets: Deque<Option<u32>, PENDING_OTHERS>,
@@ -271,8 +266,6 @@ impl HostLink {
                 capture: false,
                 queue: Deque::new(),
                 raw: Deque::new(),
-                events: Deque::new(),
-                events_total: 0,
                 writes: Vec::new(),
                 follow_ups: Vec::new(),
                 resets: Deque::new(),
@@ -468,14 +461,6 @@ impl State {
         }
     }
 
-    fn record_event(&mut self, e: Event) {
-        if self.events.is_full() {
-            self.events.pop_front();
-        }
-        let _ = self.events.push_back(e);
-        self.events_total = self.events_total.wrapping_add(1);
-    }
-
     fn dispatch(&mut self, now: Instant, line: &[u8], bridge: &mut Bridge) {
         if self.queue.len() >= ANSWERS_MAX {
             // The host sends without reading: its answer could not be queued, so
@@ -556,8 +541,9 @@ impl State {
             What::Version => self.push(Out::Version(req)),
             What::Link => self.push(Out::Link(req)),
             What::Events => {
-                let end = self.events_total;
-                let next = end.wrapping_sub(self.events.len() as u32);
+                let known = bridge.events();
+                let end = known.total();
+                let next = end.wrapping_sub(known.len() as u32);
                 self.push(Out::Events {
                     req,
                     next,
@@ -653,13 +639,7 @@ impl State {
                     follow_up: true,
                 });
             }
-            Report::NewEvent(e) => {
-                self.record_event(*e);
-                self.report(Out::Event(*e));
-            }
-            Report::EventHistory {
-                newest: Some(e), ..
-            } => self.record_event(*e),
+            Report::NewEvent(e) => self.report(Out::Event(*e)),
             Report::ResetDone { confirmed } => {
                 let req = self.resets.pop_front().flatten();
                 self.report(Out::ResetDone(req, *confirmed));
@@ -678,7 +658,8 @@ impl State {
     /// Encodes the front item; pops it unless it is a listing with more to say.
     fn encode_front(&mut self, now: Instant, bridge: &Bridge, out: &mut [u8]) -> Option<usize> {
         let t = bridge.telemetry();
-        let first_seq = self.events_total.wrapping_sub(self.events.len() as u32);
+        let known = bridge.events();
+        let first_seq = known.total().wrapping_sub(known.len() as u32);
         let front = self.queue.front_mut()?;
         let n = match front {
             Out::Settings { req, next } => {
@@ -708,7 +689,7 @@ impl State {
                 }
                 let remaining = end.wrapping_sub(*next);
                 let e = if remaining > 0 && remaining <= u32::MAX / 2 {
-                    self.events
+                    known
                         .get(next.wrapping_sub(first_seq) as usize)
                         .copied()
                 } else {
