@@ -986,5 +986,25 @@ fn get_events_lists_the_whole_log_then_nothing_after_a_clear() {
     );
     let after = listed_events(&mut r, 3);
     let now_in_log = sim_log(&r);
-    assert!(after.len() <= now_in_log.len(), "{after:?} vs {now_in_log:?}");
+    assert!(
+        after.len() <= now_in_log.len(),
+        "{after:?} vs {now_in_log:?}"
+    );
+}
+
+#[test]
+fn link_statistics_are_pushed_while_streaming_only() {
+    let count_links = |stream_ms: u32| {
+        let mut r = Rig::new(config(false, stream_ms));
+        let out = r.run_reading(11 * 60 * SECOND);
+        let links: Vec<Value> = out.into_iter().filter(|l| l["type"] == "link").collect();
+        for l in &links {
+            assert!(l.get("req").is_none(), "{l}");
+            assert!(l["requests"].as_u64().unwrap() > 0, "{l}");
+        }
+        links.len()
+    };
+    // The bridge's link statistics come every 5 minutes.
+    assert!((2..=3).contains(&count_links(1000)));
+    assert_eq!(count_links(0), 0);
 }

@@ -69,7 +69,6 @@ pub const RAW_QUEUE: usize = 8;
 /// UART bytes per `raw` line.
 pub const RAW_CHUNK: usize = 32;
 
-
 /// Settings whose outcome is awaited (2 full groups; a `set` beyond is `busy`).
 pub const PENDING_WRITES: usize = 2 * MAX_SETTINGS_GROUP;
 
@@ -640,6 +639,9 @@ impl State {
                 });
             }
             Report::NewEvent(e) => self.report(Out::Event(*e)),
+            // The bridge's periodic link statistics go to a host that asked for
+            // a stream too.
+            Report::LinkStats(_) if self.stream_period_ms > 0 => self.report(Out::Link(None)),
             Report::ResetDone { confirmed } => {
                 let req = self.resets.pop_front().flatten();
                 self.report(Out::ResetDone(req, *confirmed));
@@ -689,9 +691,7 @@ impl State {
                 }
                 let remaining = end.wrapping_sub(*next);
                 let e = if remaining > 0 && remaining <= u32::MAX / 2 {
-                    known
-                        .get(next.wrapping_sub(first_seq) as usize)
-                        .copied()
+                    known.get(next.wrapping_sub(first_seq) as usize).copied()
                 } else {
                     None
                 };
