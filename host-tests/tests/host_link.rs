@@ -1008,3 +1008,84 @@ fn link_statistics_are_pushed_while_streaming_only() {
     assert!((2..=3).contains(&count_links(1000)));
     assert_eq!(count_links(0), 0);
 }
+
+// ---------------------------------------------------------------- review
+
+/// A physical value exactly on a half step rounds away from zero (PROTOCOL.md),
+/// also where the decimal's f64 lies an ulp below the tie (4.0005 * 1000 is
+/// 4000.4999999999995 in f64).
+#[test]
+fn half_step_physical_values_round_away_from_zero() {
+    use SettingId::*;
+    for (id, v, raw) in [
+        (OverVoltageCutoff, 4.0005, 4001),
+        (UnderVoltageCutoff, 2.0035, 2004),
+        (BatteryCapacity, 1.005, 101),
+        (BatteryCapacity, 0.145, 15),
+        (StateOfHealth, 1.001, 501),
+        (OverVoltageCutoff, 3.6005, 3601),
+        (OverHeatCutoff, -20.5, -21),
+        (OverHeatCutoff, -0.0, 0),
+        // Either side of a tie.
+        (OverVoltageCutoff, 4.00049, 4000),
+        (OverVoltageCutoff, 4.00051, 4001),
+        (BatteryCapacity, 1.00499, 100),
+        (LowTemperatureChargerCutoff, -20.49, -20),
+    ] {
+        assert_eq!(encode::raw_from_physical(id, v), Some(raw), "{id:?} {v}");
+    }
+}
+
+/// `null` where a number belongs is a value of the wrong type (`invalid_value`),
+/// not a number out of range (serde-json-core reads `null` as NaN).
+#[test]
+fn null_setting_value_is_invalid_value() {
+    let mut r = ready();
+    for bad in [
+        r#"{"cmd":"set","values":{"over_voltage_cutoff":null}}"#,
+        r#"{"cmd":"set","raw":{"over_voltage_cutoff":null}}"#,
+        r#"{"cmd":"hello","req":null}"#,
+        r#"{"cmd":"stream","period_ms":null}"#,
+    ] {
+        assert_error(&mut r, bad, "invalid_value");
+    }
+}
+
+/// One setting twice in a `set` (by the same name, or by two of its names) is
+/// refused whole: writing both values in turn would write one the host may not
+/// mean, and which one it means is not clear (JSON leaves duplicate members
+/// undefined; the command object's own are refused too).
+#[test]
+fn set_naming_one_setting_twice_is_refused() {
+    let mut r = ready();
+    for bad in [
+        r#"{"cmd":"set","raw":{"over_voltage_cutoff":3600,"over_voltage_cutoff":3650}}"#,
+        r#"{"cmd":"set","raw":{"over_voltage_cutoff":3600,"315":3650}}"#,
+        r#"{"cmd":"set","values":{"Over-Voltage Cutoff":3.6,"over_voltage_cutoff":3.6}}"#,
+    ] {
+        let e = assert_error(&mut r, bad, "invalid_value");
+        assert!(
+            e["detail"].as_str().unwrap().contains("over_voltage_cutoff")
+                || e["detail"].as_str().unwrap().contains("315"),
+            "{e}"
+        );
+    }
+}
+
+/// The error's detail is the reason, `: ` and the offending name, also with the
+/// longest reason and a long name (up to the 32 characters kept).
+#[test]
+fn error_detail_keeps_the_subject_after_a_long_reason() {
+    let mut r = ready();
+    let name = "a_choice_that_is_32_chars_long__";
+    assert_eq!(name.len(), 32);
+    let e = assert_error(
+        &mut r,
+        &format!(r#"{{"cmd":"get","what":"{name}"}}"#),
+        "invalid_value",
+    );
+    assert!(
+        e["detail"].as_str().unwrap().ends_with(&format!(": {name}")),
+        "{e}"
+    );
+}

@@ -433,6 +433,11 @@ pub fn parse(line: &[u8]) -> Result<Parsed<'_>, CommandError<'_>> {
                     "",
                 ));
             }
+            // serde-json-core reads `null` as NaN: a value of the wrong type.
+            let (SetValues::Physical(v) | SetValues::Raw(v)) = &values;
+            if let Some(&(name, _)) = v.iter().find(|(_, x)| x.is_nan()) {
+                return Err(err(req, ErrorCode::InvalidValue, "not a number", name));
+            }
             HostCommand::Set(values)
         }
         "stream" => {

@@ -212,11 +212,20 @@ pub fn physical(id: SettingId, raw: i32) -> Option<Dec> {
     fixed(i64::from(raw).saturating_mul(step), k)
 }
 
-/// The raw value nearest to a physical value, `None` when there is none in
-/// `i32` (not finite, too large).
+/// Relative nudge away from zero before rounding a physical value to raw: the
+/// host writes a decimal, and one exactly on a half step (`4.0005` V, `1.005`
+/// Ah) becomes an f64 an ulp or so below the tie (`4000.4999999999995`), which
+/// would round towards zero. 1e-12 is far above that error (≈ 1e-16 relative)
+/// and far below any difference a decimal of up to 12 significant digits makes.
+const TIE_NUDGE: f64 = 1e-12;
+
+/// The raw value nearest to a physical value (a decimal exactly on a half step
+/// rounds away from zero), `None` when there is none in `i32` (not finite, too
+/// large).
 pub fn raw_from_physical(id: SettingId, value: f64) -> Option<i32> {
     let (step, k) = id.register().map(scale_parts).unwrap_or((1, 0));
-    let raw = round(value * pow10(k) / step as f64);
+    let x = value * pow10(k) / step as f64;
+    let raw = round(x + x * TIE_NUDGE);
     if raw.is_finite() && raw >= f64::from(i32::MIN) && raw <= f64::from(i32::MAX) {
         Some(raw as i32)
     } else {
@@ -915,7 +924,9 @@ pub fn error(
     detail: &'static str,
     subject: &str,
 ) -> Option<usize> {
-    let mut d: String<{ 2 + 48 + super::SUBJECT_MAX }> = String::new();
+    // The longest reason is 61 bytes (`what: snapshot, ...`); a reason and a
+    // subject that do not fit would lose the subject.
+    let mut d: String<{ 64 + 2 + super::SUBJECT_MAX }> = String::new();
     let _ = d.push_str(detail);
     if !subject.is_empty() {
         let _ = d.push_str(": ");

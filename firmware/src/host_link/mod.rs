@@ -572,6 +572,10 @@ impl State {
             let Some(id) = crate::profile::find_setting(name) else {
                 return self.error(req, ErrorCode::UnknownSetting, "no such setting", name);
             };
+            if items.iter().any(|s| s.id == id) {
+                // Both values in turn would write one the host may not mean.
+                return self.error(req, ErrorCode::InvalidValue, "setting given twice", name);
+            }
             let raw = if physical {
                 encode::raw_from_physical(id, value)
             } else if encode::round(value) == value
