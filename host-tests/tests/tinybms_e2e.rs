@@ -165,6 +165,22 @@ fn usage_errors_exit_2() {
     assert!(o.stdout.contains("record PORT FILE.tbms"), "{o}");
 }
 
+/// `set` naming one setting twice (by any of its names) is refused before
+/// anything is sent: the command object would keep one value, and the tool then
+/// waited for two outcomes and blamed the bridge ("no answer") after a write
+/// that went through.
+#[test]
+fn set_naming_one_setting_twice_is_a_usage_error() {
+    for args in [
+        ["set", "/dev/null", "over_voltage_cutoff=3.6", "over_voltage_cutoff=3.65"],
+        ["set", "/dev/null", "over_voltage_cutoff=3.6", "315=3.65"],
+    ] {
+        let o = tinybms(&args);
+        assert_eq!(o.code, 2, "{o}");
+        assert!(o.stderr.contains("twice"), "{o}");
+    }
+}
+
 #[test]
 fn direct_monitor_json_and_screen() {
     let sim = Sim::start(&["--pty"]);

@@ -330,6 +330,15 @@ fn run(argv: &[String]) -> ToolResult<()> {
                 .map(|s| settings::parse_set_arg(s, a.raw))
                 .collect::<Result<Vec<_>, _>>()
                 .map_err(ToolError::usage)?;
+            // One value per setting: the command object keeps only one, and
+            // which one is meant is not clear.
+            for (i, (name, _)) in items.iter().enumerate() {
+                if items[..i].iter().any(|(n, _)| n == name) {
+                    return Err(ToolError::usage(format!(
+                        "`{name}` is given twice: give each setting once"
+                    )));
+                }
+            }
             let mut c = connect(&a)?;
             c.wait_ready(ready_timeout(&a))?;
             write_settings(&mut c, &items, a.raw)
