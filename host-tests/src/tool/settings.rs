@@ -65,12 +65,15 @@ pub fn render_table(lines: &[Value]) -> String {
             Some(v) => format!("{} {unit}", short(v)),
             None => "-".into(),
         };
-        let raw = l["raw"].as_i64().unwrap_or(0);
-        let value = match find_setting(l["name"].as_str().unwrap_or("")) {
-            Some(id) if id.reads_back_marker() && raw == 0xFFFF => {
+        // Not read (`raw` null): no value, whatever the setting.
+        let raw = l["raw"].as_i64();
+        let value = match (find_setting(l["name"].as_str().unwrap_or("")), raw) {
+            (Some(id), Some(0xFFFF)) if id.reads_back_marker() => {
                 "- (write-only: reads 0xFFFF)".to_string()
             }
-            Some(id) if id.register().is_some_and(|r| !r.options.is_empty()) => physical(id, raw),
+            (Some(id), Some(raw)) if id.register().is_some_and(|r| !r.options.is_empty()) => {
+                physical(id, raw)
+            }
             _ => value,
         };
         rows.push([
@@ -282,6 +285,20 @@ mod tests {
         );
         let table = render_table(&lines);
         assert!(table.contains("3.65 V"), "{table}");
+    }
+
+    /// A setting the bridge could not read (`raw` null) shows no value, also
+    /// when it is an enumeration (it showed option 0's name, as if read).
+    #[test]
+    fn unread_setting_shows_no_value() {
+        for name in ["charger_type", "over_voltage_cutoff", "configuration_flags"] {
+            let lines = vec![json!({"type":"setting","name":name,"raw":null,"value":null,
+                "unit":"","min":0.0,"max":2.0,"bms_min":null,"bms_max":null})];
+            let table = render_table(&lines);
+            let row = table.lines().nth(1).unwrap();
+            let cols: Vec<&str> = row.split("  ").map(str::trim).filter(|c| !c.is_empty()).collect();
+            assert_eq!(cols[..3], [name, "-", "null"], "{table}");
+        }
     }
 
     #[test]
