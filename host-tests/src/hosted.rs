@@ -160,7 +160,18 @@ impl HostSide for PtySide<'_> {
     }
 
     fn write_line(&mut self, line: &[u8]) -> io::Result<()> {
-        self.pty.write(line).map(|_| ())
+        if self.pty.write(line)? < line.len() {
+            // The pty is full (~18 KB; FIONREAD in `can_take` sees only the
+            // line discipline's ≤ 4 KB, so the backlog check does not catch
+            // it): nobody reads. What it holds is stale and the part of this
+            // line in it would reach the next reader cut: discard it all, then
+            // write the line whole (or, should even that not fit, nothing).
+            self.pty.discard_unread();
+            if self.pty.write(line)? < line.len() {
+                self.pty.discard_unread();
+            }
+        }
+        Ok(())
     }
 }
 
@@ -241,4 +252,61 @@ pub fn serve_bridge_pty(
         h.step(&mut side)?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use std::io::Read;
+
+    /// Nobody reads the pty for a while (no client, or one that stopped): the
+    /// lines written meanwhile must never be cut. The pty takes ~18 KB, FIONREAD
+    /// counts only what the line discipline moved to its read buffer (≤ 4 KB),
+    /// so the backlog check alone never fired and the write that met the full
+    /// buffer left half a line in it. A client that then reads gets whole lines.
+    #[test]
+    fn unread_pty_never_gets_cut_lines() {
+        let pty = Pty::open().unwrap();
+        let mut side = PtySide::new(&pty);
+        let mut written = 0usize;
+        for i in 0..1000u32 {
+            if side.can_take() {
+                let line = format!("{{\"n\":{i},\"pad\":\"{}\"}}\n", "x".repeat(90));
+                side.write_line(line.as_bytes()).unwrap();
+                written += line.len();
+            }
+        }
+        assert!(written > 64 * 1024, "{written}");
+        let mut client = std::fs::OpenOptions::new()
+            .read(true)
+            .open(pty.path())
+            .unwrap();
+        let mut got = Vec::new();
+        let mut buf = [0u8; 4096];
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || loop {
+            match client.read(&mut buf) {
+                Ok(n) if n > 0 => {
+                    if tx.send(buf[..n].to_vec()).is_err() {
+                        break;
+                    }
+                }
+                _ => break,
+            }
+        });
+        while let Ok(b) = rx.recv_timeout(Duration::from_millis(500)) {
+            got.extend_from_slice(&b);
+        }
+        let text = String::from_utf8_lossy(&got);
+        let lines: Vec<&str> = text.split_terminator('\n').collect();
+        assert!(!lines.is_empty());
+        for l in &lines {
+            assert!(
+                serde_json::from_str::<serde_json::Value>(l).is_ok(),
+                "a cut line: {l:?}"
+            );
+        }
+        assert!(text.ends_with('\n'), "ends mid-line");
+    }
 }
