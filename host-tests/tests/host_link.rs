@@ -1065,7 +1065,10 @@ fn set_naming_one_setting_twice_is_refused() {
     ] {
         let e = assert_error(&mut r, bad, "invalid_value");
         assert!(
-            e["detail"].as_str().unwrap().contains("over_voltage_cutoff")
+            e["detail"]
+                .as_str()
+                .unwrap()
+                .contains("over_voltage_cutoff")
                 || e["detail"].as_str().unwrap().contains("315"),
             "{e}"
         );
@@ -1085,7 +1088,10 @@ fn error_detail_keeps_the_subject_after_a_long_reason() {
         "invalid_value",
     );
     assert!(
-        e["detail"].as_str().unwrap().ends_with(&format!(": {name}")),
+        e["detail"]
+            .as_str()
+            .unwrap()
+            .ends_with(&format!(": {name}")),
         "{e}"
     );
 }

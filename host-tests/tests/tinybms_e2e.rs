@@ -172,7 +172,12 @@ fn usage_errors_exit_2() {
 #[test]
 fn set_naming_one_setting_twice_is_a_usage_error() {
     for args in [
-        ["set", "/dev/null", "over_voltage_cutoff=3.6", "over_voltage_cutoff=3.65"],
+        [
+            "set",
+            "/dev/null",
+            "over_voltage_cutoff=3.6",
+            "over_voltage_cutoff=3.65",
+        ],
         ["set", "/dev/null", "over_voltage_cutoff=3.6", "315=3.65"],
     ] {
         let o = tinybms(&args);

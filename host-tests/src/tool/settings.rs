@@ -296,7 +296,11 @@ mod tests {
                 "unit":"","min":0.0,"max":2.0,"bms_min":null,"bms_max":null})];
             let table = render_table(&lines);
             let row = table.lines().nth(1).unwrap();
-            let cols: Vec<&str> = row.split("  ").map(str::trim).filter(|c| !c.is_empty()).collect();
+            let cols: Vec<&str> = row
+                .split("  ")
+                .map(str::trim)
+                .filter(|c| !c.is_empty())
+                .collect();
             assert_eq!(cols[..3], [name, "-", "null"], "{table}");
         }
     }
