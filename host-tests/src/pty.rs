@@ -221,6 +221,13 @@ mod tests {
             assert_eq!(pty.read(&mut buf, Duration::from_millis(10)).unwrap(), 0);
         }
         pty.write(b"stale").unwrap();
+        // The line discipline takes written bytes in from a kernel worker: right
+        // after the write FIONREAD may still say 0 (the test failed about one
+        // run in two).
+        let end = std::time::Instant::now() + Duration::from_secs(5);
+        while pty.unread() < 5 && std::time::Instant::now() < end {
+            std::thread::sleep(Duration::from_millis(1));
+        }
         assert_eq!(pty.unread(), 5);
         pty.discard_unread();
         assert_eq!(pty.unread(), 0);
