@@ -302,6 +302,12 @@ fn direct_refused_value_and_physical_set() {
     assert_eq!(o.code, 0, "{o}");
     assert!(o.stdout.contains("3620"), "{o}");
     assert!(o.stdout.contains("verified"), "{o}");
+    // A setting that restarts the BMS asks first; refused, nothing is sent.
+    let o = tinybms_with_input(&["set", &sim.path, "operation_mode=1"], "no\n");
+    assert_eq!(o.code, 1, "{o}");
+    assert!(o.stdout.contains("operation_mode restarts the BMS"), "{o}");
+    assert!(o.stderr.contains("not confirmed: nothing written"), "{o}");
+    assert!(!o.stdout.contains("verified"), "{o}");
 }
 
 #[test]

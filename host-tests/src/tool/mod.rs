@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 use serde_json::{json, Value};
 
 use crate::capture::{parse_hex, CaptureWriter};
-use crate::profile::parse_profile;
+use crate::profile::{find_setting, parse_profile};
 use crate::realtime::parse_duration;
 use client::Client;
 use monitor::{LogFormat, MonitorOptions};
@@ -317,6 +317,7 @@ fn run(argv: &[String]) -> ToolResult<()> {
                 .iter()
                 .map(|ch| (crate::profile::snake_name(ch.id), ch.to as f64))
                 .collect();
+            confirm_restart(&a, &items)?;
             write_settings(&mut c, &items, true)
         }
         "set" => {
@@ -339,6 +340,7 @@ fn run(argv: &[String]) -> ToolResult<()> {
                     )));
                 }
             }
+            confirm_restart(&a, &items)?;
             let mut c = connect(&a)?;
             c.wait_ready(ready_timeout(&a))?;
             write_settings(&mut c, &items, a.raw)
@@ -454,6 +456,29 @@ fn print_fields(v: &Value) {
             };
             println!("{k:<w$}  {text}");
         }
+    }
+}
+
+/// A setting whose write restarts the BMS (340, operation mode) is written only
+/// when confirmed (or `--yes`), like `reset`: the BMS switches its outputs off
+/// while it restarts.
+fn confirm_restart(a: &Args, items: &[(String, f64)]) -> ToolResult<()> {
+    let restarting: Vec<&str> = items
+        .iter()
+        .filter(|(name, _)| find_setting(name).is_some_and(|id| id.restarts_bms()))
+        .map(|(name, _)| name.as_str())
+        .collect();
+    if restarting.is_empty() || a.yes {
+        return Ok(());
+    }
+    let question = format!(
+        "Writing {} restarts the BMS (its outputs switch off while it restarts). Go on",
+        restarting.join(", ")
+    );
+    if confirm(&question)? {
+        Ok(())
+    } else {
+        Err(ToolError::failed("not confirmed: nothing written"))
     }
 }
 
