@@ -250,6 +250,36 @@ fn direct_monitor_logs_csv() {
         rows[0].split(',').count(),
         "{text}"
     );
+    // Appending goes on under the same header; a file with other columns is
+    // refused rather than mixed.
+    let run = |path: &std::path::Path| {
+        tinybms(&[
+            "monitor",
+            &sim.path,
+            "--log",
+            path.to_str().unwrap(),
+            "--every",
+            "200ms",
+            "--count",
+            "1",
+            "--period",
+            "100ms",
+        ])
+    };
+    let o = run(&log);
+    assert_eq!(o.code, 0, "{o}");
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert_eq!(text.lines().count(), 4, "{text}");
+    assert_eq!(text.lines().filter(|l| l.starts_with("time,")).count(), 1);
+    let other = tmp("other.csv");
+    std::fs::write(&other, "time,seq,cell_1_v\n").unwrap();
+    let o = run(&other);
+    assert_eq!(o.code, 1, "{o}");
+    assert!(o.stderr.contains("other columns"), "{o}");
+    assert_eq!(
+        std::fs::read_to_string(&other).unwrap(),
+        "time,seq,cell_1_v\n"
+    );
 }
 
 #[test]

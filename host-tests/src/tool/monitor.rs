@@ -308,6 +308,7 @@ pub fn csv_row(time: &str, t: &Value, cells: usize) -> String {
 }
 
 struct Logger {
+    path: String,
     out: std::io::BufWriter<std::fs::File>,
     format: LogFormat,
     cells: Option<usize>,
@@ -329,9 +330,21 @@ impl Logger {
         match self.format {
             LogFormat::Csv => {
                 let n = t["cell_count"].as_u64().unwrap_or(0) as usize;
+                let first = self.cells.is_none();
                 let cells = *self.cells.get_or_insert(n);
+                let header = csv_header(cells);
                 if self.out.get_ref().metadata().map(|m| m.len()).unwrap_or(0) == 0 {
-                    writeln!(self.out, "{}", csv_header(cells)).map_err(err)?;
+                    writeln!(self.out, "{header}").map_err(err)?;
+                } else if first {
+                    // Appending: only under the same columns.
+                    let text = std::fs::read_to_string(&self.path).map_err(err)?;
+                    if text.lines().next() != Some(header.as_str()) {
+                        return Err(ToolError::failed(format!(
+                            "`{}` holds a log with other columns (another cell count, or not \
+                             a tinybms CSV log): log to a new file",
+                            self.path
+                        )));
+                    }
                 }
                 writeln!(self.out, "{}", csv_row(&time, t, cells)).map_err(err)?;
             }
@@ -359,6 +372,7 @@ pub fn run(client: &mut Client, o: &MonitorOptions) -> ToolResult<()> {
                 .open(path)
                 .map_err(|e| ToolError::failed(format!("cannot open the log `{path}`: {e}")))?;
             Some(Logger {
+                path: path.clone(),
                 out: std::io::BufWriter::new(f),
                 format: *format,
                 cells: None,
