@@ -8,6 +8,10 @@ pub mod harness;
 pub mod host_link;
 pub mod hosted;
 pub mod profile;
+#[cfg(unix)]
+pub mod pty;
+#[cfg(not(unix))]
+#[path = "pty_unsupported.rs"]
 pub mod pty;
 pub mod realtime;
 pub mod replay;

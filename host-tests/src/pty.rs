@@ -1,4 +1,4 @@
-//! Pseudo-terminals (Linux, through `libc::openpty`): the simulated BMS and the
+//! Pseudo-terminals (Linux and macOS, through `libc::openpty`): the simulated BMS and the
 //! simulated bridge are exposed on one so that a client opens a real tty path
 //! (`/dev/pts/N`) with real termios calls, exactly like a USB-UART adapter or the
 //! ESP32's USB port.
@@ -47,8 +47,9 @@ impl Pty {
                 &mut master,
                 &mut slave,
                 std::ptr::null_mut(),
-                std::ptr::null(),
-                std::ptr::null(),
+                // `*const` on Linux, `*mut` on macOS: null either way.
+                std::ptr::null_mut(),
+                std::ptr::null_mut(),
             )
         })?;
         // SAFETY: both descriptors were just opened and are owned by nobody else.

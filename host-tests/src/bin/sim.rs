@@ -46,7 +46,7 @@ const USAGE: &str =
   --quiet            only print the summary
   -h, --help         this text
 
-real time, on a pseudo-terminal (Linux; the first line of stdout is the pty's
+real time, on a pseudo-terminal (Linux, macOS; the first line of stdout is the pty's
 path, e.g. /dev/pts/7; runs until stopped, or for --duration if given):
   --pty              the simulated TinyBMS, 115200 8N1 as over a USB-UART
                      adapter: open the path with `tinybms`, a serial terminal or

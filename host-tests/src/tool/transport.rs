@@ -214,11 +214,7 @@ pub fn open_port(path: &str) -> ToolResult<Box<dyn serialport::SerialPort>> {
                 K::Io(IO::NotFound) | K::InvalidInput if !std::path::Path::new(path).exists() => {
                     format!("there is no serial port `{path}`. {}", ports_hint())
                 }
-                _ if std::fs::metadata(path).is_ok_and(|m| {
-                    use std::os::unix::fs::FileTypeExt;
-                    !m.file_type().is_char_device()
-                }) =>
-                {
+                _ if not_a_tty_device(path) => {
                     format!(
                         "`{path}` is not a serial port (not a tty device). {}",
                         ports_hint()
@@ -311,4 +307,19 @@ pub fn probe(
         }
     }
     Ok((result, split))
+}
+
+/// `path` exists and is not a character device (Unix); never on other systems,
+/// whose port names are not paths.
+fn not_a_tty_device(path: &str) -> bool {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        std::fs::metadata(path).is_ok_and(|m| !m.file_type().is_char_device())
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = path;
+        false
+    }
 }
