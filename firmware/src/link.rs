@@ -99,6 +99,29 @@ pub struct Completion {
     pub sends: u8,
 }
 
+/// A finished transaction where the link keeps it ([`Link::completion`]): the
+/// same fields as [`Completion`], borrowed instead of moved (the request and the
+/// response are hundreds of bytes each).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CompletionRef<'a> {
+    /// What was asked.
+    pub request: &'a Request,
+    /// What came back.
+    pub result: &'a Result<Response, Failure>,
+    /// First send to completion, µs.
+    pub latency_us: Instant,
+    /// How many times the request went out.
+    pub sends: u8,
+}
+
+/// What the link keeps of a finished transaction besides its request.
+#[derive(Debug, Clone, PartialEq)]
+struct Outcome {
+    result: Result<Response, Failure>,
+    latency_us: Instant,
+    sends: u8,
+}
+
 /// Link counters (logged periodically). Every counter wraps modulo 2^32 by
 /// design; the latency sum restarts when the reply counter wraps.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -151,10 +174,10 @@ impl LinkStats {
     }
 }
 
+/// The transaction in progress (its request and bytes are kept apart in the
+/// [`Link`], written once).
 #[derive(Debug, Clone)]
 struct Pending {
-    request: Request,
-    bytes: RequestBytes,
     silence: Silence,
     first_sent: Option<Instant>,
     deadline: Instant,
@@ -206,9 +229,14 @@ pub enum Next {
 pub struct Link {
     config: Config,
     decoder: Decoder,
+    /// The request of the transaction in progress, or of the one finished in
+    /// `done`: stored once, referenced from there on.
+    request: Request,
+    /// Its encoded bytes, while it is in progress.
+    bytes: RequestBytes,
     pending: Option<Pending>,
     to_send: bool,
-    done: Option<Completion>,
+    done: Option<Outcome>,
     stats: LinkStats,
     consecutive_failures: u8,
     online: bool,
@@ -224,6 +252,8 @@ impl Link {
         Self {
             config,
             decoder: Decoder::new(),
+            request: Request::ReadVersion,
+            bytes: RequestBytes::new(),
             pending: None,
             to_send: false,
             done: None,
@@ -280,11 +310,11 @@ impl Link {
         timeout_us: Instant,
     ) {
         self.stats.requests = self.stats.requests.wrapping_add(1);
-        match request.to_bytes() {
-            Ok(bytes) => {
+        self.request = request;
+        self.done = None;
+        match self.request.encode_to(&mut self.bytes) {
+            Ok(()) => {
                 self.pending = Some(Pending {
-                    request,
-                    bytes,
                     silence,
                     first_sent: None,
                     deadline: now,
@@ -301,8 +331,8 @@ impl Link {
                 self.to_send = true;
             }
             Err(e) => {
-                self.done = Some(Completion {
-                    request,
+                self.pending = None;
+                self.done = Some(Outcome {
                     result: Err(Failure::Request(e)),
                     latency_us: 0,
                     sends: 0,
@@ -330,12 +360,17 @@ impl Link {
 
     /// The bytes of the request in progress (to send after [`Next::Send`]).
     pub fn transmit(&self) -> Option<&Transmit> {
-        self.pending.as_ref().map(|p| &p.bytes)
+        self.pending.as_ref().map(|_| &self.bytes)
     }
 
     /// The finished transaction, after [`Next::Done`], where the link keeps it.
-    pub fn completion(&self) -> Option<&Completion> {
-        self.done.as_ref()
+    pub fn completion(&self) -> Option<CompletionRef<'_>> {
+        self.done.as_ref().map(|d| CompletionRef {
+            request: &self.request,
+            result: &d.result,
+            latency_us: d.latency_us,
+            sends: d.sends,
+        })
     }
 
     /// Drops the finished transaction (after [`Link::completion`]).
@@ -346,7 +381,12 @@ impl Link {
     /// The finished transaction, after [`Next::Done`]. Until it is taken,
     /// [`Link::next`] keeps answering [`Next::Done`].
     pub fn take_completion(&mut self) -> Option<Completion> {
-        self.done.take()
+        self.done.take().map(|d| Completion {
+            request: self.request.clone(),
+            result: d.result,
+            latency_us: d.latency_us,
+            sends: d.sends,
+        })
     }
 
     /// As [`Link::step`], leaving the bytes to send and the finished transaction
@@ -368,7 +408,7 @@ impl Link {
                 // meanwhile are counted as unsolicited). A reply to another
                 // command is refused by its command byte, and 0x09 replies and
                 // 0x10 echoes carry their addresses: no wait for those.
-                let command = p.request.command();
+                let command = self.request.command();
                 let self_identifying = matches!(command, 0x09 | 0x10);
                 if p.sends == 0
                     && now < self.quiet_until
@@ -387,9 +427,9 @@ impl Link {
                 p.heard = false;
                 p.last_rx = None;
                 p.deadline = now
-                    .saturating_add(BYTE_TIME_US * p.bytes.len() as Instant)
+                    .saturating_add(BYTE_TIME_US * self.bytes.len() as Instant)
                     .saturating_add(p.timeout_us);
-                self.decoder.expect(&p.request);
+                self.decoder.expect(&self.request);
                 return Next::Send;
             }
             let deadline = match p.last_rx {
@@ -412,8 +452,11 @@ impl Link {
         // still be the answer.
         // Items are handled where the decoder returned them (a frame is 264
         // bytes: not moved again).
-        while let Some(item) = &self.decoder.flush() {
-            self.on_item(now, item);
+        let mut item = None;
+        loop {
+            self.decoder.flush_into(&mut item);
+            let Some(it) = &item else { break };
+            self.on_item(now, it);
             if self.pending.is_none() || self.to_send {
                 break;
             }
@@ -432,7 +475,7 @@ impl Link {
             }
             // A write always follows a read the BMS just answered: it is awake,
             // so silence is not a wake-up case for a write.
-            if !p.wake_used && !p.request.is_write() {
+            if !p.wake_used && !self.request.is_write() {
                 p.wake_used = true;
                 self.stats.wakeup_resends = self.stats.wakeup_resends.wrapping_add(1);
                 self.to_send = true;
@@ -442,7 +485,7 @@ impl Link {
             return;
         }
         let err = p.last_error.unwrap_or(Failure::Timeout);
-        if p.request.is_write() {
+        if self.request.is_write() {
             // Something came back (a corrupt ACK/echo/NACK?): never re-send a write
             // the BMS may have answered. The read-back decides.
             self.finish(now, Err(err));
@@ -469,8 +512,7 @@ impl Link {
         if self.pending.is_none() {
             return;
         }
-        let done = self.done.insert(Completion {
-            request: Request::ReadVersion,
+        let done = self.done.insert(Outcome {
             result: Err(Failure::Silent),
             latency_us: 0,
             sends: 0,
@@ -495,10 +537,10 @@ impl Link {
         self.decoder.clear_expectation();
         if p.sends > 1 {
             // An answer to the last copy may come as late as the full timeout.
-            self.quiet_command = p.request.command();
+            self.quiet_command = self.request.command();
             self.quiet_until = p
                 .last_sent
-                .saturating_add(BYTE_TIME_US * p.bytes.len() as Instant)
+                .saturating_add(BYTE_TIME_US * self.bytes.len() as Instant)
                 .saturating_add(self.config.response_timeout_us.max(p.timeout_us));
         }
         let latency_us = now.saturating_sub(p.first_sent.unwrap_or(now));
@@ -539,7 +581,6 @@ impl Link {
             }
         }
         if let Some(d) = self.done.as_mut() {
-            d.request = p.request;
             d.latency_us = latency_us;
             d.sends = p.sends;
         }
@@ -563,11 +604,16 @@ impl Link {
             }
         }
         let mut input = bytes;
+        // Decoded frames are written here and handled where they are (see
+        // `Decoder::poll_into`).
+        let mut item = None;
         loop {
             let n = self.decoder.push(input);
             input = input.get(n..).unwrap_or(&[]);
-            while let Some(item) = &self.decoder.poll() {
-                self.on_item(now, item);
+            loop {
+                self.decoder.poll_into(&mut item);
+                let Some(it) = &item else { break };
+                self.on_item(now, it);
             }
             if input.is_empty() {
                 break;
@@ -598,14 +644,13 @@ impl Link {
         // Decoded straight into the completion slot (no `Response` moved); the
         // slot is emptied again unless the reply finishes the transaction.
         let decoded = {
-            let done = self.done.insert(Completion {
-                request: Request::ReadVersion,
+            let done = self.done.insert(Outcome {
                 result: Ok(Response::Ack { command: 0 }),
                 latency_us: 0,
                 sends: 0,
             });
             match &mut done.result {
-                Ok(r) => Response::decode_into(&p.request, frame, r),
+                Ok(r) => Response::decode_into(&self.request, frame, r),
                 Err(_) => Ok(()),
             }
         };
@@ -632,7 +677,7 @@ impl Link {
                 }
                 // The BMS got our request corrupted: a read may be re-sent (its
                 // NACK is complete, nothing else is coming). A write never is.
-                if code == NackCode::CrcError && !p.request.is_write() {
+                if code == NackCode::CrcError && !self.request.is_write() {
                     self.retry_or_fail(now, Failure::Nack(code));
                 } else {
                     self.finish(now, Err(Failure::Nack(code)));

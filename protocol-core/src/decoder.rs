@@ -249,6 +249,20 @@ impl Decoder {
         self.step(false)
     }
 
+    /// As [`Decoder::poll`], with the answer written into `out` instead of
+    /// returned: a frame is 264 bytes, and a returned one is copied on its way
+    /// out. Decoding a stream this way, the frame is built once, where the caller
+    /// reads it.
+    pub fn poll_into(&mut self, out: &mut Option<Result<Frame, DecodeError>>) {
+        self.step_into(false, out);
+    }
+
+    /// As [`Decoder::flush`], with the answer written into `out` (see
+    /// [`Decoder::poll_into`]).
+    pub fn flush_into(&mut self, out: &mut Option<Result<Frame, DecodeError>>) {
+        self.step_into(true, out);
+    }
+
     /// Like [`Decoder::poll`], but treats the input as ended: an incomplete candidate
     /// is reported as [`DecodeError::Truncated`] (and rescanned from its second
     /// byte), an unfinished reassembly as [`DecodeError::IncompletePackets`]. Call it
@@ -291,8 +305,17 @@ impl Decoder {
     }
 
     fn step(&mut self, ending: bool) -> Option<Result<Frame, DecodeError>> {
+        let mut out = None;
+        self.step_into(ending, &mut out);
+        out
+    }
+
+    /// Writes the decoder's next answer into `out` (`None` when more bytes are
+    /// needed).
+    fn step_into(&mut self, ending: bool, out: &mut Option<Result<Frame, DecodeError>>) {
+        *out = None;
         if !ending && self.len < self.need {
-            return None; // the candidate at the front is still short
+            return; // the candidate at the front is still short
         }
         loop {
             // Drop everything before the next preamble.
@@ -308,13 +331,13 @@ impl Decoder {
                 if ending {
                     if let Some(asm) = self.asm.take() {
                         self.stats.packet_errors = self.stats.packet_errors.wrapping_add(1);
-                        return Some(Err(DecodeError::IncompletePackets {
+                        *out = Some(Err(DecodeError::IncompletePackets {
                             command: asm.command,
                             packets: asm.packets,
                         }));
                     }
                 }
-                return None;
+                return;
             }
             let data = self.buf.get(..self.len).unwrap_or(&[]);
             match framing(data) {
@@ -323,25 +346,27 @@ impl Decoder {
                         if let Framing::Short(n) = f {
                             self.need = n;
                         }
-                        return None;
+                        return;
                     }
                     let command = data.get(1).copied();
                     let have = self.len;
                     self.skip(1);
                     self.stats.truncated = self.stats.truncated.wrapping_add(1);
-                    return Some(Err(DecodeError::Truncated { command, have }));
+                    *out = Some(Err(DecodeError::Truncated { command, have }));
+                    return;
                 }
                 Framing::NotAFrame => self.skip(1),
                 Framing::BadLength { command, pl } => {
                     self.skip(1);
                     self.stats.length_errors = self.stats.length_errors.wrapping_add(1);
-                    return Some(Err(DecodeError::Length { command, pl }));
+                    *out = Some(Err(DecodeError::Length { command, pl }));
+                    return;
                 }
                 Framing::Complete(n) => {
                     let Some((body, crc_bytes)) =
                         data.get(..n).and_then(|f| f.split_last_chunk::<2>())
                     else {
-                        return None; // unreachable: framing() checked the length
+                        return; // unreachable: framing() checked the length
                     };
                     let computed = crc16(body);
                     let received = u16::from_le_bytes(*crc_bytes);
@@ -349,16 +374,17 @@ impl Decoder {
                     if computed != received {
                         self.skip(1);
                         self.stats.crc_errors = self.stats.crc_errors.wrapping_add(1);
-                        return Some(Err(DecodeError::Crc {
+                        *out = Some(Err(DecodeError::Crc {
                             command,
                             computed,
                             received,
                         }));
+                        return;
                     }
-                    // Passed through as is: re-wrapping would move the frame.
-                    let result = self.accept(n);
-                    if result.is_some() {
-                        return result;
+                    // Written into `out` where it is built: not moved.
+                    self.accept(n, out);
+                    if out.is_some() {
+                        return;
                     }
                 }
             }
@@ -366,7 +392,9 @@ impl Decoder {
     }
 
     /// A CRC-valid candidate of length `n` sits at the front of the buffer.
-    fn accept(&mut self, n: usize) -> Option<Result<Frame, DecodeError>> {
+    /// Its answer goes into `out` (left `None` for a packet of a reply still
+    /// being reassembled).
+    fn accept(&mut self, n: usize, out: &mut Option<Result<Frame, DecodeError>>) {
         let frame = self.buf.get(..n).unwrap_or(&[]);
         let command = frame.get(1).copied().unwrap_or(0);
         let body = frame.get(..n.saturating_sub(2)).unwrap_or(&[]);
@@ -381,18 +409,23 @@ impl Decoder {
                 self.asm = None;
                 self.stats.packet_errors = self.stats.packet_errors.wrapping_add(1);
                 // The frame stays in the buffer and is decoded on the next poll.
-                return Some(Err(err));
+                *out = Some(Err(err));
+                return;
             }
         }
 
-        let result = match command {
-            cmd::ACK => Some(Ok(Frame::Ack {
-                command: body.get(2).copied().unwrap_or(0),
-            })),
-            cmd::NACK => Some(Ok(Frame::Nack {
-                command: body.get(2).copied().unwrap_or(0),
-                code: NackCode::from_u8(body.get(3).copied().unwrap_or(0)),
-            })),
+        match command {
+            cmd::ACK => {
+                *out = Some(Ok(Frame::Ack {
+                    command: body.get(2).copied().unwrap_or(0),
+                }))
+            }
+            cmd::NACK => {
+                *out = Some(Ok(Frame::Nack {
+                    command: body.get(2).copied().unwrap_or(0),
+                    code: NackCode::from_u8(body.get(3).copied().unwrap_or(0)),
+                }))
+            }
             c if cmd::is_packetized(c) => {
                 let pl = body.get(2).copied().unwrap_or(0);
                 // Copy the packet out of the scan buffer (at most 63 bytes).
@@ -401,33 +434,32 @@ impl Decoder {
                     .extend_from_slice(body.get(3..).unwrap_or(&[]))
                     .is_err()
                 {
-                    Some(Err(DecodeError::PayloadOverflow { command: c }))
+                    *out = Some(Err(DecodeError::PayloadOverflow { command: c }));
                 } else {
-                    self.packet(c, pl, &chunk)
+                    *out = self.packet(c, pl, &chunk);
                 }
             }
             c => {
                 let skip_pl = matches!(crate::frame::layout(c), crate::frame::Layout::Counted(_));
                 let bytes = body.get(if skip_pl { 3 } else { 2 }..).unwrap_or(&[]);
-                // Filled in place in the value returned (a frame is 264 bytes).
-                let mut out = Some(Ok(Frame::Data {
+                // Filled in place where the caller receives it (a frame is 264
+                // bytes).
+                *out = Some(Ok(Frame::Data {
                     command: c,
                     payload: Payload::new(),
                     packets: 1,
                 }));
-                if let Some(Ok(Frame::Data { payload, .. })) = &mut out {
+                if let Some(Ok(Frame::Data { payload, .. })) = out {
                     if payload.extend_from_slice(bytes).is_err() {
-                        out = Some(Err(DecodeError::PayloadOverflow { command: c }));
+                        *out = Some(Err(DecodeError::PayloadOverflow { command: c }));
                     }
                 }
-                out
             }
-        };
+        }
         self.drop_front(n);
-        if let Some(Ok(_)) = result {
+        if let Some(Ok(_)) = out {
             self.stats.frames = self.stats.frames.wrapping_add(1);
         }
-        result
     }
 
     /// Length checks of a complete packetized reply (reassembled or single): the

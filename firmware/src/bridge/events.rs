@@ -14,14 +14,14 @@ use protocol_core::views::event_log;
 
 use super::Reports;
 use crate::event_log::{EventTracker, Found};
-use crate::link::{Completion, Failure};
+use crate::link::{CompletionRef, Failure};
 use crate::report::Report;
 
 /// A reply to 0x11 (the newest events). `expected_clock` is the BMS clock now
 /// from the last snapshot, if any (see [`EventTracker::plausible`]).
 pub(super) fn on_newest(
     tracker: &mut EventTracker,
-    c: &Completion,
+    c: &CompletionRef<'_>,
     expected_clock: impl FnOnce() -> Option<u32>,
     out: &mut Reports,
 ) {

@@ -94,7 +94,7 @@ use self::telemetry::TelemetryModel;
 use self::writes::{Effect, Writes};
 use crate::config::{self, Config};
 use crate::event_log::EventTracker;
-use crate::link::{Completion, Failure, Link, Next, Transmit};
+use crate::link::{CompletionRef, Failure, Link, Next, Transmit};
 use crate::report::Report;
 use crate::Instant;
 
@@ -258,7 +258,7 @@ impl Bridge {
                 Next::Done => {
                     // Handled where the link keeps it, then dropped.
                     if let Some(c) = self.link.completion() {
-                        self.s.on_completion(now, c);
+                        self.s.on_completion(now, &c);
                     }
                     self.link.clear_completion();
                 }
@@ -352,7 +352,7 @@ impl State {
 
     /// A transaction finished: the link's state first, then the answer goes to
     /// the part its request was for.
-    fn on_completion(&mut self, now: Instant, c: &Completion) {
+    fn on_completion(&mut self, now: Instant, c: &CompletionRef<'_>) {
         let online = self.link_online;
         if self.was_online && !online {
             self.out.push(Report::Offline {

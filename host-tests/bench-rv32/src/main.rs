@@ -123,8 +123,11 @@ fn decode_frame(decoder: &mut Decoder, reply: &[u8]) -> bool {
     loop {
         let n = decoder.push(input);
         input = input.get(n..).unwrap_or(&[]);
-        while let Some(item) = &decoder.poll() {
-            ok |= black_box(item).is_ok();
+        let mut item = None;
+        loop {
+            decoder.poll_into(&mut item);
+            let Some(it) = &item else { break };
+            ok |= black_box(it).is_ok();
         }
         if input.is_empty() {
             break;
@@ -141,8 +144,11 @@ fn decode_typed(decoder: &mut Decoder, request: &Request, reply: &[u8]) -> Optio
     loop {
         let n = decoder.push(input);
         input = input.get(n..).unwrap_or(&[]);
-        while let Some(item) = &decoder.poll() {
-            if let Ok(frame) = item {
+        let mut item = None;
+        loop {
+            decoder.poll_into(&mut item);
+            let Some(it) = &item else { break };
+            if let Ok(frame) = it {
                 if let Ok(Response::Registers(block)) = &Response::decode(request, frame) {
                     out = LiveSnapshot::from_registers(block).ok();
                 }
