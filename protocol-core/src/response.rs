@@ -284,6 +284,27 @@ fn fill_words(
     big: bool,
     command: u8,
 ) -> Result<(), ResponseError> {
+    // The usual case in one pass over whole words: every word in the payload
+    // and room for all of them (what the loop below does, without a bounds
+    // check per byte and a capacity check per word).
+    let old = values.len();
+    let (words, _) = payload.as_chunks::<2>();
+    if let Some(words) = words.get(..count) {
+        if values.resize(old + count, 0).is_ok() {
+            if let Some(dst) = values.get_mut(old..) {
+                if big {
+                    for (d, w) in dst.iter_mut().zip(words) {
+                        *d = u16::from_be_bytes(*w);
+                    }
+                } else {
+                    for (d, w) in dst.iter_mut().zip(words) {
+                        *d = u16::from_le_bytes(*w);
+                    }
+                }
+            }
+            return Ok(());
+        }
+    }
     for i in 0..count {
         let w = if big {
             be16(payload, 2 * i)
@@ -676,6 +697,37 @@ mod tests {
         let mut out = Vec::new();
         decode_all(bytes, |f| out.push(Response::decode(req, &f.unwrap())));
         out
+    }
+
+    /// The one-pass path of `fill_words` gives what the word-by-word loop gives
+    /// (short payloads, odd lengths, a full vector, both byte orders).
+    #[test]
+    fn fill_words_matches_word_by_word() {
+        fn reference(values: &mut Words, p: &[u8], count: usize, big: bool) -> bool {
+            for i in 0..count {
+                let w = if big { be16(p, 2 * i) } else { le16(p, 2 * i) };
+                if values.push(w).is_err() {
+                    return false;
+                }
+            }
+            true
+        }
+        let payload: std::vec::Vec<u8> = (0..=255u8).collect();
+        for big in [false, true] {
+            for pre in [0usize, 1, 100, 127] {
+                for len in [0usize, 1, 2, 3, 10, 11, 112, 254, 256] {
+                    for count in [0usize, 1, 5, 56, 127, 128] {
+                        let p = &payload[..len];
+                        let mut a = Words::new();
+                        a.resize(pre, 7).unwrap();
+                        let mut b = a.clone();
+                        let ok = fill_words(&mut a, p, count, big, 3).is_ok();
+                        assert_eq!(ok, reference(&mut b, p, count, big));
+                        assert_eq!(a, b, "big {big} pre {pre} len {len} count {count}");
+                    }
+                }
+            }
+        }
     }
 
     #[test]

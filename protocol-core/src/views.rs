@@ -64,12 +64,28 @@ impl Cells {
         self.raw.get(i).map(|&v| f32::from(v) * 0.0001)
     }
     /// (index, raw) of the lowest cell.
+    /// The first of equal lowest cells, as `min_by_key`.
     pub fn min(&self) -> Option<(usize, u16)> {
-        self.raw.iter().copied().enumerate().min_by_key(|&(_, v)| v)
+        let (&first, rest) = self.raw.split_first()?;
+        let mut best = (0, first);
+        for (i, &v) in rest.iter().enumerate() {
+            if v < best.1 {
+                best = (i + 1, v);
+            }
+        }
+        Some(best)
     }
-    /// (index, raw) of the highest cell.
+    /// (index, raw) of the highest cell. The last of equal highest cells, as
+    /// `max_by_key`.
     pub fn max(&self) -> Option<(usize, u16)> {
-        self.raw.iter().copied().enumerate().max_by_key(|&(_, v)| v)
+        let (&first, rest) = self.raw.split_first()?;
+        let mut best = (0, first);
+        for (i, &v) in rest.iter().enumerate() {
+            if v >= best.1 {
+                best = (i + 1, v);
+            }
+        }
+        Some(best)
     }
 }
 
@@ -346,6 +362,26 @@ mod tests {
         RegisterBlock {
             start,
             values: heapless::Vec::from_slice(values).unwrap(),
+        }
+    }
+
+    #[test]
+    fn cell_min_and_max_pick_as_min_by_key_and_max_by_key() {
+        for raw in [
+            &[][..],
+            &[7],
+            &[3, 1, 4, 1, 5, 9, 2, 6, 5, 3, 5, 9],
+            &[5, 5, 5],
+            &[9, 1, 9, 1],
+            &[0, 65535, 0, 65535],
+        ] {
+            let c = Cells {
+                first_register: 0,
+                raw: heapless::Vec::from_slice(raw).unwrap(),
+            };
+            let e = || raw.iter().copied().enumerate();
+            assert_eq!(c.min(), e().min_by_key(|&(_, v)| v), "{raw:?}");
+            assert_eq!(c.max(), e().max_by_key(|&(_, v)| v), "{raw:?}");
         }
     }
 

@@ -111,6 +111,19 @@ pub enum Action {
     WaitUntil(Instant),
 }
 
+/// What the caller must do next, as [`Action`] without the bytes: they stay in
+/// the bridge ([`Bridge::transmit_bytes`]) instead of being copied out (an
+/// `Action` is 224 bytes, a `Step` 16).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Step {
+    /// Write [`Bridge::transmit_bytes`] to the UART now, then call
+    /// [`Bridge::step`] again.
+    Transmit,
+    /// Wait for received bytes ([`Bridge::handle_rx`]) or until this time, then
+    /// call [`Bridge::step`] again.
+    WaitUntil(Instant),
+}
+
 /// A request from the rest of the firmware.
 #[derive(Debug, Clone, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -234,8 +247,28 @@ impl Bridge {
         self.s.link_failures = self.link.consecutive_failures();
     }
 
-    /// What to do next at `now`.
+    /// What to do next at `now`, with the bytes to send copied out: as
+    /// [`Bridge::step`] and [`Bridge::transmit_bytes`].
     pub fn poll(&mut self, now: Instant) -> Action {
+        match self.step(now) {
+            Step::Transmit => {
+                let mut bytes = Transmit::new();
+                let _fits = bytes.extend_from_slice(self.transmit_bytes()); // same capacity
+                Action::Transmit(bytes)
+            }
+            Step::WaitUntil(t) => Action::WaitUntil(t),
+        }
+    }
+
+    /// The bytes to write after [`Step::Transmit`] (empty when there is nothing
+    /// to send).
+    pub fn transmit_bytes(&self) -> &[u8] {
+        self.link.transmit().map(|b| b.as_slice()).unwrap_or(&[])
+    }
+
+    /// What to do next at `now`. After [`Step::Transmit`], write
+    /// [`Bridge::transmit_bytes`].
+    pub fn step(&mut self, now: Instant) -> Step {
         self.refresh_link();
         let s = &mut self.s;
         if s.out.link_stats_due(now, &s.config) {
@@ -251,8 +284,8 @@ impl Bridge {
             self.refresh_link();
             match next {
                 Next::Send => {
-                    if let Some(b) = self.link.transmit() {
-                        return Action::Transmit(b.clone());
+                    if self.link.transmit().is_some() {
+                        return Step::Transmit;
                     }
                 }
                 Next::Done => {
@@ -262,7 +295,7 @@ impl Bridge {
                     }
                     self.link.clear_completion();
                 }
-                Next::WaitUntil(t) => return Action::WaitUntil(t.min(next_log)),
+                Next::WaitUntil(t) => return Step::WaitUntil(t.min(next_log)),
                 Next::Idle => match self.s.next_request(now) {
                     Some((req, silence, purpose)) => {
                         self.s.purpose = purpose;
@@ -279,11 +312,11 @@ impl Bridge {
                         };
                         self.link.start_with_timeout(now, req, silence, timeout);
                     }
-                    None => return Action::WaitUntil(self.s.next_wake(now).min(next_log)),
+                    None => return Step::WaitUntil(self.s.next_wake(now).min(next_log)),
                 },
             }
         }
-        Action::WaitUntil(now)
+        Step::WaitUntil(now)
     }
 }
 
@@ -398,12 +431,15 @@ impl State {
                     let Some(read) = self.schedule.live_read() else {
                         return; // not a live read in progress (any more)
                     };
+                    let published = self.model.telemetry.live_registers.as_ref();
                     // Borrowed where it was assembled: the block is not moved.
-                    if let Some(a) = &on_piece(read, now, &c.result) {
-                        self.schedule.live_done();
-                        if self.model.on_live(now, a, &self.config, &mut self.out) {
-                            self.schedule.next_live = now; // read again at once
-                        }
+                    let again = match &on_piece(read, now, c.result, published) {
+                        Some(a) => self.model.on_live(now, a, &self.config, &mut self.out),
+                        None => return,
+                    };
+                    self.schedule.live_done();
+                    if again {
+                        self.schedule.next_live = now; // read again at once
                     }
                 }
                 _ => {
@@ -413,9 +449,10 @@ impl State {
                 }
             },
             Purpose::Aux(aux) => {
-                let done = match (&c.result, self.schedule.aux_read(aux)) {
+                let done = match (c.result, self.schedule.aux_read(aux)) {
                     (Ok(Response::Registers(_) | Response::Individual(_)), Some(read)) => {
-                        on_piece(read, now, &c.result)
+                        // Kept: the next step replaces the read.
+                        on_piece(read, now, c.result, None).map(|a| a.block.clone())
                     }
                     (_, Some(read)) => {
                         read.on_failure();
@@ -424,9 +461,9 @@ impl State {
                     }
                     (_, None) => None,
                 };
-                if let Some(a) = done {
+                if let Some(block) = done {
                     self.schedule.aux_done();
-                    self.on_aux(now, aux, a.block);
+                    self.on_aux(now, aux, block);
                 }
             }
             Purpose::Limits(option) => {

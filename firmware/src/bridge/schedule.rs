@@ -112,19 +112,14 @@ impl Schedule {
         self.live_active = false;
     }
 
-    /// Starts a live read; `published` are the registers of the published
-    /// snapshot (see [`BlockRead::guard`]).
-    fn start_live(
-        &mut self,
-        now: Instant,
-        config: &Config,
-        published: Option<&RegisterBlock>,
-    ) -> Ask {
+    /// Starts a live read (its guarded pieces are checked against the
+    /// published registers, see [`BlockRead::guard`] and [`on_piece`]).
+    fn start_live(&mut self, now: Instant, config: &Config) -> Ask {
         self.next_live = now.saturating_add(config.live_period_us);
         let window = config.live_assembly_window_us.max(config.live_period_us);
         self.live_read
             .reset(reader::LIVE_SEGMENTS, Mode::Window(window), now);
-        self.live_read.guard(reader::LIVE_GUARDED, published);
+        self.live_read.guard(reader::LIVE_GUARDED);
         self.live_active = true;
         // A new read uses up a turn, it does not start a fresh share: at a live
         // period shorter than a read, live reads follow each other back to back,
@@ -192,15 +187,18 @@ impl Schedule {
     }
 }
 
-/// Hands a piece's reply to its block read.
-pub(super) fn on_piece(
-    read: &mut BlockRead,
+/// Hands a piece's reply to its block read; `published` are the registers of
+/// the published snapshot, what guarded pieces of the live read are believed
+/// against (see [`BlockRead::guard`]).
+pub(super) fn on_piece<'r>(
+    read: &'r mut BlockRead,
     now: Instant,
     result: &Result<Response, Failure>,
-) -> Option<Assembled> {
+    published: Option<&RegisterBlock>,
+) -> Option<Assembled<'r>> {
     match result {
         Ok(Response::Registers(b)) => read.on_block(now, b),
-        Ok(Response::Individual(pairs)) => read.on_pairs(now, pairs),
+        Ok(Response::Individual(pairs)) => read.on_pairs(now, pairs, published),
         _ => None,
     }
 }
@@ -359,7 +357,6 @@ impl State {
     }
 
     fn start_live(&mut self, now: Instant) -> Ask {
-        let published = self.model.telemetry.live_registers.as_ref();
-        self.schedule.start_live(now, &self.config, published)
+        self.schedule.start_live(now, &self.config)
     }
 }
