@@ -309,8 +309,27 @@ impl Link {
         silence: Silence,
         timeout_us: Instant,
     ) {
-        self.stats.requests = self.stats.requests.wrapping_add(1);
         self.request = request;
+        self.start_written(now, silence, timeout_us);
+    }
+
+    /// The slot of the next transaction's request, to write it in place (a
+    /// request is hundreds of bytes) and start it with [`Link::start_written`].
+    /// `None` while a transaction is in progress or finished and not cleared.
+    pub fn request_slot(&mut self) -> Option<&mut Request> {
+        self.is_idle().then_some(&mut self.request)
+    }
+
+    /// The request of the transaction in progress or just finished (the last
+    /// one written into [`Link::request_slot`] otherwise).
+    pub fn request(&self) -> &Request {
+        &self.request
+    }
+
+    /// As [`Link::start_with_timeout`], with the request written into
+    /// [`Link::request_slot`] before.
+    pub fn start_written(&mut self, now: Instant, silence: Silence, timeout_us: Instant) {
+        self.stats.requests = self.stats.requests.wrapping_add(1);
         self.done = None;
         match self.request.encode_to(&mut self.bytes) {
             Ok(()) => {

@@ -255,21 +255,31 @@ impl BlockRead {
     /// The request for the next piece, at the given piece size. The same piece is
     /// asked again until [`BlockRead::on_reply`] accepts it.
     pub fn next_request(&mut self, now: Instant, piece: u16) -> Request {
+        let mut request = Request::ReadVersion;
+        self.request_into(now, piece, &mut request);
+        request
+    }
+
+    /// As [`BlockRead::next_request`], written into `out` (where the link
+    /// keeps it) instead of returned.
+    pub fn request_into(&mut self, now: Instant, piece: u16, out: &mut Request) {
         let (start, count) = self.next_piece(now, piece);
         if usize::from(count) == usize::from(self.last() - self.first()) + 1
             && start == self.first()
             || count > 15
         {
-            return Request::ReadRegisters {
+            *out = Request::ReadRegisters {
                 start,
                 count: count as u8,
             };
+            return;
         }
-        let mut addresses = protocol_core::request::AddressList::new();
-        for a in start..start + count {
-            let _fits = addresses.push(a); // count <= 15 < 31
+        *out = Request::ReadIndividual(protocol_core::request::AddressList::new());
+        if let Request::ReadIndividual(addresses) = out {
+            for a in start..start + count {
+                let _fits = addresses.push(a); // count <= 15 < 31
+            }
         }
-        Request::ReadIndividual(addresses)
     }
 
     fn next_piece(&mut self, now: Instant, piece: u16) -> (u16, u16) {

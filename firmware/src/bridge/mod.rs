@@ -296,21 +296,26 @@ impl Bridge {
                     self.link.clear_completion();
                 }
                 Next::WaitUntil(t) => return Step::WaitUntil(t.min(next_log)),
-                Next::Idle => match self.s.next_request(now) {
-                    Some((req, silence, purpose)) => {
+                // The request is written where the link keeps it.
+                Next::Idle => match self
+                    .link
+                    .request_slot()
+                    .and_then(|slot| self.s.next_request(now, slot))
+                {
+                    Some((silence, purpose)) => {
                         self.s.purpose = purpose;
                         // Pieces (0x09 block reads on a bad line, event slots)
                         // are small: a lost answer is not waited for as long.
                         let piece = matches!(
                             purpose,
                             Purpose::Live | Purpose::Aux(_) | Purpose::EventSlot
-                        ) && matches!(req, Request::ReadIndividual(_));
+                        ) && matches!(self.link.request(), Request::ReadIndividual(_));
                         let timeout = if piece {
                             self.s.config.piece_response_timeout_us
                         } else {
                             self.s.config.response_timeout_us
                         };
-                        self.link.start_with_timeout(now, req, silence, timeout);
+                        self.link.start_written(now, silence, timeout);
                     }
                     None => return Step::WaitUntil(self.s.next_wake(now).min(next_log)),
                 },
