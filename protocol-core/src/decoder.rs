@@ -273,11 +273,18 @@ impl Decoder {
 
     /// Convenience: push all of `input`, calling `sink` with every result in order.
     pub fn feed(&mut self, mut input: &[u8], mut sink: impl FnMut(Result<Frame, DecodeError>)) {
+        // Polled into one place (see `poll_into`): a frame is moved once, to
+        // `sink`, and a poll that finds nothing moves nothing.
+        let mut item = None;
         loop {
             let n = self.push(input);
             input = input.get(n..).unwrap_or(&[]);
-            while let Some(item) = self.poll() {
-                sink(item);
+            loop {
+                self.poll_into(&mut item);
+                match item.take() {
+                    Some(r) => sink(r),
+                    None => break,
+                }
             }
             if input.is_empty() {
                 break;
@@ -287,8 +294,13 @@ impl Decoder {
 
     /// Convenience: [`Decoder::flush`] until empty, calling `sink` with each result.
     pub fn finish(&mut self, mut sink: impl FnMut(Result<Frame, DecodeError>)) {
-        while let Some(item) = self.flush() {
-            sink(item);
+        let mut item = None;
+        loop {
+            self.flush_into(&mut item);
+            match item.take() {
+                Some(r) => sink(r),
+                None => break,
+            }
         }
     }
 
@@ -305,6 +317,9 @@ impl Decoder {
     }
 
     fn step(&mut self, ending: bool) -> Option<Result<Frame, DecodeError>> {
+        if !ending && self.len < self.need {
+            return None; // the candidate at the front is still short
+        }
         let mut out = None;
         self.step_into(ending, &mut out);
         out
