@@ -28,7 +28,7 @@
 //!   unsolicited and ignored.
 
 use protocol_core::decoder::{DecodeError, Decoder};
-use protocol_core::frame::NackCode;
+use protocol_core::frame::{FrameRef, NackCode};
 use protocol_core::request::{Request, RequestBytes, RequestError};
 use protocol_core::response::{Response, ResponseError};
 
@@ -469,13 +469,20 @@ impl Link {
     fn on_deadline(&mut self, now: Instant) {
         // Whatever is half-received is cut off; a complete frame it reveals may
         // still be the answer.
-        // Items are handled where the decoder returned them (a frame is 264
-        // bytes: not moved again).
-        let mut item = None;
+        // Frames are handled where the decoder keeps them (see `see`).
+        let mut spill = None;
         loop {
-            self.decoder.flush_into(&mut item);
-            let Some(it) = &item else { break };
-            self.on_item(now, it);
+            let Some(item) = self.decoder.flush_ref(&mut spill) else {
+                break;
+            };
+            let seen = see(
+                self.pending.is_some(),
+                self.to_send,
+                &mut self.done,
+                &self.request,
+                item,
+            );
+            self.on_seen(now, seen);
             if self.pending.is_none() || self.to_send {
                 break;
             }
@@ -541,7 +548,7 @@ impl Link {
     }
 
     /// Finishes the transaction whose result is already in `self.done` (see
-    /// [`Link::on_item`]: a decoded response is written there in place).
+    /// [`see`]: a decoded response is written there in place).
     fn finish_in_place(&mut self, now: Instant) {
         let Some(p) = self.pending.take() else {
             self.done = None;
@@ -623,16 +630,23 @@ impl Link {
             }
         }
         let mut input = bytes;
-        // Decoded frames are written here and handled where they are (see
-        // `Decoder::poll_into`).
-        let mut item = None;
+        // Frames are handled where the decoder keeps them (see `see`).
+        let mut spill = None;
         loop {
             let n = self.decoder.push(input);
             input = input.get(n..).unwrap_or(&[]);
             loop {
-                self.decoder.poll_into(&mut item);
-                let Some(it) = &item else { break };
-                self.on_item(now, it);
+                let Some(item) = self.decoder.poll_ref(&mut spill) else {
+                    break;
+                };
+                let seen = see(
+                    self.pending.is_some(),
+                    self.to_send,
+                    &mut self.done,
+                    &self.request,
+                    item,
+                );
+                self.on_seen(now, seen);
             }
             if input.is_empty() {
                 break;
@@ -640,47 +654,32 @@ impl Link {
         }
     }
 
-    fn on_item(&mut self, now: Instant, item: &Result<protocol_core::Frame, DecodeError>) {
-        let Some(p) = self.pending.as_mut() else {
-            count_unsolicited(&mut self.stats, item);
-            return;
-        };
-        if self.to_send || self.done.is_some() {
-            // A (re-)send is queued: anything arriving now answers an old attempt.
-            count_unsolicited(&mut self.stats, item);
-            return;
-        }
-        let frame = match item {
-            Ok(f) => f,
-            Err(e) => {
+    /// The rest of a decoded item, after [`see`].
+    fn on_seen(&mut self, now: Instant, seen: Seen) {
+        let decoded = match seen {
+            Seen::Unsolicited(None) => {
+                self.stats.unsolicited = self.stats.unsolicited.wrapping_add(1);
+                return;
+            }
+            Seen::Unsolicited(Some(e)) => {
+                count_decode_error(&mut self.stats, &e);
+                return;
+            }
+            Seen::Corrupt(e) => {
                 // Probably our answer, damaged: the BMS is talking.
-                p.heard = true;
-                count_decode_error(&mut self.stats, e);
-                p.last_error = Some(Failure::Corrupt(*e));
+                if let Some(p) = self.pending.as_mut() {
+                    p.heard = true;
+                    p.last_error = Some(Failure::Corrupt(e));
+                }
+                count_decode_error(&mut self.stats, &e);
                 return; // keep waiting: a good frame may follow
             }
+            Seen::Decoded(d) => d,
         };
-        // Decoded straight into the completion slot (no `Response` moved); the
-        // slot is emptied again unless the reply finishes the transaction.
-        let decoded = {
-            let done = self.done.insert(Outcome {
-                result: Ok(Response::Ack { command: 0 }),
-                latency_us: 0,
-                sends: 0,
-            });
-            match &mut done.result {
-                Ok(r) => Response::decode_into(&self.request, frame, r),
-                Err(_) => Ok(()),
-            }
+        let Some(p) = self.pending.as_mut() else {
+            return; // see() decodes only for a transaction in progress
         };
-        let nack = match (&decoded, self.done.as_ref().map(|d| &d.result)) {
-            (Ok(()), Some(Ok(Response::Nack { code, .. }))) => Some(*code),
-            _ => None,
-        };
-        if decoded.is_err() || nack.is_some() {
-            self.done = None;
-        }
-        match decoded.map(|()| nack) {
+        match decoded {
             Ok(Some(code)) => {
                 p.heard = true;
                 match code {
@@ -719,6 +718,60 @@ impl Link {
             }
         }
     }
+}
+
+/// A decoded item, handled as far as it needs the frame itself (see [`see`]).
+enum Seen {
+    /// No request waits for it (none in progress, a re-send queued, or the
+    /// transaction finished): a frame (`None`) or a decode error.
+    Unsolicited(Option<DecodeError>),
+    /// A decode error while a request waits.
+    Corrupt(DecodeError),
+    /// A frame decoded against the request in progress: written into the
+    /// completion slot when it answers it (`Ok(None)`), a NACK, or why not.
+    Decoded(Result<Option<NackCode>, ResponseError>),
+}
+
+/// The part of handling a decoded item that needs the frame: it is borrowed
+/// from the decoder (a 0x03 reply is never copied out of its buffer) and decoded
+/// straight into the completion slot (no `Response` moved); the slot is emptied
+/// again unless the reply finishes the transaction. The rest is
+/// [`Link::on_seen`], once the decoder is free again.
+fn see(
+    pending: bool,
+    to_send: bool,
+    done: &mut Option<Outcome>,
+    request: &Request,
+    item: Result<FrameRef<'_>, DecodeError>,
+) -> Seen {
+    if !pending || to_send || done.is_some() {
+        // Nothing waits, or a (re-)send is queued: anything arriving now answers
+        // an old attempt.
+        return Seen::Unsolicited(item.err());
+    }
+    let frame = match item {
+        Ok(f) => f,
+        Err(e) => return Seen::Corrupt(e),
+    };
+    let decoded = {
+        let d = done.insert(Outcome {
+            result: Ok(Response::Ack { command: 0 }),
+            latency_us: 0,
+            sends: 0,
+        });
+        match &mut d.result {
+            Ok(r) => Response::decode_ref_into(request, frame, r),
+            Err(_) => Ok(()),
+        }
+    };
+    let nack = match (&decoded, done.as_ref().map(|d| &d.result)) {
+        (Ok(()), Some(Ok(Response::Nack { code, .. }))) => Some(*code),
+        _ => None,
+    };
+    if decoded.is_err() || nack.is_some() {
+        *done = None;
+    }
+    Seen::Decoded(decoded.map(|()| nack))
 }
 
 fn count_decode_error(stats: &mut LinkStats, e: &DecodeError) {

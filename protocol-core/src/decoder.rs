@@ -20,8 +20,8 @@
 use crate::command::{self as cmd, PREAMBLE};
 use crate::crc::crc16;
 use crate::frame::{
-    framing, Frame, Framing, NackCode, Payload, MAX_FRAME_LEN, MAX_PAYLOAD, PL_MORE_PACKETS,
-    PL_VALUE_MASK,
+    framing, Frame, FrameRef, Framing, NackCode, Payload, MAX_FRAME_LEN, MAX_PAYLOAD,
+    PL_MORE_PACKETS, PL_VALUE_MASK,
 };
 
 /// Why a candidate frame was rejected.
@@ -157,6 +157,9 @@ pub struct Decoder {
     /// told (0: not known). Until that many bytes are buffered, `poll` answers at
     /// once instead of scanning the same header again after every chunk.
     need: usize,
+    /// Bytes at the front that hold the frame last lent by
+    /// [`Decoder::poll_ref`]: dropped at the next call.
+    lent: usize,
     stats: DecoderStats,
 }
 
@@ -175,6 +178,7 @@ impl Decoder {
             asm: None,
             expect: None,
             need: 0,
+            lent: 0,
             stats: DecoderStats {
                 bytes_in: 0,
                 skipped_bytes: 0,
@@ -194,7 +198,7 @@ impl Decoder {
 
     /// Bytes buffered and not yet decided.
     pub const fn buffered(&self) -> usize {
-        self.len
+        self.len - self.lent
     }
 
     /// True while a multi-packet reply is being reassembled.
@@ -221,6 +225,7 @@ impl Decoder {
 
     /// Forget buffered bytes and any partial reassembly (counted as skipped).
     pub fn reset(&mut self) {
+        self.release();
         self.stats.skipped_bytes = self.stats.skipped_bytes.wrapping_add(self.len as u32);
         self.len = 0;
         self.need = 0;
@@ -230,7 +235,9 @@ impl Decoder {
     /// Copies as many bytes of `input` as fit into the scan buffer and returns how
     /// many were taken. Call [`Decoder::poll`] until it returns `None`, then push the
     /// rest. Once the buffer is full, `poll` always makes progress.
+    #[inline]
     pub fn push(&mut self, input: &[u8]) -> usize {
+        self.release();
         let room = MAX_FRAME_LEN - self.len;
         let n = room.min(input.len());
         if let (Some(dst), Some(src)) = (self.buf.get_mut(self.len..self.len + n), input.get(..n)) {
@@ -304,6 +311,61 @@ impl Decoder {
         }
     }
 
+    /// Drops the frame lent by [`Decoder::poll_ref`], if any.
+    #[inline(always)]
+    fn release(&mut self) {
+        if self.lent > 0 {
+            self.release_lent();
+        }
+    }
+
+    fn release_lent(&mut self) {
+        let n = core::mem::take(&mut self.lent);
+        self.drop_front(n);
+    }
+
+    /// As [`Decoder::poll_into`], with a single-frame data reply (0x03 register
+    /// blocks: the live path) lent where it lies in the buffer
+    /// instead of copied out. Other answers (ACK, NACK, reassembled packets,
+    /// errors) are written into `spill` and lent from there. The frame is
+    /// dropped from the buffer at the next call into the decoder.
+    #[inline]
+    pub fn poll_ref<'a>(
+        &'a mut self,
+        spill: &'a mut Option<Result<Frame, DecodeError>>,
+    ) -> Option<Result<FrameRef<'a>, DecodeError>> {
+        self.step_ref(false, spill)
+    }
+
+    /// As [`Decoder::flush_into`], lending as [`Decoder::poll_ref`].
+    #[inline]
+    pub fn flush_ref<'a>(
+        &'a mut self,
+        spill: &'a mut Option<Result<Frame, DecodeError>>,
+    ) -> Option<Result<FrameRef<'a>, DecodeError>> {
+        self.step_ref(true, spill)
+    }
+
+    #[inline(always)]
+    fn step_ref<'a>(
+        &'a mut self,
+        ending: bool,
+        spill: &'a mut Option<Result<Frame, DecodeError>>,
+    ) -> Option<Result<FrameRef<'a>, DecodeError>> {
+        match self.step_inner(ending, spill, true) {
+            Some((command, from, to)) => Some(Ok(FrameRef::Data {
+                command,
+                payload: self.buf.get(from..to).unwrap_or(&[]),
+                packets: 1,
+            })),
+            None => match spill {
+                Some(Ok(f)) => Some(Ok(f.as_frame_ref())),
+                Some(Err(e)) => Some(Err(*e)),
+                None => None,
+            },
+        }
+    }
+
     fn drop_front(&mut self, n: usize) {
         self.need = 0;
         let n = n.min(self.len);
@@ -317,7 +379,7 @@ impl Decoder {
     }
 
     fn step(&mut self, ending: bool) -> Option<Result<Frame, DecodeError>> {
-        if !ending && self.len < self.need {
+        if self.lent == 0 && !ending && self.len < self.need {
             return None; // the candidate at the front is still short
         }
         let mut out = None;
@@ -328,9 +390,22 @@ impl Decoder {
     /// Writes the decoder's next answer into `out` (`None` when more bytes are
     /// needed).
     fn step_into(&mut self, ending: bool, out: &mut Option<Result<Frame, DecodeError>>) {
+        let _owned = self.step_inner(ending, out, false); // None: not lending
+    }
+
+    /// The decoding step. With `lend`, a single data frame is left in the
+    /// buffer and returned as `(command, payload start, payload end)` (see
+    /// [`Decoder::poll_ref`]); every other answer is written into `out`.
+    fn step_inner(
+        &mut self,
+        ending: bool,
+        out: &mut Option<Result<Frame, DecodeError>>,
+        lend: bool,
+    ) -> Option<(u8, usize, usize)> {
         *out = None;
+        self.release();
         if !ending && self.len < self.need {
-            return; // the candidate at the front is still short
+            return None; // the candidate at the front is still short
         }
         loop {
             // Drop everything before the next preamble.
@@ -352,7 +427,7 @@ impl Decoder {
                         }));
                     }
                 }
-                return;
+                return None;
             }
             let data = self.buf.get(..self.len).unwrap_or(&[]);
             match framing(data) {
@@ -361,27 +436,27 @@ impl Decoder {
                         if let Framing::Short(n) = f {
                             self.need = n;
                         }
-                        return;
+                        return None;
                     }
                     let command = data.get(1).copied();
                     let have = self.len;
                     self.skip(1);
                     self.stats.truncated = self.stats.truncated.wrapping_add(1);
                     *out = Some(Err(DecodeError::Truncated { command, have }));
-                    return;
+                    return None;
                 }
                 Framing::NotAFrame => self.skip(1),
                 Framing::BadLength { command, pl } => {
                     self.skip(1);
                     self.stats.length_errors = self.stats.length_errors.wrapping_add(1);
                     *out = Some(Err(DecodeError::Length { command, pl }));
-                    return;
+                    return None;
                 }
                 Framing::Complete(n) => {
                     let Some((body, crc_bytes)) =
                         data.get(..n).and_then(|f| f.split_last_chunk::<2>())
                     else {
-                        return; // unreachable: framing() checked the length
+                        return None; // unreachable: framing() checked the length
                     };
                     let computed = crc16(body);
                     let received = u16::from_le_bytes(*crc_bytes);
@@ -394,16 +469,44 @@ impl Decoder {
                             computed,
                             received,
                         }));
-                        return;
+                        return None;
+                    }
+                    if lend && self.asm.is_none() {
+                        if let Some(lent) = self.lend(n) {
+                            return Some(lent);
+                        }
                     }
                     // Written into `out` where it is built: not moved.
                     self.accept(n, out);
                     if out.is_some() {
-                        return;
+                        return None;
                     }
                 }
             }
         }
+    }
+
+    /// The CRC-valid candidate of length `n` at the front, when it is a single
+    /// data frame and no reassembly is in progress: left in the buffer (dropped
+    /// at the next call) and returned as `(command, payload
+    /// start, payload end)`. What `accept` would build, without the copy.
+    fn lend(&mut self, n: usize) -> Option<(u8, usize, usize)> {
+        let command = self.buf.get(1).copied()?;
+        if matches!(command, cmd::ACK | cmd::NACK) || cmd::is_packetized(command) {
+            return None;
+        }
+        let skip_pl = matches!(
+            crate::frame::layout(command),
+            crate::frame::Layout::Counted(_)
+        );
+        let from = if skip_pl { 3 } else { 2 };
+        let to = n.checked_sub(2)?;
+        if to < from || to - from > MAX_PAYLOAD {
+            return None; // accept() reports it
+        }
+        self.lent = n;
+        self.stats.frames = self.stats.frames.wrapping_add(1);
+        Some((command, from, to))
     }
 
     /// A CRC-valid candidate of length `n` sits at the front of the buffer.

@@ -4,7 +4,7 @@
 
 use crate::command::{self as cmd};
 use crate::events::{Event, OnlineStatus};
-use crate::frame::{EncodeError, Frame, NackCode, Payload};
+use crate::frame::{EncodeError, Frame, FrameRef, NackCode, Payload};
 use crate::registers::MAX_CELLS;
 use crate::request::{Request, SettingsOption};
 
@@ -330,15 +330,25 @@ impl Response {
         frame: &Frame,
         out: &mut Response,
     ) -> Result<(), ResponseError> {
+        Self::decode_ref_into(request, frame.as_frame_ref(), out)
+    }
+
+    /// As [`Response::decode_into`], from a borrowed frame (see
+    /// [`Decoder::poll_ref`](crate::decoder::Decoder::poll_ref)).
+    pub fn decode_ref_into(
+        request: &Request,
+        frame: FrameRef<'_>,
+        out: &mut Response,
+    ) -> Result<(), ResponseError> {
         if let (
             Request::ReadRegisters { start, count } | Request::ReadRegistersNative { start, count },
-            Frame::Data {
+            FrameRef::Data {
                 command, payload, ..
             },
         ) = (request, frame)
         {
-            if *command == request.command() {
-                let (command, count) = (*command, usize::from(*count));
+            if command == request.command() {
+                let count = usize::from(*count);
                 let big = matches!(request, Request::ReadRegisters { .. });
                 if payload.len() != 2 * count {
                     return Err(ResponseError::Length {
@@ -357,34 +367,34 @@ impl Response {
                 return Ok(());
             }
         }
-        *out = Self::decode(request, frame)?;
+        *out = Self::decode_ref(request, frame)?;
         Ok(())
     }
 
     /// Decodes `frame` as the answer to `request`.
     pub fn decode(request: &Request, frame: &Frame) -> Result<Self, ResponseError> {
+        Self::decode_ref(request, frame.as_frame_ref())
+    }
+
+    /// As [`Response::decode`], from a borrowed frame.
+    pub fn decode_ref(request: &Request, frame: FrameRef<'_>) -> Result<Self, ResponseError> {
         let expected = request.command();
         let got = frame.command();
         if got != expected {
             return Err(ResponseError::UnexpectedResponse { expected, got });
         }
         let (payload, command) = match frame {
-            Frame::Nack { command, code } => {
-                return Ok(Response::Nack {
-                    command: *command,
-                    code: *code,
-                })
-            }
-            Frame::Ack { command } => {
+            FrameRef::Nack { command, code } => return Ok(Response::Nack { command, code }),
+            FrameRef::Ack { command } => {
                 return if request.expects_ack() {
-                    Ok(Response::Ack { command: *command })
+                    Ok(Response::Ack { command })
                 } else {
-                    Err(ResponseError::UnexpectedKind { command: *command })
+                    Err(ResponseError::UnexpectedKind { command })
                 };
             }
-            Frame::Data {
+            FrameRef::Data {
                 payload, command, ..
-            } => (payload.as_slice(), *command),
+            } => (payload, command),
         };
         if request.expects_ack() {
             return Err(ResponseError::UnexpectedKind { command });
