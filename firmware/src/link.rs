@@ -471,10 +471,7 @@ impl Link {
         // still be the answer.
         // Frames are handled where the decoder keeps them (see `see`).
         let mut spill = None;
-        loop {
-            let Some(item) = self.decoder.flush_ref(&mut spill) else {
-                break;
-            };
+        while let Some(item) = self.decoder.flush_ref(&mut spill) {
             let seen = see(
                 self.pending.is_some(),
                 self.to_send,
@@ -635,10 +632,7 @@ impl Link {
         loop {
             let n = self.decoder.push(input);
             input = input.get(n..).unwrap_or(&[]);
-            loop {
-                let Some(item) = self.decoder.poll_ref(&mut spill) else {
-                    break;
-                };
+            while let Some(item) = self.decoder.poll_ref(&mut spill) {
                 let seen = see(
                     self.pending.is_some(),
                     self.to_send,

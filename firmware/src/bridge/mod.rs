@@ -424,7 +424,7 @@ impl State {
                 || block_read
                 || (limits && (self.sync.limits_unsupported || !self.sync.syncing()));
             if !quiet {
-                self.out.link_error(now, &self.config, &c.request, *f);
+                self.out.link_error(now, &self.config, c.request, *f);
             }
         }
         if !online {
@@ -475,7 +475,7 @@ impl State {
                 let telemetry = &mut self.model.telemetry;
                 if self
                     .sync
-                    .on_limits(now, option, &c.result, &self.config, telemetry)
+                    .on_limits(now, option, c.result, &self.config, telemetry)
                 {
                     self.on_ready(now);
                 }
@@ -490,7 +490,7 @@ impl State {
                 }
             }
             Purpose::EventSlot => {
-                events::on_slot(&mut self.events, &c.result, &mut self.out);
+                events::on_slot(&mut self.events, c.result, &mut self.out);
                 if self.events.needs_full_read() {
                     self.schedule.next_events = now; // go on with the scan / full read
                 }

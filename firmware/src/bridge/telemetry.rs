@@ -253,7 +253,7 @@ impl TelemetryModel {
             out.push(Report::Snapshot(snapshot_line(snap)));
         }
         self.telemetry.snapshot = Some(snap.clone());
-        copy_block(&mut self.telemetry.live_registers, &a.block);
+        copy_block(&mut self.telemetry.live_registers, a.block);
         self.telemetry.live = LiveMeta {
             pieces: a.pieces,
             span_us: a.span_us.min(u64::from(u32::MAX)) as u32,
