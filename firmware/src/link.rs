@@ -296,6 +296,9 @@ impl Link {
 
     /// Starts a transaction. The request is validated and encoded here; an invalid
     /// one completes at once with [`Failure::Request`] and no byte is sent.
+    /// Start when the link is idle ([`Link::is_idle`]): a transaction in
+    /// progress, or a finished one not yet taken, is dropped (the request it
+    /// referred to is replaced).
     pub fn start(&mut self, now: Instant, request: Request, silence: Silence) {
         self.start_with_timeout(now, request, silence, self.config.response_timeout_us);
     }
