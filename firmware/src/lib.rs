@@ -61,7 +61,7 @@ pub mod reader;
 pub mod report;
 pub mod site;
 
-pub use bridge::{Action, Bridge, Command, LiveMeta, Telemetry};
+pub use bridge::{Action, Bridge, Command, LiveMeta, Step, Telemetry};
 pub use link::{LinkStats, Transmit};
 pub use report::{Level, Report};
 

@@ -28,7 +28,7 @@
 //!   unsolicited and ignored.
 
 use protocol_core::decoder::{DecodeError, Decoder};
-use protocol_core::frame::NackCode;
+use protocol_core::frame::{FrameRef, NackCode};
 use protocol_core::request::{Request, RequestBytes, RequestError};
 use protocol_core::response::{Response, ResponseError};
 
@@ -99,6 +99,29 @@ pub struct Completion {
     pub sends: u8,
 }
 
+/// A finished transaction where the link keeps it ([`Link::completion`]): the
+/// same fields as [`Completion`], borrowed instead of moved (the request and the
+/// response are hundreds of bytes each).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CompletionRef<'a> {
+    /// What was asked.
+    pub request: &'a Request,
+    /// What came back.
+    pub result: &'a Result<Response, Failure>,
+    /// First send to completion, µs.
+    pub latency_us: Instant,
+    /// How many times the request went out.
+    pub sends: u8,
+}
+
+/// What the link keeps of a finished transaction besides its request.
+#[derive(Debug, Clone, PartialEq)]
+struct Outcome {
+    result: Result<Response, Failure>,
+    latency_us: Instant,
+    sends: u8,
+}
+
 /// Link counters (logged periodically). Every counter wraps modulo 2^32 by
 /// design; the latency sum restarts when the reply counter wraps.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -151,10 +174,10 @@ impl LinkStats {
     }
 }
 
+/// The transaction in progress (its request and bytes are kept apart in the
+/// [`Link`], written once).
 #[derive(Debug, Clone)]
 struct Pending {
-    request: Request,
-    bytes: RequestBytes,
     silence: Silence,
     first_sent: Option<Instant>,
     deadline: Instant,
@@ -206,9 +229,14 @@ pub enum Next {
 pub struct Link {
     config: Config,
     decoder: Decoder,
+    /// The request of the transaction in progress, or of the one finished in
+    /// `done`: stored once, referenced from there on.
+    request: Request,
+    /// Its encoded bytes, while it is in progress.
+    bytes: RequestBytes,
     pending: Option<Pending>,
     to_send: bool,
-    done: Option<Completion>,
+    done: Option<Outcome>,
     stats: LinkStats,
     consecutive_failures: u8,
     online: bool,
@@ -224,6 +252,8 @@ impl Link {
         Self {
             config,
             decoder: Decoder::new(),
+            request: Request::ReadVersion,
+            bytes: RequestBytes::new(),
             pending: None,
             to_send: false,
             done: None,
@@ -266,6 +296,9 @@ impl Link {
 
     /// Starts a transaction. The request is validated and encoded here; an invalid
     /// one completes at once with [`Failure::Request`] and no byte is sent.
+    /// Start when the link is idle ([`Link::is_idle`]): a transaction in
+    /// progress, or a finished one not yet taken, is dropped (the request it
+    /// referred to is replaced).
     pub fn start(&mut self, now: Instant, request: Request, silence: Silence) {
         self.start_with_timeout(now, request, silence, self.config.response_timeout_us);
     }
@@ -279,12 +312,31 @@ impl Link {
         silence: Silence,
         timeout_us: Instant,
     ) {
+        self.request = request;
+        self.start_written(now, silence, timeout_us);
+    }
+
+    /// The slot of the next transaction's request, to write it in place (a
+    /// request is hundreds of bytes) and start it with [`Link::start_written`].
+    /// `None` while a transaction is in progress or finished and not cleared.
+    pub fn request_slot(&mut self) -> Option<&mut Request> {
+        self.is_idle().then_some(&mut self.request)
+    }
+
+    /// The request of the transaction in progress or just finished (the last
+    /// one written into [`Link::request_slot`] otherwise).
+    pub fn request(&self) -> &Request {
+        &self.request
+    }
+
+    /// As [`Link::start_with_timeout`], with the request written into
+    /// [`Link::request_slot`] before.
+    pub fn start_written(&mut self, now: Instant, silence: Silence, timeout_us: Instant) {
         self.stats.requests = self.stats.requests.wrapping_add(1);
-        match request.to_bytes() {
-            Ok(bytes) => {
+        self.done = None;
+        match self.request.encode_to(&mut self.bytes) {
+            Ok(()) => {
                 self.pending = Some(Pending {
-                    request,
-                    bytes,
                     silence,
                     first_sent: None,
                     deadline: now,
@@ -301,8 +353,8 @@ impl Link {
                 self.to_send = true;
             }
             Err(e) => {
-                self.done = Some(Completion {
-                    request,
+                self.pending = None;
+                self.done = Some(Outcome {
                     result: Err(Failure::Request(e)),
                     latency_us: 0,
                     sends: 0,
@@ -330,12 +382,17 @@ impl Link {
 
     /// The bytes of the request in progress (to send after [`Next::Send`]).
     pub fn transmit(&self) -> Option<&Transmit> {
-        self.pending.as_ref().map(|p| &p.bytes)
+        self.pending.as_ref().map(|_| &self.bytes)
     }
 
     /// The finished transaction, after [`Next::Done`], where the link keeps it.
-    pub fn completion(&self) -> Option<&Completion> {
-        self.done.as_ref()
+    pub fn completion(&self) -> Option<CompletionRef<'_>> {
+        self.done.as_ref().map(|d| CompletionRef {
+            request: &self.request,
+            result: &d.result,
+            latency_us: d.latency_us,
+            sends: d.sends,
+        })
     }
 
     /// Drops the finished transaction (after [`Link::completion`]).
@@ -346,7 +403,12 @@ impl Link {
     /// The finished transaction, after [`Next::Done`]. Until it is taken,
     /// [`Link::next`] keeps answering [`Next::Done`].
     pub fn take_completion(&mut self) -> Option<Completion> {
-        self.done.take()
+        self.done.take().map(|d| Completion {
+            request: self.request.clone(),
+            result: d.result,
+            latency_us: d.latency_us,
+            sends: d.sends,
+        })
     }
 
     /// As [`Link::step`], leaving the bytes to send and the finished transaction
@@ -368,7 +430,7 @@ impl Link {
                 // meanwhile are counted as unsolicited). A reply to another
                 // command is refused by its command byte, and 0x09 replies and
                 // 0x10 echoes carry their addresses: no wait for those.
-                let command = p.request.command();
+                let command = self.request.command();
                 let self_identifying = matches!(command, 0x09 | 0x10);
                 if p.sends == 0
                     && now < self.quiet_until
@@ -387,9 +449,9 @@ impl Link {
                 p.heard = false;
                 p.last_rx = None;
                 p.deadline = now
-                    .saturating_add(BYTE_TIME_US * p.bytes.len() as Instant)
+                    .saturating_add(BYTE_TIME_US * self.bytes.len() as Instant)
                     .saturating_add(p.timeout_us);
-                self.decoder.expect(&p.request);
+                self.decoder.expect(&self.request);
                 return Next::Send;
             }
             let deadline = match p.last_rx {
@@ -410,10 +472,17 @@ impl Link {
     fn on_deadline(&mut self, now: Instant) {
         // Whatever is half-received is cut off; a complete frame it reveals may
         // still be the answer.
-        // Items are handled where the decoder returned them (a frame is 264
-        // bytes: not moved again).
-        while let Some(item) = &self.decoder.flush() {
-            self.on_item(now, item);
+        // Frames are handled where the decoder keeps them (see `see`).
+        let mut spill = None;
+        while let Some(item) = self.decoder.flush_ref(&mut spill) {
+            let seen = see(
+                self.pending.is_some(),
+                self.to_send,
+                &mut self.done,
+                &self.request,
+                item,
+            );
+            self.on_seen(now, seen);
             if self.pending.is_none() || self.to_send {
                 break;
             }
@@ -432,7 +501,7 @@ impl Link {
             }
             // A write always follows a read the BMS just answered: it is awake,
             // so silence is not a wake-up case for a write.
-            if !p.wake_used && !p.request.is_write() {
+            if !p.wake_used && !self.request.is_write() {
                 p.wake_used = true;
                 self.stats.wakeup_resends = self.stats.wakeup_resends.wrapping_add(1);
                 self.to_send = true;
@@ -442,7 +511,7 @@ impl Link {
             return;
         }
         let err = p.last_error.unwrap_or(Failure::Timeout);
-        if p.request.is_write() {
+        if self.request.is_write() {
             // Something came back (a corrupt ACK/echo/NACK?): never re-send a write
             // the BMS may have answered. The read-back decides.
             self.finish(now, Err(err));
@@ -469,8 +538,7 @@ impl Link {
         if self.pending.is_none() {
             return;
         }
-        let done = self.done.insert(Completion {
-            request: Request::ReadVersion,
+        let done = self.done.insert(Outcome {
             result: Err(Failure::Silent),
             latency_us: 0,
             sends: 0,
@@ -480,7 +548,7 @@ impl Link {
     }
 
     /// Finishes the transaction whose result is already in `self.done` (see
-    /// [`Link::on_item`]: a decoded response is written there in place).
+    /// [`see`]: a decoded response is written there in place).
     fn finish_in_place(&mut self, now: Instant) {
         let Some(p) = self.pending.take() else {
             self.done = None;
@@ -495,10 +563,10 @@ impl Link {
         self.decoder.clear_expectation();
         if p.sends > 1 {
             // An answer to the last copy may come as late as the full timeout.
-            self.quiet_command = p.request.command();
+            self.quiet_command = self.request.command();
             self.quiet_until = p
                 .last_sent
-                .saturating_add(BYTE_TIME_US * p.bytes.len() as Instant)
+                .saturating_add(BYTE_TIME_US * self.bytes.len() as Instant)
                 .saturating_add(self.config.response_timeout_us.max(p.timeout_us));
         }
         let latency_us = now.saturating_sub(p.first_sent.unwrap_or(now));
@@ -539,7 +607,6 @@ impl Link {
             }
         }
         if let Some(d) = self.done.as_mut() {
-            d.request = p.request;
             d.latency_us = latency_us;
             d.sends = p.sends;
         }
@@ -563,11 +630,20 @@ impl Link {
             }
         }
         let mut input = bytes;
+        // Frames are handled where the decoder keeps them (see `see`).
+        let mut spill = None;
         loop {
             let n = self.decoder.push(input);
             input = input.get(n..).unwrap_or(&[]);
-            while let Some(item) = &self.decoder.poll() {
-                self.on_item(now, item);
+            while let Some(item) = self.decoder.poll_ref(&mut spill) {
+                let seen = see(
+                    self.pending.is_some(),
+                    self.to_send,
+                    &mut self.done,
+                    &self.request,
+                    item,
+                );
+                self.on_seen(now, seen);
             }
             if input.is_empty() {
                 break;
@@ -575,48 +651,32 @@ impl Link {
         }
     }
 
-    fn on_item(&mut self, now: Instant, item: &Result<protocol_core::Frame, DecodeError>) {
-        let Some(p) = self.pending.as_mut() else {
-            count_unsolicited(&mut self.stats, item);
-            return;
-        };
-        if self.to_send || self.done.is_some() {
-            // A (re-)send is queued: anything arriving now answers an old attempt.
-            count_unsolicited(&mut self.stats, item);
-            return;
-        }
-        let frame = match item {
-            Ok(f) => f,
-            Err(e) => {
+    /// The rest of a decoded item, after [`see`].
+    fn on_seen(&mut self, now: Instant, seen: Seen) {
+        let decoded = match seen {
+            Seen::Unsolicited(None) => {
+                self.stats.unsolicited = self.stats.unsolicited.wrapping_add(1);
+                return;
+            }
+            Seen::Unsolicited(Some(e)) => {
+                count_decode_error(&mut self.stats, &e);
+                return;
+            }
+            Seen::Corrupt(e) => {
                 // Probably our answer, damaged: the BMS is talking.
-                p.heard = true;
-                count_decode_error(&mut self.stats, e);
-                p.last_error = Some(Failure::Corrupt(*e));
+                if let Some(p) = self.pending.as_mut() {
+                    p.heard = true;
+                    p.last_error = Some(Failure::Corrupt(e));
+                }
+                count_decode_error(&mut self.stats, &e);
                 return; // keep waiting: a good frame may follow
             }
+            Seen::Decoded(d) => d,
         };
-        // Decoded straight into the completion slot (no `Response` moved); the
-        // slot is emptied again unless the reply finishes the transaction.
-        let decoded = {
-            let done = self.done.insert(Completion {
-                request: Request::ReadVersion,
-                result: Ok(Response::Ack { command: 0 }),
-                latency_us: 0,
-                sends: 0,
-            });
-            match &mut done.result {
-                Ok(r) => Response::decode_into(&p.request, frame, r),
-                Err(_) => Ok(()),
-            }
+        let Some(p) = self.pending.as_mut() else {
+            return; // see() decodes only for a transaction in progress
         };
-        let nack = match (&decoded, self.done.as_ref().map(|d| &d.result)) {
-            (Ok(()), Some(Ok(Response::Nack { code, .. }))) => Some(*code),
-            _ => None,
-        };
-        if decoded.is_err() || nack.is_some() {
-            self.done = None;
-        }
-        match decoded.map(|()| nack) {
+        match decoded {
             Ok(Some(code)) => {
                 p.heard = true;
                 match code {
@@ -632,7 +692,7 @@ impl Link {
                 }
                 // The BMS got our request corrupted: a read may be re-sent (its
                 // NACK is complete, nothing else is coming). A write never is.
-                if code == NackCode::CrcError && !p.request.is_write() {
+                if code == NackCode::CrcError && !self.request.is_write() {
                     self.retry_or_fail(now, Failure::Nack(code));
                 } else {
                     self.finish(now, Err(Failure::Nack(code)));
@@ -655,6 +715,60 @@ impl Link {
             }
         }
     }
+}
+
+/// A decoded item, handled as far as it needs the frame itself (see [`see`]).
+enum Seen {
+    /// No request waits for it (none in progress, a re-send queued, or the
+    /// transaction finished): a frame (`None`) or a decode error.
+    Unsolicited(Option<DecodeError>),
+    /// A decode error while a request waits.
+    Corrupt(DecodeError),
+    /// A frame decoded against the request in progress: written into the
+    /// completion slot when it answers it (`Ok(None)`), a NACK, or why not.
+    Decoded(Result<Option<NackCode>, ResponseError>),
+}
+
+/// The part of handling a decoded item that needs the frame: it is borrowed
+/// from the decoder (a 0x03 reply is never copied out of its buffer) and decoded
+/// straight into the completion slot (no `Response` moved); the slot is emptied
+/// again unless the reply finishes the transaction. The rest is
+/// [`Link::on_seen`], once the decoder is free again.
+fn see(
+    pending: bool,
+    to_send: bool,
+    done: &mut Option<Outcome>,
+    request: &Request,
+    item: Result<FrameRef<'_>, DecodeError>,
+) -> Seen {
+    if !pending || to_send || done.is_some() {
+        // Nothing waits, or a (re-)send is queued: anything arriving now answers
+        // an old attempt.
+        return Seen::Unsolicited(item.err());
+    }
+    let frame = match item {
+        Ok(f) => f,
+        Err(e) => return Seen::Corrupt(e),
+    };
+    let decoded = {
+        let d = done.insert(Outcome {
+            result: Ok(Response::Ack { command: 0 }),
+            latency_us: 0,
+            sends: 0,
+        });
+        match &mut d.result {
+            Ok(r) => Response::decode_ref_into(request, frame, r),
+            Err(_) => Ok(()),
+        }
+    };
+    let nack = match (&decoded, done.as_ref().map(|d| &d.result)) {
+        (Ok(()), Some(Ok(Response::Nack { code, .. }))) => Some(*code),
+        _ => None,
+    };
+    if decoded.is_err() || nack.is_some() {
+        *done = None;
+    }
+    Seen::Decoded(decoded.map(|()| nack))
 }
 
 fn count_decode_error(stats: &mut LinkStats, e: &DecodeError) {

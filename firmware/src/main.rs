@@ -60,12 +60,13 @@ use protocol_core::events::Event;
 use protocol_core::events::OnlineStatus;
 use protocol_core::views::{LiveSnapshot, VersionInfo};
 use tinybms_firmware::boards::{self, Board, Chip, LogPath};
+use tinybms_firmware::bridge::Step;
 use tinybms_firmware::config::Config as BridgeConfig;
 use tinybms_firmware::host_link::{HostLink, OUT_LINE_MAX};
 use tinybms_firmware::inverter::control::PackSettings;
 use tinybms_firmware::inverter::{Inverter, InverterAction, InverterReport, Protocol, TxResult};
 use tinybms_firmware::link::Failure;
-use tinybms_firmware::{profile, Action, Bridge, Level, Report};
+use tinybms_firmware::{profile, Bridge, Level, Report};
 
 // ESP-IDF 2nd-stage bootloader requires an application descriptor in the image.
 esp_bootloader_esp_idf::esp_app_desc!();
@@ -358,8 +359,8 @@ async fn bridge_task(
 
     loop {
         wdt.feed();
-        match bridge.poll(now_us()) {
-            Action::Transmit(bytes) => {
+        match bridge.step(now_us()) {
+            Step::Transmit => {
                 // The line is quiet now: log what the last exchanges produced.
                 while let Some(report) = bridge.next_report() {
                     if let Report::NewEvent(e) = &report {
@@ -369,8 +370,10 @@ async fn bridge_task(
                     log_report(&report);
                 }
                 rx_errors.log();
-                host.on_uart_tx(&bytes);
-                let mut rest: &[u8] = &bytes;
+                // Written from where the link keeps them (no copy).
+                let bytes = bridge.transmit_bytes();
+                host.on_uart_tx(bytes);
+                let mut rest: &[u8] = bytes;
                 while !rest.is_empty() {
                     match tx.write_async(rest).await {
                         Ok(n) => rest = rest.get(n..).unwrap_or(&[]),
@@ -384,7 +387,7 @@ async fn bridge_task(
                     warn!("uart flush error: {}", e);
                 }
             }
-            Action::WaitUntil(t) => {
+            Step::WaitUntil(t) => {
                 let t = t.min(host.poll(now_us(), &bridge));
                 let deadline = Instant::from_micros(t).min(Instant::now() + MAX_WAIT);
                 // `read_async` and `Pipe::read` are cancellation-safe: racing them

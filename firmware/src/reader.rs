@@ -131,24 +131,27 @@ pub struct BlockRead {
     cursor: u16,
     /// Address of the piece in flight, and its length.
     in_flight: Option<(u16, u16)>,
-    values: Words,
+    /// The values read so far (`start` is the span's first address).
+    block: RegisterBlock,
+    /// A pass completed and its values are still in `block` (lent out as
+    /// [`Assembled::block`]): the next pass starts with the next request.
+    restart_due: bool,
     previous_pass: Option<Words>,
     started_at: Instant,
     pieces: u8,
     passes: u8,
     guarded: &'static [u16],
-    /// Values believed without a second read (the last published block).
-    reference: Option<RegisterBlock>,
     /// First read of the guarded piece in flight, waiting for a second.
     first_read: Option<heapless::Vec<(u16, u16), 16>>,
     second_reads: u32,
 }
 
-/// A finished block read.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Assembled {
+/// A finished block read, lent by the [`BlockRead`] that assembled it (the
+/// block is not copied out; the read starts its next pass at its next request).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Assembled<'a> {
     /// Every register of the span (reserved gaps read as 0).
-    pub block: RegisterBlock,
+    pub block: &'a RegisterBlock,
     /// Requests that made it up (in the last pass).
     pub pieces: u8,
     /// First piece sent to last piece received, µs.
@@ -165,13 +168,16 @@ impl BlockRead {
             mode,
             cursor: 0,
             in_flight: None,
-            values: Words::new(),
+            block: RegisterBlock {
+                start: 0,
+                values: Words::new(),
+            },
+            restart_due: false,
             previous_pass: None,
             started_at: now,
             pieces: 0,
             passes: 0,
             guarded: &[],
-            reference: None,
             first_read: None,
             second_reads: 0,
         };
@@ -192,7 +198,6 @@ impl BlockRead {
         self.pieces = 0;
         self.passes = 0;
         self.guarded = &[];
-        self.reference = None;
         self.first_read = None;
         self.second_reads = 0;
         self.restart(now);
@@ -208,11 +213,18 @@ impl BlockRead {
     }
 
     fn restart(&mut self, now: Instant) {
+        self.restart_due = false;
         self.cursor = self.first();
         self.in_flight = None;
-        self.values.clear();
+        self.block.start = self.first();
         let len = usize::from(self.last().saturating_sub(self.first())) + 1;
-        let _fits = self.values.resize(len.min(MAX_READ_MODBUS), 0); // min: fits
+        let len = len.min(MAX_READ_MODBUS);
+        if self.block.values.len() == len {
+            self.block.values.fill(0);
+        } else {
+            self.block.values.clear();
+            let _fits = self.block.values.resize(len, 0); // min: fits
+        }
         self.started_at = now;
         self.pieces = 0;
     }
@@ -223,22 +235,11 @@ impl BlockRead {
     }
 
     /// Pieces holding any of `guarded` are believed when their values equal
-    /// `reference`'s, or when two reads in a row agree (see [`LIVE_GUARDED`]).
-    pub fn with_guard(mut self, guarded: &'static [u16], reference: Option<RegisterBlock>) -> Self {
+    /// the reference given with them ([`BlockRead::on_pairs`]: the last
+    /// published block), or when two reads in a row agree (see
+    /// [`LIVE_GUARDED`]).
+    pub fn guard(&mut self, guarded: &'static [u16]) {
         self.guarded = guarded;
-        self.reference = reference;
-        self
-    }
-
-    /// As [`BlockRead::with_guard`], on a read in place, with the reference copied
-    /// from `reference` (no block moved through the stack on the live path).
-    pub fn guard(&mut self, guarded: &'static [u16], reference: Option<&RegisterBlock>) {
-        self.guarded = guarded;
-        match (reference, &mut self.reference) {
-            (Some(r), Some(mine)) => mine.clone_from(r),
-            (Some(r), mine) => *mine = Some(r.clone()),
-            (None, mine) => *mine = None,
-        }
     }
 
     /// Second reads made for guarded pieces.
@@ -254,24 +255,37 @@ impl BlockRead {
     /// The request for the next piece, at the given piece size. The same piece is
     /// asked again until [`BlockRead::on_reply`] accepts it.
     pub fn next_request(&mut self, now: Instant, piece: u16) -> Request {
+        let mut request = Request::ReadVersion;
+        self.request_into(now, piece, &mut request);
+        request
+    }
+
+    /// As [`BlockRead::next_request`], written into `out` (where the link
+    /// keeps it) instead of returned.
+    pub fn request_into(&mut self, now: Instant, piece: u16, out: &mut Request) {
         let (start, count) = self.next_piece(now, piece);
         if usize::from(count) == usize::from(self.last() - self.first()) + 1
             && start == self.first()
             || count > 15
         {
-            return Request::ReadRegisters {
+            *out = Request::ReadRegisters {
                 start,
                 count: count as u8,
             };
+            return;
         }
-        let mut addresses = protocol_core::request::AddressList::new();
-        for a in start..start + count {
-            let _fits = addresses.push(a); // count <= 15 < 31
+        *out = Request::ReadIndividual(protocol_core::request::AddressList::new());
+        if let Request::ReadIndividual(addresses) = out {
+            for a in start..start + count {
+                let _fits = addresses.push(a); // count <= 15 < 31
+            }
         }
-        Request::ReadIndividual(addresses)
     }
 
     fn next_piece(&mut self, now: Instant, piece: u16) -> (u16, u16) {
+        if self.restart_due {
+            self.restart(now);
+        }
         if let Mode::Window(w) = self.mode {
             if self.cursor != self.first() && now.saturating_sub(self.started_at) > w {
                 // Too slow: the pieces would describe different moments.
@@ -322,17 +336,33 @@ impl BlockRead {
 
     /// The reply (0x03 block) to the piece in flight. Returns the assembled block
     /// when the read is complete.
-    pub fn on_block(&mut self, now: Instant, reply: &RegisterBlock) -> Option<Assembled> {
+    pub fn on_block(&mut self, now: Instant, reply: &RegisterBlock) -> Option<Assembled<'_>> {
         let (start, count) = self.in_flight?;
         if reply.start != start || reply.values.len() != usize::from(count) {
             self.in_flight = None;
             return None;
         }
-        self.store(now, reply.iter())
+        let first = self.first();
+        // The piece lies in the span: copied as one slice.
+        let dst = start.checked_sub(first).and_then(|i| {
+            let i = usize::from(i);
+            self.block.values.get_mut(i..i + reply.values.len())
+        });
+        match dst {
+            Some(dst) => dst.copy_from_slice(&reply.values),
+            None => self.write(reply.iter()),
+        }
+        self.advance(now)
     }
 
-    /// The reply (0x09 address/value pairs) to the piece in flight.
-    pub fn on_pairs(&mut self, now: Instant, pairs: &[(u16, u16)]) -> Option<Assembled> {
+    /// The reply (0x09 address/value pairs) to the piece in flight; `reference`
+    /// is what guarded values are believed against (see [`BlockRead::guard`]).
+    pub fn on_pairs(
+        &mut self,
+        now: Instant,
+        pairs: &[(u16, u16)],
+        reference: Option<&RegisterBlock>,
+    ) -> Option<Assembled<'_>> {
         let (start, count) = self.in_flight?;
         let expected = pairs.len() == usize::from(count)
             && pairs
@@ -345,10 +375,8 @@ impl BlockRead {
         }
         let guarded = pairs.iter().any(|(a, _)| self.guarded.contains(a));
         if guarded {
-            let unchanged = self
-                .reference
-                .as_ref()
-                .is_some_and(|r| pairs.iter().all(|&(a, v)| r.get(a) == Some(v)));
+            let unchanged =
+                reference.is_some_and(|r| pairs.iter().all(|&(a, v)| r.get(a) == Some(v)));
             let confirmed = self
                 .first_read
                 .as_ref()
@@ -362,24 +390,27 @@ impl BlockRead {
             }
         }
         self.first_read = None;
-        self.store(now, pairs.iter().copied())
+        self.write(pairs.iter().copied());
+        self.advance(now)
     }
 
-    fn store(
-        &mut self,
-        now: Instant,
-        values: impl Iterator<Item = (u16, u16)>,
-    ) -> Option<Assembled> {
-        let (start, count) = self.in_flight.take()?;
+    /// Stores the values of the piece in flight.
+    fn write(&mut self, values: impl Iterator<Item = (u16, u16)>) {
         let first = self.first();
         for (a, v) in values {
             if let Some(slot) = a
                 .checked_sub(first)
-                .and_then(|i| self.values.get_mut(usize::from(i)))
+                .and_then(|i| self.block.values.get_mut(usize::from(i)))
             {
                 *slot = v;
             }
         }
+    }
+
+    /// The piece in flight is stored: on to the next one, or the read is
+    /// complete.
+    fn advance(&mut self, now: Instant) -> Option<Assembled<'_>> {
+        let (start, count) = self.in_flight.take()?;
         self.pieces = self.pieces.saturating_add(1);
         let next = start.saturating_add(count);
         // Segments ascend: the first one holding `next` or starting after it.
@@ -399,28 +430,27 @@ impl BlockRead {
         }
     }
 
-    fn complete(&mut self, now: Instant) -> Option<Assembled> {
+    fn complete(&mut self, now: Instant) -> Option<Assembled<'_>> {
         self.passes = self.passes.saturating_add(1);
-        let done = Assembled {
-            block: RegisterBlock {
-                start: self.first(),
-                values: self.values.clone(),
-            },
+        // The next pass starts at the next request; until then the block stays
+        // where it was assembled, lent out below.
+        self.restart_due = true;
+        let same = match self.mode {
+            Mode::Window(_) => true,
+            Mode::Confirmed => {
+                let same = self.previous_pass.as_ref() == Some(&self.block.values);
+                match &mut self.previous_pass {
+                    Some(p) => p.clone_from(&self.block.values),
+                    None => self.previous_pass = Some(self.block.values.clone()),
+                }
+                same
+            }
+        };
+        same.then_some(Assembled {
+            block: &self.block,
             pieces: self.pieces,
             span_us: now.saturating_sub(self.started_at),
             started_at: self.started_at,
-        };
-        match self.mode {
-            Mode::Window(_) => {
-                self.restart(now);
-                Some(done)
-            }
-            Mode::Confirmed => {
-                let same = self.previous_pass.as_ref() == Some(&self.values);
-                self.previous_pass = Some(self.values.clone());
-                self.restart(now);
-                same.then_some(done)
-            }
-        }
+        })
     }
 }

@@ -48,7 +48,7 @@ bridge=$(( $(get phase5) - $(get phase6) ))
 printf '  %-52s %7s  (%s snapshots, %s calls; trace parsing, %s per snapshot, measured apart and subtracted)\n' \
     "whole Bridge on the recorded 40 s trace, per snapshot" "$(( (bridge + snaps / 2) / snaps ))" "$snaps" \
     "$(( $(get polls) + $(get rx_calls) ))" "$(per 6 "$snaps")"
-echo "  sizes (bytes): Bridge $(get bridge_bytes), Response $(get response_bytes), Frame $(get frame_bytes), link Completion $(get completion_bytes), Action $(get action_bytes)"
+echo "  sizes (bytes): Bridge $(get bridge_bytes), Response $(get response_bytes), Frame $(get frame_bytes), link Completion $(get completion_bytes), Action $(get action_bytes), Step $(get step_bytes)"
 echo "  replay mismatches: $mism"
 [ "$mism" = 0 ] || { echo "run.sh: the replay diverged from the recorded trace" >&2; exit 1; }
 grep -q '^decoded_ok' "$tmp/out" && [ "$(get decoded_ok)" = $((3 * reps)) ] || { echo "run.sh: a reply did not decode" >&2; exit 1; }

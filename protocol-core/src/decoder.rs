@@ -20,8 +20,8 @@
 use crate::command::{self as cmd, PREAMBLE};
 use crate::crc::crc16;
 use crate::frame::{
-    framing, Frame, Framing, NackCode, Payload, MAX_FRAME_LEN, MAX_PAYLOAD, PL_MORE_PACKETS,
-    PL_VALUE_MASK,
+    framing, Frame, FrameRef, Framing, NackCode, Payload, MAX_FRAME_LEN, MAX_PAYLOAD,
+    PL_MORE_PACKETS, PL_VALUE_MASK,
 };
 
 /// Why a candidate frame was rejected.
@@ -157,6 +157,9 @@ pub struct Decoder {
     /// told (0: not known). Until that many bytes are buffered, `poll` answers at
     /// once instead of scanning the same header again after every chunk.
     need: usize,
+    /// Bytes at the front that hold the frame last lent by
+    /// [`Decoder::poll_ref`]: dropped at the next call.
+    lent: usize,
     stats: DecoderStats,
 }
 
@@ -175,6 +178,7 @@ impl Decoder {
             asm: None,
             expect: None,
             need: 0,
+            lent: 0,
             stats: DecoderStats {
                 bytes_in: 0,
                 skipped_bytes: 0,
@@ -194,7 +198,7 @@ impl Decoder {
 
     /// Bytes buffered and not yet decided.
     pub const fn buffered(&self) -> usize {
-        self.len
+        self.len - self.lent
     }
 
     /// True while a multi-packet reply is being reassembled.
@@ -221,6 +225,7 @@ impl Decoder {
 
     /// Forget buffered bytes and any partial reassembly (counted as skipped).
     pub fn reset(&mut self) {
+        self.release();
         self.stats.skipped_bytes = self.stats.skipped_bytes.wrapping_add(self.len as u32);
         self.len = 0;
         self.need = 0;
@@ -230,7 +235,9 @@ impl Decoder {
     /// Copies as many bytes of `input` as fit into the scan buffer and returns how
     /// many were taken. Call [`Decoder::poll`] until it returns `None`, then push the
     /// rest. Once the buffer is full, `poll` always makes progress.
+    #[inline]
     pub fn push(&mut self, input: &[u8]) -> usize {
+        self.release();
         let room = MAX_FRAME_LEN - self.len;
         let n = room.min(input.len());
         if let (Some(dst), Some(src)) = (self.buf.get_mut(self.len..self.len + n), input.get(..n)) {
@@ -249,6 +256,20 @@ impl Decoder {
         self.step(false)
     }
 
+    /// As [`Decoder::poll`], with the answer written into `out` instead of
+    /// returned: a frame is 264 bytes, and a returned one is copied on its way
+    /// out. Decoding a stream this way, the frame is built once, where the caller
+    /// reads it.
+    pub fn poll_into(&mut self, out: &mut Option<Result<Frame, DecodeError>>) {
+        self.step_into(false, out);
+    }
+
+    /// As [`Decoder::flush`], with the answer written into `out` (see
+    /// [`Decoder::poll_into`]).
+    pub fn flush_into(&mut self, out: &mut Option<Result<Frame, DecodeError>>) {
+        self.step_into(true, out);
+    }
+
     /// Like [`Decoder::poll`], but treats the input as ended: an incomplete candidate
     /// is reported as [`DecodeError::Truncated`] (and rescanned from its second
     /// byte), an unfinished reassembly as [`DecodeError::IncompletePackets`]. Call it
@@ -259,11 +280,18 @@ impl Decoder {
 
     /// Convenience: push all of `input`, calling `sink` with every result in order.
     pub fn feed(&mut self, mut input: &[u8], mut sink: impl FnMut(Result<Frame, DecodeError>)) {
+        // Polled into one place (see `poll_into`): a frame is moved once, to
+        // `sink`, and a poll that finds nothing moves nothing.
+        let mut item = None;
         loop {
             let n = self.push(input);
             input = input.get(n..).unwrap_or(&[]);
-            while let Some(item) = self.poll() {
-                sink(item);
+            loop {
+                self.poll_into(&mut item);
+                match item.take() {
+                    Some(r) => sink(r),
+                    None => break,
+                }
             }
             if input.is_empty() {
                 break;
@@ -273,8 +301,68 @@ impl Decoder {
 
     /// Convenience: [`Decoder::flush`] until empty, calling `sink` with each result.
     pub fn finish(&mut self, mut sink: impl FnMut(Result<Frame, DecodeError>)) {
-        while let Some(item) = self.flush() {
-            sink(item);
+        let mut item = None;
+        loop {
+            self.flush_into(&mut item);
+            match item.take() {
+                Some(r) => sink(r),
+                None => break,
+            }
+        }
+    }
+
+    /// Drops the frame lent by [`Decoder::poll_ref`], if any.
+    #[inline(always)]
+    fn release(&mut self) {
+        if self.lent > 0 {
+            self.release_lent();
+        }
+    }
+
+    fn release_lent(&mut self) {
+        let n = core::mem::take(&mut self.lent);
+        self.drop_front(n);
+    }
+
+    /// As [`Decoder::poll_into`], with a single-frame data reply (0x03 register
+    /// blocks: the live path) lent where it lies in the buffer
+    /// instead of copied out. Other answers (ACK, NACK, reassembled packets,
+    /// errors) are written into `spill` and lent from there. The frame is
+    /// dropped from the buffer at the next call into the decoder.
+    #[inline]
+    pub fn poll_ref<'a>(
+        &'a mut self,
+        spill: &'a mut Option<Result<Frame, DecodeError>>,
+    ) -> Option<Result<FrameRef<'a>, DecodeError>> {
+        self.step_ref(false, spill)
+    }
+
+    /// As [`Decoder::flush_into`], lending as [`Decoder::poll_ref`].
+    #[inline]
+    pub fn flush_ref<'a>(
+        &'a mut self,
+        spill: &'a mut Option<Result<Frame, DecodeError>>,
+    ) -> Option<Result<FrameRef<'a>, DecodeError>> {
+        self.step_ref(true, spill)
+    }
+
+    #[inline(always)]
+    fn step_ref<'a>(
+        &'a mut self,
+        ending: bool,
+        spill: &'a mut Option<Result<Frame, DecodeError>>,
+    ) -> Option<Result<FrameRef<'a>, DecodeError>> {
+        match self.step_inner(ending, spill, true) {
+            Some((command, from, to)) => Some(Ok(FrameRef::Data {
+                command,
+                payload: self.buf.get(from..to).unwrap_or(&[]),
+                packets: 1,
+            })),
+            None => match spill {
+                Some(Ok(f)) => Some(Ok(f.as_frame_ref())),
+                Some(Err(e)) => Some(Err(*e)),
+                None => None,
+            },
         }
     }
 
@@ -291,6 +379,31 @@ impl Decoder {
     }
 
     fn step(&mut self, ending: bool) -> Option<Result<Frame, DecodeError>> {
+        if self.lent == 0 && !ending && self.len < self.need {
+            return None; // the candidate at the front is still short
+        }
+        let mut out = None;
+        self.step_into(ending, &mut out);
+        out
+    }
+
+    /// Writes the decoder's next answer into `out` (`None` when more bytes are
+    /// needed).
+    fn step_into(&mut self, ending: bool, out: &mut Option<Result<Frame, DecodeError>>) {
+        let _owned = self.step_inner(ending, out, false); // None: not lending
+    }
+
+    /// The decoding step. With `lend`, a single data frame is left in the
+    /// buffer and returned as `(command, payload start, payload end)` (see
+    /// [`Decoder::poll_ref`]); every other answer is written into `out`.
+    fn step_inner(
+        &mut self,
+        ending: bool,
+        out: &mut Option<Result<Frame, DecodeError>>,
+        lend: bool,
+    ) -> Option<(u8, usize, usize)> {
+        *out = None;
+        self.release();
         if !ending && self.len < self.need {
             return None; // the candidate at the front is still short
         }
@@ -308,7 +421,7 @@ impl Decoder {
                 if ending {
                     if let Some(asm) = self.asm.take() {
                         self.stats.packet_errors = self.stats.packet_errors.wrapping_add(1);
-                        return Some(Err(DecodeError::IncompletePackets {
+                        *out = Some(Err(DecodeError::IncompletePackets {
                             command: asm.command,
                             packets: asm.packets,
                         }));
@@ -329,13 +442,15 @@ impl Decoder {
                     let have = self.len;
                     self.skip(1);
                     self.stats.truncated = self.stats.truncated.wrapping_add(1);
-                    return Some(Err(DecodeError::Truncated { command, have }));
+                    *out = Some(Err(DecodeError::Truncated { command, have }));
+                    return None;
                 }
                 Framing::NotAFrame => self.skip(1),
                 Framing::BadLength { command, pl } => {
                     self.skip(1);
                     self.stats.length_errors = self.stats.length_errors.wrapping_add(1);
-                    return Some(Err(DecodeError::Length { command, pl }));
+                    *out = Some(Err(DecodeError::Length { command, pl }));
+                    return None;
                 }
                 Framing::Complete(n) => {
                     let Some((body, crc_bytes)) =
@@ -349,24 +464,55 @@ impl Decoder {
                     if computed != received {
                         self.skip(1);
                         self.stats.crc_errors = self.stats.crc_errors.wrapping_add(1);
-                        return Some(Err(DecodeError::Crc {
+                        *out = Some(Err(DecodeError::Crc {
                             command,
                             computed,
                             received,
                         }));
+                        return None;
                     }
-                    // Passed through as is: re-wrapping would move the frame.
-                    let result = self.accept(n);
-                    if result.is_some() {
-                        return result;
+                    if lend && self.asm.is_none() {
+                        if let Some(lent) = self.lend(n) {
+                            return Some(lent);
+                        }
+                    }
+                    // Written into `out` where it is built: not moved.
+                    self.accept(n, out);
+                    if out.is_some() {
+                        return None;
                     }
                 }
             }
         }
     }
 
+    /// The CRC-valid candidate of length `n` at the front, when it is a single
+    /// data frame and no reassembly is in progress: left in the buffer (dropped
+    /// at the next call) and returned as `(command, payload
+    /// start, payload end)`. What `accept` would build, without the copy.
+    fn lend(&mut self, n: usize) -> Option<(u8, usize, usize)> {
+        let command = self.buf.get(1).copied()?;
+        if matches!(command, cmd::ACK | cmd::NACK) || cmd::is_packetized(command) {
+            return None;
+        }
+        let skip_pl = matches!(
+            crate::frame::layout(command),
+            crate::frame::Layout::Counted(_)
+        );
+        let from = if skip_pl { 3 } else { 2 };
+        let to = n.checked_sub(2)?;
+        if to < from || to - from > MAX_PAYLOAD {
+            return None; // accept() reports it
+        }
+        self.lent = n;
+        self.stats.frames = self.stats.frames.wrapping_add(1);
+        Some((command, from, to))
+    }
+
     /// A CRC-valid candidate of length `n` sits at the front of the buffer.
-    fn accept(&mut self, n: usize) -> Option<Result<Frame, DecodeError>> {
+    /// Its answer goes into `out` (left `None` for a packet of a reply still
+    /// being reassembled).
+    fn accept(&mut self, n: usize, out: &mut Option<Result<Frame, DecodeError>>) {
         let frame = self.buf.get(..n).unwrap_or(&[]);
         let command = frame.get(1).copied().unwrap_or(0);
         let body = frame.get(..n.saturating_sub(2)).unwrap_or(&[]);
@@ -381,18 +527,23 @@ impl Decoder {
                 self.asm = None;
                 self.stats.packet_errors = self.stats.packet_errors.wrapping_add(1);
                 // The frame stays in the buffer and is decoded on the next poll.
-                return Some(Err(err));
+                *out = Some(Err(err));
+                return;
             }
         }
 
-        let result = match command {
-            cmd::ACK => Some(Ok(Frame::Ack {
-                command: body.get(2).copied().unwrap_or(0),
-            })),
-            cmd::NACK => Some(Ok(Frame::Nack {
-                command: body.get(2).copied().unwrap_or(0),
-                code: NackCode::from_u8(body.get(3).copied().unwrap_or(0)),
-            })),
+        match command {
+            cmd::ACK => {
+                *out = Some(Ok(Frame::Ack {
+                    command: body.get(2).copied().unwrap_or(0),
+                }))
+            }
+            cmd::NACK => {
+                *out = Some(Ok(Frame::Nack {
+                    command: body.get(2).copied().unwrap_or(0),
+                    code: NackCode::from_u8(body.get(3).copied().unwrap_or(0)),
+                }))
+            }
             c if cmd::is_packetized(c) => {
                 let pl = body.get(2).copied().unwrap_or(0);
                 // Copy the packet out of the scan buffer (at most 63 bytes).
@@ -401,33 +552,32 @@ impl Decoder {
                     .extend_from_slice(body.get(3..).unwrap_or(&[]))
                     .is_err()
                 {
-                    Some(Err(DecodeError::PayloadOverflow { command: c }))
+                    *out = Some(Err(DecodeError::PayloadOverflow { command: c }));
                 } else {
-                    self.packet(c, pl, &chunk)
+                    *out = self.packet(c, pl, &chunk);
                 }
             }
             c => {
                 let skip_pl = matches!(crate::frame::layout(c), crate::frame::Layout::Counted(_));
                 let bytes = body.get(if skip_pl { 3 } else { 2 }..).unwrap_or(&[]);
-                // Filled in place in the value returned (a frame is 264 bytes).
-                let mut out = Some(Ok(Frame::Data {
+                // Filled in place where the caller receives it (a frame is 264
+                // bytes).
+                *out = Some(Ok(Frame::Data {
                     command: c,
                     payload: Payload::new(),
                     packets: 1,
                 }));
-                if let Some(Ok(Frame::Data { payload, .. })) = &mut out {
+                if let Some(Ok(Frame::Data { payload, .. })) = out {
                     if payload.extend_from_slice(bytes).is_err() {
-                        out = Some(Err(DecodeError::PayloadOverflow { command: c }));
+                        *out = Some(Err(DecodeError::PayloadOverflow { command: c }));
                     }
                 }
-                out
             }
-        };
+        }
         self.drop_front(n);
-        if let Some(Ok(_)) = result {
+        if let Some(Ok(_)) = out {
             self.stats.frames = self.stats.frames.wrapping_add(1);
         }
-        result
     }
 
     /// Length checks of a complete packetized reply (reassembled or single): the

@@ -109,7 +109,66 @@ pub enum Frame {
     },
 }
 
+/// A [`Frame`] borrowed where it was received: what
+/// [`Decoder::poll_ref`](crate::decoder::Decoder::poll_ref) gives, the payload
+/// left in the decoder's buffer instead of copied out.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FrameRef<'a> {
+    /// As [`Frame::Ack`].
+    Ack {
+        /// The command acknowledged.
+        command: u8,
+    },
+    /// As [`Frame::Nack`].
+    Nack {
+        /// The command refused.
+        command: u8,
+        /// Why.
+        code: NackCode,
+    },
+    /// As [`Frame::Data`].
+    Data {
+        /// The command answered.
+        command: u8,
+        /// The payload bytes.
+        payload: &'a [u8],
+        /// Number of packets it arrived in (1 for a single frame).
+        packets: u8,
+    },
+}
+
+impl FrameRef<'_> {
+    /// The command this frame answers (for ACK/NACK, the acknowledged command).
+    pub const fn command(&self) -> u8 {
+        match self {
+            FrameRef::Ack { command }
+            | FrameRef::Nack { command, .. }
+            | FrameRef::Data { command, .. } => *command,
+        }
+    }
+}
+
 impl Frame {
+    /// The frame as a [`FrameRef`].
+    pub fn as_frame_ref(&self) -> FrameRef<'_> {
+        match self {
+            Frame::Ack { command } => FrameRef::Ack { command: *command },
+            Frame::Nack { command, code } => FrameRef::Nack {
+                command: *command,
+                code: *code,
+            },
+            Frame::Data {
+                command,
+                payload,
+                packets,
+            } => FrameRef::Data {
+                command: *command,
+                payload,
+                packets: *packets,
+            },
+        }
+    }
+
     /// The command this frame answers (for ACK/NACK, the acknowledged command).
     pub const fn command(&self) -> u8 {
         match self {

@@ -58,7 +58,7 @@ pub mod settings;
 pub mod views;
 
 pub use decoder::{DecodeError, Decoder, DecoderStats};
-pub use frame::{Frame, NackCode};
+pub use frame::{Frame, FrameRef, NackCode};
 pub use request::{Request, RequestError};
 pub use response::{Response, ResponseError};
 

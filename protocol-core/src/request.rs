@@ -456,6 +456,14 @@ impl Request {
         Ok(v)
     }
 
+    /// Encodes into `out` in place (validated first; `out` is cleared first).
+    /// On an error `out` holds no valid request.
+    pub fn encode_to(&self, out: &mut RequestBytes) -> Result<(), RequestError> {
+        out.clear();
+        self.validate()?;
+        self.encode_into(out)
+    }
+
     fn encode_into(&self, v: &mut RequestBytes) -> Result<(), RequestError> {
         let overflow = RequestError::BufferTooSmall {
             need: self.encoded_len(),

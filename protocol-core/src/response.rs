@@ -4,7 +4,7 @@
 
 use crate::command::{self as cmd};
 use crate::events::{Event, OnlineStatus};
-use crate::frame::{EncodeError, Frame, NackCode, Payload};
+use crate::frame::{EncodeError, Frame, FrameRef, NackCode, Payload};
 use crate::registers::MAX_CELLS;
 use crate::request::{Request, SettingsOption};
 
@@ -284,6 +284,27 @@ fn fill_words(
     big: bool,
     command: u8,
 ) -> Result<(), ResponseError> {
+    // The usual case in one pass over whole words: every word in the payload
+    // and room for all of them (what the loop below does, without a bounds
+    // check per byte and a capacity check per word).
+    let old = values.len();
+    let (words, _) = payload.as_chunks::<2>();
+    if let Some(words) = words.get(..count) {
+        if values.resize(old + count, 0).is_ok() {
+            if let Some(dst) = values.get_mut(old..) {
+                if big {
+                    for (d, w) in dst.iter_mut().zip(words) {
+                        *d = u16::from_be_bytes(*w);
+                    }
+                } else {
+                    for (d, w) in dst.iter_mut().zip(words) {
+                        *d = u16::from_le_bytes(*w);
+                    }
+                }
+            }
+            return Ok(());
+        }
+    }
     for i in 0..count {
         let w = if big {
             be16(payload, 2 * i)
@@ -309,15 +330,25 @@ impl Response {
         frame: &Frame,
         out: &mut Response,
     ) -> Result<(), ResponseError> {
+        Self::decode_ref_into(request, frame.as_frame_ref(), out)
+    }
+
+    /// As [`Response::decode_into`], from a borrowed frame (see
+    /// [`Decoder::poll_ref`](crate::decoder::Decoder::poll_ref)).
+    pub fn decode_ref_into(
+        request: &Request,
+        frame: FrameRef<'_>,
+        out: &mut Response,
+    ) -> Result<(), ResponseError> {
         if let (
             Request::ReadRegisters { start, count } | Request::ReadRegistersNative { start, count },
-            Frame::Data {
+            FrameRef::Data {
                 command, payload, ..
             },
         ) = (request, frame)
         {
-            if *command == request.command() {
-                let (command, count) = (*command, usize::from(*count));
+            if command == request.command() {
+                let count = usize::from(*count);
                 let big = matches!(request, Request::ReadRegisters { .. });
                 if payload.len() != 2 * count {
                     return Err(ResponseError::Length {
@@ -336,34 +367,34 @@ impl Response {
                 return Ok(());
             }
         }
-        *out = Self::decode(request, frame)?;
+        *out = Self::decode_ref(request, frame)?;
         Ok(())
     }
 
     /// Decodes `frame` as the answer to `request`.
     pub fn decode(request: &Request, frame: &Frame) -> Result<Self, ResponseError> {
+        Self::decode_ref(request, frame.as_frame_ref())
+    }
+
+    /// As [`Response::decode`], from a borrowed frame.
+    pub fn decode_ref(request: &Request, frame: FrameRef<'_>) -> Result<Self, ResponseError> {
         let expected = request.command();
         let got = frame.command();
         if got != expected {
             return Err(ResponseError::UnexpectedResponse { expected, got });
         }
         let (payload, command) = match frame {
-            Frame::Nack { command, code } => {
-                return Ok(Response::Nack {
-                    command: *command,
-                    code: *code,
-                })
-            }
-            Frame::Ack { command } => {
+            FrameRef::Nack { command, code } => return Ok(Response::Nack { command, code }),
+            FrameRef::Ack { command } => {
                 return if request.expects_ack() {
-                    Ok(Response::Ack { command: *command })
+                    Ok(Response::Ack { command })
                 } else {
-                    Err(ResponseError::UnexpectedKind { command: *command })
+                    Err(ResponseError::UnexpectedKind { command })
                 };
             }
-            Frame::Data {
+            FrameRef::Data {
                 payload, command, ..
-            } => (payload.as_slice(), *command),
+            } => (payload, command),
         };
         if request.expects_ack() {
             return Err(ResponseError::UnexpectedKind { command });
@@ -676,6 +707,37 @@ mod tests {
         let mut out = Vec::new();
         decode_all(bytes, |f| out.push(Response::decode(req, &f.unwrap())));
         out
+    }
+
+    /// The one-pass path of `fill_words` gives what the word-by-word loop gives
+    /// (short payloads, odd lengths, a full vector, both byte orders).
+    #[test]
+    fn fill_words_matches_word_by_word() {
+        fn reference(values: &mut Words, p: &[u8], count: usize, big: bool) -> bool {
+            for i in 0..count {
+                let w = if big { be16(p, 2 * i) } else { le16(p, 2 * i) };
+                if values.push(w).is_err() {
+                    return false;
+                }
+            }
+            true
+        }
+        let payload: std::vec::Vec<u8> = (0..=255u8).collect();
+        for big in [false, true] {
+            for pre in [0usize, 1, 100, 127] {
+                for len in [0usize, 1, 2, 3, 10, 11, 112, 254, 256] {
+                    for count in [0usize, 1, 5, 56, 127, 128] {
+                        let p = &payload[..len];
+                        let mut a = Words::new();
+                        a.resize(pre, 7).unwrap();
+                        let mut b = a.clone();
+                        let ok = fill_words(&mut a, p, count, big, 3).is_ok();
+                        assert_eq!(ok, reference(&mut b, p, count, big));
+                        assert_eq!(a, b, "big {big} pre {pre} len {len} count {count}");
+                    }
+                }
+            }
+        }
     }
 
     #[test]

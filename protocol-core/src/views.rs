@@ -50,10 +50,11 @@ impl Cells {
         let n = (count as usize).min(MAX_CELLS);
         let first_nonzero = registers.iter().position(|&v| v != 0).unwrap_or(0);
         let start = first_nonzero.min(MAX_CELLS - n);
-        let mut raw = heapless::Vec::new();
-        for v in registers.iter().skip(start).take(n) {
-            let _fits = raw.push(*v); // n <= MAX_CELLS
-        }
+        // start + n <= MAX_CELLS: one slice copy.
+        let raw = registers
+            .get(start..start + n)
+            .and_then(|r| heapless::Vec::from_slice(r).ok())
+            .unwrap_or_default();
         Cells {
             first_register: start as u8,
             raw,
@@ -64,12 +65,28 @@ impl Cells {
         self.raw.get(i).map(|&v| f32::from(v) * 0.0001)
     }
     /// (index, raw) of the lowest cell.
+    /// The first of equal lowest cells, as `min_by_key`.
     pub fn min(&self) -> Option<(usize, u16)> {
-        self.raw.iter().copied().enumerate().min_by_key(|&(_, v)| v)
+        let (&first, rest) = self.raw.split_first()?;
+        let mut best = (0, first);
+        for (i, &v) in rest.iter().enumerate() {
+            if v < best.1 {
+                best = (i + 1, v);
+            }
+        }
+        Some(best)
     }
-    /// (index, raw) of the highest cell.
+    /// (index, raw) of the highest cell. The last of equal highest cells, as
+    /// `max_by_key`.
     pub fn max(&self) -> Option<(usize, u16)> {
-        self.raw.iter().copied().enumerate().max_by_key(|&(_, v)| v)
+        let (&first, rest) = self.raw.split_first()?;
+        let mut best = (0, first);
+        for (i, &v) in rest.iter().enumerate() {
+            if v >= best.1 {
+                best = (i + 1, v);
+            }
+        }
+        Some(best)
     }
 }
 
@@ -119,6 +136,24 @@ impl LiveSnapshot {
     /// Decodes registers 0-55 from `block` (which may hold more).
     pub fn from_registers(block: &RegisterBlock) -> Result<Self, MissingRegisters> {
         need(block, regs::LIVE_FIRST, regs::LIVE_LAST)?;
+        Ok(Self::decode(block))
+    }
+
+    /// As [`LiveSnapshot::from_registers`], written into `out` (left as it was
+    /// on an error): built where it is kept instead of returned and moved.
+    #[inline(never)]
+    pub fn decode_into(
+        block: &RegisterBlock,
+        out: &mut Option<LiveSnapshot>,
+    ) -> Result<(), MissingRegisters> {
+        need(block, regs::LIVE_FIRST, regs::LIVE_LAST)?;
+        *out = Some(Self::decode(block));
+        Ok(())
+    }
+
+    /// The decoding of [`LiveSnapshot::from_registers`], registers checked.
+    #[inline(always)]
+    fn decode(block: &RegisterBlock) -> Self {
         let g = |a: u16| block.get(a).unwrap_or(0);
         let u32_at = |a: u16| block.get_u32(a).unwrap_or(0);
         let f32_at = |a: u16| block.get_f32(a).unwrap_or(0.0);
@@ -127,7 +162,7 @@ impl LiveSnapshot {
             *c = g(i as u16);
         }
         let cell_count = g(53);
-        Ok(LiveSnapshot {
+        LiveSnapshot {
             cells: Cells::select(&cells, cell_count),
             cell_count,
             lifetime_s: u32_at(32),
@@ -146,7 +181,7 @@ impl LiveSnapshot {
             balancing_decision_bits: g(51),
             real_balancing_bits: g(52),
             speed_kmh: f32_at(54),
-        })
+        }
     }
     /// SOC in percent.
     pub fn soc_percent(&self) -> f32 {
@@ -346,6 +381,26 @@ mod tests {
         RegisterBlock {
             start,
             values: heapless::Vec::from_slice(values).unwrap(),
+        }
+    }
+
+    #[test]
+    fn cell_min_and_max_pick_as_min_by_key_and_max_by_key() {
+        for raw in [
+            &[][..],
+            &[7],
+            &[3, 1, 4, 1, 5, 9, 2, 6, 5, 3, 5, 9],
+            &[5, 5, 5],
+            &[9, 1, 9, 1],
+            &[0, 65535, 0, 65535],
+        ] {
+            let c = Cells {
+                first_register: 0,
+                raw: heapless::Vec::from_slice(raw).unwrap(),
+            };
+            let e = || raw.iter().copied().enumerate();
+            assert_eq!(c.min(), e().min_by_key(|&(_, v)| v), "{raw:?}");
+            assert_eq!(c.max(), e().max_by_key(|&(_, v)| v), "{raw:?}");
         }
     }
 

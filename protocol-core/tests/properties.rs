@@ -409,8 +409,74 @@ fn as_received(f: &Frame) -> Frame {
 }
 
 /// Feeds `bytes` in chunks of the (cycled) `sizes`, polling after every push, then
-/// flushes. Fails instead of hanging if the decoder stops making progress.
+/// flushes. Fails instead of hanging if the decoder stops making progress. The
+/// same bytes go through a copy of the decoder polled with `poll_ref`/`flush_ref`
+/// (the link's way, frames lent from the buffer): every answer, the counters and
+/// what stays buffered must be the same.
 fn decode_chunked(
+    dec: &mut Decoder,
+    bytes: &[u8],
+    sizes: &[usize],
+) -> Vec<Result<Frame, DecodeError>> {
+    let mut lending = dec.clone();
+    let out = decode_chunked_owned(dec, bytes, sizes);
+    let lent = decode_chunked_lent(&mut lending, bytes, sizes);
+    assert_eq!(lent, out, "poll_ref differs from poll");
+    assert_eq!(lending.stats(), dec.stats(), "poll_ref counts differ");
+    assert_eq!(lending.buffered(), dec.buffered());
+    assert_eq!(lending.in_packets(), dec.in_packets());
+    out
+}
+
+fn owned(f: protocol_core::FrameRef<'_>) -> Frame {
+    use protocol_core::FrameRef as R;
+    match f {
+        R::Ack { command } => Frame::Ack { command },
+        R::Nack { command, code } => Frame::Nack { command, code },
+        R::Data {
+            command,
+            payload,
+            packets,
+        } => Frame::Data {
+            command,
+            payload: protocol_core::frame::Payload::from_slice(payload).unwrap(),
+            packets,
+        },
+    }
+}
+
+fn decode_chunked_lent(
+    dec: &mut Decoder,
+    bytes: &[u8],
+    sizes: &[usize],
+) -> Vec<Result<Frame, DecodeError>> {
+    let mut out = Vec::new();
+    let mut spill = None;
+    let mut rest = bytes;
+    let mut i = 0;
+    while !rest.is_empty() {
+        let size = sizes[i % sizes.len()].clamp(1, rest.len());
+        i += 1;
+        let (mut chunk, r) = rest.split_at(size);
+        rest = r;
+        while !chunk.is_empty() {
+            let n = dec.push(chunk);
+            chunk = &chunk[n..];
+            while let Some(r) = dec.poll_ref(&mut spill) {
+                out.push(r.map(owned));
+            }
+        }
+    }
+    let mut guard = 0;
+    while let Some(r) = dec.flush_ref(&mut spill) {
+        out.push(r.map(owned));
+        guard += 1;
+        assert!(guard < 10_000, "flush_ref never returned None");
+    }
+    out
+}
+
+fn decode_chunked_owned(
     dec: &mut Decoder,
     bytes: &[u8],
     sizes: &[usize],

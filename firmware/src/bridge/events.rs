@@ -17,7 +17,7 @@ use protocol_core::views::event_log;
 
 use super::Reports;
 use crate::event_log::{sort_by_time, EventTracker, Found};
-use crate::link::{Completion, Failure};
+use crate::link::{CompletionRef, Failure};
 use crate::report::Report;
 
 /// The BMS event log as far as the bridge knows it: the start-up history (the
@@ -73,7 +73,7 @@ impl KnownEvents {
 pub(super) fn on_newest(
     tracker: &mut EventTracker,
     known: &mut KnownEvents,
-    c: &Completion,
+    c: &CompletionRef<'_>,
     expected_clock: impl FnOnce() -> Option<u32>,
     out: &mut Reports,
 ) {

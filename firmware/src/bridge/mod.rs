@@ -94,7 +94,7 @@ use self::telemetry::TelemetryModel;
 use self::writes::{Effect, Writes};
 use crate::config::{self, Config};
 use crate::event_log::EventTracker;
-use crate::link::{Completion, Failure, Link, Next, Transmit};
+use crate::link::{CompletionRef, Failure, Link, Next, Transmit};
 use crate::report::Report;
 use crate::Instant;
 
@@ -109,6 +109,19 @@ pub enum Action {
     Transmit(Transmit),
     /// Wait for received bytes ([`Bridge::handle_rx`]) or until this time, then
     /// call [`Bridge::poll`] again.
+    WaitUntil(Instant),
+}
+
+/// What the caller must do next, as [`Action`] without the bytes: they stay in
+/// the bridge ([`Bridge::transmit_bytes`]) instead of being copied out (an
+/// `Action` is 224 bytes, a `Step` 16).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Step {
+    /// Write [`Bridge::transmit_bytes`] to the UART now, then call
+    /// [`Bridge::step`] again.
+    Transmit,
+    /// Wait for received bytes ([`Bridge::handle_rx`]) or until this time, then
+    /// call [`Bridge::step`] again.
     WaitUntil(Instant),
 }
 
@@ -242,8 +255,28 @@ impl Bridge {
         self.s.link_failures = self.link.consecutive_failures();
     }
 
-    /// What to do next at `now`.
+    /// What to do next at `now`, with the bytes to send copied out: as
+    /// [`Bridge::step`] and [`Bridge::transmit_bytes`].
     pub fn poll(&mut self, now: Instant) -> Action {
+        match self.step(now) {
+            Step::Transmit => {
+                let mut bytes = Transmit::new();
+                let _fits = bytes.extend_from_slice(self.transmit_bytes()); // same capacity
+                Action::Transmit(bytes)
+            }
+            Step::WaitUntil(t) => Action::WaitUntil(t),
+        }
+    }
+
+    /// The bytes to write after [`Step::Transmit`] (empty when there is nothing
+    /// to send).
+    pub fn transmit_bytes(&self) -> &[u8] {
+        self.link.transmit().map(|b| b.as_slice()).unwrap_or(&[])
+    }
+
+    /// What to do next at `now`. After [`Step::Transmit`], write
+    /// [`Bridge::transmit_bytes`].
+    pub fn step(&mut self, now: Instant) -> Step {
         self.refresh_link();
         let s = &mut self.s;
         if s.out.link_stats_due(now, &s.config) {
@@ -259,39 +292,44 @@ impl Bridge {
             self.refresh_link();
             match next {
                 Next::Send => {
-                    if let Some(b) = self.link.transmit() {
-                        return Action::Transmit(b.clone());
+                    if self.link.transmit().is_some() {
+                        return Step::Transmit;
                     }
                 }
                 Next::Done => {
                     // Handled where the link keeps it, then dropped.
                     if let Some(c) = self.link.completion() {
-                        self.s.on_completion(now, c);
+                        self.s.on_completion(now, &c);
                     }
                     self.link.clear_completion();
                 }
-                Next::WaitUntil(t) => return Action::WaitUntil(t.min(next_log)),
-                Next::Idle => match self.s.next_request(now) {
-                    Some((req, silence, purpose)) => {
+                Next::WaitUntil(t) => return Step::WaitUntil(t.min(next_log)),
+                // The request is written where the link keeps it.
+                Next::Idle => match self
+                    .link
+                    .request_slot()
+                    .and_then(|slot| self.s.next_request(now, slot))
+                {
+                    Some((silence, purpose)) => {
                         self.s.purpose = purpose;
                         // Pieces (0x09 block reads on a bad line, event slots)
                         // are small: a lost answer is not waited for as long.
                         let piece = matches!(
                             purpose,
                             Purpose::Live | Purpose::Aux(_) | Purpose::EventSlot
-                        ) && matches!(req, Request::ReadIndividual(_));
+                        ) && matches!(self.link.request(), Request::ReadIndividual(_));
                         let timeout = if piece {
                             self.s.config.piece_response_timeout_us
                         } else {
                             self.s.config.response_timeout_us
                         };
-                        self.link.start_with_timeout(now, req, silence, timeout);
+                        self.link.start_written(now, silence, timeout);
                     }
-                    None => return Action::WaitUntil(self.s.next_wake(now).min(next_log)),
+                    None => return Step::WaitUntil(self.s.next_wake(now).min(next_log)),
                 },
             }
         }
-        Action::WaitUntil(now)
+        Step::WaitUntil(now)
     }
 }
 
@@ -362,7 +400,7 @@ impl State {
 
     /// A transaction finished: the link's state first, then the answer goes to
     /// the part its request was for.
-    fn on_completion(&mut self, now: Instant, c: &Completion) {
+    fn on_completion(&mut self, now: Instant, c: &CompletionRef<'_>) {
         let online = self.link_online;
         if self.was_online && !online {
             self.out.push(Report::Offline {
@@ -396,7 +434,7 @@ impl State {
                 || block_read
                 || (limits && (self.sync.limits_unsupported || !self.sync.syncing()));
             if !quiet {
-                self.out.link_error(now, &self.config, &c.request, *f);
+                self.out.link_error(now, &self.config, c.request, *f);
             }
         }
         if !online {
@@ -408,12 +446,15 @@ impl State {
                     let Some(read) = self.schedule.live_read() else {
                         return; // not a live read in progress (any more)
                     };
+                    let published = self.model.telemetry.live_registers.as_ref();
                     // Borrowed where it was assembled: the block is not moved.
-                    if let Some(a) = &on_piece(read, now, &c.result) {
-                        self.schedule.live_done();
-                        if self.model.on_live(now, a, &self.config, &mut self.out) {
-                            self.schedule.next_live = now; // read again at once
-                        }
+                    let again = match &on_piece(read, now, c.result, published) {
+                        Some(a) => self.model.on_live(now, a, &self.config, &mut self.out),
+                        None => return,
+                    };
+                    self.schedule.live_done();
+                    if again {
+                        self.schedule.next_live = now; // read again at once
                     }
                 }
                 _ => {
@@ -423,9 +464,10 @@ impl State {
                 }
             },
             Purpose::Aux(aux) => {
-                let done = match (&c.result, self.schedule.aux_read(aux)) {
+                let done = match (c.result, self.schedule.aux_read(aux)) {
                     (Ok(Response::Registers(_) | Response::Individual(_)), Some(read)) => {
-                        on_piece(read, now, &c.result)
+                        // Kept: the next step replaces the read.
+                        on_piece(read, now, c.result, None).map(|a| a.block.clone())
                     }
                     (_, Some(read)) => {
                         read.on_failure();
@@ -434,16 +476,16 @@ impl State {
                     }
                     (_, None) => None,
                 };
-                if let Some(a) = done {
+                if let Some(block) = done {
                     self.schedule.aux_done();
-                    self.on_aux(now, aux, a.block);
+                    self.on_aux(now, aux, block);
                 }
             }
             Purpose::Limits(option) => {
                 let telemetry = &mut self.model.telemetry;
                 if self
                     .sync
-                    .on_limits(now, option, &c.result, &self.config, telemetry)
+                    .on_limits(now, option, c.result, &self.config, telemetry)
                 {
                     self.on_ready(now);
                 }
@@ -467,7 +509,7 @@ impl State {
                 events::on_slot(
                     &mut self.events,
                     &mut self.known_events,
-                    &c.result,
+                    c.result,
                     &mut self.out,
                 );
                 if self.events.needs_full_read() {

@@ -16,7 +16,7 @@ use protocol_core::response::Response;
 use super::writes::{Effect, JobNext};
 use super::Reports;
 use crate::config::{self, Config};
-use crate::link::{Completion, Failure, Silence};
+use crate::link::{CompletionRef, Failure, Silence};
 use crate::report::Report;
 use crate::Instant;
 
@@ -52,7 +52,7 @@ impl ResetStep {
     pub(super) fn on_reply(
         &mut self,
         now: Instant,
-        c: &Completion,
+        c: &CompletionRef<'_>,
         config: &Config,
         out: &mut Reports,
     ) -> (bool, Option<Effect>) {

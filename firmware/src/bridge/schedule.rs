@@ -33,8 +33,17 @@ use crate::link::{Failure, Silence};
 use crate::reader::{self, Assembled, BlockRead, LineQuality, Mode};
 use crate::Instant;
 
-/// A request, how its silence counts, and what its answer is for.
-pub(super) type Ask = (Request, Silence, Purpose);
+/// How the silence of a request counts, and what its answer is for. The
+/// request itself is written in place, into the link's slot (see
+/// [`State::next_request`]): it is hundreds of bytes.
+pub(super) type Ask = (Silence, Purpose);
+
+/// `*slot = request`, for the requests that are built whole (the block reads'
+/// pieces are written into the slot directly).
+fn ask(slot: &mut Request, request: Request, silence: Silence, purpose: Purpose) -> Ask {
+    *slot = request;
+    (silence, purpose)
+}
 
 /// What a confirmed block read is for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -112,42 +121,37 @@ impl Schedule {
         self.live_active = false;
     }
 
-    /// Starts a live read; `published` are the registers of the published
-    /// snapshot (see [`BlockRead::guard`]).
-    fn start_live(
-        &mut self,
-        now: Instant,
-        config: &Config,
-        published: Option<&RegisterBlock>,
-    ) -> Ask {
+    /// Starts a live read (its guarded pieces are checked against the
+    /// published registers, see [`BlockRead::guard`] and [`on_piece`]).
+    fn start_live(&mut self, now: Instant, config: &Config, slot: &mut Request) -> Ask {
         self.next_live = now.saturating_add(config.live_period_us);
         let window = config.live_assembly_window_us.max(config.live_period_us);
         self.live_read
             .reset(reader::LIVE_SEGMENTS, Mode::Window(window), now);
-        self.live_read.guard(reader::LIVE_GUARDED, published);
+        self.live_read.guard(reader::LIVE_GUARDED);
         self.live_active = true;
         // A new read uses up a turn, it does not start a fresh share: at a live
         // period shorter than a read, live reads follow each other back to back,
         // and the event log and the statistics get their turn every
         // LIVE_SHARE live requests all the same.
         self.live_turns = self.live_turns.saturating_sub(1);
-        self.live_piece(now)
+        self.live_piece(now, slot)
     }
 
-    fn live_piece(&mut self, now: Instant) -> Ask {
+    fn live_piece(&mut self, now: Instant, slot: &mut Request) -> Ask {
         let piece = self.quality.piece();
-        let req = if self.live_active {
-            self.live_read.next_request(now, piece)
+        if self.live_active {
+            self.live_read.request_into(now, piece, slot);
         } else {
-            Request::ReadRegisters {
+            *slot = Request::ReadRegisters {
                 start: 0,
                 count: 56,
-            }
-        };
-        (req, Silence::Failure, Purpose::Live)
+            };
+        }
+        (Silence::Failure, Purpose::Live)
     }
 
-    fn aux_piece(&mut self, now: Instant, aux: Aux) -> Ask {
+    fn aux_piece(&mut self, now: Instant, aux: Aux, slot: &mut Request) -> Ask {
         let piece = self.quality.piece();
         let read = match &mut self.aux_read {
             Some((a, r)) if *a == aux => r,
@@ -164,8 +168,8 @@ impl Schedule {
                     .1
             }
         };
-        let req = read.next_request(now, piece);
-        (req, Silence::Failure, Purpose::Aux(aux))
+        read.request_into(now, piece, slot);
+        (Silence::Failure, Purpose::Aux(aux))
     }
 
     /// The live read, while one is in progress.
@@ -192,15 +196,18 @@ impl Schedule {
     }
 }
 
-/// Hands a piece's reply to its block read.
-pub(super) fn on_piece(
-    read: &mut BlockRead,
+/// Hands a piece's reply to its block read; `published` are the registers of
+/// the published snapshot, what guarded pieces of the live read are believed
+/// against (see [`BlockRead::guard`]).
+pub(super) fn on_piece<'r>(
+    read: &'r mut BlockRead,
     now: Instant,
     result: &Result<Response, Failure>,
-) -> Option<Assembled> {
+    published: Option<&RegisterBlock>,
+) -> Option<Assembled<'r>> {
     match result {
         Ok(Response::Registers(b)) => read.on_block(now, b),
-        Ok(Response::Individual(pairs)) => read.on_pairs(now, pairs),
+        Ok(Response::Individual(pairs)) => read.on_pairs(now, pairs, published),
         _ => None,
     }
 }
@@ -232,8 +239,8 @@ impl State {
         .max(now)
     }
 
-    /// The next request to send at `now`, if any.
-    pub(super) fn next_request(&mut self, now: Instant) -> Option<Ask> {
+    /// The next request to send at `now`, if any, written into `slot`.
+    pub(super) fn next_request(&mut self, now: Instant, slot: &mut Request) -> Option<Ask> {
         if now < self.schedule.hold_until {
             return None;
         }
@@ -242,33 +249,38 @@ impl State {
                 return None;
             }
             self.schedule.next_probe = now.saturating_add(self.config.offline_probe_period_us);
-            return Some((version_request(), Silence::Failure, Purpose::Probe));
+            return Some(ask(
+                slot,
+                version_request(),
+                Silence::Failure,
+                Purpose::Probe,
+            ));
         }
         if let Phase::Sync(step) = self.sync.phase {
             if now < self.sync.retry_at {
                 return None;
             }
             return Some(match step {
-                SyncStep::Version => self.schedule.aux_piece(now, Aux::Version),
-                SyncStep::Settings => self.schedule.aux_piece(now, Aux::Settings),
+                SyncStep::Version => self.schedule.aux_piece(now, Aux::Version, slot),
+                SyncStep::Settings => self.schedule.aux_piece(now, Aux::Settings, slot),
                 // A BMS that does not answer 0x1D is not absent: its other answers
                 // prove it is there, so that silence does not count towards offline.
-                SyncStep::LimitsMin => limits_request(SettingsOption::Min),
-                SyncStep::LimitsMax => limits_request(SettingsOption::Max),
+                SyncStep::LimitsMin => limits_request(SettingsOption::Min, slot),
+                SyncStep::LimitsMax => limits_request(SettingsOption::Max, slot),
             });
         }
-        self.running_request(now)
+        self.running_request(now, slot)
     }
 
     /// Running: what to read next. A live read in progress alternates with a
     /// confirmed read in progress; between them, commands, the event log and the
     /// statistics get their turn before the next live read starts, so that no
     /// live period starves them.
-    fn running_request(&mut self, now: Instant) -> Option<Ask> {
+    fn running_request(&mut self, now: Instant, slot: &mut Request) -> Option<Ask> {
         let live_busy = self.schedule.live_active;
         if live_busy && self.schedule.live_turns > 0 {
             self.schedule.live_turns -= 1;
-            return Some(self.schedule.live_piece(now));
+            return Some(self.schedule.live_piece(now, slot));
         }
         // Between two settings of a group (or before a job starts) a due live
         // read goes first, so a long group does not blind the bridge.
@@ -277,23 +289,23 @@ impl State {
             && self.writes.at_boundary()
             && self.schedule.live_turns > 0
         {
-            return Some(self.start_live(now));
+            return Some(self.start_live(now, slot));
         }
         // From here on, whatever goes out gives the live read its next turns.
         self.schedule.live_turns = config::LIVE_SHARE;
         if let Some((aux, _)) = self.schedule.aux_read {
-            return Some(self.schedule.aux_piece(now, aux));
+            return Some(self.schedule.aux_piece(now, aux, slot));
         }
         if self.sync.settings_stale && self.writes.idle() {
             // Settings are read again after writes before the next command runs.
-            return Some(self.schedule.aux_piece(now, Aux::Settings));
+            return Some(self.schedule.aux_piece(now, Aux::Settings, slot));
         }
         for _ in 0..config::COMMAND_QUEUE + 1 {
             if !self.writes.start_next(&self.model.telemetry, &mut self.out) {
                 break;
             }
             match self.writes.next_request(now, &mut self.out) {
-                JobNext::Send(req, silence) => return Some((req, silence, Purpose::Job)),
+                JobNext::Send(req, silence) => return Some(ask(slot, req, silence, Purpose::Job)),
                 JobNext::Wait => break,
                 JobNext::Finished(effect) => {
                     if let Some(e) = effect {
@@ -301,7 +313,7 @@ impl State {
                     }
                     if self.sync.syncing() || self.sync.settings_stale {
                         // Re-read settings before the next command runs.
-                        return self.next_request(now);
+                        return self.next_request(now, slot);
                     }
                 }
             }
@@ -321,20 +333,26 @@ impl State {
                     .saturating_add(config::FIRST_SNAPSHOT_PRIORITY_US);
         if first_snapshot_pending {
             return Some(if live_busy {
-                self.schedule.live_piece(now)
+                self.schedule.live_piece(now, slot)
             } else {
-                self.start_live(now)
+                self.start_live(now, slot)
             });
         }
         if now >= self.schedule.next_events {
             self.schedule.next_events = now.saturating_add(self.config.events_period_us);
             if self.events.needs_full_read() {
-                if let Some(slot) = self.events.scan_slot() {
-                    return Some((slot_request(slot), Silence::Failure, Purpose::EventSlot));
+                if let Some(event_slot) = self.events.scan_slot() {
+                    return Some(ask(
+                        slot,
+                        slot_request(event_slot),
+                        Silence::Failure,
+                        Purpose::EventSlot,
+                    ));
                 }
-                return Some(self.schedule.aux_piece(now, Aux::Events));
+                return Some(self.schedule.aux_piece(now, Aux::Events, slot));
             }
-            return Some((
+            return Some(ask(
+                slot,
                 Request::ReadNewestEvents,
                 Silence::Failure,
                 Purpose::NewestEvents,
@@ -342,24 +360,23 @@ impl State {
         }
         if now >= self.schedule.next_stats {
             self.schedule.next_stats = now.saturating_add(self.config.stats_period_us);
-            return Some(self.schedule.aux_piece(now, Aux::Stats));
+            return Some(self.schedule.aux_piece(now, Aux::Stats, slot));
         }
         if live_busy {
-            return Some(self.schedule.live_piece(now));
+            return Some(self.schedule.live_piece(now, slot));
         }
         if now >= self.schedule.next_live {
-            return Some(self.start_live(now));
+            return Some(self.start_live(now, slot));
         }
         if let Some((option, t)) = self.sync.limits_due {
             if now >= t && self.writes.idle() {
-                return Some(limits_request(option));
+                return Some(limits_request(option, slot));
             }
         }
         None
     }
 
-    fn start_live(&mut self, now: Instant) -> Ask {
-        let published = self.model.telemetry.live_registers.as_ref();
-        self.schedule.start_live(now, &self.config, published)
+    fn start_live(&mut self, now: Instant, slot: &mut Request) -> Ask {
+        self.schedule.start_live(now, &self.config, slot)
     }
 }

@@ -19,7 +19,7 @@
 use protocol_core::request::{Request, SettingsOption};
 use protocol_core::response::{RegisterBlock, Response};
 
-use super::schedule::Purpose;
+use super::schedule::{Ask, Purpose};
 use super::telemetry::Telemetry;
 use crate::config::Config;
 use crate::link::{Failure, Silence};
@@ -227,10 +227,7 @@ pub(super) fn version_request() -> Request {
 
 /// A 0x1D read of the BMS's own limits. Silence is tolerated: a BMS that does
 /// not answer 0x1D is not absent (its other answers prove it is there).
-pub(super) fn limits_request(option: SettingsOption) -> (Request, Silence, Purpose) {
-    (
-        Request::ReadSettings { option, count: 44 },
-        Silence::Tolerated,
-        Purpose::Limits(option),
-    )
+pub(super) fn limits_request(option: SettingsOption, slot: &mut Request) -> Ask {
+    *slot = Request::ReadSettings { option, count: 44 };
+    (Silence::Tolerated, Purpose::Limits(option))
 }

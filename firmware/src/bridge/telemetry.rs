@@ -158,7 +158,13 @@ impl TelemetryModel {
         config: &Config,
         out: &mut Reports,
     ) -> bool {
-        let Ok(snap) = LiveSnapshot::from_registers(&a.block) else {
+        // Decoded where it stays until published (one copy, into the
+        // telemetry), not moved from function to function.
+        let mut slot = None;
+        let Ok(()) = LiveSnapshot::decode_into(a.block, &mut slot) else {
+            return false;
+        };
+        let Some(snap) = &slot else {
             return false;
         };
         let ctx = checks::Context {
@@ -166,10 +172,10 @@ impl TelemetryModel {
             assembled: a.pieces > 1,
         };
         let at = a.started_at;
-        let statics = checks::check_live(&a.block, &snap, ctx);
+        let statics = checks::check_live(a.block, snap, ctx);
         let jump = match (&self.telemetry.snapshot, self.telemetry.snapshot_at) {
             (Some(p), Some(p_at)) if self.telemetry.ready && self.suspect_base_valid() => {
-                checks::check_jump(p, p_at, &snap, at)
+                checks::check_jump(p, p_at, snap, at)
             }
             _ => Ok(()),
         };
@@ -179,7 +185,7 @@ impl TelemetryModel {
             None if verdict.is_ok() && !first => Some(None),
             None => {
                 self.suspect = Some(Suspect {
-                    snapshot: snap,
+                    snapshot: snap.clone(),
                     at,
                     verdict: statics,
                     tries: 1,
@@ -188,13 +194,13 @@ impl TelemetryModel {
             }
             Some(_) if verdict.is_ok() && !first => Some(None),
             Some(q) => {
-                let agrees = q.verdict == statics
-                    && checks::check_jump(&q.snapshot, q.at, &snap, at).is_ok();
+                let agrees =
+                    q.verdict == statics && checks::check_jump(&q.snapshot, q.at, snap, at).is_ok();
                 if agrees {
                     Some(verdict.err())
                 } else if q.tries < SUSPECT_TRIES {
                     self.suspect = Some(Suspect {
-                        snapshot: snap,
+                        snapshot: snap.clone(),
                         at,
                         verdict: statics,
                         tries: q.tries + 1,
@@ -227,7 +233,7 @@ impl TelemetryModel {
     fn publish(
         &mut self,
         now: Instant,
-        snap: LiveSnapshot,
+        snap: &LiveSnapshot,
         a: &Assembled,
         flag: Option<Check>,
         config: &Config,
@@ -244,10 +250,10 @@ impl TelemetryModel {
             snapshot_log_due(self.next_snapshot_log, now, config.snapshot_log_period_us)
         {
             self.next_snapshot_log = next;
-            out.push(Report::Snapshot(snapshot_line(&snap)));
+            out.push(Report::Snapshot(snapshot_line(snap)));
         }
-        self.telemetry.snapshot = Some(snap);
-        copy_block(&mut self.telemetry.live_registers, &a.block);
+        self.telemetry.snapshot = Some(snap.clone());
+        copy_block(&mut self.telemetry.live_registers, a.block);
         self.telemetry.live = LiveMeta {
             pieces: a.pieces,
             span_us: a.span_us.min(u64::from(u32::MAX)) as u32,

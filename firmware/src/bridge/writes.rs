@@ -25,7 +25,7 @@ use super::reset::ResetStep;
 use super::telemetry::Telemetry;
 use super::{Command, Reports};
 use crate::config::{self, Config};
-use crate::link::{Completion, Failure, Silence};
+use crate::link::{CompletionRef, Failure, Silence};
 use crate::report::{Report, WriteOutcome};
 use crate::Instant;
 
@@ -323,7 +323,7 @@ impl Writes {
     pub(super) fn on_reply(
         &mut self,
         now: Instant,
-        c: &Completion,
+        c: &CompletionRef<'_>,
         config: &Config,
         out: &mut Reports,
     ) -> Option<Effect> {

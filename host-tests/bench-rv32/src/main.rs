@@ -11,7 +11,8 @@
 //! 4. `summary`  as `typed` + the snapshot's log summary line;
 //! 5. `bridge`   the whole `Bridge` replaying the recorded 40 s trace
 //!    (`trace.bin`, from `cargo run -p host-tests --bin bench-trace`): every
-//!    `poll` and `handle_rx` call the host made, every answer compared;
+//!    `poll` and `handle_rx` call the host made, every answer compared (as
+//!    `Bridge::step` + `Bridge::transmit_bytes`, what `poll` wraps);
 //! 6. `parse`    the same walk over the trace without the bridge (the replay's own
 //!    cost, subtracted by the runner).
 #![no_std]
@@ -26,7 +27,7 @@ use protocol_core::response::Response;
 use protocol_core::views::LiveSnapshot;
 use tinybms_firmware::bridge::snapshot_line;
 use tinybms_firmware::config::Config;
-use tinybms_firmware::{Action, Bridge};
+use tinybms_firmware::{Action, Bridge, Step};
 
 static TRACE: &[u8] = include_bytes!("../trace.bin");
 
@@ -123,8 +124,11 @@ fn decode_frame(decoder: &mut Decoder, reply: &[u8]) -> bool {
     loop {
         let n = decoder.push(input);
         input = input.get(n..).unwrap_or(&[]);
-        while let Some(item) = &decoder.poll() {
-            ok |= black_box(item).is_ok();
+        let mut item = None;
+        loop {
+            decoder.poll_into(&mut item);
+            let Some(it) = &item else { break };
+            ok |= black_box(it).is_ok();
         }
         if input.is_empty() {
             break;
@@ -141,8 +145,11 @@ fn decode_typed(decoder: &mut Decoder, request: &Request, reply: &[u8]) -> Optio
     loop {
         let n = decoder.push(input);
         input = input.get(n..).unwrap_or(&[]);
-        while let Some(item) = &decoder.poll() {
-            if let Ok(frame) = item {
+        let mut item = None;
+        loop {
+            decoder.poll_into(&mut item);
+            let Some(it) = &item else { break };
+            if let Ok(frame) = it {
                 if let Ok(Response::Registers(block)) = &Response::decode(request, frame) {
                     out = LiveSnapshot::from_registers(block).ok();
                 }
@@ -183,17 +190,17 @@ fn replay(body: &mut Cursor<'_>) -> Replay {
                     r.malformed = true;
                     break;
                 };
-                let action = bridge.poll(now);
+                let step = bridge.step(now);
                 r.polls += 1;
                 let same = match kind {
                     b'T' => {
                         let n = body.u8().unwrap_or(0) as usize;
                         let expected = body.take(n).unwrap_or(&[]);
-                        matches!(&action, Action::Transmit(b) if b.as_slice() == expected)
+                        step == Step::Transmit && bridge.transmit_bytes() == expected
                     }
                     b'W' => {
                         let t = body.u64().unwrap_or(u64::MAX);
-                        action == Action::WaitUntil(t)
+                        step == Step::WaitUntil(t)
                     }
                     _ => {
                         r.malformed = true;
@@ -341,6 +348,7 @@ pub extern "C" fn _start() -> ! {
         core::mem::size_of::<tinybms_firmware::link::Completion>() as u64,
     );
     put("action_bytes", core::mem::size_of::<Action>() as u64);
+    put("step_bytes", core::mem::size_of::<Step>() as u64);
     if r.malformed {
         write(b"bench-rv32: trace.bin: malformed\n");
         exit(2);
