@@ -153,6 +153,38 @@ fn missing_port_lists_the_ports() {
     );
 }
 
+/// A user without access to the port (here: `nobody`, through `setpriv`, on a
+/// pty slave that is `crw--w----` root:tty) gets the sentence on how to get it.
+/// Needs root to switch users; the CI machine runs as root.
+#[test]
+fn permission_denied_explains_access() {
+    // SAFETY: geteuid has no preconditions.
+    let root = unsafe { libc::geteuid() } == 0;
+    let setpriv = std::path::Path::new("/usr/bin/setpriv");
+    if !root || !setpriv.exists() {
+        eprintln!("skipped: needs root and /usr/bin/setpriv to run the tool as another user");
+        return;
+    }
+    let sim = Sim::start(&["--pty"]);
+    // A copy `nobody` may execute wherever the target directory is.
+    let bin = tmp("tinybms-for-nobody");
+    std::fs::copy(env!("CARGO_BIN_EXE_tinybms"), &bin).unwrap();
+    let out = Command::new(setpriv)
+        .args(["--reuid=65534", "--regid=65534", "--clear-groups"])
+        .arg(&bin)
+        .args(["version", &sim.path])
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{stderr}");
+    assert!(
+        stderr.contains(&format!("permission denied on `{}`", sim.path)),
+        "{stderr}"
+    );
+    assert!(stderr.contains("dialout"), "{stderr}");
+}
+
 #[test]
 fn usage_errors_exit_2() {
     let o = tinybms(&["frobnicate"]);
