@@ -185,6 +185,41 @@ fn permission_denied_explains_access() {
     assert!(stderr.contains("dialout"), "{stderr}");
 }
 
+/// A port another program holds (opened exclusively, as `serialport` and most
+/// serial monitors do) is named as such. The holder is root here, so the tool
+/// runs as `nobody` (root ignores the exclusive flag); the pty is made
+/// world-writable so that permissions are not what stops it.
+#[test]
+fn port_held_by_another_program_is_named() {
+    // SAFETY: geteuid has no preconditions.
+    let root = unsafe { libc::geteuid() } == 0;
+    let setpriv = std::path::Path::new("/usr/bin/setpriv");
+    if !root || !setpriv.exists() {
+        eprintln!("skipped: needs root and /usr/bin/setpriv to run the tool as another user");
+        return;
+    }
+    use std::os::unix::fs::PermissionsExt;
+    let sim = Sim::start(&["--pty"]);
+    std::fs::set_permissions(&sim.path, std::fs::Permissions::from_mode(0o666)).unwrap();
+    let holder = serialport::new(&sim.path, 115_200).open().unwrap();
+    let bin = tmp("tinybms-for-nobody-2");
+    std::fs::copy(env!("CARGO_BIN_EXE_tinybms"), &bin).unwrap();
+    let out = Command::new(setpriv)
+        .args(["--reuid=65534", "--regid=65534", "--clear-groups"])
+        .arg(&bin)
+        .args(["version", &sim.path])
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    drop(holder);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{stderr}");
+    assert!(
+        stderr.contains(&format!("`{}` is in use by another program", sim.path)),
+        "{stderr}"
+    );
+}
+
 #[test]
 fn usage_errors_exit_2() {
     let o = tinybms(&["frobnicate"]);
