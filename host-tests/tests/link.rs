@@ -315,3 +315,65 @@ fn a_wrong_length_answer_waits_for_the_deadline_before_retrying() {
     assert!(matches!(link.step(3_000), LinkStep::Done(c) if c.result.is_ok() && c.sends == 1));
     assert_eq!(link.stats().invalid_replies, 1);
 }
+
+#[test]
+fn a_reply_found_at_the_deadline_is_not_seen_again_by_the_next_request() {
+    // The reply hides behind a header that claims a longer frame: it is found
+    // only when the deadline cuts that candidate off, and then lent from the
+    // decoder's buffer. The next transaction (same request) must not take it
+    // again for its own answer.
+    let req = Request::read_registers(0, 2).unwrap();
+    let mut hidden = vec![0xAA, 0x03, 0x0A];
+    hidden.extend(live_reply());
+    let mut link = Link::new(Config::default());
+    let mut now = 0u64;
+    link.start(now, req.clone(), Silence::Failure);
+    let mut first = None;
+    for _ in 0..20 {
+        match link.step(now) {
+            LinkStep::Send(_) => {
+                now += 2_000;
+                link.on_bytes(now, &hidden);
+            }
+            LinkStep::WaitUntil(t) => now = t,
+            LinkStep::Done(c) => {
+                first = Some(c);
+                break;
+            }
+            LinkStep::Idle => panic!("idle before done"),
+        }
+    }
+    let first = first.unwrap();
+    assert!(
+        matches!(&first.result, Ok(Response::Registers(b)) if b.values[..] == [33000, 33010]),
+        "{first:?}"
+    );
+    assert_eq!(first.sends, 1);
+    // Second transaction: the BMS answers other values.
+    let fresh = {
+        let resp = Response::Registers(protocol_core::response::RegisterBlock {
+            start: 0,
+            values: heapless::Vec::from_slice(&[1, 2]).unwrap(),
+        });
+        encode(&resp.to_frame(&req).unwrap())
+    };
+    link.start(now, req, Silence::Failure);
+    for _ in 0..20 {
+        match link.step(now) {
+            LinkStep::Send(_) => {
+                now += 2_000;
+                link.on_bytes(now, &fresh);
+            }
+            LinkStep::WaitUntil(t) => now = t,
+            LinkStep::Done(c) => {
+                assert!(
+                    matches!(&c.result, Ok(Response::Registers(b)) if b.values[..] == [1, 2]),
+                    "{c:?}"
+                );
+                return;
+            }
+            LinkStep::Idle => panic!("idle before done"),
+        }
+    }
+    panic!("no completion");
+}

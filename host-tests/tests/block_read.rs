@@ -1,0 +1,251 @@
+//! Block reads whose assembled block is lent in place and whose next pass
+//! starts at the next request (the deferred restart): a new pass never keeps a
+//! value of the previous one.
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    clippy::indexing_slicing
+)]
+
+use protocol_core::request::Request;
+use protocol_core::response::{RegisterBlock, Words};
+use tinybms_firmware::reader::{self, BlockRead, Mode, PIECE_REGISTERS};
+
+/// Answers `request` (as the piece in flight of `read`) with `value(address)`;
+/// returns the assembled block, if the read completed.
+fn answer(
+    read: &mut BlockRead,
+    now: u64,
+    request: &Request,
+    value: impl Fn(u16) -> u16,
+) -> Option<RegisterBlock> {
+    match request {
+        Request::ReadRegisters { start, count } => {
+            let values: Words = (*start..*start + u16::from(*count)).map(&value).collect();
+            let reply = RegisterBlock {
+                start: *start,
+                values,
+            };
+            read.on_block(now, &reply).map(|a| a.block.clone())
+        }
+        Request::ReadIndividual(addresses) => {
+            let pairs: Vec<(u16, u16)> = addresses.iter().map(|&a| (a, value(a))).collect();
+            read.on_pairs(now, &pairs, None).map(|a| a.block.clone())
+        }
+        other => panic!("unexpected request {other:?}"),
+    }
+}
+
+/// One complete pass at `piece` registers per request: the requests sent and
+/// the assembled block, if the read completed.
+fn pass(
+    read: &mut BlockRead,
+    now: &mut u64,
+    piece: u16,
+    value: impl Fn(u16) -> u16,
+) -> (Vec<Request>, Option<RegisterBlock>) {
+    let mut sent = Vec::new();
+    for _ in 0..64 {
+        *now += 1_000;
+        let req = read.next_request(*now, piece);
+        sent.push(req.clone());
+        let done = answer(read, *now, &req, &value);
+        // The pass is over once its last piece is stored.
+        let last = match &req {
+            Request::ReadRegisters { start, count } => start + u16::from(*count) - 1,
+            Request::ReadIndividual(a) => *a.last().unwrap(),
+            _ => unreachable!(),
+        };
+        if done.is_some() || last == 343 || last == 55 {
+            return (sent, done);
+        }
+    }
+    panic!("the pass never ended: {sent:?}");
+}
+
+#[test]
+fn a_confirmed_pass_is_read_afresh_and_never_mixed_with_the_previous_one() {
+    let mut now = 0;
+    let mut read = BlockRead::new(reader::SETTINGS_SEGMENTS, Mode::Confirmed, now);
+    let piece = PIECE_REGISTERS[2];
+    let a = |addr: u16| addr;
+    let b = |addr: u16| addr + 1000;
+    // Pass 1: nothing to compare with yet.
+    let (sent, done) = pass(&mut read, &mut now, piece, a);
+    assert!(done.is_none());
+    assert!(sent.len() > 2, "read in pieces: {sent:?}");
+    // Pass 2 starts again at the first register, not at the last piece.
+    let (sent, done) = pass(&mut read, &mut now, piece, b);
+    assert!(
+        matches!(&sent[0], Request::ReadIndividual(a) if a[0] == 300),
+        "{:?}",
+        sent[0]
+    );
+    assert!(done.is_none(), "differs from pass 1: not confirmed");
+    // Pass 3 agrees with pass 2: confirmed, every value from these two passes.
+    let (_, done) = pass(&mut read, &mut now, piece, b);
+    let block = done.expect("two identical passes");
+    assert_eq!(block.start, 300);
+    assert_eq!(block.values.len(), 44);
+    for (addr, v) in block.iter() {
+        assert_eq!(v, b(addr), "register {addr}");
+    }
+    assert_eq!(read.passes(), 3);
+}
+
+#[test]
+fn a_pass_after_a_change_of_piece_size_keeps_nothing_of_the_previous_pass() {
+    // A whole-span 0x03 pass holds whatever the BMS sends for the reserved
+    // registers 16-31; a later pass in 0x09 pieces skips them, so they must
+    // read 0 again, not the previous pass's values.
+    let mut now = 0;
+    let mut read = BlockRead::new(reader::LIVE_SEGMENTS, Mode::Window(10_000_000), now);
+    let (sent, done) = pass(&mut read, &mut now, PIECE_REGISTERS[0], |a| 0x7700 + a);
+    assert_eq!(sent.len(), 1);
+    let whole = done.expect("one request, one block");
+    assert_eq!(whole.get(20), Some(0x7700 + 20));
+    let (sent, done) = pass(&mut read, &mut now, PIECE_REGISTERS[1], |a| 100 + a);
+    assert!(sent.len() > 1);
+    let block = done.expect("complete");
+    for (addr, v) in block.iter() {
+        let want = if (16..=31).contains(&addr) {
+            0
+        } else {
+            100 + addr
+        };
+        assert_eq!(v, want, "register {addr}");
+    }
+}
+
+#[test]
+fn a_late_reply_after_a_complete_pass_is_not_stored() {
+    // Between the end of a pass and the next request the block is lent out
+    // unchanged: a reply arriving then (no piece in flight) changes nothing.
+    let mut now = 0;
+    let mut read = BlockRead::new(reader::LIVE_SEGMENTS, Mode::Window(10_000_000), now);
+    let (_, done) = pass(&mut read, &mut now, PIECE_REGISTERS[0], |a| a);
+    assert!(done.is_some());
+    let stale = RegisterBlock {
+        start: 0,
+        values: (0..56u16).map(|a| a + 9).collect(),
+    };
+    assert!(read.on_block(now, &stale).is_none());
+    assert!(read.on_pairs(now, &[(0, 1), (1, 2)], None).is_none());
+    // The next pass is read afresh.
+    let (_, done) = pass(&mut read, &mut now, PIECE_REGISTERS[0], |a| a + 3);
+    let block = done.unwrap();
+    assert!(block.iter().all(|(a, v)| v == a + 3));
+}
+
+/// One step of a random block read: the next request at a piece size, and what
+/// happens to it.
+#[derive(Debug, Clone)]
+enum Op {
+    /// Answered with the values of the pass (`stable`) or with fresh ones.
+    Answer { level: usize, stable: bool },
+    /// Lost: [`BlockRead::on_failure`].
+    Fail { level: usize },
+    /// Answered by a reply for another piece (refused).
+    Stale { level: usize },
+    /// Time passes (a window read may start over).
+    Wait(u64),
+}
+
+fn op() -> impl Strategy<Value = Op> {
+    prop_oneof![
+        6 => (0..4usize, any::<bool>()).prop_map(|(level, stable)| Op::Answer { level, stable }),
+        1 => (0..4usize).prop_map(|level| Op::Fail { level }),
+        1 => (0..4usize).prop_map(|level| Op::Stale { level }),
+        1 => (0..3_000_000u64).prop_map(Op::Wait),
+    ]
+}
+
+use proptest::prelude::*;
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 512, .. ProptestConfig::default() })]
+
+    /// Whatever the order of piece sizes, failures, refused replies and
+    /// restarts, an assembled block holds exactly the values stored in its own
+    /// pass (reserved gaps 0): never a value of an earlier pass.
+    #[test]
+    fn an_assembled_block_holds_only_its_own_pass(
+        which in 0..4usize,
+        window in any::<bool>(),
+        ops in prop::collection::vec(op(), 1..200),
+    ) {
+        let segments = [
+            reader::LIVE_SEGMENTS,
+            reader::SETTINGS_SEGMENTS,
+            reader::STATS_SEGMENTS,
+            reader::EVENTS_SEGMENTS,
+        ][which];
+        let mode = if window { Mode::Window(1_000_000) } else { Mode::Confirmed };
+        let mut now = 0u64;
+        let mut read = BlockRead::new(segments, mode, now);
+        let first = segments[0].0;
+        let last = segments[segments.len() - 1].1;
+        let mut fresh = 1u16;
+        // What this pass stored so far.
+        let mut pass: std::collections::BTreeMap<u16, u16> = Default::default();
+        let mut previous_complete: Option<Vec<u16>> = None;
+        for op in ops {
+            now += 500;
+            let level = match op {
+                Op::Wait(t) => {
+                    now += t;
+                    continue;
+                }
+                Op::Answer { level, .. } | Op::Fail { level } | Op::Stale { level } => level,
+            };
+            let req = read.next_request(now, PIECE_REGISTERS[level]);
+            let addresses: Vec<u16> = match &req {
+                Request::ReadRegisters { start, count } => (*start..*start + u16::from(*count)).collect(),
+                Request::ReadIndividual(a) => a.to_vec(),
+                other => panic!("{other:?}"),
+            };
+            if addresses[0] == first {
+                pass.clear(); // a pass starts (or its first piece is asked again)
+            }
+            match op {
+                Op::Fail { .. } => read.on_failure(),
+                Op::Stale { .. } => {
+                    let shifted = RegisterBlock {
+                        start: addresses[0].wrapping_add(1),
+                        values: addresses.iter().map(|_| 0xDEAD).collect(),
+                    };
+                    prop_assert!(read.on_block(now, &shifted).is_none());
+                }
+                Op::Answer { stable, .. } => {
+                    let value = |a: u16| if stable { a ^ 0x5A5A } else { fresh.wrapping_add(a) };
+                    let done = answer(&mut read, now, &req, value);
+                    for &a in &addresses {
+                        pass.insert(a, value(a));
+                    }
+                    fresh = fresh.wrapping_add(1000);
+                    if let Some(block) = done {
+                        prop_assert_eq!(block.start, first);
+                        prop_assert_eq!(usize::from(last - first) + 1, block.values.len());
+                        for (a, v) in block.iter() {
+                            prop_assert_eq!(v, pass.get(&a).copied().unwrap_or(0), "register {}", a);
+                        }
+                        if !window {
+                            // Confirmed: two complete passes agreed.
+                            prop_assert_eq!(previous_complete.as_deref(), Some(&block.values[..]));
+                        }
+                    }
+                    if addresses.last() == Some(&last) {
+                        // The pass is complete (confirmed or not).
+                        let mut v = vec![0u16; usize::from(last - first) + 1];
+                        for (a, x) in &pass {
+                            v[usize::from(a - first)] = *x;
+                        }
+                        previous_complete = Some(v);
+                    }
+                }
+                Op::Wait(_) => unreachable!(),
+            }
+        }
+    }
+}
