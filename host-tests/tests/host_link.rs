@@ -1119,3 +1119,45 @@ proptest! {
         }
     }
 }
+
+/// What a host leaves behind (a capture left on, its own stream period) ends
+/// when the next one connects or says hello: a killed or unplugged tool leaves
+/// no trace in the next session.
+#[test]
+fn hello_and_connect_start_a_clean_session() {
+    for reconnect in ["hello", "connect"] {
+        let mut r = Rig::ready(config(false, 1000));
+        r.line(r#"{"cmd":"stream","period_ms":200}"#);
+        r.line(r#"{"cmd":"capture","on":true}"#);
+        let out = r.run_reading(2 * SECOND);
+        assert!((8..=11).contains(&of_type(&out, "telemetry").len()));
+        // (The rig does not pass UART bytes on: the shell's calls, by hand.)
+        r.link
+            .on_uart_tx(&[0xAA, 0x03, 0x00, 0x00, 0x00, 0x38, 0x0D, 0xD7]);
+        assert_eq!(of_type(&r.drain(), "raw").len(), 1);
+        assert!(r.link.capturing());
+        // The tool is killed here; the next one comes.
+        match reconnect {
+            "hello" => r.line(r#"{"cmd":"hello","req":1}"#),
+            _ => r.link.connected(r.h.now),
+        }
+        let hello = r.drain();
+        let hello = of_type(&hello, "hello");
+        assert_eq!(hello.len(), 1);
+        assert_eq!(hello[0]["stream_period_ms"], 1000);
+        r.link
+            .on_uart_tx(&[0xAA, 0x03, 0x00, 0x00, 0x00, 0x38, 0x0D, 0xD7]);
+        let out = r.run_reading(5 * SECOND);
+        assert!(
+            of_type(&out, "raw").is_empty(),
+            "{reconnect}: capture still on"
+        );
+        let tel = of_type(&out, "telemetry").len();
+        assert!(
+            (4..=6).contains(&tel),
+            "{reconnect}: {tel} telemetry lines in 5 s"
+        );
+        assert_eq!(r.link.stream_period_ms(), 1000);
+        assert!(!r.link.capturing());
+    }
+}

@@ -247,14 +247,20 @@ fn subject(s: &str) -> String<SUBJECT_MAX> {
     out
 }
 
+/// The configured stream period, within the range a `stream` command may ask
+/// for (0: off).
+fn configured_period(config: &HostLinkConfig) -> u32 {
+    match config.stream_period_ms {
+        0 => 0,
+        p => p.clamp(command::STREAM_PERIOD_MS.0, command::STREAM_PERIOD_MS.1),
+    }
+}
+
 impl HostLink {
     /// A host link at time `now`. Nothing is queued until [`HostLink::connected`]
     /// or a command.
     pub fn new(config: HostLinkConfig, now: Instant) -> Self {
-        let period = match config.stream_period_ms {
-            0 => 0,
-            p => p.clamp(command::STREAM_PERIOD_MS.0, command::STREAM_PERIOD_MS.1),
-        };
+        let period = configured_period(&config);
         Self {
             lines: LineAssembler::new(),
             s: State {
@@ -275,7 +281,8 @@ impl HostLink {
     }
 
     /// The host opened the port (or may have): a `hello` line goes first.
-    pub fn connected(&mut self, _now: Instant) {
+    pub fn connected(&mut self, now: Instant) {
+        self.s.new_session(now);
         if self.s.queue.push_front(Out::Hello(None)).is_err() {
             self.s.stats.dropped_lines = self.s.stats.dropped_lines.wrapping_add(1);
         }
@@ -447,6 +454,17 @@ impl State {
         });
     }
 
+    /// A host (re)connected or said `hello`: whatever an earlier host left
+    /// behind — a capture left on, a stream period it asked for — ends, so a
+    /// tool that was killed or unplugged leaves no trace in the next session.
+    fn new_session(&mut self, now: Instant) {
+        self.capture = false;
+        self.raw.clear();
+        let period = configured_period(&self.config);
+        self.stream_period_ms = period;
+        self.next_stream = (period > 0).then(|| now.saturating_add(ms(period)));
+    }
+
     fn capture_bytes(&mut self, dir: Dir, bytes: &[u8]) {
         if !self.capture {
             return;
@@ -480,7 +498,10 @@ impl State {
             return self.error(req, ErrorCode::ReadOnly, "host writes are switched off", "");
         }
         match parsed.command {
-            HostCommand::Hello => self.push(Out::Hello(req)),
+            HostCommand::Hello => {
+                self.new_session(now);
+                self.push(Out::Hello(req));
+            }
             HostCommand::Get(what) => self.get(req, what, bridge),
             HostCommand::Set(values) => self.set(req, &values, bridge),
             HostCommand::Reset => {
