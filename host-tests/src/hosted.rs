@@ -229,9 +229,7 @@ pub fn serve_bridge_pty(
     stop: &AtomicBool,
     out: &mut dyn Write,
 ) -> io::Result<()> {
-    let pty = Pty::open()?;
-    writeln!(out, "{}", pty.path().display())?;
-    out.flush()?;
+    let pty = Pty::open_announced(out)?;
     let host = HostLinkConfig {
         read_only: o.read_only,
         stream_period_ms: o.stream_period_ms,

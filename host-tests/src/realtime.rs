@@ -348,9 +348,7 @@ pub fn serve_sim_pty(
     stop: &AtomicBool,
     out: &mut dyn Write,
 ) -> io::Result<()> {
-    let pty = Pty::open()?;
-    writeln!(out, "{}", pty.path().display())?;
-    out.flush()?;
+    let pty = Pty::open_announced(out)?;
     let clock = Clock::start();
     let end = duration.map(|d| d.as_micros() as u64);
     let mut buf = [0u8; 512];

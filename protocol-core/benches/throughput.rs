@@ -246,44 +246,30 @@ fn ratio_report() {
         "  {:<22} {:>6} {:>12} {:>12} {:>8}",
         "stream", "chunk", "decoder MB/s", "CRC MB/s", "ratio"
     );
-    for (name, stream, frames) in [
-        ("poll stream (5 % noise)", &poll, poll_frames),
-        ("0x03 live replies", &live, EXCHANGES),
-    ] {
-        for chunk in [1usize, 16, 64, 256] {
-            assert_eq!(decode_chunked(stream, chunk), frames);
-            let (dec, crc) = best_of_alternating(
-                30,
-                || {
-                    black_box(decode_chunked(black_box(stream), chunk));
-                },
-                || {
-                    black_box(crc_chunked(black_box(stream), chunk));
-                },
-            );
-            let mbs = |t: f64| stream.len() as f64 / t / 1e6;
-            println!(
-                "  {:<22} {:>6} {:>12.1} {:>12.1} {:>7.2}x",
-                name,
-                chunk,
-                mbs(dec),
-                mbs(crc),
-                crc / dec
-            );
-        }
-    }
+    let streams = [
+        ("poll stream (5 % noise)", poll.as_slice(), poll_frames),
+        ("0x03 live replies", live.as_slice(), EXCHANGES),
+    ];
+    ratio_table(&streams, &[1, 16, 64, 256], decode_chunked);
     println!("  (ratio = decoder throughput / CRC-only throughput; goal >= 0.80x at 16-byte chunks and above)");
     println!("through Decoder::feed instead (frames handed over owned, payload copied out):");
-    for (name, stream, frames) in [
-        ("poll stream (5 % noise)", &poll, poll_frames),
-        ("0x03 live replies", &live, EXCHANGES),
-    ] {
-        for chunk in [16usize, 64] {
-            assert_eq!(feed_chunked(stream, chunk), frames);
+    ratio_table(&streams, &[16, 64], feed_chunked);
+}
+
+/// One table: for each stream and chunk size, `decode` against the CRC alone on
+/// the same bytes (the frame count checked first).
+fn ratio_table(
+    streams: &[(&str, &[u8], usize)],
+    chunks: &[usize],
+    decode: fn(&[u8], usize) -> usize,
+) {
+    for &(name, stream, frames) in streams {
+        for &chunk in chunks {
+            assert_eq!(decode(stream, chunk), frames);
             let (dec, crc) = best_of_alternating(
                 30,
                 || {
-                    black_box(feed_chunked(black_box(stream), chunk));
+                    black_box(decode(black_box(stream), chunk));
                 },
                 || {
                     black_box(crc_chunked(black_box(stream), chunk));

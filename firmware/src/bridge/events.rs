@@ -38,7 +38,7 @@ impl KnownEvents {
     }
     /// The `i`-th kept event, oldest first.
     pub fn get(&self, i: usize) -> Option<&Event> {
-        self.list.iter().nth(i)
+        self.list.get(i)
     }
     /// Events kept.
     pub fn len(&self) -> usize {

@@ -261,12 +261,12 @@ impl HostLink {
     /// or a command.
     pub fn new(config: HostLinkConfig, now: Instant) -> Self {
         let period = configured_period(&config);
-        Self {
+        let mut link = Self {
             lines: LineAssembler::new(),
             s: State {
                 config,
-                stream_period_ms: period,
-                next_stream: (period > 0).then(|| now.saturating_add(ms(period))),
+                stream_period_ms: 0,
+                next_stream: None,
                 stream_due: false,
                 capture: false,
                 queue: Deque::new(),
@@ -277,7 +277,9 @@ impl HostLink {
                 clears: Vec::new(),
                 stats: HostLinkStats::default(),
             },
-        }
+        };
+        link.s.set_stream(now, period);
+        link
     }
 
     /// The host opened the port (or may have): a `hello` line goes first.
@@ -460,7 +462,11 @@ impl State {
     fn new_session(&mut self, now: Instant) {
         self.capture = false;
         self.raw.clear();
-        let period = configured_period(&self.config);
+        self.set_stream(now, configured_period(&self.config));
+    }
+
+    /// Streams telemetry every `period` ms from `now` (0: off).
+    fn set_stream(&mut self, now: Instant, period: u32) {
         self.stream_period_ms = period;
         self.next_stream = (period > 0).then(|| now.saturating_add(ms(period)));
     }
@@ -529,8 +535,7 @@ impl State {
                 self.push(Out::Accepted(req, "clear"));
             }
             HostCommand::Stream(period) => {
-                self.stream_period_ms = period;
-                self.next_stream = (period > 0).then(|| now.saturating_add(ms(period)));
+                self.set_stream(now, period);
                 self.push(Out::Accepted(req, "stream"));
             }
             HostCommand::Capture(on) => {

@@ -5,6 +5,7 @@
 use protocol_core::registers::option_name;
 use protocol_core::settings::SettingId;
 use serde_json::Value;
+use tinybms_firmware::host_link::encode;
 
 use crate::profile::{find_setting, snake_name};
 
@@ -29,9 +30,15 @@ pub fn physical(id: SettingId, raw: i64) -> String {
                     return format!("{name} ({raw})");
                 }
             }
-            // The f32 scale's shortest decimal form (0.01, not 0.0099999998).
-            let scale: f64 = r.scale.to_string().parse().unwrap_or(f64::from(r.scale));
-            let v = raw as f64 * scale;
+            // The bridge's own conversion (exact fixed point, as the protocol
+            // prints it).
+            let Some(v) = i32::try_from(raw)
+                .ok()
+                .and_then(|raw| encode::physical(id, raw))
+                .map(encode::Dec::as_f64)
+            else {
+                return raw.to_string();
+            };
             if r.unit.is_empty() {
                 short(v)
             } else {

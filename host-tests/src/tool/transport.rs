@@ -146,11 +146,7 @@ impl Lines for SerialLines {
             match self.port.read(&mut buf) {
                 Ok(0) => std::thread::sleep(Duration::from_millis(5)),
                 Ok(n) => self.split.push(&buf[..n]),
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        std::io::ErrorKind::TimedOut | std::io::ErrorKind::Interrupted
-                    ) => {}
+                Err(e) if quiet(&e) => {}
                 Err(e) => return Err(io_error("reading from the port", e)),
             }
         }
@@ -288,11 +284,7 @@ pub fn probe(
                 split.push(&buf[..n]);
             }
             Ok(_) => {}
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    std::io::ErrorKind::TimedOut | std::io::ErrorKind::Interrupted
-                ) => {}
+            Err(e) if quiet(&e) => {}
             Err(e) => return Err(io_error("reading from the port", e)),
         }
         while let Some(line) = split.next_line() {
@@ -322,4 +314,12 @@ fn not_a_tty_device(path: &str) -> bool {
         let _ = path;
         false
     }
+}
+
+/// A read that timed out or was interrupted: nothing came, nothing is wrong.
+fn quiet(e: &std::io::Error) -> bool {
+    matches!(
+        e.kind(),
+        std::io::ErrorKind::TimedOut | std::io::ErrorKind::Interrupted
+    )
 }
