@@ -357,6 +357,10 @@ async fn bridge_task(
         next_log: Instant::now(),
     };
 
+    // When the host link's timers want it called again (set at the end of every
+    // pass, after whatever the pass changed).
+    let mut host_due = host.poll(now_us(), &bridge);
+
     loop {
         wdt.feed();
         match bridge.step(now_us()) {
@@ -388,7 +392,7 @@ async fn bridge_task(
                 }
             }
             Step::WaitUntil(t) => {
-                let t = t.min(host.poll(now_us(), &bridge));
+                let t = t.min(host_due);
                 let deadline = Instant::from_micros(t).min(Instant::now() + MAX_WAIT);
                 // `read_async` and `Pipe::read` are cancellation-safe: racing them
                 // against a timer loses nothing.
@@ -435,7 +439,7 @@ async fn bridge_task(
         if HOST_CONNECTED.try_take().is_some() {
             host.connected(now_us());
         }
-        host.poll(now_us(), &bridge);
+        host_due = host.poll(now_us(), &bridge);
         while HOST_TX.free_capacity() >= OUT_LINE_MAX {
             let Some(n) = host.next_line(now_us(), &bridge, &mut line) else {
                 break;
