@@ -142,18 +142,23 @@ pub fn check_live(block: &RegisterBlock, s: &LiveSnapshot, ctx: Context) -> Resu
         }
     }
     // Unused inputs read 0: every non-zero cell register is inside the block.
-    let first = u16::from(s.cells.first_register);
-    let last = first + s.cell_count.min(MAX_CELLS as u16);
-    for a in 0..MAX_CELLS as u16 {
-        if !(first..last).contains(&a) && block.get(a).unwrap_or(0) != 0 {
-            return Err(Check::CellOutsideBlock);
-        }
+    let first = usize::from(s.cells.first_register);
+    let last = first + usize::from(s.cell_count).min(MAX_CELLS);
+    if any_nonzero(block, 0, first) || any_nonzero(block, last, MAX_CELLS) {
+        return Err(Check::CellOutsideBlock);
     }
-    if s.cells
-        .raw
-        .iter()
-        .any(|&c| !(CELL_MIN_RAW..=CELL_MAX_RAW).contains(&c))
-    {
+    // One pass over the cells: lowest, highest, sum; every cell is in range
+    // when the lowest and the highest are.
+    let (Some(&c0), Some(rest)) = (s.cells.raw.first(), s.cells.raw.get(1..)) else {
+        return Err(Check::CellCount);
+    };
+    let (mut lo, mut hi, mut sum) = (c0, c0, u32::from(c0));
+    for &c in rest {
+        lo = lo.min(c);
+        hi = hi.max(c);
+        sum += u32::from(c);
+    }
+    if lo < CELL_MIN_RAW || hi > CELL_MAX_RAW {
         return Err(Check::CellVoltage);
     }
     // Registers 40/41 against the cells.
@@ -162,14 +167,11 @@ pub fn check_live(block: &RegisterBlock, s: &LiveSnapshot, ctx: Context) -> Resu
     } else {
         MIN_MAX_TOLERANCE_MV
     };
-    let (Some((_, lo)), Some((_, hi))) = (s.cells.min(), s.cells.max()) else {
-        return Err(Check::CellCount);
-    };
     if cell_mv(lo).abs_diff(s.min_cell_mv) > tol || cell_mv(hi).abs_diff(s.max_cell_mv) > tol {
         return Err(Check::MinMaxCell);
     }
     // Pack voltage against the sum of the cells.
-    let sum_mv: u32 = s.cells.raw.iter().map(|&c| u32::from(c)).sum::<u32>() / 10;
+    let sum_mv: u32 = sum / 10;
     let pack = s.pack_voltage_v;
     if !pack.is_finite() || !(0.0..=100.0).contains(&pack) {
         return Err(Check::PackVoltage);
@@ -205,6 +207,17 @@ pub fn check_live(block: &RegisterBlock, s: &LiveSnapshot, ctx: Context) -> Resu
         return Err(Check::Temperature);
     }
     Ok(())
+}
+
+/// True when a register of `from..to` in `block` is not 0 (registers the block
+/// does not hold count as 0).
+fn any_nonzero(block: &RegisterBlock, from: usize, to: usize) -> bool {
+    let start = usize::from(block.start);
+    let (a, b) = (from.saturating_sub(start), to.saturating_sub(start));
+    block
+        .values
+        .get(a..b.min(block.values.len()))
+        .is_some_and(|v| v.iter().any(|&x| x != 0))
 }
 
 /// Checks that nothing moved faster than physics allows between `prev` (taken

@@ -716,3 +716,125 @@ fn unknown_values_print_as_unknown_0x_everywhere() {
     });
     assert!(e.to_string().ends_with("0x99 unknown_0x99"), "{e}");
 }
+
+/// The cell part of `check_live` as it was first written (a pass per rule,
+/// registers read one by one): the fused single pass must agree with it.
+fn cell_checks_reference(
+    block: &RegisterBlock,
+    s: &protocol_core::views::LiveSnapshot,
+    ctx: tinybms_firmware::checks::Context,
+) -> Option<Check> {
+    use tinybms_firmware::checks::*;
+    if s.cell_count == 0 || usize::from(s.cell_count) > 16 {
+        return Some(Check::CellCount);
+    }
+    if ctx.series_cells.is_some_and(|n| n != s.cell_count) {
+        return Some(Check::CellCount);
+    }
+    let first = u16::from(s.cells.first_register);
+    let last = first + s.cell_count.min(16);
+    for a in 0..16u16 {
+        if !(first..last).contains(&a) && block.get(a).unwrap_or(0) != 0 {
+            return Some(Check::CellOutsideBlock);
+        }
+    }
+    if s.cells
+        .raw
+        .iter()
+        .any(|&c| !(CELL_MIN_RAW..=CELL_MAX_RAW).contains(&c))
+    {
+        return Some(Check::CellVoltage);
+    }
+    let tol = if ctx.assembled {
+        MIN_MAX_TOLERANCE_ASSEMBLED_MV
+    } else {
+        MIN_MAX_TOLERANCE_MV
+    };
+    let lo = s.cells.min()?.1;
+    let hi = s.cells.max()?.1;
+    let mv = protocol_core::views::cell_mv;
+    if mv(lo).abs_diff(s.min_cell_mv) > tol || mv(hi).abs_diff(s.max_cell_mv) > tol {
+        return Some(Check::MinMaxCell);
+    }
+    None
+}
+
+proptest::proptest! {
+    #![proptest_config(proptest::prelude::ProptestConfig::with_cases(2000))]
+
+    /// Random cell registers (zeros, plausible and impossible voltages), cell
+    /// counts and min/max registers: `check_live` names the same cell failure
+    /// as the reference, and none when the reference finds none.
+    #[test]
+    fn fused_cell_checks_agree_with_the_reference(
+        values in proptest::collection::vec(
+            proptest::prop_oneof![
+                8 => 25_000u16..42_000,
+                1 => proptest::prelude::Just(0u16),
+                1 => proptest::prelude::any::<u16>(),
+                // The range's edges (CELL_MIN_RAW, CELL_MAX_RAW).
+                1 => proptest::sample::select(vec![9_999u16, 10_000, 50_000, 50_001]),
+            ],
+            16,
+        ),
+        count in proptest::prop_oneof![8 => 1u16..=16, 1 => 0u16..18],
+        start in 0usize..16,
+        stray in proptest::option::of((0usize..16, 1u16..60_000)),
+        min_mv in 0u16..6_000,
+        max_mv in 0u16..6_000,
+        from_cells in proptest::prop_oneof![3 => proptest::prelude::Just(true), 1 => proptest::prelude::Just(false)],
+        deltas in (-160i32..160, -160i32..160),
+        series in proptest::prop_oneof![
+            proptest::prelude::Just(None),
+            proptest::prelude::Just(Some(u16::MAX)),
+            proptest::option::of(0u16..18),
+        ],
+        assembled in proptest::prelude::any::<bool>(),
+    ) {
+        use tinybms_firmware::checks::{check_live, Context};
+        let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 5);
+        let mut regs = [0u16; 56];
+        for (i, r) in regs.iter_mut().enumerate() {
+            *r = sim.register(i as u16);
+        }
+        // `count` cells from `start` (moved back to fit), zeros around them,
+        // perhaps a stray reading elsewhere.
+        let n = usize::from(count).min(16);
+        let start = start.min(16 - n);
+        regs[..16].fill(0);
+        regs[start..start + n].copy_from_slice(&values[..n]);
+        if let Some((at, v)) = stray {
+            regs[at] = v;
+        }
+        regs[53] = count;
+        regs[40] = min_mv;
+        regs[41] = max_mv;
+        let series = series.map(|n| if n == u16::MAX { count } else { n });
+        if from_cells {
+            // Registers 40/41 near the true lowest/highest of the selected cells
+            // (within, at and beyond both tolerances).
+            let probe = RegisterBlock { start: 0, values: heapless::Vec::from_slice(&regs).unwrap() };
+            let cells = protocol_core::views::LiveSnapshot::from_registers(&probe).unwrap().cells;
+            let mv = |c: Option<(usize, u16)>, d: i32| {
+                (i32::from(protocol_core::views::cell_mv(c.map_or(0, |c| c.1))) + d).clamp(0, 65_535) as u16
+            };
+            regs[40] = mv(cells.min(), deltas.0 / 16);
+            regs[41] = mv(cells.max(), if assembled { deltas.1 } else { deltas.1 / 16 });
+        }
+        let b = RegisterBlock { start: 0, values: heapless::Vec::from_slice(&regs).unwrap() };
+        let s = protocol_core::views::LiveSnapshot::from_registers(&b).unwrap();
+        let ctx = Context { series_cells: series, assembled };
+        let cell_failures = [
+            Check::CellCount,
+            Check::CellOutsideBlock,
+            Check::CellVoltage,
+            Check::MinMaxCell,
+        ];
+        match cell_checks_reference(&b, &s, ctx) {
+            Some(e) => proptest::prop_assert_eq!(check_live(&b, &s, ctx), Err(e)),
+            None => proptest::prop_assert!(
+                !matches!(check_live(&b, &s, ctx), Err(e) if cell_failures.contains(&e))
+            ),
+        }
+    }
+}
