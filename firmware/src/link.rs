@@ -614,40 +614,63 @@ impl Link {
 
     /// Bytes received from the UART at `now`. Call [`Link::step`] afterwards.
     pub fn on_bytes(&mut self, now: Instant, bytes: &[u8]) {
-        if !bytes.is_empty() {
-            // Silence means no byte at all: a late answer between two silent
-            // transactions (a reply delayed past our timeout) shows the BMS is
-            // there just as well.
-            self.consecutive_failures = 0;
-        }
-        if let Some(p) = self.pending.as_mut() {
-            if !bytes.is_empty() {
-                // Whatever it is, the BMS (or at least the wire) is there.
-                p.heard_any = true;
-                if !self.to_send {
-                    p.last_rx = Some(now);
-                }
-            }
-        }
+        self.heard(now, !bytes.is_empty());
         let mut input = bytes;
-        // Frames are handled where the decoder keeps them (see `see`).
-        let mut spill = None;
         loop {
             let n = self.decoder.push(input);
             input = input.get(n..).unwrap_or(&[]);
-            while let Some(item) = self.decoder.poll_ref(&mut spill) {
-                let seen = see(
-                    self.pending.is_some(),
-                    self.to_send,
-                    &mut self.done,
-                    &self.request,
-                    item,
-                );
-                self.on_seen(now, seen);
-            }
+            self.drain(now);
             if input.is_empty() {
                 break;
             }
+        }
+    }
+
+    /// Where a UART reader can receive directly (the decoder's free space; the
+    /// same space until [`Link::on_received`]). Never empty between calls.
+    pub fn rx_buffer(&mut self) -> &mut [u8] {
+        self.decoder.spare()
+    }
+
+    /// The first `n` bytes of [`Link::rx_buffer`] were received at `now`: as
+    /// [`Link::on_bytes`] with those bytes, without copying them.
+    pub fn on_received(&mut self, now: Instant, n: usize) {
+        let n = self.decoder.commit(n);
+        self.heard(now, n > 0);
+        self.drain(now);
+    }
+
+    /// Bookkeeping for bytes received at `now` (`any`: at least one).
+    fn heard(&mut self, now: Instant, any: bool) {
+        if !any {
+            return;
+        }
+        // Silence means no byte at all: a late answer between two silent
+        // transactions (a reply delayed past our timeout) shows the BMS is
+        // there just as well.
+        self.consecutive_failures = 0;
+        if let Some(p) = self.pending.as_mut() {
+            // Whatever it is, the BMS (or at least the wire) is there.
+            p.heard_any = true;
+            if !self.to_send {
+                p.last_rx = Some(now);
+            }
+        }
+    }
+
+    /// Handles every frame the decoder finds in what it holds.
+    fn drain(&mut self, now: Instant) {
+        // Frames are handled where the decoder keeps them (see `see`).
+        let mut spill = None;
+        while let Some(item) = self.decoder.poll_ref(&mut spill) {
+            let seen = see(
+                self.pending.is_some(),
+                self.to_send,
+                &mut self.done,
+                &self.request,
+                item,
+            );
+            self.on_seen(now, seen);
         }
     }
 

@@ -349,7 +349,6 @@ async fn bridge_task(
     );
     let mut host_buf = [0u8; 64];
     let mut line = [0u8; OUT_LINE_MAX];
-    let mut buf = [0u8; 128];
     let mut published_seq = 0u32;
     let mut rx_errors = RxErrors {
         count: 0,
@@ -396,17 +395,19 @@ async fn bridge_task(
                 let deadline = Instant::from_micros(t).min(Instant::now() + MAX_WAIT);
                 // `read_async` and `Pipe::read` are cancellation-safe: racing them
                 // against a timer loses nothing.
+                // The UART driver writes straight into the bridge's receive
+                // space (no copy of ours); it is the same space until
+                // `handle_received`, so the capture reads the bytes there.
                 match select3(
-                    rx.read_async(&mut buf),
+                    rx.read_async(bridge.rx_buffer()),
                     Timer::at(deadline),
                     HOST_RX.read(&mut host_buf),
                 )
                 .await
                 {
                     Either3::First(Ok(n)) => {
-                        let got = buf.get(..n).unwrap_or(&[]);
-                        bridge.handle_rx(now_us(), got);
-                        host.on_uart_rx(got);
+                        host.on_uart_rx(bridge.rx_buffer().get(..n).unwrap_or(&[]));
+                        bridge.handle_received(now_us(), n);
                     }
                     Either3::First(Err(e)) => rx_errors.record(e),
                     Either3::Third(n) => {
@@ -416,12 +417,11 @@ async fn bridge_task(
                         // Bytes already received but not yet signalled go in before
                         // the deadline is handled by the next `poll`.
                         for _ in 0..DEADLINE_DRAIN_READS {
-                            match rx.read_buffered(&mut buf) {
+                            match rx.read_buffered(bridge.rx_buffer()) {
                                 Ok(0) => break,
                                 Ok(n) => {
-                                    let got = buf.get(..n).unwrap_or(&[]);
-                                    bridge.handle_rx(now_us(), got);
-                                    host.on_uart_rx(got);
+                                    host.on_uart_rx(bridge.rx_buffer().get(..n).unwrap_or(&[]));
+                                    bridge.handle_received(now_us(), n);
                                 }
                                 Err(e) => {
                                     rx_errors.record(e);

@@ -13,7 +13,8 @@
 //! records until 'E':
 //!   'P' u64 now  'T' u8 n, n bytes     poll(now) -> Transmit(bytes)
 //!   'P' u64 now  'W' u64 t             poll(now) -> WaitUntil(t)
-//!   'R' u64 now  u16 n, n bytes        handle_rx(now, bytes)
+//!   'R' u64 now  u16 n, n bytes        bytes received at now (handle_rx, or
+//!                                      rx_buffer + handle_received)
 //! 'E'
 //! ```
 
@@ -85,6 +86,64 @@ pub fn record_clean(seed: u64, duration_us: u64) -> Option<Vec<u8>> {
     out.extend_from_slice(&body);
     out.push(b'E');
     Some(out)
+}
+
+/// One recorded call, as [`calls`] reads it back.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Call {
+    /// `poll(now)` and its answer.
+    Poll { now: u64, action: Action },
+    /// Bytes received at `now`.
+    Rx { now: u64, bytes: Vec<u8> },
+}
+
+/// The calls of a whole trace (magic and live reply skipped); `None` when it is
+/// malformed.
+pub fn calls(trace: &[u8]) -> Option<Vec<Call>> {
+    fn take<'a>(b: &'a [u8], i: &mut usize, n: usize) -> Option<&'a [u8]> {
+        let s = b.get(*i..*i + n)?;
+        *i += n;
+        Some(s)
+    }
+    fn u64_at(b: &[u8], i: &mut usize) -> Option<u64> {
+        Some(u64::from_le_bytes(take(b, i, 8)?.try_into().ok()?))
+    }
+    if trace.get(..4)? != MAGIC {
+        return None;
+    }
+    let mut i = 5 + usize::from(*trace.get(4)?);
+    let mut out = Vec::new();
+    loop {
+        let tag = *trace.get(i)?;
+        i += 1;
+        match tag {
+            b'P' => {
+                let now = u64_at(trace, &mut i)?;
+                let kind = *take(trace, &mut i, 1)?.first()?;
+                let action = match kind {
+                    b'T' => {
+                        let n = usize::from(*take(trace, &mut i, 1)?.first()?);
+                        let bytes = take(trace, &mut i, n)?;
+                        Action::Transmit(tinybms_firmware::Transmit::from_slice(bytes).ok()?)
+                    }
+                    b'W' => Action::WaitUntil(u64_at(trace, &mut i)?),
+                    _ => return None,
+                };
+                out.push(Call::Poll { now, action });
+            }
+            b'R' => {
+                let now = u64_at(trace, &mut i)?;
+                let n = take(trace, &mut i, 2)?;
+                let n = usize::from(u16::from_le_bytes([n[0], n[1]]));
+                out.push(Call::Rx {
+                    now,
+                    bytes: take(trace, &mut i, n)?.to_vec(),
+                });
+            }
+            b'E' => return Some(out),
+            _ => return None,
+        }
+    }
 }
 
 /// The received bytes of a trace body, concatenated.

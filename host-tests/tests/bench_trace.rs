@@ -2,7 +2,11 @@
 //! the bridge does today: regenerate it with
 //! `cargo run -p host-tests --bin bench-trace` when the bridge's decisions change.
 
-use host_tests::trace::{find_live_reply, record_clean, BENCH_TRACE_SEED, BENCH_TRACE_US};
+use host_tests::trace::{
+    calls, find_live_reply, record_clean, Call, BENCH_TRACE_SEED, BENCH_TRACE_US,
+};
+use tinybms_firmware::config::Config;
+use tinybms_firmware::Bridge;
 
 #[test]
 fn bench_trace_is_current() {
@@ -27,4 +31,56 @@ fn live_reply_is_found_only_when_crc_valid() {
     let last = rx.len() - 1;
     rx[last] ^= 1;
     assert_eq!(find_live_reply(&rx), None);
+}
+
+/// The harness receives the chip's way (the UART writes into `Bridge::rx_buffer`,
+/// then `handle_received`); the copying `handle_rx` (the desktop tool's way)
+/// must decide exactly the same on the same bytes: every answer of the 40 s
+/// trace, every snapshot and report.
+#[test]
+fn handle_rx_decides_as_the_in_place_receive() {
+    let trace = record_clean(BENCH_TRACE_SEED, BENCH_TRACE_US).expect("a live reply");
+    let calls = calls(&trace).expect("a well-formed trace");
+    let (mut copying, mut in_place) = (
+        Bridge::new(Config::default(), 0),
+        Bridge::new(Config::default(), 0),
+    );
+    let (mut polls, mut received, mut snapshots, mut reports) = (0, 0, 0, 0);
+    for call in &calls {
+        match call {
+            Call::Poll { now, action } => {
+                assert_eq!(&copying.poll(*now), action, "handle_rx path at {now}");
+                assert_eq!(&in_place.poll(*now), action, "in-place path at {now}");
+                polls += 1;
+            }
+            Call::Rx { now, bytes } => {
+                copying.handle_rx(*now, bytes);
+                // Into the receive space in two pieces, as two UART reads.
+                let half = bytes.len() / 2;
+                for piece in [&bytes[..half], &bytes[half..]] {
+                    let space = in_place.rx_buffer();
+                    assert!(space.len() >= piece.len(), "receive space too small");
+                    space[..piece.len()].copy_from_slice(piece);
+                    in_place.handle_received(*now, piece.len());
+                }
+                received += bytes.len();
+            }
+        }
+        loop {
+            let (a, b) = (copying.next_report(), in_place.next_report());
+            assert_eq!(a, b);
+            if a.is_none() {
+                break;
+            }
+            reports += 1;
+        }
+        let (a, b) = (copying.telemetry(), in_place.telemetry());
+        assert_eq!(a.snapshot_seq, b.snapshot_seq);
+        assert_eq!(a.snapshot, b.snapshot);
+        if a.snapshot_seq != snapshots {
+            snapshots = a.snapshot_seq;
+        }
+    }
+    assert_eq!(copying.link_stats(), in_place.link_stats());
+    assert!(polls > 1000 && received > 10_000 && snapshots > 100 && reports > 0);
 }

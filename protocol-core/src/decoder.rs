@@ -237,17 +237,36 @@ impl Decoder {
     /// rest. Once the buffer is full, `poll` always makes progress.
     #[inline]
     pub fn push(&mut self, input: &[u8]) -> usize {
-        self.release();
-        let room = MAX_FRAME_LEN - self.len;
-        let n = room.min(input.len());
-        if let (Some(dst), Some(src)) = (self.buf.get_mut(self.len..self.len + n), input.get(..n)) {
+        let spare = self.spare();
+        let n = spare.len().min(input.len());
+        if let (Some(dst), Some(src)) = (spare.get_mut(..n), input.get(..n)) {
             dst.copy_from_slice(src);
-            self.len += n;
-            self.stats.bytes_in = self.stats.bytes_in.wrapping_add(n as u32);
-            n
+            self.commit(n)
         } else {
             0
         }
+    }
+
+    /// The free end of the scan buffer, for a reader to receive into directly
+    /// (a UART driver writing there saves the copy [`Decoder::push`] makes);
+    /// then [`Decoder::commit`] the bytes written. It is the same space until
+    /// then. Never empty once [`Decoder::poll`] (or `poll_ref`, `poll_into`)
+    /// has answered `None`: a full buffer always makes progress.
+    #[inline]
+    pub fn spare(&mut self) -> &mut [u8] {
+        self.release();
+        self.buf.get_mut(self.len..).unwrap_or(&mut [])
+    }
+
+    /// Takes the first `n` bytes of [`Decoder::spare`] as received; returns how
+    /// many were taken (`n`, or the spare room if `n` is larger).
+    #[inline]
+    pub fn commit(&mut self, n: usize) -> usize {
+        self.release();
+        let n = n.min(MAX_FRAME_LEN.saturating_sub(self.len));
+        self.len += n;
+        self.stats.bytes_in = self.stats.bytes_in.wrapping_add(n as u32);
+        n
     }
 
     /// The next frame or error found in the buffered bytes, or `None` when more

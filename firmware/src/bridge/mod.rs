@@ -250,6 +250,21 @@ impl Bridge {
         self.refresh_link();
     }
 
+    /// Where the UART driver can write received bytes directly, instead of
+    /// into a buffer of its own for [`Bridge::handle_rx`] to copy: the decoder's
+    /// free space. It is the same space until [`Bridge::handle_received`], and
+    /// never empty.
+    pub fn rx_buffer(&mut self) -> &mut [u8] {
+        self.link.rx_buffer()
+    }
+
+    /// The first `n` bytes of [`Bridge::rx_buffer`] were received at `now`
+    /// (what [`Bridge::handle_rx`] does with them, without the copy).
+    pub fn handle_received(&mut self, now: Instant, n: usize) {
+        self.link.on_received(now, n);
+        self.refresh_link();
+    }
+
     fn refresh_link(&mut self) {
         self.s.link_online = self.link.is_online();
         self.s.link_failures = self.link.consecutive_failures();
@@ -279,12 +294,14 @@ impl Bridge {
     pub fn step(&mut self, now: Instant) -> Step {
         self.refresh_link();
         let s = &mut self.s;
-        if s.out.link_stats_due(now, &s.config) {
-            let stats = self.link.stats();
-            s.out.push(Report::LinkStats(stats));
-        }
-        if s.out.line_quality_due(now, &s.config) {
-            s.log_quality();
+        if now >= s.out.next_periodic() {
+            if s.out.link_stats_due(now, &s.config) {
+                let stats = self.link.stats();
+                s.out.push(Report::LinkStats(stats));
+            }
+            if s.out.line_quality_due(now, &s.config) {
+                s.log_quality();
+            }
         }
         let next_log = s.out.next_periodic();
         for _ in 0..16 {

@@ -19,17 +19,22 @@ pub(super) struct Reports {
     dropped: u32,
     next_link_log: Instant,
     next_quality_log: Instant,
+    /// The sooner of the two above (looked at on every step).
+    next_periodic: Instant,
     next_error_log: Instant,
     suppressed_errors: u32,
 }
 
 impl Reports {
     pub(super) fn new(config: &Config, now: Instant) -> Self {
+        let next_link_log = now.saturating_add(config.link_stats_log_period_us);
+        let next_quality_log = now.saturating_add(config.line_quality_log_period_us);
         Self {
             queue: Deque::new(),
             dropped: 0,
-            next_link_log: now.saturating_add(config.link_stats_log_period_us),
-            next_quality_log: now.saturating_add(config.line_quality_log_period_us),
+            next_link_log,
+            next_quality_log,
+            next_periodic: next_link_log.min(next_quality_log),
             next_error_log: now,
             suppressed_errors: 0,
         }
@@ -59,6 +64,7 @@ impl Reports {
             return false;
         }
         self.next_link_log = now.saturating_add(config.link_stats_log_period_us);
+        self.next_periodic = self.next_link_log.min(self.next_quality_log);
         true
     }
 
@@ -68,12 +74,13 @@ impl Reports {
             return false;
         }
         self.next_quality_log = now.saturating_add(config.line_quality_log_period_us);
+        self.next_periodic = self.next_link_log.min(self.next_quality_log);
         true
     }
 
     /// When the next periodic line is due.
     pub(super) fn next_periodic(&self) -> Instant {
-        self.next_link_log.min(self.next_quality_log)
+        self.next_periodic
     }
 
     /// A link error worth a line: at most one per

@@ -10,11 +10,12 @@
 //! 3. `typed`    decoder + `Response::decode` + `LiveSnapshot` view;
 //! 4. `summary`  as `typed` + the snapshot's log summary line;
 //! 5. `bridge`   the whole `Bridge` replaying the recorded 40 s trace
-//!    (`trace.bin`, from `cargo run -p host-tests --bin bench-trace`): every
-//!    `poll` and `handle_rx` call the host made, every answer compared (as
-//!    `Bridge::step` + `Bridge::transmit_bytes`, what `poll` wraps);
-//! 6. `parse`    the same walk over the trace without the bridge (the replay's own
-//!    cost, subtracted by the runner).
+//!    (`trace.bin`, from `cargo run -p host-tests --bin bench-trace`, parsed
+//!    into records before the phase): every `poll` and `handle_rx` call the
+//!    host made, every answer compared (as `Bridge::step` +
+//!    `Bridge::transmit_bytes`, what `poll` wraps);
+//! 6. `walk`     the same walk over the records and the same comparisons
+//!    without the bridge (the replay's own cost, subtracted by the runner).
 #![no_std]
 #![no_main]
 
@@ -162,122 +163,227 @@ fn decode_typed(decoder: &mut Decoder, request: &Request, reply: &[u8]) -> Optio
     out
 }
 
-struct Replay {
-    snapshots: u64,
-    polls: u64,
-    rx_calls: u64,
-    reports: u64,
-    mismatches: u64,
-    malformed: bool,
+/// One recorded call to the bridge, parsed out of `trace.bin` before the
+/// measured phases (so neither phase pays for decoding the file).
+#[derive(Clone, Copy)]
+enum Record<'a> {
+    /// `Bridge::step(now)` and what it answered on the host.
+    Step { now: u64, expect: Expect<'a> },
+    /// `Bridge::handle_rx(now, bytes)`.
+    Rx { now: u64, bytes: &'a [u8] },
 }
 
+#[derive(Clone, Copy)]
+enum Expect<'a> {
+    Transmit(&'a [u8]),
+    WaitUntil(u64),
+}
+
+/// Records in the trace at most (a 40 s run has about 3 000).
+const MAX_RECORDS: usize = 8192;
+
+/// Parses the trace body; `None` when it is malformed or longer than `MAX_RECORDS`.
+fn parse_trace<'a>(body: &mut Cursor<'a>, out: &mut [Option<Record<'a>>]) -> Option<usize> {
+    let mut n = 0;
+    loop {
+        let record = match body.u8()? {
+            b'P' => {
+                let now = body.u64()?;
+                let expect = match body.u8()? {
+                    b'T' => {
+                        let len = body.u8()? as usize;
+                        Expect::Transmit(body.take(len)?)
+                    }
+                    b'W' => Expect::WaitUntil(body.u64()?),
+                    _ => return None,
+                };
+                Record::Step { now, expect }
+            }
+            b'R' => {
+                let now = body.u64()?;
+                let len = body.u16()? as usize;
+                Record::Rx {
+                    now,
+                    bytes: body.take(len)?,
+                }
+            }
+            b'E' => return Some(n),
+            _ => return None,
+        };
+        *out.get_mut(n)? = Some(record);
+        n += 1;
+    }
+}
+
+struct Replay {
+    snapshots: u32,
+    reports: u32,
+    mismatches: u32,
+}
+
+/// What the replay drives: the real bridge, or a stand-in that answers what
+/// the trace recorded and does nothing else (the replay's own cost).
+trait Target<'a> {
+    fn step(&mut self, now: u64, expect: &Expect<'a>) -> Step;
+    fn transmit_bytes(&self) -> &[u8];
+    fn handle_rx(&mut self, now: u64, bytes: &[u8]);
+    fn next_report(&mut self) -> bool;
+    fn snapshot_seq(&self) -> u32;
+}
+
+/// The bridge, and where (modulo 4) the UART driver's copies landed in its
+/// receive space, so that the stand-in's copies take as long.
+struct Real {
+    bridge: Bridge,
+    landed: [u8; MAX_PIECES],
+    pieces: usize,
+}
+
+/// Received pieces in the trace at most.
+const MAX_PIECES: usize = 8192;
+
+impl<'a> Target<'a> for Real {
+    #[inline(always)]
+    fn step(&mut self, now: u64, _: &Expect<'a>) -> Step {
+        self.bridge.step(now)
+    }
+    #[inline(always)]
+    fn transmit_bytes(&self) -> &[u8] {
+        self.bridge.transmit_bytes()
+    }
+    /// The chip's way: the UART driver writes the bytes into the bridge's
+    /// receive space (that copy is the driver's: the stand-in makes it too).
+    #[inline(always)]
+    fn handle_rx(&mut self, now: u64, bytes: &[u8]) {
+        let mut rest = bytes;
+        while !rest.is_empty() {
+            let space = self.bridge.rx_buffer();
+            if let Some(at) = self.landed.get_mut(self.pieces) {
+                *at = (space.as_ptr() as usize % 4) as u8;
+                self.pieces += 1;
+            }
+            let n = space.len().min(rest.len());
+            if let (Some(dst), Some(src)) = (space.get_mut(..n), rest.get(..n)) {
+                dst.copy_from_slice(src);
+            }
+            self.bridge.handle_received(now, n);
+            rest = rest.get(n..).unwrap_or(&[]);
+        }
+    }
+    #[inline(always)]
+    fn next_report(&mut self) -> bool {
+        match self.bridge.next_report() {
+            Some(report) => {
+                black_box(&report);
+                true
+            }
+            None => false,
+        }
+    }
+    #[inline(always)]
+    fn snapshot_seq(&self) -> u32 {
+        self.bridge.telemetry().snapshot_seq
+    }
+}
+
+/// Answers the recorded answer (through `black_box`, so nothing is known in
+/// advance); no bridge work at all.
+struct StandIn<'a> {
+    sent: &'a [u8],
+    landed: &'a [u8],
+    pieces: usize,
+    space: Aligned,
+}
+
+#[repr(align(4))]
+struct Aligned([u8; protocol_core::frame::MAX_FRAME_LEN + 4]);
+
+impl<'a> Target<'a> for StandIn<'a> {
+    #[inline(always)]
+    fn step(&mut self, now: u64, expect: &Expect<'a>) -> Step {
+        black_box(now);
+        match *expect {
+            Expect::Transmit(bytes) => {
+                self.sent = black_box(bytes);
+                black_box(Step::Transmit)
+            }
+            Expect::WaitUntil(t) => black_box(Step::WaitUntil(t)),
+        }
+    }
+    #[inline(always)]
+    fn transmit_bytes(&self) -> &[u8] {
+        black_box(self.sent)
+    }
+    /// The driver's copy, into a buffer as large as the decoder's, at the
+    /// alignment the bridge's copy of the same piece had.
+    #[inline(always)]
+    fn handle_rx(&mut self, now: u64, bytes: &[u8]) {
+        black_box(now);
+        let mut rest = bytes;
+        while !rest.is_empty() {
+            let at = usize::from(self.landed.get(self.pieces).copied().unwrap_or(0));
+            self.pieces += 1;
+            let space = self.space.0.get_mut(at..).unwrap_or(&mut []);
+            let n = space.len().min(rest.len());
+            if let (Some(dst), Some(src)) = (space.get_mut(..n), rest.get(..n)) {
+                dst.copy_from_slice(src);
+            }
+            black_box(&mut self.space);
+            rest = rest.get(n..).unwrap_or(&[]);
+        }
+    }
+    #[inline(always)]
+    fn next_report(&mut self) -> bool {
+        black_box(false)
+    }
+    #[inline(always)]
+    fn snapshot_seq(&self) -> u32 {
+        black_box(0)
+    }
+}
+
+/// Replays the records into `target`, comparing every answer.
 #[inline(never)]
-fn replay(body: &mut Cursor<'_>) -> Replay {
+fn replay<'a, T: Target<'a>>(target: &mut T, records: &[Option<Record<'a>>]) -> Replay {
     let mut r = Replay {
         snapshots: 0,
-        polls: 0,
-        rx_calls: 0,
         reports: 0,
         mismatches: 0,
-        malformed: false,
     };
-    let mut bridge = Bridge::new(Config::default(), 0);
     let mut seen_seq = 0u32;
-    loop {
-        match body.u8() {
-            Some(b'P') => {
-                let (Some(now), Some(kind)) = (body.u64(), body.u8()) else {
-                    r.malformed = true;
-                    break;
-                };
-                let step = bridge.step(now);
-                r.polls += 1;
-                let same = match kind {
-                    b'T' => {
-                        let n = body.u8().unwrap_or(0) as usize;
-                        let expected = body.take(n).unwrap_or(&[]);
-                        step == Step::Transmit && bridge.transmit_bytes() == expected
+    for record in records.iter().flatten() {
+        match *record {
+            Record::Step { now, ref expect } => {
+                let step = target.step(now, expect);
+                let same = match *expect {
+                    Expect::Transmit(bytes) => {
+                        step == Step::Transmit && target.transmit_bytes() == bytes
                     }
-                    b'W' => {
-                        let t = body.u64().unwrap_or(u64::MAX);
-                        step == Step::WaitUntil(t)
-                    }
-                    _ => {
-                        r.malformed = true;
-                        break;
-                    }
+                    Expect::WaitUntil(t) => step == Step::WaitUntil(t),
                 };
                 if !same {
                     r.mismatches += 1;
                 }
+                // As the chip's bridge task: reports are taken while the line
+                // is quiet, before a request goes out.
+                if step == Step::Transmit {
+                    while target.next_report() {
+                        r.reports += 1;
+                    }
+                }
             }
-            Some(b'R') => {
-                let Some(now) = body.u64() else {
-                    r.malformed = true;
-                    break;
-                };
-                let n = body.u16().unwrap_or(0) as usize;
-                let Some(bytes) = body.take(n) else {
-                    r.malformed = true;
-                    break;
-                };
-                bridge.handle_rx(now, bytes);
-                r.rx_calls += 1;
-            }
-            Some(b'E') => break,
-            _ => {
-                r.malformed = true;
-                break;
-            }
+            Record::Rx { now, bytes } => target.handle_rx(now, bytes),
         }
-        while let Some(report) = bridge.next_report() {
-            black_box(&report);
-            r.reports += 1;
-        }
-        let seq = bridge.telemetry().snapshot_seq;
+        let seq = target.snapshot_seq();
         if seq != seen_seq {
             seen_seq = seq;
             r.snapshots += 1;
         }
     }
-    r
-}
-
-/// The replay's own work, measured apart: the same walk over the trace with
-/// every record parsed, and no bridge. Subtracted from the `bridge` phase.
-#[inline(never)]
-fn parse_only(body: &mut Cursor<'_>) -> u64 {
-    let mut records = 0u64;
-    loop {
-        match body.u8() {
-            Some(b'P') => {
-                let (Some(now), Some(kind)) = (body.u64(), body.u8()) else {
-                    break;
-                };
-                black_box(now);
-                match kind {
-                    b'T' => {
-                        let n = body.u8().unwrap_or(0) as usize;
-                        black_box(body.take(n));
-                    }
-                    b'W' => {
-                        black_box(body.u64());
-                    }
-                    _ => break,
-                }
-            }
-            Some(b'R') => {
-                let Some(now) = body.u64() else {
-                    break;
-                };
-                let n = body.u16().unwrap_or(0) as usize;
-                black_box((now, body.take(n)));
-            }
-            _ => break,
-        }
-        records += 1;
+    while target.next_report() {
+        r.reports += 1;
     }
-    records
+    r
 }
 
 #[no_mangle]
@@ -318,25 +424,47 @@ pub extern "C" fn _start() -> ! {
             ok += 1;
         }
     }
-    let body_at = c.i;
+    let mut records = [None; MAX_RECORDS];
+    let Some(n_records) = parse_trace(&mut c, &mut records) else {
+        write(b"bench-rv32: trace.bin: malformed or too long\n");
+        exit(2);
+    };
+    let records = records.get(..n_records).unwrap_or(&[]);
+    let mut real = Real {
+        bridge: Bridge::new(Config::default(), 0),
+        landed: [0; MAX_PIECES],
+        pieces: 0,
+    };
     bench_mark(5);
-    let r = replay(&mut c);
+    let r = replay(&mut real, black_box(records));
     bench_mark(6);
-    let records = parse_only(&mut Cursor {
-        b: TRACE,
-        i: body_at,
-    });
+    let mut stand_in = StandIn {
+        sent: &[],
+        landed: &real.landed,
+        pieces: 0,
+        space: Aligned([0; protocol_core::frame::MAX_FRAME_LEN + 4]),
+    };
+    let walk = replay(&mut stand_in, black_box(records));
     bench_mark(7);
-    put("records", records);
+    let (polls, rx_calls) = records.iter().flatten().fold((0, 0), |(p, x), r| match r {
+        Record::Step { .. } => (p + 1, x),
+        Record::Rx { .. } => (p, x + 1),
+    });
+    put("polls", polls);
+    put("rx_calls", rx_calls);
+    put("walk_mismatches", u64::from(walk.mismatches));
+    put("pieces", real.pieces as u64);
+    if real.pieces > MAX_PIECES || stand_in.pieces != real.pieces {
+        write(b"bench-rv32: received pieces differ or overflow\n");
+        exit(2);
+    }
 
     put("reps", u64::from(REPS));
     put("reply_bytes", reply.len() as u64);
     put("decoded_ok", ok);
-    put("snapshots", r.snapshots);
-    put("polls", r.polls);
-    put("rx_calls", r.rx_calls);
-    put("reports", r.reports);
-    put("mismatches", r.mismatches);
+    put("snapshots", u64::from(r.snapshots));
+            put("reports", u64::from(r.reports));
+    put("mismatches", u64::from(r.mismatches));
     put("bridge_bytes", core::mem::size_of::<Bridge>() as u64);
     put("response_bytes", core::mem::size_of::<Response>() as u64);
     put(
@@ -349,9 +477,5 @@ pub extern "C" fn _start() -> ! {
     );
     put("action_bytes", core::mem::size_of::<Action>() as u64);
     put("step_bytes", core::mem::size_of::<Step>() as u64);
-    if r.malformed {
-        write(b"bench-rv32: trace.bin: malformed\n");
-        exit(2);
-    }
     exit(0)
 }
