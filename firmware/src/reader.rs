@@ -189,6 +189,10 @@ impl BlockRead {
     /// is restarted at every snapshot, and building a new one (about 900 bytes)
     /// and moving it into place cost more than the rest of the read.
     pub fn reset(&mut self, segments: &'static [(u16, u16)], mode: Mode, now: Instant) {
+        if !core::ptr::eq(self.segments, segments) || self.mode != mode {
+            // Another read: nothing of the old block may stay (cleared below).
+            self.block.values.clear();
+        }
         self.segments = segments;
         self.mode = mode;
         self.cursor = 0;
@@ -220,7 +224,13 @@ impl BlockRead {
         let len = usize::from(self.last().saturating_sub(self.first())) + 1;
         let len = len.min(MAX_READ_MODBUS);
         if self.block.values.len() == len {
-            self.block.values.fill(0);
+            // A window read writes its block only with pieces, which lie in the
+            // segments and are all written again before a pass completes; the
+            // gaps between segments keep their 0 (a reply of the whole span is
+            // lent, not copied: see `on_block`). Nothing to clear.
+            if self.mode == Mode::Confirmed {
+                self.block.values.fill(0);
+            }
         } else {
             self.block.values.clear();
             let _fits = self.block.values.resize(len, 0); // min: fits
@@ -335,24 +345,38 @@ impl BlockRead {
     }
 
     /// The reply (0x03 block) to the piece in flight. Returns the assembled block
-    /// when the read is complete.
-    pub fn on_block(&mut self, now: Instant, reply: &RegisterBlock) -> Option<Assembled<'_>> {
+    /// when the read is complete. A window read answered by one reply of the
+    /// whole span (the live read on a clean line) lends that reply as the
+    /// block instead of copying it.
+    pub fn on_block<'a>(
+        &'a mut self,
+        now: Instant,
+        reply: &'a RegisterBlock,
+    ) -> Option<Assembled<'a>> {
         let (start, count) = self.in_flight?;
         if reply.start != start || reply.values.len() != usize::from(count) {
             self.in_flight = None;
             return None;
         }
         let first = self.first();
-        // The piece lies in the span: copied as one slice.
-        let dst = start.checked_sub(first).and_then(|i| {
-            let i = usize::from(i);
-            self.block.values.get_mut(i..i + reply.values.len())
-        });
-        match dst {
-            Some(dst) => dst.copy_from_slice(&reply.values),
-            None => self.write(reply.iter()),
+        let whole = matches!(self.mode, Mode::Window(_))
+            && start == first
+            && reply.values.len() == self.block.values.len();
+        if !whole {
+            // The piece lies in the span: copied as one slice.
+            let dst = start.checked_sub(first).and_then(|i| {
+                let i = usize::from(i);
+                self.block.values.get_mut(i..i + reply.values.len())
+            });
+            match dst {
+                Some(dst) => dst.copy_from_slice(&reply.values),
+                None => self.write(reply.iter()),
+            }
         }
-        self.advance(now)
+        if !self.advance(now) {
+            return None;
+        }
+        Some(self.assembled(now, if whole { reply } else { &self.block }))
     }
 
     /// The reply (0x09 address/value pairs) to the piece in flight; `reference`
@@ -391,7 +415,10 @@ impl BlockRead {
         }
         self.first_read = None;
         self.write(pairs.iter().copied());
-        self.advance(now)
+        if !self.advance(now) {
+            return None;
+        }
+        Some(self.assembled(now, &self.block))
     }
 
     /// Stores the values of the piece in flight.
@@ -408,9 +435,12 @@ impl BlockRead {
     }
 
     /// The piece in flight is stored: on to the next one, or the read is
-    /// complete.
-    fn advance(&mut self, now: Instant) -> Option<Assembled<'_>> {
-        let (start, count) = self.in_flight.take()?;
+    /// complete (true; for a confirmed read, only when this pass equals the
+    /// previous one).
+    fn advance(&mut self, now: Instant) -> bool {
+        let Some((start, count)) = self.in_flight.take() else {
+            return false;
+        };
         self.pieces = self.pieces.saturating_add(1);
         let next = start.saturating_add(count);
         // Segments ascend: the first one holding `next` or starting after it.
@@ -424,18 +454,18 @@ impl BlockRead {
         match cursor {
             Some(c) => {
                 self.cursor = c;
-                None
+                false
             }
             None => self.complete(now),
         }
     }
 
-    fn complete(&mut self, now: Instant) -> Option<Assembled<'_>> {
+    fn complete(&mut self, _now: Instant) -> bool {
         self.passes = self.passes.saturating_add(1);
         // The next pass starts at the next request; until then the block stays
-        // where it was assembled, lent out below.
+        // where it was assembled, lent out by the caller.
         self.restart_due = true;
-        let same = match self.mode {
+        match self.mode {
             Mode::Window(_) => true,
             Mode::Confirmed => {
                 let same = self.previous_pass.as_ref() == Some(&self.block.values);
@@ -445,12 +475,16 @@ impl BlockRead {
                 }
                 same
             }
-        };
-        same.then_some(Assembled {
-            block: &self.block,
+        }
+    }
+
+    /// The finished pass, lending `block`.
+    fn assembled<'a>(&self, now: Instant, block: &'a RegisterBlock) -> Assembled<'a> {
+        Assembled {
+            block,
             pieces: self.pieces,
             span_us: now.saturating_sub(self.started_at),
             started_at: self.started_at,
-        })
+        }
     }
 }

@@ -202,7 +202,7 @@ impl Schedule {
 pub(super) fn on_piece<'r>(
     read: &'r mut BlockRead,
     now: Instant,
-    result: &Result<Response, Failure>,
+    result: &'r Result<Response, Failure>,
     published: Option<&RegisterBlock>,
 ) -> Option<Assembled<'r>> {
     match result {
