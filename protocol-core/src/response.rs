@@ -293,7 +293,17 @@ fn fill_words(
         if values.resize(old + count, 0).is_ok() {
             if let Some(dst) = values.get_mut(old..) {
                 if big {
-                    for (d, w) in dst.iter_mut().zip(words) {
+                    // Two words per pass (the 0x03 live reply: 56 of them).
+                    let (pairs, last) = dst.as_chunks_mut::<2>();
+                    let (quads, _) = payload.as_chunks::<4>();
+                    for (d, q) in pairs.iter_mut().zip(quads) {
+                        *d = [
+                            u16::from_be_bytes([q[0], q[1]]),
+                            u16::from_be_bytes([q[2], q[3]]),
+                        ];
+                    }
+                    let odd = count.checked_sub(1).and_then(|i| words.get(i));
+                    if let (Some(d), Some(w)) = (last.first_mut(), odd) {
                         *d = u16::from_be_bytes(*w);
                     }
                 } else {

@@ -220,7 +220,7 @@ impl TelemetryModel {
             self.flagged = flag;
             out.push(Report::Flagged(flag));
         }
-        self.publish(now, snap, a, flag, config, out);
+        self.publish(now, &mut slot, a, flag, config, out);
         false
     }
 
@@ -230,15 +230,19 @@ impl TelemetryModel {
         self.telemetry.snapshot.is_some() && self.live_base_valid
     }
 
+    /// Publishes the snapshot in `slot` (moved into the telemetry, not copied).
     fn publish(
         &mut self,
         now: Instant,
-        snap: &LiveSnapshot,
+        slot: &mut Option<LiveSnapshot>,
         a: &Assembled,
         flag: Option<Check>,
         config: &Config,
         out: &mut Reports,
     ) {
+        let Some(snap) = slot.as_ref() else {
+            return;
+        };
         let previous = self.telemetry.snapshot.as_ref().map(|s| s.status);
         if previous != Some(snap.status) {
             out.push(Report::StatusChanged {
@@ -252,7 +256,7 @@ impl TelemetryModel {
             self.next_snapshot_log = next;
             out.push(Report::Snapshot(snapshot_line(snap)));
         }
-        self.telemetry.snapshot = Some(snap.clone());
+        core::mem::swap(&mut self.telemetry.snapshot, slot);
         copy_block(&mut self.telemetry.live_registers, a.block);
         self.telemetry.live = LiveMeta {
             pieces: a.pieces,
