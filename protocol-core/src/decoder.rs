@@ -371,6 +371,12 @@ impl Decoder {
         ending: bool,
         spill: &'a mut Option<Result<Frame, DecodeError>>,
     ) -> Option<Result<FrameRef<'a>, DecodeError>> {
+        if self.lent == 0 && !ending && self.len < self.need {
+            // The candidate at the front is still short (most polls at small
+            // chunks): answered here, without the call.
+            *spill = None;
+            return None;
+        }
         match self.step_inner(ending, spill, true) {
             Some((command, from, to)) => Some(Ok(FrameRef::Data {
                 command,
