@@ -40,7 +40,7 @@ compile_error!(
 use defmt::{info, warn};
 #[cfg(feature = "log-rtt")]
 use defmt_rtt as _; // defmt global logger: RTT
-use embassy_executor::Spawner;
+use embassy_executor::{SpawnError, SpawnToken, Spawner};
 use embassy_futures::select::{select3, Either3};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::watch::Watch;
@@ -213,8 +213,19 @@ async fn main(spawner: Spawner) {
     #[cfg(feature = "host-link")]
     host_port::start(spawner, p.USB_DEVICE);
 
-    spawner.spawn(bridge_task(rx, tx, wdt).expect("spawn bridge_task"));
-    spawner.spawn(consumer_task().expect("spawn consumer_task"));
+    spawn(spawner, bridge_task(rx, tx, wdt));
+    spawn(spawner, consumer_task());
+}
+
+/// Spawns a task. A pool without a free slot is a bug in this file: it panics
+/// with a fixed message (the panic handler logs the caller's line), not through
+/// `expect`, which would link `SpawnError`'s `Debug` for a message never printed.
+#[track_caller]
+fn spawn<S>(spawner: Spawner, task: Result<SpawnToken<S>, SpawnError>) {
+    match task {
+        Ok(token) => spawner.spawn(token),
+        Err(_) => panic!("spawn"),
+    }
 }
 
 fn now_us() -> u64 {
@@ -428,8 +439,8 @@ mod host_port {
             },
             tinybms_firmware::site::HOST_STREAM_PERIOD_MS
         );
-        spawner.spawn(usb_rx_task(usb_rx).expect("spawn usb_rx_task"));
-        spawner.spawn(usb_tx_task(usb_tx).expect("spawn usb_tx_task"));
+        spawn(spawner, usb_rx_task(usb_rx));
+        spawn(spawner, usb_tx_task(usb_tx));
     }
 
     /// The bridge task's side of the host link.
@@ -647,7 +658,7 @@ mod can_output {
                 Protocol::SmaSunnyIsland => "sma-si",
             }
         );
-        spawner.spawn(can_task(twai).expect("spawn can_task"));
+        spawn(spawner, can_task(twai));
     }
 
     /// The inverter output: the firmware's sans-IO [`Inverter`] between the shared
