@@ -5,7 +5,8 @@
 # Usage: ./build-boards.sh
 # Boards: every `board-… = ["esp32c3"|"esp32c6"]` feature line of Cargo.toml (the host
 # test host-tests/tests/boards.rs checks that those lines and firmware/src/boards.rs
-# list the same boards). Log paths: log-rtt and log-uart.
+# list the same boards). Log paths: log-rtt and log-uart. Every image has the full
+# feature set (can, host-link), as the default build and the aliases.
 # Images are kept as target/boards/tinybms-firmware-<board>-<log>.elf.
 # Exit status: 0 = all built and within budget; 1 = some image over budget;
 # anything else = a build or tool failure.
@@ -35,7 +36,7 @@ for entry in $boards; do
     esac
     for log in log-rtt log-uart; do
         echo "== $board ($chip), $log"
-        cargo build --release --quiet --no-default-features --features "$board,$log" --target "$target"
+        cargo build --release --quiet --no-default-features --features "$board,$log,can,host-link" --target "$target"
         elf="$out/tinybms-firmware-$board-$log.elf"
         cp "target/$target/release/tinybms-firmware" "$elf"
         if report=$(./size-report.sh "$elf"); then :; else

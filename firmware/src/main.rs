@@ -2,14 +2,18 @@
 //!
 //! Structure: init (clocks, watchdog, esp-rtos, UART1, TWAI, USB-Serial-JTAG) → spawn
 //! `bridge_task(rx, tx, wdt)`, `consumer_task()`, `can_task(twai)`, `usb_rx_task` and
-//! `usb_tx_task`. All protocol and state-machine logic lives in the library
+//! `usb_tx_task`. The inverter output (module `can_output`: TWAI, `can_task`) and the
+//! host link (module `host_port`: USB-Serial-JTAG, `usb_rx_task`, `usb_tx_task`) are
+//! the cargo features `can` and `host-link`, both on by default; without
+//! `host-link`, `host_port` is a stub whose calls the compiler removes, so the
+//! bridge task reads the same either way. All protocol and state-machine logic lives in the library
 //! (`tinybms_firmware::Bridge` and `tinybms_firmware::host_link::HostLink`, sans-IO,
 //! tested on the host); this file only moves bytes and time between UART1, the USB
 //! port and them, logs the bridge's reports and shares the latest telemetry through
 //! an embassy-sync `Watch`.
 //!
 //! Host link (JSON Lines on the USB cable): the `HostLink` lives in the bridge task
-//! next to the bridge. Host bytes come in through the `HOST_RX` pipe (filled by
+//! next to the bridge (in a `host_port::HostPort`). Host bytes come in through the `HOST_RX` pipe (filled by
 //! `usb_rx_task`); encoded lines go out through the `HOST_TX` pipe, taken only while
 //! it has room for a whole line, to `usb_tx_task`, which writes them with a timeout.
 //! The bridge task never awaits the host: a missing or slow host fills the pipe, then
@@ -36,35 +40,24 @@ compile_error!(
 use defmt::{info, warn};
 #[cfg(feature = "log-rtt")]
 use defmt_rtt as _; // defmt global logger: RTT
-use embassy_executor::Spawner;
-use embassy_futures::select::{select, select3, Either, Either3};
+use embassy_executor::{SpawnError, SpawnToken, Spawner};
+use embassy_futures::select::{select3, Either3};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
-use embassy_sync::channel::Channel;
-use embassy_sync::pipe::Pipe;
-use embassy_sync::signal::Signal;
 use embassy_sync::watch::Watch;
 use embassy_time::{with_timeout, Duration, Instant, Timer};
 use esp_hal::clock::CpuClock;
 use esp_hal::gpio::AnyPin;
 use esp_hal::peripherals::TIMG0;
 use esp_hal::timer::timg::{MwdtStage, TimerGroup, Wdt};
-use esp_hal::twai::{
-    BaudRate, EspTwaiError, EspTwaiFrame, Id, StandardId, Twai, TwaiConfiguration, TwaiMode,
-};
 use esp_hal::uart::{Config as UartConfig, RxConfig, RxError, Uart, UartRx, UartTx};
-use esp_hal::usb::usb_serial_jtag::{UsbSerialJtag, UsbSerialJtagRx, UsbSerialJtagTx};
 use esp_hal::Async;
 #[cfg(feature = "log-uart")]
 use esp_println as _; // defmt global logger: UART0, espflash's defmt framing
-use protocol_core::events::Event;
 use protocol_core::events::OnlineStatus;
-use protocol_core::views::{LiveSnapshot, VersionInfo};
+use protocol_core::views::LiveSnapshot;
 use tinybms_firmware::boards::{self, Board, Chip, LogPath};
 use tinybms_firmware::bridge::Step;
 use tinybms_firmware::config::Config as BridgeConfig;
-use tinybms_firmware::host_link::{HostLink, OUT_LINE_MAX};
-use tinybms_firmware::inverter::control::PackSettings;
-use tinybms_firmware::inverter::{Inverter, InverterAction, InverterReport, Protocol, TxResult};
 use tinybms_firmware::link::Failure;
 use tinybms_firmware::{profile, Bridge, Level, Report};
 
@@ -124,52 +117,19 @@ const RX_ERROR_LOG_PERIOD: Duration = Duration::from_secs(10);
 /// Telemetry older than this is reported stale by the consumer task.
 const STALE_AFTER: Duration = Duration::from_secs(5);
 
-/// The latest live snapshot, with the time it was decoded (so readers know its age),
-/// the BMS settings charge control needs and the version.
+/// The latest live snapshot, with the time it was decoded (so readers know its age)
+/// and, for the inverter output, the BMS settings charge control needs and the version.
 #[derive(Clone)]
 struct SharedSnapshot {
     snapshot: LiveSnapshot,
     taken_at: Instant,
-    settings: Option<PackSettings>,
-    version: Option<VersionInfo>,
+    #[cfg(feature = "can")]
+    inverter: can_output::Inputs,
 }
 
 /// Latest telemetry for the other tasks: one sender (bridge_task), up to 3 receivers
 /// (the example consumer, the CAN output).
 static TELEMETRY: Watch<CriticalSectionRawMutex, SharedSnapshot, 3> = Watch::new();
-
-/// New BMS events for the CAN output (charge-blocking faults); a full channel
-/// drops the event for it (the BMS status still says "fault").
-static EVENTS: Channel<CriticalSectionRawMutex, Event, 8> = Channel::new();
-
-/// Bytes from the host (USB-Serial-JTAG → bridge task). When full, `usb_rx_task`
-/// waits, and the USB endpoint makes the host wait: nothing is lost.
-static HOST_RX: Pipe<CriticalSectionRawMutex, HOST_RX_PIPE> = Pipe::new();
-/// Encoded lines for the host (bridge task → `usb_tx_task`).
-static HOST_TX: Pipe<CriticalSectionRawMutex, HOST_TX_PIPE> = Pipe::new();
-/// `usb_tx_task` saw a write go through after none could (at boot, or after a
-/// timeout): a host has (re)opened the port. The bridge task then queues `hello`.
-static HOST_CONNECTED: Signal<CriticalSectionRawMutex, ()> = Signal::new();
-
-/// Size of [`HOST_RX`], bytes.
-const HOST_RX_PIPE: usize = 256;
-/// Size of [`HOST_TX`], bytes: two of the longest lines.
-const HOST_TX_PIPE: usize = 2 * OUT_LINE_MAX;
-/// Longest a write of one chunk to the USB port may take (the host reads the IN
-/// endpoint every millisecond while the port is open). On timeout the chunk is
-/// dropped and the host is deemed gone until a write goes through again.
-const USB_WRITE_TIMEOUT: Duration = Duration::from_millis(50);
-/// Bytes written to the USB port at once (the endpoint's FIFO is 64 bytes).
-const USB_WRITE_CHUNK: usize = 256;
-
-/// CAN bit rate of both inverter protocols.
-const CAN_BAUDRATE: BaudRate = BaudRate::B500K;
-/// Longest a CAN transmission may take before it counts as failed.
-const CAN_TX_TIMEOUT: Duration = Duration::from_millis(100);
-/// Longest the CAN task sleeps (it re-reads the telemetry at least this often).
-const CAN_MAX_WAIT: Duration = Duration::from_millis(200);
-/// Bus-off recovery: how long to wait for the controller to come back.
-const CAN_RECOVERY_WAIT: Duration = Duration::from_millis(500);
 
 /// Every panic ends here: log where it happened and the backtrace (return
 /// addresses from the frame-pointer walk; `addr2line -e <elf>` turns them into
@@ -248,47 +208,24 @@ async fn main(spawner: Spawner) {
         BOARD.can_rx
     );
 
-    // TWAI (CAN) to the inverter, on the board's CAN pins, 500 kbit/s.
-    // SAFETY: as for the UART pins above: used nowhere else, checked distinct and
-    // not flash/USB/UART0/strapping pins by the board table.
-    let (can_tx, can_rx) = unsafe { (AnyPin::steal(BOARD.can_tx), AnyPin::steal(BOARD.can_rx)) };
-    let twai = TwaiConfiguration::new(p.TWAI0, can_rx, can_tx, CAN_BAUDRATE, TwaiMode::Normal)
-        .into_async()
-        .start();
-    info!(
-        "CAN {=str} 500 kbit/s TX=GPIO{=u8} RX=GPIO{=u8} ({=str})",
-        if tinybms_firmware::site::CAN_OUTPUT {
-            "on"
-        } else {
-            "off"
-        },
-        BOARD.can_tx,
-        BOARD.can_rx,
-        match tinybms_firmware::site::PROTOCOL {
-            Protocol::Victron => "victron",
-            Protocol::SmaSunnyIsland => "sma-si",
-        }
-    );
+    #[cfg(feature = "can")]
+    can_output::start(spawner, p.TWAI0);
+    #[cfg(feature = "host-link")]
+    host_port::start(spawner, p.USB_DEVICE);
 
-    // The host link on the USB cable (USB-Serial-JTAG, CDC-ACM). Its JTAG side
-    // (probe-rs, RTT) is a separate USB interface of the same device: both run
-    // together (README, "Host link").
-    let (usb_rx, usb_tx) = UsbSerialJtag::new(p.USB_DEVICE).into_async().split();
-    info!(
-        "host link on USB-Serial-JTAG: {=str}, telemetry every {=u32} ms",
-        if tinybms_firmware::site::HOST_READ_ONLY {
-            "read-only"
-        } else {
-            "read-write"
-        },
-        tinybms_firmware::site::HOST_STREAM_PERIOD_MS
-    );
+    spawn(spawner, bridge_task(rx, tx, wdt));
+    spawn(spawner, consumer_task());
+}
 
-    spawner.spawn(bridge_task(rx, tx, wdt).expect("spawn bridge_task"));
-    spawner.spawn(usb_rx_task(usb_rx).expect("spawn usb_rx_task"));
-    spawner.spawn(usb_tx_task(usb_tx).expect("spawn usb_tx_task"));
-    spawner.spawn(consumer_task().expect("spawn consumer_task"));
-    spawner.spawn(can_task(twai).expect("spawn can_task"));
+/// Spawns a task. A pool without a free slot is a bug in this file: it panics
+/// with a fixed message (the panic handler logs the caller's line), not through
+/// `expect`, which would link `SpawnError`'s `Debug` for a message never printed.
+#[track_caller]
+fn spawn<S>(spawner: Spawner, task: Result<SpawnToken<S>, SpawnError>) {
+    match task {
+        Ok(token) => spawner.spawn(token),
+        Err(_) => panic!("spawn"),
+    }
 }
 
 fn now_us() -> u64 {
@@ -343,12 +280,7 @@ async fn bridge_task(
     let sender = TELEMETRY.sender();
     let mut bridge = Bridge::new(BridgeConfig::default(), now_us());
     submit_profile(&mut bridge);
-    let mut host = HostLink::new(
-        tinybms_firmware::site::host_link_config(BOARD.chip.name()),
-        now_us(),
-    );
-    let mut host_buf = [0u8; 64];
-    let mut line = [0u8; OUT_LINE_MAX];
+    let mut host = host_port::HostPort::new(&bridge);
     let mut published_seq = 0u32;
     let mut rx_errors = RxErrors {
         count: 0,
@@ -356,19 +288,14 @@ async fn bridge_task(
         next_log: Instant::now(),
     };
 
-    // When the host link's timers want it called again (set at the end of every
-    // pass, after whatever the pass changed).
-    let mut host_due = host.poll(now_us(), &bridge);
-
     loop {
         wdt.feed();
         match bridge.step(now_us()) {
             Step::Transmit => {
                 // The line is quiet now: log what the last exchanges produced.
                 while let Some(report) = bridge.next_report() {
-                    if let Report::NewEvent(e) = &report {
-                        let _ = EVENTS.try_send(*e);
-                    }
+                    #[cfg(feature = "can")]
+                    can_output::on_report(&report);
                     host.on_report(&report);
                     log_report(&report);
                 }
@@ -391,7 +318,7 @@ async fn bridge_task(
                 }
             }
             Step::WaitUntil(t) => {
-                let t = t.min(host_due);
+                let t = t.min(host.due());
                 let deadline = Instant::from_micros(t).min(Instant::now() + MAX_WAIT);
                 // `read_async` and `Pipe::read` are cancellation-safe: racing them
                 // against a timer loses nothing.
@@ -401,7 +328,7 @@ async fn bridge_task(
                 match select3(
                     rx.read_async(bridge.rx_buffer()),
                     Timer::at(deadline),
-                    HOST_RX.read(&mut host_buf),
+                    host.receive(),
                 )
                 .await
                 {
@@ -410,9 +337,7 @@ async fn bridge_task(
                         bridge.handle_received(now_us(), n);
                     }
                     Either3::First(Err(e)) => rx_errors.record(e),
-                    Either3::Third(n) => {
-                        host.handle_rx(now_us(), host_buf.get(..n).unwrap_or(&[]), &mut bridge)
-                    }
+                    Either3::Third(n) => host.handle_rx(n, &mut bridge),
                     Either3::Second(()) => {
                         // Bytes already received but not yet signalled go in before
                         // the deadline is handled by the next `poll`.
@@ -433,19 +358,7 @@ async fn bridge_task(
                 }
             }
         }
-        // The host link: a (re)connected host gets `hello`; streamed telemetry when
-        // due; encoded lines move to the USB writer while its pipe has room for a
-        // whole one (no I/O here, never a wait).
-        if HOST_CONNECTED.try_take().is_some() {
-            host.connected(now_us());
-        }
-        host_due = host.poll(now_us(), &bridge);
-        while HOST_TX.free_capacity() >= OUT_LINE_MAX {
-            let Some(n) = host.next_line(now_us(), &bridge, &mut line) else {
-                break;
-            };
-            let _ = HOST_TX.try_write(line.get(..n).unwrap_or(&[]));
-        }
+        host.after_pass(&bridge);
         // Publishing is a copy into the Watch, no I/O: done on every step.
         let t = bridge.telemetry();
         if t.snapshot_seq != published_seq {
@@ -454,8 +367,8 @@ async fn bridge_task(
                 sender.send(SharedSnapshot {
                     snapshot: snapshot.clone(),
                     taken_at: Instant::from_micros(at),
-                    settings: t.settings.as_ref().and_then(PackSettings::from_registers),
-                    version: t.version,
+                    #[cfg(feature = "can")]
+                    inverter: can_output::Inputs::from_telemetry(t),
                 });
             }
         }
@@ -487,138 +400,365 @@ fn submit_profile(bridge: &mut Bridge) {
     }
 }
 
-/// Host → bridge: bytes from the USB port into [`HOST_RX`]. Waits (and so makes
-/// the host wait) while the bridge task has not taken the previous ones.
-#[embassy_executor::task]
-async fn usb_rx_task(mut rx: UsbSerialJtagRx<'static, Async>) {
-    use embedded_io_async::Read;
-    let mut buf = [0u8; 64];
-    loop {
-        let Ok(n) = rx.read(&mut buf).await; // the error type is `Infallible`
-        HOST_RX.write_all(buf.get(..n).unwrap_or(&[])).await;
-    }
-}
+/// The host link (feature `host-link`): the USB-Serial-JTAG port, its two tasks and
+/// the [`HostLink`](tinybms_firmware::host_link::HostLink) the bridge task drives.
+#[cfg(feature = "host-link")]
+mod host_port {
+    use super::*;
+    use embassy_sync::pipe::Pipe;
+    use embassy_sync::signal::Signal;
+    use esp_hal::peripherals::USB_DEVICE;
+    use esp_hal::usb::usb_serial_jtag::{UsbSerialJtag, UsbSerialJtagRx, UsbSerialJtagTx};
+    use tinybms_firmware::host_link::{HostLink, OUT_LINE_MAX};
 
-/// Bridge → host: lines from [`HOST_TX`] to the USB port, each chunk with a
-/// timeout. A chunk that times out is dropped (the host sees a cut line and
-/// resyncs at the next newline); the first write that goes through afterwards
-/// (and the first one after boot) signals [`HOST_CONNECTED`].
-#[embassy_executor::task]
-async fn usb_tx_task(mut tx: UsbSerialJtagTx<'static, Async>) {
-    use embedded_io_async::Write;
-    let mut buf = [0u8; USB_WRITE_CHUNK];
-    let mut reading = false;
-    loop {
-        let n = HOST_TX.read(&mut buf).await;
-        let chunk = buf.get(..n).unwrap_or(&[]);
-        let sent = with_timeout(USB_WRITE_TIMEOUT, async {
-            tx.write_all(chunk).await?;
-            tx.flush().await
-        })
-        .await;
-        match sent {
-            Ok(Ok(())) => {
-                if !reading {
-                    reading = true;
-                    HOST_CONNECTED.signal(());
-                }
-            }
-            _ => reading = false,
-        }
-    }
-}
+    /// Bytes from the host (USB-Serial-JTAG → bridge task). When full, `usb_rx_task`
+    /// waits, and the USB endpoint makes the host wait: nothing is lost.
+    static HOST_RX: Pipe<CriticalSectionRawMutex, HOST_RX_PIPE> = Pipe::new();
+    /// Encoded lines for the host (bridge task → `usb_tx_task`).
+    static HOST_TX: Pipe<CriticalSectionRawMutex, HOST_TX_PIPE> = Pipe::new();
+    /// `usb_tx_task` saw a write go through after none could (at boot, or after a
+    /// timeout): a host has (re)opened the port. The bridge task then queues `hello`.
+    static HOST_CONNECTED: Signal<CriticalSectionRawMutex, ()> = Signal::new();
 
-/// The inverter output: the firmware's sans-IO [`Inverter`] between the shared
-/// telemetry and the TWAI controller. It never waits on the BMS link (it reads
-/// the `Watch` without blocking) and the BMS link never waits on it.
-#[embassy_executor::task]
-async fn can_task(mut twai: Twai<'static, Async>) {
-    let Some(mut telemetry) = TELEMETRY.receiver() else {
-        warn!("telemetry watch has no free receiver slot: no CAN output");
-        return;
-    };
-    let mut inverter = Inverter::new(tinybms_firmware::site::inverter_config(), now_us());
-    loop {
-        if let Some(shared) = telemetry.try_changed() {
-            inverter.on_snapshot(
-                shared.taken_at.as_micros(),
-                &shared.snapshot,
-                shared.settings,
-                shared.version.as_ref(),
+    /// Size of [`HOST_RX`], bytes.
+    const HOST_RX_PIPE: usize = 256;
+    /// Size of [`HOST_TX`], bytes: two of the longest lines.
+    const HOST_TX_PIPE: usize = 2 * OUT_LINE_MAX;
+    /// Longest a write of one chunk to the USB port may take (the host reads the IN
+    /// endpoint every millisecond while the port is open). On timeout the chunk is
+    /// dropped and the host is deemed gone until a write goes through again.
+    const USB_WRITE_TIMEOUT: Duration = Duration::from_millis(50);
+    /// Bytes written to the USB port at once (the endpoint's FIFO is 64 bytes).
+    const USB_WRITE_CHUNK: usize = 256;
+
+    /// The host link on the USB cable (USB-Serial-JTAG, CDC-ACM). Its JTAG side
+    /// (probe-rs, RTT) is a separate USB interface of the same device: both run
+    /// together (README, "Host link").
+    pub fn start(spawner: Spawner, usb: USB_DEVICE<'static>) {
+        let (usb_rx, usb_tx) = UsbSerialJtag::new(usb).into_async().split();
+        info!(
+            "host link on USB-Serial-JTAG: {=str}, telemetry every {=u32} ms",
+            if tinybms_firmware::site::HOST_READ_ONLY {
+                "read-only"
+            } else {
+                "read-write"
+            },
+            tinybms_firmware::site::HOST_STREAM_PERIOD_MS
+        );
+        spawn(spawner, usb_rx_task(usb_rx));
+        spawn(spawner, usb_tx_task(usb_tx));
+    }
+
+    /// The bridge task's side of the host link.
+    pub struct HostPort {
+        link: HostLink,
+        /// When the host link's timers want it called again (set at the end of every
+        /// pass, after whatever the pass changed).
+        due: u64,
+        rx_buf: [u8; 64],
+        line: [u8; OUT_LINE_MAX],
+    }
+
+    impl HostPort {
+        pub fn new(bridge: &Bridge) -> Self {
+            let mut link = HostLink::new(
+                tinybms_firmware::site::host_link_config(BOARD.chip.name()),
+                now_us(),
             );
+            let due = link.poll(now_us(), bridge);
+            Self {
+                link,
+                due,
+                rx_buf: [0; 64],
+                line: [0; OUT_LINE_MAX],
+            }
         }
-        while let Ok(e) = EVENTS.try_receive() {
-            inverter.on_event(&e);
+
+        pub fn on_report(&mut self, report: &Report) {
+            self.link.on_report(report);
         }
-        match inverter.poll(now_us()) {
-            InverterAction::Send(f) => {
-                let Some(frame) =
-                    StandardId::new(f.id).and_then(|id| EspTwaiFrame::new(id, f.bytes()))
-                else {
-                    continue;
+
+        pub fn on_uart_tx(&mut self, bytes: &[u8]) {
+            self.link.on_uart_tx(bytes);
+        }
+
+        pub fn on_uart_rx(&mut self, bytes: &[u8]) {
+            self.link.on_uart_rx(bytes);
+        }
+
+        /// When the host link wants to be called again (µs).
+        pub fn due(&self) -> u64 {
+            self.due
+        }
+
+        /// Waits for bytes from the host (cancellation-safe); their count.
+        pub async fn receive(&mut self) -> usize {
+            HOST_RX.read(&mut self.rx_buf).await
+        }
+
+        /// The `n` bytes [`HostPort::receive`] got, into the host link.
+        pub fn handle_rx(&mut self, n: usize, bridge: &mut Bridge) {
+            let bytes = self.rx_buf.get(..n).unwrap_or(&[]);
+            self.link.handle_rx(now_us(), bytes, bridge);
+        }
+
+        /// End of a bridge-task pass: a (re)connected host gets `hello`; streamed
+        /// telemetry when due; encoded lines move to the USB writer while its pipe
+        /// has room for a whole one (no I/O here, never a wait).
+        pub fn after_pass(&mut self, bridge: &Bridge) {
+            if HOST_CONNECTED.try_take().is_some() {
+                self.link.connected(now_us());
+            }
+            self.due = self.link.poll(now_us(), bridge);
+            while HOST_TX.free_capacity() >= OUT_LINE_MAX {
+                let Some(n) = self.link.next_line(now_us(), bridge, &mut self.line) else {
+                    break;
                 };
-                let result = with_timeout(CAN_TX_TIMEOUT, twai.transmit_async(&frame)).await;
-                if matches!(result, Ok(Err(EspTwaiError::BusOff))) || twai.is_bus_off() {
-                    inverter.on_bus_off(now_us());
-                } else if matches!(result, Ok(Ok(()))) {
-                    inverter.on_tx(now_us(), TxResult::Sent);
-                } else {
-                    // Not acknowledged (no other node: error-passive), or too slow.
-                    inverter.on_tx(now_us(), TxResult::Failed);
-                }
+                let _ = HOST_TX.try_write(self.line.get(..n).unwrap_or(&[]));
             }
-            InverterAction::Recover => {
-                twai.initiate_recovery();
-                let until = Instant::now() + CAN_RECOVERY_WAIT;
-                while twai.is_bus_off() && Instant::now() < until {
-                    Timer::after(Duration::from_millis(10)).await;
+        }
+    }
+
+    /// Host → bridge: bytes from the USB port into [`HOST_RX`]. Waits (and so makes
+    /// the host wait) while the bridge task has not taken the previous ones.
+    #[embassy_executor::task]
+    async fn usb_rx_task(mut rx: UsbSerialJtagRx<'static, Async>) {
+        use embedded_io_async::Read;
+        let mut buf = [0u8; 64];
+        loop {
+            let Ok(n) = rx.read(&mut buf).await; // the error type is `Infallible`
+            HOST_RX.write_all(buf.get(..n).unwrap_or(&[])).await;
+        }
+    }
+
+    /// Bridge → host: lines from [`HOST_TX`] to the USB port, each chunk with a
+    /// timeout. A chunk that times out is dropped (the host sees a cut line and
+    /// resyncs at the next newline); the first write that goes through afterwards
+    /// (and the first one after boot) signals [`HOST_CONNECTED`].
+    #[embassy_executor::task]
+    async fn usb_tx_task(mut tx: UsbSerialJtagTx<'static, Async>) {
+        use embedded_io_async::Write;
+        let mut buf = [0u8; USB_WRITE_CHUNK];
+        let mut reading = false;
+        loop {
+            let n = HOST_TX.read(&mut buf).await;
+            let chunk = buf.get(..n).unwrap_or(&[]);
+            let sent = with_timeout(USB_WRITE_TIMEOUT, async {
+                tx.write_all(chunk).await?;
+                tx.flush().await
+            })
+            .await;
+            match sent {
+                Ok(Ok(())) => {
+                    if !reading {
+                        reading = true;
+                        HOST_CONNECTED.signal(());
+                    }
                 }
-                if twai.is_bus_off() {
-                    inverter.on_bus_off(now_us());
-                }
+                _ => reading = false,
             }
-            InverterAction::WaitUntil(t) => {
-                let deadline = Instant::from_micros(t).min(Instant::now() + CAN_MAX_WAIT);
-                // The GX keep-alive (0x305/0x307) and anything else on the bus.
-                if let Either::First(Ok(frame)) =
-                    select(twai.receive_async(), Timer::at(deadline)).await
-                {
-                    if let Id::Standard(id) = frame.identifier() {
-                        inverter.on_received(now_us(), id.as_raw(), frame.data());
+        }
+    }
+}
+
+/// Without the host link: nothing to drive (the compiler removes these calls).
+#[cfg(not(feature = "host-link"))]
+mod host_port {
+    use super::{Bridge, Report};
+
+    pub struct HostPort;
+
+    impl HostPort {
+        pub fn new(_: &Bridge) -> Self {
+            Self
+        }
+        pub fn on_report(&mut self, _: &Report) {}
+        pub fn on_uart_tx(&mut self, _: &[u8]) {}
+        pub fn on_uart_rx(&mut self, _: &[u8]) {}
+        pub fn due(&self) -> u64 {
+            u64::MAX
+        }
+        pub async fn receive(&mut self) -> usize {
+            core::future::pending().await
+        }
+        pub fn handle_rx(&mut self, _: usize, _: &mut Bridge) {}
+        pub fn after_pass(&mut self, _: &Bridge) {}
+    }
+}
+
+/// The inverter output (feature `can`): the TWAI controller and `can_task`.
+#[cfg(feature = "can")]
+mod can_output {
+    use super::*;
+    use embassy_futures::select::{select, Either};
+    use embassy_sync::channel::Channel;
+    use esp_hal::peripherals::TWAI0;
+    use esp_hal::twai::{
+        BaudRate, EspTwaiError, EspTwaiFrame, Id, StandardId, Twai, TwaiConfiguration, TwaiMode,
+    };
+    use protocol_core::events::Event;
+    use protocol_core::views::VersionInfo;
+    use tinybms_firmware::inverter::control::PackSettings;
+    use tinybms_firmware::inverter::{
+        Inverter, InverterAction, InverterReport, Protocol, TxResult,
+    };
+    use tinybms_firmware::Telemetry;
+
+    /// New BMS events for the CAN output (charge-blocking faults); a full channel
+    /// drops the event for it (the BMS status still says "fault").
+    static EVENTS: Channel<CriticalSectionRawMutex, Event, 8> = Channel::new();
+
+    /// CAN bit rate of both inverter protocols.
+    const CAN_BAUDRATE: BaudRate = BaudRate::B500K;
+    /// Longest a CAN transmission may take before it counts as failed.
+    const CAN_TX_TIMEOUT: Duration = Duration::from_millis(100);
+    /// Longest the CAN task sleeps (it re-reads the telemetry at least this often).
+    const CAN_MAX_WAIT: Duration = Duration::from_millis(200);
+    /// Bus-off recovery: how long to wait for the controller to come back.
+    const CAN_RECOVERY_WAIT: Duration = Duration::from_millis(500);
+
+    /// What the inverter output needs with each snapshot: the BMS settings charge
+    /// control uses and the version.
+    #[derive(Clone)]
+    pub struct Inputs {
+        settings: Option<PackSettings>,
+        version: Option<VersionInfo>,
+    }
+
+    impl Inputs {
+        pub fn from_telemetry(t: &Telemetry) -> Self {
+            Self {
+                settings: t.settings.as_ref().and_then(PackSettings::from_registers),
+                version: t.version,
+            }
+        }
+    }
+
+    /// A bridge report the inverter output wants: new BMS events.
+    pub fn on_report(report: &Report) {
+        if let Report::NewEvent(e) = report {
+            let _ = EVENTS.try_send(*e);
+        }
+    }
+
+    /// TWAI (CAN) to the inverter, on the board's CAN pins, 500 kbit/s.
+    pub fn start(spawner: Spawner, twai0: TWAI0<'static>) {
+        // SAFETY: as for the UART pins above: used nowhere else, checked distinct and
+        // not flash/USB/UART0/strapping pins by the board table.
+        let (can_tx, can_rx) =
+            unsafe { (AnyPin::steal(BOARD.can_tx), AnyPin::steal(BOARD.can_rx)) };
+        let twai = TwaiConfiguration::new(twai0, can_rx, can_tx, CAN_BAUDRATE, TwaiMode::Normal)
+            .into_async()
+            .start();
+        info!(
+            "CAN {=str} 500 kbit/s TX=GPIO{=u8} RX=GPIO{=u8} ({=str})",
+            if tinybms_firmware::site::CAN_OUTPUT {
+                "on"
+            } else {
+                "off"
+            },
+            BOARD.can_tx,
+            BOARD.can_rx,
+            match tinybms_firmware::site::PROTOCOL {
+                Protocol::Victron => "victron",
+                Protocol::SmaSunnyIsland => "sma-si",
+            }
+        );
+        spawn(spawner, can_task(twai));
+    }
+
+    /// The inverter output: the firmware's sans-IO [`Inverter`] between the shared
+    /// telemetry and the TWAI controller. It never waits on the BMS link (it reads
+    /// the `Watch` without blocking) and the BMS link never waits on it.
+    #[embassy_executor::task]
+    async fn can_task(mut twai: Twai<'static, Async>) {
+        let Some(mut telemetry) = TELEMETRY.receiver() else {
+            warn!("telemetry watch has no free receiver slot: no CAN output");
+            return;
+        };
+        let mut inverter = Inverter::new(tinybms_firmware::site::inverter_config(), now_us());
+        loop {
+            if let Some(shared) = telemetry.try_changed() {
+                inverter.on_snapshot(
+                    shared.taken_at.as_micros(),
+                    &shared.snapshot,
+                    shared.inverter.settings,
+                    shared.inverter.version.as_ref(),
+                );
+            }
+            while let Ok(e) = EVENTS.try_receive() {
+                inverter.on_event(&e);
+            }
+            match inverter.poll(now_us()) {
+                InverterAction::Send(f) => {
+                    let Some(frame) =
+                        StandardId::new(f.id).and_then(|id| EspTwaiFrame::new(id, f.bytes()))
+                    else {
+                        continue;
+                    };
+                    let result = with_timeout(CAN_TX_TIMEOUT, twai.transmit_async(&frame)).await;
+                    if matches!(result, Ok(Err(EspTwaiError::BusOff))) || twai.is_bus_off() {
+                        inverter.on_bus_off(now_us());
+                    } else if matches!(result, Ok(Ok(()))) {
+                        inverter.on_tx(now_us(), TxResult::Sent);
+                    } else {
+                        // Not acknowledged (no other node: error-passive), or too slow.
+                        inverter.on_tx(now_us(), TxResult::Failed);
+                    }
+                }
+                InverterAction::Recover => {
+                    twai.initiate_recovery();
+                    let until = Instant::now() + CAN_RECOVERY_WAIT;
+                    while twai.is_bus_off() && Instant::now() < until {
+                        Timer::after(Duration::from_millis(10)).await;
+                    }
+                    if twai.is_bus_off() {
+                        inverter.on_bus_off(now_us());
+                    }
+                }
+                InverterAction::WaitUntil(t) => {
+                    let deadline = Instant::from_micros(t).min(Instant::now() + CAN_MAX_WAIT);
+                    // The GX keep-alive (0x305/0x307) and anything else on the bus.
+                    if let Either::First(Ok(frame)) =
+                        select(twai.receive_async(), Timer::at(deadline)).await
+                    {
+                        if let Id::Standard(id) = frame.identifier() {
+                            inverter.on_received(now_us(), id.as_raw(), frame.data());
+                        }
                     }
                 }
             }
-        }
-        while let Some(r) = inverter.next_report() {
-            log_inverter(&r);
+            while let Some(r) = inverter.next_report() {
+                log_inverter(&r);
+            }
         }
     }
-}
 
-/// One defmt line per inverter report.
-fn log_inverter(r: &InverterReport) {
-    match r {
-        InverterReport::InverterSeen => info!("CAN: inverter seen (keep-alive)"),
-        InverterReport::InverterLost => warn!("CAN: inverter lost (no keep-alive)"),
-        InverterReport::Stale { age_ms, policy } => warn!(
-            "CAN: BMS telemetry {=u32} ms old: {}",
-            age_ms, policy
-        ),
-        InverterReport::StaleHoldEnded => warn!("CAN: hold time over, sending stopped"),
-        InverterReport::Fresh => info!("CAN: BMS telemetry fresh again, sending"),
-        InverterReport::NoAck { failures } => warn!(
-            "CAN: {=u32} frames not acknowledged (nothing else on the bus? wiring, termination, bit rate)",
-            failures
-        ),
-        InverterReport::BusOk => info!("CAN: frames acknowledged again"),
-        InverterReport::BusOff { count, backoff_ms } => warn!(
-            "CAN: bus-off #{=u32}, recovering in {=u32} ms",
-            count, backoff_ms
-        ),
-        InverterReport::Limits(l) => info!(
-            "CAN limits: CVL {=u16} dV, CCL {=u16} dA, DCL {=u16} dA",
-            l.cvl_dv, l.ccl_da, l.dcl_da
-        ),
+    /// One defmt line per inverter report.
+    fn log_inverter(r: &InverterReport) {
+        match r {
+            InverterReport::InverterSeen => info!("CAN: inverter seen (keep-alive)"),
+            InverterReport::InverterLost => warn!("CAN: inverter lost (no keep-alive)"),
+            InverterReport::Stale { age_ms, policy } => warn!(
+                "CAN: BMS telemetry {=u32} ms old: {}",
+                age_ms, policy
+            ),
+            InverterReport::StaleHoldEnded => warn!("CAN: hold time over, sending stopped"),
+            InverterReport::Fresh => info!("CAN: BMS telemetry fresh again, sending"),
+            InverterReport::NoAck { failures } => warn!(
+                "CAN: {=u32} frames not acknowledged (nothing else on the bus? wiring, termination, bit rate)",
+                failures
+            ),
+            InverterReport::BusOk => info!("CAN: frames acknowledged again"),
+            InverterReport::BusOff { count, backoff_ms } => warn!(
+                "CAN: bus-off #{=u32}, recovering in {=u32} ms",
+                count, backoff_ms
+            ),
+            InverterReport::Limits(l) => info!(
+                "CAN limits: CVL {=u16} dV, CCL {=u16} dA, DCL {=u16} dA",
+                l.cvl_dv, l.ccl_da, l.dcl_da
+            ),
+        }
     }
 }
 

@@ -195,8 +195,8 @@ fn cargo_features_list_the_same_boards_with_their_chips() {
         .collect();
     assert_eq!(features, table);
     assert!(
-        toml.contains("default = [\"board-c3-devkitm-1\", \"log-rtt\"]"),
-        "default build: C3-DevKitM-1 pins, RTT"
+        toml.contains("default = [\"board-c3-devkitm-1\", \"log-rtt\", \"can\", \"host-link\"]"),
+        "default build: C3-DevKitM-1 pins, RTT, inverter output and host link"
     );
 }
 
@@ -206,7 +206,7 @@ fn each_board_has_a_build_alias_with_its_log_path() {
     for b in BOARDS {
         let short = b.feature.strip_prefix("board-").unwrap();
         let mut expected = format!(
-            "build-{short} = \"build --release --no-default-features --features {},{}",
+            "build-{short} = \"build --release --no-default-features --features {},{},can,host-link",
             b.feature,
             b.log.feature()
         );

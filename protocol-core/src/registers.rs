@@ -621,9 +621,42 @@ pub fn is_continuation(address: u16) -> bool {
         // Event slots are two registers, from 200.
         return (address - EVENTS_FIRST) % 2 == 1;
     }
-    lookup(address)
-        .iter()
-        .any(|r| r.value_type == ValueType::Continuation)
+    // The rows of [`lookup`] that are continuations are the table's: a row built
+    // by rule never is.
+    CONTINUATIONS.contains(&address)
+}
+
+/// The addresses of [`REGISTERS`]' continuation rows, taken from the table at
+/// compile time: [`is_continuation`] then needs a few bytes instead of the
+/// whole table with its names (5 KB of flash on the chip).
+const CONTINUATIONS: [u16; count_continuations()] = continuation_addresses();
+
+const fn count_continuations() -> usize {
+    let mut n = 0;
+    let mut rest = REGISTERS;
+    while let [r, tail @ ..] = rest {
+        if matches!(r.value_type, ValueType::Continuation) {
+            n += 1;
+        }
+        rest = tail;
+    }
+    n
+}
+
+// Evaluated at compile time only: an index out of bounds would fail the build.
+#[allow(clippy::indexing_slicing)]
+const fn continuation_addresses<const N: usize>() -> [u16; N] {
+    let mut out = [0; N];
+    let mut n = 0;
+    let mut rest = REGISTERS;
+    while let [r, tail @ ..] = rest {
+        if matches!(r.value_type, ValueType::Continuation) {
+            out[n] = r.address;
+            n += 1;
+        }
+        rest = tail;
+    }
+    out
 }
 
 /// The table rows for `address` (one or two fields), or an event slot / reserved

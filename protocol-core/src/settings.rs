@@ -111,16 +111,43 @@ setting_ids! {
     Protocol = (343, LowByte),
 }
 
+/// The register-map row of each setting, indexed by `SettingId as usize` (the
+/// order of [`SettingId::ALL`]), copied out of [`regs::REGISTERS`] at compile
+/// time: the chip then links these rows, not the whole table with the names and
+/// options of every register (with `is_continuation`'s table, 5.2 KB of flash).
+static SETTING_ROWS: [Option<Register>; SettingId::ALL.len()] = setting_rows();
+
+// Evaluated at compile time only: an index out of bounds, or `ALL` out of
+// declaration order, fails the build.
+#[allow(clippy::indexing_slicing)]
+const fn setting_rows<const N: usize>() -> [Option<Register>; N] {
+    let mut out = [None; N];
+    let mut i = 0;
+    while i < N {
+        let id = SettingId::ALL[i];
+        assert!(id as usize == i, "SettingId::ALL is in declaration order");
+        let mut rest = regs::REGISTERS;
+        while let [r, tail @ ..] = rest {
+            if r.address == id.address() && r.field as u8 == id.field() as u8 {
+                out[i] = Some(*r);
+                break;
+            }
+            rest = tail;
+        }
+        i += 1;
+    }
+    out
+}
+
 /// Read-back value of 323 and 328 when the BMS accepted the write (Rev D §3.4,
 /// HARDWARE-NOTES).
 pub const ACCEPTED_MARKER: u16 = 0xFFFF;
 
 impl SettingId {
-    /// The register-map row describing this setting.
+    /// The register-map row describing this setting (the first row of
+    /// [`regs::REGISTERS`] with its address and field).
     pub fn register(self) -> Option<&'static Register> {
-        regs::REGISTERS
-            .iter()
-            .find(|r| r.address == self.address() && r.field == self.field())
+        SETTING_ROWS.get(self as usize)?.as_ref()
     }
     /// Rev D's name.
     pub fn name(self) -> &'static str {
