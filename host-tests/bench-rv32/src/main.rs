@@ -117,19 +117,18 @@ impl<'a> Cursor<'a> {
     }
 }
 
-/// Decoder alone: one frame out of `reply`.
+/// Decoder alone: one frame out of `reply`, polled as the link polls it
+/// (`Decoder::poll_ref`: a data frame is lent where it lies in the buffer).
 #[inline(never)]
 fn decode_frame(decoder: &mut Decoder, reply: &[u8]) -> bool {
     let mut input = reply;
     let mut ok = false;
+    let mut spill = None;
     loop {
         let n = decoder.push(input);
         input = input.get(n..).unwrap_or(&[]);
-        let mut item = None;
-        loop {
-            decoder.poll_into(&mut item);
-            let Some(it) = &item else { break };
-            ok |= black_box(it).is_ok();
+        while let Some(it) = decoder.poll_ref(&mut spill) {
+            ok |= black_box(&it).is_ok();
         }
         if input.is_empty() {
             break;
@@ -138,20 +137,18 @@ fn decode_frame(decoder: &mut Decoder, reply: &[u8]) -> bool {
     ok
 }
 
-/// Decoder + typed decode + view.
+/// Decoder + typed decode + view, as the link decodes a lent frame.
 #[inline(never)]
 fn decode_typed(decoder: &mut Decoder, request: &Request, reply: &[u8]) -> Option<LiveSnapshot> {
     let mut input = reply;
     let mut out = None;
+    let mut spill = None;
     loop {
         let n = decoder.push(input);
         input = input.get(n..).unwrap_or(&[]);
-        let mut item = None;
-        loop {
-            decoder.poll_into(&mut item);
-            let Some(it) = &item else { break };
+        while let Some(it) = decoder.poll_ref(&mut spill) {
             if let Ok(frame) = it {
-                if let Ok(Response::Registers(block)) = &Response::decode(request, frame) {
+                if let Ok(Response::Registers(block)) = &Response::decode_ref(request, frame) {
                     out = LiveSnapshot::from_registers(block).ok();
                 }
             }
