@@ -92,7 +92,7 @@ pub fn record_clean(seed: u64, duration_us: u64) -> Option<Vec<u8>> {
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Call {
     /// `poll(now)` and its answer.
-    Poll { now: u64, action: Action },
+    Poll { now: u64, action: Box<Action> },
     /// Bytes received at `now`.
     Rx { now: u64, bytes: Vec<u8> },
 }
@@ -129,7 +129,10 @@ pub fn calls(trace: &[u8]) -> Option<Vec<Call>> {
                     b'W' => Action::WaitUntil(u64_at(trace, &mut i)?),
                     _ => return None,
                 };
-                out.push(Call::Poll { now, action });
+                out.push(Call::Poll {
+                    now,
+                    action: Box::new(action),
+                });
             }
             b'R' => {
                 let now = u64_at(trace, &mut i)?;

@@ -49,8 +49,8 @@ fn handle_rx_decides_as_the_in_place_receive() {
     for call in &calls {
         match call {
             Call::Poll { now, action } => {
-                assert_eq!(&copying.poll(*now), action, "handle_rx path at {now}");
-                assert_eq!(&in_place.poll(*now), action, "in-place path at {now}");
+                assert_eq!(&copying.poll(*now), &**action, "handle_rx path at {now}");
+                assert_eq!(&in_place.poll(*now), &**action, "in-place path at {now}");
                 polls += 1;
             }
             Call::Rx { now, bytes } => {
