@@ -472,21 +472,7 @@ impl Link {
     fn on_deadline(&mut self, now: Instant) {
         // Whatever is half-received is cut off; a complete frame it reveals may
         // still be the answer.
-        // Frames are handled where the decoder keeps them (see `see`).
-        let mut spill = None;
-        while let Some(item) = self.decoder.flush_ref(&mut spill) {
-            let seen = see(
-                self.pending.is_some(),
-                self.to_send,
-                &mut self.done,
-                &self.request,
-                item,
-            );
-            self.on_seen(now, seen);
-            if self.pending.is_none() || self.to_send {
-                break;
-            }
-        }
+        self.drain::<true>(now);
         let Some(p) = self.pending.as_mut() else {
             return;
         };
@@ -619,7 +605,7 @@ impl Link {
         loop {
             let n = self.decoder.push(input);
             input = input.get(n..).unwrap_or(&[]);
-            self.drain(now);
+            self.drain::<false>(now);
             if input.is_empty() {
                 break;
             }
@@ -637,7 +623,7 @@ impl Link {
     pub fn on_received(&mut self, now: Instant, n: usize) {
         let n = self.decoder.commit(n);
         self.heard(now, n > 0);
-        self.drain(now);
+        self.drain::<false>(now);
     }
 
     /// Bookkeeping for bytes received at `now` (`any`: at least one).
@@ -658,11 +644,22 @@ impl Link {
         }
     }
 
-    /// Handles every frame the decoder finds in what it holds.
-    fn drain(&mut self, now: Instant) {
+    /// Handles every frame the decoder finds in what it holds. `ENDING`: at the
+    /// response deadline, the half-received rest is cut off too (`flush_ref`),
+    /// and the handling stops once the transaction is decided. (A constant: the
+    /// receive path polls after every UART read and pays for no test of it.)
+    fn drain<const ENDING: bool>(&mut self, now: Instant) {
         // Frames are handled where the decoder keeps them (see `see`).
         let mut spill = None;
-        while let Some(item) = self.decoder.poll_ref(&mut spill) {
+        loop {
+            let item = if ENDING {
+                self.decoder.flush_ref(&mut spill)
+            } else {
+                self.decoder.poll_ref(&mut spill)
+            };
+            let Some(item) = item else {
+                break;
+            };
             let seen = see(
                 self.pending.is_some(),
                 self.to_send,
@@ -671,6 +668,9 @@ impl Link {
                 item,
             );
             self.on_seen(now, seen);
+            if ENDING && (self.pending.is_none() || self.to_send) {
+                break;
+            }
         }
     }
 

@@ -422,55 +422,16 @@ fn decode_chunked(
     let mut lending = dec.clone();
     let mut receiving = dec.clone();
     let out = decode_chunked_owned(dec, bytes, sizes);
-    let lent = decode_chunked_lent(&mut lending, bytes, sizes);
+    let lent = decode_chunked_lent(&mut lending, bytes, sizes, false);
     assert_eq!(lent, out, "poll_ref differs from poll");
     assert_eq!(lending.stats(), dec.stats(), "poll_ref counts differ");
     assert_eq!(lending.buffered(), dec.buffered());
     assert_eq!(lending.in_packets(), dec.in_packets());
-    let received = decode_chunked_received(&mut receiving, bytes, sizes);
+    let received = decode_chunked_lent(&mut receiving, bytes, sizes, true);
     assert_eq!(received, out, "spare/commit differs from push");
     assert_eq!(receiving.stats(), dec.stats(), "spare/commit counts differ");
     assert_eq!(receiving.buffered(), dec.buffered());
     assert_eq!(receiving.in_packets(), dec.in_packets());
-    out
-}
-
-/// As [`decode_chunked_lent`], each chunk written into `Decoder::spare` (as
-/// much as it holds) and committed; after the polls answered `None` the spare
-/// room must never be empty (a reader given no room would spin).
-fn decode_chunked_received(
-    dec: &mut Decoder,
-    bytes: &[u8],
-    sizes: &[usize],
-) -> Vec<Result<Frame, DecodeError>> {
-    let mut out = Vec::new();
-    let mut spill = None;
-    let mut rest = bytes;
-    let mut i = 0;
-    while !rest.is_empty() {
-        let size = sizes[i % sizes.len()].clamp(1, rest.len());
-        i += 1;
-        let (mut chunk, r) = rest.split_at(size);
-        rest = r;
-        while !chunk.is_empty() {
-            let spare = dec.spare();
-            assert!(!spare.is_empty(), "no spare room after the polls");
-            let n = spare.len().min(chunk.len());
-            spare[..n].copy_from_slice(&chunk[..n]);
-            assert_eq!(dec.commit(n), n);
-            chunk = &chunk[n..];
-            while let Some(r) = dec.poll_ref(&mut spill) {
-                out.push(r.map(owned));
-            }
-        }
-    }
-    assert!(!dec.spare().is_empty(), "no spare room after the polls");
-    let mut guard = 0;
-    while let Some(r) = dec.flush_ref(&mut spill) {
-        out.push(r.map(owned));
-        guard += 1;
-        assert!(guard < 10_000, "flush_ref never returned None");
-    }
     out
 }
 
@@ -491,10 +452,16 @@ fn owned(f: protocol_core::FrameRef<'_>) -> Frame {
     }
 }
 
+/// Feeds as [`decode_chunked_owned`], polling with `poll_ref`/`flush_ref`. With
+/// `in_place`, each chunk is written into `Decoder::spare` (as much as it holds)
+/// and committed, the way the chip's UART driver hands bytes over; the spare
+/// room must then never be empty after the polls (a reader given no room would
+/// spin).
 fn decode_chunked_lent(
     dec: &mut Decoder,
     bytes: &[u8],
     sizes: &[usize],
+    in_place: bool,
 ) -> Vec<Result<Frame, DecodeError>> {
     let mut out = Vec::new();
     let mut spill = None;
@@ -506,12 +473,24 @@ fn decode_chunked_lent(
         let (mut chunk, r) = rest.split_at(size);
         rest = r;
         while !chunk.is_empty() {
-            let n = dec.push(chunk);
+            let n = if in_place {
+                let spare = dec.spare();
+                assert!(!spare.is_empty(), "no spare room after the polls");
+                let n = spare.len().min(chunk.len());
+                spare[..n].copy_from_slice(&chunk[..n]);
+                assert_eq!(dec.commit(n), n);
+                n
+            } else {
+                dec.push(chunk)
+            };
             chunk = &chunk[n..];
             while let Some(r) = dec.poll_ref(&mut spill) {
                 out.push(r.map(owned));
             }
         }
+    }
+    if in_place {
+        assert!(!dec.spare().is_empty(), "no spare room after the polls");
     }
     let mut guard = 0;
     while let Some(r) = dec.flush_ref(&mut spill) {
