@@ -38,12 +38,6 @@ pub const CLEAN_TO_GROW: u16 = 12;
 
 /// The live block's ranges (registers 16-31 are reserved).
 pub const LIVE_SEGMENTS: &[(u16, u16)] = &[(0, 15), (32, 55)];
-/// Live registers that no consistency check covers (estimated time left,
-/// distance left, balancing bits, speed). A piece holding one of them is
-/// believed when its values equal the last published ones, or when two reads in
-/// a row agree: a CRC-16 lets a damaged frame through with probability 2^-16,
-/// and on a bad line millions of damaged pieces go by.
-pub const LIVE_GUARDED: &[u16] = &[34, 35, 44, 51, 52, 54, 55];
 /// Statistics.
 pub const STATS_SEGMENTS: &[(u16, u16)] = &[(100, 117)];
 /// Settings.
@@ -140,8 +134,10 @@ pub struct BlockRead {
     started_at: Instant,
     pieces: u8,
     passes: u8,
-    guarded: &'static [u16],
-    /// First read of the guarded piece in flight, waiting for a second.
+    /// Pieces are believed only when unchanged or read twice alike (see
+    /// [`BlockRead::confirm_pieces`]).
+    confirm: bool,
+    /// First read of the piece in flight, waiting for a second that agrees.
     first_read: Option<heapless::Vec<(u16, u16), 16>>,
     second_reads: u32,
 }
@@ -177,7 +173,7 @@ impl BlockRead {
             started_at: now,
             pieces: 0,
             passes: 0,
-            guarded: &[],
+            confirm: false,
             first_read: None,
             second_reads: 0,
         };
@@ -201,7 +197,7 @@ impl BlockRead {
         self.started_at = now;
         self.pieces = 0;
         self.passes = 0;
-        self.guarded = &[];
+        self.confirm = false;
         self.first_read = None;
         self.second_reads = 0;
         self.restart(now);
@@ -244,15 +240,19 @@ impl BlockRead {
         self.in_flight = None;
     }
 
-    /// Pieces holding any of `guarded` are believed when their values equal
-    /// the reference given with them ([`BlockRead::on_pairs`]: the last
-    /// published block), or when two reads in a row agree (see
-    /// [`LIVE_GUARDED`]).
-    pub fn guard(&mut self, guarded: &'static [u16]) {
-        self.guarded = guarded;
+    /// Every piece (a part of the span, read with 0x09) is believed only when
+    /// its values equal the reference given with it ([`BlockRead::on_pairs`]:
+    /// the last published block), or when two reads of it in a row agree. A
+    /// CRC-16 lets a damaged frame through with probability 2^-16, and on a bad
+    /// line millions of damaged pieces go by; the consistency checks catch a
+    /// value far off, not a cell or a current slightly off (soaks found both).
+    /// Pieces are then at most 15 registers (0x09, whose replies echo every
+    /// address); a reply of the whole span (0x03) is believed on its checks.
+    pub fn confirm_pieces(&mut self) {
+        self.confirm = true;
     }
 
-    /// Second reads made for guarded pieces.
+    /// Second reads made to confirm pieces.
     pub fn second_reads(&self) -> u32 {
         self.second_reads
     }
@@ -305,6 +305,13 @@ impl BlockRead {
         if self.cursor == self.first() && self.in_flight.is_none() {
             self.started_at = now;
         }
+        // Confirmed pieces are 0x09 pieces (at most 15 registers): only the
+        // whole span is read with 0x03.
+        let piece = if self.confirm && self.cursor != self.first() {
+            piece.min(PIECE_REGISTERS[1])
+        } else {
+            piece
+        };
         let (start, count) = self.piece_at(self.cursor, piece);
         if let Some(f) = &self.first_read {
             // A first read waits for a second one of the same piece only.
@@ -380,7 +387,7 @@ impl BlockRead {
     }
 
     /// The reply (0x09 address/value pairs) to the piece in flight; `reference`
-    /// is what guarded values are believed against (see [`BlockRead::guard`]).
+    /// is what pieces are believed against (see [`BlockRead::confirm_pieces`]).
     pub fn on_pairs(
         &mut self,
         now: Instant,
@@ -397,8 +404,7 @@ impl BlockRead {
             self.in_flight = None;
             return None;
         }
-        let guarded = pairs.iter().any(|(a, _)| self.guarded.contains(a));
-        if guarded {
+        if self.confirm {
             let unchanged =
                 reference.is_some_and(|r| pairs.iter().all(|&(a, v)| r.get(a) == Some(v)));
             let confirmed = self

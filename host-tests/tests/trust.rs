@@ -102,6 +102,45 @@ fn forged_live_blocks_with_a_valid_crc_are_never_published() {
     }
 }
 
+/// What the soaks found (README, "Trust"): on a bad line, a 0x09 piece whose
+/// CRC matched by chance, carrying a cell a little off or a current of
+/// -6.8e-21 A: values every consistency check lets through. Every live piece
+/// that changed since the last snapshot is read twice
+/// (`BlockRead::confirm_pieces`), so such a piece is never believed.
+#[test]
+fn a_crc_collision_in_a_piece_is_never_published() {
+    type Edit = fn(u16) -> u16;
+    let forgeries: [(&str, u16, Edit); 3] = [
+        ("a cell 50 mV up", 5, |v| v + 500),
+        ("a cell 50 mV down", 9, |v| v - 500),
+        ("the current's low word", 38, |v| v ^ 0x1234),
+    ];
+    for (name, addr, edit) in forgeries {
+        let mut h = checked(
+            PackProfile::LiFePO4_16S,
+            SimConfig::default().with_faults(FaultConfig::all(0.05)),
+            26,
+        );
+        h.run_until(60 * S);
+        assert!(h.bridge.piece_registers() < 56, "{name}: read in pieces");
+        // The line clears (the piece size grows back only after 12 clean reads):
+        // the forged piece arrives intact.
+        h.sim.config_mut().faults = FaultConfig::all(0.0);
+        let before = h.soak.as_ref().unwrap().published;
+        h.sim.forge_next_pair(addr, edit(h.sim.register(addr)));
+        h.run_until(70 * S);
+        assert!(
+            !h.sim.pair_forgery_pending(),
+            "{name}: the forgery went out"
+        );
+        genuine(&h);
+        assert!(
+            h.soak.as_ref().unwrap().published > before + 5,
+            "{name}: telemetry goes on"
+        );
+    }
+}
+
 #[test]
 fn a_real_broken_sense_wire_is_published_flagged_once_confirmed() {
     // Cell 6 reads 0 V on every read: real, unusual. Each block fails the cell
@@ -343,11 +382,14 @@ fn longest_gap(rate: f64, minutes: u64, seed: u64) -> (Harness, u64) {
     (h, gap)
 }
 
+/// At 5 % the live block is read in pieces, and every piece that changed since
+/// the last snapshot is read twice (`BlockRead::confirm_pieces`): the longest gap
+/// was 2.9 s over 20 × 6 h before that, 3.5 s since (README, "Trust").
 #[test]
-fn at_5_percent_snapshots_keep_coming_within_3_s() {
+fn at_5_percent_snapshots_keep_coming_within_4_s() {
     let (h, gap) = longest_gap(0.05, 30, 26);
     genuine(&h);
-    assert!(gap <= 3 * S, "longest gap {gap} µs");
+    assert!(gap <= 4 * S, "longest gap {gap} µs");
     // Read in pieces, each snapshot says how it was made.
     assert!(h.bridge.piece_registers() < 56);
     assert!(h.bridge.telemetry().live.pieces > 1);

@@ -128,7 +128,7 @@ impl Schedule {
         let window = config.live_assembly_window_us.max(config.live_period_us);
         self.live_read
             .reset(reader::LIVE_SEGMENTS, Mode::Window(window), now);
-        self.live_read.guard(reader::LIVE_GUARDED);
+        self.live_read.confirm_pieces();
         self.live_active = true;
         // A new read uses up a turn, it does not start a fresh share: at a live
         // period shorter than a read, live reads follow each other back to back,

@@ -273,6 +273,7 @@ pub struct SimBms {
     drop_replies: std::collections::BTreeMap<u8, u32>,
     forged: Option<Vec<u8>>,
     forged_live: Option<Vec<u8>>,
+    forged_pair: Option<(u16, u16)>,
     pinned: Vec<(u16, u16)>,
     limit_overrides: Vec<(u16, u16, u16)>,
 }
@@ -333,6 +334,7 @@ impl SimBms {
             drop_replies: std::collections::BTreeMap::new(),
             forged: None,
             forged_live: None,
+            forged_pair: None,
             pinned: Vec::new(),
             limit_overrides: Vec::new(),
         };
@@ -519,6 +521,18 @@ impl SimBms {
     /// on a noisy line produces. The ground truth keeps the real answer.
     pub fn forge_next_reply(&mut self, bytes: Vec<u8>) {
         self.forged = Some(bytes);
+    }
+
+    /// Test hook: the next 0x09 reply that holds register `addr` carries `value`
+    /// for it instead, in a CRC-valid frame (what a CRC collision in a piece on a
+    /// bad line looks like). The ground truth keeps the real answer.
+    pub fn forge_next_pair(&mut self, addr: u16, value: u16) {
+        self.forged_pair = Some((addr, value));
+    }
+
+    /// True while a [`SimBms::forge_next_pair`] forgery has not gone out yet.
+    pub fn pair_forgery_pending(&self) -> bool {
+        self.forged_pair.is_some()
     }
 
     /// Test hook: the next 0x03 reply carrying 56 registers (a whole live block)
@@ -1089,6 +1103,24 @@ impl SimBms {
                 .is_some_and(|r| r.at_us.saturating_add(window) < t)
             {
                 self.recent_reads.pop_front();
+            }
+        }
+        if let (Some((addr, value)), Some(Response::Individual(pairs))) =
+            (self.forged_pair, &response)
+        {
+            if pairs.iter().any(|p| p.0 == addr) {
+                self.forged_pair = None;
+                let mut forged = pairs.clone();
+                for p in forged.iter_mut().filter(|p| p.0 == addr) {
+                    p.1 = value;
+                }
+                if let Ok(f) = Response::Individual(forged).to_frame(req) {
+                    let mut bytes = vec![0u8; f.encoded_len().unwrap_or(0)];
+                    if let Ok(n) = f.encode(&mut bytes) {
+                        bytes.truncate(n);
+                        self.forged = Some(bytes);
+                    }
+                }
             }
         }
         let frame = match response.map(|r| r.to_frame(req)) {
