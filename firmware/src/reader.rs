@@ -137,6 +137,9 @@ pub struct BlockRead {
     /// Pieces are believed only when unchanged or read twice alike (see
     /// [`BlockRead::confirm_pieces`]).
     confirm: bool,
+    /// Offsets into `block` holding a value a confirmed read stored (bit i:
+    /// register `first + i`); a piece equal to them is read twice alike.
+    believed: u128,
     /// First read of the piece in flight, waiting for a second that agrees.
     first_read: Option<heapless::Vec<(u16, u16), 16>>,
     second_reads: u32,
@@ -174,6 +177,7 @@ impl BlockRead {
             pieces: 0,
             passes: 0,
             confirm: false,
+            believed: 0,
             first_read: None,
             second_reads: 0,
         };
@@ -226,10 +230,12 @@ impl BlockRead {
             // lent, not copied: see `on_block`). Nothing to clear.
             if self.mode == Mode::Confirmed {
                 self.block.values.fill(0);
+                self.believed = 0;
             }
         } else {
             self.block.values.clear();
             let _fits = self.block.values.resize(len, 0); // min: fits
+            self.believed = 0;
         }
         self.started_at = now;
         self.pieces = 0;
@@ -405,8 +411,13 @@ impl BlockRead {
             return None;
         }
         if self.confirm {
-            let unchanged =
-                reference.is_some_and(|r| pairs.iter().all(|&(a, v)| r.get(a) == Some(v)));
+            let first = self.first();
+            let unchanged = reference
+                .is_some_and(|r| pairs.iter().all(|&(a, v)| r.get(a) == Some(v)))
+                || pairs.iter().all(|&(a, v)| {
+                    let i = a.wrapping_sub(first);
+                    i < 128 && self.believed & (1u128 << i) != 0 && self.block.get(a) == Some(v)
+                });
             let confirmed = self
                 .first_read
                 .as_ref()
@@ -431,11 +442,13 @@ impl BlockRead {
     fn write(&mut self, values: impl Iterator<Item = (u16, u16)>) {
         let first = self.first();
         for (a, v) in values {
-            if let Some(slot) = a
-                .checked_sub(first)
-                .and_then(|i| self.block.values.get_mut(usize::from(i)))
-            {
-                *slot = v;
+            if let Some(i) = a.checked_sub(first) {
+                if let Some(slot) = self.block.values.get_mut(usize::from(i)) {
+                    *slot = v;
+                    if i < 128 {
+                        self.believed |= 1u128 << i;
+                    }
+                }
             }
         }
     }

@@ -352,3 +352,58 @@ fn a_confirmed_live_piece_equal_to_the_published_one_is_believed_at_once() {
     // 15-register pieces: 0-14, 15, 32-46, 47-55 (no piece splits a 32-bit value).
     assert!(requests <= 5, "{requests}");
 }
+
+/// One pass of a confirmed live read in 2-register pieces against no published
+/// block, each piece answered with `value`; returns the assembled block.
+fn confirmed_pass(
+    read: &mut BlockRead,
+    now: &mut u64,
+    value: impl Fn(u16) -> u16,
+) -> RegisterBlock {
+    for _ in 0..200 {
+        *now += 1_000;
+        let req = read.next_request(*now, PIECE_REGISTERS[3]);
+        if let Some(b) = answer_pairs(read, *now, &req, &value, None) {
+            return b;
+        }
+    }
+    panic!("the pass never ended");
+}
+
+#[test]
+fn a_confirmed_piece_equal_to_an_earlier_confirmed_read_is_believed_at_once() {
+    // Two reads agree when the second comes a pass later: a value confirmed in an
+    // earlier pass (even one that never completed, or was never published)
+    // confirms an equal read now. Nothing else does: not the block's initial
+    // zeros, not a value from before a reset to another read.
+    let mut now = 0;
+    let mut read = BlockRead::new(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
+    read.confirm_pieces();
+    let a = |x: u16| 33_000 + x;
+    confirmed_pass(&mut read, &mut now, a);
+    assert_eq!(
+        read.second_reads(),
+        20,
+        "first pass: every piece read twice"
+    );
+    // The same values again (a new snapshot, the read reset in place).
+    read.reset(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
+    read.confirm_pieces();
+    let block = confirmed_pass(&mut read, &mut now, a);
+    assert_eq!(read.second_reads(), 0, "equal to the confirmed values");
+    assert_eq!(block.get(5), Some(a(5)));
+    // One value changed: only its piece is read twice.
+    read.reset(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
+    read.confirm_pieces();
+    let b = |x: u16| if x == 9 { 33_333 } else { a(x) };
+    let block = confirmed_pass(&mut read, &mut now, b);
+    assert_eq!(read.second_reads(), 1);
+    assert_eq!(block.get(9), Some(33_333));
+    // Zeros are not "confirmed" by the block's initial zeros, and a reset to
+    // another read forgets what was confirmed.
+    read.reset(reader::STATS_SEGMENTS, Mode::Window(60_000_000), now);
+    read.reset(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
+    read.confirm_pieces();
+    confirmed_pass(&mut read, &mut now, |_| 0);
+    assert_eq!(read.second_reads(), 20);
+}
