@@ -101,7 +101,8 @@ const BMS_BAUDRATE: u32 = 115_200;
 /// and a retry. At 64 the task has 64 bytes ≈ 5.5 ms to read (issue 11).
 const RX_FIFO_FULL_THRESHOLD: u16 = 64;
 /// Most `read_buffered` calls when draining the FIFO at a deadline (128-byte FIFO,
-/// 128-byte buffer: one call empties it; the bound only guards against a line
+/// read into the bridge's receive space, which holds a whole reply's remaining
+/// bytes and grows as the bridge takes them; the bound only guards against a line
 /// that keeps delivering).
 const DEADLINE_DRAIN_READS: usize = 4;
 /// Longest the bridge task sleeps without feeding the watchdog.

@@ -189,7 +189,7 @@ impl BlockRead {
     /// is restarted at every snapshot, and building a new one (about 900 bytes)
     /// and moving it into place cost more than the rest of the read.
     pub fn reset(&mut self, segments: &'static [(u16, u16)], mode: Mode, now: Instant) {
-        if !core::ptr::eq(self.segments, segments) || self.mode != mode {
+        if self.segments != segments || self.mode != mode {
             // Another read: nothing of the old block may stay (cleared below).
             self.block.values.clear();
         }
@@ -372,9 +372,11 @@ impl BlockRead {
             return None;
         }
         let first = self.first();
+        let span = usize::from(self.last().saturating_sub(first)) + 1;
         let whole = matches!(self.mode, Mode::Window(_))
             && start == first
-            && reply.values.len() == self.block.values.len();
+            && reply.values.len() == span
+            && span == self.block.values.len();
         if !whole {
             // The piece lies in the span: copied as one slice.
             let dst = start.checked_sub(first).and_then(|i| {
@@ -385,6 +387,9 @@ impl BlockRead {
                 Some(dst) => dst.copy_from_slice(&reply.values),
                 None => self.write(reply.iter()),
             }
+            // Copied, not confirmed: those registers no longer hold a
+            // confirmed value.
+            self.unbelieve(start, reply.values.len());
         }
         if !self.advance(now) {
             return None;
@@ -438,6 +443,16 @@ impl BlockRead {
         Some(self.assembled(now, &self.block))
     }
 
+    /// Forgets that `count` registers from `start` hold a confirmed value.
+    fn unbelieve(&mut self, start: u16, count: usize) {
+        let first = self.first();
+        for a in (0..count).map(|k| start.wrapping_add(k as u16)) {
+            if let Some(i) = a.checked_sub(first).filter(|&i| i < 128) {
+                self.believed &= !(1u128 << i);
+            }
+        }
+    }
+
     /// Stores the values of the piece in flight.
     fn write(&mut self, values: impl Iterator<Item = (u16, u16)>) {
         let first = self.first();
@@ -445,7 +460,7 @@ impl BlockRead {
             if let Some(i) = a.checked_sub(first) {
                 if let Some(slot) = self.block.values.get_mut(usize::from(i)) {
                     *slot = v;
-                    if i < 128 {
+                    if self.confirm && i < 128 {
                         self.believed |= 1u128 << i;
                     }
                 }

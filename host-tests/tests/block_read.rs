@@ -407,3 +407,35 @@ fn a_confirmed_piece_equal_to_an_earlier_confirmed_read_is_believed_at_once() {
     confirmed_pass(&mut read, &mut now, |_| 0);
     assert_eq!(read.second_reads(), 20);
 }
+
+#[test]
+fn values_stored_without_confirmation_never_confirm_a_later_piece() {
+    // Only a confirmed 0x09 piece stores values that confirm later reads. A
+    // reply stored by copy (a 0x03 piece; the bridge sends none while pieces are
+    // confirmed, the read accepts one) makes those registers unconfirmed again.
+    let mut now = 0;
+    let mut read = BlockRead::new(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
+    read.confirm_pieces();
+    let a = |x: u16| 33_000 + x;
+    confirmed_pass(&mut read, &mut now, a);
+    read.reset(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
+    read.confirm_pieces();
+    // First piece (registers 0-1) answered as a 0x03 block of other values.
+    now += 1_000;
+    let req = read.next_request(now, PIECE_REGISTERS[3]);
+    assert!(matches!(&req, Request::ReadIndividual(x) if x.as_slice() == [0, 1]));
+    let copied = RegisterBlock {
+        start: 0,
+        values: [30_500u16, 30_501].into_iter().collect(),
+    };
+    assert!(read.on_block(now, &copied).is_none());
+    // Next pass: registers 0-1 read with those values must be read twice.
+    read.reset(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
+    read.confirm_pieces();
+    confirmed_pass(&mut read, &mut now, |x| match x {
+        0 => 30_500,
+        1 => 30_501,
+        _ => a(x),
+    });
+    assert_eq!(read.second_reads(), 1);
+}

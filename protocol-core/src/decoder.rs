@@ -250,8 +250,9 @@ impl Decoder {
     /// The free end of the scan buffer, for a reader to receive into directly
     /// (a UART driver writing there saves the copy [`Decoder::push`] makes);
     /// then [`Decoder::commit`] the bytes written. It is the same space until
-    /// then. Never empty once [`Decoder::poll`] (or `poll_ref`, `poll_into`)
-    /// has answered `None`: a full buffer always makes progress.
+    /// then, provided nothing polls the decoder in between (a poll may move the
+    /// buffered bytes). Never empty once [`Decoder::poll`] (or `poll_ref`,
+    /// `poll_into`) has answered `None`: a full buffer always makes progress.
     #[inline]
     pub fn spare(&mut self) -> &mut [u8] {
         self.release();

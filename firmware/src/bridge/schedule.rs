@@ -121,8 +121,9 @@ impl Schedule {
         self.live_active = false;
     }
 
-    /// Starts a live read (its guarded pieces are checked against the
-    /// published registers, see [`BlockRead::guard`] and [`on_piece`]).
+    /// Starts a live read (its pieces are confirmed against the published
+    /// registers or a second read, see [`BlockRead::confirm_pieces`] and
+    /// [`on_piece`]).
     fn start_live(&mut self, now: Instant, config: &Config, slot: &mut Request) -> Ask {
         self.next_live = now.saturating_add(config.live_period_us);
         let window = config.live_assembly_window_us.max(config.live_period_us);
@@ -197,8 +198,8 @@ impl Schedule {
 }
 
 /// Hands a piece's reply to its block read; `published` are the registers of
-/// the published snapshot, what guarded pieces of the live read are believed
-/// against (see [`BlockRead::guard`]).
+/// the published snapshot, what pieces of the live read are confirmed against
+/// (see [`BlockRead::confirm_pieces`]).
 pub(super) fn on_piece<'r>(
     read: &'r mut BlockRead,
     now: Instant,
