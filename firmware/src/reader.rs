@@ -189,7 +189,9 @@ impl BlockRead {
     /// is restarted at every snapshot, and building a new one (about 900 bytes)
     /// and moving it into place cost more than the rest of the read.
     pub fn reset(&mut self, segments: &'static [(u16, u16)], mode: Mode, now: Instant) {
-        if self.segments != segments || self.mode != mode {
+        // The same constant is the same read (compared by address first).
+        let same = core::ptr::eq(self.segments, segments) || self.segments == segments;
+        if !same || self.mode != mode {
             // Another read: nothing of the old block may stay (cleared below).
             self.block.values.clear();
         }
