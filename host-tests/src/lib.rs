@@ -19,3 +19,15 @@ pub mod sim;
 pub mod tool;
 pub mod trace;
 pub mod truth;
+
+impl pty::Pty {
+    /// Opens a new pair and writes its path to `out` as a first line (flushed):
+    /// how `sim --pty` and `sim --bridge-pty` tell a client where to connect.
+    /// (Here, not in `pty.rs`: the same on every system.)
+    pub fn open_announced(out: &mut dyn std::io::Write) -> std::io::Result<Self> {
+        let pty = Self::open()?;
+        writeln!(out, "{}", pty.path().display())?;
+        out.flush()?;
+        Ok(pty)
+    }
+}

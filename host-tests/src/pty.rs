@@ -36,15 +36,6 @@ fn check(r: libc::c_int) -> io::Result<libc::c_int> {
 }
 
 impl Pty {
-    /// Opens a new pair and writes its path to `out` as a first line (flushed):
-    /// how `sim --pty` and `sim --bridge-pty` tell a client where to connect.
-    pub fn open_announced(out: &mut dyn std::io::Write) -> io::Result<Self> {
-        let pty = Self::open()?;
-        writeln!(out, "{}", pty.path().display())?;
-        out.flush()?;
-        Ok(pty)
-    }
-
     /// Opens a new pair, slave in raw mode, master non-blocking.
     pub fn open() -> io::Result<Self> {
         let mut master: libc::c_int = -1;

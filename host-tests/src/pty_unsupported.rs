@@ -15,15 +15,6 @@ pub struct Pty {
 }
 
 impl Pty {
-    /// Opens a new pair and writes its path to `out` as a first line (flushed):
-    /// how `sim --pty` and `sim --bridge-pty` tell a client where to connect.
-    pub fn open_announced(out: &mut dyn std::io::Write) -> io::Result<Self> {
-        let pty = Self::open()?;
-        writeln!(out, "{}", pty.path().display())?;
-        out.flush()?;
-        Ok(pty)
-    }
-
     /// Always an [`io::ErrorKind::Unsupported`] error here.
     pub fn open() -> io::Result<Self> {
         Err(io::Error::new(

@@ -431,16 +431,16 @@ fn direct_events_stats_version() {
 #[test]
 fn direct_record_replays() {
     let sim = Sim::start(&["--pty"]);
-    let file = tmp("direct.tbms");
-    let o = tinybms(&[
-        "record",
-        &sim.path,
-        file.to_str().unwrap(),
-        "--duration",
-        "3s",
-    ]);
+    record_and_check(&sim.path, "direct.tbms", "direct");
+}
+
+/// `tinybms record` for 3 s into a temporary `name`: exits 0, says which mode it
+/// used (`mode` in its output), and the capture replays (see [`check_capture`]).
+fn record_and_check(port: &str, name: &str, mode: &str) {
+    let file = tmp(name);
+    let o = tinybms(&["record", port, file.to_str().unwrap(), "--duration", "3s"]);
     assert_eq!(o.code, 0, "{o}");
-    assert!(o.stdout.contains("direct"), "{o}");
+    assert!(o.stdout.contains(mode), "{o}");
     check_capture(&file);
 }
 
@@ -512,17 +512,7 @@ fn bridge_monitor_settings_set_record() {
     assert!(o.stdout.contains("verified"), "{o}");
     let o = tinybms(&["set", &sim.path, "--raw", "over_voltage_cutoff=9999"]);
     assert_ne!(o.code, 0, "{o}");
-    let file = tmp("bridge.tbms");
-    let o = tinybms(&[
-        "record",
-        &sim.path,
-        file.to_str().unwrap(),
-        "--duration",
-        "3s",
-    ]);
-    assert_eq!(o.code, 0, "{o}");
-    assert!(o.stdout.contains("through the bridge"), "{o}");
-    check_capture(&file);
+    record_and_check(&sim.path, "bridge.tbms", "through the bridge");
 }
 
 #[test]

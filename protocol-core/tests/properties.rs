@@ -452,6 +452,19 @@ fn owned(f: protocol_core::FrameRef<'_>) -> Frame {
     }
 }
 
+/// `bytes` in consecutive chunks of the (cycled) `sizes`, each at least 1 byte.
+fn chunks<'a>(bytes: &'a [u8], sizes: &'a [usize]) -> impl Iterator<Item = &'a [u8]> {
+    let mut rest = bytes;
+    sizes.iter().cycle().map_while(move |&size| {
+        if rest.is_empty() {
+            return None;
+        }
+        let (chunk, r) = rest.split_at(size.clamp(1, rest.len()));
+        rest = r;
+        Some(chunk)
+    })
+}
+
 /// Feeds as [`decode_chunked_owned`], polling with `poll_ref`/`flush_ref`. With
 /// `in_place`, each chunk is written into `Decoder::spare` (as much as it holds)
 /// and committed, the way the chip's UART driver hands bytes over; the spare
@@ -465,13 +478,7 @@ fn decode_chunked_lent(
 ) -> Vec<Result<Frame, DecodeError>> {
     let mut out = Vec::new();
     let mut spill = None;
-    let mut rest = bytes;
-    let mut i = 0;
-    while !rest.is_empty() {
-        let size = sizes[i % sizes.len()].clamp(1, rest.len());
-        i += 1;
-        let (mut chunk, r) = rest.split_at(size);
-        rest = r;
+    for mut chunk in chunks(bytes, sizes) {
         while !chunk.is_empty() {
             let n = if in_place {
                 let spare = dec.spare();
@@ -507,13 +514,7 @@ fn decode_chunked_owned(
     sizes: &[usize],
 ) -> Vec<Result<Frame, DecodeError>> {
     let mut out = Vec::new();
-    let mut rest = bytes;
-    let mut i = 0;
-    while !rest.is_empty() {
-        let size = sizes[i % sizes.len()].clamp(1, rest.len());
-        i += 1;
-        let (mut chunk, r) = rest.split_at(size);
-        rest = r;
+    for mut chunk in chunks(bytes, sizes) {
         while !chunk.is_empty() {
             let n = dec.push(chunk);
             chunk = &chunk[n..];

@@ -294,14 +294,13 @@ impl Bridge {
     pub fn step(&mut self, now: Instant) -> Step {
         self.refresh_link();
         let s = &mut self.s;
-        if now >= s.out.next_periodic() {
-            if s.out.link_stats_due(now, &s.config) {
-                let stats = self.link.stats();
-                s.out.push(Report::LinkStats(stats));
-            }
-            if s.out.line_quality_due(now, &s.config) {
-                s.log_quality();
-            }
+        let (link_stats, line_quality) = s.out.periodic_due(now, &s.config);
+        if link_stats {
+            let stats = self.link.stats();
+            s.out.push(Report::LinkStats(stats));
+        }
+        if line_quality {
+            s.log_quality();
         }
         let next_log = s.out.next_periodic();
         for _ in 0..16 {

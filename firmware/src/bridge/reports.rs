@@ -58,24 +58,24 @@ impl Reports {
         self.queue.pop_front()
     }
 
-    /// The link statistics line is due at `now` (the next one is planned).
-    pub(super) fn link_stats_due(&mut self, now: Instant, config: &Config) -> bool {
-        if now < self.next_link_log {
-            return false;
+    /// The periodic lines due at `now`: (link statistics, line quality); the
+    /// next ones are planned. Called at every step: one comparison when none is.
+    pub(super) fn periodic_due(&mut self, now: Instant, config: &Config) -> (bool, bool) {
+        if now < self.next_periodic {
+            return (false, false);
         }
-        self.next_link_log = now.saturating_add(config.link_stats_log_period_us);
+        let link = due(
+            &mut self.next_link_log,
+            now,
+            config.link_stats_log_period_us,
+        );
+        let quality = due(
+            &mut self.next_quality_log,
+            now,
+            config.line_quality_log_period_us,
+        );
         self.next_periodic = self.next_link_log.min(self.next_quality_log);
-        true
-    }
-
-    /// The line quality line is due at `now` (the next one is planned).
-    pub(super) fn line_quality_due(&mut self, now: Instant, config: &Config) -> bool {
-        if now < self.next_quality_log {
-            return false;
-        }
-        self.next_quality_log = now.saturating_add(config.line_quality_log_period_us);
-        self.next_periodic = self.next_link_log.min(self.next_quality_log);
-        true
+        (link, quality)
     }
 
     /// When the next periodic line is due.
@@ -104,4 +104,13 @@ impl Reports {
             self.suppressed_errors = self.suppressed_errors.wrapping_add(1);
         }
     }
+}
+
+/// True when `*next` has come at `now`; the next one is then a `period` later.
+fn due(next: &mut Instant, now: Instant, period: Instant) -> bool {
+    if now < *next {
+        return false;
+    }
+    *next = now.saturating_add(period);
+    true
 }

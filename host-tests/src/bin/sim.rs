@@ -73,21 +73,10 @@ pack and an inverter/charger that obeys the frames):
 exit status: 0 when every published value was sent by the BMS and no write was
 reported successful that the BMS did not hold; 1 otherwise; 2 on a usage error";
 
+/// A duration in µs (the syntax of [`host_tests::realtime::parse_duration`]).
 fn parse_duration(s: &str) -> Result<u64, String> {
-    let (num, unit) = s
-        .find(|c: char| !c.is_ascii_digit() && c != '.')
-        .map(|i| s.split_at(i))
-        .unwrap_or((s, "s"));
-    let v: f64 = num.parse().map_err(|_| format!("bad duration `{s}`"))?;
-    let scale = match unit {
-        "us" => 1.0,
-        "ms" => 1e3,
-        "s" | "" => 1e6,
-        "m" | "min" => 60e6,
-        "h" => 3600e6,
-        _ => return Err(format!("bad duration unit in `{s}`")),
-    };
-    Ok((v * scale) as u64)
+    host_tests::realtime::parse_duration(s)
+        .map(|d| u64::try_from(d.as_micros()).unwrap_or(u64::MAX))
 }
 
 struct Options {
