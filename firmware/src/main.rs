@@ -377,28 +377,27 @@ async fn bridge_task(
     }
 }
 
-/// Queues the start-up profile (`firmware/profile.txt`, parsed here): every
-/// assignment, or nothing when a line does not parse.
+/// The start-up profile (`firmware/profile.txt`), parsed at compile time: a
+/// profile that does not parse fails the build, and the chip links neither the
+/// parser nor the setting names.
+const STARTUP_PROFILE: profile::Profile<{ profile::MAX_PROFILE_ENTRIES }> =
+    match profile::parse(profile::PROFILE_TEXT) {
+        Ok(p) => p,
+        Err(_) => panic!(
+            "firmware/profile.txt does not parse (or holds too many settings): \
+             `cargo run -p host-tests --bin sim -- --profile firmware/profile.txt` names the line"
+        ),
+    };
+
+/// Queues the start-up profile: every assignment.
 fn submit_profile(bridge: &mut Bridge) {
-    use tinybms_firmware::profile::{ParseError, MAX_PROFILE_ENTRIES};
-    match profile::parse::<MAX_PROFILE_ENTRIES>(profile::PROFILE_TEXT) {
-        Ok(entries) if entries.is_empty() => info!("settings profile empty: nothing written"),
-        Ok(entries) => {
-            info!("settings profile: {=usize} settings", entries.len());
-            if bridge.submit_profile(&entries).is_err() {
-                warn!("settings profile too long for the command queue");
-            }
+    if STARTUP_PROFILE.is_empty() {
+        info!("settings profile empty: nothing written");
+    } else {
+        info!("settings profile: {=usize} settings", STARTUP_PROFILE.len());
+        if bridge.submit_profile(STARTUP_PROFILE.as_slice()).is_err() {
+            warn!("settings profile too long for the command queue");
         }
-        Err(ParseError::Line(e)) => warn!(
-            "settings profile line {=u32}: {=str} ({=str}): nothing written",
-            e.line,
-            e.kind.reason(),
-            e.text
-        ),
-        Err(ParseError::TooMany { line }) => warn!(
-            "settings profile: more than {=usize} settings (line {=u32}): nothing written",
-            MAX_PROFILE_ENTRIES, line
-        ),
     }
 }
 

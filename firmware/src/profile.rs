@@ -5,8 +5,10 @@
 //! **Empty by default: out of the box the firmware never writes to the BMS.**
 //!
 //! The profile is the text file `firmware/profile.txt`, compiled in
-//! ([`PROFILE_TEXT`]) and parsed at start-up. A line that does not parse stops
-//! the whole profile (the chip logs the line number and writes nothing).
+//! ([`PROFILE_TEXT`]) and parsed at compile time: the parser is made of `const
+//! fn`s, and a profile that does not parse fails the firmware build (the chip then
+//! links neither the parser nor the setting names). At run time the same functions
+//! read `sim --profile` files, the desktop tool's and the host link's names.
 //!
 //! ## Format
 //!
@@ -86,16 +88,85 @@ pub const fn setting_key(id: SettingId) -> &'static str {
 
 /// Finds a setting by snake_case name or Rev D name (both case-insensitive, spaces
 /// around ignored) or register address (whole-register and low-byte settings).
-pub fn find_setting(name: &str) -> Option<SettingId> {
-    let n = name.trim();
-    if let Ok(addr) = n.parse::<u16>() {
-        return SettingId::from_address(addr, Field::Whole)
-            .or_else(|| SettingId::from_address(addr, Field::LowByte));
+pub const fn find_setting(name: &str) -> Option<SettingId> {
+    let n = trim(name);
+    if let Ok(addr) = u16::from_str_radix(n, 10) {
+        return match SettingId::from_address(addr, Field::Whole) {
+            Some(id) => Some(id),
+            None => SettingId::from_address(addr, Field::LowByte),
+        };
     }
-    SettingId::ALL
-        .iter()
-        .copied()
-        .find(|id| setting_key(*id).eq_ignore_ascii_case(n) || id.name().eq_ignore_ascii_case(n))
+    let mut rest = SettingId::ALL;
+    while let [id, tail @ ..] = rest {
+        if setting_key(*id).eq_ignore_ascii_case(n) || id.name().eq_ignore_ascii_case(n) {
+            return Some(*id);
+        }
+        rest = tail;
+    }
+    None
+}
+
+/// `str::trim` as a `const fn`: `s` without the leading and trailing characters
+/// that are `char::is_whitespace` (Unicode's White_Space, listed here as UTF-8).
+pub const fn trim(mut s: &str) -> &str {
+    const fn leading(b: &[u8]) -> usize {
+        match b {
+            [0x09..=0x0D | 0x20, ..] => 1,
+            [0xC2, 0x85 | 0xA0, ..] => 2,
+            [0xE1, 0x9A, 0x80, ..]
+            | [0xE2, 0x80, 0x80..=0x8A | 0xA8 | 0xA9 | 0xAF, ..]
+            | [0xE2, 0x81, 0x9F, ..]
+            | [0xE3, 0x80, 0x80, ..] => 3,
+            _ => 0,
+        }
+    }
+    const fn trailing(b: &[u8]) -> usize {
+        match b {
+            [.., 0x09..=0x0D | 0x20] => 1,
+            [.., 0xC2, 0x85 | 0xA0] => 2,
+            [.., 0xE1, 0x9A, 0x80]
+            | [.., 0xE2, 0x80, 0x80..=0x8A | 0xA8 | 0xA9 | 0xAF]
+            | [.., 0xE2, 0x81, 0x9F]
+            | [.., 0xE3, 0x80, 0x80] => 3,
+            _ => 0,
+        }
+    }
+    loop {
+        let n = leading(s.as_bytes());
+        match s.split_at_checked(n) {
+            Some((_, rest)) if n > 0 => s = rest,
+            _ => break,
+        }
+    }
+    loop {
+        let n = trailing(s.as_bytes());
+        match s.split_at_checked(s.len() - n) {
+            Some((rest, _)) if n > 0 => s = rest,
+            _ => break,
+        }
+    }
+    s
+}
+
+/// `s` split at its first `byte` (an ASCII byte, so both sides are `str`s), the
+/// byte itself dropped.
+const fn split_once(s: &str, byte: u8) -> Option<(&str, &str)> {
+    let mut i = 0;
+    let mut rest = s.as_bytes();
+    while let [b, tail @ ..] = rest {
+        if *b == byte {
+            return match s.split_at_checked(i) {
+                Some((head, tail)) => match tail.split_at_checked(1) {
+                    Some((_, tail)) => Some((head, tail)),
+                    None => None,
+                },
+                None => None,
+            };
+        }
+        i += 1;
+        rest = tail;
+    }
+    None
 }
 
 /// Why a profile line was refused.
@@ -133,35 +204,71 @@ pub struct ProfileError<'a> {
 }
 
 /// Parses one `NAME = VALUE` assignment (no comment).
-pub fn parse_assignment(s: &str) -> Result<(SettingId, i32), ProfileError<'_>> {
-    let err = |kind, text| ProfileError {
-        line: 1,
-        kind,
-        text,
+pub const fn parse_assignment(s: &str) -> Result<(SettingId, i32), ProfileError<'_>> {
+    const fn err(kind: ProfileErrorKind, text: &str) -> ProfileError<'_> {
+        ProfileError {
+            line: 1,
+            kind,
+            text,
+        }
+    }
+    let Some((name, value)) = split_once(s, b'=') else {
+        return Err(err(ProfileErrorKind::ExpectedAssignment, trim(s)));
     };
-    let (name, value) = s
-        .split_once('=')
-        .ok_or(err(ProfileErrorKind::ExpectedAssignment, s.trim()))?;
-    let id = find_setting(name).ok_or(err(ProfileErrorKind::UnknownSetting, name.trim()))?;
-    let value = value
-        .trim()
-        .parse::<i32>()
-        .map_err(|_| err(ProfileErrorKind::BadValue, value.trim()))?;
-    Ok((id, value))
+    let Some(id) = find_setting(name) else {
+        return Err(err(ProfileErrorKind::UnknownSetting, trim(name)));
+    };
+    let value = trim(value);
+    match i32::from_str_radix(value, 10) {
+        Ok(v) => Ok((id, v)),
+        Err(_) => Err(err(ProfileErrorKind::BadValue, value)),
+    }
+}
+
+/// The next assignment of a profile text after `line` lines were read from it,
+/// skipping comments and blank lines: the assignment (or the error, with its line
+/// number), the rest of the text and the lines read; `None` at the end.
+#[allow(clippy::type_complexity)]
+const fn next_entry(
+    mut text: &str,
+    mut line: u32,
+) -> Option<(Result<(SettingId, i32), ProfileError<'_>>, &str, u32)> {
+    while !text.is_empty() {
+        let raw;
+        (raw, text) = match split_once(text, b'\n') {
+            Some(split) => split,
+            None => (text, ""),
+        };
+        line = line.saturating_add(1);
+        let content = match split_once(raw, b'#') {
+            Some((before, _)) => before,
+            None => raw,
+        };
+        let content = trim(content);
+        if content.is_empty() {
+            continue;
+        }
+        let entry = match parse_assignment(content) {
+            Ok(a) => Ok(a),
+            Err(e) => Err(ProfileError { line, ..e }),
+        };
+        return Some((entry, text, line));
+    }
+    None
 }
 
 /// The assignments of a profile text, in order, each with its line number in
 /// the error. Comments and blank lines are skipped.
 #[derive(Debug, Clone)]
 pub struct Entries<'a> {
-    lines: core::str::Lines<'a>,
+    rest: &'a str,
     line: u32,
 }
 
 /// Iterates over the assignments of a profile text.
 pub fn entries(text: &str) -> Entries<'_> {
     Entries {
-        lines: text.lines(),
+        rest: text,
         line: 0,
     }
 }
@@ -170,18 +277,9 @@ impl<'a> Iterator for Entries<'a> {
     type Item = Result<(SettingId, i32), ProfileError<'a>>;
 
     fn next(&mut self) -> Option<Self::Item> {
-        for raw in self.lines.by_ref() {
-            self.line = self.line.saturating_add(1);
-            let line = raw.split('#').next().unwrap_or("").trim();
-            if line.is_empty() {
-                continue;
-            }
-            return Some(parse_assignment(line).map_err(|e| ProfileError {
-                line: self.line,
-                ..e
-            }));
-        }
-        None
+        let (entry, rest, line) = next_entry(self.rest, self.line)?;
+        (self.rest, self.line) = (rest, line);
+        Some(entry)
     }
 }
 
@@ -197,18 +295,48 @@ pub enum ParseError<'a> {
     },
 }
 
+/// The assignments of a whole profile, in order (at most `N`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Profile<const N: usize> {
+    entries: [(SettingId, i32); N],
+    len: usize,
+}
+
+impl<const N: usize> Profile<N> {
+    /// The assignments.
+    pub fn as_slice(&self) -> &[(SettingId, i32)] {
+        self.entries.get(..self.len).unwrap_or(&[])
+    }
+    /// How many.
+    pub const fn len(&self) -> usize {
+        self.len
+    }
+    /// None at all.
+    pub const fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+}
+
 /// Parses a whole profile: every assignment, or the first error (then nothing
-/// is to be written).
-pub fn parse<const N: usize>(
-    text: &str,
-) -> Result<heapless::Vec<(SettingId, i32), N>, ParseError<'_>> {
-    let mut out = heapless::Vec::new();
-    let mut it = entries(text);
-    while let Some(entry) = it.next() {
-        let entry = entry.map_err(ParseError::Line)?;
-        if out.push(entry).is_err() {
-            return Err(ParseError::TooMany { line: it.line });
+/// is to be written). A `const fn`: the firmware parses its start-up profile at
+/// compile time.
+pub const fn parse<const N: usize>(text: &str) -> Result<Profile<N>, ParseError<'_>> {
+    let mut out = Profile {
+        entries: [(SettingId::FullyChargedVoltage, 0); N],
+        len: 0,
+    };
+    let (mut rest, mut line) = (text, 0);
+    while let Some((entry, tail, at)) = next_entry(rest, line) {
+        (rest, line) = (tail, at);
+        let entry = match entry {
+            Ok(entry) => entry,
+            Err(e) => return Err(ParseError::Line(e)),
+        };
+        match out.entries.split_at_mut_checked(out.len) {
+            Some((_, [slot, ..])) => *slot = entry,
+            _ => return Err(ParseError::TooMany { line }),
         }
+        out.len += 1;
     }
     Ok(out)
 }

@@ -49,6 +49,8 @@ pub fn parse_profile(text: &str) -> Result<Vec<(SettingId, i32)>, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
+    use tinybms_firmware::profile::{setting_key, ParseError};
 
     #[test]
     fn names_and_files() {
@@ -118,5 +120,197 @@ mod tests {
             .map(|l| format!("{l}\n"))
             .collect();
         assert_eq!(parse_profile(&example).unwrap().len(), 4, "{example}");
+    }
+
+    /// The parser before it became a `const fn` (the firmware parses its start-up
+    /// profile at compile time): `str::lines`, `split('#')`, `str::trim`,
+    /// `split_once`, `str::parse`. The oracle of the properties below.
+    mod str_parser {
+        use protocol_core::registers::Field;
+        use protocol_core::settings::SettingId;
+        use tinybms_firmware::profile::{setting_key, ProfileErrorKind};
+
+        pub type Entry = Result<(SettingId, i32), (u32, ProfileErrorKind, String)>;
+
+        /// Each entry with its line number.
+        pub fn entries_at(text: &str) -> Vec<(u32, Entry)> {
+            let mut out = Vec::new();
+            for (i, raw) in text.lines().enumerate() {
+                let line = raw.split('#').next().unwrap_or("").trim();
+                if !line.is_empty() {
+                    out.push((i as u32 + 1, assignment(line, i as u32 + 1)));
+                }
+            }
+            out
+        }
+
+        pub fn find_setting(name: &str) -> Option<SettingId> {
+            let n = name.trim();
+            if let Ok(addr) = n.parse::<u16>() {
+                return SettingId::from_address(addr, Field::Whole)
+                    .or_else(|| SettingId::from_address(addr, Field::LowByte));
+            }
+            SettingId::ALL.iter().copied().find(|id| {
+                setting_key(*id).eq_ignore_ascii_case(n) || id.name().eq_ignore_ascii_case(n)
+            })
+        }
+
+        fn assignment(s: &str, line: u32) -> Entry {
+            let Some((name, value)) = s.split_once('=') else {
+                return Err((line, ProfileErrorKind::ExpectedAssignment, s.trim().into()));
+            };
+            let Some(id) = find_setting(name) else {
+                return Err((line, ProfileErrorKind::UnknownSetting, name.trim().into()));
+            };
+            match value.trim().parse::<i32>() {
+                Ok(v) => Ok((id, v)),
+                Err(_) => Err((line, ProfileErrorKind::BadValue, value.trim().into())),
+            }
+        }
+
+        pub fn entries(text: &str) -> Vec<Entry> {
+            entries_at(text).into_iter().map(|(_, e)| e).collect()
+        }
+    }
+
+    fn entries(text: &str) -> Vec<str_parser::Entry> {
+        fw::entries(text)
+            .map(|e| e.map_err(|e| (e.line, e.kind, e.text.to_string())))
+            .collect()
+    }
+
+    /// Lines made of the profile's parts: names (snake_case, Rev D's in any case,
+    /// addresses), `=`, values, comments, blank lines, and whitespace of every
+    /// kind `str::trim` knows (ASCII, vertical tab, NBSP, U+2000.., U+3000) or not
+    /// (U+200B), with `\n` or `\r\n` endings.
+    fn profile_text() -> impl Strategy<Value = String> {
+        let name = prop_oneof![
+            proptest::sample::select(SettingId::ALL).prop_map(|id| setting_key(id).to_string()),
+            proptest::sample::select(SettingId::ALL).prop_map(|id| id.name().to_uppercase()),
+            proptest::sample::select(SettingId::ALL).prop_map(|id| id.address().to_string()),
+            (250u16..400).prop_map(|a| a.to_string()),
+            "[a-zA-Z_ -]{0,12}",
+        ];
+        let value = prop_oneof![
+            any::<i32>().prop_map(|v| v.to_string()),
+            any::<i64>().prop_map(|v| v.to_string()),
+            "[+-]?[0-9]{0,12}",
+            "[0-9a-x=#.]{0,4}",
+        ];
+        let space = proptest::sample::select(vec![
+            "", " ", "\t", "\u{b}", "\u{c}", "\r", "\u{a0}", "\u{85}", "\u{1680}", "\u{2003}",
+            "\u{2028}", "\u{205f}", "\u{3000}", "\u{200b}", "  ",
+        ]);
+        let line = prop_oneof![
+            4 => (space.clone(), name, space.clone(), value, space.clone(),
+                  proptest::option::of("#[^\n]{0,10}"))
+                .prop_map(|(a, n, b, v, c, comment)| {
+                    format!("{a}{n}{b}={v}{c}{}", comment.unwrap_or_default())
+                }),
+            1 => "[^\n]{0,20}",
+            1 => space.clone().prop_map(String::from),
+            1 => "#[^\n]{0,20}",
+        ];
+        (
+            proptest::collection::vec(line, 0..8),
+            proptest::sample::select(vec!["\n", "\r\n"]),
+            any::<bool>(),
+        )
+            .prop_map(|(lines, end, last)| {
+                let mut t = lines.join(end);
+                if last {
+                    t.push_str(end);
+                }
+                t
+            })
+    }
+
+    proptest! {
+        #[test]
+        fn const_parser_agrees_with_the_str_parser(text in profile_text()) {
+            prop_assert_eq!(entries(&text), str_parser::entries(&text));
+            // The whole-profile parse: the entries, or the first error, or the
+            // line of the first entry beyond 3.
+            let want = str_parser::entries_at(&text);
+            let got = fw::parse::<3>(&text);
+            match want.iter().take(4).position(|(_, e)| e.is_err()) {
+                Some(i) => {
+                    let Err(ParseError::Line(e)) = got else {
+                        return Err(TestCaseError::fail(format!("{got:?}, want {:?}", want[i])));
+                    };
+                    prop_assert_eq!(Err((e.line, e.kind, e.text.to_string())), want[i].1.clone());
+                }
+                None if want.len() > 3 => {
+                    prop_assert_eq!(got, Err(ParseError::TooMany { line: want[3].0 }));
+                }
+                None => {
+                    let want: Vec<_> = want.into_iter().map(|(_, e)| e.unwrap()).collect();
+                    prop_assert_eq!(got.map(|p| p.as_slice().to_vec()), Ok(want));
+                }
+            }
+        }
+
+        #[test]
+        fn any_text_parses_as_the_str_parser_does(text in any::<String>()) {
+            prop_assert_eq!(entries(&text), str_parser::entries(&text));
+        }
+
+        #[test]
+        fn trim_is_str_trim(s in "[ \t\u{b}\u{c}\r\n\u{a0}\u{85}\u{2000}-\u{200b}\u{3000}ax€]{0,8}") {
+            prop_assert_eq!(fw::trim(&s), s.trim());
+        }
+
+        #[test]
+        fn trim_is_str_trim_on_any_text(s in any::<String>()) {
+            prop_assert_eq!(fw::trim(&s), s.trim());
+        }
+    }
+
+    #[test]
+    fn find_setting_agrees_with_the_str_parser_on_every_name() {
+        for &id in SettingId::ALL {
+            for n in [
+                setting_key(id).to_string(),
+                id.name().to_lowercase(),
+                id.address().to_string(),
+            ] {
+                for padded in [n.clone(), format!("\u{a0} {n}\t"), n.to_uppercase()] {
+                    assert_eq!(
+                        find_setting(&padded),
+                        str_parser::find_setting(&padded),
+                        "{padded:?}"
+                    );
+                }
+            }
+        }
+    }
+
+    /// The firmware's use: a profile parsed in constant evaluation.
+    #[test]
+    fn a_profile_parses_at_compile_time() {
+        const P: fw::Profile<4> =
+            match fw::parse("# c\nover_voltage_cutoff = 3650 # mV\r\n\n316=2700\n") {
+                Ok(p) => p,
+                Err(_) => panic!("does not parse"),
+            };
+        const E: Result<fw::Profile<1>, ParseError<'static>> = fw::parse("a\nb = 1 2");
+        assert_eq!(
+            P.as_slice(),
+            [
+                (SettingId::OverVoltageCutoff, 3650),
+                (SettingId::UnderVoltageCutoff, 2700)
+            ]
+        );
+        let Err(ParseError::Line(e)) = E else {
+            panic!("{E:?}")
+        };
+        assert_eq!(
+            (e.line, e.kind, e.text),
+            (1, fw::ProfileErrorKind::ExpectedAssignment, "a")
+        );
+        assert!(matches!(
+            fw::parse::<1>("316 = 1\n317 = 2\n"),
+            Err(ParseError::TooMany { line: 2 })
+        ));
     }
 }

@@ -115,7 +115,10 @@ setting_ids! {
 /// order of [`SettingId::ALL`]), copied out of [`regs::REGISTERS`] at compile
 /// time: the chip then links these rows, not the whole table with the names and
 /// options of every register (with `is_continuation`'s table, 5.2 KB of flash).
-static SETTING_ROWS: [Option<Register>; SettingId::ALL.len()] = setting_rows();
+/// A constant (one allocation, shared by every use) so that [`SettingId::name`]
+/// and [`SettingId::from_address`] work in constant evaluation: the firmware
+/// parses its start-up profile at compile time.
+const SETTING_ROWS: &[Option<Register>; SettingId::ALL.len()] = &setting_rows();
 
 // Evaluated at compile time only: an index out of bounds, or `ALL` out of
 // declaration order, fails the build.
@@ -146,19 +149,29 @@ pub const ACCEPTED_MARKER: u16 = 0xFFFF;
 impl SettingId {
     /// The register-map row describing this setting (the first row of
     /// [`regs::REGISTERS`] with its address and field).
-    pub fn register(self) -> Option<&'static Register> {
-        SETTING_ROWS.get(self as usize)?.as_ref()
+    pub const fn register(self) -> Option<&'static Register> {
+        match SETTING_ROWS.split_at_checked(self as usize) {
+            Some((_, [row, ..])) => row.as_ref(),
+            _ => None,
+        }
     }
     /// Rev D's name.
-    pub fn name(self) -> &'static str {
-        self.register().map(|r| r.name).unwrap_or("?")
+    pub const fn name(self) -> &'static str {
+        match self.register() {
+            Some(r) => r.name,
+            None => "?",
+        }
     }
     /// Looks a setting up by register address and field.
-    pub fn from_address(address: u16, field: Field) -> Option<Self> {
-        Self::ALL
-            .iter()
-            .copied()
-            .find(|s| s.address() == address && s.field() == field)
+    pub const fn from_address(address: u16, field: Field) -> Option<Self> {
+        let mut rest = Self::ALL;
+        while let [id, tail @ ..] = rest {
+            if id.address() == address && id.field() as u8 == field as u8 {
+                return Some(*id);
+            }
+            rest = tail;
+        }
+        None
     }
     /// Registers the setting occupies (2 for the 32-bit 312-313).
     pub const fn register_count(self) -> u16 {

@@ -1,0 +1,77 @@
+#!/usr/bin/env bash
+# Flash / static RAM of the firmware as it was when the size goal was set (issue 10:
+# "C3 <= 84 KiB flash and <= 16 KiB static RAM for today's features"), with the
+# goal's measures applied: the panic handler of today's main.rs (it does not read
+# PanicInfo, so core::fmt is not linked) and esp-hal's switch tables in flash.
+#
+# Usage: firmware/size-filing-day.sh [COMMIT]   (default: 82114d9, main on the day)
+# Builds that tree for the ESP32-C3 (and the C6 with C6=1) in a temporary git
+# worktree with its own target directory (about a minute per chip on two cores),
+# prints size-report.sh's figures, removes the worktree. Exit status as size-report.sh's,
+# 2 if the tree does not have the expected shape.
+set -euo pipefail
+
+commit=${1:-82114d9}
+here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
+repo=$(git -C "$here" rev-parse --show-toplevel)
+work=$(mktemp -d)
+target=${SIZE_FILING_TARGET:-$work/target}
+cleanup() { git -C "$repo" worktree remove --force "$work/tree" >/dev/null 2>&1 || true; rm -rf "$work"; }
+trap cleanup EXIT
+
+git -C "$repo" worktree add --detach "$work/tree" "$commit" >/dev/null 2>&1 || {
+    echo "size-filing-day: cannot check out $commit (a full clone is needed)" >&2; exit 2; }
+fw=$work/tree/firmware
+
+# Today's panic handler, taken from this checkout's main.rs (attribute to closing brace).
+handler=$(awk '/^#\[panic_handler\]/{p=1} p{print} p&&/^}/{exit}' "$here/src/main.rs")
+[[ -n $handler ]] || { echo "size-filing-day: no panic handler in $here/src/main.rs" >&2; exit 2; }
+
+if ! HANDLER=$handler python3 - "$fw" <<'EOF'
+
+import os, re, sys
+fw = sys.argv[1]
+def edit(path, old, new):
+    p = os.path.join(fw, path)
+    s = open(p).read()
+    if old not in s:
+        sys.exit(f"size-filing-day: {path}: expected text not found: {old!r}")
+    open(p, "w").write(s.replace(old, new, 1))
+handler = os.environ["HANDLER"].replace("PANIC_RESET_DELAY_US", "1_000_000")
+main = os.path.join(fw, "src/main.rs")
+s = open(main).read()
+if "#[panic_handler]" in s:
+    # An own handler already (later trees): today's instead.
+    s = re.sub(r"#\[panic_handler\]\n.*?\n}\n", lambda _: handler + "\n", s, count=1, flags=re.S)
+else:
+    # esp-backtrace's formatting handler out, today's in.
+    s, n = re.subn(r"use esp_backtrace as _;[^\n]*\n", lambda _: handler + "\n", s, count=1)
+    if n != 1:
+        sys.exit("size-filing-day: src/main.rs: no panic handler found")
+open(main, "w").write(s)
+cargo = os.path.join(fw, "Cargo.toml")
+c = open(cargo).read()
+c = re.sub(r'"panic-handler", |, "custom-halt"', "", c)
+open(cargo, "w").write(c)
+config = os.path.join(fw, ".cargo/config.toml")
+c = open(config).read()
+if "ESP_HAL_CONFIG_PLACE_SWITCH_TABLES_IN_RAM" not in c:
+    edit(".cargo/config.toml", 'DEFMT_LOG = "info"\n',
+         'DEFMT_LOG = "info"\nESP_HAL_CONFIG_PLACE_SWITCH_TABLES_IN_RAM = "false"\n')
+EOF
+then
+    exit 2
+fi
+
+elfs=()
+# FEATURES=a,b: build with --no-default-features --features a,b (e.g. the bridge
+# alone on later trees: board-c3-devkitm-1,log-rtt).
+(cd "$fw" && CARGO_TARGET_DIR=$target cargo build --release --quiet \
+    ${FEATURES:+--no-default-features --features "$FEATURES"})
+elfs+=("$target/riscv32imc-unknown-none-elf/release/tinybms-firmware")
+if [[ ${C6:-0} == 1 ]]; then
+    (cd "$fw" && CARGO_TARGET_DIR=$target cargo build-c6 --quiet)
+    elfs+=("$target/riscv32imac-unknown-none-elf/release/tinybms-firmware")
+fi
+echo "tree $(git -C "$work/tree" log -1 --format='%h %ad' --date=short) with today's panic handler, switch tables in flash:"
+"$here/size-report.sh" "${elfs[@]}"
