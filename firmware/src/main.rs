@@ -109,7 +109,7 @@ const DEADLINE_DRAIN_READS: usize = 4;
 const MAX_WAIT: Duration = Duration::from_millis(500);
 /// Watchdog timeout (MWDT stage 0 → system reset). Fed by the bridge loop.
 const WDT_TIMEOUT: esp_hal::time::Duration = esp_hal::time::Duration::from_secs(4);
-/// After a panic, time for the log reader to fetch the message and backtrace
+/// After a panic, time for the log reader to fetch the panic line and backtrace
 /// before the reset (RTT is polled by the host; UART0 drains its FIFO). Shorter
 /// than [`WDT_TIMEOUT`], so the watchdog is only the fallback.
 const PANIC_RESET_DELAY_US: u32 = 1_000_000;
@@ -133,16 +133,16 @@ struct SharedSnapshot {
 static TELEMETRY: Watch<CriticalSectionRawMutex, SharedSnapshot, 3> = Watch::new();
 
 /// Every panic ends here: log "panic" and the backtrace (return addresses from
-/// the frame-pointer walk, innermost first: the panic helper that was called —
-/// `unwrap_failed`, `panic_bounds_check`, … — when there is one, then the code
+/// the frame-pointer walk, innermost first: the panic helper(s) that were called —
+/// `unwrap_failed`, `panic_bounds_check`, … — when there are any, then the code
 /// that failed and its callers; `addr2line -i -f -e <elf> ADDR…` turns them into
 /// file:line), wait for the log to get out, then reset, so a panic anywhere —
 /// including in `esp_hal::init` before any watchdog is armed — ends in a reset
-/// rather than a hang. `info` is deliberately not read: with the handler ignoring
-/// it, LTO drops the building of every panic's message and location, and with it
-/// `core::fmt`, the `Debug` impls of the dependencies' error types and the source
-/// paths (17.8 KB of flash on the C3, README "Performance"). The backtrace
-/// carries the same location.
+/// rather than a hang. `info` is deliberately not read: LTO then finds that the
+/// message and location handed to `panic_fmt` are never read and drops their
+/// building at every panic site, and with it `core::fmt`, the `Debug` impls of the
+/// dependencies' error types and the source paths (17.8 KB of flash on the C3,
+/// README "Performance"). The backtrace carries the same location.
 #[panic_handler]
 fn panic(_info: &core::panic::PanicInfo) -> ! {
     defmt::error!("panic");
@@ -220,9 +220,8 @@ async fn main(spawner: Spawner) {
 }
 
 /// Spawns a task. A pool without a free slot is a bug in this file: it panics
-/// with a fixed message (the panic handler logs the caller's line), not through
-/// `expect`, which would link `SpawnError`'s `Debug` for a message never printed.
-#[track_caller]
+/// (the backtrace shows which call), not through `expect`, which would link
+/// `SpawnError`'s `Debug` for a message never printed.
 fn spawn<S>(spawner: Spawner, task: Result<SpawnToken<S>, SpawnError>) {
     match task {
         Ok(token) => spawner.spawn(token),
@@ -379,7 +378,7 @@ async fn bridge_task(
 
 /// The start-up profile (`firmware/profile.txt`), parsed at compile time: a
 /// profile that does not parse fails the build, and the chip links neither the
-/// parser nor the setting names.
+/// parser nor the names it matches against (snake_case keys), nor the file's text.
 const STARTUP_PROFILE: profile::Profile<{ profile::MAX_PROFILE_ENTRIES }> =
     match profile::parse(profile::PROFILE_TEXT) {
         Ok(p) => p,

@@ -7,8 +7,9 @@
 //! The profile is the text file `firmware/profile.txt`, compiled in
 //! ([`PROFILE_TEXT`]) and parsed at compile time: the parser is made of `const
 //! fn`s, and a profile that does not parse fails the firmware build (the chip then
-//! links neither the parser nor the setting names). At run time the same functions
-//! read `sim --profile` files, the desktop tool's and the host link's names.
+//! links neither the parser, nor the snake_case keys it matches names against, nor
+//! the file's text). At run time the same functions read `sim --profile` files, the
+//! desktop tool's and the host link's names.
 //!
 //! ## Format
 //!

@@ -180,9 +180,9 @@ mod tests {
     }
 
     /// Lines made of the profile's parts: names (snake_case, Rev D's in any case,
-    /// addresses), `=`, values, comments, blank lines, and whitespace of every
-    /// kind `str::trim` knows (ASCII, vertical tab, NBSP, U+2000.., U+3000) or not
-    /// (U+200B), with `\n` or `\r\n` endings.
+    /// addresses), `=`, values, comments, blank lines, and runs of every character
+    /// `str::trim` strips (the 25 of Unicode's White_Space) or not (U+200B), with
+    /// `\n` or `\r\n` endings.
     fn profile_text() -> impl Strategy<Value = String> {
         let name = prop_oneof![
             proptest::sample::select(SettingId::ALL).prop_map(|id| setting_key(id).to_string()),
@@ -197,10 +197,15 @@ mod tests {
             "[+-]?[0-9]{0,12}",
             "[0-9a-x=#.]{0,4}",
         ];
-        let space = proptest::sample::select(vec![
-            "", " ", "\t", "\u{b}", "\u{c}", "\r", "\u{a0}", "\u{85}", "\u{1680}", "\u{2003}",
-            "\u{2028}", "\u{205f}", "\u{3000}", "\u{200b}", "  ",
+        // Every White_Space character (what `str::trim` strips), U+200B (which it
+        // does not), nothing, and runs of them.
+        let one = proptest::sample::select(vec![
+            "", " ", "\t", "\u{b}", "\u{c}", "\r", "\u{85}", "\u{a0}", "\u{1680}", "\u{2000}",
+            "\u{2001}", "\u{2002}", "\u{2003}", "\u{2004}", "\u{2005}", "\u{2006}", "\u{2007}",
+            "\u{2008}", "\u{2009}", "\u{200a}", "\u{2028}", "\u{2029}", "\u{202f}", "\u{205f}",
+            "\u{3000}", "\u{200b}",
         ]);
+        let space = proptest::collection::vec(one, 0..3).prop_map(|v| v.concat());
         let line = prop_oneof![
             4 => (space.clone(), name, space.clone(), value, space.clone(),
                   proptest::option::of("#[^\n]{0,10}"))
@@ -208,7 +213,7 @@ mod tests {
                     format!("{a}{n}{b}={v}{c}{}", comment.unwrap_or_default())
                 }),
             1 => "[^\n]{0,20}",
-            1 => space.clone().prop_map(String::from),
+            1 => space.clone(),
             1 => "#[^\n]{0,20}",
         ];
         (
@@ -250,19 +255,48 @@ mod tests {
             }
         }
 
+        /// Any characters, control characters (line ends, tabs, NEL) included.
         #[test]
-        fn any_text_parses_as_the_str_parser_does(text in any::<String>()) {
+        fn any_text_parses_as_the_str_parser_does(text in "(?s).{0,60}") {
+            prop_assert_eq!(entries(&text), str_parser::entries(&text));
+        }
+
+        /// Any text made of `=`, `#`, line ends, whitespace and a few others.
+        #[test]
+        fn punctuation_and_line_ends_parse_as_the_str_parser_does(
+            text in "[=#\r\n \t\u{b}\u{85}\u{a0}\u{2029}0-9a-z_+-]{0,40}"
+        ) {
             prop_assert_eq!(entries(&text), str_parser::entries(&text));
         }
 
         #[test]
-        fn trim_is_str_trim(s in "[ \t\u{b}\u{c}\r\n\u{a0}\u{85}\u{2000}-\u{200b}\u{3000}ax€]{0,8}") {
+        fn trim_is_str_trim_on_any_text(s in "(?s).{0,12}") {
             prop_assert_eq!(fw::trim(&s), s.trim());
         }
+    }
 
-        #[test]
-        fn trim_is_str_trim_on_any_text(s in any::<String>()) {
-            prop_assert_eq!(fw::trim(&s), s.trim());
+    /// `trim` against `str::trim` for every `char`: alone, doubled, before and
+    /// after a letter, and around one.
+    #[test]
+    fn trim_is_str_trim_for_every_char() {
+        let mut buf = String::new();
+        for c in (0..=0x10FFFF).filter_map(char::from_u32) {
+            for shape in 0..5 {
+                buf.clear();
+                match shape {
+                    0 => buf.push(c),
+                    1 => buf.extend([c, c]),
+                    2 => buf.extend([c, 'a']),
+                    3 => buf.extend(['a', c]),
+                    _ => buf.extend([c, 'a', c]),
+                }
+                assert_eq!(
+                    fw::trim(&buf),
+                    buf.trim(),
+                    "U+{:04X}, shape {shape}",
+                    c as u32
+                );
+            }
         }
     }
 
