@@ -278,8 +278,7 @@ fn a_confirmed_live_piece_that_changed_is_believed_only_when_read_twice_alike() 
         values: (0..56u16).map(|a| genuine(a) - 7).collect(), // every value changed since
     };
     let mut now = 0;
-    let mut read = BlockRead::new(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
-    read.confirm_pieces();
+    let mut read = confirming_live_read(now);
     let piece = PIECE_REGISTERS[3];
     let mut corrupted = false;
     let mut block = None;
@@ -335,8 +334,7 @@ fn a_confirmed_live_piece_equal_to_the_published_one_is_believed_at_once() {
             .collect(),
     };
     let mut now = 0;
-    let mut read = BlockRead::new(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
-    read.confirm_pieces();
+    let mut read = confirming_live_read(now);
     let mut requests = 0;
     let block = loop {
         now += 1_000;
@@ -351,6 +349,19 @@ fn a_confirmed_live_piece_equal_to_the_published_one_is_believed_at_once() {
     assert_eq!(block, published);
     // 15-register pieces: 0-14, 15, 32-46, 47-55 (no piece splits a 32-bit value).
     assert!(requests <= 5, "{requests}");
+}
+
+/// A live read (60 s window) whose pieces are confirmed, as the bridge makes it.
+fn confirming_live_read(now: u64) -> BlockRead {
+    let mut read = BlockRead::new(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
+    read.confirm_pieces();
+    read
+}
+
+/// `read` reset in place to the live read with confirmed pieces (a new snapshot).
+fn restart_confirming(read: &mut BlockRead, now: u64) {
+    read.reset(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
+    read.confirm_pieces();
 }
 
 /// One pass of a confirmed live read in 2-register pieces against no published
@@ -377,8 +388,7 @@ fn a_confirmed_piece_equal_to_an_earlier_confirmed_read_is_believed_at_once() {
     // confirms an equal read now. Nothing else does: not the block's initial
     // zeros, not a value from before a reset to another read.
     let mut now = 0;
-    let mut read = BlockRead::new(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
-    read.confirm_pieces();
+    let mut read = confirming_live_read(now);
     let a = |x: u16| 33_000 + x;
     confirmed_pass(&mut read, &mut now, a);
     assert_eq!(
@@ -387,14 +397,12 @@ fn a_confirmed_piece_equal_to_an_earlier_confirmed_read_is_believed_at_once() {
         "first pass: every piece read twice"
     );
     // The same values again (a new snapshot, the read reset in place).
-    read.reset(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
-    read.confirm_pieces();
+    restart_confirming(&mut read, now);
     let block = confirmed_pass(&mut read, &mut now, a);
     assert_eq!(read.second_reads(), 0, "equal to the confirmed values");
     assert_eq!(block.get(5), Some(a(5)));
     // One value changed: only its piece is read twice.
-    read.reset(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
-    read.confirm_pieces();
+    restart_confirming(&mut read, now);
     let b = |x: u16| if x == 9 { 33_333 } else { a(x) };
     let block = confirmed_pass(&mut read, &mut now, b);
     assert_eq!(read.second_reads(), 1);
@@ -402,8 +410,7 @@ fn a_confirmed_piece_equal_to_an_earlier_confirmed_read_is_believed_at_once() {
     // Zeros are not "confirmed" by the block's initial zeros, and a reset to
     // another read forgets what was confirmed.
     read.reset(reader::STATS_SEGMENTS, Mode::Window(60_000_000), now);
-    read.reset(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
-    read.confirm_pieces();
+    restart_confirming(&mut read, now);
     confirmed_pass(&mut read, &mut now, |_| 0);
     assert_eq!(read.second_reads(), 20);
 }
@@ -414,12 +421,10 @@ fn values_stored_without_confirmation_never_confirm_a_later_piece() {
     // reply stored by copy (a 0x03 piece; the bridge sends none while pieces are
     // confirmed, the read accepts one) makes those registers unconfirmed again.
     let mut now = 0;
-    let mut read = BlockRead::new(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
-    read.confirm_pieces();
+    let mut read = confirming_live_read(now);
     let a = |x: u16| 33_000 + x;
     confirmed_pass(&mut read, &mut now, a);
-    read.reset(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
-    read.confirm_pieces();
+    restart_confirming(&mut read, now);
     // First piece (registers 0-1) answered as a 0x03 block of other values.
     now += 1_000;
     let req = read.next_request(now, PIECE_REGISTERS[3]);
@@ -430,8 +435,7 @@ fn values_stored_without_confirmation_never_confirm_a_later_piece() {
     };
     assert!(read.on_block(now, &copied).is_none());
     // Next pass: registers 0-1 read with those values must be read twice.
-    read.reset(reader::LIVE_SEGMENTS, Mode::Window(60_000_000), now);
-    read.confirm_pieces();
+    restart_confirming(&mut read, now);
     confirmed_pass(&mut read, &mut now, |x| match x {
         0 => 30_500,
         1 => 30_501,

@@ -11,7 +11,7 @@ use protocol_core::frame::{Frame, NackCode};
 use protocol_core::request::Request;
 use protocol_core::response::Response;
 use tinybms_firmware::config::Config;
-use tinybms_firmware::link::{Failure, Link, LinkStep, Silence};
+use tinybms_firmware::link::{Completion, Failure, Link, LinkStep, Silence};
 
 fn encode(f: &Frame) -> Vec<u8> {
     let mut b = [0u8; 600];
@@ -25,23 +25,35 @@ fn encode(f: &Frame) -> Vec<u8> {
 fn run(
     req: Request,
     silence: Silence,
-    mut answer: impl FnMut(usize) -> Option<Vec<u8>>,
+    answer: impl FnMut(usize) -> Option<Vec<u8>>,
 ) -> (Result<Response, Failure>, usize, Link) {
     let mut link = Link::new(Config::default());
-    let mut now = 0u64;
-    link.start(now, req, silence);
+    let (c, sends) = transact(&mut link, &mut 0, req, silence, answer);
+    (c.result, sends, link)
+}
+
+/// [`run`] on a given link from `now` (advanced to the completion): the completion
+/// and how many times the request went out.
+fn transact(
+    link: &mut Link,
+    now: &mut u64,
+    req: Request,
+    silence: Silence,
+    mut answer: impl FnMut(usize) -> Option<Vec<u8>>,
+) -> (Completion, usize) {
+    link.start(*now, req, silence);
     let mut sends = 0;
     for _ in 0..50 {
-        match link.step(now) {
+        match link.step(*now) {
             LinkStep::Send(_) => {
                 sends += 1;
                 if let Some(bytes) = answer(sends) {
-                    now += 2_000;
-                    link.on_bytes(now, &bytes);
+                    *now += 2_000;
+                    link.on_bytes(*now, &bytes);
                 }
             }
-            LinkStep::WaitUntil(t) => now = t,
-            LinkStep::Done(c) => return (c.result, sends, link),
+            LinkStep::WaitUntil(t) => *now = t,
+            LinkStep::Done(c) => return (c, sends),
             LinkStep::Idle => panic!("idle before done"),
         }
     }
@@ -327,23 +339,9 @@ fn a_reply_found_at_the_deadline_is_not_seen_again_by_the_next_request() {
     hidden.extend(live_reply());
     let mut link = Link::new(Config::default());
     let mut now = 0u64;
-    link.start(now, req.clone(), Silence::Failure);
-    let mut first = None;
-    for _ in 0..20 {
-        match link.step(now) {
-            LinkStep::Send(_) => {
-                now += 2_000;
-                link.on_bytes(now, &hidden);
-            }
-            LinkStep::WaitUntil(t) => now = t,
-            LinkStep::Done(c) => {
-                first = Some(c);
-                break;
-            }
-            LinkStep::Idle => panic!("idle before done"),
-        }
-    }
-    let first = first.unwrap();
+    let (first, _) = transact(&mut link, &mut now, req.clone(), Silence::Failure, |_| {
+        Some(hidden.clone())
+    });
     assert!(
         matches!(&first.result, Ok(Response::Registers(b)) if b.values[..] == [33000, 33010]),
         "{first:?}"
@@ -357,23 +355,11 @@ fn a_reply_found_at_the_deadline_is_not_seen_again_by_the_next_request() {
         });
         encode(&resp.to_frame(&req).unwrap())
     };
-    link.start(now, req, Silence::Failure);
-    for _ in 0..20 {
-        match link.step(now) {
-            LinkStep::Send(_) => {
-                now += 2_000;
-                link.on_bytes(now, &fresh);
-            }
-            LinkStep::WaitUntil(t) => now = t,
-            LinkStep::Done(c) => {
-                assert!(
-                    matches!(&c.result, Ok(Response::Registers(b)) if b.values[..] == [1, 2]),
-                    "{c:?}"
-                );
-                return;
-            }
-            LinkStep::Idle => panic!("idle before done"),
-        }
-    }
-    panic!("no completion");
+    let (c, _) = transact(&mut link, &mut now, req, Silence::Failure, |_| {
+        Some(fresh.clone())
+    });
+    assert!(
+        matches!(&c.result, Ok(Response::Registers(b)) if b.values[..] == [1, 2]),
+        "{c:?}"
+    );
 }

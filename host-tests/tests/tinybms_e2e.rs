@@ -156,26 +156,39 @@ fn missing_port_lists_the_ports() {
 /// A user without access to the port (here: `nobody`, through `setpriv`, on a
 /// pty slave that is `crw--w----` root:tty) gets the sentence on how to get it.
 /// Needs root to switch users; the CI machine runs as root.
-#[test]
-fn permission_denied_explains_access() {
+/// Whether the tool can be run as another user here (root, with `setpriv`); says
+/// why a test is skipped when not.
+fn can_run_as_nobody() -> bool {
     // SAFETY: geteuid has no preconditions.
     let root = unsafe { libc::geteuid() } == 0;
-    let setpriv = std::path::Path::new("/usr/bin/setpriv");
-    if !root || !setpriv.exists() {
+    let ok = root && std::path::Path::new("/usr/bin/setpriv").exists();
+    if !ok {
         eprintln!("skipped: needs root and /usr/bin/setpriv to run the tool as another user");
+    }
+    ok
+}
+
+/// `tinybms version PORT` run as `nobody`, from a copy of the binary named `copy`
+/// (one `nobody` may execute wherever the target directory is).
+fn version_as_nobody(copy: &str, port: &str) -> std::process::Output {
+    let bin = tmp(copy);
+    std::fs::copy(env!("CARGO_BIN_EXE_tinybms"), &bin).unwrap();
+    Command::new("/usr/bin/setpriv")
+        .args(["--reuid=65534", "--regid=65534", "--clear-groups"])
+        .arg(&bin)
+        .args(["version", port])
+        .stdin(Stdio::null())
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn permission_denied_explains_access() {
+    if !can_run_as_nobody() {
         return;
     }
     let sim = Sim::start(&["--pty"]);
-    // A copy `nobody` may execute wherever the target directory is.
-    let bin = tmp("tinybms-for-nobody");
-    std::fs::copy(env!("CARGO_BIN_EXE_tinybms"), &bin).unwrap();
-    let out = Command::new(setpriv)
-        .args(["--reuid=65534", "--regid=65534", "--clear-groups"])
-        .arg(&bin)
-        .args(["version", &sim.path])
-        .stdin(Stdio::null())
-        .output()
-        .unwrap();
+    let out = version_as_nobody("tinybms-for-nobody", &sim.path);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(3), "{stderr}");
     assert!(
@@ -191,26 +204,14 @@ fn permission_denied_explains_access() {
 /// world-writable so that permissions are not what stops it.
 #[test]
 fn port_held_by_another_program_is_named() {
-    // SAFETY: geteuid has no preconditions.
-    let root = unsafe { libc::geteuid() } == 0;
-    let setpriv = std::path::Path::new("/usr/bin/setpriv");
-    if !root || !setpriv.exists() {
-        eprintln!("skipped: needs root and /usr/bin/setpriv to run the tool as another user");
+    if !can_run_as_nobody() {
         return;
     }
     use std::os::unix::fs::PermissionsExt;
     let sim = Sim::start(&["--pty"]);
     std::fs::set_permissions(&sim.path, std::fs::Permissions::from_mode(0o666)).unwrap();
     let holder = serialport::new(&sim.path, 115_200).open().unwrap();
-    let bin = tmp("tinybms-for-nobody-2");
-    std::fs::copy(env!("CARGO_BIN_EXE_tinybms"), &bin).unwrap();
-    let out = Command::new(setpriv)
-        .args(["--reuid=65534", "--regid=65534", "--clear-groups"])
-        .arg(&bin)
-        .args(["version", &sim.path])
-        .stdin(Stdio::null())
-        .output()
-        .unwrap();
+    let out = version_as_nobody("tinybms-for-nobody-2", &sim.path);
     drop(holder);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(3), "{stderr}");
