@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Flash / static RAM of the firmware as it was when the size goal was set (issue 10:
 # "C3 <= 84 KiB flash and <= 16 KiB static RAM for today's features"), with the
-# goal's measures applied: the panic handler of today's main.rs (it does not read
+# goal's measures applied: the panic handler of today's src/chip/panic.rs (it does not read
 # PanicInfo, so core::fmt is not linked) and esp-hal's switch tables in flash.
 #
 # Usage: firmware/size-filing-day.sh [COMMIT]   (default: 82114d9, main on the day)
@@ -36,9 +36,9 @@ git -C "$repo" worktree add --detach "$work/tree" "$commit" >/dev/null 2>&1 || {
     echo "size-filing-day: cannot check out $commit (a full clone is needed)" >&2; exit 2; }
 fw=$work/tree/firmware
 
-# Today's panic handler, taken from this checkout's main.rs (attribute to closing brace).
-handler=$(awk '/^#\[panic_handler\]/{p=1} p{print} p&&/^}/{exit}' "$here/src/main.rs")
-[[ -n $handler ]] || { echo "size-filing-day: no panic handler in $here/src/main.rs" >&2; exit 2; }
+# Today's panic handler, taken from this checkout's src/chip/panic.rs (attribute to closing brace).
+handler=$(awk '/^#\[panic_handler\]/{p=1} p{print} p&&/^}/{exit}' "$here/src/chip/panic.rs")
+[[ -n $handler ]] || { echo "size-filing-day: no panic handler in $here/src/chip/panic.rs" >&2; exit 2; }
 
 if ! HANDLER=$handler python3 - "$fw" <<'EOF'
 

@@ -8,27 +8,19 @@
 //! bytes, or wait until a deadline. What happened comes out as [`Report`]s, which
 //! the chip shell logs with `defmt` and the host simulator prints.
 //!
-//! * [`link`] — one outstanding request at a time, response timeout, wake-up
-//!   resend, bounded retries, offline detection, link statistics.
-//! * [`bridge`] — on top of the link: the poll schedule, the sync phase, the
-//!   telemetry model, the write/verify machine for settings (and the reset and
-//!   clear commands), each in its own file under `bridge/`, and a thin
-//!   coordinator whose narrow interface every consumer uses: read
-//!   [`Bridge::telemetry`], act with [`Bridge::submit`], hear outcomes from
-//!   [`Bridge::next_report`].
-//! * [`reader`] — register blocks read whole on a clean line and in pieces on a
-//!   bad one, confirmed by a second read where the values do not change by
-//!   themselves.
-//! * [`checks`] — the consistency checks a live block must pass before it is
-//!   published.
-//! * [`event_log`] — every BMS event reported exactly once.
-//! * [`inverter`] — charge control and the inverter CAN protocols (Victron,
-//!   SMA Sunny Island).
-//! * [`config`] — every default as a named, documented constant.
-//! * [`profile`] — the settings profile applied at start-up (empty by default).
-//! * [`site`] — the inverter output of this installation (protocol, stale policy,
-//!   CAN on/off).
-//! * [`boards`] — the supported boards' pins and log paths, checked at compile time.
+//! The library is grouped by side:
+//!
+//! | side | module | what |
+//! | --- | --- | --- |
+//! | the BMS | [`bms`] | the UART link, block reads, the checks a snapshot passes, the event log, the start-up profile, timing |
+//! | the bridge | [`bridge`] | the coordinator on top of the link: poll schedule, sync, telemetry, the write/verify machine, [`Report`]s |
+//! | consumers | [`inverter`] | charge control and the inverter CAN protocols (Victron, SMA Sunny Island) |
+//! | | [`host_link`] | JSON Lines to a computer over USB |
+//! | this installation | [`site`] | the inverter output and host link settings |
+//! | | [`boards`] | the supported boards' pins and log paths, checked at compile time |
+//!
+//! Consumers read [`Bridge::telemetry`] and act through [`Bridge::submit`]; none
+//! reaches into another's state.
 #![no_std]
 #![deny(missing_docs)]
 #![deny(
@@ -48,22 +40,16 @@
 )]
 #![allow(clippy::large_enum_variant)]
 
+pub mod bms;
 pub mod boards;
 pub mod bridge;
-pub mod checks;
-pub mod config;
-pub mod event_log;
 pub mod host_link;
 pub mod inverter;
-pub mod link;
-pub mod profile;
-pub mod reader;
-pub mod report;
 pub mod site;
 
+pub use bms::link::{LinkStats, Transmit};
+pub use bridge::report::{Level, Report};
 pub use bridge::{Action, Bridge, Command, LiveMeta, Step, Telemetry};
-pub use link::{LinkStats, Transmit};
-pub use report::{Level, Report};
 
 /// Time in microseconds since an arbitrary origin (boot on the chip, 0 in the
 /// simulator). Always passed in, never read.

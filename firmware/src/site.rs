@@ -1,6 +1,6 @@
 //! What this installation wants from the inverter output and the host link:
 //! edit and reflash. (The settings written to the BMS are in `firmware/profile.txt`,
-//! see [`crate::profile`].)
+//! see [`crate::bms::profile`].)
 
 use crate::host_link::HostLinkConfig;
 use crate::inverter::control::ChargeConfig;

@@ -14,7 +14,7 @@ use std::io::Write;
 
 use protocol_core::views::cell_mv;
 
-use tinybms_firmware::config::Config;
+use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::inverter::frames::{self, CanFrame};
 use tinybms_firmware::inverter::{
     Inverter, InverterAction, InverterConfig, InverterReport, TxResult,
@@ -185,7 +185,7 @@ impl ClosedLoop {
             PackProfile::LiFePO4_16S => 0.0003,
             PackProfile::LiIon_14S => 0.0015,
         };
-        let mut h = Harness::with_config(sim, Config::default());
+        let mut h = Harness::with_config(sim, Timing::default());
         h.retain = true;
         Self {
             h,

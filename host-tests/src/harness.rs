@@ -10,9 +10,9 @@ use protocol_core::request::SettingsOption;
 use protocol_core::response::RegisterBlock;
 use protocol_core::settings::Setting;
 use protocol_core::views::{LiveSnapshot, VersionInfo};
-use tinybms_firmware::bridge::ts_newer;
-use tinybms_firmware::config::{Config, BYTE_TIME_US};
-use tinybms_firmware::report::WriteOutcome;
+use tinybms_firmware::bms::event_log::ts_newer;
+use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
+use tinybms_firmware::bridge::report::WriteOutcome;
 use tinybms_firmware::{Action, Bridge, Level, Report};
 
 use crate::sim::SimBms;
@@ -176,11 +176,11 @@ pub struct Harness {
 impl Harness {
     /// A harness at time 0 with the default bridge configuration.
     pub fn new(sim: SimBms) -> Self {
-        Self::with_config(sim, Config::default())
+        Self::with_config(sim, Timing::default())
     }
 
     /// A harness at time 0.
-    pub fn with_config(sim: SimBms, config: Config) -> Self {
+    pub fn with_config(sim: SimBms, config: Timing) -> Self {
         Self {
             bridge: Bridge::new(config, 0),
             sim,
@@ -203,7 +203,7 @@ impl Harness {
 
     /// A harness that checks every published value and write outcome against
     /// the simulated BMS as it goes ([`Harness::soak`]).
-    pub fn checked(mut sim: SimBms, config: Config) -> Self {
+    pub fn checked(mut sim: SimBms, config: Timing) -> Self {
         sim.record_reads(TRUTH_WINDOW_US);
         let mut h = Self::with_config(sim, config);
         h.soak = Some(Soak::default());

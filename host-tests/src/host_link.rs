@@ -147,7 +147,7 @@ pub fn fuzz_one(data: &[u8]) {
         _ => return,
     };
     let mut bridge = if flags & 2 != 0 {
-        Bridge::new(tinybms_firmware::config::Config::default(), 0)
+        Bridge::new(tinybms_firmware::bms::timing::Timing::default(), 0)
     } else {
         ready_bridge().clone()
     };

@@ -18,7 +18,7 @@ use std::sync::mpsc;
 use std::time::Duration;
 
 use protocol_core::settings::SettingId;
-use tinybms_firmware::config::Config;
+use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::host_link::{HostLink, HostLinkConfig};
 
 use crate::pty::Pty;
@@ -53,7 +53,7 @@ pub struct Hosted<P: BytePort> {
 impl<P: BytePort> Hosted<P> {
     /// Both at time 0 (now). The host link has not seen a connection yet:
     /// call [`Hosted::connected`].
-    pub fn new(port: P, bridge: Config, host: HostLinkConfig) -> Self {
+    pub fn new(port: P, bridge: Timing, host: HostLinkConfig) -> Self {
         let driver = Driver::new(port, bridge);
         let now = driver.clock().now();
         Self {
@@ -215,7 +215,7 @@ pub struct BridgePtyOptions {
     /// profile.
     pub profile: Vec<(SettingId, i32)>,
     /// The bridge's configuration.
-    pub bridge: Config,
+    pub bridge: Timing,
     /// Print the bridge's log lines to stderr.
     pub log: bool,
 }

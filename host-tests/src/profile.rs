@@ -8,13 +8,13 @@
 //! ```
 //! Values are raw register units (mV, A, s, enumeration values), as in Rev D §3.4.
 //!
-//! The parser is the firmware's own (`tinybms_firmware::profile`, no_std): the
+//! The parser is the firmware's own (`tinybms_firmware::bms::profile`, no_std): the
 //! firmware's start-up profile `firmware/profile.txt`, `sim --profile` and the
 //! desktop tool read the same format with the same code. These wrappers turn its
 //! errors into messages.
 
 use protocol_core::settings::SettingId;
-use tinybms_firmware::profile::{self as fw, ProfileError};
+use tinybms_firmware::bms::profile::{self as fw, ProfileError};
 
 /// snake_case name of a setting (`OverVoltageCutoff` → `over_voltage_cutoff`).
 pub fn snake_name(id: SettingId) -> String {
@@ -50,7 +50,7 @@ pub fn parse_profile(text: &str) -> Result<Vec<(SettingId, i32)>, String> {
 mod tests {
     use super::*;
     use proptest::prelude::*;
-    use tinybms_firmware::profile::{setting_key, ParseError};
+    use tinybms_firmware::bms::profile::{setting_key, ParseError};
 
     #[test]
     fn names_and_files() {
@@ -103,12 +103,12 @@ mod tests {
 
     #[test]
     fn the_firmware_profile_parses() {
-        let text = tinybms_firmware::profile::PROFILE_TEXT;
+        let text = tinybms_firmware::bms::profile::PROFILE_TEXT;
         let entries = parse_profile(text).unwrap();
         // Shipped empty: out of the box the firmware never writes to the BMS.
         assert!(entries.is_empty(), "{entries:?}");
-        assert!(tinybms_firmware::profile::parse::<
-            { tinybms_firmware::profile::MAX_PROFILE_ENTRIES },
+        assert!(tinybms_firmware::bms::profile::parse::<
+            { tinybms_firmware::bms::profile::MAX_PROFILE_ENTRIES },
         >(text)
         .unwrap()
         .is_empty());
@@ -128,7 +128,7 @@ mod tests {
     mod str_parser {
         use protocol_core::registers::Field;
         use protocol_core::settings::SettingId;
-        use tinybms_firmware::profile::{setting_key, ProfileErrorKind};
+        use tinybms_firmware::bms::profile::{setting_key, ProfileErrorKind};
 
         pub type Entry = Result<(SettingId, i32), (u32, ProfileErrorKind, String)>;
 

@@ -20,7 +20,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use protocol_core::settings::{Setting, SettingId};
-use tinybms_firmware::config::{Config, BYTE_TIME_US};
+use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
 use tinybms_firmware::{Action, Bridge, Instant, Report};
 
 use crate::capture::CaptureWriter;
@@ -189,7 +189,7 @@ pub struct Driver<P: BytePort> {
 
 impl<P: BytePort> Driver<P> {
     /// A driver whose time 0 is now.
-    pub fn new(port: P, config: Config) -> Self {
+    pub fn new(port: P, config: Timing) -> Self {
         let clock = Clock::start();
         Self {
             port,
@@ -411,7 +411,7 @@ mod tests {
         }
         .build()
         .unwrap();
-        let mut d = Driver::new(SimPort::new(sim), Config::default());
+        let mut d = Driver::new(SimPort::new(sim), Timing::default());
         let stop = AtomicBool::new(false);
         let mut reports = Vec::new();
         let end = std::time::Instant::now() + Duration::from_secs(60);

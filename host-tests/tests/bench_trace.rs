@@ -5,7 +5,7 @@
 use host_tests::trace::{
     calls, find_live_reply, record_clean, Call, BENCH_TRACE_SEED, BENCH_TRACE_US,
 };
-use tinybms_firmware::config::Config;
+use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::Bridge;
 
 #[test]
@@ -42,8 +42,8 @@ fn handle_rx_decides_as_the_in_place_receive() {
     let trace = record_clean(BENCH_TRACE_SEED, BENCH_TRACE_US).expect("a live reply");
     let calls = calls(&trace).expect("a well-formed trace");
     let (mut copying, mut in_place) = (
-        Bridge::new(Config::default(), 0),
-        Bridge::new(Config::default(), 0),
+        Bridge::new(Timing::default(), 0),
+        Bridge::new(Timing::default(), 0),
     );
     let (mut polls, mut received, mut snapshots, mut reports) = (0, 0, 0, 0);
     for call in &calls {

@@ -10,7 +10,7 @@
 
 use protocol_core::request::Request;
 use protocol_core::response::{RegisterBlock, Words};
-use tinybms_firmware::reader::{self, BlockRead, Mode, PIECE_REGISTERS};
+use tinybms_firmware::bms::reader::{self, BlockRead, Mode, PIECE_REGISTERS};
 
 /// Answers `request` (as the piece in flight of `read`) with `value(address)`;
 /// returns the assembled block, if the read completed.

@@ -17,7 +17,7 @@
 )]
 
 use host_tests::sim::{PackProfile, SimBms, SimConfig};
-use tinybms_firmware::config::{Config, BYTE_TIME_US};
+use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
 use tinybms_firmware::{Action, Bridge, Report};
 
 /// The bridge's first request, sent at time 0; returns (request bytes, time its
@@ -60,7 +60,7 @@ fn accepted(bridge: &mut Bridge) -> bool {
 /// when the timer fired.
 #[test]
 fn a_whole_reply_in_the_fifo_at_the_response_deadline_completes_its_request() {
-    let mut bridge = Bridge::new(Config::default(), 0);
+    let mut bridge = Bridge::new(Timing::default(), 0);
     let (req, _, deadline) = first_request(&mut bridge);
     let reply = reply_to(&req);
 
@@ -87,7 +87,7 @@ fn a_whole_reply_in_the_fifo_at_the_response_deadline_completes_its_request() {
 
 #[test]
 fn the_same_reply_handed_in_after_the_deadline_costs_a_resend_answered_twice() {
-    let mut bridge = Bridge::new(Config::default(), 0);
+    let mut bridge = Bridge::new(Timing::default(), 0);
     let (req, _, deadline) = first_request(&mut bridge);
     let reply = reply_to(&req);
 
@@ -128,7 +128,7 @@ fn split_reply(bridge: &mut Bridge) -> (Vec<u8>, Vec<u8>, Vec<u8>, u64) {
 
 #[test]
 fn the_rest_of_a_reply_in_the_fifo_at_the_idle_gap_deadline_completes_it() {
-    let mut bridge = Bridge::new(Config::default(), 0);
+    let mut bridge = Bridge::new(Timing::default(), 0);
     let (req, _, tail, gap_deadline) = split_reply(&mut bridge);
 
     bridge.handle_rx(gap_deadline, &tail);
@@ -150,7 +150,7 @@ fn the_rest_of_a_reply_in_the_fifo_at_the_idle_gap_deadline_completes_it() {
 
 #[test]
 fn the_rest_handed_in_after_the_idle_gap_deadline_is_lost_and_the_read_retried() {
-    let mut bridge = Bridge::new(Config::default(), 0);
+    let mut bridge = Bridge::new(Timing::default(), 0);
     let (req, _, tail, gap_deadline) = split_reply(&mut bridge);
 
     let Action::Transmit(again) = bridge.poll(gap_deadline) else {

@@ -4,16 +4,16 @@
 
 use host_tests::harness::Harness;
 use host_tests::sim::{PackProfile, SimBms, SimConfig};
-use tinybms_firmware::config::{Config, BYTE_TIME_US, EVENTS_PERIOD_US, STATS_PERIOD_US};
+use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US, EVENTS_PERIOD_US, STATS_PERIOD_US};
 use tinybms_firmware::MS;
 
 const RUN_US: u64 = 5 * 60 * 1_000_000;
 
 fn run(live_period_us: u64) -> Harness {
     let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 7);
-    let config = Config {
+    let config = Timing {
         live_period_us,
-        ..Config::default()
+        ..Timing::default()
     };
     let mut h = Harness::with_config(sim, config);
     h.retain = false;

@@ -19,10 +19,10 @@ use protocol_core::events::{Event, EventId};
 use protocol_core::response::RegisterBlock;
 use protocol_core::settings::SettingId;
 use serde_json::{json, Value};
+use tinybms_firmware::bridge::report::WriteOutcome;
 use tinybms_firmware::host_link::encode;
 use tinybms_firmware::host_link::line::{LineAssembler, Piece, LINE_MAX};
 use tinybms_firmware::host_link::{HostLink, OUT_LINE_MAX};
-use tinybms_firmware::report::WriteOutcome;
 use tinybms_firmware::{Report, MS, SECOND};
 
 fn ready() -> Rig {
@@ -381,7 +381,7 @@ fn get_everything() {
     );
     let t = r.h.bridge.telemetry();
     for (s, &id) in settings.iter().zip(SettingId::ALL) {
-        assert_eq!(s["name"], tinybms_firmware::profile::setting_key(id));
+        assert_eq!(s["name"], tinybms_firmware::bms::profile::setting_key(id));
         assert_eq!(s["address"], id.address());
         let raw = id.read(t.settings.as_ref().unwrap()).unwrap();
         assert_eq!(s["raw"], raw);
@@ -441,7 +441,7 @@ fn get_everything() {
 #[test]
 fn event_lines_are_replays_events() {
     let mut link = HostLink::new(config(false, 0), 0);
-    let bridge = tinybms_firmware::Bridge::new(tinybms_firmware::config::Config::default(), 0);
+    let bridge = tinybms_firmware::Bridge::new(tinybms_firmware::bms::timing::Timing::default(), 0);
     let events = [
         Event {
             timestamp_s: 12345,
@@ -530,14 +530,14 @@ fn set_reset_clear_and_outcome_correlation() {
     };
     link.on_report(&Report::Write {
         setting,
-        outcome: WriteOutcome::Unconfirmed(tinybms_firmware::link::Failure::Timeout),
+        outcome: WriteOutcome::Unconfirmed(tinybms_firmware::bms::link::Failure::Timeout),
     });
     link.on_report(&Report::WriteFollowUp {
         setting,
         outcome: WriteOutcome::Verified,
     });
     let mut buf = [0u8; OUT_LINE_MAX];
-    let bridge = tinybms_firmware::Bridge::new(tinybms_firmware::config::Config::default(), 0);
+    let bridge = tinybms_firmware::Bridge::new(tinybms_firmware::bms::timing::Timing::default(), 0);
     let mut next = || {
         let n = link.next_line(0, &bridge, &mut buf).unwrap();
         serde_json::from_str::<Value>(&check_line(&buf[..n])).unwrap()

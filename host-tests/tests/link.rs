@@ -10,8 +10,8 @@
 use protocol_core::frame::{Frame, NackCode};
 use protocol_core::request::Request;
 use protocol_core::response::Response;
-use tinybms_firmware::config::Config;
-use tinybms_firmware::link::{Completion, Failure, Link, LinkStep, Silence};
+use tinybms_firmware::bms::link::{Completion, Failure, Link, LinkStep, Silence};
+use tinybms_firmware::bms::timing::Timing;
 
 fn encode(f: &Frame) -> Vec<u8> {
     let mut b = [0u8; 600];
@@ -27,7 +27,7 @@ fn run(
     silence: Silence,
     answer: impl FnMut(usize) -> Option<Vec<u8>>,
 ) -> (Result<Response, Failure>, usize, Link) {
-    let mut link = Link::new(Config::default());
+    let mut link = Link::new(Timing::default());
     let (c, sends) = transact(&mut link, &mut 0, req, silence, answer);
     (c.result, sends, link)
 }
@@ -105,7 +105,7 @@ fn silent_bms_fails_after_wakeup_and_retries() {
     // 1 + wake-up resend + MAX_RETRIES.
     assert_eq!(
         sends,
-        2 + usize::from(tinybms_firmware::config::MAX_RETRIES)
+        2 + usize::from(tinybms_firmware::bms::timing::MAX_RETRIES)
     );
     assert_eq!(link.consecutive_failures(), 1);
 }
@@ -200,7 +200,7 @@ fn other_frames_are_unsolicited_and_ignored() {
 
 #[test]
 fn offline_after_consecutive_failures_and_back() {
-    let mut link = Link::new(Config::default());
+    let mut link = Link::new(Timing::default());
     let mut now = 0;
     for i in 0..3 {
         assert!(link.is_online(), "online before failure {i}");
@@ -232,7 +232,7 @@ fn offline_after_consecutive_failures_and_back() {
 
 #[test]
 fn a_late_answer_is_never_taken_for_the_next_request() {
-    let mut link = Link::new(Config::default());
+    let mut link = Link::new(Timing::default());
     let reply = |v: u16| {
         let req = Request::read_registers(300, 1).unwrap();
         let resp = Response::Registers(protocol_core::response::RegisterBlock {
@@ -296,7 +296,7 @@ fn a_write_is_not_resent_once_anything_came_back() {
     assert_eq!(r, Err(Failure::Timeout));
     assert_eq!(
         sends,
-        1 + usize::from(tinybms_firmware::config::MAX_RETRIES)
+        1 + usize::from(tinybms_firmware::bms::timing::MAX_RETRIES)
     );
 }
 
@@ -317,7 +317,7 @@ fn a_frame_for_another_command_does_not_count_as_an_answer() {
 fn a_wrong_length_answer_waits_for_the_deadline_before_retrying() {
     let req = Request::read_registers(0, 2).unwrap();
     let short = encode(&Frame::data(0x03, &[0, 1]).unwrap());
-    let mut link = Link::new(Config::default());
+    let mut link = Link::new(Timing::default());
     link.start(0, req, Silence::Failure);
     assert!(matches!(link.step(0), LinkStep::Send(_)));
     link.on_bytes(2_000, &short);
@@ -337,7 +337,7 @@ fn a_reply_found_at_the_deadline_is_not_seen_again_by_the_next_request() {
     let req = Request::read_registers(0, 2).unwrap();
     let mut hidden = vec![0xAA, 0x03, 0x0A];
     hidden.extend(live_reply());
-    let mut link = Link::new(Config::default());
+    let mut link = Link::new(Timing::default());
     let mut now = 0u64;
     let (first, _) = transact(&mut link, &mut now, req.clone(), Silence::Failure, |_| {
         Some(hidden.clone())

@@ -12,7 +12,7 @@ use host_tests::harness::Harness;
 use host_tests::sim::{CurrentSensor, FaultConfig, PackProfile, SimBms, SimConfig};
 use protocol_core::events::{EventId, OnlineStatus};
 use protocol_core::settings::{Setting, SettingError, SettingId};
-use tinybms_firmware::report::WriteOutcome;
+use tinybms_firmware::bridge::report::WriteOutcome;
 use tinybms_firmware::{Command, Level, Report};
 
 const S: u64 = 1_000_000;
@@ -20,7 +20,7 @@ const S: u64 = 1_000_000;
 fn harness(profile: PackProfile, config: SimConfig, seed: u64) -> Harness {
     let mut sim = SimBms::new(profile, config, seed);
     sim.record_frames(true);
-    Harness::checked(sim, tinybms_firmware::config::Config::default())
+    Harness::checked(sim, tinybms_firmware::bms::timing::Timing::default())
 }
 
 fn writes(h: &Harness) -> Vec<(SettingId, i32, WriteOutcome)> {
@@ -606,7 +606,7 @@ fn a_lost_write_to_328_is_not_verified_by_its_marker() {
     // Neither verified nor "failed": the read-back shows 0xFFFF, which is what
     // 328 reads before and after an accepted write. The settings read after the
     // group cannot tell either: the follow-up stays unconfirmed.
-    let unconfirmed = WriteOutcome::Unconfirmed(tinybms_firmware::link::Failure::Timeout);
+    let unconfirmed = WriteOutcome::Unconfirmed(tinybms_firmware::bms::link::Failure::Timeout);
     assert_eq!(
         writes(&h),
         vec![(SettingId::StateOfCharge, 40_000, unconfirmed)]
@@ -713,7 +713,7 @@ fn a_long_group_does_not_stop_the_live_polling() {
 
 #[test]
 fn event_timestamps_wrap_after_24_bits() {
-    use tinybms_firmware::bridge::ts_newer;
+    use tinybms_firmware::bms::event_log::ts_newer;
     assert!(ts_newer(5, 0x00FF_FFF0));
     assert!(!ts_newer(0x00FF_FFF0, 5));
     assert!(ts_newer(0x10, 0x0F));

@@ -16,17 +16,17 @@ use protocol_core::registers;
 use protocol_core::request::Request;
 use protocol_core::response::{RegisterBlock, Response};
 use protocol_core::settings::{Setting, SettingId};
-use tinybms_firmware::checks::Check;
-use tinybms_firmware::config::Config;
-use tinybms_firmware::link::LinkStats;
-use tinybms_firmware::report::WriteOutcome;
+use tinybms_firmware::bms::checks::Check;
+use tinybms_firmware::bms::link::LinkStats;
+use tinybms_firmware::bms::timing::Timing;
+use tinybms_firmware::bridge::report::WriteOutcome;
 use tinybms_firmware::{Command, Level, Report};
 
 const S: u64 = 1_000_000;
 const MIN: u64 = 60 * S;
 
 fn checked(profile: PackProfile, config: SimConfig, seed: u64) -> Harness {
-    Harness::checked(SimBms::new(profile, config, seed), Config::default())
+    Harness::checked(SimBms::new(profile, config, seed), Timing::default())
 }
 
 fn genuine(h: &Harness) {
@@ -165,7 +165,7 @@ fn a_real_broken_sense_wire_is_published_flagged_once_confirmed() {
 
 #[test]
 fn consistency_checks_name_what_failed() {
-    use tinybms_firmware::checks::{check_jump, check_live, Context};
+    use tinybms_firmware::bms::checks::{check_jump, check_live, Context};
     let sim = SimBms::new(PackProfile::LiIon_14S, SimConfig::default(), 23);
     let block = |edit: &dyn Fn(&mut [u16; 56])| {
         let mut regs = [0u16; 56];
@@ -299,8 +299,8 @@ fn a_noisy_line_never_goes_offline() {
 
 #[test]
 fn a_late_answer_between_silent_transactions_resets_the_offline_count() {
-    use tinybms_firmware::link::{Link, LinkStep, Silence};
-    let mut link = Link::new(Config::default());
+    use tinybms_firmware::bms::link::{Link, LinkStep, Silence};
+    let mut link = Link::new(Timing::default());
     let mut now = 0u64;
     let req = Request::read_registers(0, 2).unwrap();
     let silent = |link: &mut Link, now: &mut u64| {
@@ -333,8 +333,8 @@ fn a_late_answer_between_silent_transactions_resets_the_offline_count() {
 #[test]
 fn a_corrupt_reply_then_silence_does_not_count_towards_offline() {
     use protocol_core::frame::Frame;
-    use tinybms_firmware::link::{Link, LinkStep, Silence};
-    let config = Config::default();
+    use tinybms_firmware::bms::link::{Link, LinkStep, Silence};
+    let config = Timing::default();
     let mut link = Link::new(config);
     let mut now = 0u64;
     let req = Request::read_registers(0, 2).unwrap();
@@ -660,9 +660,9 @@ fn counters_near_the_wrap_point_do_not_panic() {
 #[test]
 fn snapshot_log_period_0_logs_every_snapshot_without_catching_up() {
     let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 37);
-    let config = Config {
+    let config = Timing {
         snapshot_log_period_us: 0,
-        ..Config::default()
+        ..Timing::default()
     };
     let mut h = Harness::checked(sim, config);
     h.run_until(30 * S);
@@ -764,9 +764,9 @@ fn unknown_values_print_as_unknown_0x_everywhere() {
 fn cell_checks_reference(
     block: &RegisterBlock,
     s: &protocol_core::views::LiveSnapshot,
-    ctx: tinybms_firmware::checks::Context,
+    ctx: tinybms_firmware::bms::checks::Context,
 ) -> Option<Check> {
-    use tinybms_firmware::checks::*;
+    use tinybms_firmware::bms::checks::*;
     if s.cell_count == 0 || usize::from(s.cell_count) > 16 {
         return Some(Check::CellCount);
     }
@@ -833,7 +833,7 @@ proptest::proptest! {
         ],
         assembled in proptest::prelude::any::<bool>(),
     ) {
-        use tinybms_firmware::checks::{check_live, Context};
+        use tinybms_firmware::bms::checks::{check_live, Context};
         let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 5);
         let mut regs = [0u16; 56];
         for (i, r) in regs.iter_mut().enumerate() {

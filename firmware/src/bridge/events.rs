@@ -16,9 +16,9 @@ use protocol_core::response::{RegisterBlock, Response};
 use protocol_core::views::event_log;
 
 use super::Reports;
-use crate::event_log::{sort_by_time, EventTracker, Found};
-use crate::link::{CompletionRef, Failure};
-use crate::report::Report;
+use crate::bms::event_log::{sort_by_time, EventTracker, Found};
+use crate::bms::link::{CompletionRef, Failure};
+use crate::bridge::report::Report;
 
 /// The BMS event log as far as the bridge knows it: the start-up history (the
 /// confirmed full read of registers 200-297) and every event found since,

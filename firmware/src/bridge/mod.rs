@@ -20,7 +20,7 @@
 //! The owner of the bridge (the chip's bridge task, the host harness) also moves
 //! bytes and time: [`Bridge::handle_rx`] and [`Bridge::poll`]. On the chip only
 //! the bridge task owns the `Bridge`: it publishes what [`Bridge::telemetry`]
-//! returns through an embassy-sync `Watch` for the other tasks (`main.rs`), and a
+//! returns through an embassy-sync `Watch` for the other tasks (`src/chip/`), and a
 //! command from another task reaches [`Bridge::submit`] through the bridge task
 //! (a bounded channel is the intended shape).
 //!
@@ -41,22 +41,22 @@
 //!    settings write: version (500-509), settings (300-343), the BMS's own min and
 //!    max (0x1D options 1 and 2). Telemetry is not published before this
 //!    completes ("ready").
-//! 2. **Running** — the live block (0-55) every [`Config::live_period_us`], the
+//! 2. **Running** — the live block (0-55) every [`Timing::live_period_us`], the
 //!    event log and statistics (100-117) slower; queued commands (settings
 //!    groups, reset, clear) run one at a time between live reads.
 //!
 //! While the link is offline only a probe (the version block) is sent, at
-//! [`Config::offline_probe_period_us`].
+//! [`Timing::offline_probe_period_us`].
 //!
 //! ## Only what the BMS sent
-//! * Register blocks are read through [`BlockRead`](crate::reader::BlockRead):
+//! * Register blocks are read through [`BlockRead`](crate::bms::reader::BlockRead):
 //!   whole on a clean line, in pieces on a bad one
-//!   ([`LineQuality`](crate::reader::LineQuality)). Blocks that do not change by
+//!   ([`LineQuality`](crate::bms::reader::LineQuality)). Blocks that do not change by
 //!   themselves (version, settings, 0x1D limits, statistics, the event log) are
 //!   believed only when two complete reads in a row are identical.
-//! * A live block must pass [`checks::check_live`](crate::checks::check_live)
+//! * A live block must pass [`checks::check_live`](crate::bms::checks::check_live)
 //!   and, against the last published snapshot,
-//!   [`checks::check_jump`](crate::checks::check_jump). One that fails is read
+//!   [`checks::check_jump`](crate::bms::checks::check_jump). One that fails is read
 //!   again at once; it is published only if an independent second read agrees
 //!   with it (no jump between the two, the same verdict), and then flagged with
 //!   the check it failed ([`Report::Flagged`]). The first snapshot after a
@@ -74,6 +74,8 @@
 //! follows every write decides ([`Report::WriteFollowUp`]).
 
 mod events;
+mod job;
+pub mod report;
 mod reports;
 mod reset;
 mod schedule;
@@ -87,19 +89,19 @@ use protocol_core::response::{RegisterBlock, Response};
 use protocol_core::settings::{Setting, SettingId};
 use protocol_core::views::{Statistics, VersionInfo};
 
+use self::job::Effect;
 use self::reports::Reports;
 use self::schedule::{on_piece, Aux, Purpose, Schedule};
 use self::sync::SyncState;
 use self::telemetry::TelemetryModel;
-use self::writes::{Effect, Writes};
-use crate::config::{self, Config};
-use crate::event_log::EventTracker;
-use crate::link::{CompletionRef, Failure, Link, Next, Transmit};
-use crate::report::Report;
+use self::writes::Writes;
+use crate::bms::event_log::EventTracker;
+use crate::bms::link::{CompletionRef, Failure, Link, Next, Transmit};
+use crate::bms::timing::{self, Timing};
+use crate::bridge::report::Report;
 use crate::Instant;
 
 pub use self::events::KnownEvents;
-pub use self::reset::ts_newer;
 pub use self::telemetry::{snapshot_line, snapshot_log_due, LiveMeta, Telemetry};
 
 /// What the caller must do next.
@@ -130,7 +132,7 @@ pub enum Step {
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Command {
     /// Write and verify these settings, one by one.
-    ApplySettings(Vec<Setting, { config::MAX_SETTINGS_GROUP }>),
+    ApplySettings(Vec<Setting, { timing::MAX_SETTINGS_GROUP }>),
     /// Restart the BMS (0x02 option 0x05).
     ResetBms,
     /// Clear the event log (0x02 option 0x01).
@@ -154,7 +156,7 @@ pub struct Bridge {
 /// documentation), and what the coordinator itself keeps.
 #[derive(Debug, Clone)]
 struct State {
-    config: Config,
+    config: Timing,
     /// `Link::is_online`, refreshed after every call into the link.
     link_online: bool,
     /// `Link::consecutive_failures`, refreshed with `link_online`.
@@ -174,7 +176,7 @@ struct State {
 
 impl Bridge {
     /// A bridge at time `now`, about to sync with the BMS.
-    pub fn new(config: Config, now: Instant) -> Self {
+    pub fn new(config: Timing, now: Instant) -> Self {
         let link = Link::new(config);
         let mut s = State::new(config, now);
         s.link_online = link.is_online();
@@ -188,12 +190,12 @@ impl Bridge {
         self.s.writes.submit(command)
     }
 
-    /// Queues the settings of a profile (see [`crate::profile`]) as one group. An
-    /// empty profile queues nothing. Entries beyond [`config::MAX_SETTINGS_GROUP`]
+    /// Queues the settings of a profile (see [`crate::bms::profile`]) as one group. An
+    /// empty profile queues nothing. Entries beyond [`timing::MAX_SETTINGS_GROUP`]
     /// are queued as further groups.
     #[allow(clippy::result_large_err)] // the command itself is handed back
     pub fn submit_profile(&mut self, profile: &[(SettingId, i32)]) -> Result<(), Command> {
-        for chunk in profile.chunks(config::MAX_SETTINGS_GROUP) {
+        for chunk in profile.chunks(timing::MAX_SETTINGS_GROUP) {
             let mut items = Vec::new();
             for &(id, value) in chunk {
                 let _fits = items.push(Setting { id, value }); // chunk <= capacity
@@ -215,12 +217,12 @@ impl Bridge {
     }
 
     /// The settings the bridge runs with.
-    pub fn config(&self) -> &Config {
+    pub fn config(&self) -> &Timing {
         &self.s.config
     }
 
     /// Link counters.
-    pub fn link_stats(&self) -> crate::link::LinkStats {
+    pub fn link_stats(&self) -> crate::bms::link::LinkStats {
         self.link.stats()
     }
 
@@ -230,7 +232,7 @@ impl Bridge {
     }
 
     /// Replaces the link counters (see [`Link::preset_stats`]).
-    pub fn preset_link_stats(&mut self, stats: crate::link::LinkStats) {
+    pub fn preset_link_stats(&mut self, stats: crate::bms::link::LinkStats) {
         self.link.preset_stats(stats);
     }
 
@@ -350,7 +352,7 @@ impl Bridge {
 }
 
 impl State {
-    fn new(config: Config, now: Instant) -> Self {
+    fn new(config: Timing, now: Instant) -> Self {
         Self {
             config,
             link_online: true,

@@ -6,16 +6,16 @@
 use heapless::Deque;
 use protocol_core::request::Request;
 
-use crate::config::{self, Config};
-use crate::link::Failure;
-use crate::report::Report;
+use crate::bms::link::Failure;
+use crate::bms::timing::{self, Timing};
+use crate::bridge::report::Report;
 use crate::Instant;
 
 /// The reports not yet taken, oldest first (when full, the oldest is dropped and
 /// counted), and when the periodic lines are due.
 #[derive(Debug, Clone)]
 pub(super) struct Reports {
-    queue: Deque<Report, { config::REPORT_QUEUE }>,
+    queue: Deque<Report, { timing::REPORT_QUEUE }>,
     dropped: u32,
     next_link_log: Instant,
     next_quality_log: Instant,
@@ -26,7 +26,7 @@ pub(super) struct Reports {
 }
 
 impl Reports {
-    pub(super) fn new(config: &Config, now: Instant) -> Self {
+    pub(super) fn new(config: &Timing, now: Instant) -> Self {
         let next_link_log = now.saturating_add(config.link_stats_log_period_us);
         let next_quality_log = now.saturating_add(config.line_quality_log_period_us);
         Self {
@@ -60,7 +60,7 @@ impl Reports {
 
     /// The periodic lines due at `now`: (link statistics, line quality); the
     /// next ones are planned. Called at every step: one comparison when none is.
-    pub(super) fn periodic_due(&mut self, now: Instant, config: &Config) -> (bool, bool) {
+    pub(super) fn periodic_due(&mut self, now: Instant, config: &Timing) -> (bool, bool) {
         if now < self.next_periodic {
             return (false, false);
         }
@@ -84,11 +84,11 @@ impl Reports {
     }
 
     /// A link error worth a line: at most one per
-    /// [`Config::link_error_log_period_us`], the others are counted.
+    /// [`Timing::link_error_log_period_us`], the others are counted.
     pub(super) fn link_error(
         &mut self,
         now: Instant,
-        config: &Config,
+        config: &Timing,
         request: &Request,
         failure: Failure,
     ) {

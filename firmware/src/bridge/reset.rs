@@ -2,8 +2,8 @@
 //!
 //! Read the event log for the newest "System Started" before the reset → send
 //! the reset (an ACK or silence are both normal, HARDWARE-NOTES; a NACK is a
-//! refusal) → wait [`Config::reboot_wait_us`] → read the event log again, up to
-//! [`config::REBOOT_READBACK_ATTEMPTS`] times: a "System Started" newer than the
+//! refusal) → wait [`Timing::reboot_wait_us`] → read the event log again, up to
+//! [`timing::REBOOT_READBACK_ATTEMPTS`] times: a "System Started" newer than the
 //! one before proves the restart ([`Report::ResetDone`]). Either way everything
 //! is read again afterwards (a resync).
 //!
@@ -13,11 +13,12 @@ use protocol_core::events::{Event, EventId};
 use protocol_core::request::{Request, ResetOption};
 use protocol_core::response::Response;
 
-use super::writes::{Effect, JobNext};
+use super::job::{Effect, JobNext};
 use super::Reports;
-use crate::config::{self, Config};
-use crate::link::{CompletionRef, Failure, Silence};
-use crate::report::Report;
+use crate::bms::event_log::ts_newer;
+use crate::bms::link::{CompletionRef, Failure, Silence};
+use crate::bms::timing::{self, Timing};
+use crate::bridge::report::Report;
 use crate::Instant;
 
 /// Where a reset is.
@@ -53,7 +54,7 @@ impl ResetStep {
         &mut self,
         now: Instant,
         c: &CompletionRef<'_>,
-        config: &Config,
+        config: &Timing,
         out: &mut Reports,
     ) -> (bool, Option<Effect>) {
         match self {
@@ -77,7 +78,7 @@ impl ResetStep {
                     (true, None)
                 } else {
                     *self = Self::Confirm {
-                        attempts: config::REBOOT_READBACK_ATTEMPTS,
+                        attempts: timing::REBOOT_READBACK_ATTEMPTS,
                         last_start,
                     };
                     let hold = now.saturating_add(config.reboot_wait_us);
@@ -118,13 +119,6 @@ impl ResetStep {
             }
         }
     }
-}
-
-/// Event timestamps are 24 bits (Rev D §1.1.9) and wrap after 194 days: compare
-/// them as serial numbers (RFC 1982 style), `a` newer than `b`.
-pub fn ts_newer(a: u32, b: u32) -> bool {
-    let d = a.wrapping_sub(b) & 0x00FF_FFFF;
-    d != 0 && d < 0x0080_0000
 }
 
 /// Timestamp of the newest "System Started" event in a list.

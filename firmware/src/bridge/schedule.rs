@@ -8,12 +8,12 @@
 //! `State::next_request` (below) is the priority list, read top to
 //! bottom: a hold sends nothing; an offline link gets only the probe; the sync
 //! phase its steps ([`super::sync`]); running, in this order —
-//! 1. the live read in progress, while it has turns left ([`config::LIVE_SHARE`]);
+//! 1. the live read in progress, while it has turns left ([`timing::LIVE_SHARE`]);
 //! 2. a due live read, between two settings of a group;
 //! 3. the confirmed read in progress, then the settings read after writes;
 //! 4. the command queue ([`super::writes`]); a reset or clear owns the link;
 //! 5. the first snapshot after a (re)sync (for up to
-//!    [`config::FIRST_SNAPSHOT_PRIORITY_US`]);
+//!    [`timing::FIRST_SNAPSHOT_PRIORITY_US`]);
 //! 6. the event log and the statistics when due;
 //! 7. the live read (in progress, or due);
 //! 8. a 0x1D limits read left over from the sync.
@@ -25,12 +25,12 @@ use protocol_core::request::{Request, SettingsOption};
 use protocol_core::response::{RegisterBlock, Response};
 
 use super::events::slot_request;
+use super::job::JobNext;
 use super::sync::{limits_request, version_request, Phase, SyncStep};
-use super::writes::JobNext;
 use super::State;
-use crate::config::{self, Config};
-use crate::link::{Failure, Silence};
-use crate::reader::{self, Assembled, BlockRead, LineQuality, Mode};
+use crate::bms::link::{Failure, Silence};
+use crate::bms::reader::{self, Assembled, BlockRead, LineQuality, Mode};
+use crate::bms::timing::{self, Timing};
 use crate::Instant;
 
 /// How the silence of a request counts, and what its answer is for. The
@@ -88,7 +88,7 @@ pub(super) struct Schedule {
 }
 
 impl Schedule {
-    pub(super) fn new(config: &Config, now: Instant) -> Self {
+    pub(super) fn new(config: &Timing, now: Instant) -> Self {
         Self {
             hold_until: now,
             next_live: now,
@@ -124,7 +124,7 @@ impl Schedule {
     /// Starts a live read (its pieces are confirmed against the published
     /// registers or a second read, see [`BlockRead::confirm_pieces`] and
     /// [`on_piece`]).
-    fn start_live(&mut self, now: Instant, config: &Config, slot: &mut Request) -> Ask {
+    fn start_live(&mut self, now: Instant, config: &Timing, slot: &mut Request) -> Ask {
         self.next_live = now.saturating_add(config.live_period_us);
         let window = config.live_assembly_window_us.max(config.live_period_us);
         self.live_read
@@ -293,7 +293,7 @@ impl State {
             return Some(self.start_live(now, slot));
         }
         // From here on, whatever goes out gives the live read its next turns.
-        self.schedule.live_turns = config::LIVE_SHARE;
+        self.schedule.live_turns = timing::LIVE_SHARE;
         if let Some((aux, _)) = self.schedule.aux_read {
             return Some(self.schedule.aux_piece(now, aux, slot));
         }
@@ -301,7 +301,7 @@ impl State {
             // Settings are read again after writes before the next command runs.
             return Some(self.schedule.aux_piece(now, Aux::Settings, slot));
         }
-        for _ in 0..config::COMMAND_QUEUE + 1 {
+        for _ in 0..timing::COMMAND_QUEUE + 1 {
             if !self.writes.start_next(&self.model.telemetry, &mut self.out) {
                 break;
             }
@@ -331,7 +331,7 @@ impl State {
                 < self
                     .sync
                     .ready_at
-                    .saturating_add(config::FIRST_SNAPSHOT_PRIORITY_US);
+                    .saturating_add(timing::FIRST_SNAPSHOT_PRIORITY_US);
         if first_snapshot_pending {
             return Some(if live_busy {
                 self.schedule.live_piece(now, slot)

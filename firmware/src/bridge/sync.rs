@@ -21,8 +21,8 @@ use protocol_core::response::{RegisterBlock, Response};
 
 use super::schedule::{Ask, Purpose};
 use super::telemetry::Telemetry;
-use crate::config::Config;
-use crate::link::{Failure, Silence};
+use crate::bms::link::{Failure, Silence};
+use crate::bms::timing::Timing;
 use crate::Instant;
 
 /// Failed attempts at reading the BMS's settings limits (0x1D) before the bridge
@@ -91,7 +91,7 @@ impl SyncState {
     }
 
     /// A sync block read failed: its next piece waits a little.
-    pub(super) fn retry_later(&mut self, now: Instant, config: &Config) {
+    pub(super) fn retry_later(&mut self, now: Instant, config: &Timing) {
         if self.syncing() {
             self.retry_at = now.saturating_add(config.live_period_us.min(crate::SECOND));
         }
@@ -130,7 +130,7 @@ impl SyncState {
     }
 
     /// Ends the sync: running, ready. False when it was not syncing. The caller
-    /// restarts the running timers and reports [`crate::report::Report::Ready`].
+    /// restarts the running timers and reports [`crate::bridge::report::Report::Ready`].
     fn done(&mut self, now: Instant, telemetry: &mut Telemetry) -> bool {
         if !self.syncing() {
             return false;
@@ -149,7 +149,7 @@ impl SyncState {
         now: Instant,
         option: SettingsOption,
         result: &Result<Response, Failure>,
-        config: &Config,
+        config: &Timing,
         telemetry: &mut Telemetry,
     ) -> bool {
         let in_sync = self.syncing();

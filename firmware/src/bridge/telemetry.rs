@@ -18,10 +18,10 @@ use protocol_core::response::RegisterBlock;
 use protocol_core::views::{LiveSnapshot, Statistics, VersionInfo};
 
 use super::Reports;
-use crate::checks::{self, Check};
-use crate::config::Config;
-use crate::reader::Assembled;
-use crate::report::{Report, SnapshotLine};
+use crate::bms::checks::{self, Check};
+use crate::bms::reader::Assembled;
+use crate::bms::timing::Timing;
+use crate::bridge::report::{Report, SnapshotLine};
 use crate::Instant;
 
 /// How the published live snapshot was obtained.
@@ -155,7 +155,7 @@ impl TelemetryModel {
         &mut self,
         now: Instant,
         a: &Assembled,
-        config: &Config,
+        config: &Timing,
         out: &mut Reports,
     ) -> bool {
         // Decoded where it stays until published (one copy, into the
@@ -237,7 +237,7 @@ impl TelemetryModel {
         slot: &mut Option<LiveSnapshot>,
         a: &Assembled,
         flag: Option<Check>,
-        config: &Config,
+        config: &Timing,
         out: &mut Reports,
     ) {
         let Some(snap) = slot.as_ref() else {

@@ -21,16 +21,17 @@ use protocol_core::request::{Request, ResetOption};
 use protocol_core::response::{RegisterBlock, Response};
 use protocol_core::settings::{Setting, SettingError, SettingId, ACCEPTED_MARKER};
 
+use super::job::{Effect, JobNext};
 use super::reset::ResetStep;
 use super::telemetry::Telemetry;
 use super::{Command, Reports};
-use crate::config::{self, Config};
-use crate::link::{CompletionRef, Failure, Silence};
-use crate::report::{Report, WriteOutcome};
+use crate::bms::link::{CompletionRef, Failure, Silence};
+use crate::bms::timing::{self, Timing};
+use crate::bridge::report::{Report, WriteOutcome};
 use crate::Instant;
 
 /// Writes awaiting a follow-up outcome.
-const UNRESOLVED: usize = config::MAX_SETTINGS_GROUP;
+const UNRESOLVED: usize = timing::MAX_SETTINGS_GROUP;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum WriteStep {
@@ -42,7 +43,7 @@ enum WriteStep {
 
 #[derive(Debug, Clone, PartialEq, Eq)]
 struct WriteJob {
-    items: Vec<Setting, { config::MAX_SETTINGS_GROUP }>,
+    items: Vec<Setting, { timing::MAX_SETTINGS_GROUP }>,
     index: usize,
     step: WriteStep,
     current: Option<(u16, Option<u16>)>,
@@ -67,31 +68,10 @@ struct Unresolved {
     old: Option<u16>,
 }
 
-/// What the rest of the bridge must do for a job.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) enum Effect {
-    /// Send nothing before this time (a restart in progress, a read-back retry).
-    Hold(Instant),
-    /// The BMS restarted: everything is read again.
-    Resync,
-    /// Settings were written: read them again before the next command.
-    RereadSettings,
-    /// The BMS's event log was cleared (ACKed).
-    EventsCleared,
-}
-
-/// The running job's next step.
-pub(super) enum JobNext {
-    Send(Request, Silence),
-    Wait,
-    /// The job is done (and dropped), with what it leaves to do.
-    Finished(Option<Effect>),
-}
-
 /// The command queue, the running job and the writes awaiting a follow-up.
 #[derive(Debug, Clone)]
 pub(super) struct Writes {
-    commands: Deque<Command, { config::COMMAND_QUEUE }>,
+    commands: Deque<Command, { timing::COMMAND_QUEUE }>,
     job: Option<Job>,
     unresolved: Vec<Unresolved, UNRESOLVED>,
 }
@@ -324,7 +304,7 @@ impl Writes {
         &mut self,
         now: Instant,
         c: &CompletionRef<'_>,
-        config: &Config,
+        config: &Timing,
         out: &mut Reports,
     ) -> Option<Effect> {
         let job = self.job.as_mut()?;
@@ -389,7 +369,7 @@ impl Writes {
                             Ok(_) => w.unconfirmed = Some(Failure::Timeout),
                         }
                         if item.id.restarts_bms() {
-                            w.readback_attempts = config::REBOOT_READBACK_ATTEMPTS;
+                            w.readback_attempts = timing::REBOOT_READBACK_ATTEMPTS;
                             w.step = WriteStep::ReadBack;
                             Some(Effect::Hold(now.saturating_add(config.reboot_wait_us)))
                         } else {

@@ -13,8 +13,8 @@ use protocol_core::settings::{Setting, SettingId};
 use protocol_core::views::{CurrentSensor, LiveSnapshot, Statistics, VersionInfo};
 use serde::ser::{Serialize, SerializeSeq, Serializer};
 
-use crate::link::LinkStats;
-use crate::report::WriteOutcome;
+use crate::bms::link::LinkStats;
+use crate::bridge::report::WriteOutcome;
 
 /// Decimals of f32 quantities (pack voltage, current, speed): replay's
 /// `FLOAT_DECIMALS`.
@@ -552,7 +552,7 @@ pub fn setting(
         &SettingLine {
             ty: "setting",
             req,
-            name: crate::profile::setting_key(id),
+            name: crate::bms::profile::setting_key(id),
             address: id.address(),
             raw,
             value: raw.and_then(|v| physical(id, v)),
@@ -829,7 +829,7 @@ pub fn outcome(
         &OutcomeLine {
             ty: "outcome",
             req,
-            name: crate::profile::setting_key(setting.id),
+            name: crate::bms::profile::setting_key(setting.id),
             raw: setting.value,
             value: physical(setting.id, setting.value),
             outcome: outcome.name(),

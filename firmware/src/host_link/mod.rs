@@ -36,9 +36,9 @@ use heapless::{Deque, String, Vec};
 use protocol_core::events::Event;
 use protocol_core::settings::Setting;
 
+use crate::bms::timing::MAX_SETTINGS_GROUP;
+use crate::bridge::report::{Report, WriteOutcome};
 use crate::bridge::{Bridge, Command};
-use crate::config::MAX_SETTINGS_GROUP;
-use crate::report::{Report, WriteOutcome};
 use crate::Instant;
 use command::{ClearWhat, HostCommand, SetValues, What};
 use line::{LineAssembler, Piece};
@@ -595,7 +595,7 @@ impl State {
         };
         let mut items: Vec<Setting, MAX_SETTINGS_GROUP> = Vec::new();
         for &(name, value) in pairs {
-            let Some(id) = crate::profile::find_setting(name) else {
+            let Some(id) = crate::bms::profile::find_setting(name) else {
                 return self.error(req, ErrorCode::UnknownSetting, "no such setting", name);
             };
             if items.iter().any(|s| s.id == id) {

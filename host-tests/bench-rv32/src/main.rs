@@ -27,7 +27,7 @@ use protocol_core::request::Request;
 use protocol_core::response::Response;
 use protocol_core::views::LiveSnapshot;
 use tinybms_firmware::bridge::snapshot_line;
-use tinybms_firmware::config::Config;
+use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::{Action, Bridge, Step};
 
 static TRACE: &[u8] = include_bytes!("../trace.bin");
@@ -422,7 +422,7 @@ pub extern "C" fn _start() -> ! {
     };
     let records = records.get(..n_records).unwrap_or(&[]);
     let mut real = Real {
-        bridge: Bridge::new(Config::default(), 0),
+        bridge: Bridge::new(Timing::default(), 0),
         landed: [0; MAX_PIECES],
         pieces: 0,
     };
@@ -490,7 +490,7 @@ pub extern "C" fn _start() -> ! {
     );
     put(
         "completion_bytes",
-        core::mem::size_of::<tinybms_firmware::link::Completion>() as u64,
+        core::mem::size_of::<tinybms_firmware::bms::link::Completion>() as u64,
     );
     put("action_bytes", core::mem::size_of::<Action>() as u64);
     put("step_bytes", core::mem::size_of::<Step>() as u64);

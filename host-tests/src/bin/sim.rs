@@ -14,7 +14,7 @@ use host_tests::profile::{parse_assignment, parse_profile};
 use host_tests::realtime::{serve_sim_pty, SimOptions};
 use host_tests::sim::{FaultConfig, PackProfile, SimBms, SimConfig};
 use protocol_core::settings::{Setting, SettingId};
-use tinybms_firmware::config::{Config, BYTE_TIME_US};
+use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
 use tinybms_firmware::inverter::{InverterConfig, Protocol, StalePolicy};
 use tinybms_firmware::Command;
 
@@ -117,7 +117,7 @@ fn parse_args() -> Result<Parsed, String> {
         seeds: (1, 1),
         asleep: false,
         snapshot_every_us: 10_000_000,
-        live_period_us: tinybms_firmware::config::LIVE_PERIOD_US,
+        live_period_us: tinybms_firmware::bms::timing::LIVE_PERIOD_US,
         write_every_us: None,
         forge_every_us: None,
         quiet: false,
@@ -305,10 +305,10 @@ fn run_seed(o: &Options, seed: u64, t: &mut Totals) -> Result<(), String> {
         ..SimConfig::default()
     };
     let sim = SimBms::new(o.pack, config, seed);
-    let bridge_config = Config {
+    let bridge_config = Timing {
         snapshot_log_period_us: o.snapshot_every_us,
         live_period_us: o.live_period_us,
-        ..Config::default()
+        ..Timing::default()
     };
     let mut h = Harness::checked(sim, bridge_config);
     h.retain = false;
@@ -591,10 +591,10 @@ fn run_realtime(o: &Options) -> ExitCode {
                 read_only: o.read_only,
                 stream_period_ms: o.stream_period_ms,
                 profile: o.profile.clone(),
-                bridge: Config {
+                bridge: Timing {
                     snapshot_log_period_us: o.snapshot_every_us,
                     live_period_us: o.live_period_us,
-                    ..Config::default()
+                    ..Timing::default()
                 },
                 log: !o.quiet,
             };

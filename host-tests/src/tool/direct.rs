@@ -9,7 +9,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
-use tinybms_firmware::config::Config;
+use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::host_link::HostLinkConfig;
 
 use super::client::Client;
@@ -92,7 +92,7 @@ pub fn start(
     let join = std::thread::Builder::new()
         .name("bridge".into())
         .spawn(move || -> Result<(), String> {
-            let mut h = Hosted::new(serial, Config::default(), host);
+            let mut h = Hosted::new(serial, Timing::default(), host);
             if let Some(c) = capture {
                 h.driver.record(c);
             }

@@ -20,7 +20,12 @@
 use heapless::Vec;
 use protocol_core::events::{Event, EventId};
 
-use crate::bridge::ts_newer;
+/// Event timestamps are 24 bits (Rev D §1.1.9) and wrap after 194 days: compare
+/// them as serial numbers (RFC 1982 style), `a` newer than `b`.
+pub fn ts_newer(a: u32, b: u32) -> bool {
+    let d = a.wrapping_sub(b) & 0x00FF_FFFF;
+    d != 0 && d < 0x0080_0000
+}
 
 /// Ids remembered at the high-water mark's second.
 const SAME_SECOND: usize = 8;

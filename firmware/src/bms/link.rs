@@ -1,8 +1,8 @@
 //! The link engine: one outstanding request at a time over a half-duplex UART.
 //!
 //! * The response timeout runs from the moment the request's last byte is on the
-//!   wire ([`crate::config::RESPONSE_TIMEOUT_US`]); once reply bytes flow, a gap of
-//!   [`crate::config::REPLY_IDLE_GAP_US`] ends the attempt early.
+//!   wire ([`crate::bms::timing::RESPONSE_TIMEOUT_US`]); once reply bytes flow, a gap of
+//!   [`crate::bms::timing::REPLY_IDLE_GAP_US`] ends the attempt early.
 //! * Wake-up (HARDWARE-NOTES "Sleep"): when a request gets total silence, it is sent
 //!   once more before anything counts as a failure. Requests are never sent twice
 //!   blindly: an awake BMS would answer twice.
@@ -32,7 +32,7 @@ use protocol_core::frame::{FrameRef, NackCode};
 use protocol_core::request::{Request, RequestBytes, RequestError};
 use protocol_core::response::{Response, ResponseError};
 
-use crate::config::{Config, BYTE_TIME_US};
+use crate::bms::timing::{Timing, BYTE_TIME_US};
 use crate::Instant;
 
 /// Bytes to put on the UART now.
@@ -227,7 +227,7 @@ pub enum Next {
 /// The link engine.
 #[derive(Debug, Clone)]
 pub struct Link {
-    config: Config,
+    config: Timing,
     decoder: Decoder,
     /// The request of the transaction in progress, or of the one finished in
     /// `done`: stored once, referenced from there on.
@@ -248,7 +248,7 @@ pub struct Link {
 
 impl Link {
     /// A link with no transaction; considered online until proven otherwise.
-    pub fn new(config: Config) -> Self {
+    pub fn new(config: Timing) -> Self {
         Self {
             config,
             decoder: Decoder::new(),
@@ -283,7 +283,7 @@ impl Link {
         self.pending.is_none() && self.done.is_none()
     }
 
-    /// False after [`crate::config::OFFLINE_AFTER_FAILURES`] consecutive failures,
+    /// False after [`crate::bms::timing::OFFLINE_AFTER_FAILURES`] consecutive failures,
     /// until a valid reply arrives.
     pub fn is_online(&self) -> bool {
         self.online

@@ -34,13 +34,13 @@ use protocol_core::registers::Field;
 use protocol_core::settings::SettingId;
 
 /// The start-up profile: the text of `firmware/profile.txt`.
-pub const PROFILE_TEXT: &str = include_str!("../profile.txt");
+pub const PROFILE_TEXT: &str = include_str!("../../profile.txt");
 
 /// Most assignments a profile can hold: what the bridge's command queue takes
-/// ([`crate::config::COMMAND_QUEUE`] groups of
-/// [`crate::config::MAX_SETTINGS_GROUP`]).
+/// ([`crate::bms::timing::COMMAND_QUEUE`] groups of
+/// [`crate::bms::timing::MAX_SETTINGS_GROUP`]).
 pub const MAX_PROFILE_ENTRIES: usize =
-    crate::config::COMMAND_QUEUE * crate::config::MAX_SETTINGS_GROUP;
+    crate::bms::timing::COMMAND_QUEUE * crate::bms::timing::MAX_SETTINGS_GROUP;
 
 /// snake_case name of a setting: its `SettingId` variant (`OverVoltageCutoff` →
 /// `over_voltage_cutoff`). A host test checks every entry against the variant name.

@@ -9,8 +9,8 @@ use protocol_core::frame::NackCode;
 use protocol_core::settings::{Setting, SettingError, SettingId};
 use protocol_core::views::VersionInfo;
 
-use crate::checks::Check;
-use crate::link::{Failure, LinkStats};
+use crate::bms::checks::Check;
+use crate::bms::link::{Failure, LinkStats};
 
 /// Log level of a report.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]

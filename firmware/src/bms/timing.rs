@@ -1,4 +1,5 @@
-//! Defaults, as named constants (documented in the README's "Poll schedule").
+//! The link's and the poll schedule's timing: every default as a named, documented
+//! constant, and [`Timing`], the run-time set the bridge is built with.
 
 use crate::{Instant, MS, SECOND};
 
@@ -91,7 +92,7 @@ pub const REPORT_QUEUE: usize = 24;
 /// Run-time configuration; [`Default`] gives the constants above.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub struct Config {
+pub struct Timing {
     /// See [`RESPONSE_TIMEOUT_US`].
     pub response_timeout_us: Instant,
     /// See [`PIECE_RESPONSE_TIMEOUT_US`].
@@ -126,7 +127,7 @@ pub struct Config {
     pub reboot_wait_us: Instant,
 }
 
-impl Default for Config {
+impl Default for Timing {
     fn default() -> Self {
         Self {
             response_timeout_us: RESPONSE_TIMEOUT_US,

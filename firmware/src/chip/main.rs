@@ -1,0 +1,153 @@
+//! TinyBMS firmware — the chip shell (ESP32-C3 / ESP32-C6): init, then one task
+//! per wire. Everything that decides anything is in the library
+//! (`tinybms_firmware`, sans-IO, tested on the host); the modules here only move
+//! bytes, frames and time between the peripherals and it.
+//!
+//! | module | task | wire |
+//! | --- | --- | --- |
+//! | [`bms`] | `bridge_task` | UART1 to the TinyBMS; owns the `Bridge` and the host link |
+//! | [`can`] | `can_task` | TWAI to the inverter (feature `can`) |
+//! | [`usb`] | `usb_rx_task`, `usb_tx_task` | USB-Serial-JTAG to a computer (feature `host-link`) |
+//! | [`stale`] | `stale_task` | none: says when the shared telemetry goes stale |
+//! | [`log`] | — | reports → defmt lines (the words come from the library) |
+//! | [`panic`] | — | the panic handler: backtrace, then reset |
+//!
+//! Tasks share the latest telemetry through [`TELEMETRY`] (an embassy-sync
+//! `Watch`) and nothing else; the bridge task never waits on another task.
+//!
+//! Board: the pins come from `tinybms_firmware::boards::SELECTED`, chosen by one
+//! `board-…` feature and checked at compile time. Logging: defmt over RTT
+//! (`log-rtt`, read with `probe-rs run`) or defmt frames on UART0 (`log-uart`,
+//! read with `espflash flash --monitor --log-format defmt`). See README, "Boards".
+
+#![no_std]
+#![no_main]
+
+#[cfg(all(feature = "esp32c3", feature = "esp32c6"))]
+compile_error!("features `esp32c3` and `esp32c6` are mutually exclusive");
+#[cfg(all(feature = "log-rtt", feature = "log-uart"))]
+compile_error!("features `log-rtt` and `log-uart` are mutually exclusive (use --no-default-features to drop the default `log-rtt`)");
+#[cfg(not(any(feature = "log-rtt", feature = "log-uart")))]
+compile_error!(
+    "select a log path: feature `log-rtt` (RTT via probe-rs) or `log-uart` (UART0 via espflash)"
+);
+
+mod bms;
+#[cfg(feature = "can")]
+mod can;
+mod log;
+mod panic;
+mod stale;
+mod usb;
+
+use defmt::info;
+#[cfg(feature = "log-rtt")]
+use defmt_rtt as _; // defmt global logger: RTT
+use embassy_executor::{SpawnError, SpawnToken, Spawner};
+use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
+use embassy_sync::watch::Watch;
+use embassy_time::Instant;
+use esp_hal::clock::CpuClock;
+use esp_hal::timer::timg::{MwdtStage, TimerGroup};
+#[cfg(feature = "log-uart")]
+use esp_println as _; // defmt global logger: UART0, espflash's defmt framing
+use protocol_core::views::LiveSnapshot;
+use tinybms_firmware::boards::{self, Board, Chip, LogPath};
+
+// ESP-IDF 2nd-stage bootloader requires an application descriptor in the image.
+esp_bootloader_esp_idf::esp_app_desc!();
+
+/// The board this image is built for (`board-…` feature; pins in
+/// `firmware/src/boards.rs`).
+const BOARD: Board = boards::SELECTED;
+// The library checks the whole table; checked again here for the board this image
+// actually uses (the error then points at this line).
+const _: () = boards::assert_valid(&BOARD);
+#[cfg(feature = "esp32c3")]
+const _: () = assert!(
+    matches!(BOARD.chip, Chip::Esp32c3),
+    "the selected board is not an ESP32-C3 board"
+);
+#[cfg(feature = "esp32c6")]
+const _: () = assert!(
+    matches!(BOARD.chip, Chip::Esp32c6),
+    "the selected board is not an ESP32-C6 board"
+);
+
+/// Where this image sends its logs.
+const LOG_PATH: LogPath = if cfg!(feature = "log-uart") {
+    LogPath::Uart0
+} else {
+    LogPath::Rtt
+};
+
+/// Watchdog timeout (MWDT stage 0 → system reset). Fed by the bridge task.
+const WDT_TIMEOUT: esp_hal::time::Duration = esp_hal::time::Duration::from_secs(4);
+
+/// The latest live snapshot, with the time it was decoded (so readers know its age)
+/// and, for the inverter output, the BMS settings charge control needs and the version.
+#[derive(Clone)]
+struct SharedSnapshot {
+    snapshot: LiveSnapshot,
+    taken_at: Instant,
+    #[cfg(feature = "can")]
+    inverter: can::Inputs,
+}
+
+/// Latest telemetry for the other tasks: one sender (the bridge task), up to 3
+/// receivers (the stale watch, the CAN output).
+static TELEMETRY: Watch<CriticalSectionRawMutex, SharedSnapshot, 3> = Watch::new();
+
+#[esp_rtos::main]
+async fn main(spawner: Spawner) {
+    // Watchdog coverage at boot:
+    //  - until `esp_hal::init` disables it, the 2nd-stage bootloader's RTC watchdog
+    //    (ESP-IDF default CONFIG_BOOTLOADER_WDT_ENABLE, 9 s; depends on the
+    //    bootloader image espflash/probe-rs flash — not verified on hardware);
+    //  - any panic, from the first instruction on, resets through the panic handler;
+    //  - a hang after `init`: the MWDT, armed right below before anything else runs.
+    let config = esp_hal::Config::default().with_cpu_clock(CpuClock::max());
+    let p = esp_hal::init(config);
+
+    // Main watchdog of TIMG0 (esp_hal::init disabled it; re-armed before any boot
+    // code that can fail or wait).
+    let timg0 = TimerGroup::new(p.TIMG0);
+    let mut wdt = timg0.wdt;
+    wdt.set_timeout(MwdtStage::Stage0, WDT_TIMEOUT);
+    wdt.enable();
+
+    info!(
+        "tinybms-firmware {=str} on {=str} ({=str}), logs over {=str}",
+        env!("CARGO_PKG_VERSION"),
+        BOARD.name,
+        BOARD.chip.name(),
+        match LOG_PATH {
+            LogPath::Rtt => "RTT",
+            LogPath::Uart0 => "UART0",
+        }
+    );
+
+    // esp-rtos: TIMG0 timer0 as time base + FROM_CPU_INTR0 software interrupt.
+    esp_rtos::start(timg0.timer0, p.FROM_CPU_INTR0);
+
+    #[cfg(feature = "can")]
+    can::start(spawner, p.TWAI0);
+    usb::start(spawner, p.USB_DEVICE);
+    bms::start(spawner, p.UART1, wdt);
+    stale::start(spawner);
+}
+
+/// Spawns a task. A pool without a free slot is a bug in this shell: it panics
+/// (the backtrace shows which call), not through `expect`, which would link
+/// `SpawnError`'s `Debug` for a message never printed.
+fn spawn<S>(spawner: Spawner, task: Result<SpawnToken<S>, SpawnError>) {
+    match task {
+        Ok(token) => spawner.spawn(token),
+        Err(_) => panic!("spawn"),
+    }
+}
+
+/// Microseconds since boot: the library's `Instant`.
+fn now_us() -> u64 {
+    Instant::now().as_micros()
+}
