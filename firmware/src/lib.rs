@@ -18,6 +18,8 @@
 //! | | [`host_link`] | JSON Lines to a computer over USB |
 //! | this installation | [`site`] | the inverter output and host link settings |
 //! | | [`boards`] | the supported boards' pins and log paths, checked at compile time |
+//! | shared | [`text`] | the words of every log line |
+//! | | [`units`] | raw and physical values, exact decimals |
 //!
 //! Consumers read [`Bridge::telemetry`] and act through [`Bridge::submit`]; none
 //! reaches into another's state.
@@ -46,6 +48,8 @@ pub mod bridge;
 pub mod host_link;
 pub mod inverter;
 pub mod site;
+pub mod text;
+pub mod units;
 
 pub use bms::link::{LinkStats, Transmit};
 pub use bridge::report::{Level, Report};

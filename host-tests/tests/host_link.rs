@@ -23,6 +23,7 @@ use tinybms_firmware::bridge::report::WriteOutcome;
 use tinybms_firmware::host_link::encode;
 use tinybms_firmware::host_link::line::{LineAssembler, Piece, LINE_MAX};
 use tinybms_firmware::host_link::{HostLink, OUT_LINE_MAX};
+use tinybms_firmware::units;
 use tinybms_firmware::{Report, MS, SECOND};
 
 fn ready() -> Rig {
@@ -111,19 +112,19 @@ fn too_long_resyncs_at_the_newline() {
 
 #[test]
 fn fixed_point_prints_like_replay() {
-    let text = |v: Option<encode::Dec>| {
+    let text = |v: Option<units::Dec>| {
         serde_json_core::to_string::<_, 64>(&v)
             .unwrap()
             .as_str()
             .to_owned()
     };
-    assert_eq!(text(encode::fixed(33125, 4)), "3.3125");
-    assert_eq!(text(encode::fixed(3650, 3)), "3.65");
-    assert_eq!(text(encode::fixed(-105, 1)), "-10.5");
-    assert_eq!(text(encode::fixed(0, 1)), "0.0");
-    assert_eq!(text(encode::fixed(50_000_000, 6)), "50.0");
-    assert_eq!(text(encode::rounded(f64::NAN, 4)), "null");
-    assert_eq!(text(encode::rounded(-0.00001, 4)), "0.0");
+    assert_eq!(text(units::fixed(33125, 4)), "3.3125");
+    assert_eq!(text(units::fixed(3650, 3)), "3.65");
+    assert_eq!(text(units::fixed(-105, 1)), "-10.5");
+    assert_eq!(text(units::fixed(0, 1)), "0.0");
+    assert_eq!(text(units::fixed(50_000_000, 6)), "50.0");
+    assert_eq!(text(units::rounded(f64::NAN, 4)), "null");
+    assert_eq!(text(units::rounded(-0.00001, 4)), "0.0");
     // Against replay's own serde_json output, over many raw values and decimals.
     for decimals in 0..=6u32 {
         let special = [
@@ -142,7 +143,7 @@ fn fixed_point_prints_like_replay() {
             .chain(special)
             .chain((0..16).map(|e| 10i64.pow(e)))
         {
-            let ours = text(encode::fixed(raw, decimals));
+            let ours = text(units::fixed(raw, decimals));
             let p = 10f64.powi(decimals as i32);
             let x = raw as f64 / p;
             let r = (x * p).round() / p;
@@ -154,7 +155,7 @@ fn fixed_point_prints_like_replay() {
         3.3125f32, 52.81, -12.34567, 0.00005, 0.00015, 1234.5678, 1e-7, -0.00004, 51.7, -23.4,
         6.5e8,
     ] {
-        let ours = text(encode::rounded(f64::from(x), 4));
+        let ours = text(units::rounded(f64::from(x), 4));
         let theirs = serde_json::to_string(&host_tests::replay::rounded(f64::from(x), 4)).unwrap();
         assert_eq!(ours, theirs, "{x}");
     }
@@ -164,36 +165,36 @@ fn fixed_point_prints_like_replay() {
 fn physical_and_raw_conversions() {
     use SettingId::*;
     assert_eq!(
-        encode::physical(OverVoltageCutoff, 3650).map(encode::Dec::as_f64),
+        units::physical(OverVoltageCutoff, 3650).map(units::Dec::as_f64),
         Some(3.65)
     );
     assert_eq!(
-        encode::raw_from_physical(OverVoltageCutoff, 3.65),
+        units::raw_from_physical(OverVoltageCutoff, 3.65),
         Some(3650)
     );
     assert_eq!(
-        encode::raw_from_physical(OverVoltageCutoff, 3.6504),
+        units::raw_from_physical(OverVoltageCutoff, 3.6504),
         Some(3650)
     );
     assert_eq!(
-        encode::physical(StateOfHealth, 50_000).map(encode::Dec::as_f64),
+        units::physical(StateOfHealth, 50_000).map(units::Dec::as_f64),
         Some(100.0)
     );
     assert_eq!(
-        encode::raw_from_physical(StateOfHealth, 99.998),
+        units::raw_from_physical(StateOfHealth, 99.998),
         Some(49_999)
     );
     assert_eq!(
-        encode::physical(BatteryCapacity, 10_000).map(encode::Dec::as_f64),
+        units::physical(BatteryCapacity, 10_000).map(units::Dec::as_f64),
         Some(100.0)
     );
-    assert_eq!(encode::raw_from_physical(OverHeatCutoff, -5.0), Some(-5));
-    assert_eq!(encode::raw_from_physical(OverVoltageCutoff, 1e300), None);
+    assert_eq!(units::raw_from_physical(OverHeatCutoff, -5.0), Some(-5));
+    assert_eq!(units::raw_from_physical(OverVoltageCutoff, 1e300), None);
     for &id in SettingId::ALL {
         let (lo, hi) = id.register().unwrap().range.unwrap_or((0, 100));
         for raw in [lo, (lo + hi) / 2, hi] {
-            let v = encode::physical(id, raw).unwrap().as_f64();
-            assert_eq!(encode::raw_from_physical(id, v), Some(raw), "{id:?} {raw}");
+            let v = units::physical(id, raw).unwrap().as_f64();
+            assert_eq!(units::raw_from_physical(id, v), Some(raw), "{id:?} {raw}");
         }
     }
 }
@@ -387,7 +388,7 @@ fn get_everything() {
         assert_eq!(s["raw"], raw);
         assert_eq!(
             s["value"],
-            json!(encode::physical(id, raw).unwrap().as_f64())
+            json!(units::physical(id, raw).unwrap().as_f64())
         );
         assert_eq!(s["unit"], id.register().unwrap().unit);
         let (lo, hi) = id
@@ -398,12 +399,12 @@ fn get_everything() {
             .unwrap();
         assert_eq!(
             s["bms_min"],
-            json!(encode::physical(id, lo).unwrap().as_f64()),
+            json!(units::physical(id, lo).unwrap().as_f64()),
             "{s}"
         );
         assert_eq!(
             s["bms_max"],
-            json!(encode::physical(id, hi).unwrap().as_f64()),
+            json!(units::physical(id, hi).unwrap().as_f64()),
             "{s}"
         );
     }
@@ -1032,7 +1033,7 @@ fn half_step_physical_values_round_away_from_zero() {
         (BatteryCapacity, 1.00499, 100),
         (LowTemperatureChargerCutoff, -20.49, -20),
     ] {
-        assert_eq!(encode::raw_from_physical(id, v), Some(raw), "{id:?} {v}");
+        assert_eq!(units::raw_from_physical(id, v), Some(raw), "{id:?} {v}");
     }
 }
 

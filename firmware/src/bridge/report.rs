@@ -1,12 +1,12 @@
 //! What the bridge tells the world: log-worthy happenings, each with a level.
-//! The chip shell turns them into `defmt` lines; the host simulator prints them
-//! with [`core::fmt::Display`] in the same words.
+//! Their words are [`crate::text::report`]'s: the chip shell logs that text with
+//! `defmt`, the host simulator prints it ([`core::fmt::Display`]).
 
 use core::fmt;
 
 use protocol_core::events::{Event, OnlineStatus, Severity};
 use protocol_core::frame::NackCode;
-use protocol_core::settings::{Setting, SettingError, SettingId};
+use protocol_core::settings::{Setting, SettingError};
 use protocol_core::views::VersionInfo;
 
 use crate::bms::checks::Check;
@@ -219,33 +219,6 @@ impl Report {
     }
 }
 
-/// A document name, or `unknown_0xNN` for a value no table knows (one style
-/// everywhere: the log, `replay`, the simulator).
-struct Name(&'static str, Option<u16>);
-
-impl fmt::Display for Name {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self.1 {
-            Some(raw) => write!(f, "unknown_0x{raw:02X}"),
-            None => f.write_str(self.0),
-        }
-    }
-}
-
-fn status(s: OnlineStatus) -> Name {
-    match s {
-        OnlineStatus::Unknown(raw) => Name("", Some(raw)),
-        known => Name(known.name(), None),
-    }
-}
-
-fn event(id: protocol_core::events::EventId) -> Name {
-    match id {
-        protocol_core::events::EventId::Unknown(raw) => Name("", Some(u16::from(raw))),
-        known => Name(known.name(), None),
-    }
-}
-
 /// `part` of `whole` in per mille (1000 when `whole` is 0: nothing failed). The
 /// line quality figure, shared by the log of the chip and of the simulator.
 pub fn permille(part: u32, whole: u32) -> u32 {
@@ -256,174 +229,11 @@ pub fn permille(part: u32, whole: u32) -> u32 {
     }
 }
 
-struct OptC(Option<f32>);
-impl fmt::Display for OptC {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self.0 {
-            Some(v) => write!(f, "{v:.1}C"),
-            None => f.write_str("--"),
-        }
-    }
-}
-
-fn setting_name(id: SettingId) -> &'static str {
-    id.name()
-}
-
+/// The same words as the chip's log ([`crate::text::report`]).
 impl fmt::Display for Report {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            Report::Snapshot(s) => write!(
-                f,
-                "pack {:.2}V {:.2}A soc {:.1}% min #{} {:.4}V max #{} {:.4}V temp {:.1}C ext {} {} status {}",
-                s.pack_v,
-                s.current_a,
-                s.soc_percent,
-                s.min_cell.0,
-                s.min_cell.1,
-                s.max_cell.0,
-                s.max_cell.1,
-                s.internal_c,
-                OptC(s.external_c.0),
-                OptC(s.external_c.1),
-                status(s.status)
-            ),
-            Report::StatusChanged { from, to } => match from {
-                Some(from) => write!(f, "status {} -> {}", status(*from), status(*to)),
-                None => write!(f, "status {}", status(*to)),
-            },
-            Report::NewEvent(e) => write!(
-                f,
-                "event {} t={}s 0x{:02X} {}",
-                e.id.severity().name(),
-                e.timestamp_s,
-                e.id.raw(),
-                event(e.id)
-            ),
-            Report::EventHistory { count, newest } => {
-                write!(f, "event log: {count} recent events")?;
-                if let Some(e) = newest {
-                    write!(
-                        f,
-                        ", newest t={}s 0x{:02X} {}",
-                        e.timestamp_s,
-                        e.id.raw(),
-                        event(e.id)
-                    )?;
-                }
-                Ok(())
-            }
-            Report::LinkError {
-                command,
-                failure,
-                suppressed,
-            } => {
-                write!(f, "link error cmd 0x{command:02X}: {}", failure.name())?;
-                if let Failure::Nack(code) = failure {
-                    write!(f, " code 0x{:02X}", code.to_u8())?;
-                }
-                if *suppressed > 0 {
-                    write!(f, " (+{suppressed} more since the last line)")?;
-                }
-                Ok(())
-            }
-            Report::Offline { failures } => {
-                write!(f, "BMS offline after {failures} failed requests")
-            }
-            Report::Online => f.write_str("BMS online; re-reading version and settings"),
-            Report::Version(v) => {
-                write!(
-                    f,
-                    "version hw {}.{} fw {} ({}) bootloader {} profile {} serial ",
-                    v.hardware, v.hardware_changes, v.firmware_public, v.firmware_internal,
-                    v.bootloader, v.profile
-                )?;
-                for b in v.serial {
-                    write!(f, "{b:02X}")?;
-                }
-                Ok(())
-            }
-            Report::Ready { series_cells } => {
-                write!(f, "settings and limits read ({series_cells} cells): ready")
-            }
-            Report::Write { setting, outcome } | Report::WriteFollowUp { setting, outcome } => {
-                let follow = matches!(self, Report::WriteFollowUp { .. });
-                write!(
-                    f,
-                    "write {}{} ({}) = {}: {}",
-                    if follow { "follow-up " } else { "" },
-                    setting_name(setting.id),
-                    setting.id.address(),
-                    setting.value,
-                    outcome.name()
-                )?;
-                match outcome {
-                    WriteOutcome::Rejected(e) => write!(f, " ({})", e.reason()),
-                    WriteOutcome::Mismatch { read_back } => write!(f, " (read back {read_back})"),
-                    WriteOutcome::Nacked(c) => write!(f, " (code 0x{:02X})", c.to_u8()),
-                    WriteOutcome::Failed(e)
-                    | WriteOutcome::Unconfirmed(e)
-                    | WriteOutcome::NotWritten(e) => {
-                        write!(f, " ({})", e.name())
-                    }
-                    _ => Ok(()),
-                }
-            }
-            Report::ResetDone { confirmed } => write!(
-                f,
-                "BMS reset {}",
-                if *confirmed { "confirmed (reg 114 = software reset)" } else { "not confirmed" }
-            ),
-            Report::Cleared { option, ok } => write!(
-                f,
-                "clear {} {}",
-                if *option == 1 { "events" } else { "statistics" },
-                if *ok { "ok" } else { "failed" }
-            ),
-            Report::LinkStats(s) => write!(
-                f,
-                "link: req {} rep {} timeouts {} wake {} retries {} crc {} framing {} invalid {} nack {}/{}/{} skipped {} unsolicited {} failures {} latency {}/{}/{} us",
-                s.requests,
-                s.replies,
-                s.timeouts,
-                s.wakeup_resends,
-                s.retries,
-                s.crc_errors,
-                s.framing_errors,
-                s.invalid_replies,
-                s.nacks_command,
-                s.nacks_crc,
-                s.nacks_other,
-                s.skipped_bytes,
-                s.unsolicited,
-                s.failures,
-                s.latency_min_us,
-                s.latency_mean_us(),
-                s.latency_max_us
-            ),
-            Report::Dropped(n) => write!(f, "{n} log reports dropped"),
-            Report::Flagged(Some(c)) => write!(
-                f,
-                "live data confirmed by a second read but fails check {}: published, flagged",
-                c.name()
-            ),
-            Report::Flagged(None) => f.write_str("live data passes every check again"),
-            Report::Refused { check, count } => write!(
-                f,
-                "{count} live block(s) failed check {} and were not confirmed: not published",
-                check.map(|c| c.name()).unwrap_or("first_read")
-            ),
-            Report::LineQuality {
-                attempts,
-                clean,
-                piece_registers,
-                snapshots,
-            } => write!(
-                f,
-                "line quality: {}.{} % of {attempts} reads answered at the first attempt; reading {piece_registers} registers per request; {snapshots} snapshots",
-                permille(*clean, *attempts) / 10,
-                permille(*clean, *attempts) % 10
-            ),
-        }
+        let mut line = crate::text::Line::new();
+        crate::text::report(self, &mut line);
+        f.write_str(line.as_str())
     }
 }

@@ -16,7 +16,7 @@ use esp_hal::Async;
 use protocol_core::events::Event;
 use protocol_core::views::VersionInfo;
 use tinybms_firmware::inverter::control::PackSettings;
-use tinybms_firmware::inverter::{Inverter, InverterAction, InverterReport, Protocol, TxResult};
+use tinybms_firmware::inverter::{Inverter, InverterAction, Protocol, TxResult};
 use tinybms_firmware::{Report, Telemetry};
 
 use crate::{now_us, spawn, BOARD, TELEMETRY};
@@ -145,34 +145,7 @@ async fn can_task(mut twai: Twai<'static, Async>) {
             }
         }
         while let Some(r) = inverter.next_report() {
-            log_inverter(&r);
+            crate::log::inverter(&r);
         }
-    }
-}
-
-/// One defmt line per inverter report.
-fn log_inverter(r: &InverterReport) {
-    match r {
-        InverterReport::InverterSeen => info!("CAN: inverter seen (keep-alive)"),
-        InverterReport::InverterLost => warn!("CAN: inverter lost (no keep-alive)"),
-        InverterReport::Stale { age_ms, policy } => warn!(
-            "CAN: BMS telemetry {=u32} ms old: {}",
-            age_ms, policy
-        ),
-        InverterReport::StaleHoldEnded => warn!("CAN: hold time over, sending stopped"),
-        InverterReport::Fresh => info!("CAN: BMS telemetry fresh again, sending"),
-        InverterReport::NoAck { failures } => warn!(
-            "CAN: {=u32} frames not acknowledged (nothing else on the bus? wiring, termination, bit rate)",
-            failures
-        ),
-        InverterReport::BusOk => info!("CAN: frames acknowledged again"),
-        InverterReport::BusOff { count, backoff_ms } => warn!(
-            "CAN: bus-off #{=u32}, recovering in {=u32} ms",
-            count, backoff_ms
-        ),
-        InverterReport::Limits(l) => info!(
-            "CAN limits: CVL {=u16} dV, CCL {=u16} dA, DCL {=u16} dA",
-            l.cvl_dv, l.ccl_da, l.dcl_da
-        ),
     }
 }

@@ -132,7 +132,7 @@ impl<'de, 'f> DeserializeSeed<'de> for Top<'f, 'de> {
 /// A JSON number that is a `u32` (numbers are read as f64: `serde-json-core`
 /// reads `1.5` as an integer `1` followed by garbage).
 fn whole(v: f64) -> Option<u32> {
-    (v >= 0.0 && v <= f64::from(u32::MAX) && super::encode::round(v) == v).then_some(v as u32)
+    (v >= 0.0 && v <= f64::from(u32::MAX) && crate::units::round(v) == v).then_some(v as u32)
 }
 
 fn put<T>(slot: &mut Option<T>, v: T, name: &'static str, dup: &mut Option<&'static str>) {

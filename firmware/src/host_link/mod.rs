@@ -603,8 +603,8 @@ impl State {
                 return self.error(req, ErrorCode::InvalidValue, "setting given twice", name);
             }
             let raw = if physical {
-                encode::raw_from_physical(id, value)
-            } else if encode::round(value) == value
+                crate::units::raw_from_physical(id, value)
+            } else if crate::units::round(value) == value
                 && value >= f64::from(i32::MIN)
                 && value <= f64::from(i32::MAX)
             {

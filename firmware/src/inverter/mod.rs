@@ -153,6 +153,20 @@ pub enum InverterReport {
     Limits(Limits),
 }
 
+impl InverterReport {
+    /// Log level: what needs attention is a warning.
+    pub fn level(&self) -> crate::Level {
+        match self {
+            Self::InverterSeen | Self::Fresh | Self::BusOk | Self::Limits(_) => crate::Level::Info,
+            Self::InverterLost
+            | Self::Stale { .. }
+            | Self::StaleHoldEnded
+            | Self::NoAck { .. }
+            | Self::BusOff { .. } => crate::Level::Warn,
+        }
+    }
+}
+
 /// A charge block whose recovery event never arrived ends after the BMS has
 /// been out of "fault" this long, µs.
 pub const CHARGE_BLOCK_TIMEOUT_US: Instant = 5 * 60 * crate::SECOND;

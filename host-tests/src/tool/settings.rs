@@ -5,7 +5,7 @@
 use protocol_core::registers::option_name;
 use protocol_core::settings::SettingId;
 use serde_json::Value;
-use tinybms_firmware::host_link::encode;
+use tinybms_firmware::units;
 
 use crate::profile::{find_setting, snake_name};
 
@@ -34,8 +34,8 @@ pub fn physical(id: SettingId, raw: i64) -> String {
             // prints it).
             let Some(v) = i32::try_from(raw)
                 .ok()
-                .and_then(|raw| encode::physical(id, raw))
-                .map(encode::Dec::as_f64)
+                .and_then(|raw| units::physical(id, raw))
+                .map(units::Dec::as_f64)
             else {
                 return raw.to_string();
             };

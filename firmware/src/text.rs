@@ -1,0 +1,494 @@
+//! How the log reads: the words of every line the bridge logs, in one place.
+//!
+//! The chip shell writes a [`Report`] or an [`InverterReport`] into a [`Line`]
+//! and hands the text to `defmt` as one string; the host simulator prints the
+//! same text ([`core::fmt::Display`] for [`Report`] goes through here too). So
+//! the words are tested on the host (host-tests/tests/log_text.rs) and the chip
+//! prints exactly what the tests saw.
+//!
+//! Values read as people read them: `3.304 V`, `-12.3 A`, `24.5 °C`,
+//! `not connected`, the setting's physical value next to its raw one. Numbers
+//! are formatted here, without `core::fmt` (which the chip does not link: see
+//! `src/chip/panic.rs`).
+
+use heapless::String;
+use protocol_core::events::{EventId, OnlineStatus};
+use protocol_core::settings::Setting;
+
+use crate::bms::link::Failure;
+use crate::bridge::report::{permille, Report, SnapshotLine, WriteOutcome};
+use crate::inverter::{InverterReport, StalePolicy};
+
+/// Longest line, bytes. A line that would be longer ends in `…` (the link
+/// statistics line, the longest, is under 350 bytes with every counter at its widest).
+pub const LINE_MAX: usize = 384;
+
+/// One log line being written. Never fails: text beyond [`LINE_MAX`] is cut
+/// and the line ends in `…`.
+#[derive(Debug, Clone, Default)]
+pub struct Line {
+    text: String<LINE_MAX>,
+    cut: bool,
+}
+
+impl Line {
+    /// An empty line.
+    pub const fn new() -> Self {
+        Self {
+            text: String::new(),
+            cut: false,
+        }
+    }
+
+    /// The text so far.
+    pub fn as_str(&self) -> &str {
+        self.text.as_str()
+    }
+
+    /// Empties the line.
+    pub fn clear(&mut self) {
+        self.text.clear();
+        self.cut = false;
+    }
+
+    /// Appends text.
+    pub fn push(&mut self, s: &str) -> &mut Self {
+        if self.cut {
+            return self;
+        }
+        for c in s.chars() {
+            // Room is kept for the `…` (3 bytes) that marks a cut line.
+            if self.text.len() + c.len_utf8() > LINE_MAX - 3 {
+                self.cut = true;
+                let _ = self.text.push('…');
+                return self;
+            }
+            let _ = self.text.push(c);
+        }
+        self
+    }
+
+    /// Appends an unsigned integer.
+    pub fn uint(&mut self, v: u64) -> &mut Self {
+        let mut digits = [0u8; 20];
+        let mut i = digits.len();
+        let mut v = v;
+        loop {
+            i -= 1;
+            if let Some(d) = digits.get_mut(i) {
+                *d = b'0' + (v % 10) as u8;
+            }
+            v /= 10;
+            if v == 0 || i == 0 {
+                break;
+            }
+        }
+        self.push(core::str::from_utf8(digits.get(i..).unwrap_or(&[])).unwrap_or("?"))
+    }
+
+    /// Appends a signed integer.
+    pub fn int(&mut self, v: i64) -> &mut Self {
+        if v < 0 {
+            self.push("-");
+        }
+        self.uint(v.unsigned_abs())
+    }
+
+    /// Appends `0xNN` (at least two upper-case hex digits).
+    pub fn hex(&mut self, v: u32) -> &mut Self {
+        self.push("0x");
+        let mut started = false;
+        for shift in (0..8).rev() {
+            let nibble = ((v >> (shift * 4)) & 0xF) as usize;
+            if nibble != 0 || shift < 2 || started {
+                started = true;
+                let c = b"0123456789ABCDEF".get(nibble).copied().unwrap_or(b'?');
+                self.push(core::str::from_utf8(&[c]).unwrap_or("?"));
+            }
+        }
+        self
+    }
+
+    /// Appends `raw · 10^-decimals` with exactly `decimals` digits after the point
+    /// (`fixed(3304, 3)` → `3.304`, `fixed(-5, 1)` → `-0.5`).
+    pub fn fixed(&mut self, raw: i64, decimals: u32) -> &mut Self {
+        if decimals == 0 {
+            return self.int(raw);
+        }
+        let scale = 10u64.saturating_pow(decimals);
+        if raw < 0 {
+            self.push("-");
+        }
+        let m = raw.unsigned_abs();
+        self.uint(m / scale).push(".");
+        let frac = m % scale;
+        let mut d = scale / 10;
+        while d > 0 {
+            self.uint(frac / d % 10);
+            d /= 10;
+        }
+        self
+    }
+
+    /// Appends `x` rounded half away from zero to `decimals` places; `?` when
+    /// it is not a finite number or too large to print.
+    pub fn real(&mut self, x: f32, decimals: u32) -> &mut Self {
+        let scaled = f64::from(x) * crate::units::pow10(decimals);
+        if !scaled.is_finite() || crate::units::abs(scaled) >= 9.0e15 {
+            return self.push("?");
+        }
+        let r = crate::units::round(scaled) as i64;
+        self.fixed(r, decimals)
+    }
+
+    /// Appends `x` with `decimals` places and a unit after a space (`3.304 V`).
+    pub fn quantity(&mut self, x: f32, decimals: u32, unit: &str) -> &mut Self {
+        self.real(x, decimals).push(" ").push(unit)
+    }
+
+    /// Appends a temperature in °C with one decimal, or `not connected`.
+    pub fn celsius(&mut self, x: Option<f32>) -> &mut Self {
+        match x {
+            Some(v) => self.quantity(v, 1, "°C"),
+            None => self.push("not connected"),
+        }
+    }
+
+    /// Appends a byte string as upper-case hex, two digits a byte, no spaces.
+    pub fn hex_bytes(&mut self, bytes: &[u8]) -> &mut Self {
+        for &b in bytes {
+            let hi = b"0123456789ABCDEF".get(usize::from(b >> 4)).copied();
+            let lo = b"0123456789ABCDEF".get(usize::from(b & 0xF)).copied();
+            let pair = [hi.unwrap_or(b'?'), lo.unwrap_or(b'?')];
+            self.push(core::str::from_utf8(&pair).unwrap_or("??"));
+        }
+        self
+    }
+
+    /// Appends a duration given in seconds as people read it: `45 s`,
+    /// `12 min 5 s`, `3 h 20 min`, `12 d 4 h`.
+    pub fn duration_s(&mut self, s: u64) -> &mut Self {
+        let (d, h, m, sec) = (s / 86_400, s / 3600 % 24, s / 60 % 60, s % 60);
+        if d > 0 {
+            self.uint(d).push(" d ").uint(h).push(" h")
+        } else if h > 0 {
+            self.uint(h).push(" h ").uint(m).push(" min")
+        } else if m > 0 {
+            self.uint(m).push(" min ").uint(sec).push(" s")
+        } else {
+            self.uint(sec).push(" s")
+        }
+    }
+}
+
+/// A status as printed: its name, or `unknown_0xNN`.
+fn status(out: &mut Line, s: OnlineStatus) {
+    match s {
+        OnlineStatus::Unknown(raw) => out.push("unknown_").hex(u32::from(raw)),
+        known => out.push(known.name()),
+    };
+}
+
+/// An event id as printed: `0xNN name` (`unknown_0xNN` for an id no table
+/// knows, the style of `replay` and the host link).
+fn event_id(out: &mut Line, id: EventId) {
+    out.hex(u32::from(id.raw())).push(" ");
+    match id {
+        EventId::Unknown(raw) => out.push("unknown_").hex(u32::from(raw)),
+        known => out.push(known.name()),
+    };
+}
+
+/// A setting and its value: `over_voltage_cutoff (315) = 3650 (3.650 V)`.
+fn setting(out: &mut Line, s: &Setting) {
+    out.push(s.id.name())
+        .push(" (")
+        .uint(u64::from(s.id.address()))
+        .push(") = ")
+        .int(i64::from(s.value));
+    let unit = s.id.register().map(|r| r.unit).unwrap_or("");
+    if let Some(d) = crate::units::physical(s.id, s.value) {
+        if !unit.is_empty() && d.k > 0 {
+            out.push(" (")
+                .fixed(d.n, d.k)
+                .push(" ")
+                .push(unit)
+                .push(")");
+        }
+    }
+}
+
+fn snapshot(out: &mut Line, s: &SnapshotLine) {
+    out.push("pack ")
+        .quantity(s.pack_v, 2, "V")
+        .push(" ")
+        .quantity(s.current_a, 1, "A")
+        .push(", SOC ")
+        .quantity(s.soc_percent, 1, "%")
+        .push(", cells ")
+        .quantity(s.min_cell.1, 3, "V")
+        .push(" (#")
+        .uint(u64::from(s.min_cell.0))
+        .push(") to ")
+        .quantity(s.max_cell.1, 3, "V")
+        .push(" (#")
+        .uint(u64::from(s.max_cell.0))
+        .push("), BMS ")
+        .celsius(Some(s.internal_c))
+        .push(", sensors ")
+        .celsius(s.external_c.0)
+        .push(" / ")
+        .celsius(s.external_c.1)
+        .push(", ");
+    status(out, s.status);
+}
+
+/// Writes what a [`Report`] says into `out` (appended).
+pub fn report(r: &Report, out: &mut Line) {
+    match r {
+        Report::Snapshot(s) => snapshot(out, s),
+        Report::StatusChanged { from, to } => {
+            out.push("status ");
+            if let Some(from) = from {
+                status(out, *from);
+                out.push(" -> ");
+            }
+            status(out, *to);
+        }
+        Report::NewEvent(e) => {
+            out.push("event ")
+                .push(e.id.severity().name())
+                .push(" at BMS time ")
+                .uint(u64::from(e.timestamp_s))
+                .push(" s: ");
+            event_id(out, e.id);
+        }
+        Report::EventHistory { count, newest } => {
+            out.push("event log: ")
+                .uint(u64::from(*count))
+                .push(" recent events");
+            if let Some(e) = newest {
+                out.push(", the newest at BMS time ")
+                    .uint(u64::from(e.timestamp_s))
+                    .push(" s: ");
+                event_id(out, e.id);
+            }
+        }
+        Report::LinkError {
+            command,
+            failure,
+            suppressed,
+        } => {
+            out.push("link error, command ")
+                .hex(u32::from(*command))
+                .push(": ")
+                .push(failure.name());
+            if let Failure::Nack(code) = failure {
+                out.push(" (code ").hex(u32::from(code.to_u8())).push(")");
+            }
+            if *suppressed > 0 {
+                out.push(" (+")
+                    .uint(u64::from(*suppressed))
+                    .push(" more since the last line)");
+            }
+        }
+        Report::Offline { failures } => {
+            out.push("BMS offline after ")
+                .uint(u64::from(*failures))
+                .push(" failed requests");
+        }
+        Report::Online => {
+            out.push("BMS online; re-reading version and settings");
+        }
+        Report::Version(v) => {
+            out.push("BMS hardware ")
+                .uint(u64::from(v.hardware))
+                .push(".")
+                .uint(u64::from(v.hardware_changes))
+                .push(", firmware ")
+                .uint(u64::from(v.firmware_public))
+                .push(" (internal ")
+                .uint(u64::from(v.firmware_internal))
+                .push("), bootloader ")
+                .uint(u64::from(v.bootloader))
+                .push(", profile ")
+                .uint(u64::from(v.profile))
+                .push(", serial ")
+                .hex_bytes(&v.serial);
+        }
+        Report::Ready { series_cells } => {
+            out.push("settings and limits read (")
+                .uint(u64::from(*series_cells))
+                .push(" cells): ready");
+        }
+        Report::Write {
+            setting: s,
+            outcome,
+        }
+        | Report::WriteFollowUp {
+            setting: s,
+            outcome,
+        } => {
+            out.push("write ");
+            if matches!(r, Report::WriteFollowUp { .. }) {
+                out.push("follow-up ");
+            }
+            setting(out, s);
+            out.push(": ").push(outcome.name());
+            match outcome {
+                WriteOutcome::Rejected(e) => {
+                    out.push(" (").push(e.reason()).push(")");
+                }
+                WriteOutcome::Mismatch { read_back } => {
+                    out.push(" (read back ")
+                        .uint(u64::from(*read_back))
+                        .push(")");
+                }
+                WriteOutcome::Nacked(c) => {
+                    out.push(" (code ").hex(u32::from(c.to_u8())).push(")");
+                }
+                WriteOutcome::Failed(e)
+                | WriteOutcome::Unconfirmed(e)
+                | WriteOutcome::NotWritten(e) => {
+                    out.push(" (").push(e.name()).push(")");
+                }
+                WriteOutcome::Verified | WriteOutcome::Unchanged => {}
+            }
+        }
+        Report::ResetDone { confirmed } => {
+            out.push(if *confirmed {
+                "BMS reset confirmed (register 114: software reset)"
+            } else {
+                "BMS reset not confirmed"
+            });
+        }
+        Report::Cleared { option, ok } => {
+            out.push("clear ")
+                .push(if *option == 1 { "events" } else { "statistics" })
+                .push(if *ok { ": ok" } else { ": failed" });
+        }
+        Report::LinkStats(s) => {
+            out.push("link: requests ")
+                .uint(u64::from(s.requests))
+                .push(", replies ")
+                .uint(u64::from(s.replies))
+                .push(", timeouts ")
+                .uint(u64::from(s.timeouts))
+                .push(", wake-ups ")
+                .uint(u64::from(s.wakeup_resends))
+                .push(", retries ")
+                .uint(u64::from(s.retries))
+                .push(", CRC ")
+                .uint(u64::from(s.crc_errors))
+                .push(", framing ")
+                .uint(u64::from(s.framing_errors))
+                .push(", invalid ")
+                .uint(u64::from(s.invalid_replies))
+                .push(", NACK ")
+                .uint(u64::from(s.nacks_command))
+                .push("/")
+                .uint(u64::from(s.nacks_crc))
+                .push("/")
+                .uint(u64::from(s.nacks_other))
+                .push(", skipped bytes ")
+                .uint(u64::from(s.skipped_bytes))
+                .push(", unsolicited ")
+                .uint(u64::from(s.unsolicited))
+                .push(", failures ")
+                .uint(u64::from(s.failures))
+                .push(", latency ")
+                .fixed(i64::from(s.latency_min_us) / 100, 1)
+                .push("/")
+                .fixed(i64::from(s.latency_mean_us()) / 100, 1)
+                .push("/")
+                .fixed(i64::from(s.latency_max_us) / 100, 1)
+                .push(" ms");
+        }
+        Report::Dropped(n) => {
+            out.uint(u64::from(*n)).push(" log reports dropped");
+        }
+        Report::Flagged(Some(c)) => {
+            out.push("live data confirmed by a second read but fails check ")
+                .push(c.name())
+                .push(": published, flagged");
+        }
+        Report::Flagged(None) => {
+            out.push("live data passes every check again");
+        }
+        Report::Refused { check, count } => {
+            out.uint(u64::from(*count))
+                .push(" live block(s) failed check ")
+                .push(check.map(|c| c.name()).unwrap_or("first_read"))
+                .push(" and were not confirmed: not published");
+        }
+        Report::LineQuality {
+            attempts,
+            clean,
+            piece_registers,
+            snapshots,
+        } => {
+            out.push("line quality: ")
+                .fixed(i64::from(permille(*clean, *attempts)), 1)
+                .push(" % of ")
+                .uint(u64::from(*attempts))
+                .push(" reads answered at the first attempt; ")
+                .uint(u64::from(*piece_registers))
+                .push(" registers per request; ")
+                .uint(u64::from(*snapshots))
+                .push(" snapshots");
+        }
+    }
+}
+
+/// Writes what an [`InverterReport`] says into `out` (appended).
+pub fn inverter(r: &InverterReport, out: &mut Line) {
+    match r {
+        InverterReport::InverterSeen => {
+            out.push("CAN: inverter seen (keep-alive)");
+        }
+        InverterReport::InverterLost => {
+            out.push("CAN: inverter lost (no keep-alive)");
+        }
+        InverterReport::Stale { age_ms, policy } => {
+            out.push("CAN: BMS data ")
+                .fixed(i64::from(*age_ms) / 100, 1)
+                .push(" s old: ");
+            match policy {
+                StalePolicy::StopSending => out.push("sending stopped"),
+                StalePolicy::HoldChargeZero(us) => out
+                    .push("charge limit 0 A for at most ")
+                    .duration_s(us / crate::SECOND),
+            };
+        }
+        InverterReport::StaleHoldEnded => {
+            out.push("CAN: hold time over, sending stopped");
+        }
+        InverterReport::Fresh => {
+            out.push("CAN: BMS data fresh again, sending");
+        }
+        InverterReport::NoAck { failures } => {
+            out.push("CAN: ").uint(u64::from(*failures)).push(
+                " frames not acknowledged (nothing else on the bus? wiring, termination, bit rate)",
+            );
+        }
+        InverterReport::BusOk => {
+            out.push("CAN: frames acknowledged again");
+        }
+        InverterReport::BusOff { count, backoff_ms } => {
+            out.push("CAN: bus-off #")
+                .uint(u64::from(*count))
+                .push(", recovering in ")
+                .uint(u64::from(*backoff_ms))
+                .push(" ms");
+        }
+        InverterReport::Limits(l) => {
+            out.push("CAN limits: charge voltage ")
+                .fixed(i64::from(l.cvl_dv), 1)
+                .push(" V, charge current ")
+                .fixed(i64::from(l.ccl_da), 1)
+                .push(" A, discharge current ")
+                .fixed(i64::from(l.dcl_da), 1)
+                .push(" A");
+        }
+    }
+}
