@@ -16,7 +16,8 @@
 //! | the bridge | [`bridge`] | the coordinator on top of the link: poll schedule, sync, telemetry, the write/verify machine, [`Report`]s |
 //! | consumers | [`inverter`] | charge control and the inverter CAN protocols (Victron, SMA Sunny Island) |
 //! | | [`host_link`] | JSON Lines to a computer over USB |
-//! | this installation | [`site`] | the inverter output and host link settings |
+//! | this installation | [`config`] | the bridge's own configuration: the record, its checks, its store in flash |
+//! | | [`site`] | the inverter output and host link settings |
 //! | | [`boards`] | the supported boards' pins and log paths, checked at compile time |
 //! | shared | [`text`] | the words of every log line |
 //! | | [`units`] | raw and physical values, exact decimals |
@@ -45,6 +46,7 @@
 pub mod bms;
 pub mod boards;
 pub mod bridge;
+pub mod config;
 pub mod host_link;
 pub mod inverter;
 pub mod site;

@@ -1,0 +1,593 @@
+//! The bridge's configuration record (`tinybms_firmware::config`): the field
+//! table, every field's range and text form, the rules between fields, the flash
+//! codec (round trip, other versions, corrupted and fuzzed bytes), and changes
+//! by name with one outcome per field.
+
+use proptest::prelude::*;
+use tinybms_firmware::config::codec::{self, DecodeError, MAGIC, RECORD_MAX};
+use tinybms_firmware::config::state::{ConfigState, Outcome};
+use tinybms_firmware::config::store::Source;
+use tinybms_firmware::config::value::{self, Parsed};
+use tinybms_firmware::config::{
+    Applies, Config, FieldId, Kind, PackSettings, Value, FIELDS, VERSION,
+};
+use tinybms_firmware::inverter::{InverterConfig, Protocol, StalePolicy};
+use tinybms_firmware::text::Line;
+use tinybms_firmware::SECOND;
+
+fn field(name: &str) -> FieldId {
+    FieldId::from_name(name).unwrap_or_else(|| panic!("no field {name}"))
+}
+
+fn parse(name: &str, text: &str) -> Result<Parsed, value::FieldError> {
+    value::parse(field(name).field(), text)
+}
+
+fn shown(c: &Config, id: FieldId) -> String {
+    let mut l = Line::new();
+    value::write(id.field(), &c.get(id), true, &mut l);
+    l.as_str().to_string()
+}
+
+fn bms() -> PackSettings {
+    PackSettings {
+        fully_charged_mv: 3450,
+        capacity_cah: 28_000,
+        cells: 16,
+        allowed_disbalance_mv: 15,
+        ov_cutoff_mv: 3650,
+        uv_cutoff_mv: 2800,
+        discharge_cutoff_a: 150,
+        charge_cutoff_a: 100,
+        overheat_c: 55,
+        low_temp_charge_c: 2,
+    }
+}
+
+#[test]
+fn the_table_is_consistent() {
+    let mut names = std::collections::HashSet::new();
+    let mut tags = std::collections::HashSet::new();
+    for f in FIELDS {
+        assert!(names.insert(f.name), "name {} twice", f.name);
+        assert!(tags.insert(f.tag), "tag {} twice", f.tag);
+        assert_eq!(f.id.field().name, f.name);
+        assert_eq!(FieldId::from_name(f.name), Some(f.id));
+        assert_eq!(FieldId::from_tag(f.tag), Some(f.id));
+        assert!(
+            f.name
+                .bytes()
+                .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_'),
+            "{}",
+            f.name
+        );
+        assert!(f.help.ends_with('.'), "{}: help is a sentence", f.name);
+        if let Kind::Number { min, max, .. } = f.kind {
+            assert!(min <= max, "{}", f.name);
+        }
+    }
+}
+
+#[test]
+fn the_defaults_are_what_the_bridge_ran_with_before_the_record() {
+    let c = Config::default();
+    c.validate().unwrap();
+    // site.rs's constants before the record, and charge control's defaults.
+    assert!(c.can_output);
+    assert_eq!(c.protocol, Protocol::Victron);
+    assert_eq!(c.inverter(), InverterConfig::default());
+    assert!(!c.read_only);
+    assert_eq!(c.stream_period_ms, 1000);
+    assert!(c.wifi_ssid.is_empty() && c.mqtt_host.is_empty());
+    // Every default passes its own field's check.
+    for f in FIELDS {
+        value::check(f, &c.get(f.id)).unwrap_or_else(|e| panic!("{}: {e:?}", f.name));
+    }
+}
+
+#[test]
+fn every_number_field_takes_its_range_and_refuses_one_step_beyond() {
+    for f in FIELDS {
+        let Kind::Number {
+            min,
+            max,
+            decimals,
+            off,
+        } = f.kind
+        else {
+            continue;
+        };
+        let mut c = Config::default();
+        for v in [min, max, (min + max) / 2] {
+            c.set(f.id, Value::Number(v)).unwrap();
+            assert_eq!(c.get(f.id), Value::Number(v), "{}", f.name);
+            // Its text reads back to the same raw value, with and without unit.
+            for unit in [true, false] {
+                let mut l = Line::new();
+                value::write(f, &Value::Number(v), unit, &mut l);
+                let back = value::parse(f, l.as_str()).unwrap();
+                assert_eq!(back, Parsed::Number(v), "{}: {}", f.name, l.as_str());
+            }
+        }
+        for v in [min - 1, max + 1] {
+            if v == 0 && off.is_some() {
+                continue;
+            }
+            let e = c.set(f.id, Value::Number(v)).unwrap_err();
+            assert!(e.out_of_range, "{}: {v}", f.name);
+        }
+        match off {
+            Some(word) => {
+                c.set(f.id, Value::Number(0)).unwrap();
+                assert_eq!(value::parse(f, word).unwrap(), Parsed::Number(0));
+                assert_eq!(shown(&c, f.id), word);
+            }
+            None if min > 0 => assert!(c.set(f.id, Value::Number(0)).is_err(), "{}", f.name),
+            None => {}
+        }
+        // More decimals than the field holds are refused, not rounded.
+        let mut l = Line::new();
+        l.fixed(i64::from(min) * 10 + 1, u32::from(decimals) + 1);
+        assert!(
+            value::parse(f, l.as_str()).is_err(),
+            "{}: {}",
+            f.name,
+            l.as_str()
+        );
+    }
+}
+
+#[test]
+fn numbers_parse_exactly_in_related_units() {
+    assert_eq!(
+        parse("absorption_voltage", "3.45 V").unwrap(),
+        Parsed::Number(3450)
+    );
+    assert_eq!(
+        parse("absorption_voltage", "3450mV").unwrap(),
+        Parsed::Number(3450)
+    );
+    assert_eq!(
+        parse("charge_current_cap", "50 A").unwrap(),
+        Parsed::Number(500)
+    );
+    assert_eq!(
+        parse("charge_current_cap", "50.5a").unwrap(),
+        Parsed::Number(505)
+    );
+    assert_eq!(
+        parse("charge_current_cap", "none").unwrap(),
+        Parsed::Number(0)
+    );
+    assert_eq!(
+        parse("stream_period", "1.5 s").unwrap(),
+        Parsed::Number(1500)
+    );
+    assert_eq!(parse("stream_period", "off").unwrap(), Parsed::Number(0));
+    assert_eq!(parse("stale_hold", "2 min").unwrap(), Parsed::Number(120));
+    assert_eq!(
+        parse("temperature_margin", "5 °C").unwrap(),
+        Parsed::Number(5)
+    );
+    // Refused: a unit of another quantity, too many decimals, not a number.
+    assert!(parse("charge_current_cap", "50 V").is_err());
+    assert!(parse("charge_current_cap", "0.15 A").is_err());
+    assert!(parse("absorption_voltage", "3.4505 V").is_err());
+    assert!(parse("stale_after", "five").is_err());
+    assert!(parse("stale_after", "").is_err());
+    assert!(parse("stale_after", "1e3").is_err());
+    // Out of range, with that code.
+    let e = parse("charge_current_cap", "9999 A").unwrap_err();
+    assert!(e.out_of_range);
+    let e = parse("stale_after", "0").unwrap_err();
+    assert!(e.out_of_range);
+}
+
+#[test]
+fn choices_switches_text_and_secrets() {
+    assert_eq!(
+        parse("inverter_protocol", "SMA").unwrap(),
+        Parsed::Choice(1)
+    );
+    assert!(parse("inverter_protocol", "pylontech").is_err());
+    for (t, b) in [("on", true), ("off", false), ("yes", true), ("0", false)] {
+        assert_eq!(parse("can_output", t).unwrap(), Parsed::Bool(b));
+    }
+    assert!(parse("can_output", "maybe").is_err());
+    assert!(parse("mqtt_host", "broker.lan").is_ok());
+    assert!(parse("mqtt_host", "192.168.1.10").is_ok());
+    assert!(parse("mqtt_host", "bad host").is_err());
+    assert!(parse("topic_prefix", "home/battery-1").is_ok());
+    for bad in ["home/#", "a/+/b", "/lead", "trail/", "a//b", ""] {
+        assert!(parse("topic_prefix", bad).is_err(), "{bad}");
+    }
+    assert!(parse("wifi_ssid", &"x".repeat(33)).is_err());
+    assert!(parse("wifi_ssid", "Café WLAN ").is_ok());
+    assert!(parse("wifi_ssid", "a\u{7}b").is_err());
+    // The Wi-Fi key is 64 hex digits or nothing; never shown.
+    let key = "0123456789abcdef".repeat(4);
+    let mut c = Config::default();
+    c.set(field("wifi_ssid"), Value::Text("home")).unwrap();
+    c.set(field("wifi_key"), Value::Text(&key)).unwrap();
+    assert_eq!(shown(&c, field("wifi_key")), "set");
+    assert!(c.set(field("wifi_key"), Value::Text("passphrase")).is_err());
+    assert!(c.set(field("wifi_key"), Value::Text(&key[1..])).is_err());
+    c.set(field("wifi_key"), Value::Text("")).unwrap();
+    assert_eq!(shown(&c, field("wifi_key")), "unset");
+}
+
+#[test]
+fn rules_between_fields() {
+    let mut c = Config::default();
+    c.absorption_mv = 3400;
+    c.float_mv = 3450;
+    assert_eq!(c.validate().unwrap_err().field, field("float_voltage"));
+    let mut c = Config::default();
+    c.wifi_key.push_str(&"a".repeat(64)).unwrap();
+    assert_eq!(c.validate().unwrap_err().field, field("wifi_key"));
+    let mut c = Config::default();
+    c.topic_prefix = c.discovery_prefix.clone();
+    assert!(c.validate().is_err());
+    c.discovery = false;
+    assert!(c.validate().is_ok());
+    // Against the BMS: a cap above the cutoff it caps, a target past the cutoffs.
+    let mut c = Config::default();
+    c.ccl_cap_da = 1001; // 100.1 A, the BMS allows 100 A
+    assert_eq!(
+        c.validate_with_bms(&bms()).unwrap_err().field,
+        field("charge_current_cap")
+    );
+    c.ccl_cap_da = 1000;
+    assert!(c.validate_with_bms(&bms()).is_ok());
+    c.dcl_cap_da = 1501;
+    assert!(c.validate_with_bms(&bms()).is_err());
+    let mut c = Config::default();
+    c.absorption_mv = 3600; // 3650 - 100 margin = 3550 at most
+    assert_eq!(
+        c.validate_with_bms(&bms()).unwrap_err().field,
+        field("absorption_voltage")
+    );
+    c.absorption_mv = 2800; // at the under-voltage cutoff
+    assert!(c.validate_with_bms(&bms()).is_err());
+}
+
+#[test]
+fn fields_tied_by_a_rule_take_effect_together() {
+    // A running record mixes the start-up record's restart fields with the
+    // newest at-once fields: each rule's fields must apply at the same time, or
+    // the mix could break it.
+    for group in [
+        ["absorption_voltage", "float_voltage"],
+        ["wifi_ssid", "wifi_key"],
+        ["mqtt_user", "mqtt_password"],
+        ["topic_prefix", "discovery_prefix"],
+    ] {
+        let a = field(group[0]).field().applies;
+        let b = field(group[1]).field().applies;
+        assert_eq!(a, b, "{group:?}");
+    }
+    assert_eq!(field("discovery").field().applies, Applies::Restart);
+}
+
+#[test]
+fn the_record_drives_the_inverter_and_the_host_link() {
+    let mut c = Config::default();
+    c.protocol = Protocol::SmaSunnyIsland;
+    c.ccl_cap_da = 500;
+    c.stale_after_s = 8;
+    c.stale_policy = tinybms_firmware::config::StaleMode::Hold;
+    c.stale_hold_s = 300;
+    c.tail_current_da = 35;
+    let i = c.inverter();
+    assert_eq!(i.protocol, Protocol::SmaSunnyIsland);
+    assert_eq!(i.charge.ccl_cap_da, Some(500));
+    assert_eq!(i.charge.dcl_cap_da, None);
+    assert_eq!(i.charge.tail_current_a, 3.5);
+    assert_eq!(i.stale_after_us, 8 * SECOND);
+    assert_eq!(i.stale_policy, StalePolicy::HoldChargeZero(300 * SECOND));
+    c.read_only = true;
+    c.stream_period_ms = 0;
+    let h = c.host_link("sim");
+    assert!(h.read_only);
+    assert_eq!(h.stream_period_ms, 0);
+}
+
+fn encoded(c: &Config) -> Vec<u8> {
+    let mut buf = [0u8; RECORD_MAX];
+    let n = codec::encode(c, &mut buf).unwrap();
+    buf[..n].to_vec()
+}
+
+fn full_record() -> Config {
+    let mut c = Config::default();
+    c.wifi_ssid.push_str(&"s".repeat(32)).unwrap();
+    c.wifi_key.push_str(&"f".repeat(64)).unwrap();
+    c.hostname.push_str(&"h".repeat(32)).unwrap();
+    c.mqtt_host.push_str(&"m".repeat(64)).unwrap();
+    c.mqtt_user.push_str(&"u".repeat(32)).unwrap();
+    c.mqtt_password.push_str(&"p".repeat(64)).unwrap();
+    c.topic_prefix.clear();
+    c.topic_prefix.push_str(&"t".repeat(32)).unwrap();
+    c.discovery_prefix.clear();
+    c.discovery_prefix.push_str(&"d".repeat(32)).unwrap();
+    c
+}
+
+#[test]
+fn the_codec_round_trips_and_the_longest_record_fits() {
+    for c in [Config::default(), full_record()] {
+        let bytes = encoded(&c);
+        assert_eq!(codec::decode(&bytes).unwrap(), c);
+        assert_eq!(&bytes[..2], &MAGIC);
+        assert_eq!(bytes[2], VERSION);
+    }
+    let n = encoded(&full_record()).len();
+    assert!(n <= RECORD_MAX, "{n}");
+    println!("longest record: {n} bytes of {RECORD_MAX}");
+}
+
+#[test]
+fn another_version_or_a_foreign_record_is_refused() {
+    let mut bytes = encoded(&Config::default());
+    bytes[2] = VERSION + 1;
+    assert_eq!(
+        codec::decode(&bytes),
+        Err(DecodeError::Version(VERSION + 1))
+    );
+    let mut bytes = encoded(&Config::default());
+    bytes[0] = b'X';
+    assert_eq!(codec::decode(&bytes), Err(DecodeError::Magic));
+    assert_eq!(codec::decode(&[]), Err(DecodeError::Truncated));
+    assert_eq!(codec::decode(b"TC"), Err(DecodeError::Truncated));
+}
+
+#[test]
+fn every_kind_of_damage_is_named() {
+    let good = encoded(&Config::default());
+    // A field's value out of range: stale_after (tag 3) = 0.
+    let mut b = good.clone();
+    let at = find_tag(&b, 3);
+    b[at + 2..at + 6].copy_from_slice(&0i32.to_le_bytes());
+    assert_eq!(
+        codec::decode(&b),
+        Err(DecodeError::Value(field("stale_after")))
+    );
+    // A bool that is neither 0 nor 1.
+    let mut b = good.clone();
+    let at = find_tag(&b, 1);
+    b[at + 2] = 2;
+    assert_eq!(
+        codec::decode(&b),
+        Err(DecodeError::Value(field("can_output")))
+    );
+    // A number of the wrong length.
+    let mut b = good.clone();
+    let at = find_tag(&b, 3);
+    b[at + 1] = 2;
+    assert!(codec::decode(&b).is_err());
+    // An unknown tag.
+    let mut b = good.clone();
+    let at = find_tag(&b, 3);
+    b[at] = 250;
+    assert_eq!(codec::decode(&b), Err(DecodeError::UnknownTag(250)));
+    // A field twice (count says one more, the last field repeated).
+    let mut b = good.clone();
+    b[3] += 1;
+    b.extend_from_slice(&[3, 4, 5, 0, 0, 0]);
+    assert_eq!(
+        codec::decode(&b),
+        Err(DecodeError::Duplicate(field("stale_after")))
+    );
+    // A field missing (count one less, the last field cut off).
+    let mut b = good.clone();
+    let last = FIELDS.last().unwrap();
+    let at = find_tag(&b, last.tag);
+    b.truncate(at);
+    b[3] -= 1;
+    assert_eq!(codec::decode(&b), Err(DecodeError::Missing(last.id)));
+    // Trailing bytes.
+    let mut b = good.clone();
+    b.push(0);
+    assert_eq!(codec::decode(&b), Err(DecodeError::Trailing));
+    // Invalid UTF-8 in a text field.
+    let mut c = Config::default();
+    c.hostname.push_str("ab").unwrap();
+    let mut b = encoded(&c);
+    let at = find_tag(&b, field("hostname").field().tag);
+    b[at + 2] = 0xFF;
+    assert!(codec::decode(&b).is_err());
+    // Fields that break a rule between them.
+    let mut c = Config::default();
+    c.absorption_mv = 3400;
+    c.float_mv = 3450;
+    assert_eq!(
+        codec::decode(&encoded(&c)),
+        Err(DecodeError::Rule(field("float_voltage")))
+    );
+}
+
+/// Offset of the field with `tag` in an encoded record.
+fn find_tag(b: &[u8], tag: u8) -> usize {
+    let mut at = 4;
+    while at < b.len() {
+        if b[at] == tag {
+            return at;
+        }
+        at += 2 + b[at + 1] as usize;
+    }
+    panic!("tag {tag} not found");
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(4000))]
+
+    /// Any bytes: an error or a record that is valid, never a panic.
+    #[test]
+    fn fuzzed_bytes_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..700)) {
+        if let Ok(c) = codec::decode(&bytes) {
+            prop_assert!(c.validate().is_ok());
+        }
+    }
+
+    /// A valid record with bytes flipped: refused, or a record whose every
+    /// field passes its check (a flip inside a value's range is not visible to
+    /// the codec: that is what sequential-storage's CRC is for).
+    #[test]
+    fn corrupted_records_are_refused_or_valid(flips in proptest::collection::vec((0usize..600, any::<u8>()), 1..4)) {
+        let mut b = encoded(&full_record());
+        for (at, x) in flips {
+            let n = b.len();
+            b[at % n] ^= x.max(1);
+        }
+        if let Ok(c) = codec::decode(&b) {
+            prop_assert!(c.validate().is_ok());
+            for f in FIELDS {
+                prop_assert!(value::check(f, &c.get(f.id)).is_ok());
+            }
+        }
+    }
+
+    /// Any text for any field: refused, or a value that passes the field's
+    /// check and prints back to text that parses to the same value.
+    #[test]
+    fn any_text_is_refused_or_round_trips(i in 0usize..FIELDS.len(), text in "\\PC{0,12}") {
+        let f = &FIELDS[i];
+        if let Ok(p) = value::parse(f, &text) {
+            prop_assert!(value::check(f, &p.as_value()).is_ok());
+            if !f.is_secret() {
+                let mut l = Line::new();
+                value::write(f, &p.as_value(), true, &mut l);
+                let again = value::parse(f, l.as_str());
+                prop_assert_eq!(again, Ok(p.clone()), "{} -> {}", text, l.as_str());
+            }
+        }
+    }
+}
+
+fn state() -> ConfigState {
+    ConfigState::new(Config::default(), Source::Empty)
+}
+
+fn change(
+    s: &mut ConfigState,
+    pairs: &[(&str, &str)],
+    bms: Option<&PackSettings>,
+) -> Vec<(String, Outcome)> {
+    let parsed: Vec<(FieldId, Parsed)> = pairs
+        .iter()
+        .map(|(n, t)| (field(n), parse(n, t).unwrap()))
+        .collect();
+    s.change(&parsed, false, bms)
+        .iter()
+        .map(|(id, o)| (id.name().to_string(), *o))
+        .collect()
+}
+
+#[test]
+fn a_change_gives_one_outcome_per_field_and_says_when_it_applies() {
+    let mut s = state();
+    let o = change(
+        &mut s,
+        &[
+            ("charge_current_cap", "50 A"),
+            ("inverter_protocol", "sma"),
+            ("stale_after", "5 s"),
+        ],
+        None,
+    );
+    assert_eq!(
+        o,
+        vec![
+            ("charge_current_cap".into(), Outcome::Applied),
+            ("inverter_protocol".into(), Outcome::AtRestart),
+            ("stale_after".into(), Outcome::Unchanged),
+        ]
+    );
+    assert_eq!(s.running().ccl_cap_da, 500);
+    assert_eq!(s.running().protocol, Protocol::Victron);
+    assert_eq!(s.stored().protocol, Protocol::SmaSunnyIsland);
+    assert!(s.restart_pending(field("inverter_protocol")));
+    assert_eq!(s.restarts_pending(), 1);
+    assert!(s.save_due());
+    assert!(s.take_running_change().is_some());
+    assert!(s.take_running_change().is_none());
+    // Back to what runs: applied (no restart needed any more).
+    let o = change(&mut s, &[("inverter_protocol", "victron")], None);
+    assert_eq!(o[0].1, Outcome::Applied);
+    assert_eq!(s.restarts_pending(), 0);
+}
+
+#[test]
+fn one_refusal_and_nothing_changes() {
+    let mut s = state();
+    let before = s.stored().clone();
+    let o = change(
+        &mut s,
+        &[
+            ("charge_current_cap", "120 A"),
+            ("inverter_protocol", "sma"),
+        ],
+        Some(&bms()),
+    );
+    assert!(matches!(o[0].1, Outcome::RuleBroken(_)), "{o:?}");
+    assert_eq!(o[1].1, Outcome::NotApplied);
+    assert_eq!(s.stored(), &before);
+    assert!(!s.save_due());
+    // A rule about a field that was not named: it gets its own outcome.
+    let mut s = state();
+    change(&mut s, &[("float_voltage", "3.40 V")], None);
+    let o = change(&mut s, &[("absorption_voltage", "3.35 V")], None);
+    assert_eq!(o.len(), 2, "{o:?}");
+    assert_eq!(o[0].1, Outcome::NotApplied);
+    assert_eq!(o[1].0, "float_voltage");
+    assert!(matches!(o[1].1, Outcome::RuleBroken(_)));
+    // The same field twice.
+    let mut s = state();
+    let o = change(&mut s, &[("stale_after", "7"), ("stale_after", "9")], None);
+    assert!(matches!(o[1].1, Outcome::Refused(_)));
+    assert_eq!(s.stored().stale_after_s, 5);
+}
+
+#[test]
+fn reset_and_unlock() {
+    let mut s = state();
+    change(
+        &mut s,
+        &[
+            ("read_only", "on"),
+            ("charge_current_cap", "40"),
+            ("can_output", "off"),
+        ],
+        None,
+    );
+    assert!(s.running().read_only);
+    s.saved(Ok(tinybms_firmware::config::store::Saved::Written));
+    s.unlock();
+    assert!(!s.running().read_only);
+    assert!(!s.stored().read_only);
+    assert!(s.save_due());
+    let o = s.reset();
+    let names: Vec<_> = o.iter().map(|(id, _)| id.name()).collect();
+    assert_eq!(names, vec!["can_output", "charge_current_cap"]);
+    assert_eq!(s.stored(), &Config::default());
+    assert_eq!(s.running(), &Config::default());
+}
+
+#[test]
+fn a_failed_save_is_tried_again_then_reported() {
+    use tinybms_firmware::config::store::{Saved, StoreError};
+    let mut s = state();
+    change(&mut s, &[("charge_current_cap", "40")], None);
+    assert_eq!(s.saved(Err(StoreError::Flash)), None);
+    assert!(s.save_due());
+    assert_eq!(s.saved(Err(StoreError::Flash)), None);
+    assert_eq!(
+        s.saved(Err(StoreError::Flash)),
+        Some(Err(StoreError::Flash))
+    );
+    assert!(!s.save_due());
+    // The change is kept in RAM.
+    assert_eq!(s.running().ccl_cap_da, 400);
+    change(&mut s, &[("charge_current_cap", "41")], None);
+    assert_eq!(s.saved(Ok(Saved::Written)), Some(Ok(Saved::Written)));
+}
