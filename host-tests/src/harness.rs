@@ -106,6 +106,10 @@ impl Soak {
 /// RX FIFO threshold / idle timeout behaviour), so replies arrive in chunks.
 pub const RX_CHUNK_US: u64 = 16 * BYTE_TIME_US;
 
+/// The ESP32-C3/C6 UART's RX FIFO, bytes: what survives while the CPU does
+/// not run (a flash erase or write stops it, [`Harness::stall`]).
+pub const UART_FIFO_BYTES: usize = 128;
+
 /// One log line, as the device would print it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LogLine {
@@ -168,6 +172,11 @@ pub struct Harness {
     pub retain: bool,
     /// Ground-truth checks, when made by [`Harness::checked`].
     pub soak: Option<Soak>,
+    /// Bytes the BMS sent while the CPU was stopped ([`Harness::stall`]) that
+    /// did not fit the UART's FIFO: lost.
+    pub fifo_lost_bytes: u64,
+    /// Stalls so far and their total length, µs.
+    pub stalls: (u64, u64),
     /// When set, every call made to the bridge is appended here in the format of
     /// [`crate::trace`] (the recorded trace the RISC-V cost benchmark replays).
     pub trace: Option<Vec<u8>>,
@@ -198,6 +207,8 @@ impl Harness {
             retain: true,
             soak: None,
             trace: None,
+            fifo_lost_bytes: 0,
+            stalls: (0, 0),
         }
     }
 
@@ -260,6 +271,55 @@ impl Harness {
 
     /// Runs until virtual time `end_us`.
     pub fn run_until(&mut self, end_us: u64) {
+        self.run_until_hooked(end_us, &mut |_, _, _| 0);
+    }
+
+    /// The CPU stops for `us` (a flash erase or write: the cache is off), as it
+    /// does on the chip: the BMS's bytes meanwhile fill the UART's FIFO, what
+    /// does not fit is lost ([`Harness::fifo_lost_bytes`]), and the bridge gets
+    /// the FIFO's contents when the CPU runs again.
+    pub fn stall(&mut self, us: u64) {
+        let end = self.now + us;
+        let mut rx = Vec::new();
+        self.sim.take_output(end, &mut rx);
+        let kept = rx.len().min(UART_FIFO_BYTES);
+        self.fifo_lost_bytes += (rx.len() - kept) as u64;
+        self.stalls.0 += 1;
+        self.stalls.1 += us;
+        self.now = end;
+        self.deliver(&rx[..kept]);
+    }
+
+    fn deliver(&mut self, rx: &[u8]) {
+        if rx.is_empty() {
+            return;
+        }
+        self.rx_bytes += rx.len() as u64;
+        if let Some(t) = self.trace.as_mut() {
+            crate::trace::record_rx(t, self.now, rx);
+        }
+        // The chip's way: the UART driver writes into the bridge's receive
+        // space (`rx_buffer` + `handle_received`).
+        let mut rest: &[u8] = rx;
+        while !rest.is_empty() {
+            let space = self.bridge.rx_buffer();
+            let n = space.len().min(rest.len());
+            space[..n].copy_from_slice(&rest[..n]);
+            self.bridge.handle_received(self.now, n);
+            rest = &rest[n..];
+        }
+    }
+
+    /// As [`Harness::run_until`], calling `after_pass(bridge, sim, now)` at the
+    /// end of every pass of the loop, where the chip's bridge task does its
+    /// other work; it returns for how long that work stops the CPU (0: not at
+    /// all), which is then [`Harness::stall`]ed. (`sim` is there for checks:
+    /// what the BMS has on its way.)
+    pub fn run_until_hooked(
+        &mut self,
+        end_us: u64,
+        after_pass: &mut dyn FnMut(&mut Bridge, &SimBms, u64) -> u64,
+    ) {
         let mut rx = Vec::new();
         while self.now < end_us {
             let action = self.bridge.poll(self.now);
@@ -286,25 +346,15 @@ impl Harness {
                     self.now = wake.max(self.now + 1).min(end_us.max(self.now + 1));
                     rx.clear();
                     self.sim.take_output(self.now, &mut rx);
-                    if !rx.is_empty() {
-                        self.rx_bytes += rx.len() as u64;
-                        if let Some(t) = self.trace.as_mut() {
-                            crate::trace::record_rx(t, self.now, &rx);
-                        }
-                        // The chip's way: the UART driver writes into the
-                        // bridge's receive space (`rx_buffer` + `handle_received`).
-                        let mut rest: &[u8] = &rx;
-                        while !rest.is_empty() {
-                            let space = self.bridge.rx_buffer();
-                            let n = space.len().min(rest.len());
-                            space[..n].copy_from_slice(&rest[..n]);
-                            self.bridge.handle_received(self.now, n);
-                            rest = &rest[n..];
-                        }
-                    }
+                    self.deliver(&rx);
                 }
             }
             self.drain();
+            let stall = after_pass(&mut self.bridge, &self.sim, self.now);
+            if stall > 0 {
+                self.stall(stall);
+                self.drain();
+            }
         }
         self.sim.advance(self.now);
     }

@@ -4,6 +4,7 @@
 
 pub mod capture;
 pub mod closed_loop;
+pub mod flash;
 pub mod harness;
 pub mod host_link;
 pub mod hosted;

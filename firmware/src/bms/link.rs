@@ -244,6 +244,8 @@ pub struct Link {
     quiet_until: Instant,
     /// Command of the transaction that set [`Link::quiet_until`].
     quiet_command: u8,
+    /// When the last byte arrived.
+    last_heard: Option<Instant>,
 }
 
 impl Link {
@@ -262,6 +264,7 @@ impl Link {
             online: true,
             quiet_until: 0,
             quiet_command: 0,
+            last_heard: None,
         }
     }
 
@@ -281,6 +284,20 @@ impl Link {
     /// True when no transaction is in progress.
     pub fn is_idle(&self) -> bool {
         self.pending.is_none() && self.done.is_none()
+    }
+
+    /// True when no reply can be on its way at `now`: no transaction in
+    /// progress, no late answer to an earlier copy awaited
+    /// ([`Link::quiet_until`]), and no byte for [`Timing::reply_idle_gap_us`]
+    /// (a reply in flight streams back to back). What a flash write, which
+    /// stops the CPU for tens of milliseconds while the UART FIFO holds 11 ms
+    /// of bytes, waits for.
+    pub fn quiet(&self, now: Instant) -> bool {
+        self.is_idle()
+            && now >= self.quiet_until
+            && self
+                .last_heard
+                .is_none_or(|t| now.saturating_sub(t) >= self.config.reply_idle_gap_us)
     }
 
     /// False after [`crate::bms::timing::OFFLINE_AFTER_FAILURES`] consecutive failures,
@@ -631,6 +648,7 @@ impl Link {
         if !any {
             return;
         }
+        self.last_heard = Some(now);
         // Silence means no byte at all: a late answer between two silent
         // transactions (a reply delayed past our timeout) shows the BMS is
         // there just as well.

@@ -241,6 +241,14 @@ impl Bridge {
         self.s.writes.busy()
     }
 
+    /// True when no BMS reply can be on its way at `now` (no request
+    /// outstanding, the line quiet): the moment for work that stops the CPU,
+    /// such as a flash write ([`crate::config::store`]). Nothing is sent while
+    /// the caller does not call [`Bridge::step`] again: the poll is held.
+    pub fn quiet(&self, now: Instant) -> bool {
+        self.link.quiet(now)
+    }
+
     /// The next report to log, oldest first.
     pub fn next_report(&mut self) -> Option<Report> {
         self.s.out.next()

@@ -1,0 +1,210 @@
+//! Flash for the bridge's configuration store on the desktop:
+//!
+//! * [`FileFlash`] — NOR flash in a file (`sim --bridge-pty --flash FILE`): a
+//!   restart of the simulated bridge finds what it stored, as the chip does.
+//!   Erase sets bytes to 0xFF, a write can only clear bits, as on the chip.
+//! * [`Timed`] — wraps any flash and adds up how long the chip's CPU would be
+//!   stopped by its operations (the cache is off during a flash erase or
+//!   write), so virtual-time tests can stall the bridge by as much.
+
+use std::cell::Cell;
+use std::fs::{File, OpenOptions};
+use std::io::{Read, Seek, SeekFrom, Write};
+use std::path::Path;
+use std::rc::Rc;
+
+use embedded_storage_async::nor_flash::{
+    ErrorType, MultiwriteNorFlash, NorFlash, NorFlashError, NorFlashErrorKind, ReadNorFlash,
+};
+
+/// Size of the chip's `nvs` partition (the default partition table's), bytes.
+pub const PARTITION_BYTES: u32 = 0x6000;
+/// Erase unit of the chip's flash, bytes.
+pub const SECTOR_BYTES: usize = 4096;
+/// Write unit of the chip's flash through `esp-storage`, bytes.
+pub const WORD_BYTES: usize = 4;
+
+/// A flash operation failed.
+#[derive(Debug)]
+pub enum FlashError {
+    /// Outside the flash or not aligned.
+    Bounds,
+    /// The file failed.
+    Io(std::io::Error),
+}
+
+impl NorFlashError for FlashError {
+    fn kind(&self) -> NorFlashErrorKind {
+        match self {
+            Self::Bounds => NorFlashErrorKind::OutOfBounds,
+            Self::Io(_) => NorFlashErrorKind::Other,
+        }
+    }
+}
+
+/// NOR flash of [`PARTITION_BYTES`] in a file (created erased when missing).
+pub struct FileFlash {
+    file: File,
+}
+
+impl FileFlash {
+    /// Opens (or creates, erased) the file at `path`. A file of another size is
+    /// refused: it is not this flash.
+    pub fn open(path: &Path) -> std::io::Result<Self> {
+        let mut file = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(path)?;
+        let len = file.metadata()?.len();
+        if len == 0 {
+            file.write_all(&vec![0xFF; PARTITION_BYTES as usize])?;
+            file.flush()?;
+        } else if len != u64::from(PARTITION_BYTES) {
+            return Err(std::io::Error::other(format!(
+                "{}: {len} bytes, not a {PARTITION_BYTES}-byte flash image",
+                path.display()
+            )));
+        }
+        Ok(Self { file })
+    }
+
+    fn check(&self, offset: u32, len: usize, align: usize) -> Result<(), FlashError> {
+        let end = u64::from(offset) + len as u64;
+        if end > u64::from(PARTITION_BYTES)
+            || offset as usize % align != 0
+            || len % align != 0
+        {
+            return Err(FlashError::Bounds);
+        }
+        Ok(())
+    }
+}
+
+impl ErrorType for FileFlash {
+    type Error = FlashError;
+}
+
+impl ReadNorFlash for FileFlash {
+    const READ_SIZE: usize = WORD_BYTES;
+
+    async fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), Self::Error> {
+        self.check(offset, bytes.len(), Self::READ_SIZE)?;
+        self.file
+            .seek(SeekFrom::Start(u64::from(offset)))
+            .map_err(FlashError::Io)?;
+        self.file.read_exact(bytes).map_err(FlashError::Io)
+    }
+
+    fn capacity(&self) -> usize {
+        PARTITION_BYTES as usize
+    }
+}
+
+impl NorFlash for FileFlash {
+    const WRITE_SIZE: usize = WORD_BYTES;
+    const ERASE_SIZE: usize = SECTOR_BYTES;
+
+    async fn erase(&mut self, from: u32, to: u32) -> Result<(), Self::Error> {
+        if to < from {
+            return Err(FlashError::Bounds);
+        }
+        self.check(from, (to - from) as usize, SECTOR_BYTES)?;
+        self.file
+            .seek(SeekFrom::Start(u64::from(from)))
+            .map_err(FlashError::Io)?;
+        self.file
+            .write_all(&vec![0xFF; (to - from) as usize])
+            .map_err(FlashError::Io)?;
+        self.file.sync_data().map_err(FlashError::Io)
+    }
+
+    async fn write(&mut self, offset: u32, bytes: &[u8]) -> Result<(), Self::Error> {
+        self.check(offset, bytes.len(), WORD_BYTES)?;
+        let mut old = vec![0u8; bytes.len()];
+        self.file
+            .seek(SeekFrom::Start(u64::from(offset)))
+            .map_err(FlashError::Io)?;
+        self.file.read_exact(&mut old).map_err(FlashError::Io)?;
+        // NOR: a write can only turn 1s into 0s.
+        for (o, b) in old.iter_mut().zip(bytes) {
+            *o &= b;
+        }
+        self.file
+            .seek(SeekFrom::Start(u64::from(offset)))
+            .map_err(FlashError::Io)?;
+        self.file.write_all(&old).map_err(FlashError::Io)?;
+        self.file.sync_data().map_err(FlashError::Io)
+    }
+}
+
+impl MultiwriteNorFlash for FileFlash {}
+
+/// How long the chip's CPU stops for each flash operation, µs: the worst
+/// case of common 4 MB SPI NOR flash parts (a 4 KiB sector erase up to
+/// 400 ms, a page program up to 3 ms), and a read from the ROM routines.
+pub const ERASE_STALL_US: u64 = 400_000;
+/// See [`ERASE_STALL_US`].
+pub const WRITE_STALL_US: u64 = 3_000;
+/// See [`ERASE_STALL_US`].
+pub const READ_STALL_US: u64 = 50;
+
+/// Any flash, counting how long its operations would stop the chip's CPU.
+pub struct Timed<F> {
+    inner: F,
+    stall: Rc<Cell<u64>>,
+}
+
+impl<F> Timed<F> {
+    /// `inner`, and the counter its operations add to (µs).
+    pub fn new(inner: F) -> (Self, Rc<Cell<u64>>) {
+        let stall = Rc::new(Cell::new(0));
+        (
+            Self {
+                inner,
+                stall: stall.clone(),
+            },
+            stall,
+        )
+    }
+
+    fn add(&self, us: u64) {
+        self.stall.set(self.stall.get() + us);
+    }
+}
+
+impl<F: ErrorType> ErrorType for Timed<F> {
+    type Error = F::Error;
+}
+
+impl<F: ReadNorFlash> ReadNorFlash for Timed<F> {
+    const READ_SIZE: usize = F::READ_SIZE;
+
+    async fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), Self::Error> {
+        self.add(READ_STALL_US);
+        self.inner.read(offset, bytes).await
+    }
+
+    fn capacity(&self) -> usize {
+        self.inner.capacity()
+    }
+}
+
+impl<F: NorFlash> NorFlash for Timed<F> {
+    const WRITE_SIZE: usize = F::WRITE_SIZE;
+    const ERASE_SIZE: usize = F::ERASE_SIZE;
+
+    async fn erase(&mut self, from: u32, to: u32) -> Result<(), Self::Error> {
+        let sectors = u64::from(to.saturating_sub(from)).div_ceil(F::ERASE_SIZE as u64);
+        self.add(ERASE_STALL_US * sectors);
+        self.inner.erase(from, to).await
+    }
+
+    async fn write(&mut self, offset: u32, bytes: &[u8]) -> Result<(), Self::Error> {
+        self.add(WRITE_STALL_US * (bytes.len() as u64).div_ceil(256));
+        self.inner.write(offset, bytes).await
+    }
+}
+
+impl<F: MultiwriteNorFlash> MultiwriteNorFlash for Timed<F> {}
