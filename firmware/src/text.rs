@@ -492,3 +492,75 @@ pub fn inverter(r: &InverterReport, out: &mut Line) {
         }
     }
 }
+
+/// Log level of a configuration note: what needs attention is a warning.
+pub fn config_level(n: &crate::config::state::Note) -> crate::Level {
+    use crate::config::state::Note;
+    use crate::config::store::Source;
+    match n {
+        Note::Loaded(Source::Invalid(_) | Source::Unreadable(_))
+        | Note::Unlocked
+        | Note::SaveFailed(_) => crate::Level::Warn,
+        _ => crate::Level::Info,
+    }
+}
+
+/// Writes what a configuration note says into `out` (appended). Values are
+/// taken from `config`'s stored record; a secret is only ever `set` or
+/// `unset`.
+pub fn config_note(
+    n: &crate::config::state::Note,
+    config: &crate::config::state::ConfigState,
+    out: &mut Line,
+) {
+    use crate::config::state::Note;
+    use crate::config::store::{Saved, Source};
+    use crate::config::{value, Applies};
+    match n {
+        Note::Loaded(Source::Flash) => {
+            out.push("configuration from flash");
+        }
+        Note::Loaded(Source::Empty) => {
+            out.push("configuration: none stored, running with the defaults");
+        }
+        Note::Loaded(Source::Invalid(e)) => {
+            out.push("configuration in flash is not valid (")
+                .push(e.reason())
+                .push("): running with the defaults");
+        }
+        Note::Loaded(Source::Unreadable(e)) => {
+            out.push("configuration store cannot be read (")
+                .push(e.reason())
+                .push("): running with the defaults");
+        }
+        Note::Changed(id, applies) => {
+            let f = id.field();
+            out.push("config: ").push(f.name);
+            if f.is_secret() {
+                out.push(" ");
+            } else {
+                out.push(" = ");
+            }
+            value::write(f, &config.stored().get(*id), true, out);
+            out.push(match applies {
+                Applies::Now => " (now)",
+                Applies::Restart => " (at the next restart)",
+            });
+        }
+        Note::Reset => {
+            out.push("config: every field back to its default");
+        }
+        Note::Unlocked => {
+            out.push("BOOT button held 5 s: read-only lifted");
+        }
+        Note::Saved(Saved::Written) => {
+            out.push("config saved to flash");
+        }
+        Note::Saved(Saved::Unchanged) => {
+            out.push("config unchanged: nothing written");
+        }
+        Note::SaveFailed(e) => {
+            out.push("config save failed: ").push(e.reason());
+        }
+    }
+}

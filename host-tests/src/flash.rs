@@ -72,10 +72,7 @@ impl FileFlash {
 
     fn check(&self, offset: u32, len: usize, align: usize) -> Result<(), FlashError> {
         let end = u64::from(offset) + len as u64;
-        if end > u64::from(PARTITION_BYTES)
-            || offset as usize % align != 0
-            || len % align != 0
-        {
+        if end > u64::from(PARTITION_BYTES) || offset as usize % align != 0 || len % align != 0 {
             return Err(FlashError::Bounds);
         }
         Ok(())
@@ -208,3 +205,157 @@ impl<F: NorFlash> NorFlash for Timed<F> {
 }
 
 impl<F: MultiwriteNorFlash> MultiwriteNorFlash for Timed<F> {}
+
+/// NOR flash of [`PARTITION_BYTES`] in RAM: what [`FileFlash`] is, without the
+/// file. Clones share the same bytes (the same chip's flash, seen by the
+/// store and by a test); [`RamFlash::copy`] makes an independent one (the flash
+/// as a restarted chip finds it).
+#[derive(Debug, Clone)]
+pub struct RamFlash {
+    bytes: std::sync::Arc<std::sync::Mutex<Vec<u8>>>,
+}
+
+impl Default for RamFlash {
+    fn default() -> Self {
+        Self {
+            bytes: std::sync::Arc::new(std::sync::Mutex::new(vec![0xFF; PARTITION_BYTES as usize])),
+        }
+    }
+}
+
+impl RamFlash {
+    /// Erased.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// An independent flash with the same contents.
+    pub fn copy(&self) -> Self {
+        Self {
+            bytes: std::sync::Arc::new(std::sync::Mutex::new(self.lock().clone())),
+        }
+    }
+
+    /// The contents.
+    pub fn lock(&self) -> std::sync::MutexGuard<'_, Vec<u8>> {
+        self.bytes.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn range(
+        len_total: usize,
+        offset: u32,
+        len: usize,
+        align: usize,
+    ) -> Result<std::ops::Range<usize>, FlashError> {
+        let start = offset as usize;
+        let end = start.checked_add(len).ok_or(FlashError::Bounds)?;
+        if end > len_total || start % align != 0 || len % align != 0 {
+            return Err(FlashError::Bounds);
+        }
+        Ok(start..end)
+    }
+}
+
+impl ErrorType for RamFlash {
+    type Error = FlashError;
+}
+
+impl ReadNorFlash for RamFlash {
+    const READ_SIZE: usize = WORD_BYTES;
+
+    async fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), Self::Error> {
+        let data = self.lock();
+        let r = Self::range(data.len(), offset, bytes.len(), Self::READ_SIZE)?;
+        bytes.copy_from_slice(&data[r]);
+        Ok(())
+    }
+
+    fn capacity(&self) -> usize {
+        PARTITION_BYTES as usize
+    }
+}
+
+impl NorFlash for RamFlash {
+    const WRITE_SIZE: usize = WORD_BYTES;
+    const ERASE_SIZE: usize = SECTOR_BYTES;
+
+    async fn erase(&mut self, from: u32, to: u32) -> Result<(), Self::Error> {
+        let mut data = self.lock();
+        let r = Self::range(
+            data.len(),
+            from,
+            to.saturating_sub(from) as usize,
+            SECTOR_BYTES,
+        )?;
+        data[r].fill(0xFF);
+        Ok(())
+    }
+
+    async fn write(&mut self, offset: u32, bytes: &[u8]) -> Result<(), Self::Error> {
+        let mut data = self.lock();
+        let r = Self::range(data.len(), offset, bytes.len(), WORD_BYTES)?;
+        for (o, b) in data[r].iter_mut().zip(bytes) {
+            *o &= b;
+        }
+        Ok(())
+    }
+}
+
+impl MultiwriteNorFlash for RamFlash {}
+
+/// The store on a flash of [`PARTITION_BYTES`] (the chip's `nvs` partition).
+pub fn store<F: NorFlash>(flash: F) -> tinybms_firmware::config::store::Store<F> {
+    match tinybms_firmware::config::store::Store::new(flash, 0..PARTITION_BYTES) {
+        Ok(s) => s,
+        // 6 whole sectors: always a valid range.
+        Err(e) => panic!("store on the partition: {e:?}"),
+    }
+}
+
+/// The flash of a simulated bridge: a file (kept across restarts) or RAM.
+pub enum SimFlash {
+    /// `sim --bridge-pty --flash FILE`.
+    File(FileFlash),
+    /// Gone when the program ends.
+    Ram(RamFlash),
+}
+
+impl ErrorType for SimFlash {
+    type Error = FlashError;
+}
+
+impl ReadNorFlash for SimFlash {
+    const READ_SIZE: usize = WORD_BYTES;
+
+    async fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), Self::Error> {
+        match self {
+            Self::File(f) => f.read(offset, bytes).await,
+            Self::Ram(f) => f.read(offset, bytes).await,
+        }
+    }
+
+    fn capacity(&self) -> usize {
+        PARTITION_BYTES as usize
+    }
+}
+
+impl NorFlash for SimFlash {
+    const WRITE_SIZE: usize = WORD_BYTES;
+    const ERASE_SIZE: usize = SECTOR_BYTES;
+
+    async fn erase(&mut self, from: u32, to: u32) -> Result<(), Self::Error> {
+        match self {
+            Self::File(f) => f.erase(from, to).await,
+            Self::Ram(f) => f.erase(from, to).await,
+        }
+    }
+
+    async fn write(&mut self, offset: u32, bytes: &[u8]) -> Result<(), Self::Error> {
+        match self {
+            Self::File(f) => f.write(offset, bytes).await,
+            Self::Ram(f) => f.write(offset, bytes).await,
+        }
+    }
+}
+
+impl MultiwriteNorFlash for SimFlash {}

@@ -6,10 +6,15 @@
 
 use std::sync::OnceLock;
 
+use embassy_futures::block_on;
 use serde_json::Value;
+use tinybms_firmware::config::state::ConfigState;
+use tinybms_firmware::config::store::{save_when_quiet, Source, Store};
+use tinybms_firmware::config::Config;
 use tinybms_firmware::host_link::{HostLink, HostLinkConfig, OUT_LINE_MAX};
 use tinybms_firmware::{Bridge, MS, SECOND};
 
+use crate::flash::RamFlash;
 use crate::harness::Harness;
 use crate::sim::{PackProfile, SimBms, SimConfig};
 
@@ -19,8 +24,24 @@ pub struct Rig {
     pub h: Harness,
     /// The host link under test.
     pub link: HostLink,
+    /// The bridge's configuration.
+    pub config: ConfigState,
+    /// Its store, on a flash in RAM.
+    pub store: Store<RamFlash>,
+    /// That flash (shared with the store).
+    pub flash: RamFlash,
+    /// Saves of the configuration made.
+    pub saves: u64,
     /// Log lines already handed to the host link.
     forwarded: usize,
+}
+
+/// A configuration record with the host link settings of `config`.
+pub fn record_for(config: &HostLinkConfig) -> Config {
+    let mut c = Config::default();
+    c.read_only = config.read_only;
+    c.stream_period_ms = config.stream_period_ms;
+    c
 }
 
 /// Host link configuration for tests (`chip` = `sim`).
@@ -39,8 +60,13 @@ impl Rig {
         let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 1);
         let mut h = Harness::new(sim);
         h.echo = false;
+        let flash = RamFlash::new();
         Self {
             link: HostLink::new(config, h.now),
+            config: ConfigState::new(record_for(&config), Source::Empty),
+            store: crate::flash::store(flash.clone()),
+            flash,
+            saves: 0,
             h,
             forwarded: 0,
         }
@@ -62,7 +88,29 @@ impl Rig {
             let step = (self.h.now + 50 * MS).min(end);
             self.h.run_until(step);
             self.forward();
+            self.service_config();
             self.link.poll(self.h.now, &self.h.bridge);
+        }
+    }
+
+    /// What the chip's bridge task does for the configuration after a pass:
+    /// at-once changes to the host link, the save when the link is quiet.
+    pub fn service_config(&mut self) {
+        let now = self.h.now;
+        if let Some(c) = self.config.take_running_change() {
+            self.link.apply_config(now, c);
+        }
+        let due = self.config.save_due() && self.h.bridge.quiet(now);
+        if let Some(r) = block_on(save_when_quiet(
+            &mut self.config,
+            &mut self.store,
+            &self.h.bridge,
+            now,
+        )) {
+            self.link.on_config_saved(r);
+        }
+        if due {
+            self.saves += 1;
         }
     }
 
@@ -88,7 +136,8 @@ impl Rig {
 
     /// Sends bytes from the host.
     pub fn send(&mut self, bytes: &[u8]) {
-        self.link.handle_rx(self.h.now, bytes, &mut self.h.bridge);
+        self.link
+            .handle_rx(self.h.now, bytes, &mut self.h.bridge, &mut self.config);
     }
 
     /// Sends one line (a `\n` is appended).
@@ -102,7 +151,10 @@ impl Rig {
     pub fn drain_text(&mut self) -> Vec<String> {
         let mut out = Vec::new();
         let mut buf = [0u8; OUT_LINE_MAX];
-        while let Some(n) = self.link.next_line(self.h.now, &self.h.bridge, &mut buf) {
+        while let Some(n) = self
+            .link
+            .next_line(self.h.now, &self.h.bridge, &self.config, &mut buf)
+        {
             out.push(check_line(buf.get(..n).unwrap_or(&[])));
         }
         out
@@ -151,23 +203,38 @@ pub fn fuzz_one(data: &[u8]) {
     } else {
         ready_bridge().clone()
     };
-    let mut link = HostLink::new(config(flags & 1 != 0, 100), 0);
+    let host = config(flags & 1 != 0, 100);
+    let mut link = HostLink::new(host, 0);
+    let mut cfg = ConfigState::new(record_for(&host), Source::Empty);
+    let before = cfg.stored().clone();
     let mut writes_accepted = 0usize;
+    let mut config_accepted = 0usize;
     let mut buf = [0u8; OUT_LINE_MAX];
     let mut now = 0;
     for piece in input.chunks(chunk.max(1)) {
         now += 10 * MS;
-        link.handle_rx(now, piece, &mut bridge);
+        link.handle_rx(now, piece, &mut bridge, &mut cfg);
         link.poll(now, &bridge);
-        while let Some(n) = link.next_line(now, &bridge, &mut buf) {
+        while let Some(n) = link.next_line(now, &bridge, &cfg, &mut buf) {
             let line = check_line(buf.get(..n).unwrap_or(&[]));
             let v: Value = serde_json::from_str(&line).unwrap_or(Value::Null);
-            if v["type"] == "accepted"
-                && ["set", "reset", "clear"].contains(&v["cmd"].as_str().unwrap_or(""))
-            {
+            let cmd = v["cmd"].as_str().unwrap_or("");
+            if v["type"] == "accepted" && ["set", "reset", "clear"].contains(&cmd) {
                 writes_accepted += 1;
             }
+            if v["type"] == "accepted" && ["set_config", "reset_config"].contains(&cmd) {
+                config_accepted += 1;
+            }
         }
+    }
+    // The record is always valid, whatever came in.
+    assert!(cfg.stored().validate().is_ok());
+    if config_accepted == 0 {
+        assert_eq!(
+            cfg.stored(),
+            &before,
+            "the configuration changed without `accepted`"
+        );
     }
     if writes_accepted == 0 {
         assert!(
@@ -177,5 +244,9 @@ pub fn fuzz_one(data: &[u8]) {
     }
     if flags & 1 != 0 {
         assert_eq!(writes_accepted, 0, "read-only link accepted a write");
+        assert_eq!(
+            config_accepted, 0,
+            "read-only link accepted a configuration change"
+        );
     }
 }

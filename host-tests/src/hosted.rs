@@ -17,10 +17,16 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc;
 use std::time::Duration;
 
+use embassy_futures::block_on;
 use protocol_core::settings::SettingId;
 use tinybms_firmware::bms::timing::Timing;
+use tinybms_firmware::config::button::Hold;
+use tinybms_firmware::config::state::ConfigState;
+use tinybms_firmware::config::store::{save_when_quiet, Store};
 use tinybms_firmware::host_link::{HostLink, HostLinkConfig};
+use tinybms_firmware::text::Line;
 
+use crate::flash::SimFlash;
 use crate::pty::Pty;
 use crate::realtime::{BytePort, Driver, Happened, SimPort, MAX_SLICE};
 use crate::sim::SimBms;
@@ -44,6 +50,14 @@ pub struct Hosted<P: BytePort> {
     pub driver: Driver<P>,
     /// The host link.
     pub host: HostLink,
+    /// The bridge's configuration.
+    pub config: ConfigState,
+    /// Its store.
+    pub store: Store<SimFlash>,
+    /// The BOOT button: held from this time (µs) for this long, if ever
+    /// (`sim --bridge-pty --boot-button`).
+    pub boot_button: Option<(u64, u64)>,
+    hold: Hold,
     /// Print every report to stderr, as the device logs it.
     pub log: bool,
     line: Vec<u8>,
@@ -51,13 +65,22 @@ pub struct Hosted<P: BytePort> {
 }
 
 impl<P: BytePort> Hosted<P> {
-    /// Both at time 0 (now). The host link has not seen a connection yet:
-    /// call [`Hosted::connected`].
-    pub fn new(port: P, bridge: Timing, host: HostLinkConfig) -> Self {
+    /// Both at time 0 (now), with the configuration record in `flash` (the
+    /// defaults when it holds none; `chip` names the host link's chip). The
+    /// host link has not seen a connection yet: call [`Hosted::connected`].
+    pub fn new(port: P, bridge: Timing, flash: SimFlash, chip: &'static str) -> Self {
         let driver = Driver::new(port, bridge);
         let now = driver.clock().now();
+        let mut store = crate::flash::store(flash);
+        let loaded = block_on(store.load());
+        let host: HostLinkConfig = loaded.config.host_link(chip);
+        let config = ConfigState::new(loaded.config, loaded.source);
         Self {
             host: HostLink::new(host, now),
+            config,
+            store,
+            boot_button: None,
+            hold: Hold::new(),
             driver,
             log: false,
             line: vec![0; LINE_BUF],
@@ -78,6 +101,10 @@ impl<P: BytePort> Hosted<P> {
         let Self {
             driver,
             host,
+            config,
+            store,
+            boot_button,
+            hold,
             log,
             line,
             input,
@@ -88,20 +115,87 @@ impl<P: BytePort> Hosted<P> {
         side.read(input)?;
         if !input.is_empty() {
             let now = driver.clock().now();
-            host.handle_rx(now, input, &mut driver.bridge);
+            host.handle_rx(now, input, &mut driver.bridge, config);
             // A submitted command may have something to send at once.
             driver.service(|h| tell(host, log, h))?;
         }
         let now = driver.clock().now();
+        if let Some((from, long)) = *boot_button {
+            let pressed = now >= from && now < from + long;
+            if hold.sample(now, pressed) {
+                config.unlock();
+            }
+        }
+        if let Some(c) = config.take_running_change() {
+            host.apply_config(now, c);
+        }
+        if let Some(r) = block_on(save_when_quiet(config, store, &driver.bridge, now)) {
+            host.on_config_saved(r);
+        }
+        while let Some(n) = config.next_note() {
+            if log {
+                let mut l = Line::new();
+                tinybms_firmware::text::config_note(&n, config, &mut l);
+                eprintln!("{:>10.3}s {}", now as f64 / 1e6, l.as_str());
+            }
+        }
         let host_deadline = host.poll(now, &driver.bridge);
         while side.can_take() {
-            match host.next_line(now, &driver.bridge, line) {
+            match host.next_line(now, &driver.bridge, config, line) {
                 Some(n) => side.write_line(line.get(..n).unwrap_or(&[]))?,
                 None => break,
             }
         }
-        let wait = MAX_SLICE.min(driver.clock().until(host_deadline));
+        let mut wait = MAX_SLICE.min(driver.clock().until(host_deadline));
+        if boot_button.is_some() {
+            wait = wait.min(Duration::from_micros(
+                tinybms_firmware::config::button::SAMPLE_PERIOD_US,
+            ));
+        }
         driver.receive(wait, |rx| host.on_uart_rx(rx))?;
+        Ok(())
+    }
+}
+
+impl<P: BytePort> Hosted<P> {
+    /// Changes the configuration record by name (text values, as `tinybms
+    /// config NAME=VALUE`) and stores it: the start-up options of `sim
+    /// --bridge-pty`. A refusal is an error naming the field.
+    pub fn change_config(&mut self, changes: &[(String, String)]) -> Result<(), String> {
+        use tinybms_firmware::config::state::Outcome;
+        use tinybms_firmware::config::{value, FieldId};
+        if changes.is_empty() {
+            return Ok(());
+        }
+        let mut parsed = Vec::new();
+        for (name, text) in changes {
+            let id = FieldId::from_name(name)
+                .ok_or_else(|| format!("no configuration field `{name}`"))?;
+            let v = value::parse(id.field(), text)
+                .map_err(|e| format!("{name} = {text}: {}", e.detail))?;
+            parsed.push((id, v));
+        }
+        for (id, o) in self.config.change(&parsed, false, None) {
+            if let Outcome::Refused(e) = o {
+                return Err(format!("{}: {}", id.name(), e.detail));
+            }
+            if let Outcome::RuleBroken(d) = o {
+                return Err(format!("{}: {d}", id.name()));
+            }
+        }
+        // Before any request: the link is quiet, the save may go now.
+        if let Some(Err(e)) = block_on(save_when_quiet(
+            &mut self.config,
+            &mut self.store,
+            &self.driver.bridge,
+            self.driver.clock().now(),
+        )) {
+            return Err(format!("saving the configuration: {}", e.reason()));
+        }
+        if let Some(c) = self.config.take_running_change() {
+            let now = self.driver.clock().now();
+            self.host.apply_config(now, c);
+        }
         Ok(())
     }
 }
@@ -207,10 +301,13 @@ impl HostSide for ChannelSide {
 /// What `sim --bridge-pty` runs.
 #[derive(Debug, Clone)]
 pub struct BridgePtyOptions {
-    /// Host writes refused.
-    pub read_only: bool,
-    /// Telemetry push period, ms (0: off).
-    pub stream_period_ms: u32,
+    /// Changes to the configuration record at start, as `tinybms config NAME=VALUE`
+    /// would make them (stored: `--read-only`, `--stream-period`, `--config`).
+    pub config: Vec<(String, String)>,
+    /// The file that holds the configuration record (`--flash`); `None`: RAM.
+    pub flash: Option<std::path::PathBuf>,
+    /// Hold the BOOT button from this time for this long (`--boot-button`).
+    pub boot_button: Option<(Duration, Duration)>,
     /// Settings written through write/verify at start, as the firmware's
     /// profile.
     pub profile: Vec<(SettingId, i32)>,
@@ -229,14 +326,16 @@ pub fn serve_bridge_pty(
     stop: &AtomicBool,
     out: &mut dyn Write,
 ) -> io::Result<()> {
-    let pty = Pty::open_announced(out)?;
-    let host = HostLinkConfig {
-        read_only: o.read_only,
-        stream_period_ms: o.stream_period_ms,
-        firmware: env!("CARGO_PKG_VERSION"),
-        chip: "sim",
+    let flash = match &o.flash {
+        Some(path) => SimFlash::File(crate::flash::FileFlash::open(path)?),
+        None => SimFlash::Ram(crate::flash::RamFlash::new()),
     };
-    let mut h = Hosted::new(SimPort::new(sim), o.bridge, host);
+    let mut h = Hosted::new(SimPort::new(sim), o.bridge, flash, "sim");
+    h.change_config(&o.config).map_err(io::Error::other)?;
+    h.boot_button = o
+        .boot_button
+        .map(|(from, long)| (from.as_micros() as u64, long.as_micros() as u64));
+    let pty = Pty::open_announced(out)?;
     h.driver
         .bridge
         .submit_profile(&o.profile)

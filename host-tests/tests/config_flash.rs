@@ -79,7 +79,9 @@ fn run(seconds: u64, change_every_us: u64, placement: Placement, every_save_eras
             // A harmless at-once field, a new value each time.
             let cap = Parsed::Number(100 + (n % 5000) as i32);
             state.change(&[(FieldId::ChargeCurrentCap, cap)], false, None);
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             // Jitter: changes land at every phase of the poll cycle.
             next_change = now + change_every_us / 2 + (seed >> 33) % change_every_us;
         }

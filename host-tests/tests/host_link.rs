@@ -457,8 +457,9 @@ fn event_lines_are_replays_events() {
         link.on_report(&Report::NewEvent(e));
     }
     let mut buf = [0u8; OUT_LINE_MAX];
+    let cfg = defaults();
     for e in events {
-        let n = link.next_line(0, &bridge, &mut buf).unwrap();
+        let n = link.next_line(0, &bridge, &cfg, &mut buf).unwrap();
         let mut v: serde_json::Map<String, Value> =
             serde_json::from_str(&check_line(&buf[..n])).unwrap();
         assert_eq!(v.remove("type").unwrap(), "event");
@@ -539,8 +540,9 @@ fn set_reset_clear_and_outcome_correlation() {
     });
     let mut buf = [0u8; OUT_LINE_MAX];
     let bridge = tinybms_firmware::Bridge::new(tinybms_firmware::bms::timing::Timing::default(), 0);
+    let cfg = defaults();
     let mut next = || {
-        let n = link.next_line(0, &bridge, &mut buf).unwrap();
+        let n = link.next_line(0, &bridge, &cfg, &mut buf).unwrap();
         serde_json::from_str::<Value>(&check_line(&buf[..n])).unwrap()
     };
     let a = next();
@@ -1161,4 +1163,12 @@ fn hello_and_connect_start_a_clean_session() {
         assert_eq!(r.link.stream_period_ms(), 1000);
         assert!(!r.link.capturing());
     }
+}
+
+/// The default configuration record, as a state.
+fn defaults() -> tinybms_firmware::config::state::ConfigState {
+    tinybms_firmware::config::state::ConfigState::new(
+        tinybms_firmware::config::Config::default(),
+        tinybms_firmware::config::store::Source::Empty,
+    )
 }

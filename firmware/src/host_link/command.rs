@@ -10,11 +10,15 @@
 
 use heapless::Vec;
 use serde::de::{DeserializeSeed, IgnoredAny, MapAccess, Visitor};
+use serde_json_core::str::EscapedStr;
 
 use super::ErrorCode;
 
 /// Most settings in one `set` (PROTOCOL.md).
 pub const MAX_SET: usize = 8;
+
+/// Most fields in one `set_config`.
+pub const MAX_SET_CONFIG: usize = crate::config::state::MAX_CHANGES;
 
 /// Deepest nesting of objects and arrays accepted in a command line (the
 /// command object is 1, `values` is 2): bounds the parser's recursion.
@@ -35,6 +39,8 @@ pub enum What {
     Version,
     /// `link` line.
     Link,
+    /// `config` lines (the bridge's own configuration) and `config_end`.
+    Config,
 }
 
 /// What `clear` clears.
@@ -72,6 +78,11 @@ pub enum HostCommand<'a> {
     Stream(u32),
     /// `capture`.
     Capture(bool),
+    /// `set_config`: the bridge's configuration fields by name, their values
+    /// as text (JSON strings, escapes still in).
+    SetConfig(Vec<(&'a str, EscapedStr<'a>), MAX_SET_CONFIG>),
+    /// `reset_config`: every field back to its default.
+    ResetConfig,
 }
 
 /// A command line that parsed, with its request id.
@@ -108,6 +119,7 @@ struct Fields<'a> {
     raw: Option<Vec<(&'a str, f64), MAX_SET>>,
     period_ms: Option<u32>,
     on: Option<bool>,
+    fields: Option<Vec<(&'a str, EscapedStr<'a>), MAX_SET_CONFIG>>,
     /// The first member no command has.
     unknown: Option<&'a str>,
     /// A member given twice.
@@ -186,6 +198,12 @@ impl<'de, 'f> Visitor<'de> for Top<'f, 'de> {
                     let v = map.next_value()?;
                     put(&mut f.on, v, "on", &mut f.duplicate);
                 }
+                "fields" => {
+                    f.current = "fields";
+                    let mut pairs = Vec::new();
+                    map.next_value_seed(TextPairs(&mut pairs, &mut f.too_many))?;
+                    put(&mut f.fields, pairs, "fields", &mut f.duplicate);
+                }
                 "values" | "raw" => {
                     let name = if key == "raw" { "raw" } else { "values" };
                     f.current = name;
@@ -229,6 +247,37 @@ impl<'de, 'v> Visitor<'de> for Pairs<'v, 'de> {
     fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<(), A::Error> {
         while let Some(name) = map.next_key::<&'de str>()? {
             let v: f64 = map.next_value()?;
+            if self.0.push((name, v)).is_err() {
+                *self.1 = true;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// `{NAME: "text", ...}`, at most [`MAX_SET_CONFIG`] kept.
+struct TextPairs<'v, 'a>(
+    &'v mut Vec<(&'a str, EscapedStr<'a>), MAX_SET_CONFIG>,
+    &'v mut bool,
+);
+
+impl<'de, 'v> DeserializeSeed<'de> for TextPairs<'v, 'de> {
+    type Value = ();
+    fn deserialize<D: serde::Deserializer<'de>>(self, d: D) -> Result<(), D::Error> {
+        d.deserialize_map(self)
+    }
+}
+
+impl<'de, 'v> Visitor<'de> for TextPairs<'v, 'de> {
+    type Value = ();
+
+    fn expecting(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str("an object of field names and strings")
+    }
+
+    fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<(), A::Error> {
+        while let Some(name) = map.next_key::<&'de str>()? {
+            let v: EscapedStr<'de> = map.next_value()?;
             if self.0.push((name, v)).is_err() {
                 *self.1 = true;
             }
@@ -287,6 +336,7 @@ fn what(s: &str) -> Option<What> {
         "events" => What::Events,
         "version" => What::Version,
         "link" => What::Link,
+        "config" => What::Config,
         _ => return None,
     })
 }
@@ -343,7 +393,8 @@ pub fn parse(line: &[u8]) -> Result<Parsed<'_>, CommandError<'_>> {
     };
     // Members each command takes.
     let takes: &[&str] = match cmd {
-        "hello" | "reset" => &[],
+        "hello" | "reset" | "reset_config" => &[],
+        "set_config" => &["fields"],
         "get" | "clear" => &["what"],
         "set" => &["values", "raw"],
         "stream" => &["period_ms"],
@@ -359,6 +410,7 @@ pub fn parse(line: &[u8]) -> Result<Parsed<'_>, CommandError<'_>> {
         ("raw", f.raw.is_some()),
         ("period_ms", f.period_ms.is_some()),
         ("on", f.on.is_some()),
+        ("fields", f.fields.is_some()),
     ];
     for (name, present) in given {
         if present && !takes.contains(&name) {
@@ -373,6 +425,24 @@ pub fn parse(line: &[u8]) -> Result<Parsed<'_>, CommandError<'_>> {
     let command = match cmd {
         "hello" => HostCommand::Hello,
         "reset" => HostCommand::Reset,
+        "reset_config" => HostCommand::ResetConfig,
+        "set_config" => {
+            let fields = f.fields.ok_or(err(
+                req,
+                ErrorCode::MissingField,
+                "missing member",
+                "fields",
+            ))?;
+            if f.too_many || fields.is_empty() {
+                return Err(err(
+                    req,
+                    ErrorCode::InvalidValue,
+                    "1 to 12 fields per set_config",
+                    "",
+                ));
+            }
+            HostCommand::SetConfig(fields)
+        }
         "get" => {
             let w = f
                 .what
@@ -380,7 +450,7 @@ pub fn parse(line: &[u8]) -> Result<Parsed<'_>, CommandError<'_>> {
             HostCommand::Get(what(w).ok_or(err(
                 req,
                 ErrorCode::InvalidValue,
-                "what: snapshot, settings, statistics, events, version or link",
+                "what: snapshot, settings, statistics, events, version, link or config",
                 w,
             ))?)
         }

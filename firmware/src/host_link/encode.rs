@@ -801,9 +801,9 @@ pub fn error(
     detail: &'static str,
     subject: &str,
 ) -> Option<usize> {
-    // The longest reason is 61 bytes (`what: snapshot, ...`); a reason and a
+    // The longest reason is 70 bytes (`what: snapshot, ...`); a reason and a
     // subject that do not fit would lose the subject.
-    let mut d: String<{ 64 + 2 + super::SUBJECT_MAX }> = String::new();
+    let mut d: String<{ 96 + 2 + super::SUBJECT_MAX }> = String::new();
     let _ = d.push_str(detail);
     if !subject.is_empty() {
         let _ = d.push_str(": ");
@@ -815,6 +815,207 @@ pub fn error(
             req,
             error: code,
             detail: &d,
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct ConfigFieldLine<'a> {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    name: &'static str,
+    group: &'static str,
+    value: &'a str,
+    unit: &'static str,
+    default: &'a str,
+    range: &'a str,
+    applies: &'static str,
+    restart_pending: bool,
+    secret: bool,
+    help: &'static str,
+}
+
+/// Writes a `config` line: one field of the bridge's configuration, its value
+/// in the stored record as text (`set`/`unset` for a secret), its default,
+/// range and when a change applies.
+pub fn config_field(
+    out: &mut [u8],
+    req: Option<u32>,
+    f: &crate::config::Field,
+    config: &crate::config::state::ConfigState,
+) -> Option<usize> {
+    use crate::config::value;
+    use crate::text::Line;
+    let mut v = Line::new();
+    value::write(f, &config.stored().get(f.id), false, &mut v);
+    let defaults = crate::config::Config::default();
+    let mut d = Line::new();
+    value::write(f, &defaults.get(f.id), false, &mut d);
+    let mut r = Line::new();
+    value::write_range(f, &mut r);
+    line(
+        &ConfigFieldLine {
+            ty: "config",
+            req,
+            name: f.name,
+            group: f.group.name(),
+            value: v.as_str(),
+            unit: f.unit,
+            default: d.as_str(),
+            range: r.as_str(),
+            applies: f.applies.name(),
+            restart_pending: config.restart_pending(f.id),
+            secret: f.is_secret(),
+            help: f.help,
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct ConfigEndLine {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    count: u32,
+    version: u8,
+    source: &'static str,
+    restart_pending: u32,
+}
+
+/// Writes a `config_end` line: how many fields, the record's layout version,
+/// where the record the bridge started with came from, and how many fields
+/// wait for a restart.
+pub fn config_end(
+    out: &mut [u8],
+    req: Option<u32>,
+    config: &crate::config::state::ConfigState,
+) -> Option<usize> {
+    line(
+        &ConfigEndLine {
+            ty: "config_end",
+            req,
+            count: crate::config::FIELDS.len() as u32,
+            version: crate::config::VERSION,
+            source: config.source().name(),
+            restart_pending: config.restarts_pending() as u32,
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct ConfigOutcomeLine<'a> {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    name: &'a str,
+    outcome: &'static str,
+    value: Option<&'a str>,
+    error: Option<&'static str>,
+    detail: Option<&'static str>,
+    range: Option<&'a str>,
+}
+
+/// Writes a `config_outcome` line for a field of a `set_config`: the outcome,
+/// the field's value in the stored record afterwards (`set`/`unset` for a
+/// secret), and for a refusal the error code, the reason and the field's range.
+pub fn config_outcome(
+    out: &mut [u8],
+    req: Option<u32>,
+    name: &str,
+    id: Option<crate::config::FieldId>,
+    outcome: crate::config::state::Outcome,
+    config: &crate::config::state::ConfigState,
+) -> Option<usize> {
+    use crate::config::state::Outcome;
+    use crate::config::value;
+    use crate::text::Line;
+    let mut v = Line::new();
+    let mut r = Line::new();
+    if let Some(id) = id {
+        value::write(id.field(), &config.stored().get(id), true, &mut v);
+        value::write_range(id.field(), &mut r);
+    }
+    let (error, detail) = match outcome {
+        Outcome::Refused(e) => (
+            Some(if e.out_of_range {
+                "out_of_range"
+            } else {
+                "invalid_value"
+            }),
+            Some(e.detail),
+        ),
+        Outcome::RuleBroken(d) => (Some("out_of_range"), Some(d)),
+        Outcome::NotApplied => (None, Some("another field was refused: nothing changed")),
+        _ => (None, None),
+    };
+    let refused = error.is_some();
+    line(
+        &ConfigOutcomeLine {
+            ty: "config_outcome",
+            req,
+            name,
+            outcome: outcome.name(),
+            value: id.map(|_| v.as_str()),
+            error,
+            detail,
+            range: (refused && id.is_some()).then_some(r.as_str()),
+        },
+        out,
+    )
+}
+
+/// Writes the `config_outcome` line of a name no field has.
+pub fn config_unknown(out: &mut [u8], req: Option<u32>, name: &str) -> Option<usize> {
+    line(
+        &ConfigOutcomeLine {
+            ty: "config_outcome",
+            req,
+            name,
+            outcome: "refused",
+            value: None,
+            error: Some("unknown_setting"),
+            detail: Some("no such field (`tinybms config PORT` lists them)"),
+            range: None,
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct ConfigDoneLine {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    req: Option<u32>,
+    changed: u8,
+    saved: Option<bool>,
+    restart_needed: u8,
+    detail: Option<&'static str>,
+}
+
+/// Writes a `config_done` line: the end of a `set_config` or `reset_config`.
+pub fn config_done(out: &mut [u8], done: &super::ConfigDone) -> Option<usize> {
+    use crate::config::store::Saved;
+    let (saved, detail) = match done.saved {
+        None => (None, None),
+        Some(Ok(Saved::Written | Saved::Unchanged)) => (Some(true), None),
+        Some(Err(e)) => (Some(false), Some(e.reason())),
+    };
+    line(
+        &ConfigDoneLine {
+            ty: "config_done",
+            req: done.req,
+            changed: done.changed,
+            saved,
+            restart_needed: done.restart_needed,
+            detail,
         },
         out,
     )

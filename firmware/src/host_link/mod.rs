@@ -39,6 +39,10 @@ use protocol_core::settings::Setting;
 use crate::bms::timing::MAX_SETTINGS_GROUP;
 use crate::bridge::report::{Report, WriteOutcome};
 use crate::bridge::{Bridge, Command};
+use crate::config::state::{ConfigState, Outcome};
+use crate::config::store::{Saved, StoreError};
+use crate::config::value::{self, FieldError, Parsed};
+use crate::config::{Config, FieldId, PackSettings, TEXT_MAX};
 use crate::Instant;
 use command::{ClearWhat, HostCommand, SetValues, What};
 use line::{LineAssembler, Piece};
@@ -208,7 +212,47 @@ enum Out {
     Link(Option<u32>),
     ResetDone(Option<u32>, bool),
     Cleared(Option<u32>, u8, bool),
+    /// `get config`: the next index into `config::FIELDS`.
+    Config {
+        req: Option<u32>,
+        next: u8,
+    },
+    /// One field of a `set_config`.
+    ConfigOutcome {
+        req: Option<u32>,
+        name: String<SUBJECT_MAX>,
+        outcome: ConfigAnswer,
+    },
+    /// The end of a `set_config` or `reset_config`.
+    ConfigDone(ConfigDone),
 }
+
+/// What a `config_outcome` line says.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum ConfigAnswer {
+    /// A field the record has.
+    Field(FieldId, Outcome),
+    /// A name no field has.
+    Unknown,
+    /// Text that is not a value of the field.
+    Invalid(FieldId, FieldError),
+}
+
+/// What a `config_done` line says.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ConfigDone {
+    /// Echoed request id.
+    pub req: Option<u32>,
+    /// Fields changed.
+    pub changed: u8,
+    /// The save: `None` when nothing needed saving.
+    pub saved: Option<Result<Saved, StoreError>>,
+    /// Fields waiting for a restart.
+    pub restart_needed: u8,
+}
+
+/// `set_config`s whose `config_done` waits for the flash.
+pub const PENDING_CONFIG: usize = 4;
 
 /// The host link. See the module documentation.
 #[derive(Debug, Clone)]
@@ -230,6 +274,8 @@ struct State {
     follow_ups: Vec<(Option<u32>, Setting), PENDING_WRITES>,
     resets: Deque<Option<u32>, PENDING_OTHERS>,
     clears: Vec<(Option<u32>, u8), PENDING_OTHERS>,
+    /// Changes of the configuration waiting for the save (their `config_done`).
+    config_saves: Vec<ConfigDone, PENDING_CONFIG>,
     stats: HostLinkStats,
 }
 
@@ -275,6 +321,7 @@ impl HostLink {
                 follow_ups: Vec::new(),
                 resets: Deque::new(),
                 clears: Vec::new(),
+                config_saves: Vec::new(),
                 stats: HostLinkStats::default(),
             },
         };
@@ -311,8 +358,15 @@ impl HostLink {
     }
 
     /// Bytes from the host at `now`, in any chunks. Complete lines are parsed and
-    /// dispatched to `bridge` at once.
-    pub fn handle_rx(&mut self, now: Instant, bytes: &[u8], bridge: &mut Bridge) {
+    /// dispatched at once: to `bridge`, or for the bridge's own configuration to
+    /// `config`.
+    pub fn handle_rx(
+        &mut self,
+        now: Instant,
+        bytes: &[u8],
+        bridge: &mut Bridge,
+        config: &mut ConfigState,
+    ) {
         let mut rest = bytes;
         while !rest.is_empty() {
             let (used, piece) = self.lines.push(rest);
@@ -322,7 +376,7 @@ impl HostLink {
                         // Blank lines (keep-alives) are ignored.
                     } else {
                         self.s.stats.lines_in = self.s.stats.lines_in.wrapping_add(1);
-                        self.s.dispatch(now, l, bridge);
+                        self.s.dispatch(now, l, bridge, config);
                     }
                 }
                 Some(Piece::TooLong) => {
@@ -337,6 +391,21 @@ impl HostLink {
                 None => {}
             }
             rest = rest.get(used.max(1)..).unwrap_or(&[]);
+        }
+    }
+
+    /// The running configuration changed (a `set_config`, a `reset_config`, the
+    /// BOOT button): read-only and the stream period follow it at once.
+    pub fn apply_config(&mut self, now: Instant, running: &Config) {
+        self.s.apply_config(now, running);
+    }
+
+    /// The save of the configuration is done (`Err` once the last attempt
+    /// failed): every change waiting for it gets its `config_done` line.
+    pub fn on_config_saved(&mut self, result: Result<Saved, StoreError>) {
+        for mut done in core::mem::take(&mut self.s.config_saves) {
+            done.saved = Some(result);
+            self.s.report(Out::ConfigDone(done));
         }
     }
 
@@ -386,10 +455,16 @@ impl HostLink {
     /// `\n`-terminated; returns its length, or `None` when nothing is waiting.
     /// Order: answers, outcomes and events first, then streamed telemetry, then
     /// `raw` lines.
-    pub fn next_line(&mut self, now: Instant, bridge: &Bridge, out: &mut [u8]) -> Option<usize> {
+    pub fn next_line(
+        &mut self,
+        now: Instant,
+        bridge: &Bridge,
+        config: &ConfigState,
+        out: &mut [u8],
+    ) -> Option<usize> {
         loop {
             let written = if !self.s.queue.is_empty() {
-                self.s.encode_front(now, bridge, out)
+                self.s.encode_front(now, bridge, config, out)
             } else if self.s.stream_due {
                 self.s.stream_due = false;
                 telemetry(now, bridge, None, out)
@@ -484,7 +559,22 @@ impl State {
         }
     }
 
-    fn dispatch(&mut self, now: Instant, line: &[u8], bridge: &mut Bridge) {
+    /// Read-only and the stream period from the running configuration.
+    fn apply_config(&mut self, now: Instant, running: &Config) {
+        self.config.read_only = running.read_only;
+        if self.config.stream_period_ms != running.stream_period_ms {
+            self.config.stream_period_ms = running.stream_period_ms;
+            self.set_stream(now, configured_period(&self.config));
+        }
+    }
+
+    fn dispatch(
+        &mut self,
+        now: Instant,
+        line: &[u8],
+        bridge: &mut Bridge,
+        config: &mut ConfigState,
+    ) {
         if self.queue.len() >= ANSWERS_MAX {
             // The host sends without reading: its answer could not be queued, so
             // the command is not carried out at all (counted as a dropped line).
@@ -496,9 +586,15 @@ impl State {
             Err(e) => return self.error(e.req, e.code, e.detail, e.subject),
         };
         let req = parsed.req;
+        // The running record decides read-only (the BOOT button may have lifted it).
+        self.apply_config(now, config.running());
         let writes = matches!(
             parsed.command,
-            HostCommand::Set(_) | HostCommand::Reset | HostCommand::Clear(_)
+            HostCommand::Set(_)
+                | HostCommand::Reset
+                | HostCommand::Clear(_)
+                | HostCommand::SetConfig(_)
+                | HostCommand::ResetConfig
         );
         if writes && self.config.read_only {
             return self.error(req, ErrorCode::ReadOnly, "host writes are switched off", "");
@@ -545,7 +641,111 @@ impl State {
                 }
                 self.push(Out::Accepted(req, "capture"));
             }
+            HostCommand::SetConfig(fields) => self.set_config(now, req, &fields, bridge, config),
+            HostCommand::ResetConfig => {
+                if self.config_saves.is_full() || self.queue.len() + 2 > QUEUE {
+                    return self.error(req, ErrorCode::Busy, "configuration changes pending", "");
+                }
+                let changed = config.reset().len() as u8;
+                self.push(Out::Accepted(req, "reset_config"));
+                self.config_changed(now, req, changed, config);
+            }
         }
+    }
+
+    /// After a change of `changed` fields: the running record applied here,
+    /// and the `config_done` line now (nothing to save) or after the save.
+    fn config_changed(
+        &mut self,
+        now: Instant,
+        req: Option<u32>,
+        changed: u8,
+        config: &ConfigState,
+    ) {
+        self.apply_config(now, config.running());
+        let done = ConfigDone {
+            req,
+            changed,
+            saved: None,
+            restart_needed: config.restarts_pending() as u8,
+        };
+        if config.save_due() {
+            if self.config_saves.push(done).is_err() {
+                // Checked before the change: never full here.
+                self.report(Out::ConfigDone(done));
+            }
+        } else {
+            self.report(Out::ConfigDone(done));
+        }
+    }
+
+    fn set_config(
+        &mut self,
+        now: Instant,
+        req: Option<u32>,
+        fields: &[(&str, serde_json_core::str::EscapedStr<'_>)],
+        bridge: &Bridge,
+        config: &mut ConfigState,
+    ) {
+        // Every line this command will write must fit: accepted, one outcome
+        // per field (and one for a broken rule), done.
+        if self.config_saves.is_full() || self.queue.len() + fields.len() + 3 > QUEUE {
+            return self.error(req, ErrorCode::Busy, "configuration changes pending", "");
+        }
+        let mut parsed: Vec<(FieldId, Parsed), { command::MAX_SET_CONFIG }> = Vec::new();
+        let mut answers: Vec<
+            (String<SUBJECT_MAX>, Option<ConfigAnswer>),
+            { command::MAX_SET_CONFIG },
+        > = Vec::new();
+        for (name, text) in fields {
+            let answer = match FieldId::from_name(name) {
+                None => Some(ConfigAnswer::Unknown),
+                Some(id) => match unescape(text)
+                    .map_err(|e| (id, e))
+                    .and_then(|t| value::parse(id.field(), &t).map_err(|e| (id, e)))
+                {
+                    Ok(p) => {
+                        let _ = parsed.push((id, p));
+                        None
+                    }
+                    Err((id, e)) => Some(ConfigAnswer::Invalid(id, e)),
+                },
+            };
+            let _ = answers.push((subject(name), answer));
+        }
+        self.push(Out::Accepted(req, "set_config"));
+        let refused = answers.iter().any(|(_, a)| a.is_some());
+        if refused {
+            for (name, a) in answers {
+                let outcome = match a {
+                    Some(a) => a,
+                    None => match FieldId::from_name(&name) {
+                        Some(id) => ConfigAnswer::Field(id, Outcome::NotApplied),
+                        None => ConfigAnswer::Unknown,
+                    },
+                };
+                self.report(Out::ConfigOutcome { req, name, outcome });
+            }
+            return self.config_changed(now, req, 0, config);
+        }
+        let bms = bridge
+            .telemetry()
+            .settings
+            .as_ref()
+            .and_then(PackSettings::from_registers);
+        let outcomes = config.change(&parsed, false, bms.as_ref());
+        let mut changed = 0u8;
+        for (id, o) in outcomes {
+            if matches!(o, Outcome::Applied | Outcome::AtRestart) {
+                changed = changed.saturating_add(1);
+            }
+            self.report(Out::ConfigOutcome {
+                req,
+                name: subject(id.name()),
+                outcome: ConfigAnswer::Field(id, o),
+            });
+        }
+        self.config_changed(now, req, changed, config);
     }
 
     fn get(&mut self, req: Option<u32>, what: What, bridge: &Bridge) {
@@ -565,6 +765,7 @@ impl State {
             }
             What::Version => self.push(Out::Version(req)),
             What::Link => self.push(Out::Link(req)),
+            What::Config => self.push(Out::Config { req, next: 0 }),
             What::Events => {
                 let known = bridge.events();
                 let end = known.total();
@@ -688,7 +889,13 @@ impl State {
     }
 
     /// Encodes the front item; pops it unless it is a listing with more to say.
-    fn encode_front(&mut self, now: Instant, bridge: &Bridge, out: &mut [u8]) -> Option<usize> {
+    fn encode_front(
+        &mut self,
+        now: Instant,
+        bridge: &Bridge,
+        config: &ConfigState,
+        out: &mut [u8],
+    ) -> Option<usize> {
         let t = bridge.telemetry();
         let known = bridge.events();
         let first_seq = known.total().wrapping_sub(known.len() as u32);
@@ -771,6 +978,26 @@ impl State {
                 bridge.piece_registers(),
                 &self.stats,
             ),
+            Out::Config { req, next } => {
+                let fields = crate::config::FIELDS;
+                match fields.get(usize::from(*next)) {
+                    Some(f) => {
+                        *next = next.saturating_add(1);
+                        return encode::config_field(out, *req, f, config);
+                    }
+                    None => encode::config_end(out, *req, config),
+                }
+            }
+            Out::ConfigOutcome { req, name, outcome } => match outcome {
+                ConfigAnswer::Field(id, o) => {
+                    encode::config_outcome(out, *req, name, Some(*id), *o, config)
+                }
+                ConfigAnswer::Unknown => encode::config_unknown(out, *req, name),
+                ConfigAnswer::Invalid(id, e) => {
+                    encode::config_outcome(out, *req, name, Some(*id), Outcome::Refused(*e), config)
+                }
+            },
+            Out::ConfigDone(done) => encode::config_done(out, done),
             Out::ResetDone(req, confirmed) => encode::reset_done(out, *req, *confirmed),
             Out::Cleared(req, option, ok) => encode::cleared(
                 out,
@@ -782,6 +1009,28 @@ impl State {
         self.queue.pop_front();
         n
     }
+}
+
+/// The text of a JSON string with its escapes resolved.
+fn unescape(s: &serde_json_core::str::EscapedStr<'_>) -> Result<String<TEXT_MAX>, FieldError> {
+    use serde_json_core::str::EscapedStringFragment as F;
+    let mut out = String::new();
+    for fragment in s.fragments() {
+        let ok = match fragment {
+            Ok(F::NotEscaped(t)) => out.push_str(t).is_ok(),
+            Ok(F::Escaped(c)) => out.push(c).is_ok(),
+            Err(_) => {
+                return Err(FieldError {
+                    out_of_range: false,
+                    detail: "invalid escape in the string",
+                })
+            }
+        };
+        if !ok {
+            return Err(FieldError::TOO_LONG);
+        }
+    }
+    Ok(out)
 }
 
 /// Removes the oldest pending entry for `setting` and returns its request id.

@@ -56,8 +56,15 @@ path, e.g. /dev/pts/7; runs until stopped, or for --duration if given):
                      BMS; the path speaks the bridge's USB protocol (JSON Lines,
                      firmware/src/host_link/PROTOCOL.md). --profile/--set are
                      written through write/verify at start, as on the device
-  --read-only        (--bridge-pty) refuse host writes
-  --stream-period D  (--bridge-pty) telemetry push period (default 1s; 0 = off)
+  --flash FILE       (--bridge-pty) keep the bridge's configuration record in FILE
+                     (a 24 KiB flash image, created erased): a restart finds it,
+                     as the chip does; without it the record lives in RAM
+  --config NAME=VALUE (--bridge-pty) change the configuration record at start,
+                     as `tinybms config PORT NAME=VALUE` would (stored; repeatable)
+  --read-only        (--bridge-pty) the same as --config read_only=on
+  --stream-period D  (--bridge-pty) the same as --config stream_period=D
+  --boot-button D    (--bridge-pty) hold the BOOT button down from D on, for 6 s
+                     (lifts read-only, as on the chip)
 
 inverter output (charge control over CAN, in a closed loop with a simulated
 pack and an inverter/charger that obeys the frames):
@@ -99,8 +106,9 @@ struct Options {
     duration_given: bool,
     pty: bool,
     bridge_pty: bool,
-    read_only: bool,
-    stream_period_ms: u32,
+    config: Vec<(String, String)>,
+    flash: Option<String>,
+    boot_button_us: Option<u64>,
 }
 
 enum Parsed {
@@ -129,8 +137,9 @@ fn parse_args() -> Result<Parsed, String> {
         duration_given: false,
         pty: false,
         bridge_pty: false,
-        read_only: false,
-        stream_period_ms: 1000,
+        config: Vec::new(),
+        flash: None,
+        boot_button_us: None,
     };
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
@@ -142,14 +151,24 @@ fn parse_args() -> Result<Parsed, String> {
             }
             "--pty" => o.pty = true,
             "--bridge-pty" => o.bridge_pty = true,
-            "--read-only" => o.read_only = true,
+            "--read-only" => o.config.push(("read_only".into(), "on".into())),
             "--stream-period" => {
                 let d = parse_duration(&value("--stream-period")?)? / 1000;
                 if d != 0 && !(100..=60_000).contains(&d) {
                     return Err("--stream-period must be 0 or within 100ms..60s".into());
                 }
-                o.stream_period_ms = d as u32;
+                o.config.push(("stream_period".into(), format!("{d} ms")));
             }
+            "--config" => {
+                let v = value("--config")?;
+                let (name, text) = v
+                    .split_once('=')
+                    .ok_or_else(|| format!("--config {v}: want NAME=VALUE"))?;
+                o.config
+                    .push((name.trim().to_string(), text.trim().to_string()));
+            }
+            "--flash" => o.flash = Some(value("--flash")?),
+            "--boot-button" => o.boot_button_us = Some(parse_duration(&value("--boot-button")?)?),
             "--fault-rate" => {
                 o.fault_rate = value("--fault-rate")?
                     .parse()
@@ -253,8 +272,11 @@ fn parse_args() -> Result<Parsed, String> {
     if o.pty && o.bridge_pty {
         return Err("--pty and --bridge-pty exclude each other".into());
     }
-    if o.read_only && !o.bridge_pty {
-        return Err("--read-only goes with --bridge-pty".into());
+    if !o.bridge_pty && (!o.config.is_empty() || o.flash.is_some() || o.boot_button_us.is_some()) {
+        return Err(
+            "--read-only, --stream-period, --config, --flash and --boot-button go with --bridge-pty"
+                .into(),
+        );
     }
     Ok(Parsed::Run(Box::new(o)))
 }
@@ -588,8 +610,14 @@ fn run_realtime(o: &Options) -> ExitCode {
         }
         Ok(bms) => {
             let opts = BridgePtyOptions {
-                read_only: o.read_only,
-                stream_period_ms: o.stream_period_ms,
+                config: o.config.clone(),
+                flash: o.flash.as_ref().map(std::path::PathBuf::from),
+                boot_button: o.boot_button_us.map(|at| {
+                    (
+                        std::time::Duration::from_micros(at),
+                        std::time::Duration::from_secs(6),
+                    )
+                }),
                 profile: o.profile.clone(),
                 bridge: Timing {
                     snapshot_log_period_us: o.snapshot_every_us,

@@ -8,9 +8,9 @@ use std::sync::{mpsc, Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+use crate::flash::{RamFlash, SimFlash};
 use serde_json::Value;
 use tinybms_firmware::bms::timing::Timing;
-use tinybms_firmware::host_link::HostLinkConfig;
 
 use super::client::Client;
 use super::transport::{Lines, Mode};
@@ -82,17 +82,20 @@ pub fn start(
     let stop = Arc::new(AtomicBool::new(false));
     let tx_bytes = Arc::new(AtomicU64::new(0));
     let rx_bytes = Arc::new(AtomicU64::new(0));
-    let host = HostLinkConfig {
-        read_only: false,
-        stream_period_ms: 0,
-        firmware: env!("CARGO_PKG_VERSION"),
-        chip: "host (tinybms direct)",
-    };
     let (s, t, r) = (stop.clone(), tx_bytes.clone(), rx_bytes.clone());
     let join = std::thread::Builder::new()
         .name("bridge".into())
         .spawn(move || -> Result<(), String> {
-            let mut h = Hosted::new(serial, Timing::default(), host);
+            // No bridge of its own to configure: the record is the defaults
+            // with streaming off, in RAM.
+            let mut h = Hosted::new(
+                serial,
+                Timing::default(),
+                SimFlash::Ram(RamFlash::new()),
+                "host (tinybms direct)",
+            );
+            h.change_config(&[("stream_period".into(), "off".into())])
+                .map_err(|e| format!("direct mode: {e}"))?;
             if let Some(c) = capture {
                 h.driver.record(c);
             }
