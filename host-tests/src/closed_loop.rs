@@ -14,13 +14,18 @@ use std::io::Write;
 
 use protocol_core::views::cell_mv;
 
+use embassy_futures::block_on;
 use tinybms_firmware::bms::timing::Timing;
+use tinybms_firmware::config::state::ConfigState;
+use tinybms_firmware::config::store::{save_when_quiet, Store};
+use tinybms_firmware::host_link::{HostLink, OUT_LINE_MAX};
 use tinybms_firmware::inverter::frames::{self, CanFrame};
 use tinybms_firmware::inverter::{
     Inverter, InverterAction, InverterConfig, InverterReport, TxResult,
 };
 use tinybms_firmware::Report;
 
+use crate::flash::RamFlash;
 use crate::harness::Harness;
 use crate::sim::{PackProfile, SimBms, SimConfig};
 
@@ -156,15 +161,35 @@ pub struct ClosedLoop {
     pub figures: LoopFigures,
     /// Every limits frame (time, CVL dV, CCL dA, DCL dA) as sent.
     pub sent_limits: Vec<(u64, u16, u16, u16)>,
+    /// Every frame's (time, id) as sent.
+    pub sent_ids: Vec<(u64, u16)>,
     /// A candump log being written (`--can-log`).
     pub can_log: Option<Box<dyn Write>>,
     /// A JSON Lines log being written (`--json`).
     pub json_log: Option<Box<dyn Write>>,
     /// The CAN controller is bus-off until this time (a scenario's fault).
     pub bus_off_until: Option<u64>,
+    /// The host link and the bridge's configuration, when the loop runs with
+    /// them ([`ClosedLoop::from_flash`]): as the chip's bridge task.
+    pub host: Option<LoopHost>,
     seen_seq: u32,
     log_seen: usize,
     last_cvl: Option<u16>,
+}
+
+/// The host side of a [`ClosedLoop`] made by [`ClosedLoop::from_flash`].
+pub struct LoopHost {
+    /// The host link.
+    pub link: HostLink,
+    /// The bridge's configuration.
+    pub config: ConfigState,
+    /// Its store.
+    pub store: Store<RamFlash>,
+    /// The flash it is on (shared with the store).
+    pub flash: RamFlash,
+    /// Every line the host link wrote, parsed.
+    pub lines: Vec<serde_json::Value>,
+    forwarded: usize,
 }
 
 /// Epoch of the candump timestamps (virtual time 0), s.
@@ -193,12 +218,86 @@ impl ClosedLoop {
             model: InverterModel::new(charger_max_a, (cells * r_cell).max(0.001)),
             figures: LoopFigures::default(),
             sent_limits: Vec::new(),
+            sent_ids: Vec::new(),
             can_log: None,
             json_log: None,
             bus_off_until: None,
+            host: None,
             seen_seq: 0,
             log_seen: 0,
             last_cvl: None,
+        }
+    }
+
+    /// A loop as a bridge with its configuration record in `flash` starts it:
+    /// the inverter output runs with the record (the defaults when the flash
+    /// holds none), and a host link takes configuration changes
+    /// ([`ClosedLoop::host_line`]) that apply at once where they may and are
+    /// saved to `flash` when the BMS link is quiet.
+    pub fn from_flash(
+        profile: PackProfile,
+        seed: u64,
+        flash: RamFlash,
+        charger_max_a: f64,
+    ) -> Self {
+        let mut store = crate::flash::store(flash.clone());
+        let loaded = block_on(store.load());
+        let mut l = Self::new(profile, seed, loaded.config.inverter(), charger_max_a);
+        l.host = Some(LoopHost {
+            link: HostLink::new(loaded.config.host_link("sim"), 0),
+            config: ConfigState::new(loaded.config, loaded.source),
+            store,
+            flash,
+            lines: Vec::new(),
+            forwarded: 0,
+        });
+        l
+    }
+
+    /// One line from the host (needs [`ClosedLoop::from_flash`]).
+    pub fn host_line(&mut self, line: &str) {
+        if let Some(host) = self.host.as_mut() {
+            let mut b = line.as_bytes().to_vec();
+            b.push(b'\n');
+            host.link
+                .handle_rx(self.h.now, &b, &mut self.h.bridge, &mut host.config);
+        }
+        self.service_host();
+    }
+
+    /// What the chip's bridge task does for the host link and the
+    /// configuration after a pass.
+    fn service_host(&mut self) {
+        let Some(host) = self.host.as_mut() else {
+            return;
+        };
+        let now = self.h.now;
+        while let Some(l) = self.h.log.get(host.forwarded) {
+            host.link.on_report(&l.report);
+            host.forwarded += 1;
+        }
+        if let Some(c) = host.config.take_running_change() {
+            host.link.apply_config(now, c);
+            // The CAN task's side: at-once fields to the inverter output.
+            self.inverter.reconfigure(c.inverter());
+        }
+        if let Some(r) = block_on(save_when_quiet(
+            &mut host.config,
+            &mut host.store,
+            &self.h.bridge,
+            now,
+        )) {
+            host.link.on_config_saved(r);
+        }
+        let mut buf = [0u8; OUT_LINE_MAX];
+        host.link.poll(now, &self.h.bridge);
+        while let Some(n) = host
+            .link
+            .next_line(now, &self.h.bridge, &host.config, &mut buf)
+        {
+            if let Ok(v) = serde_json::from_slice(&buf[..n]) {
+                host.lines.push(v);
+            }
         }
     }
 
@@ -207,6 +306,7 @@ impl ClosedLoop {
         while self.h.now < end_us {
             let t = (self.h.now + STEP_US).min(end_us);
             self.h.run_until(t);
+            self.service_host();
             self.feed_inverter();
             self.pump_can(t);
             let pack_v = f64::from(
@@ -281,6 +381,7 @@ impl ClosedLoop {
                     self.inverter.on_tx(now, TxResult::Sent);
                     self.figures.frames += 1;
                     self.figures.bits += frame_bits(f.len);
+                    self.sent_ids.push((now, f.id));
                     self.model.on_frame(now, &f);
                     if f.id == frames::ID_LIMITS {
                         let d = f.data;
@@ -327,6 +428,15 @@ impl ClosedLoop {
         {
             self.figures.float_at_us = Some(now);
         }
+    }
+
+    /// The ids of the frames sent from `since_us` on.
+    pub fn ids_since(&self, since_us: u64) -> std::collections::BTreeSet<u16> {
+        self.sent_ids
+            .iter()
+            .filter(|(t, _)| *t >= since_us)
+            .map(|(_, id)| *id)
+            .collect()
     }
 
     /// The CAN controller goes bus-off now for `duration_us` (the inverter

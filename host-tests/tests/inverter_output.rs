@@ -203,3 +203,72 @@ fn a_charge_side_fault_event_blocks_charging_until_its_own_recovery() {
     assert_eq!(ccl_at(&mut inv, 6 * S), 0, "held after the cut");
     assert!(ccl_at(&mut inv, 40 * S) > 0);
 }
+
+/// A configuration change while running: the protocol and on/off stay as the
+/// output was started (they apply at the next restart); a new stale policy
+/// given during stale data waits for the next stale episode — switching from
+/// "stop" to "hold" mid-episode must not re-allow a discharge.
+#[test]
+fn reconfigure_keeps_the_protocol_and_defers_a_stale_policy_change() {
+    use tinybms_firmware::inverter::StalePolicy;
+    let (snap, settings) = inputs();
+    let stop = InverterConfig {
+        protocol: Protocol::SmaSunnyIsland,
+        ..InverterConfig::default()
+    };
+    let mut inv = Inverter::new(stop, 0);
+    let mut frames_at = |inv: &mut Inverter, from: u64, to: u64, fresh: bool| {
+        let mut out = Vec::new();
+        let mut now = from;
+        while now < to {
+            if fresh && now.is_multiple_of(S) {
+                inv.on_snapshot(now, &snap, Some(settings), None);
+            }
+            match inv.poll(now) {
+                InverterAction::Send(f) => {
+                    out.push(f);
+                    inv.on_tx(now, TxResult::Sent);
+                }
+                InverterAction::Recover => {}
+                InverterAction::WaitUntil(t) => now = t.min((now / S + 1) * S).max(now + 1),
+            }
+        }
+        out
+    };
+    frames_at(&mut inv, 0, 10 * S, true);
+    // Stale from 10 s on (no snapshot); at 20 s the owner switches to hold.
+    frames_at(&mut inv, 10 * S, 20 * S, false);
+    let hold = InverterConfig {
+        protocol: Protocol::Victron,
+        enabled: false,
+        stale_policy: StalePolicy::HoldChargeZero(600 * S),
+        ..InverterConfig::default()
+    };
+    inv.reconfigure(hold);
+    assert_eq!(inv.config().protocol, Protocol::SmaSunnyIsland);
+    assert!(inv.config().enabled);
+    assert_eq!(inv.config().stale_policy, StalePolicy::StopSending);
+    // Still stale: SMA "stop" sends CCL 0 and DCL 0 — never the held DCL.
+    for f in frames_at(&mut inv, 20 * S, 30 * S, false) {
+        if f.id == frames::ID_LIMITS {
+            assert_eq!(&f.data[2..6], &[0, 0, 0, 0], "{f:?}");
+        }
+    }
+    // Fresh again: the new policy is in force for the next episode.
+    frames_at(&mut inv, 30 * S, 40 * S, true);
+    assert_eq!(
+        inv.config().stale_policy,
+        StalePolicy::HoldChargeZero(600 * S)
+    );
+    // A charge cap applies at once.
+    let mut capped = *inv.config();
+    capped.charge.ccl_cap_da = Some(55);
+    inv.reconfigure(capped);
+    let after = frames_at(&mut inv, 40 * S, 45 * S, true);
+    let ccl: Vec<u16> = after
+        .iter()
+        .filter(|f| f.id == frames::ID_LIMITS)
+        .map(|f| u16::from_le_bytes([f.data[2], f.data[3]]))
+        .collect();
+    assert!(!ccl.is_empty() && ccl.iter().all(|&c| c <= 55), "{ccl:?}");
+}

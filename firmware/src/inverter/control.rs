@@ -457,6 +457,12 @@ impl ChargeControl {
         &self.config
     }
 
+    /// New settings from the next [`ChargeControl::update`] on; the phase, the
+    /// ramps and their holds carry on (a limit that falls falls at once).
+    pub fn set_config(&mut self, config: ChargeConfig) {
+        self.config = config;
+    }
+
     /// Absorption or float.
     pub fn phase(&self) -> Phase {
         self.phase

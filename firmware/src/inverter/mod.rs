@@ -204,6 +204,9 @@ pub struct Inverter {
     bus_offs: u32,
     frames_sent: u32,
     reports: Deque<InverterReport, 8>,
+    /// A stale policy given while the data is stale: it applies from the next
+    /// stale episode on (see [`Inverter::reconfigure`]).
+    next_stale_policy: Option<StalePolicy>,
 }
 
 impl Inverter {
@@ -235,7 +238,35 @@ impl Inverter {
             bus_offs: 0,
             frames_sent: 0,
             reports: Deque::new(),
+            next_stale_policy: None,
         }
+    }
+
+    /// The configuration changed while running (a `set_config` of fields that
+    /// apply at once): charge control's settings and the stale age apply from
+    /// the next snapshot on — a limit that falls falls at once, one that rises
+    /// ramps as after any cut. A new stale policy given while the data is
+    /// stale applies from the next stale episode (switching policy in the middle
+    /// of one could re-allow a discharge the inverter has already stopped). The
+    /// output on/off and the protocol are what the task was started with: they
+    /// change at the next restart only.
+    pub fn reconfigure(&mut self, new: InverterConfig) {
+        let mut c = new;
+        c.enabled = self.config.enabled;
+        c.protocol = self.config.protocol;
+        if self.stale_since.is_some() && c.stale_policy != self.config.stale_policy {
+            self.next_stale_policy = Some(c.stale_policy);
+            c.stale_policy = self.config.stale_policy;
+        } else {
+            self.next_stale_policy = None;
+        }
+        self.control.set_config(c.charge);
+        self.config = c;
+    }
+
+    /// The configuration it runs with.
+    pub fn config(&self) -> &InverterConfig {
+        &self.config
     }
 
     /// The limits last computed.
@@ -471,6 +502,9 @@ impl Inverter {
                 self.control.cut(now);
             }
             self.hold_ended = false;
+            if let Some(p) = self.next_stale_policy.take() {
+                self.config.stale_policy = p;
+            }
             self.report(InverterReport::Fresh);
         }
         let (limits, mut conditions) = self.control.update(now, &settings, &state);
