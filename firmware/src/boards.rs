@@ -1,5 +1,6 @@
-//! Supported boards as data: which GPIOs carry the TinyBMS UART and (for the
-//! future inverter output) the CAN/TWAI lines, and where the logs go.
+//! Supported boards as data: which GPIOs carry the TinyBMS UART and the
+//! CAN/TWAI lines of the inverter output, where the BOOT button is, and where
+//! the logs go.
 //!
 //! One cargo feature per board (`board-…`, see `firmware/Cargo.toml`) selects
 //! [`SELECTED`]; each board feature implies its chip feature. Every board in
@@ -153,9 +154,9 @@ pub struct Board {
     pub bms_tx: u8,
     /// GPIO of the UART RX line (TinyBMS TX → ESP32 RX).
     pub bms_rx: u8,
-    /// GPIO reserved for the CAN transceiver's TXD (TWAI output, not driven yet).
+    /// GPIO of the CAN transceiver's TXD (the TWAI output, feature `can`).
     pub can_tx: u8,
-    /// GPIO reserved for the CAN transceiver's RXD (TWAI input, not read yet).
+    /// GPIO of the CAN transceiver's RXD (the TWAI input, feature `can`).
     pub can_rx: u8,
     /// The log path that works with only the board's own USB connector.
     pub log: LogPath,
@@ -276,6 +277,19 @@ const fn part_at(list: &[OnBoard], gpio: u8) -> Option<&'static str> {
 }
 
 impl Board {
+    /// The GPIO of the board's BOOT button (from [`Board::on_board`]), the
+    /// physical way out of read-only ([`crate::config::button`]).
+    pub const fn boot_button(&self) -> Option<u8> {
+        let mut rest = self.on_board;
+        while let [first, tail @ ..] = rest {
+            if matches!(first.part.as_bytes(), b"BOOT button") {
+                return Some(first.gpio);
+            }
+            rest = tail;
+        }
+        None
+    }
+
     /// The four signal pins with their roles.
     pub const fn signals(&self) -> [(Role, u8); 4] {
         [

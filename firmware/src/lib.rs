@@ -17,7 +17,6 @@
 //! | consumers | [`inverter`] | charge control and the inverter CAN protocols (Victron, SMA Sunny Island) |
 //! | | [`host_link`] | JSON Lines to a computer over USB |
 //! | this installation | [`config`] | the bridge's own configuration: the record, its checks, its store in flash |
-//! | | [`site`] | the inverter output and host link settings |
 //! | | [`boards`] | the supported boards' pins and log paths, checked at compile time |
 //! | shared | [`text`] | the words of every log line |
 //! | | [`units`] | raw and physical values, exact decimals |
@@ -49,7 +48,6 @@ pub mod bridge;
 pub mod config;
 pub mod host_link;
 pub mod inverter;
-pub mod site;
 pub mod text;
 pub mod units;
 

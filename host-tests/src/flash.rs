@@ -72,7 +72,10 @@ impl FileFlash {
 
     fn check(&self, offset: u32, len: usize, align: usize) -> Result<(), FlashError> {
         let end = u64::from(offset) + len as u64;
-        if end > u64::from(PARTITION_BYTES) || offset as usize % align != 0 || len % align != 0 {
+        if end > u64::from(PARTITION_BYTES)
+            || !(offset as usize).is_multiple_of(align)
+            || !len.is_multiple_of(align)
+        {
             return Err(FlashError::Bounds);
         }
         Ok(())
@@ -249,7 +252,7 @@ impl RamFlash {
     ) -> Result<std::ops::Range<usize>, FlashError> {
         let start = offset as usize;
         let end = start.checked_add(len).ok_or(FlashError::Bounds)?;
-        if end > len_total || start % align != 0 || len % align != 0 {
+        if end > len_total || !start.is_multiple_of(align) || !len.is_multiple_of(align) {
             return Err(FlashError::Bounds);
         }
         Ok(start..end)

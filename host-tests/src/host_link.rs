@@ -38,10 +38,11 @@ pub struct Rig {
 
 /// A configuration record with the host link settings of `config`.
 pub fn record_for(config: &HostLinkConfig) -> Config {
-    let mut c = Config::default();
-    c.read_only = config.read_only;
-    c.stream_period_ms = config.stream_period_ms;
-    c
+    Config {
+        read_only: config.read_only,
+        stream_period_ms: config.stream_period_ms,
+        ..Config::default()
+    }
 }
 
 /// Host link configuration for tests (`chip` = `sim`).

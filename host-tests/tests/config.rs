@@ -3,6 +3,8 @@
 //! codec (round trip, other versions, corrupted and fuzzed bytes), and changes
 //! by name with one outcome per field.
 
+#![allow(clippy::field_reassign_with_default)]
+
 use proptest::prelude::*;
 use tinybms_firmware::config::codec::{self, DecodeError, MAGIC, RECORD_MAX};
 use tinybms_firmware::config::state::{ConfigState, Outcome};
@@ -72,7 +74,9 @@ fn the_table_is_consistent() {
 fn the_defaults_are_what_the_bridge_ran_with_before_the_record() {
     let c = Config::default();
     c.validate().unwrap();
-    // site.rs's constants before the record, and charge control's defaults.
+    // What firmware/src/site.rs compiled in before the record (CAN on, Victron,
+    // stop sending on stale data, read-write, 1 s stream), and charge
+    // control's defaults.
     assert!(c.can_output);
     assert_eq!(c.protocol, Protocol::Victron);
     assert_eq!(c.inverter(), InverterConfig::default());

@@ -4,6 +4,8 @@
 //! corrupted or foreign store gives, and the power cut after every byte of a
 //! save — old record or new, every time.
 
+#![allow(clippy::field_reassign_with_default)]
+
 use embassy_futures::block_on;
 use sequential_storage::mock_flash::{MockFlashBase, WriteCountCheck};
 use tinybms_firmware::config::codec::{self, RECORD_MAX};
@@ -29,12 +31,12 @@ fn record(n: u32) -> Config {
     let mut c = Config::default();
     c.ccl_cap_da = 10 + (n % 7000) as u16;
     c.stale_after_s = 1 + (n % 60) as u16;
-    c.protocol = if n % 2 == 0 {
+    c.protocol = if n.is_multiple_of(2) {
         Protocol::Victron
     } else {
         Protocol::SmaSunnyIsland
     };
-    if n % 3 == 0 {
+    if n.is_multiple_of(3) {
         c.mqtt_host.push_str("broker.lan").unwrap();
         c.wifi_ssid
             .push_str(&"w".repeat((n % 32) as usize))

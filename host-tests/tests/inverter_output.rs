@@ -217,7 +217,7 @@ fn reconfigure_keeps_the_protocol_and_defers_a_stale_policy_change() {
         ..InverterConfig::default()
     };
     let mut inv = Inverter::new(stop, 0);
-    let mut frames_at = |inv: &mut Inverter, from: u64, to: u64, fresh: bool| {
+    let frames_at = |inv: &mut Inverter, from: u64, to: u64, fresh: bool| {
         let mut out = Vec::new();
         let mut now = from;
         while now < to {

@@ -1,6 +1,8 @@
 //! The bridge task: bytes and time between UART1 and the sans-IO bridge, which
-//! it owns (with the host link next to it). It publishes every new snapshot to
-//! [`crate::TELEMETRY`] and logs the bridge's reports.
+//! it owns (with the host link and the configuration next to it). It publishes
+//! every new snapshot to [`crate::TELEMETRY`], logs the bridge's reports, hands
+//! changes of the configuration to the other tasks and saves it to flash when
+//! the BMS link is quiet.
 
 use defmt::{info, warn};
 use embassy_executor::Spawner;
@@ -14,9 +16,11 @@ use esp_hal::Async;
 use tinybms_firmware::bms::profile;
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::bridge::Step;
+use tinybms_firmware::config::state::ConfigState;
+use tinybms_firmware::config::store::{save_when_quiet, Store, StoreError};
 use tinybms_firmware::Bridge;
 
-use crate::{log, now_us, spawn, usb, SharedSnapshot, BOARD, TELEMETRY};
+use crate::{button, log, now_us, spawn, store, usb, SharedSnapshot, BOARD, TELEMETRY};
 
 /// TinyBMS UART baud rate (8N1 is the esp-hal default frame format; Rev D §1).
 const BMS_BAUDRATE: u32 = 115_200;
@@ -37,8 +41,21 @@ const MAX_WAIT: Duration = Duration::from_millis(500);
 /// UART receive errors are logged at most once per this period.
 const RX_ERROR_LOG_PERIOD: Duration = Duration::from_secs(10);
 
+/// The bridge's configuration as the bridge task holds it.
+pub struct Configuration {
+    /// The record it runs with and the one it stores.
+    pub state: ConfigState,
+    /// The store (`None`: no usable partition; changes then live in RAM).
+    pub store: Option<Store<store::Flash>>,
+}
+
 /// UART1 to the TinyBMS on the board's pins, and the bridge task on it.
-pub fn start(spawner: Spawner, uart1: UART1<'static>, wdt: Wdt<TIMG0<'static>>) {
+pub fn start(
+    spawner: Spawner,
+    uart1: UART1<'static>,
+    wdt: Wdt<TIMG0<'static>>,
+    config: Configuration,
+) {
     // SAFETY: `AnyPin::steal` hands out a second handle to a GPIO. These two GPIOs
     // are used nowhere else: the shell never touches `p.GPIOn`, and the board
     // check (const, main.rs) guarantees they exist on the chip, are distinct from
@@ -57,7 +74,7 @@ pub fn start(spawner: Spawner, uart1: UART1<'static>, wdt: Wdt<TIMG0<'static>>) 
         "UART1 {=u32} 8N1 to the BMS: TX=GPIO{=u8} RX=GPIO{=u8} (rx fifo threshold {=u16})",
         BMS_BAUDRATE, BOARD.bms_tx, BOARD.bms_rx, RX_FIFO_FULL_THRESHOLD,
     );
-    spawn(spawner, bridge_task(rx, tx, wdt));
+    spawn(spawner, bridge_task(rx, tx, wdt, config));
 }
 
 /// UART receive errors, counted as they happen and logged (rate-limited) with the
@@ -104,11 +121,16 @@ async fn bridge_task(
     mut rx: UartRx<'static, Async>,
     mut tx: UartTx<'static, Async>,
     mut wdt: Wdt<TIMG0<'static>>,
+    config: Configuration,
 ) {
+    let Configuration {
+        state: mut config,
+        mut store,
+    } = config;
     let sender = TELEMETRY.sender();
     let mut bridge = Bridge::new(Timing::default(), now_us());
     submit_profile(&mut bridge);
-    let mut host = usb::HostPort::new(&bridge);
+    let mut host = usb::HostPort::new(&bridge, config.running());
     let mut published_seq = 0u32;
     let mut rx_errors = RxErrors {
         count: 0,
@@ -126,6 +148,9 @@ async fn bridge_task(
                     crate::can::on_report(&report);
                     host.on_report(&report);
                     log::report(&report);
+                }
+                while let Some(note) = config.next_note() {
+                    log::config(&note, &config);
                 }
                 rx_errors.log();
                 // Written from where the link keeps them (no copy).
@@ -165,7 +190,7 @@ async fn bridge_task(
                         bridge.handle_received(now_us(), n);
                     }
                     Either3::First(Err(e)) => rx_errors.record(e),
-                    Either3::Third(n) => host.handle_rx(n, &mut bridge),
+                    Either3::Third(n) => host.handle_rx(n, &mut bridge, &mut config),
                     Either3::Second(()) => {
                         // Bytes already received but not yet signalled go in before
                         // the deadline is handled by the next `poll`.
@@ -186,7 +211,29 @@ async fn bridge_task(
                 }
             }
         }
-        host.after_pass(&bridge);
+        if button::UNLOCK.try_take().is_some() {
+            config.unlock();
+        }
+        if let Some(running) = config.take_running_change() {
+            host.apply_config(running);
+            #[cfg(feature = "can")]
+            crate::can::reconfigure(running);
+        }
+        // The flash write stops the CPU: only when no BMS reply can be on its
+        // way, and nothing is sent until it is done (the poll is held). Driven
+        // to completion here (`BlockingAsync` never waits): its state stays on
+        // the stack instead of in this task's static future.
+        let saved = match store.as_mut() {
+            Some(s) => {
+                embassy_futures::block_on(save_when_quiet(&mut config, s, &bridge, now_us()))
+            }
+            None if config.save_due() => config.saved(Err(StoreError::Partition)),
+            None => None,
+        };
+        if let Some(result) = saved {
+            host.on_config_saved(result);
+        }
+        host.after_pass(&bridge, &config);
         // Publishing is a copy into the Watch, no I/O: done on every step.
         let t = bridge.telemetry();
         if t.snapshot_seq != published_seq {

@@ -6,6 +6,7 @@ use embassy_executor::Spawner;
 use embassy_futures::select::{select, Either};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::channel::Channel;
+use embassy_sync::signal::Signal;
 use embassy_time::{with_timeout, Duration, Instant, Timer};
 use esp_hal::gpio::AnyPin;
 use esp_hal::peripherals::TWAI0;
@@ -15,8 +16,9 @@ use esp_hal::twai::{
 use esp_hal::Async;
 use protocol_core::events::Event;
 use protocol_core::views::VersionInfo;
+use tinybms_firmware::config::Config;
 use tinybms_firmware::inverter::control::PackSettings;
-use tinybms_firmware::inverter::{Inverter, InverterAction, Protocol, TxResult};
+use tinybms_firmware::inverter::{Inverter, InverterAction, InverterConfig, Protocol, TxResult};
 use tinybms_firmware::{Report, Telemetry};
 
 use crate::{now_us, spawn, BOARD, TELEMETRY};
@@ -24,6 +26,10 @@ use crate::{now_us, spawn, BOARD, TELEMETRY};
 /// New BMS events for the CAN output (charge-blocking faults); a full channel
 /// drops the event for it (the BMS status still says "fault").
 static EVENTS: Channel<CriticalSectionRawMutex, Event, 8> = Channel::new();
+
+/// The configuration's at-once fields changed (latest wins): the bridge task
+/// signals, the CAN task applies them (`Inverter::reconfigure`).
+static RECONFIGURE: Signal<CriticalSectionRawMutex, InverterConfig> = Signal::new();
 
 /// CAN bit rate of both inverter protocols.
 const CAN_BAUDRATE: BaudRate = BaudRate::B500K;
@@ -58,8 +64,18 @@ pub fn on_report(report: &Report) {
     }
 }
 
-/// TWAI (CAN) to the inverter, on the board's CAN pins, 500 kbit/s.
-pub fn start(spawner: Spawner, twai0: TWAI0<'static>) {
+/// The running configuration changed: its at-once fields to the CAN task.
+pub fn reconfigure(running: &Config) {
+    RECONFIGURE.signal(running.inverter());
+}
+
+/// TWAI (CAN) to the inverter, on the board's CAN pins, 500 kbit/s, unless
+/// the configuration has the output off (then the pins stay untouched).
+pub fn start(spawner: Spawner, twai0: TWAI0<'static>, config: InverterConfig) {
+    if !config.enabled {
+        info!("CAN to the inverter off (can_output = off)");
+        return;
+    }
     // SAFETY: as for the UART pins above: used nowhere else, checked distinct and
     // not flash/USB/UART0/strapping pins by the board table.
     let (can_tx, can_rx) = unsafe { (AnyPin::steal(BOARD.can_tx), AnyPin::steal(BOARD.can_rx)) };
@@ -67,33 +83,31 @@ pub fn start(spawner: Spawner, twai0: TWAI0<'static>) {
         .into_async()
         .start();
     info!(
-        "CAN to the inverter {=str}, 500 kbit/s TX=GPIO{=u8} RX=GPIO{=u8} ({=str})",
-        if tinybms_firmware::site::CAN_OUTPUT {
-            "on"
-        } else {
-            "off"
+        "CAN to the inverter: {=str}, 500 kbit/s, TX=GPIO{=u8} RX=GPIO{=u8}",
+        match config.protocol {
+            Protocol::Victron => "Victron",
+            Protocol::SmaSunnyIsland => "SMA Sunny Island",
         },
         BOARD.can_tx,
         BOARD.can_rx,
-        match tinybms_firmware::site::PROTOCOL {
-            Protocol::Victron => "victron",
-            Protocol::SmaSunnyIsland => "sma-si",
-        }
     );
-    spawn(spawner, can_task(twai));
+    spawn(spawner, can_task(twai, config));
 }
 
 /// The inverter output: the firmware's sans-IO [`Inverter`] between the shared
 /// telemetry and the TWAI controller. It never waits on the BMS link (it reads
 /// the `Watch` without blocking) and the BMS link never waits on it.
 #[embassy_executor::task]
-async fn can_task(mut twai: Twai<'static, Async>) {
+async fn can_task(mut twai: Twai<'static, Async>, config: InverterConfig) {
     let Some(mut telemetry) = TELEMETRY.receiver() else {
         warn!("telemetry watch has no free receiver slot: no CAN output");
         return;
     };
-    let mut inverter = Inverter::new(tinybms_firmware::site::inverter_config(), now_us());
+    let mut inverter = Inverter::new(config, now_us());
     loop {
+        if let Some(c) = RECONFIGURE.try_take() {
+            inverter.reconfigure(c);
+        }
         if let Some(shared) = telemetry.try_changed() {
             inverter.on_snapshot(
                 shared.taken_at.as_micros(),

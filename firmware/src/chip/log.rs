@@ -2,6 +2,7 @@
 //! tested on the host); here they only get their level.
 
 use defmt::{info, warn};
+use tinybms_firmware::config::state::{ConfigState, Note};
 #[cfg(feature = "can")]
 use tinybms_firmware::inverter::InverterReport;
 use tinybms_firmware::text::{self, Line};
@@ -20,6 +21,13 @@ pub fn report(r: &Report) {
     let mut out = Line::new();
     text::report(r, &mut out);
     line(r.level(), &out);
+}
+
+/// One line per configuration note (secrets only as set/unset).
+pub fn config(n: &Note, config: &ConfigState) {
+    let mut out = Line::new();
+    text::config_note(n, config, &mut out);
+    line(text::config_level(n), &out);
 }
 
 /// One line per inverter report.

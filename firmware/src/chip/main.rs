@@ -9,6 +9,8 @@
 //! | [`can`] | `can_task` | TWAI to the inverter (feature `can`) |
 //! | [`usb`] | `usb_rx_task`, `usb_tx_task` | USB-Serial-JTAG to a computer (feature `host-link`) |
 //! | [`stale`] | `stale_task` | none: says when the shared telemetry goes stale |
+//! | [`store`] | — | the configuration record in the `nvs` flash partition |
+//! | [`button`] | `button_task` | the BOOT button: held 5 s, it lifts read-only |
 //! | [`log`] | — | reports → defmt lines (the words come from the library) |
 //! | [`panic`] | — | the panic handler: backtrace, then reset |
 //!
@@ -33,11 +35,13 @@ compile_error!(
 );
 
 mod bms;
+mod button;
 #[cfg(feature = "can")]
 mod can;
 mod log;
 mod panic;
 mod stale;
+mod store;
 mod usb;
 
 use defmt::info;
@@ -130,10 +134,25 @@ async fn main(spawner: Spawner) {
     // esp-rtos: TIMG0 timer0 as time base + FROM_CPU_INTR0 software interrupt.
     esp_rtos::start(timg0.timer0, p.FROM_CPU_INTR0);
 
+    // The configuration record, before any task that runs with it. (Reading
+    // flash stops the CPU only for microseconds; nothing runs yet anyway.)
+    let (store, loaded) = store::open(p.FLASH);
+    let config = tinybms_firmware::config::state::ConfigState::new(loaded.config, loaded.source);
+    let running = config.running();
+
     #[cfg(feature = "can")]
-    can::start(spawner, p.TWAI0);
-    usb::start(spawner, p.USB_DEVICE);
-    bms::start(spawner, p.UART1, wdt);
+    can::start(spawner, p.TWAI0, running.inverter());
+    usb::start(spawner, p.USB_DEVICE, running);
+    button::start(spawner);
+    bms::start(
+        spawner,
+        p.UART1,
+        wdt,
+        bms::Configuration {
+            state: config,
+            store,
+        },
+    );
     stale::start(spawner);
 }
 

@@ -19,6 +19,9 @@ mod on {
     use esp_hal::peripherals::USB_DEVICE;
     use esp_hal::usb::usb_serial_jtag::{UsbSerialJtag, UsbSerialJtagRx, UsbSerialJtagTx};
     use esp_hal::Async;
+    use tinybms_firmware::config::state::ConfigState;
+    use tinybms_firmware::config::store::{Saved, StoreError};
+    use tinybms_firmware::config::Config;
     use tinybms_firmware::host_link::{HostLink, OUT_LINE_MAX};
     use tinybms_firmware::{Bridge, Report};
 
@@ -47,16 +50,16 @@ mod on {
     /// The host link on the USB cable (USB-Serial-JTAG, CDC-ACM). Its JTAG side
     /// (probe-rs, RTT) is a separate USB interface of the same device: both run
     /// together (README, "Host link").
-    pub fn start(spawner: Spawner, usb: USB_DEVICE<'static>) {
+    pub fn start(spawner: Spawner, usb: USB_DEVICE<'static>, config: &Config) {
         let (usb_rx, usb_tx) = UsbSerialJtag::new(usb).into_async().split();
         info!(
             "host link on USB-Serial-JTAG: {=str}, telemetry every {=u32} ms",
-            if tinybms_firmware::site::HOST_READ_ONLY {
+            if config.read_only {
                 "read-only"
             } else {
                 "read-write"
             },
-            tinybms_firmware::site::HOST_STREAM_PERIOD_MS
+            config.stream_period_ms
         );
         spawn(spawner, usb_rx_task(usb_rx));
         spawn(spawner, usb_tx_task(usb_tx));
@@ -73,11 +76,8 @@ mod on {
     }
 
     impl HostPort {
-        pub fn new(bridge: &Bridge) -> Self {
-            let mut link = HostLink::new(
-                tinybms_firmware::site::host_link_config(BOARD.chip.name()),
-                now_us(),
-            );
+        pub fn new(bridge: &Bridge, config: &Config) -> Self {
+            let mut link = HostLink::new(config.host_link(BOARD.chip.name()), now_us());
             let due = link.poll(now_us(), bridge);
             Self {
                 link,
@@ -110,21 +110,34 @@ mod on {
         }
 
         /// The `n` bytes [`HostPort::receive`] got, into the host link.
-        pub fn handle_rx(&mut self, n: usize, bridge: &mut Bridge) {
+        pub fn handle_rx(&mut self, n: usize, bridge: &mut Bridge, config: &mut ConfigState) {
             let bytes = self.rx_buf.get(..n).unwrap_or(&[]);
-            self.link.handle_rx(now_us(), bytes, bridge);
+            self.link.handle_rx(now_us(), bytes, bridge, config);
+        }
+
+        /// The running configuration changed.
+        pub fn apply_config(&mut self, running: &Config) {
+            self.link.apply_config(now_us(), running);
+        }
+
+        /// The configuration's save is done.
+        pub fn on_config_saved(&mut self, result: Result<Saved, StoreError>) {
+            self.link.on_config_saved(result);
         }
 
         /// End of a bridge-task pass: a (re)connected host gets `hello`; streamed
         /// telemetry when due; encoded lines move to the USB writer while its pipe
         /// has room for a whole one (no I/O here, never a wait).
-        pub fn after_pass(&mut self, bridge: &Bridge) {
+        pub fn after_pass(&mut self, bridge: &Bridge, config: &ConfigState) {
             if HOST_CONNECTED.try_take().is_some() {
                 self.link.connected(now_us());
             }
             self.due = self.link.poll(now_us(), bridge);
             while HOST_TX.free_capacity() >= OUT_LINE_MAX {
-                let Some(n) = self.link.next_line(now_us(), bridge, &mut self.line) else {
+                let Some(n) = self
+                    .link
+                    .next_line(now_us(), bridge, config, &mut self.line)
+                else {
                     break;
                 };
                 let _ = HOST_TX.try_write(self.line.get(..n).unwrap_or(&[]));
@@ -179,17 +192,22 @@ mod on {
 mod off {
     use embassy_executor::Spawner;
     use esp_hal::peripherals::USB_DEVICE;
+    use tinybms_firmware::config::state::ConfigState;
+    use tinybms_firmware::config::store::{Saved, StoreError};
+    use tinybms_firmware::config::Config;
     use tinybms_firmware::{Bridge, Report};
 
     /// Nothing to start: the USB port stays unused.
-    pub fn start(_: Spawner, _: USB_DEVICE<'static>) {}
+    pub fn start(_: Spawner, _: USB_DEVICE<'static>, _: &Config) {}
 
     pub struct HostPort;
 
     impl HostPort {
-        pub fn new(_: &Bridge) -> Self {
+        pub fn new(_: &Bridge, _: &Config) -> Self {
             Self
         }
+        pub fn apply_config(&mut self, _: &Config) {}
+        pub fn on_config_saved(&mut self, _: Result<Saved, StoreError>) {}
         pub fn on_report(&mut self, _: &Report) {}
         pub fn on_uart_tx(&mut self, _: &[u8]) {}
         pub fn on_uart_rx(&mut self, _: &[u8]) {}
@@ -199,7 +217,7 @@ mod off {
         pub async fn receive(&mut self) -> usize {
             core::future::pending().await
         }
-        pub fn handle_rx(&mut self, _: usize, _: &mut Bridge) {}
-        pub fn after_pass(&mut self, _: &Bridge) {}
+        pub fn handle_rx(&mut self, _: usize, _: &mut Bridge, _: &mut ConfigState) {}
+        pub fn after_pass(&mut self, _: &Bridge, _: &ConfigState) {}
     }
 }

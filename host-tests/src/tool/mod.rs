@@ -9,6 +9,7 @@
 //! * [`monitor`], [`settings`] — what the commands print.
 
 pub mod client;
+pub mod config;
 pub mod direct;
 pub mod monitor;
 pub mod settings;
@@ -93,6 +94,14 @@ commands:
   clear-stats PORT            clear the statistics
   record PORT FILE.tbms       record the raw UART exchange as a capture `replay` reads
       --duration D            how long (default 10s)
+  config PORT                 the bridge's own configuration (kept in its flash): every
+                              field with its value, unit, default, range, when it applies
+  config PORT NAME            one field, explained
+  config PORT NAME=VALUE...   change fields (VALUE as shown, a unit may be given: 50A);
+                              one line per field, then saved to the bridge's flash
+      --save FILE             write the configuration to FILE (secrets left out)
+      --load FILE [--dry-run] show what FILE changes, then change it
+      --reset                 every field back to its default (asks unless --yes)
 
 options for every command with a PORT:
   --mode auto|bridge|direct   auto (default): a bridge answers `{\"cmd\":\"hello\"}`;
@@ -116,6 +125,8 @@ struct Args {
     raw: bool,
     dry_run: bool,
     save: Option<String>,
+    load: Option<String>,
+    reset: bool,
     log: Option<String>,
     every: Option<Duration>,
     format: Option<String>,
@@ -154,6 +165,8 @@ fn parse_args(argv: &[String]) -> ToolResult<Args> {
             "--raw" => a.raw = true,
             "--dry-run" => a.dry_run = true,
             "--save" => a.save = Some(value("--save")?),
+            "--load" => a.load = Some(value("--load")?),
+            "--reset" => a.reset = true,
             "--log" => a.log = Some(value("--log")?),
             "--every" => a.every = Some(dur(value("--every")?)?),
             "--format" => a.format = Some(value("--format")?),
@@ -424,8 +437,161 @@ fn run(argv: &[String]) -> ToolResult<()> {
             expect(2, "PORT FILE.tbms [--duration D]")?;
             record(&a)
         }
+        "config" => run_config(&a),
         other => Err(ToolError::usage(format!("unknown command `{other}`"))),
     }
+}
+
+/// `tinybms config …` (see [`config`]).
+fn run_config(a: &Args) -> ToolResult<()> {
+    if a.positional.is_empty() {
+        return Err(ToolError::usage(
+            "usage: tinybms config PORT [NAME | NAME=VALUE...] [--save FILE | --load FILE | --reset]",
+        ));
+    }
+    let args = &a.positional[1..];
+    let modes = [
+        !args.is_empty(),
+        a.save.is_some(),
+        a.load.is_some(),
+        a.reset,
+    ]
+    .iter()
+    .filter(|m| **m)
+    .count();
+    if modes > 1 {
+        return Err(ToolError::usage(
+            "give one of NAME=VALUE..., --save, --load or --reset",
+        ));
+    }
+    // Everything that can be checked without the bridge is checked first.
+    let assignments = if args.iter().any(|x| x.contains('=')) {
+        let mut out = Vec::new();
+        for arg in args {
+            let (name, text) = config::split_assignment(arg)?;
+            let (id, p) = config::check_assignment(&name, &text)?;
+            if out.iter().any(|(o, _)| *o == id) {
+                return Err(ToolError::usage(format!(
+                    "`{}` is given twice: give each field once",
+                    id.name()
+                )));
+            }
+            out.push((id, p));
+        }
+        Some(out)
+    } else {
+        None
+    };
+    if assignments.is_none() && args.len() > 1 {
+        return Err(ToolError::usage(
+            "usage: tinybms config PORT NAME (one field), or NAME=VALUE... to change fields",
+        ));
+    }
+    let explain = match (&assignments, args.first()) {
+        (None, Some(name)) => Some(config::field_named(name)?),
+        _ => None,
+    };
+    let loaded = match &a.load {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .map_err(|e| ToolError::failed(format!("cannot read `{path}`: {e}")))?;
+            Some(config::parse_file(&text).map_err(|e| ToolError::usage(format!("{path}: {e}")))?)
+        }
+        None => None,
+    };
+    if a.reset
+        && !a.yes
+        && !confirm("Set every field of the bridge's configuration back to its default")?
+    {
+        return Err(ToolError::failed("not confirmed: nothing changed"));
+    }
+    let mut c = connect(a)?;
+    config::require_bridge(&c)?;
+    let (fields, end) = config::fetch(&mut c).map_err(config::fetch_error)?;
+    let current = config::record_of(&fields);
+    if let Some(changes) = assignments {
+        config::check_locally(&current, &changes)?;
+        return config::apply(&mut c, &changes);
+    }
+    if let Some(wanted) = loaded {
+        let changes = config::diff(&current, &wanted);
+        config::check_locally(&current, &changes)?;
+        println!(
+            "{}: {} fields, {} differ from the bridge's",
+            a.load.as_deref().unwrap_or(""),
+            wanted.len(),
+            changes.len()
+        );
+        for (id, p) in &changes {
+            let mut l = tinybms_firmware::text::Line::new();
+            tinybms_firmware::config::value::write(id.field(), &p.as_value(), true, &mut l);
+            let now = fields
+                .iter()
+                .find(|f| f.line["name"] == id.name())
+                .and_then(|f| f.line["value"].as_str())
+                .unwrap_or("?");
+            println!("  {:<24} {now} -> {}", id.name(), l.as_str());
+        }
+        if a.dry_run || changes.is_empty() {
+            if a.dry_run {
+                println!("dry run: nothing changed");
+            }
+            return Ok(());
+        }
+        return config::apply(&mut c, &changes);
+    }
+    if a.reset {
+        return config::reset(&mut c);
+    }
+    if let Some(id) = explain {
+        let f = fields
+            .iter()
+            .find(|f| f.line["name"] == id.name())
+            .ok_or_else(|| ToolError::failed(format!("the bridge has no field `{}`", id.name())))?;
+        print!("{}", config::render_one(f));
+        return Ok(());
+    }
+    print!("{}", config::render(&fields, &end));
+    if let Some(path) = &a.save {
+        let header = format!(
+            "saved by tinybms {} from {} at {}",
+            env!("CARGO_PKG_VERSION"),
+            c.port,
+            monitor::utc_now()
+        );
+        std::fs::write(path, config::file_text(&fields, &header))
+            .map_err(|e| ToolError::failed(format!("cannot write `{path}`: {e}")))?;
+        let secrets = fields.iter().filter(|f| f.line["secret"] == true).count();
+        println!(
+            "saved {} fields to {path} ({secrets} secrets left out)",
+            fields.len() - secrets
+        );
+    }
+    Ok(())
+}
+
+/// The candidate closest to `name` when it is close enough to be a typo.
+pub fn suggest<'a>(name: &str, candidates: &[&'a str]) -> Option<&'a str> {
+    let dist = |a: &str, b: &str| -> usize {
+        let (a, b): (Vec<char>, Vec<char>) = (a.chars().collect(), b.chars().collect());
+        let mut prev: Vec<usize> = (0..=b.len()).collect();
+        for (i, ca) in a.iter().enumerate() {
+            let mut cur = vec![i + 1; b.len() + 1];
+            for (j, cb) in b.iter().enumerate() {
+                let sub = prev[j] + usize::from(ca != cb);
+                cur[j + 1] = sub.min(prev[j + 1] + 1).min(cur[j] + 1);
+            }
+            prev = cur;
+        }
+        prev[b.len()]
+    };
+    let lower = name.to_ascii_lowercase();
+    candidates
+        .iter()
+        .map(|c| (dist(&lower, c), *c))
+        .filter(|(d, c)| *d <= (c.len() / 3).max(2))
+        .min_by_key(|(d, _)| *d)
+        .map(|(_, c)| c)
 }
 
 fn ready_timeout(a: &Args) -> Duration {

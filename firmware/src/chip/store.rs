@@ -1,0 +1,80 @@
+//! The configuration store on the chip: the default partition table's `nvs`
+//! partition (0x9000, 24 KiB: espflash's and ESP-IDF's default table; esp-radio
+//! does not use it), through `esp-storage` and `embassy-embedded-hal`'s
+//! `BlockingAsync` adapter into the library's `config::store::Store`.
+//!
+//! Everything about the record — its codec, power-loss safety, when it may be
+//! written — is the library's (tested on the host); this file finds the
+//! partition.
+
+use defmt::warn;
+use embassy_embedded_hal::adapter::BlockingAsync;
+use esp_bootloader_esp_idf::partitions::{self, FlashRegion, NorFlashRegion};
+use esp_hal::peripherals::FLASH;
+use esp_storage::FlashStorage;
+use static_cell::StaticCell;
+use tinybms_firmware::config::store::{Loaded, Source, Store, StoreError};
+use tinybms_firmware::config::Config;
+
+/// The flash the store works on.
+pub type Flash = BlockingAsync<NorFlashRegion<'static, 'static, 'static>>;
+
+/// Partition table entry of the store: type data (1), subtype nvs (2), label.
+const NVS_TYPE: u8 = 1;
+const NVS_SUBTYPE: u8 = 2;
+const NVS_LABEL: &[u8] = b"nvs";
+
+static STORAGE: StaticCell<FlashStorage<'static>> = StaticCell::new();
+static REGION: StaticCell<FlashRegion<'static, 'static>> = StaticCell::new();
+
+/// Opens the store and loads the record. Without a usable partition the bridge
+/// runs with the defaults (and says so) and changes are kept in RAM only.
+///
+/// Not `async`: the flash under `BlockingAsync` never makes a future wait, so
+/// the load is driven to completion here on the stack (an `async fn` would
+/// keep the 3 KiB partition table buffer and the load's state in the main
+/// task's static future for good).
+pub fn open(flash: FLASH<'static>) -> (Option<Store<Flash>>, Loaded) {
+    let storage = STORAGE.init(FlashStorage::new(flash));
+    let entry = {
+        let mut table = [0u8; partitions::PARTITION_TABLE_MAX_LEN];
+        match partitions::read_partition_table(storage, &mut table) {
+            // By raw type and label: `partition_type()` panics on a subtype
+            // it does not know, and a custom table may have one.
+            Ok(t) => t.iter().find(|e| {
+                e.raw_type() == NVS_TYPE && e.raw_subtype() == NVS_SUBTYPE && e.label() == NVS_LABEL
+            }),
+            Err(_) => None,
+        }
+    };
+    let Some(entry) = entry else {
+        warn!("no `nvs` partition in the partition table: configuration in RAM only");
+        return (None, defaults(StoreError::Partition));
+    };
+    let region = REGION.init(entry.as_flash_region(storage));
+    let Ok(nor) = region.as_nor_flash() else {
+        warn!("the `nvs` partition is encrypted: configuration in RAM only");
+        return (None, defaults(StoreError::Partition));
+    };
+    let len = entry.len();
+    match Store::new(BlockingAsync::new(nor), 0..len) {
+        Ok(mut store) => {
+            let loaded = embassy_futures::block_on(store.load());
+            (Some(store), loaded)
+        }
+        Err(e) => {
+            warn!(
+                "the `nvs` partition cannot hold the store ({=u32} bytes)",
+                len
+            );
+            (None, defaults(e))
+        }
+    }
+}
+
+fn defaults(e: StoreError) -> Loaded {
+    Loaded {
+        config: Config::default(),
+        source: Source::Unreadable(e),
+    }
+}

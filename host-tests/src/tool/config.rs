@@ -1,0 +1,537 @@
+//! `tinybms config`: the bridge's own configuration (the record in its flash,
+//! firmware/src/config/) — shown with units, ranges and defaults, changed by
+//! name, saved to and loaded from a text file, reset.
+//!
+//! The field table is the firmware's own ([`tinybms_firmware::config::FIELDS`]),
+//! so names, units and ranges are checked here exactly as the bridge checks
+//! them before anything is sent; the bridge checks again (and against the BMS's
+//! own settings) and has the last word.
+//!
+//! ## The file format (`--save` / `--load`)
+//!
+//! ```text
+//! # comment (a line starting with `#`, or after a value)
+//! charge_current_cap = 50.0 A        # a value in the text form `tinybms config` prints
+//! inverter_protocol = sma
+//! wifi_ssid = "My network"           # text in double quotes (JSON escapes: \" \\ \u00e9)
+//! ```
+//!
+//! One field per line, each at most once. Secrets (`wifi_key`, `mqtt_password`)
+//! are never written to a file; a file may set them.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::time::{Duration, Instant};
+
+use serde_json::{json, Map, Value};
+use tinybms_firmware::config::value::{self, Parsed};
+use tinybms_firmware::config::{Config, FieldId, Kind, FIELDS};
+use tinybms_firmware::host_link::line::LINE_MAX;
+use tinybms_firmware::text::Line;
+
+use super::client::{protocol_error, Client};
+use super::transport::Mode;
+use super::{suggest, ToolError, ToolResult};
+
+/// How long the save to flash may take (a sector erase is at most ~0.5 s).
+pub const SAVE_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// One field as the bridge reports it (`get config`).
+#[derive(Debug, Clone)]
+pub struct Shown {
+    /// The line.
+    pub line: Value,
+}
+
+impl Shown {
+    fn s(&self, k: &str) -> &str {
+        self.line[k].as_str().unwrap_or("")
+    }
+}
+
+/// Refuses direct mode: a USB-UART adapter has no bridge configuration.
+pub fn require_bridge(c: &Client) -> ToolResult<()> {
+    match c.mode {
+        Mode::Bridge => Ok(()),
+        Mode::Direct => Err(ToolError::usage(format!(
+            "`{}` is a USB-UART adapter wired to the BMS (direct mode): the configuration is \
+             the ESP32 bridge's own, kept in its flash. Give the bridge's port (`tinybms ports`)",
+            c.port
+        ))),
+    }
+}
+
+/// The bridge's configuration: every field, and the `config_end` line.
+pub fn fetch(c: &mut Client) -> ToolResult<(Vec<Shown>, Value)> {
+    let req = c.send(json!({"cmd": "get", "what": "config"}))?;
+    let end = Instant::now() + super::client::GET_TIMEOUT;
+    let mut out = Vec::new();
+    loop {
+        let v = c.recv_for(req, end, "get config")?;
+        if v["type"] == "config_end" {
+            return Ok((out, v));
+        }
+        if v["type"] == "config" {
+            out.push(Shown { line: v });
+        }
+    }
+}
+
+/// The table `tinybms config PORT` prints.
+pub fn render(fields: &[Shown], end: &Value) -> String {
+    let mut out = String::new();
+    let differing = fields
+        .iter()
+        .filter(|f| f.s("value") != f.s("default"))
+        .count();
+    let pending = end["restart_pending"].as_u64().unwrap_or(0);
+    let _ =
+        writeln!(
+        out,
+        "bridge configuration (started from {}; {differing} field{} differ{} from the defaults{})",
+        end["source"].as_str().unwrap_or("?"),
+        if differing == 1 { "" } else { "s" },
+        if differing == 1 { "s" } else { "" },
+        if pending > 0 {
+            format!("; {pending} wait{} for a restart", if pending == 1 { "s" } else { "" })
+        } else {
+            String::new()
+        }
+    );
+    let w = fields.iter().map(|f| f.s("name").len()).max().unwrap_or(10);
+    let vw = fields
+        .iter()
+        .map(|f| with_unit(f.s("value"), f.s("unit")).chars().count())
+        .max()
+        .unwrap_or(8)
+        .min(28);
+    let mut group = "";
+    for f in fields {
+        if f.s("group") != group {
+            group = f.s("group");
+            let _ = writeln!(out, "\n{group}");
+        }
+        let mark = if f.s("value") != f.s("default") {
+            '*'
+        } else {
+            ' '
+        };
+        let restart = if f.line["restart_pending"] == true {
+            "  (restart pending)"
+        } else {
+            ""
+        };
+        let _ = writeln!(
+            out,
+            "{mark} {:<w$}  {:<vw$}  default {:<14} {}; {}{restart}",
+            f.s("name"),
+            with_unit(f.s("value"), f.s("unit")),
+            with_unit(f.s("default"), f.s("unit")),
+            f.s("range"),
+            match f.s("applies") {
+                "now" => "applies at once",
+                _ => "applies at the next restart",
+            },
+        );
+    }
+    let _ = writeln!(
+        out,
+        "\n* differs from the default. `tinybms config PORT NAME` explains a field; \
+         `tinybms config PORT NAME=VALUE…` changes it."
+    );
+    out
+}
+
+/// One field in detail (`tinybms config PORT NAME`).
+pub fn render_one(f: &Shown) -> String {
+    format!(
+        "{}: {}\n  value    {}{}\n  default  {}\n  range    {}\n  applies  {}\n",
+        f.s("name"),
+        f.s("help"),
+        with_unit(f.s("value"), f.s("unit")),
+        if f.line["restart_pending"] == true {
+            " (stored; the bridge runs with the old value until it restarts)"
+        } else {
+            ""
+        },
+        with_unit(f.s("default"), f.s("unit")),
+        f.s("range"),
+        if f.s("applies") == "now" {
+            "at once"
+        } else {
+            "at the next restart"
+        }
+    )
+}
+
+/// A value with its unit, unless it is a word (`none`, `on`, `set`).
+fn with_unit(v: &str, unit: &str) -> String {
+    let numeric = v.starts_with(|c: char| c.is_ascii_digit() || c == '-');
+    if numeric && !unit.is_empty() {
+        format!("{v} {unit}")
+    } else if v.is_empty() {
+        "(empty)".into()
+    } else {
+        v.to_string()
+    }
+}
+
+/// The field named `name`, or an error with a suggestion.
+pub fn field_named(name: &str) -> ToolResult<FieldId> {
+    FieldId::from_name(name).ok_or_else(|| {
+        let names: Vec<&str> = FIELDS.iter().map(|f| f.name).collect();
+        ToolError::usage(format!(
+            "no configuration field `{name}`{} (`tinybms config PORT` lists them)",
+            suggest(name, &names)
+                .map(|s| format!("; did you mean `{s}`?"))
+                .unwrap_or_default()
+        ))
+    })
+}
+
+/// Checks one `NAME=VALUE` as the bridge would: the field exists and the text
+/// is a value of it. Returns the name and the text to send.
+pub fn check_assignment(name: &str, text: &str) -> ToolResult<(FieldId, Parsed)> {
+    let id = field_named(name)?;
+    let f = id.field();
+    value::parse(f, text).map(|p| (id, p)).map_err(|e| {
+        let mut range = Line::new();
+        value::write_range(f, &mut range);
+        ToolError::usage(format!(
+            "{name} = {text}: {} (it takes {}{})",
+            e.detail,
+            range.as_str(),
+            if f.unit.is_empty() {
+                String::new()
+            } else {
+                format!("; the unit may be given: `{name}=… {}`", f.unit)
+            }
+        ))
+    })
+}
+
+/// `NAME=VALUE` split.
+pub fn split_assignment(arg: &str) -> ToolResult<(String, String)> {
+    arg.split_once('=')
+        .map(|(n, v)| (n.trim().to_string(), v.trim().to_string()))
+        .ok_or_else(|| ToolError::usage(format!("`{arg}`: want NAME=VALUE")))
+}
+
+/// The record the bridge holds, rebuilt from its `config` lines (secrets that
+/// are set get a placeholder, so the rules between fields can be checked).
+pub fn record_of(fields: &[Shown]) -> Config {
+    let mut c = Config::default();
+    for s in fields {
+        let Some(id) = FieldId::from_name(s.s("name")) else {
+            continue;
+        };
+        let f = id.field();
+        let text = match f.kind {
+            Kind::Secret { hex64: true, .. } if s.s("value") == "set" => "0".repeat(64),
+            Kind::Secret { .. } if s.s("value") == "set" => "set".into(),
+            Kind::Secret { .. } => String::new(),
+            _ => s.s("value").to_string(),
+        };
+        if let Ok(p) = value::parse(f, &text) {
+            let _ = c.set(id, p.as_value());
+        }
+    }
+    c
+}
+
+/// Checks `changes` against the bridge's record locally (every rule between
+/// fields), so that a change that cannot be accepted is refused before
+/// anything is sent.
+pub fn check_locally(current: &Config, changes: &[(FieldId, Parsed)]) -> ToolResult<()> {
+    let mut next = current.clone();
+    for (id, p) in changes {
+        next.set(*id, p.as_value())
+            .map_err(|e| ToolError::usage(format!("{}: {}", id.name(), e.detail)))?;
+    }
+    next.validate()
+        .map_err(|e| ToolError::usage(format!("{}: {}", e.field.name(), e.detail)))
+}
+
+/// The text a change sends for a field (its text form; a secret as given).
+fn wire_text(id: FieldId, p: &Parsed) -> String {
+    let mut l = Line::new();
+    match p {
+        Parsed::Text(t) => t.to_string(),
+        _ => {
+            value::write(id.field(), &p.as_value(), true, &mut l);
+            l.as_str().to_string()
+        }
+    }
+}
+
+/// Sends `changes` (split into `set_config` lines that fit the protocol's
+/// line length), printing one line per field; fails when any was refused or
+/// the save did not go through.
+pub fn apply(c: &mut Client, changes: &[(FieldId, Parsed)]) -> ToolResult<()> {
+    let mut refused = 0;
+    let mut restart = 0;
+    let mut saved_all = true;
+    let mut changed = 0;
+    for group in line_groups(changes) {
+        let mut map = Map::new();
+        for (id, p) in &group {
+            map.insert(id.name().to_string(), json!(wire_text(*id, p)));
+        }
+        let req = c.send(json!({"cmd": "set_config", "fields": Value::Object(map)}))?;
+        let end = Instant::now() + SAVE_TIMEOUT;
+        loop {
+            let v = match c.recv_for(req, end, "set_config") {
+                Ok(v) => v,
+                Err(e) => return Err(read_only_hint(e)),
+            };
+            match v["type"].as_str() {
+                Some("config_outcome") => {
+                    let o = v["outcome"].as_str().unwrap_or("?");
+                    let name = v["name"].as_str().unwrap_or("?");
+                    let shown = v["value"].as_str().unwrap_or("");
+                    let line = match o {
+                        "applied" => format!("{name} = {shown}: applied"),
+                        "at_restart" => {
+                            restart += 1;
+                            format!("{name} = {shown}: stored, applies at the next restart")
+                        }
+                        "unchanged" => format!("{name} = {shown}: unchanged"),
+                        "not_applied" => format!("{name}: not applied (another field was refused)"),
+                        _ => {
+                            refused += 1;
+                            format!(
+                                "{name}: refused, {} ({}){}",
+                                v["error"].as_str().unwrap_or("?"),
+                                v["detail"].as_str().unwrap_or(""),
+                                v["range"]
+                                    .as_str()
+                                    .map(|r| format!("; it takes {r}"))
+                                    .unwrap_or_default()
+                            )
+                        }
+                    };
+                    if o == "applied" || o == "at_restart" {
+                        changed += 1;
+                    }
+                    println!("{line}");
+                }
+                Some("config_done") => {
+                    if v["saved"] == false {
+                        saved_all = false;
+                        println!(
+                            "NOT saved to flash: {} (the change holds until the bridge restarts)",
+                            v["detail"].as_str().unwrap_or("?")
+                        );
+                    }
+                    break;
+                }
+                _ => {}
+            }
+        }
+        if refused > 0 {
+            break;
+        }
+    }
+    if refused > 0 {
+        return Err(ToolError::failed(format!(
+            "{refused} field{} refused: nothing of that change was applied",
+            if refused == 1 { "" } else { "s" }
+        )));
+    }
+    if !saved_all {
+        return Err(ToolError::failed(
+            "the configuration was not saved to flash",
+        ));
+    }
+    if changed > 0 {
+        println!(
+            "saved to the bridge's flash{}",
+            if restart > 0 {
+                format!("; {restart} field(s) apply after a restart (power-cycle or press RESET)")
+            } else {
+                String::new()
+            }
+        );
+    } else {
+        println!("nothing changed");
+    }
+    Ok(())
+}
+
+/// Splits `changes` into groups whose `set_config` line fits the bridge's
+/// line length (and its 12 fields a line).
+fn line_groups(changes: &[(FieldId, Parsed)]) -> Vec<Vec<(FieldId, Parsed)>> {
+    let mut groups: Vec<Vec<(FieldId, Parsed)>> = Vec::new();
+    let mut cur: Vec<(FieldId, Parsed)> = Vec::new();
+    let fits = |g: &[(FieldId, Parsed)]| {
+        let mut map = Map::new();
+        for (id, p) in g {
+            map.insert(id.name().to_string(), json!(wire_text(*id, p)));
+        }
+        let line = json!({"cmd": "set_config", "req": u32::MAX, "fields": Value::Object(map)});
+        line.to_string().len() <= LINE_MAX
+            && g.len() <= tinybms_firmware::host_link::command::MAX_SET_CONFIG
+    };
+    for ch in changes {
+        cur.push(ch.clone());
+        if !fits(&cur) && cur.len() > 1 {
+            let last = cur.pop();
+            groups.push(std::mem::take(&mut cur));
+            cur.extend(last);
+        }
+    }
+    if !cur.is_empty() {
+        groups.push(cur);
+    }
+    groups
+}
+
+fn read_only_hint(e: ToolError) -> ToolError {
+    if e.message.contains("read_only") {
+        ToolError::failed(
+            "the bridge is read-only: it refuses every write, its configuration too. To allow \
+             changes, hold the board's BOOT button for 5 seconds while the bridge runs (or erase \
+             its configuration: README, \"Read-only\")",
+        )
+    } else {
+        e
+    }
+}
+
+/// `--reset`: every field back to its default.
+pub fn reset(c: &mut Client) -> ToolResult<()> {
+    let v = c
+        .command(json!({"cmd": "reset_config"}), "config_done", SAVE_TIMEOUT)
+        .map_err(read_only_hint)?;
+    if v["saved"] == false {
+        return Err(ToolError::failed(format!(
+            "the defaults were not saved to flash: {}",
+            v["detail"].as_str().unwrap_or("?")
+        )));
+    }
+    println!(
+        "{} field(s) back to their defaults{}",
+        v["changed"],
+        match v["restart_needed"].as_u64() {
+            Some(n) if n > 0 => format!("; {n} apply after a restart"),
+            _ => String::new(),
+        }
+    );
+    Ok(())
+}
+
+/// The file `--save` writes: every field but the secrets.
+pub fn file_text(fields: &[Shown], header: &str) -> String {
+    let mut out = format!(
+        "# {header}\n# The ESP32 bridge's configuration: `name = value` per line, in the units \
+         `tinybms config` prints.\n# `tinybms config PORT --load FILE` writes it back. Secrets \
+         are never saved here.\n"
+    );
+    for f in fields {
+        let name = f.s("name");
+        let Some(id) = FieldId::from_name(name) else {
+            continue;
+        };
+        let field = id.field();
+        if field.is_secret() {
+            let _ = writeln!(out, "# {name}: {} (secrets are not saved)", f.s("value"));
+            continue;
+        }
+        let value = match field.kind {
+            Kind::Text { .. } => json!(f.s("value")).to_string(),
+            _ => with_unit(f.s("value"), f.s("unit")),
+        };
+        let _ = writeln!(
+            out,
+            "{name} = {value:<24} # {}; default {}",
+            f.s("range"),
+            with_unit(f.s("default"), f.s("unit"))
+        );
+    }
+    out
+}
+
+/// Reads a configuration file (see the module documentation): the fields it
+/// sets, in order; an error names the line.
+pub fn parse_file(text: &str) -> Result<Vec<(FieldId, Parsed)>, String> {
+    let mut out: Vec<(FieldId, Parsed)> = Vec::new();
+    let mut seen: BTreeMap<&str, usize> = BTreeMap::new();
+    for (n, raw) in text.lines().enumerate() {
+        let n = n + 1;
+        let line = raw.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let (name, rest) = line
+            .split_once('=')
+            .ok_or_else(|| format!("line {n}: want `name = value`: {raw}"))?;
+        let name = name.trim();
+        let rest = rest.trim();
+        let text = if rest.starts_with('"') {
+            // A JSON string, then maybe a comment.
+            let mut de = serde_json::Deserializer::from_str(rest).into_iter::<String>();
+            match de.next() {
+                Some(Ok(s)) => {
+                    let after = rest[de.byte_offset()..].trim();
+                    if !after.is_empty() && !after.starts_with('#') {
+                        return Err(format!("line {n}: text after the quoted value: {raw}"));
+                    }
+                    s
+                }
+                _ => {
+                    return Err(format!(
+                        "line {n}: an unterminated or invalid quoted value: {raw}"
+                    ))
+                }
+            }
+        } else {
+            rest.split('#').next().unwrap_or("").trim().to_string()
+        };
+        let id = field_named(name).map_err(|e| format!("line {n}: {}", e.message))?;
+        if let Some(first) = seen.insert(id.name(), n) {
+            return Err(format!(
+                "line {n}: `{}` is already set on line {first}: give each field once",
+                id.name()
+            ));
+        }
+        let p = value::parse(id.field(), &text).map_err(|e| {
+            let mut range = Line::new();
+            value::write_range(id.field(), &mut range);
+            format!(
+                "line {n}: {} = {text}: {} (it takes {})",
+                id.name(),
+                e.detail,
+                range.as_str()
+            )
+        })?;
+        out.push((id, p));
+    }
+    Ok(out)
+}
+
+/// The changes a file makes to the bridge's record: only the fields that differ.
+pub fn diff(current: &Config, wanted: &[(FieldId, Parsed)]) -> Vec<(FieldId, Parsed)> {
+    wanted
+        .iter()
+        .filter(|(id, p)| current.get(*id) != p.as_value() || id.field().is_secret())
+        .cloned()
+        .collect()
+}
+
+/// A refused `get config` as an error (an older bridge firmware has none).
+pub fn fetch_error(e: ToolError) -> ToolError {
+    if e.message.contains("invalid_value") {
+        ToolError::failed(
+            "the bridge does not know `get config`: its firmware is older than this tool \
+             (flash the current image, README)",
+        )
+    } else {
+        e
+    }
+}
+
+/// `error` lines of set_config turned into tool errors (kept for callers that
+/// parse answers themselves).
+pub fn error_of(v: &Value) -> ToolError {
+    read_only_hint(protocol_error(v))
+}

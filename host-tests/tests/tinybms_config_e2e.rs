@@ -1,0 +1,239 @@
+//! End to end: `tinybms config` (the built binary) against `sim --bridge-pty
+//! --flash FILE` — the firmware's bridge, host link and configuration store in
+//! the sim process, the record in a file-backed flash that a restarted sim
+//! finds again.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+
+mod common;
+use common::*;
+
+fn bridge(flash: &std::path::Path, extra: &[&str]) -> Sim {
+    let mut args = vec!["--bridge-pty", "--flash", flash.to_str().unwrap()];
+    args.extend_from_slice(extra);
+    Sim::start(&args)
+}
+
+#[test]
+fn show_change_restart_and_find_it_again() {
+    let flash = tmp("config-flash.bin");
+    let _ = std::fs::remove_file(&flash);
+    let sim = bridge(&flash, &[]);
+    let show = tinybms(&["config", &sim.path]);
+    assert_eq!(show.code, 0, "{show}");
+    assert!(show.stdout.contains("started from defaults"), "{show}");
+    assert!(show.stdout.contains("charge_current_cap"), "{show}");
+    assert!(show.stdout.contains("0.1 A to 750.0 A, or none"), "{show}");
+    let set = tinybms(&[
+        "config",
+        &sim.path,
+        "charge_current_cap=50A",
+        "inverter_protocol=sma",
+    ]);
+    assert_eq!(set.code, 0, "{set}");
+    assert!(
+        set.stdout.contains("charge_current_cap = 50.0 A: applied"),
+        "{set}"
+    );
+    assert!(
+        set.stdout
+            .contains("inverter_protocol = sma: stored, applies at the next restart"),
+        "{set}"
+    );
+    assert!(set.stdout.contains("saved to the bridge's flash"), "{set}");
+    let show = tinybms(&["config", &sim.path]);
+    assert!(show.stdout.contains("(restart pending)"), "{show}");
+    drop(sim);
+    // A restart of the bridge: the record is in the flash file.
+    let sim = bridge(&flash, &[]);
+    let show = tinybms(&["config", &sim.path]);
+    assert_eq!(show.code, 0, "{show}");
+    assert!(show.stdout.contains("started from flash"), "{show}");
+    assert!(!show.stdout.contains("(restart pending)"), "{show}");
+    let line = show
+        .stdout
+        .lines()
+        .find(|l| l.contains("charge_current_cap"))
+        .unwrap();
+    assert!(line.starts_with('*') && line.contains("50.0 A"), "{line}");
+    let one = tinybms(&["config", &sim.path, "inverter_protocol"]);
+    assert_eq!(one.code, 0, "{one}");
+    assert!(one.stdout.contains("value    sma"), "{one}");
+    assert!(one.stdout.contains("CAN protocol"), "{one}");
+}
+
+#[test]
+fn save_load_and_reset() {
+    let flash = tmp("config-flash-2.bin");
+    let _ = std::fs::remove_file(&flash);
+    let sim = bridge(&flash, &[]);
+    let set = tinybms(&[
+        "config",
+        &sim.path,
+        "stale_after=8s",
+        "wifi_ssid=Home Net",
+        "mqtt_user=bms",
+        "mqtt_password=hunter2",
+    ]);
+    assert_eq!(set.code, 0, "{set}");
+    assert!(
+        !set.stdout.contains("hunter2"),
+        "a secret was echoed: {set}"
+    );
+    let file = tmp("bridge-config.txt");
+    let save = tinybms(&["config", &sim.path, "--save", file.to_str().unwrap()]);
+    assert_eq!(save.code, 0, "{save}");
+    let text = std::fs::read_to_string(&file).unwrap();
+    assert!(text.contains("stale_after = 8 s"), "{text}");
+    assert!(text.contains("wifi_ssid = \"Home Net\""), "{text}");
+    assert!(!text.contains("hunter2"), "a secret was saved: {text}");
+    assert!(
+        text.contains("# mqtt_password: set (secrets are not saved)"),
+        "{text}"
+    );
+    // Reset, then load the file back.
+    let reset = tinybms(&["config", &sim.path, "--reset", "--yes"]);
+    assert_eq!(reset.code, 0, "{reset}");
+    let show = tinybms(&["config", &sim.path]);
+    assert!(show.stdout.contains("0 fields differ"), "{show}");
+    let dry = tinybms(&[
+        "config",
+        &sim.path,
+        "--load",
+        file.to_str().unwrap(),
+        "--dry-run",
+    ]);
+    assert_eq!(dry.code, 0, "{dry}");
+    assert!(dry.stdout.contains("stale_after"), "{dry}");
+    assert!(dry.stdout.contains("dry run: nothing changed"), "{dry}");
+    let load = tinybms(&["config", &sim.path, "--load", file.to_str().unwrap()]);
+    assert_eq!(load.code, 0, "{load}");
+    let show = tinybms(&["config", &sim.path, "stale_after"]);
+    assert!(show.stdout.contains("value    8 s"), "{show}");
+    // The password was not in the file: unset after the reset.
+    let show = tinybms(&["config", &sim.path, "mqtt_password"]);
+    assert!(show.stdout.contains("value    unset"), "{show}");
+}
+
+#[test]
+fn errors_a_user_meets_get_a_sentence() {
+    let flash = tmp("config-flash-3.bin");
+    let _ = std::fs::remove_file(&flash);
+    let sim = bridge(&flash, &[]);
+    // A typo: a suggestion, exit 2, nothing sent.
+    let typo = tinybms(&["config", &sim.path, "charge_curent_cap=50"]);
+    assert_eq!(typo.code, 2, "{typo}");
+    assert!(
+        typo.stderr.contains("did you mean `charge_current_cap`"),
+        "{typo}"
+    );
+    // Out of range: the range.
+    let far = tinybms(&["config", &sim.path, "charge_current_cap=9999"]);
+    assert_eq!(far.code, 2, "{far}");
+    assert!(far.stderr.contains("0.1 A to 750.0 A, or none"), "{far}");
+    // A unit of another quantity.
+    let unit = tinybms(&["config", &sim.path, "charge_current_cap=50V"]);
+    assert_eq!(unit.code, 2, "{unit}");
+    assert!(unit.stderr.contains("not in this field's unit"), "{unit}");
+    // A rule between fields, caught before sending.
+    let rule = tinybms(&["config", &sim.path, "wifi_key=".to_string().as_str()]);
+    assert_eq!(rule.code, 0, "{rule}");
+    let key = format!("wifi_key={}", "ab".repeat(32));
+    let rule = tinybms(&["config", &sim.path, &key]);
+    assert_eq!(rule.code, 2, "{rule}");
+    assert!(rule.stderr.contains("no wifi_ssid"), "{rule}");
+    // The same field twice.
+    let twice = tinybms(&["config", &sim.path, "stale_after=7", "stale_after=9"]);
+    assert_eq!(twice.code, 2, "{twice}");
+    // A bad file names its line.
+    let bad = tmp("bad-config.txt");
+    std::fs::write(&bad, "# x\nstale_after = 7\nstale_after = 9\n").unwrap();
+    let load = tinybms(&["config", &sim.path, "--load", bad.to_str().unwrap()]);
+    assert_eq!(load.code, 2, "{load}");
+    assert!(load.stderr.contains("line 3"), "{load}");
+    // Nothing of it reached the bridge.
+    let show = tinybms(&["config", &sim.path]);
+    assert!(show.stdout.contains("0 fields differ"), "{show}");
+}
+
+#[test]
+fn a_read_only_bridge_refuses_and_says_how_to_unlock() {
+    let flash = tmp("config-flash-4.bin");
+    let _ = std::fs::remove_file(&flash);
+    let sim = bridge(&flash, &["--read-only"]);
+    let set = tinybms(&["config", &sim.path, "charge_current_cap=50"]);
+    assert_eq!(set.code, 1, "{set}");
+    assert!(set.stderr.contains("BOOT button"), "{set}");
+    drop(sim);
+    // The way out without a computer: the BOOT button, held (simulated at 1 s).
+    let sim = bridge(&flash, &["--boot-button", "1s"]);
+    let mut ok = None;
+    for _ in 0..40 {
+        let set = tinybms(&["config", &sim.path, "charge_current_cap=50"]);
+        if set.code == 0 {
+            ok = Some(set);
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(500));
+    }
+    let set = ok.expect("the BOOT button did not lift read-only within 20 s");
+    assert!(set.stdout.contains("applied"), "{set}");
+    drop(sim);
+    // And the way out by erasing the store: the defaults, read-write.
+    let _ = std::fs::remove_file(&flash);
+    let sim = bridge(&flash, &[]);
+    let show = tinybms(&["config", &sim.path, "read_only"]);
+    assert!(show.stdout.contains("value    off"), "{show}");
+}
+
+#[test]
+fn direct_mode_has_no_bridge_configuration() {
+    let sim = Sim::start(&["--pty"]);
+    let out = tinybms(&["config", &sim.path]);
+    assert_eq!(out.code, 2, "{out}");
+    assert!(out.stderr.contains("direct mode"), "{out}");
+}
+
+#[test]
+fn a_flash_file_that_is_not_one_is_refused() {
+    let flash = tmp("not-a-flash.bin");
+    std::fs::write(&flash, b"hello").unwrap();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_sim"))
+        .args([
+            "--bridge-pty",
+            "--flash",
+            flash.to_str().unwrap(),
+            "--duration",
+            "5s",
+        ])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let status = child.wait().unwrap();
+    let mut err = String::new();
+    use std::io::Read;
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    assert!(!status.success());
+    assert!(err.contains("not a 24576-byte flash image"), "{err}");
+}
+
+#[test]
+fn a_corrupted_flash_file_gives_the_defaults_and_a_bridge_that_runs() {
+    let flash = tmp("corrupt-flash.bin");
+    let mut bytes = vec![0xFFu8; 0x6000];
+    for (i, b) in bytes.iter_mut().enumerate().take(8192) {
+        *b = (i * 7 + 3) as u8;
+    }
+    std::fs::write(&flash, &bytes).unwrap();
+    let sim = bridge(&flash, &[]);
+    let show = tinybms(&["config", &sim.path]);
+    assert_eq!(show.code, 0, "{show}");
+    assert!(show.stdout.contains("started from defaults"), "{show}");
+    let set = tinybms(&["config", &sim.path, "stale_after=6"]);
+    assert_eq!(set.code, 0, "{set}");
+}
