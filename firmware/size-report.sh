@@ -15,8 +15,12 @@
 # 27,612; bridge only C3 94,622 / 17,460, C6 95,814 / 17,792. The tree the 84 KiB /
 # 16 KiB goal was set on, with the goal's measures: ./size-filing-day.sh (C3 81,150 /
 # 15,692). README, "Performance": what makes them up.
-# Budgets (KiB) can be overridden: FLASH_BUDGET_KIB (default 224), RAM_BUDGET_KIB (default 48).
-# The flash budget went from 160 to 224 KiB with the host link (JSON Lines on USB:
+# Budgets (KiB) can be overridden: FLASH_BUDGET_KIB (default 256), RAM_BUDGET_KIB (default 48).
+# The flash budget went from 224 to 256 KiB with the bridge's own configuration
+# (issue 17: the record, its field table and text values, the flash store on
+# sequential-storage and esp-storage, the host link's config commands: about
+# 54 KiB of flash, 5 KiB of static RAM; README "Sizes").
+# It went from 160 to 224 KiB with the host link (JSON Lines on USB:
 # about 71 KiB, of which serde-json-core 9.3 KiB, core's f64 parsing it calls about
 # 16 KiB, the derived serializers and the parser/dispatch inlined into the bridge
 # task about 28 KiB; README "Host link", "Flash and RAM"). It was 128 KiB until the inverter output (charge control, CAN
@@ -41,7 +45,7 @@
 #   RTC/LP RAM (0x5000_0000..) is reported separately, not in the static RAM figure.
 set -euo pipefail
 
-FLASH_BUDGET_KIB=${FLASH_BUDGET_KIB:-224}
+FLASH_BUDGET_KIB=${FLASH_BUDGET_KIB:-256}
 RAM_BUDGET_KIB=${RAM_BUDGET_KIB:-48}
 
 verbose=0
