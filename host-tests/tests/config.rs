@@ -595,3 +595,41 @@ fn a_failed_save_is_tried_again_then_reported() {
     change(&mut s, &[("charge_current_cap", "41")], None);
     assert_eq!(s.saved(Ok(Saved::Written)), Some(Ok(Saved::Written)));
 }
+
+/// docs/configuration.md lists every field with the range, default, "applies"
+/// and help the firmware has: the guide cannot drift from the table.
+#[test]
+fn the_guide_lists_every_field_as_the_firmware_has_it() {
+    let guide = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../docs/configuration.md"
+    ))
+    .unwrap();
+    let d = Config::default();
+    for f in FIELDS {
+        let mut r = Line::new();
+        value::write_range(f, &mut r);
+        let mut v = Line::new();
+        value::write(f, &d.get(f.id), true, &mut v);
+        let default = if v.as_str().is_empty() {
+            "(empty)"
+        } else {
+            v.as_str()
+        };
+        let applies = match f.applies {
+            Applies::Now => "at once",
+            Applies::Restart => "restart",
+        };
+        let row = format!(
+            "| `{}` | {} | {} | {} | {} |",
+            f.name,
+            r.as_str(),
+            default,
+            applies,
+            f.help
+        );
+        assert!(guide.contains(&row), "docs/configuration.md lacks:\n{row}");
+    }
+    let rows = guide.lines().filter(|l| l.starts_with("| `")).count();
+    assert_eq!(rows, FIELDS.len(), "a field in the guide that the firmware has not");
+}
