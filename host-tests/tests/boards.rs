@@ -253,3 +253,21 @@ fn the_readme_wiring_table_matches_the_board_table() {
         );
     }
 }
+
+/// The physical way out of read-only (holding BOOT 5 s) exists on every
+/// board: each has a BOOT button in its table, at the chip's boot strap GPIO9,
+/// and no signal of the bridge on it.
+#[test]
+fn every_board_has_a_boot_button_for_the_read_only_unlock() {
+    for b in BOARDS {
+        let gpio = b
+            .boot_button()
+            .unwrap_or_else(|| panic!("{}: no BOOT button in the table", b.name));
+        assert_eq!(gpio, 9, "{}", b.name);
+        assert!(
+            b.signals().iter().all(|(_, g)| *g != gpio),
+            "{}: a signal on the BOOT button",
+            b.name
+        );
+    }
+}

@@ -631,5 +631,9 @@ fn the_guide_lists_every_field_as_the_firmware_has_it() {
         assert!(guide.contains(&row), "docs/configuration.md lacks:\n{row}");
     }
     let rows = guide.lines().filter(|l| l.starts_with("| `")).count();
-    assert_eq!(rows, FIELDS.len(), "a field in the guide that the firmware has not");
+    assert_eq!(
+        rows,
+        FIELDS.len(),
+        "a field in the guide that the firmware has not"
+    );
 }

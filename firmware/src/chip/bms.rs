@@ -17,10 +17,10 @@ use tinybms_firmware::bms::profile;
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::bridge::Step;
 use tinybms_firmware::config::state::ConfigState;
-use tinybms_firmware::config::store::{save_when_quiet, Store, StoreError};
+
 use tinybms_firmware::Bridge;
 
-use crate::{button, log, now_us, spawn, store, usb, SharedSnapshot, BOARD, TELEMETRY};
+use crate::{log, now_us, spawn, store, usb, SharedSnapshot, BOARD, TELEMETRY};
 
 /// TinyBMS UART baud rate (8N1 is the esp-hal default frame format; Rev D §1).
 const BMS_BAUDRATE: u32 = 115_200;
@@ -46,7 +46,7 @@ pub struct Configuration {
     /// The record it runs with and the one it stores.
     pub state: ConfigState,
     /// The store (`None`: no usable partition; changes then live in RAM).
-    pub store: Option<Store<store::Flash>>,
+    pub store: Option<store::ChipStore>,
 }
 
 /// UART1 to the TinyBMS on the board's pins, and the bridge task on it.
@@ -211,7 +211,8 @@ async fn bridge_task(
                 }
             }
         }
-        if button::UNLOCK.try_take().is_some() {
+        #[cfg(feature = "host-link")]
+        if crate::button::UNLOCK.try_take().is_some() {
             config.unlock();
         }
         if let Some(running) = config.take_running_change() {
@@ -220,16 +221,8 @@ async fn bridge_task(
             crate::can::reconfigure(running);
         }
         // The flash write stops the CPU: only when no BMS reply can be on its
-        // way, and nothing is sent until it is done (the poll is held). Driven
-        // to completion here (`BlockingAsync` never waits): its state stays on
-        // the stack instead of in this task's static future.
-        let saved = match store.as_mut() {
-            Some(s) => {
-                embassy_futures::block_on(save_when_quiet(&mut config, s, &bridge, now_us()))
-            }
-            None if config.save_due() => config.saved(Err(StoreError::Partition)),
-            None => None,
-        };
+        // way, and nothing is sent until it is done (the poll is held).
+        let saved = store::save_when_quiet(&mut config, &mut store, &bridge, now_us());
         if let Some(result) = saved {
             host.on_config_saved(result);
         }

@@ -35,6 +35,7 @@ compile_error!(
 );
 
 mod bms;
+#[cfg(feature = "host-link")]
 mod button;
 #[cfg(feature = "can")]
 mod can;
@@ -143,6 +144,7 @@ async fn main(spawner: Spawner) {
     #[cfg(feature = "can")]
     can::start(spawner, p.TWAI0, running.inverter());
     usb::start(spawner, p.USB_DEVICE, running);
+    #[cfg(feature = "host-link")]
     button::start(spawner);
     bms::start(
         spawner,
