@@ -883,12 +883,17 @@ proptest! {
         flags in 0u8..4,
         lines in proptest::collection::vec(
             (
-                prop::sample::select(vec!["hello", "get", "set", "reset", "clear", "stream", "capture", "x"]),
-                prop::sample::select(vec!["what", "values", "raw", "period_ms", "on", "req", "zz"]),
+                prop::sample::select(vec!["hello", "get", "set", "reset", "clear", "stream", "capture",
+                    "set_config", "reset_config", "x"]),
+                prop::sample::select(vec!["what", "values", "raw", "period_ms", "on", "req", "fields", "zz"]),
                 prop::sample::select(vec![
                     "\"snapshot\"", "\"settings\"", "\"events\"", "\"statistics\"", "\"version\"", "\"link\"",
+                    "\"config\"",
                     "{\"over_voltage_cutoff\":3.6}", "{\"315\":3600,\"charger_type\":1}", "{}", "true", "0",
                     "150", "-1", "1e9", "null", "[1,2]", "\"\\u0041\"",
+                    "{\"charge_current_cap\":\"50 A\"}", "{\"read_only\":\"on\"}",
+                    "{\"wifi_ssid\":\"a\\\"b\",\"wifi_key\":\"00\"}", "{\"stale_after\":5}",
+                    "{\"inverter_protocol\":\"sma\",\"float_voltage\":\"9 V\"}",
                 ]),
             ),
             1..12,
