@@ -16,6 +16,7 @@
 //! | the bridge | [`bridge`] | the coordinator on top of the link: poll schedule, sync, telemetry, the write/verify machine, [`Report`]s |
 //! | consumers | [`inverter`] | charge control and the inverter CAN protocols (Victron, SMA Sunny Island) |
 //! | | [`host_link`] | JSON Lines to a computer over USB |
+//! | | [`mqtt`] | the battery in Home Assistant: discovery, state, availability (publish only) |
 //! | this installation | [`config`] | the bridge's own configuration: the record, its checks, its store in flash |
 //! | | [`boards`] | the supported boards' pins and log paths, checked at compile time |
 //! | shared | [`text`] | the words of every log line |
@@ -48,6 +49,7 @@ pub mod bridge;
 pub mod config;
 pub mod host_link;
 pub mod inverter;
+pub mod mqtt;
 pub mod text;
 pub mod units;
 

@@ -323,6 +323,38 @@ struct TelemetryFull<'a> {
     speed_kmh: Option<Dec>,
     distance_left_km: u16,
     flagged: Option<&'static str>,
+    // The MQTT state's members beyond the host link's (none on the host link).
+    // Absent (outer None) on the host link; present, maybe null, in the state.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    status: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pack_power_w: Option<Option<Dec>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    cell_spread_v: Option<Option<Dec>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    data_age_s: Option<Option<Dec>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    link_quality_percent: Option<Option<Dec>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    cvl_v: Option<Option<Dec>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    ccl_a: Option<Option<Dec>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    dcl_a: Option<Option<Dec>>,
+}
+
+/// What the MQTT state says besides the host link's telemetry fields.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StateExtras {
+    /// The status's key, or `other` for a value no table knows (Home
+    /// Assistant's enum sensor needs a fixed list).
+    pub status: &'static str,
+    /// Data age, ms.
+    pub age_ms: u64,
+    /// Requests answered, percent, 0.1 % steps (None: nothing asked yet).
+    pub link_quality_permille: Option<u32>,
+    /// The limits the inverter is sent: CVL 0.1 V, CCL 0.1 A, DCL 0.1 A.
+    pub limits: Option<(u16, u16, u16)>,
 }
 
 /// What a `telemetry` line says besides the snapshot.
@@ -347,6 +379,7 @@ pub fn telemetry(
     head: TelemetryHead,
     snapshot: Option<&LiveSnapshot>,
     flagged: Option<&'static str>,
+    extras: Option<&StateExtras>,
 ) -> Option<usize> {
     let Some(s) = snapshot else {
         return line(
@@ -392,9 +425,32 @@ pub fn telemetry(
             speed_kmh: f32v(s.speed_kmh),
             distance_left_km: s.distance_left_km,
             flagged,
+            status: extras.map(|e| e.status),
+            pack_power_w: extras
+                .map(|_| rounded(f64::from(s.pack_voltage_v) * f64::from(s.pack_current_a), 1)),
+            cell_spread_v: extras
+                .map(|_| fixed(i64::from(s.max_cell_mv.saturating_sub(s.min_cell_mv)), 3)),
+            data_age_s: extras.map(|e| fixed(e.age_ms.min(1 << 40) as i64, 3)),
+            link_quality_percent: extras
+                .map(|e| e.link_quality_permille.and_then(|p| fixed(i64::from(p), 1))),
+            cvl_v: extras.map(|e| e.limits.and_then(|l| fixed(i64::from(l.0), 1))),
+            ccl_a: extras.map(|e| e.limits.and_then(|l| fixed(i64::from(l.1), 1))),
+            dcl_a: extras.map(|e| e.limits.and_then(|l| fixed(i64::from(l.2), 1))),
         },
         out,
     )
+}
+
+/// The MQTT state: a `telemetry` line's object with the [`StateExtras`], without
+/// the line's `\n`.
+pub fn state(
+    out: &mut [u8],
+    head: TelemetryHead,
+    snapshot: Option<&LiveSnapshot>,
+    flagged: Option<&'static str>,
+    extras: Option<&StateExtras>,
+) -> Option<usize> {
+    telemetry(out, head, snapshot, flagged, extras).map(|n| n.saturating_sub(1))
 }
 
 #[derive(serde::Serialize)]

@@ -501,6 +501,7 @@ fn telemetry(now: Instant, bridge: &Bridge, req: Option<u32>, out: &mut [u8]) ->
         head,
         t.snapshot.as_ref(),
         t.live.flagged.map(|c| c.name()),
+        None,
     )
 }
 

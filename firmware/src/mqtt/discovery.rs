@@ -1,0 +1,430 @@
+//! The entities of the battery in Home Assistant, as data, and their discovery
+//! configs (Home Assistant's MQTT discovery: a retained JSON config per entity
+//! under `<discovery_prefix>/<component>/<node_id>/<object_id>/config`).
+//!
+//! Every entity reads one member of the state JSON (the host link's telemetry
+//! fields plus `status`, `pack_power_w`, `cell_spread_v`, `data_age_s`,
+//! `link_quality_percent`, `cvl_v`, `ccl_a`, `dcl_a`). A value that can be
+//! absent — an external sensor that is not connected, the limits of a bridge
+//! without CAN output — makes its entity *unavailable* (an availability
+//! template on the state topic), never 0.
+
+use heapless::String;
+use serde::ser::{Serialize, SerializeSeq, Serializer};
+
+use super::{device_topic, topic, Identity, Settings, TOPIC_MAX};
+
+/// A Home Assistant entity platform.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Component {
+    /// `sensor`.
+    Sensor,
+    /// `binary_sensor`.
+    BinarySensor,
+}
+
+impl Component {
+    /// As in the discovery topic.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Sensor => "sensor",
+            Self::BinarySensor => "binary_sensor",
+        }
+    }
+}
+
+/// How an entity reads the state JSON.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Read {
+    /// `value_json.<member>`.
+    Member(&'static str),
+    /// `value_json.<member>`, unavailable while the member is null.
+    Nullable(&'static str),
+    /// Element `i` of `value_json.cell_voltages_v`.
+    Cell(u8),
+    /// `ON` when `value_json.<member>` is above 0, else `OFF` (a binary sensor).
+    NonZero(&'static str),
+}
+
+impl Read {
+    /// The state member it reads.
+    pub const fn member(self) -> &'static str {
+        match self {
+            Self::Member(m) | Self::Nullable(m) | Self::NonZero(m) => m,
+            Self::Cell(_) => "cell_voltages_v",
+        }
+    }
+}
+
+/// One entity.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Entity {
+    /// Object id (`pack_voltage`); its `unique_id` is `<device id>_<object>`.
+    pub object: &'static str,
+    /// Name in Home Assistant (the device name is prefixed by Home Assistant).
+    pub name: &'static str,
+    /// Platform.
+    pub component: Component,
+    /// `device_class`, if any.
+    pub device_class: Option<&'static str>,
+    /// `state_class`, if any.
+    pub state_class: Option<&'static str>,
+    /// Unit, if any.
+    pub unit: Option<&'static str>,
+    /// What it reads.
+    pub read: Read,
+    /// Display precision (decimals), if any.
+    pub precision: Option<u8>,
+    /// `entity_category` (`diagnostic`), if any.
+    pub category: Option<&'static str>,
+}
+
+/// The values `status` takes (the BMS's online status keys, and `other` for a
+/// value no table knows).
+pub const STATUS_OPTIONS: &[&str] = &[
+    "charging",
+    "fully_charged",
+    "discharging",
+    "regeneration",
+    "idle",
+    "fault",
+    "other",
+];
+
+const fn sensor(
+    object: &'static str,
+    name: &'static str,
+    device_class: Option<&'static str>,
+    unit: Option<&'static str>,
+    read: Read,
+    precision: u8,
+) -> Entity {
+    Entity {
+        object,
+        name,
+        component: Component::Sensor,
+        device_class,
+        state_class: Some("measurement"),
+        unit,
+        read,
+        precision: Some(precision),
+        category: None,
+    }
+}
+
+const fn diagnostic(e: Entity) -> Entity {
+    Entity {
+        category: Some("diagnostic"),
+        ..e
+    }
+}
+
+/// Every entity but the cells.
+pub const ENTITIES: &[Entity] = &[
+    sensor("pack_voltage", "Pack voltage", Some("voltage"), Some("V"), Read::Member("pack_voltage_v"), 2),
+    sensor("pack_current", "Pack current", Some("current"), Some("A"), Read::Member("pack_current_a"), 1),
+    sensor("pack_power", "Pack power", Some("power"), Some("W"), Read::Member("pack_power_w"), 0),
+    sensor("soc", "State of charge", Some("battery"), Some("%"), Read::Member("soc_percent"), 1),
+    sensor("soh", "State of health", None, Some("%"), Read::Member("soh_percent"), 1),
+    sensor("min_cell_voltage", "Lowest cell", Some("voltage"), Some("V"), Read::Member("min_cell_voltage_v"), 3),
+    sensor("max_cell_voltage", "Highest cell", Some("voltage"), Some("V"), Read::Member("max_cell_voltage_v"), 3),
+    sensor("cell_voltage_difference", "Cell difference", Some("voltage"), Some("V"), Read::Member("cell_spread_v"), 3),
+    sensor("temperature_internal", "BMS temperature", Some("temperature"), Some("°C"), Read::Member("internal_temperature_c"), 1),
+    sensor("temperature_external_1", "Temperature 1", Some("temperature"), Some("°C"), Read::Nullable("external_temperature_1_c"), 1),
+    sensor("temperature_external_2", "Temperature 2", Some("temperature"), Some("°C"), Read::Nullable("external_temperature_2_c"), 1),
+    Entity {
+        object: "status",
+        name: "Status",
+        component: Component::Sensor,
+        device_class: Some("enum"),
+        state_class: None,
+        unit: None,
+        read: Read::Member("status"),
+        precision: None,
+        category: None,
+    },
+    Entity {
+        object: "balancing",
+        name: "Balancing",
+        component: Component::BinarySensor,
+        device_class: None,
+        state_class: None,
+        unit: None,
+        read: Read::NonZero("real_balancing_bits"),
+        precision: None,
+        category: None,
+    },
+    sensor("charge_voltage_limit", "Charge voltage limit", Some("voltage"), Some("V"), Read::Nullable("cvl_v"), 1),
+    sensor("charge_current_limit", "Charge current limit", Some("current"), Some("A"), Read::Nullable("ccl_a"), 1),
+    sensor("discharge_current_limit", "Discharge current limit", Some("current"), Some("A"), Read::Nullable("dcl_a"), 1),
+    diagnostic(sensor("data_age", "Data age", Some("duration"), Some("s"), Read::Member("data_age_s"), 1)),
+    diagnostic(sensor("link_quality", "Link quality", None, Some("%"), Read::Nullable("link_quality_percent"), 1)),
+];
+
+/// Most cells (Rev D: 16).
+pub const MAX_CELLS: u8 = 16;
+
+/// The entity of cell `n` (1-based).
+pub fn cell(n: u8) -> Entity {
+    const OBJECTS: [&str; 16] = [
+        "cell_01", "cell_02", "cell_03", "cell_04", "cell_05", "cell_06", "cell_07", "cell_08",
+        "cell_09", "cell_10", "cell_11", "cell_12", "cell_13", "cell_14", "cell_15", "cell_16",
+    ];
+    const NAMES: [&str; 16] = [
+        "Cell 1", "Cell 2", "Cell 3", "Cell 4", "Cell 5", "Cell 6", "Cell 7", "Cell 8", "Cell 9",
+        "Cell 10", "Cell 11", "Cell 12", "Cell 13", "Cell 14", "Cell 15", "Cell 16",
+    ];
+    let i = usize::from(n.clamp(1, MAX_CELLS) - 1);
+    sensor(
+        OBJECTS.get(i).copied().unwrap_or("cell_01"),
+        NAMES.get(i).copied().unwrap_or("Cell 1"),
+        Some("voltage"),
+        Some("V"),
+        Read::Cell(n.clamp(1, MAX_CELLS) - 1),
+        3,
+    )
+}
+
+/// The `n`-th entity announced for a pack of `cells` cells: the fixed ones,
+/// then cells 1..=cells. `None` past the end.
+pub fn nth(n: usize, cells: u8) -> Option<Entity> {
+    match ENTITIES.get(n) {
+        Some(e) => Some(*e),
+        None => {
+            let c = n - ENTITIES.len();
+            (c < usize::from(cells.min(MAX_CELLS))).then(|| cell(c as u8 + 1))
+        }
+    }
+}
+
+/// Every entity for a pack of `cells` cells.
+pub fn count(cells: u8) -> usize {
+    ENTITIES.len() + usize::from(cells.min(MAX_CELLS))
+}
+
+/// Writes the discovery topic of `e`.
+pub fn config_topic(out: &mut String<TOPIC_MAX>, s: &Settings, id: &Identity, e: &Entity) -> bool {
+    topic(
+        out,
+        &[
+            &s.discovery_prefix,
+            "/",
+            e.component.name(),
+            "/",
+            &id.device_id(),
+            "/",
+            e.object,
+            "/config",
+        ],
+    )
+}
+
+/// What the device block says.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DeviceInfo<'a> {
+    /// The BMS.
+    pub id: &'a Identity,
+    /// This firmware's version.
+    pub bridge_version: &'a str,
+}
+
+#[derive(serde::Serialize)]
+struct Device<'a> {
+    identifiers: [&'a str; 1],
+    name: &'a str,
+    manufacturer: &'static str,
+    model: &'static str,
+    hw_version: &'a str,
+    sw_version: &'a str,
+    serial_number: &'a str,
+}
+
+#[derive(serde::Serialize)]
+struct Origin<'a> {
+    name: &'static str,
+    sw_version: &'a str,
+}
+
+#[derive(serde::Serialize)]
+struct Availability<'a> {
+    topic: &'a str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    value_template: Option<&'a str>,
+}
+
+struct Options;
+
+impl Serialize for Options {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        let mut seq = s.serialize_seq(Some(STATUS_OPTIONS.len()))?;
+        for o in STATUS_OPTIONS {
+            seq.serialize_element(o)?;
+        }
+        seq.end()
+    }
+}
+
+#[derive(serde::Serialize)]
+struct Config<'a> {
+    name: &'static str,
+    unique_id: &'a str,
+    state_topic: &'a str,
+    value_template: &'a str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    device_class: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    state_class: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    unit_of_measurement: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    suggested_display_precision: Option<u8>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    entity_category: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    options: Option<Options>,
+    availability: &'a [Availability<'a>],
+    availability_mode: &'static str,
+    device: Device<'a>,
+    origin: Origin<'a>,
+}
+
+/// The template reading `r` from the state JSON.
+pub fn value_template(r: Read) -> String<96> {
+    let mut t = String::new();
+    let mut push = |s: &str| {
+        let _ = t.push_str(s);
+    };
+    match r {
+        Read::Member(m) | Read::Nullable(m) => {
+            push("{{ value_json.");
+            push(m);
+            push(" }}");
+        }
+        Read::Cell(i) => {
+            push("{{ value_json.cell_voltages_v[");
+            let mut n = String::<3>::new();
+            if i >= 10 {
+                let _ = n.push(char::from(b'0' + i / 10));
+            }
+            let _ = n.push(char::from(b'0' + i % 10));
+            push(&n);
+            push("] }}");
+        }
+        Read::NonZero(m) => {
+            push("{{ 'ON' if value_json.");
+            push(m);
+            push(" > 0 else 'OFF' }}");
+        }
+    }
+    t
+}
+
+/// The availability template of a nullable member: `offline` while it is null.
+fn presence_template(m: &str) -> String<112> {
+    let mut t = String::new();
+    let _ = t.push_str("{{ 'offline' if value_json.");
+    let _ = t.push_str(m);
+    let _ = t.push_str(" is none else 'online' }}");
+    t
+}
+
+/// Writes the discovery config of `e` into `out`; its length (`None` when it
+/// does not fit).
+pub fn config(
+    out: &mut [u8],
+    s: &Settings,
+    info: &DeviceInfo<'_>,
+    e: &Entity,
+) -> Option<usize> {
+    let id = info.id;
+    let device_id = id.device_id();
+    let mut unique: String<64> = String::new();
+    unique.push_str(&device_id).ok()?;
+    unique.push('_').ok()?;
+    unique.push_str(e.object).ok()?;
+    let mut state = String::<TOPIC_MAX>::new();
+    let mut avail = String::<TOPIC_MAX>::new();
+    if !device_topic(&mut state, s, id, "state") || !device_topic(&mut avail, s, id, "availability")
+    {
+        return None;
+    }
+    let template = value_template(e.read);
+    let presence = match e.read {
+        Read::Nullable(m) => Some(presence_template(m)),
+        _ => None,
+    };
+    let availability = [
+        Availability {
+            topic: &avail,
+            value_template: None,
+        },
+        Availability {
+            topic: &state,
+            value_template: presence.as_deref(),
+        },
+    ];
+    let availability = availability
+        .get(..if presence.is_some() { 2 } else { 1 })
+        .unwrap_or(&[]);
+    let serial = id.serial_hex();
+    let mut name: String<40> = String::new();
+    name.push_str("TinyBMS ").ok()?;
+    name.push_str(serial.get(serial.len().saturating_sub(6)..).unwrap_or(""))
+        .ok()?;
+    let mut hw: String<8> = String::new();
+    push_u32(&mut hw, u32::from(id.hardware.0));
+    let _ = hw.push('.');
+    push_u32(&mut hw, u32::from(id.hardware.1));
+    let mut sw: String<24> = String::new();
+    push_u32(&mut sw, u32::from(id.firmware.0));
+    let _ = sw.push_str(" (");
+    push_u32(&mut sw, u32::from(id.firmware.1));
+    let _ = sw.push(')');
+    let c = Config {
+        name: e.name,
+        unique_id: &unique,
+        state_topic: &state,
+        value_template: &template,
+        device_class: e.device_class,
+        state_class: e.state_class,
+        unit_of_measurement: e.unit,
+        suggested_display_precision: e.precision,
+        entity_category: e.category,
+        options: (e.device_class == Some("enum")).then_some(Options),
+        availability,
+        availability_mode: "all",
+        device: Device {
+            identifiers: [&device_id],
+            name: &name,
+            manufacturer: super::MANUFACTURER,
+            model: "TinyBMS s516",
+            hw_version: &hw,
+            sw_version: &sw,
+            serial_number: &serial,
+        },
+        origin: Origin {
+            name: "tinybms-esp32",
+            sw_version: info.bridge_version,
+        },
+    };
+    serde_json_core::to_slice(&c, out).ok()
+}
+
+fn push_u32<const N: usize>(s: &mut String<N>, v: u32) {
+    let mut digits = [0u8; 10];
+    let mut i = digits.len();
+    let mut v = v;
+    loop {
+        i -= 1;
+        if let Some(d) = digits.get_mut(i) {
+            *d = b'0' + (v % 10) as u8;
+        }
+        v /= 10;
+        if v == 0 || i == 0 {
+            break;
+        }
+    }
+    for &d in digits.get(i..).unwrap_or(&[]) {
+        let _ = s.push(char::from(d));
+    }
+}

@@ -1,0 +1,153 @@
+//! The battery in Home Assistant: what the bridge publishes over MQTT, when,
+//! and under which topics — sans-IO, like the rest of the library. Publish
+//! only: the bridge subscribes to nothing but Home Assistant's status topic,
+//! and nothing can be written over the network.
+//!
+//! * [`discovery`] — the entities as data (pack voltage, current, power, SOC,
+//!   SOH, every cell, min/max cell and their difference, temperatures, status,
+//!   balancing, the limits sent to the inverter, data age, link quality) and
+//!   their retained discovery configs, in Home Assistant's MQTT discovery format.
+//! * [`publisher`] — the schedule: availability (online on connect and while
+//!   the BMS data is fresh, offline otherwise: stale data is never published as
+//!   current), discovery configs (again when Home Assistant says it is back
+//!   online; removed with empty retained payloads when discovery is off), the
+//!   state every publish period and at once on a status change, events as they
+//!   arrive. It hands out one message at a time, encoded only then.
+//! * `session` (feature `mqtt`) — the MQTT connection itself (rust-mqtt): connect
+//!   with a retained will `offline`, subscribe to Home Assistant's status, publish
+//!   what the publisher hands out, keep-alive, reconnect with backoff; over any
+//!   byte stream (embassy-net on the chip, a TCP socket or a TAP device on the
+//!   desktop), every wait bounded.
+//!
+//! Never in the charge-control path: the publisher reads copies of the
+//! telemetry; the bridge and the inverter output never wait on it (host-tests
+//! tests/mqtt_in_the_way.rs shows the poll and CAN timing unchanged while the
+//! broker misbehaves).
+//!
+//! Topics, for a bridge with `topic_prefix` `tinybms` on a BMS of serial `S`
+//! (24 hex digits):
+//!
+//! | topic | retained | what |
+//! | --- | --- | --- |
+//! | `tinybms/S/availability` | yes | `online` / `offline` (also the will) |
+//! | `tinybms/S/state` | no | the host link's telemetry JSON plus a few members (below) |
+//! | `tinybms/S/event` | no | each new BMS event (the host link's `event` line) |
+//! | `homeassistant/sensor/tinybms_S/OBJECT/config` | yes | discovery configs |
+//! | `homeassistant/status` | (subscribed) | Home Assistant's own `online`/`offline` |
+
+#[cfg(feature = "mqtt")]
+pub mod session;
+
+pub mod discovery;
+pub mod publisher;
+
+use heapless::String;
+
+use crate::config::Config;
+use crate::Instant;
+
+/// Longest topic, bytes (`<discovery_prefix 32>/binary_sensor/tinybms_<24>/<object>/config`).
+pub const TOPIC_MAX: usize = 128;
+
+/// Longest payload the publisher writes, bytes (a discovery config is about
+/// 700, the state with 16 cells about 900).
+pub const PAYLOAD_MAX: usize = 1280;
+
+/// Device manufacturer in Home Assistant.
+pub const MANUFACTURER: &str = "Energus";
+
+/// What the publisher is configured with (the record's network fields).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Settings {
+    /// Every topic of the bridge starts with this.
+    pub topic_prefix: String<32>,
+    /// Publish discovery configs (off: remove them).
+    pub discovery: bool,
+    /// Home Assistant's discovery prefix.
+    pub discovery_prefix: String<32>,
+    /// State period, µs.
+    pub publish_period_us: Instant,
+    /// BMS data older than this is not published (availability goes offline), µs.
+    pub stale_after_us: Instant,
+}
+
+impl Settings {
+    /// From the configuration record.
+    pub fn from_config(c: &Config) -> Self {
+        Self {
+            topic_prefix: c.topic_prefix.clone(),
+            discovery: c.discovery,
+            discovery_prefix: c.discovery_prefix.clone(),
+            publish_period_us: Instant::from(c.publish_period_s) * crate::SECOND,
+            stale_after_us: Instant::from(c.stale_after_s) * crate::SECOND,
+        }
+    }
+}
+
+/// The BMS the messages are about: its serial number identifies the Home
+/// Assistant device (never the bridge's MAC: a bridge moved to another pack is
+/// another device).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Identity {
+    /// Registers 504-509.
+    pub serial: [u8; 12],
+    /// Hardware version and changes (500).
+    pub hardware: (u8, u8),
+    /// Public and internal firmware version (501, 502).
+    pub firmware: (u8, u16),
+}
+
+impl Identity {
+    /// From the BMS's version block.
+    pub fn from_version(v: &protocol_core::views::VersionInfo) -> Self {
+        Self {
+            serial: v.serial,
+            hardware: (v.hardware, v.hardware_changes),
+            firmware: (v.firmware_public, v.firmware_internal),
+        }
+    }
+
+    /// The serial as 24 upper-case hex digits (as the log, `replay` and the host
+    /// link print it).
+    pub fn serial_hex(&self) -> String<24> {
+        let mut s = String::new();
+        for b in self.serial {
+            for nibble in [b >> 4, b & 0xF] {
+                let c = char::from_digit(u32::from(nibble), 16).unwrap_or('0');
+                let _ = s.push(c.to_ascii_uppercase());
+            }
+        }
+        s
+    }
+
+    /// The device's id in Home Assistant and in every `unique_id`:
+    /// `tinybms_<serial>` (letters, digits and `_` only).
+    pub fn device_id(&self) -> String<32> {
+        let mut s = String::new();
+        let _ = s.push_str("tinybms_");
+        let _ = s.push_str(&self.serial_hex());
+        s
+    }
+}
+
+/// Writes `parts` into a topic (nothing when it does not fit: `false`).
+pub fn topic(out: &mut String<TOPIC_MAX>, parts: &[&str]) -> bool {
+    out.clear();
+    for p in parts {
+        if out.push_str(p).is_err() {
+            out.clear();
+            return false;
+        }
+    }
+    true
+}
+
+/// `<prefix>/<serial>/<leaf>`: the bridge's own topics.
+pub fn device_topic(out: &mut String<TOPIC_MAX>, s: &Settings, id: &Identity, leaf: &str) -> bool {
+    topic(out, &[&s.topic_prefix, "/", &id.serial_hex(), "/", leaf])
+}
+
+/// Home Assistant's status topic: `<discovery_prefix>/status`.
+pub fn ha_status_topic(out: &mut String<TOPIC_MAX>, s: &Settings) -> bool {
+    topic(out, &[&s.discovery_prefix, "/status"])
+}

@@ -1,0 +1,342 @@
+//! What the bridge publishes for Home Assistant (`tinybms_firmware::mqtt`):
+//! the discovery configs (valid JSON, ids Home Assistant accepts, units that
+//! fit their device class, templates that read members the state really has)
+//! and the schedule (availability, discovery and its removal, the state every
+//! period and at once on a status change, stale data never published, events).
+#![allow(clippy::unwrap_used, clippy::panic, clippy::indexing_slicing)]
+
+use heapless::String;
+use host_tests::sim::{PackProfile, SimBms, SimConfig};
+use proptest::prelude::*;
+use protocol_core::events::{Event, EventId, OnlineStatus};
+use protocol_core::response::RegisterBlock;
+use protocol_core::views::{LiveSnapshot, VersionInfo};
+use serde_json::Value;
+use tinybms_firmware::config::Config;
+use tinybms_firmware::mqtt::discovery::{self, Component, Read, ENTITIES, STATUS_OPTIONS};
+use tinybms_firmware::mqtt::publisher::{Kind, Publisher, View};
+use tinybms_firmware::mqtt::{Identity, Settings, PAYLOAD_MAX, TOPIC_MAX};
+use tinybms_firmware::SECOND;
+
+fn inputs() -> (LiveSnapshot, VersionInfo) {
+    let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 1);
+    let block = |first: u16, n: u16| RegisterBlock {
+        start: first,
+        values: (first..first + n).map(|a| sim.register(a)).collect(),
+    };
+    let snap = LiveSnapshot::from_registers(&block(0, 56)).unwrap();
+    let version = VersionInfo::from_registers(&block(500, 10)).unwrap();
+    (snap, version)
+}
+
+fn settings() -> Settings {
+    Settings::from_config(&Config::default())
+}
+
+fn id() -> Identity {
+    Identity::from_version(&inputs().1)
+}
+
+fn view<'a>(snap: &'a LiveSnapshot, age_s: u64) -> View<'a> {
+    View {
+        snapshot: Some(snap),
+        seq: 1,
+        age_us: Some(age_s * SECOND),
+        online: true,
+        flagged: None,
+        identity: Some(id()),
+        limits: Some((568, 600, 1000)),
+        link: (100, 99),
+    }
+}
+
+/// Everything the publisher hands out at `now` (topic, payload, kind, retain).
+fn drain(p: &mut Publisher, now: u64, v: &View<'_>) -> Vec<(std::string::String, Vec<u8>, Kind, bool)> {
+    let mut out = Vec::new();
+    let mut topic = String::<TOPIC_MAX>::new();
+    let mut payload = vec![0u8; PAYLOAD_MAX];
+    for _ in 0..200 {
+        let Some(m) = p.next(now, v, &mut topic, &mut payload) else {
+            break;
+        };
+        out.push((topic.to_string(), payload[..m.len].to_vec(), m.kind, m.retain));
+    }
+    out
+}
+
+fn json(b: &[u8]) -> Value {
+    serde_json::from_slice(b).unwrap_or_else(|e| panic!("{e}: {}", std::string::String::from_utf8_lossy(b)))
+}
+
+/// Units Home Assistant accepts for each device class used (its sensor
+/// documentation, "Device class").
+fn units_for(class: &str) -> &'static [&'static str] {
+    match class {
+        "voltage" => &["V", "mV", "µV", "kV", "MV"],
+        "current" => &["A", "mA"],
+        "power" => &["W", "kW", "MW", "mW"],
+        "battery" => &["%"],
+        "temperature" => &["°C", "°F", "K"],
+        "duration" => &["d", "h", "min", "s", "ms"],
+        "enum" => &[],
+        other => panic!("device class {other} not in the test's table"),
+    }
+}
+
+fn is_id(s: &str) -> bool {
+    !s.is_empty() && s.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
+}
+
+#[test]
+fn discovery_configs_are_what_home_assistant_accepts() {
+    let (snap, _) = inputs();
+    let mut p = Publisher::new(settings(), "test");
+    p.connected(0, id());
+    let v = view(&snap, 0);
+    let out = drain(&mut p, 0, &v);
+    let configs: Vec<_> = out.iter().filter(|m| m.2 == Kind::Discovery).collect();
+    assert_eq!(configs.len(), ENTITIES.len() + 16, "16 cells and the fixed entities");
+    let mut ids = std::collections::HashSet::new();
+    for (topic, payload, _, retain) in &configs {
+        assert!(retain, "{topic}: discovery configs are retained");
+        let parts: Vec<&str> = topic.split('/').collect();
+        assert_eq!(parts.len(), 5, "{topic}");
+        assert_eq!(parts[0], "homeassistant");
+        assert!(["sensor", "binary_sensor"].contains(&parts[1]), "{topic}");
+        assert!(is_id(parts[2]) && is_id(parts[3]), "{topic}");
+        assert_eq!(parts[4], "config");
+        let c = json(payload);
+        let uid = c["unique_id"].as_str().unwrap();
+        assert!(is_id(uid), "{uid}");
+        assert!(ids.insert(uid.to_string()), "unique_id {uid} twice");
+        assert!(uid.starts_with(&id().device_id().to_string()), "{uid}");
+        // The device is the BMS, by its serial number.
+        assert_eq!(c["device"]["identifiers"][0], id().device_id().as_str());
+        assert_eq!(c["device"]["serial_number"], id().serial_hex().as_str());
+        assert_eq!(c["device"]["manufacturer"], "Energus");
+        assert!(c["device"]["sw_version"].as_str().is_some());
+        assert!(c["state_topic"].as_str().unwrap().ends_with("/state"));
+        assert_eq!(c["availability"][0]["topic"], format!("tinybms/{}/availability", id().serial_hex()));
+        if let Some(class) = c["device_class"].as_str() {
+            let unit = c["unit_of_measurement"].as_str();
+            match units_for(class) {
+                [] => assert!(unit.is_none(), "{uid}: {class} has no unit"),
+                units => assert!(unit.is_some_and(|u| units.contains(&u)), "{uid}: {class} in {unit:?}"),
+            }
+        }
+        if c["device_class"] == "enum" {
+            let opts: Vec<&str> = c["options"].as_array().unwrap().iter().map(|o| o.as_str().unwrap()).collect();
+            assert_eq!(opts, STATUS_OPTIONS);
+            assert!(c.get("state_class").is_none());
+        }
+        assert!(payload.len() < PAYLOAD_MAX, "{uid}: {} bytes", payload.len());
+    }
+    println!(
+        "{} discovery configs, the longest {} bytes",
+        configs.len(),
+        configs.iter().map(|c| c.1.len()).max().unwrap()
+    );
+}
+
+#[test]
+fn every_template_reads_a_member_the_state_has() {
+    let (snap, _) = inputs();
+    let mut p = Publisher::new(settings(), "test");
+    p.connected(0, id());
+    let v = view(&snap, 1);
+    let out = drain(&mut p, 0, &v);
+    let state = out.iter().find(|m| m.2 == Kind::State).expect("a state after connect");
+    let s = json(&state.1);
+    for e in ENTITIES.iter().copied().chain((1..=16).map(discovery::cell)) {
+        let member = e.read.member();
+        assert!(s.get(member).is_some(), "{}: the state has no `{member}`: {s}", e.object);
+        match e.read {
+            Read::Member(_) => assert!(!s[member].is_null(), "{}: {member} is null", e.object),
+            Read::Cell(i) => assert!(s[member][usize::from(i)].is_number(), "cell {i}"),
+            Read::Nullable(_) => {}
+            Read::NonZero(_) => assert!(s[member].is_number()),
+        }
+        if e.component == Component::BinarySensor {
+            assert!(matches!(e.read, Read::NonZero(_)));
+        }
+    }
+    // The state's own members: the host link's telemetry names and the extras.
+    assert_eq!(s["type"], "telemetry");
+    assert!(STATUS_OPTIONS.contains(&s["status"].as_str().unwrap()));
+    let power = s["pack_power_w"].as_f64().unwrap();
+    let expect = s["pack_voltage_v"].as_f64().unwrap() * s["pack_current_a"].as_f64().unwrap();
+    assert!((power - expect).abs() < 0.1, "{power} vs {expect}");
+    assert_eq!(s["cvl_v"], 56.8);
+    assert_eq!(s["ccl_a"], 60.0);
+    assert_eq!(s["data_age_s"], 1.0);
+}
+
+#[test]
+fn a_sensor_that_is_not_connected_is_unavailable_not_zero() {
+    let (mut snap, _) = inputs();
+    snap.external2_dc = None;
+    let mut p = Publisher::new(settings(), "test");
+    p.connected(0, id());
+    let out = drain(&mut p, 0, &view(&snap, 0));
+    let cfg = out
+        .iter()
+        .find(|m| m.0.contains("/temperature_external_2/"))
+        .map(|m| json(&m.1))
+        .unwrap();
+    let avail = cfg["availability"].as_array().unwrap();
+    assert_eq!(avail.len(), 2, "{cfg}");
+    assert_eq!(cfg["availability_mode"], "all");
+    assert!(avail[1]["value_template"].as_str().unwrap().contains("external_temperature_2_c is none"));
+    let state = out.iter().find(|m| m.2 == Kind::State).map(|m| json(&m.1)).unwrap();
+    assert!(state["external_temperature_2_c"].is_null());
+}
+
+#[test]
+fn the_schedule() {
+    let (snap, _) = inputs();
+    let mut p = Publisher::new(settings(), "test");
+    // Nothing before a connection.
+    assert!(drain(&mut p, 0, &view(&snap, 0)).is_empty());
+    p.connected(0, id());
+    let out = drain(&mut p, 0, &view(&snap, 0));
+    let kinds: Vec<Kind> = out.iter().map(|m| m.2).collect();
+    assert_eq!(kinds[0], Kind::Availability);
+    assert_eq!(out[0].1, b"online");
+    assert!(out[0].3, "availability is retained");
+    assert_eq!(kinds.iter().filter(|k| **k == Kind::State).count(), 1);
+    assert!(kinds.iter().position(|k| *k == Kind::State) > kinds.iter().rposition(|k| *k == Kind::Discovery));
+    // Nothing more until the period is over (5 s)...
+    assert!(drain(&mut p, 4 * SECOND, &view(&snap, 0)).is_empty());
+    let at5 = drain(&mut p, 5 * SECOND, &view(&snap, 0));
+    assert_eq!(at5.len(), 1);
+    assert_eq!(at5[0].2, Kind::State);
+    assert!(!at5[0].3, "the state is not retained");
+    // ... except at once on a status change.
+    let mut fault = snap.clone();
+    fault.status = OnlineStatus::Fault;
+    let now = drain(&mut p, 6 * SECOND, &view(&fault, 0));
+    assert_eq!(now.len(), 1);
+    assert_eq!(json(&now[0].1)["status"], "fault");
+    // Events as they arrive, not retained.
+    p.on_event(Event { timestamp_s: 77, id: EventId::SystemStarted });
+    let ev = drain(&mut p, 6 * SECOND, &view(&fault, 0));
+    assert_eq!(ev.len(), 1);
+    assert_eq!(ev[0].2, Kind::Event);
+    assert!(ev[0].0.ends_with("/event"));
+    assert_eq!(json(&ev[0].1)["timestamp_s"], 77);
+    // Stale data: availability offline, no state.
+    let stale = drain(&mut p, 20 * SECOND, &view(&fault, 6));
+    assert_eq!(stale.len(), 1, "{stale:?}");
+    assert_eq!(stale[0].2, Kind::Availability);
+    assert_eq!(stale[0].1, b"offline");
+    assert!(drain(&mut p, 30 * SECOND, &view(&fault, 16)).is_empty());
+    // The BMS link down: the same.
+    let mut down = view(&fault, 0);
+    down.online = false;
+    assert!(drain(&mut p, 31 * SECOND, &down).is_empty());
+    // Fresh again: online, and a state at once.
+    let back = drain(&mut p, 32 * SECOND, &view(&fault, 0));
+    assert_eq!(back[0].1, b"online");
+    assert_eq!(back[1].2, Kind::State);
+    // Home Assistant restarted: discovery again.
+    p.on_ha_status(b"offline");
+    assert!(drain(&mut p, 33 * SECOND, &view(&fault, 0)).is_empty());
+    p.on_ha_status(b"online");
+    let again = drain(&mut p, 33 * SECOND, &view(&fault, 0));
+    assert_eq!(again.iter().filter(|m| m.2 == Kind::Discovery).count(), ENTITIES.len() + 16);
+    // Disconnected: nothing, and events wait (the newest EVENT_QUEUE).
+    p.disconnected();
+    for t in 0..20 {
+        p.on_event(Event { timestamp_s: 100 + t, id: EventId::ChargingStarted });
+    }
+    assert!(drain(&mut p, 40 * SECOND, &view(&fault, 0)).is_empty());
+    assert_eq!(p.stats().events_dropped, 12);
+    p.connected(41 * SECOND, id());
+    let events: Vec<u64> = drain(&mut p, 41 * SECOND, &view(&fault, 0))
+        .iter()
+        .filter(|m| m.2 == Kind::Event)
+        .map(|m| json(&m.1)["timestamp_s"].as_u64().unwrap())
+        .collect();
+    assert_eq!(events, (112..120).collect::<Vec<_>>());
+}
+
+#[test]
+fn discovery_off_removes_the_configs() {
+    let (snap, _) = inputs();
+    let mut s = settings();
+    s.discovery = false;
+    let mut p = Publisher::new(s, "test");
+    p.connected(0, id());
+    let out = drain(&mut p, 0, &view(&snap, 0));
+    let removals: Vec<_> = out.iter().filter(|m| m.2 == Kind::Removal).collect();
+    assert_eq!(removals.len(), ENTITIES.len() + 16);
+    assert!(removals.iter().all(|m| m.1.is_empty() && m.3 && m.0.ends_with("/config")));
+    assert!(!out.iter().any(|m| m.2 == Kind::Discovery));
+    // The state is still published.
+    assert!(out.iter().any(|m| m.2 == Kind::State));
+}
+
+#[test]
+fn a_smaller_pack_removes_the_cells_it_does_not_have() {
+    let (mut snap, _) = inputs();
+    snap.cell_count = 14;
+    let mut p = Publisher::new(settings(), "test");
+    p.connected(0, id());
+    let out = drain(&mut p, 0, &view(&snap, 0));
+    let cells: Vec<&str> = out
+        .iter()
+        .filter(|m| {
+            let object = m.0.split('/').nth(3).unwrap_or("");
+            m.2 == Kind::Discovery
+                && object.starts_with("cell_")
+                && object[5..].bytes().all(|b| b.is_ascii_digit())
+        })
+        .map(|m| m.0.as_str())
+        .collect();
+    assert_eq!(cells.len(), 14, "{cells:#?}");
+    let removed: Vec<&str> = out.iter().filter(|m| m.2 == Kind::Removal).map(|m| m.0.as_str()).collect();
+    assert_eq!(removed.len(), 2, "{removed:?}");
+    assert!(removed[0].contains("/cell_15/") && removed[1].contains("/cell_16/"));
+}
+
+proptest! {
+    /// Any sequence of what can happen: never a panic, every topic valid,
+    /// every payload empty or JSON, never a state while stale.
+    #[test]
+    fn any_sequence_publishes_only_valid_messages(
+        steps in proptest::collection::vec((0u8..8, 0u64..30, any::<u8>()), 1..80),
+    ) {
+        let (snap, _) = inputs();
+        let mut s = settings();
+        let mut p = Publisher::new(s.clone(), "test");
+        let mut now = 0u64;
+        let mut age = 0u64;
+        let mut online = true;
+        for (what, dt, x) in steps {
+            now += dt * SECOND / 2;
+            match what {
+                0 => p.connected(now, id()),
+                1 => p.disconnected(),
+                2 => p.on_ha_status(if x % 2 == 0 { b"online" } else { b"offline" }),
+                3 => p.on_event(Event { timestamp_s: u32::from(x), id: EventId::from_raw(x) }),
+                4 => age = u64::from(x % 12),
+                5 => online = !online,
+                6 => { s.discovery = !s.discovery; p = Publisher::new(s.clone(), "test"); }
+                _ => {}
+            }
+            let mut v = view(&snap, age);
+            v.online = online;
+            let fresh = v.fresh(5 * SECOND);
+            for (topic, payload, kind, _) in drain(&mut p, now, &v) {
+                prop_assert!(topic.len() <= TOPIC_MAX && !topic.contains('#') && !topic.contains('+'));
+                prop_assert!(!topic.starts_with('/') && !topic.ends_with('/'));
+                if !payload.is_empty() && kind != Kind::Availability {
+                    prop_assert!(serde_json::from_slice::<Value>(&payload).is_ok());
+                }
+                if kind == Kind::State {
+                    prop_assert!(fresh, "a state while stale");
+                }
+            }
+        }
+    }
+}
