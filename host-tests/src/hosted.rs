@@ -58,6 +58,8 @@ pub struct Hosted<P: BytePort> {
     /// (`sim --bridge-pty --boot-button`).
     pub boot_button: Option<(u64, u64)>,
     hold: Hold,
+    /// The MQTT output's feed, when it runs (`sim --mqtt`).
+    pub mqtt: Option<crate::mqtt::Shared>,
     /// Print every report to stderr, as the device logs it.
     pub log: bool,
     line: Vec<u8>,
@@ -81,6 +83,7 @@ impl<P: BytePort> Hosted<P> {
             store,
             boot_button: None,
             hold: Hold::new(),
+            mqtt: None,
             driver,
             log: false,
             line: vec![0; LINE_BUF],
@@ -105,21 +108,27 @@ impl<P: BytePort> Hosted<P> {
             store,
             boot_button,
             hold,
+            mqtt,
             log,
             line,
             input,
         } = self;
         let log = *log;
-        driver.service(|h| tell(host, log, h))?;
+        let mqtt = mqtt.as_ref();
+        driver.service(|h| tell(host, mqtt, log, h))?;
         input.clear();
         side.read(input)?;
         if !input.is_empty() {
             let now = driver.clock().now();
             host.handle_rx(now, input, &mut driver.bridge, config);
             // A submitted command may have something to send at once.
-            driver.service(|h| tell(host, log, h))?;
+            driver.service(|h| tell(host, mqtt, log, h))?;
         }
         let now = driver.clock().now();
+        if let Some(m) = mqtt {
+            let s = driver.bridge.link_stats();
+            m.update(driver.bridge.telemetry(), (s.requests, s.replies));
+        }
         if let Some((from, long)) = *boot_button {
             let pressed = now >= from && now < from + long;
             if hold.sample(now, pressed) {
@@ -200,13 +209,17 @@ impl<P: BytePort> Hosted<P> {
     }
 }
 
-/// Hands what the driver did to the host link (and the log).
-fn tell(host: &mut HostLink, log: bool, h: Happened<'_>) {
+/// Hands what the driver did to the host link, the MQTT output (new events)
+/// and the log.
+fn tell(host: &mut HostLink, mqtt: Option<&crate::mqtt::Shared>, log: bool, h: Happened<'_>) {
     match h {
         Happened::Tx(bytes) => host.on_uart_tx(bytes),
         Happened::Report(at, r) => {
             if log {
                 eprintln!("{:>10.3}s {r}", at as f64 / 1e6);
+            }
+            if let (Some(m), tinybms_firmware::Report::NewEvent(e)) = (mqtt, r) {
+                m.event(*e);
             }
             host.on_report(r);
         }
@@ -308,6 +321,12 @@ pub struct BridgePtyOptions {
     pub flash: Option<std::path::PathBuf>,
     /// Hold the BOOT button from this time for this long (`--boot-button`).
     pub boot_button: Option<(Duration, Duration)>,
+    /// Open the host link's pty (`--bridge-pty`); without it the host link
+    /// has no host.
+    pub pty: bool,
+    /// Publish to this MQTT broker (`--mqtt HOST:PORT`), with the record's
+    /// network fields.
+    pub mqtt: Option<(String, u16)>,
     /// Settings written through write/verify at start, as the firmware's
     /// profile.
     pub profile: Vec<(SettingId, i32)>,
@@ -335,20 +354,64 @@ pub fn serve_bridge_pty(
     h.boot_button = o
         .boot_button
         .map(|(from, long)| (from.as_micros() as u64, long.as_micros() as u64));
-    let pty = Pty::open_announced(out)?;
     h.driver
         .bridge
         .submit_profile(&o.profile)
         .map_err(|_| io::Error::other("the profile does not fit the bridge's command queue"))?;
-    h.connected();
-    let mut side = PtySide::new(&pty);
     let clock = h.driver.clock();
+    if let Some((host, port)) = &o.mqtt {
+        let record = h.config.running().clone();
+        let mut target =
+            tinybms_firmware::mqtt::session::Target::from_config(&record, "tinybms-sim");
+        target.host.clear();
+        target
+            .host
+            .push_str(host)
+            .map_err(|_| io::Error::other("--mqtt: the host name is longer than 64 bytes"))?;
+        target.port = *port;
+        let shared = crate::mqtt::Shared::default();
+        crate::mqtt::spawn(
+            target,
+            tinybms_firmware::mqtt::Settings::from_config(&record),
+            shared.clone(),
+            clock,
+            crate::mqtt::TcpNet::default(),
+            o.log,
+        );
+        h.mqtt = Some(shared);
+    }
+    let pty = if o.pty {
+        Some(Pty::open_announced(out)?)
+    } else {
+        None
+    };
+    h.connected();
+    let mut pty_side = pty.as_ref().map(PtySide::new);
+    let mut none = NoHost;
     let end = duration.map(|d| d.as_micros() as u64);
     h.log = o.log;
     while !stop.load(Ordering::Relaxed) && end.is_none_or(|e| clock.now() < e) {
-        h.step(&mut side)?;
+        match pty_side.as_mut() {
+            Some(side) => h.step(side)?,
+            None => h.step(&mut none)?,
+        }
     }
     Ok(())
+}
+
+/// No host on the host link (`sim --mqtt` without `--bridge-pty`).
+pub struct NoHost;
+
+impl HostSide for NoHost {
+    fn read(&mut self, _: &mut Vec<u8>) -> io::Result<()> {
+        Ok(())
+    }
+    fn can_take(&mut self) -> bool {
+        true
+    }
+    fn write_line(&mut self, _: &[u8]) -> io::Result<()> {
+        Ok(())
+    }
 }
 
 #[cfg(test)]

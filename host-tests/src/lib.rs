@@ -8,6 +8,7 @@ pub mod flash;
 pub mod harness;
 pub mod host_link;
 pub mod hosted;
+pub mod mqtt;
 pub mod profile;
 #[cfg(unix)]
 pub mod pty;

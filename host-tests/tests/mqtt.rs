@@ -51,7 +51,11 @@ fn view<'a>(snap: &'a LiveSnapshot, age_s: u64) -> View<'a> {
 }
 
 /// Everything the publisher hands out at `now` (topic, payload, kind, retain).
-fn drain(p: &mut Publisher, now: u64, v: &View<'_>) -> Vec<(std::string::String, Vec<u8>, Kind, bool)> {
+fn drain(
+    p: &mut Publisher,
+    now: u64,
+    v: &View<'_>,
+) -> Vec<(std::string::String, Vec<u8>, Kind, bool)> {
     let mut out = Vec::new();
     let mut topic = String::<TOPIC_MAX>::new();
     let mut payload = vec![0u8; PAYLOAD_MAX];
@@ -59,13 +63,19 @@ fn drain(p: &mut Publisher, now: u64, v: &View<'_>) -> Vec<(std::string::String,
         let Some(m) = p.next(now, v, &mut topic, &mut payload) else {
             break;
         };
-        out.push((topic.to_string(), payload[..m.len].to_vec(), m.kind, m.retain));
+        out.push((
+            topic.to_string(),
+            payload[..m.len].to_vec(),
+            m.kind,
+            m.retain,
+        ));
     }
     out
 }
 
 fn json(b: &[u8]) -> Value {
-    serde_json::from_slice(b).unwrap_or_else(|e| panic!("{e}: {}", std::string::String::from_utf8_lossy(b)))
+    serde_json::from_slice(b)
+        .unwrap_or_else(|e| panic!("{e}: {}", std::string::String::from_utf8_lossy(b)))
 }
 
 /// Units Home Assistant accepts for each device class used (its sensor
@@ -84,7 +94,9 @@ fn units_for(class: &str) -> &'static [&'static str] {
 }
 
 fn is_id(s: &str) -> bool {
-    !s.is_empty() && s.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
+    !s.is_empty()
+        && s.bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
 }
 
 #[test]
@@ -95,7 +107,11 @@ fn discovery_configs_are_what_home_assistant_accepts() {
     let v = view(&snap, 0);
     let out = drain(&mut p, 0, &v);
     let configs: Vec<_> = out.iter().filter(|m| m.2 == Kind::Discovery).collect();
-    assert_eq!(configs.len(), ENTITIES.len() + 16, "16 cells and the fixed entities");
+    assert_eq!(
+        configs.len(),
+        ENTITIES.len() + 16,
+        "16 cells and the fixed entities"
+    );
     let mut ids = std::collections::HashSet::new();
     for (topic, payload, _, retain) in &configs {
         assert!(retain, "{topic}: discovery configs are retained");
@@ -116,20 +132,35 @@ fn discovery_configs_are_what_home_assistant_accepts() {
         assert_eq!(c["device"]["manufacturer"], "Energus");
         assert!(c["device"]["sw_version"].as_str().is_some());
         assert!(c["state_topic"].as_str().unwrap().ends_with("/state"));
-        assert_eq!(c["availability"][0]["topic"], format!("tinybms/{}/availability", id().serial_hex()));
+        assert_eq!(
+            c["availability"][0]["topic"],
+            format!("tinybms/{}/availability", id().serial_hex())
+        );
         if let Some(class) = c["device_class"].as_str() {
             let unit = c["unit_of_measurement"].as_str();
             match units_for(class) {
                 [] => assert!(unit.is_none(), "{uid}: {class} has no unit"),
-                units => assert!(unit.is_some_and(|u| units.contains(&u)), "{uid}: {class} in {unit:?}"),
+                units => assert!(
+                    unit.is_some_and(|u| units.contains(&u)),
+                    "{uid}: {class} in {unit:?}"
+                ),
             }
         }
         if c["device_class"] == "enum" {
-            let opts: Vec<&str> = c["options"].as_array().unwrap().iter().map(|o| o.as_str().unwrap()).collect();
+            let opts: Vec<&str> = c["options"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|o| o.as_str().unwrap())
+                .collect();
             assert_eq!(opts, STATUS_OPTIONS);
             assert!(c.get("state_class").is_none());
         }
-        assert!(payload.len() < PAYLOAD_MAX, "{uid}: {} bytes", payload.len());
+        assert!(
+            payload.len() < PAYLOAD_MAX,
+            "{uid}: {} bytes",
+            payload.len()
+        );
     }
     println!(
         "{} discovery configs, the longest {} bytes",
@@ -145,11 +176,22 @@ fn every_template_reads_a_member_the_state_has() {
     p.connected(0, id());
     let v = view(&snap, 1);
     let out = drain(&mut p, 0, &v);
-    let state = out.iter().find(|m| m.2 == Kind::State).expect("a state after connect");
+    let state = out
+        .iter()
+        .find(|m| m.2 == Kind::State)
+        .expect("a state after connect");
     let s = json(&state.1);
-    for e in ENTITIES.iter().copied().chain((1..=16).map(discovery::cell)) {
+    for e in ENTITIES
+        .iter()
+        .copied()
+        .chain((1..=16).map(discovery::cell))
+    {
         let member = e.read.member();
-        assert!(s.get(member).is_some(), "{}: the state has no `{member}`: {s}", e.object);
+        assert!(
+            s.get(member).is_some(),
+            "{}: the state has no `{member}`: {s}",
+            e.object
+        );
         match e.read {
             Read::Member(_) => assert!(!s[member].is_null(), "{}: {member} is null", e.object),
             Read::Cell(i) => assert!(s[member][usize::from(i)].is_number(), "cell {i}"),
@@ -186,8 +228,15 @@ fn a_sensor_that_is_not_connected_is_unavailable_not_zero() {
     let avail = cfg["availability"].as_array().unwrap();
     assert_eq!(avail.len(), 2, "{cfg}");
     assert_eq!(cfg["availability_mode"], "all");
-    assert!(avail[1]["value_template"].as_str().unwrap().contains("external_temperature_2_c is none"));
-    let state = out.iter().find(|m| m.2 == Kind::State).map(|m| json(&m.1)).unwrap();
+    assert!(avail[1]["value_template"]
+        .as_str()
+        .unwrap()
+        .contains("external_temperature_2_c is none"));
+    let state = out
+        .iter()
+        .find(|m| m.2 == Kind::State)
+        .map(|m| json(&m.1))
+        .unwrap();
     assert!(state["external_temperature_2_c"].is_null());
 }
 
@@ -204,7 +253,10 @@ fn the_schedule() {
     assert_eq!(out[0].1, b"online");
     assert!(out[0].3, "availability is retained");
     assert_eq!(kinds.iter().filter(|k| **k == Kind::State).count(), 1);
-    assert!(kinds.iter().position(|k| *k == Kind::State) > kinds.iter().rposition(|k| *k == Kind::Discovery));
+    assert!(
+        kinds.iter().position(|k| *k == Kind::State)
+            > kinds.iter().rposition(|k| *k == Kind::Discovery)
+    );
     // Nothing more until the period is over (5 s)...
     assert!(drain(&mut p, 4 * SECOND, &view(&snap, 0)).is_empty());
     let at5 = drain(&mut p, 5 * SECOND, &view(&snap, 0));
@@ -218,7 +270,10 @@ fn the_schedule() {
     assert_eq!(now.len(), 1);
     assert_eq!(json(&now[0].1)["status"], "fault");
     // Events as they arrive, not retained.
-    p.on_event(Event { timestamp_s: 77, id: EventId::SystemStarted });
+    p.on_event(Event {
+        timestamp_s: 77,
+        id: EventId::SystemStarted,
+    });
     let ev = drain(&mut p, 6 * SECOND, &view(&fault, 0));
     assert_eq!(ev.len(), 1);
     assert_eq!(ev[0].2, Kind::Event);
@@ -243,11 +298,17 @@ fn the_schedule() {
     assert!(drain(&mut p, 33 * SECOND, &view(&fault, 0)).is_empty());
     p.on_ha_status(b"online");
     let again = drain(&mut p, 33 * SECOND, &view(&fault, 0));
-    assert_eq!(again.iter().filter(|m| m.2 == Kind::Discovery).count(), ENTITIES.len() + 16);
+    assert_eq!(
+        again.iter().filter(|m| m.2 == Kind::Discovery).count(),
+        ENTITIES.len() + 16
+    );
     // Disconnected: nothing, and events wait (the newest EVENT_QUEUE).
     p.disconnected();
     for t in 0..20 {
-        p.on_event(Event { timestamp_s: 100 + t, id: EventId::ChargingStarted });
+        p.on_event(Event {
+            timestamp_s: 100 + t,
+            id: EventId::ChargingStarted,
+        });
     }
     assert!(drain(&mut p, 40 * SECOND, &view(&fault, 0)).is_empty());
     assert_eq!(p.stats().events_dropped, 12);
@@ -270,7 +331,9 @@ fn discovery_off_removes_the_configs() {
     let out = drain(&mut p, 0, &view(&snap, 0));
     let removals: Vec<_> = out.iter().filter(|m| m.2 == Kind::Removal).collect();
     assert_eq!(removals.len(), ENTITIES.len() + 16);
-    assert!(removals.iter().all(|m| m.1.is_empty() && m.3 && m.0.ends_with("/config")));
+    assert!(removals
+        .iter()
+        .all(|m| m.1.is_empty() && m.3 && m.0.ends_with("/config")));
     assert!(!out.iter().any(|m| m.2 == Kind::Discovery));
     // The state is still published.
     assert!(out.iter().any(|m| m.2 == Kind::State));
@@ -294,7 +357,11 @@ fn a_smaller_pack_removes_the_cells_it_does_not_have() {
         .map(|m| m.0.as_str())
         .collect();
     assert_eq!(cells.len(), 14, "{cells:#?}");
-    let removed: Vec<&str> = out.iter().filter(|m| m.2 == Kind::Removal).map(|m| m.0.as_str()).collect();
+    let removed: Vec<&str> = out
+        .iter()
+        .filter(|m| m.2 == Kind::Removal)
+        .map(|m| m.0.as_str())
+        .collect();
     assert_eq!(removed.len(), 2, "{removed:?}");
     assert!(removed[0].contains("/cell_15/") && removed[1].contains("/cell_16/"));
 }

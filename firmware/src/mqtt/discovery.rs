@@ -121,17 +121,94 @@ const fn diagnostic(e: Entity) -> Entity {
 
 /// Every entity but the cells.
 pub const ENTITIES: &[Entity] = &[
-    sensor("pack_voltage", "Pack voltage", Some("voltage"), Some("V"), Read::Member("pack_voltage_v"), 2),
-    sensor("pack_current", "Pack current", Some("current"), Some("A"), Read::Member("pack_current_a"), 1),
-    sensor("pack_power", "Pack power", Some("power"), Some("W"), Read::Member("pack_power_w"), 0),
-    sensor("soc", "State of charge", Some("battery"), Some("%"), Read::Member("soc_percent"), 1),
-    sensor("soh", "State of health", None, Some("%"), Read::Member("soh_percent"), 1),
-    sensor("min_cell_voltage", "Lowest cell", Some("voltage"), Some("V"), Read::Member("min_cell_voltage_v"), 3),
-    sensor("max_cell_voltage", "Highest cell", Some("voltage"), Some("V"), Read::Member("max_cell_voltage_v"), 3),
-    sensor("cell_voltage_difference", "Cell difference", Some("voltage"), Some("V"), Read::Member("cell_spread_v"), 3),
-    sensor("temperature_internal", "BMS temperature", Some("temperature"), Some("°C"), Read::Member("internal_temperature_c"), 1),
-    sensor("temperature_external_1", "Temperature 1", Some("temperature"), Some("°C"), Read::Nullable("external_temperature_1_c"), 1),
-    sensor("temperature_external_2", "Temperature 2", Some("temperature"), Some("°C"), Read::Nullable("external_temperature_2_c"), 1),
+    sensor(
+        "pack_voltage",
+        "Pack voltage",
+        Some("voltage"),
+        Some("V"),
+        Read::Member("pack_voltage_v"),
+        2,
+    ),
+    sensor(
+        "pack_current",
+        "Pack current",
+        Some("current"),
+        Some("A"),
+        Read::Member("pack_current_a"),
+        1,
+    ),
+    sensor(
+        "pack_power",
+        "Pack power",
+        Some("power"),
+        Some("W"),
+        Read::Member("pack_power_w"),
+        0,
+    ),
+    sensor(
+        "soc",
+        "State of charge",
+        Some("battery"),
+        Some("%"),
+        Read::Member("soc_percent"),
+        1,
+    ),
+    sensor(
+        "soh",
+        "State of health",
+        None,
+        Some("%"),
+        Read::Member("soh_percent"),
+        1,
+    ),
+    sensor(
+        "min_cell_voltage",
+        "Lowest cell",
+        Some("voltage"),
+        Some("V"),
+        Read::Member("min_cell_voltage_v"),
+        3,
+    ),
+    sensor(
+        "max_cell_voltage",
+        "Highest cell",
+        Some("voltage"),
+        Some("V"),
+        Read::Member("max_cell_voltage_v"),
+        3,
+    ),
+    sensor(
+        "cell_voltage_difference",
+        "Cell difference",
+        Some("voltage"),
+        Some("V"),
+        Read::Member("cell_spread_v"),
+        3,
+    ),
+    sensor(
+        "temperature_internal",
+        "BMS temperature",
+        Some("temperature"),
+        Some("°C"),
+        Read::Member("internal_temperature_c"),
+        1,
+    ),
+    sensor(
+        "temperature_external_1",
+        "Temperature 1",
+        Some("temperature"),
+        Some("°C"),
+        Read::Nullable("external_temperature_1_c"),
+        1,
+    ),
+    sensor(
+        "temperature_external_2",
+        "Temperature 2",
+        Some("temperature"),
+        Some("°C"),
+        Read::Nullable("external_temperature_2_c"),
+        1,
+    ),
     Entity {
         object: "status",
         name: "Status",
@@ -154,11 +231,46 @@ pub const ENTITIES: &[Entity] = &[
         precision: None,
         category: None,
     },
-    sensor("charge_voltage_limit", "Charge voltage limit", Some("voltage"), Some("V"), Read::Nullable("cvl_v"), 1),
-    sensor("charge_current_limit", "Charge current limit", Some("current"), Some("A"), Read::Nullable("ccl_a"), 1),
-    sensor("discharge_current_limit", "Discharge current limit", Some("current"), Some("A"), Read::Nullable("dcl_a"), 1),
-    diagnostic(sensor("data_age", "Data age", Some("duration"), Some("s"), Read::Member("data_age_s"), 1)),
-    diagnostic(sensor("link_quality", "Link quality", None, Some("%"), Read::Nullable("link_quality_percent"), 1)),
+    sensor(
+        "charge_voltage_limit",
+        "Charge voltage limit",
+        Some("voltage"),
+        Some("V"),
+        Read::Nullable("cvl_v"),
+        1,
+    ),
+    sensor(
+        "charge_current_limit",
+        "Charge current limit",
+        Some("current"),
+        Some("A"),
+        Read::Nullable("ccl_a"),
+        1,
+    ),
+    sensor(
+        "discharge_current_limit",
+        "Discharge current limit",
+        Some("current"),
+        Some("A"),
+        Read::Nullable("dcl_a"),
+        1,
+    ),
+    diagnostic(sensor(
+        "data_age",
+        "Data age",
+        Some("duration"),
+        Some("s"),
+        Read::Member("data_age_s"),
+        1,
+    )),
+    diagnostic(sensor(
+        "link_quality",
+        "Link quality",
+        None,
+        Some("%"),
+        Read::Nullable("link_quality_percent"),
+        1,
+    )),
 ];
 
 /// Most cells (Rev D: 16).
@@ -330,12 +442,7 @@ fn presence_template(m: &str) -> String<112> {
 
 /// Writes the discovery config of `e` into `out`; its length (`None` when it
 /// does not fit).
-pub fn config(
-    out: &mut [u8],
-    s: &Settings,
-    info: &DeviceInfo<'_>,
-    e: &Entity,
-) -> Option<usize> {
+pub fn config(out: &mut [u8], s: &Settings, info: &DeviceInfo<'_>, e: &Entity) -> Option<usize> {
     let id = info.id;
     let device_id = id.device_id();
     let mut unique: String<64> = String::new();

@@ -48,9 +48,7 @@ pub struct View<'a> {
 impl View<'_> {
     /// True when the data may be published as current.
     pub fn fresh(&self, stale_after_us: Instant) -> bool {
-        self.online
-            && self.snapshot.is_some()
-            && self.age_us.is_some_and(|a| a <= stale_after_us)
+        self.online && self.snapshot.is_some() && self.age_us.is_some_and(|a| a <= stale_after_us)
     }
 }
 
@@ -228,10 +226,10 @@ impl Publisher {
                 let text: &[u8] = if fresh { b"online" } else { b"offline" };
                 return Some(self.emit(Kind::Availability, true, text, payload));
             }
-            if let Some(n) = self.discovery_next {
-                let cells = view
-                    .snapshot
-                    .map_or(self.announced_cells, |s| s.cell_count.min(16) as u8);
+            // Discovery waits for a snapshot: the pack's cell count decides
+            // which cells are announced (and which removed).
+            if let (Some(n), Some(snap)) = (self.discovery_next, view.snapshot) {
+                let cells = snap.cell_count.min(16) as u8;
                 match self.discovery_message(n, cells, &id, topic, payload) {
                     Some(m) => {
                         self.discovery_next = Some(n + 1);

@@ -73,7 +73,11 @@ pub trait Network {
     /// One connection.
     type Conn: embedded_io_async::Read + embedded_io_async::Write;
     /// A TCP connection to `host:port` (a name is resolved first).
-    fn connect(&mut self, host: &str, port: u16) -> impl Future<Output = Result<Self::Conn, NetError>>;
+    fn connect(
+        &mut self,
+        host: &str,
+        port: u16,
+    ) -> impl Future<Output = Result<Self::Conn, NetError>>;
 }
 
 /// Time.
@@ -242,7 +246,12 @@ async fn connection<N: Network, C: Clock, F: Feed>(
     identity: Identity,
     note: &mut dyn FnMut(Note),
 ) -> Result<(Failure, Instant), Failure> {
-    let conn = match timeout(clock, CONNECT_TIMEOUT_US, net.connect(&target.host, target.port)).await
+    let conn = match timeout(
+        clock,
+        CONNECT_TIMEOUT_US,
+        net.connect(&target.host, target.port),
+    )
+    .await
     {
         None => return Err(Failure::Timeout),
         Some(Err(e)) => return Err(Failure::Net(e)),
@@ -278,7 +287,13 @@ async fn connection<N: Network, C: Clock, F: Feed>(
         options = options.password(p);
     }
     let client_id = MqttString::from_str(&target.client_id).ok();
-    match timeout(clock, ANSWER_TIMEOUT_US, client.connect(conn, &options, client_id)).await {
+    match timeout(
+        clock,
+        ANSWER_TIMEOUT_US,
+        client.connect(conn, &options, client_id),
+    )
+    .await
+    {
         None => return Err(Failure::Timeout),
         Some(Err(rust_mqtt::client::MqttError::Disconnect { .. })) => return Err(Failure::Refused),
         Some(Err(rust_mqtt::client::MqttError::Network(_))) => return Err(Failure::Connection),
@@ -296,7 +311,10 @@ async fn connection<N: Network, C: Clock, F: Feed>(
         let _ = timeout(clock, WRITE_TIMEOUT_US, async {
             let topic = MqttString::from_str(&avail).ok().and_then(TopicName::new)?;
             let o = PublicationOptions::new(TopicReference::Name(topic)).retain();
-            client.publish(&o, Bytes::from("offline".as_bytes())).await.ok()?;
+            client
+                .publish(&o, Bytes::from("offline".as_bytes()))
+                .await
+                .ok()?;
             client.disconnect(&DisconnectOptions::new()).await.ok()
         })
         .await;
@@ -314,7 +332,10 @@ async fn serve<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock, 
     status_topic: &str,
 ) -> Failure {
     // Home Assistant's status: the one subscription.
-    let Some(filter) = MqttString::from_str(status_topic).ok().and_then(TopicFilter::new) else {
+    let Some(filter) = MqttString::from_str(status_topic)
+        .ok()
+        .and_then(TopicFilter::new)
+    else {
         return Failure::Protocol;
     };
     match timeout(
@@ -354,7 +375,13 @@ async fn serve<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock, 
                 o = o.retain();
             }
             let body = payload.get(..m.len).unwrap_or(&[]);
-            match timeout(clock, WRITE_TIMEOUT_US, client.publish(&o, Bytes::from(body))).await {
+            match timeout(
+                clock,
+                WRITE_TIMEOUT_US,
+                client.publish(&o, Bytes::from(body)),
+            )
+            .await
+            {
                 None => return Failure::Timeout,
                 Some(Err(_)) => return Failure::Connection,
                 Some(Ok(_)) => last_traffic = clock.now(),
@@ -377,8 +404,16 @@ async fn serve<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock, 
         let wake = publisher
             .next_due()
             .min(now.saturating_add(IDLE_WAKE_US))
-            .min(ping_sent.map_or(last_traffic.saturating_add(half), |s| s.saturating_add(half)));
-        let header = match select3(client.poll_header(), feed.changed(), clock.sleep_until(wake)).await {
+            .min(ping_sent.map_or(last_traffic.saturating_add(half), |s| {
+                s.saturating_add(half)
+            }));
+        let header = match select3(
+            client.poll_header(),
+            feed.changed(),
+            clock.sleep_until(wake),
+        )
+        .await
+        {
             Either3::First(Ok(h)) => h,
             Either3::First(Err(_)) => return Failure::Connection,
             Either3::Second(()) | Either3::Third(()) => continue,
@@ -386,7 +421,9 @@ async fn serve<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock, 
         let event = match timeout(clock, BODY_TIMEOUT_US, client.poll_body(header)).await {
             None => return Failure::Timeout,
             Some(Err(rust_mqtt::client::MqttError::Network(_))) => return Failure::Connection,
-            Some(Err(rust_mqtt::client::MqttError::Disconnect { .. })) => return Failure::Connection,
+            Some(Err(rust_mqtt::client::MqttError::Disconnect { .. })) => {
+                return Failure::Connection
+            }
             Some(Err(_)) => return Failure::Protocol,
             Some(Ok(e)) => e,
         };

@@ -65,6 +65,11 @@ path, e.g. /dev/pts/7; runs until stopped, or for --duration if given):
   --stream-period D  (--bridge-pty) the same as --config stream_period=D
   --boot-button D    (--bridge-pty) hold the BOOT button down from D on, for 6 s
                      (lifts read-only, as on the chip)
+  --mqtt HOST:PORT   the firmware's MQTT output (Home Assistant discovery, state,
+                     availability, events) to the broker at HOST:PORT over an
+                     ordinary TCP socket; with or without --bridge-pty (the
+                     record's topic_prefix, mqtt_user, ... apply: --config);
+                     watch it with `mosquitto_sub -h HOST -p PORT -v -t '#'`
 
 inverter output (charge control over CAN, in a closed loop with a simulated
 pack and an inverter/charger that obeys the frames):
@@ -109,6 +114,7 @@ struct Options {
     config: Vec<(String, String)>,
     flash: Option<String>,
     boot_button_us: Option<u64>,
+    mqtt: Option<(String, u16)>,
 }
 
 enum Parsed {
@@ -140,6 +146,7 @@ fn parse_args() -> Result<Parsed, String> {
         config: Vec::new(),
         flash: None,
         boot_button_us: None,
+        mqtt: None,
     };
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
@@ -168,6 +175,16 @@ fn parse_args() -> Result<Parsed, String> {
                     .push((name.trim().to_string(), text.trim().to_string()));
             }
             "--flash" => o.flash = Some(value("--flash")?),
+            "--mqtt" => {
+                let v = value("--mqtt")?;
+                let (host, port) = v
+                    .rsplit_once(':')
+                    .ok_or_else(|| format!("--mqtt {v}: want HOST:PORT (e.g. 127.0.0.1:1883)"))?;
+                let port = port
+                    .parse()
+                    .map_err(|_| format!("--mqtt {v}: the port is not a number 1-65535"))?;
+                o.mqtt = Some((host.to_string(), port));
+            }
             "--boot-button" => o.boot_button_us = Some(parse_duration(&value("--boot-button")?)?),
             "--fault-rate" => {
                 o.fault_rate = value("--fault-rate")?
@@ -272,9 +289,15 @@ fn parse_args() -> Result<Parsed, String> {
     if o.pty && o.bridge_pty {
         return Err("--pty and --bridge-pty exclude each other".into());
     }
-    if !o.bridge_pty && (!o.config.is_empty() || o.flash.is_some() || o.boot_button_us.is_some()) {
+    if o.pty && o.mqtt.is_some() {
+        return Err("--mqtt goes with --bridge-pty or alone, not with --pty".into());
+    }
+    if !o.bridge_pty
+        && o.mqtt.is_none()
+        && (!o.config.is_empty() || o.flash.is_some() || o.boot_button_us.is_some())
+    {
         return Err(
-            "--read-only, --stream-period, --config, --flash and --boot-button go with --bridge-pty"
+            "--read-only, --stream-period, --config, --flash and --boot-button go with --bridge-pty or --mqtt"
                 .into(),
         );
     }
@@ -510,7 +533,7 @@ fn main() -> ExitCode {
             return ExitCode::from(2);
         }
     };
-    if o.pty || o.bridge_pty {
+    if o.pty || o.bridge_pty || o.mqtt.is_some() {
         return run_realtime(&o);
     }
     if let Some(protocol) = o.inverter {
@@ -618,6 +641,8 @@ fn run_realtime(o: &Options) -> ExitCode {
                         std::time::Duration::from_secs(6),
                     )
                 }),
+                pty: o.bridge_pty,
+                mqtt: o.mqtt.clone(),
                 profile: o.profile.clone(),
                 bridge: Timing {
                     snapshot_log_period_us: o.snapshot_every_us,

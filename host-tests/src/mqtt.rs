@@ -1,0 +1,304 @@
+//! The firmware's MQTT output on the desktop, in real time: the library's
+//! publisher and session (`tinybms_firmware::mqtt`, the code the chip runs)
+//! fed by a bridge running against the simulated BMS (`sim --mqtt HOST:PORT`,
+//! the MQTT end-to-end tests).
+//!
+//! * [`Shared`] — what the bridge's loop hands over after every pass: a copy
+//!   of the latest telemetry and the new events (never a wait: a full event
+//!   queue drops the oldest, as on the chip).
+//! * [`HostClock`], [`TcpNet`] — the session's time and network on `async-io`:
+//!   an ordinary TCP socket to the broker.
+//! * [`spawn`] — the session on a thread of its own, as the MQTT task is on the
+//!   chip.
+
+use std::collections::VecDeque;
+use std::net::{TcpStream, ToSocketAddrs};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use async_io::{Async, Timer};
+use embedded_io_adapters::futures_03::FromFutures;
+use protocol_core::events::Event;
+use protocol_core::views::LiveSnapshot;
+use tinybms_firmware::bridge::Telemetry;
+use tinybms_firmware::mqtt::publisher::{Publisher, View};
+use tinybms_firmware::mqtt::session::{self, Clock, Feed, NetError, Network, Note, Target};
+use tinybms_firmware::mqtt::{Identity, Settings};
+use tinybms_firmware::Instant;
+
+use crate::realtime;
+
+/// Events kept for the session; beyond, the oldest are dropped.
+pub const EVENTS: usize = 16;
+
+/// What the session sees of the bridge.
+#[derive(Debug, Clone, Default)]
+pub struct FeedState {
+    /// The latest snapshot, its sequence number and when it was taken (µs on
+    /// the bridge's clock).
+    pub snapshot: Option<(LiveSnapshot, u32, Instant)>,
+    /// BMS link up and synced.
+    pub online: bool,
+    /// The check a flagged snapshot failed.
+    pub flagged: Option<&'static str>,
+    /// The BMS's identity.
+    pub identity: Option<Identity>,
+    /// Limits sent to the inverter, if any.
+    pub limits: Option<(u16, u16, u16)>,
+    /// Link counters (requests, replies).
+    pub link: (u32, u32),
+    /// New events.
+    pub events: VecDeque<Event>,
+    /// Events dropped because the session did not take them.
+    pub events_dropped: u64,
+    /// Bumped on every change.
+    pub generation: u64,
+}
+
+/// The bridge's side and the session's side of the feed.
+#[derive(Clone, Default)]
+pub struct Shared(pub Arc<Mutex<FeedState>>);
+
+impl Shared {
+    /// Locks the state.
+    pub fn lock(&self) -> std::sync::MutexGuard<'_, FeedState> {
+        self.0.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// After a pass of the bridge: the telemetry copied when it changed.
+    pub fn update(&self, t: &Telemetry, link: (u32, u32)) {
+        let mut s = self.lock();
+        let seq_changed = s.snapshot.as_ref().map(|x| x.1) != Some(t.snapshot_seq);
+        let identity = t.version.as_ref().map(Identity::from_version);
+        if seq_changed {
+            if let (Some(snap), Some(at)) = (&t.snapshot, t.snapshot_at) {
+                s.snapshot = Some((snap.clone(), t.snapshot_seq, at));
+                s.generation += 1;
+            }
+        }
+        let online = t.online && t.ready;
+        if s.online != online || s.identity != identity {
+            s.online = online;
+            s.identity = identity;
+            s.generation += 1;
+        }
+        s.flagged = t.live.flagged.map(|c| c.name());
+        s.link = link;
+    }
+
+    /// A new event (the oldest dropped when the session is behind).
+    pub fn event(&self, e: Event) {
+        let mut s = self.lock();
+        if s.events.len() >= EVENTS {
+            s.events.pop_front();
+            s.events_dropped += 1;
+        }
+        s.events.push_back(e);
+        s.generation += 1;
+    }
+}
+
+/// The session's [`Feed`] over a [`Shared`].
+pub struct SharedFeed {
+    shared: Shared,
+    seen: u64,
+}
+
+impl SharedFeed {
+    /// On `shared`.
+    pub fn new(shared: Shared) -> Self {
+        Self { shared, seen: 0 }
+    }
+}
+
+impl Feed for SharedFeed {
+    fn with_view<R>(&mut self, now: Instant, f: impl FnOnce(&View<'_>) -> R) -> R {
+        let s = self.shared.lock();
+        self.seen = s.generation;
+        let view = View {
+            snapshot: s.snapshot.as_ref().map(|x| &x.0),
+            seq: s.snapshot.as_ref().map_or(0, |x| x.1),
+            age_us: s.snapshot.as_ref().map(|x| now.saturating_sub(x.2)),
+            online: s.online,
+            flagged: s.flagged,
+            identity: s.identity,
+            limits: s.limits,
+            link: s.link,
+        };
+        f(&view)
+    }
+
+    fn next_event(&mut self) -> Option<Event> {
+        self.shared.lock().events.pop_front()
+    }
+
+    async fn changed(&mut self) {
+        // Polled every 20 ms: the bridge's loop has no waker to call.
+        loop {
+            if self.shared.lock().generation != self.seen {
+                return;
+            }
+            Timer::after(Duration::from_millis(20)).await;
+        }
+    }
+}
+
+/// The session's clock: the bridge's (µs since its start), timers from async-io.
+#[derive(Clone, Copy)]
+pub struct HostClock(pub realtime::Clock);
+
+impl Clock for HostClock {
+    fn now(&self) -> Instant {
+        self.0.now()
+    }
+
+    async fn sleep_until(&self, t: Instant) {
+        let wait = self.0.until(t);
+        if !wait.is_zero() {
+            Timer::after(wait).await;
+        }
+    }
+}
+
+/// A TCP connection that a test can break abruptly ([`TcpNet::kill`]): the
+/// socket is shut down without an MQTT DISCONNECT, as when the bridge loses its
+/// network — the broker then publishes the will.
+pub struct Conn {
+    io: FromFutures<Async<TcpStream>>,
+    killed: Arc<AtomicBool>,
+    raw: TcpStream,
+}
+
+impl embedded_io_async::ErrorType for Conn {
+    type Error = std::io::Error;
+}
+
+impl Conn {
+    fn check(&self) -> Result<(), std::io::Error> {
+        if self.killed.load(Ordering::Relaxed) {
+            let _ = self.raw.shutdown(std::net::Shutdown::Both);
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::ConnectionAborted,
+                "killed by the test",
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl embedded_io_async::Read for Conn {
+    async fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
+        self.check()?;
+        let n = embedded_io_async::Read::read(&mut self.io, buf).await?;
+        self.check()?;
+        Ok(n)
+    }
+}
+
+impl embedded_io_async::Write for Conn {
+    async fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
+        self.check()?;
+        embedded_io_async::Write::write(&mut self.io, buf).await
+    }
+
+    async fn flush(&mut self) -> Result<(), Self::Error> {
+        self.check()?;
+        embedded_io_async::Write::flush(&mut self.io).await
+    }
+}
+
+/// TCP to the broker over the host's network.
+#[derive(Clone, Default)]
+pub struct TcpNet {
+    killed: Arc<AtomicBool>,
+}
+
+impl TcpNet {
+    /// Breaks the current connection (and refuses none after it: the next
+    /// connect clears the switch).
+    pub fn kill(&self) {
+        self.killed.store(true, Ordering::Relaxed);
+    }
+}
+
+impl Network for TcpNet {
+    type Conn = Conn;
+
+    async fn connect(&mut self, host: &str, port: u16) -> Result<Conn, NetError> {
+        let addr = (host, port)
+            .to_socket_addrs()
+            .map_err(|_| NetError::Dns)?
+            .next()
+            .ok_or(NetError::Dns)?;
+        let stream = Async::<TcpStream>::connect(addr)
+            .await
+            .map_err(|_| NetError::Connect)?;
+        let raw = stream
+            .get_ref()
+            .try_clone()
+            .map_err(|_| NetError::Connect)?;
+        self.killed.store(false, Ordering::Relaxed);
+        Ok(Conn {
+            io: FromFutures::new(stream),
+            killed: self.killed.clone(),
+            raw,
+        })
+    }
+}
+
+/// The notes the session logged, in order (what `sim --mqtt` prints).
+pub type Notes = Arc<Mutex<Vec<Note>>>;
+
+/// One log line for a session note.
+pub fn note_text(n: &Note) -> String {
+    match n {
+        Note::Connected => "MQTT: connected to the broker".into(),
+        Note::Disconnected(f, ms) => {
+            format!(
+                "MQTT: connection lost ({}), reconnecting in {ms} ms",
+                f.reason()
+            )
+        }
+        Note::Failed(f, ms) => {
+            format!("MQTT: cannot connect ({}), next try in {ms} ms", f.reason())
+        }
+        Note::WaitingForBms => "MQTT: waiting for the BMS's serial number".into(),
+    }
+}
+
+/// Starts the session on a thread of its own. `log`: print its notes to stderr.
+pub fn spawn(
+    target: Target,
+    settings: Settings,
+    shared: Shared,
+    clock: realtime::Clock,
+    net: TcpNet,
+    log: bool,
+) -> Notes {
+    let notes: Notes = Arc::default();
+    let out = notes.clone();
+    let _ = std::thread::Builder::new()
+        .name("mqtt".into())
+        .spawn(move || {
+            let mut publisher = Publisher::new(settings, env!("CARGO_PKG_VERSION"));
+            let mut feed = SharedFeed::new(shared);
+            let mut net = net;
+            let clock = HostClock(clock);
+            let mut note = |n: Note| {
+                if log {
+                    eprintln!("{:>10.3}s {}", clock.now() as f64 / 1e6, note_text(&n));
+                }
+                out.lock().unwrap_or_else(|e| e.into_inner()).push(n);
+            };
+            async_io::block_on(session::run(
+                &mut net,
+                &clock,
+                &mut feed,
+                &target,
+                &mut publisher,
+                &mut note,
+            ))
+        });
+    notes
+}
