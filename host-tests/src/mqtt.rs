@@ -223,9 +223,9 @@ impl TcpNet {
 }
 
 impl Network for TcpNet {
-    type Conn = Conn;
+    type Conn<'a> = Conn;
 
-    async fn connect(&mut self, host: &str, port: u16) -> Result<Conn, NetError> {
+    async fn connect<'a>(&'a mut self, host: &str, port: u16) -> Result<Conn, NetError> {
         let addr = (host, port)
             .to_socket_addrs()
             .map_err(|_| NetError::Dns)?

@@ -801,7 +801,7 @@ fn longest_telemetry_line_fits() {
         ready: true,
     };
     let n =
-        encode::telemetry(&mut buf, head, Some(&snapshot), Some("cell_count_mismatch")).unwrap();
+        encode::telemetry(&mut buf, head, Some(&snapshot), Some("cell_count_mismatch"), None).unwrap();
     assert!(n < OUT_LINE_MAX * 3 / 4, "{n}");
     check_line(&buf[..n]);
 }
@@ -1116,7 +1116,7 @@ proptest! {
         let s = protocol_core::views::LiveSnapshot::from_registers(&block).unwrap();
         let head = encode::TelemetryHead { req: None, seq: 1, age_ms: Some(0), online: true, ready: true };
         let mut out = [0u8; OUT_LINE_MAX];
-        let n = encode::telemetry(&mut out, head, Some(&s), None).unwrap();
+        let n = encode::telemetry(&mut out, head, Some(&s), None, None).unwrap();
         let line: Value = serde_json::from_str(&check_line(&out[..n])).unwrap();
         for (k, v) in &replay {
             let huge = v.as_f64().is_some_and(|x| x.abs() >= 2f64.powi(53) / 1e4);

@@ -146,6 +146,8 @@ async fn bridge_task(
                 while let Some(report) = bridge.next_report() {
                     #[cfg(feature = "can")]
                     crate::can::on_report(&report);
+                    #[cfg(feature = "wifi")]
+                    crate::wifi::on_report(&report);
                     host.on_report(&report);
                     log::report(&report);
                 }
@@ -237,6 +239,11 @@ async fn bridge_task(
                     taken_at: Instant::from_micros(at),
                     #[cfg(feature = "can")]
                     inverter: crate::can::Inputs::from_telemetry(t),
+                    #[cfg(feature = "wifi")]
+                    mqtt: crate::wifi::Inputs::from_telemetry(t, {
+                        let s = bridge.link_stats();
+                        (s.requests, s.replies)
+                    }),
                 });
             }
         }

@@ -159,6 +159,12 @@ async fn can_task(mut twai: Twai<'static, Async>, config: InverterConfig) {
             }
         }
         while let Some(r) = inverter.next_report() {
+            #[cfg(feature = "wifi")]
+            if let tinybms_firmware::inverter::InverterReport::Limits(l) = r {
+                crate::wifi::LIMITS
+                    .sender()
+                    .send((l.cvl_dv, l.ccl_da, l.dcl_da));
+            }
             crate::log::inverter(&r);
         }
     }

@@ -11,6 +11,7 @@
 //! | [`stale`] | `stale_task` | none: says when the shared telemetry goes stale |
 //! | [`store`] | — | the configuration record in the `nvs` flash partition |
 //! | [`button`] | `button_task` | the BOOT button: held 5 s, it lifts read-only |
+//! | [`wifi`] | `wifi_task`, `net_task`, `mqtt_task` | Wi-Fi and MQTT to Home Assistant (feature `wifi`) |
 //! | [`log`] | — | reports → defmt lines (the words come from the library) |
 //! | [`panic`] | — | the panic handler: backtrace, then reset |
 //!
@@ -44,6 +45,8 @@ mod panic;
 mod stale;
 mod store;
 mod usb;
+#[cfg(feature = "wifi")]
+mod wifi;
 
 use defmt::info;
 #[cfg(feature = "log-rtt")]
@@ -97,11 +100,13 @@ struct SharedSnapshot {
     taken_at: Instant,
     #[cfg(feature = "can")]
     inverter: can::Inputs,
+    #[cfg(feature = "wifi")]
+    mqtt: wifi::Inputs,
 }
 
-/// Latest telemetry for the other tasks: one sender (the bridge task), up to 3
-/// receivers (the stale watch, the CAN output).
-static TELEMETRY: Watch<CriticalSectionRawMutex, SharedSnapshot, 3> = Watch::new();
+/// Latest telemetry for the other tasks: one sender (the bridge task), up to 4
+/// receivers (the stale watch, the CAN output, the MQTT output).
+static TELEMETRY: Watch<CriticalSectionRawMutex, SharedSnapshot, 4> = Watch::new();
 
 #[esp_rtos::main]
 async fn main(spawner: Spawner) {
@@ -146,6 +151,8 @@ async fn main(spawner: Spawner) {
     usb::start(spawner, p.USB_DEVICE, running);
     #[cfg(feature = "host-link")]
     button::start(spawner);
+    #[cfg(feature = "wifi")]
+    wifi::start(spawner, p.WIFI, running);
     bms::start(
         spawner,
         p.UART1,

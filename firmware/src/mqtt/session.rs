@@ -70,14 +70,16 @@ pub enum NetError {
 
 /// Opens byte streams to the broker.
 pub trait Network {
-    /// One connection.
-    type Conn: embedded_io_async::Read + embedded_io_async::Write;
+    /// One connection (it may borrow the network, e.g. a socket from its pool).
+    type Conn<'a>: embedded_io_async::Read + embedded_io_async::Write
+    where
+        Self: 'a;
     /// A TCP connection to `host:port` (a name is resolved first).
-    fn connect(
-        &mut self,
+    fn connect<'a>(
+        &'a mut self,
         host: &str,
         port: u16,
-    ) -> impl Future<Output = Result<Self::Conn, NetError>>;
+    ) -> impl Future<Output = Result<Self::Conn<'a>, NetError>>;
 }
 
 /// Time.
@@ -258,7 +260,7 @@ async fn connection<N: Network, C: Clock, F: Feed>(
         Some(Ok(c)) => c,
     };
     let mut buffer = AllocBuffer;
-    let mut client: Mqtt<'_, N::Conn> = Client::new(&mut buffer);
+    let mut client: Mqtt<'_, N::Conn<'_>> = Client::new(&mut buffer);
     let settings = publisher.settings().clone();
     let mut avail = String::<TOPIC_MAX>::new();
     let mut status = String::<TOPIC_MAX>::new();

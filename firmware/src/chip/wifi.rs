@@ -1,0 +1,383 @@
+//! Wi-Fi and MQTT (feature `wifi`): the battery in Home Assistant. Publish
+//! only, and never in the charge-control path: these tasks read copies of the
+//! telemetry ([`crate::TELEMETRY`], the events channel, the limits the CAN task
+//! sends) and nothing waits on them — a missing network or a bad broker only
+//! costs their own reconnects.
+//!
+//! * `wifi_task` — station mode with the record's SSID and 64-hex pre-shared
+//!   key (the ESP Wi-Fi driver takes 64 hex digits as the PSK itself, so the chip
+//!   never runs PBKDF2: see docs), reconnect with backoff, one log line per link
+//!   up/down.
+//! * `net_task` — embassy-net (DHCP with the bridge's host name).
+//! * `mqtt_task` — the library's MQTT session (`tinybms_firmware::mqtt`), the
+//!   code the host tests run against mosquitto.
+
+use core::net::{IpAddr, SocketAddr};
+
+use defmt::{info, warn};
+use embassy_executor::Spawner;
+use embassy_futures::select::select;
+use embassy_net::dns::DnsQueryType;
+use embassy_net::tcp::client::{TcpClient, TcpClientState, TcpConnection};
+use embassy_net::{DhcpConfig, Runner, Stack, StackResources};
+use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
+use embassy_sync::channel::Channel;
+use embassy_sync::watch::{Receiver, Watch};
+use embassy_time::{Duration, Instant, Timer};
+use embedded_nal_async::TcpConnect;
+use esp_hal::peripherals::WIFI;
+use esp_hal::rng::Rng;
+use esp_radio::wifi::sta::StationConfig;
+use esp_radio::wifi::{
+    AuthenticationMethodConfig, Config as WifiConfig, ControllerConfig, Interface, Password, Ssid,
+    WifiController,
+};
+use heapless::String;
+use protocol_core::events::Event;
+use protocol_core::views::VersionInfo;
+use static_cell::StaticCell;
+use tinybms_firmware::config::Config;
+use tinybms_firmware::mqtt::publisher::{Publisher, View};
+use tinybms_firmware::mqtt::session::{self, Clock, Feed, NetError, Network, Note, Target};
+use tinybms_firmware::mqtt::{Identity, Settings};
+use tinybms_firmware::{Report, Telemetry};
+
+use crate::{spawn, SharedSnapshot, TELEMETRY};
+
+/// Heap for the Wi-Fi driver and the MQTT client's packet buffers, bytes: the
+/// station needs 47-57 KiB (esp-radio's documentation), MQTT a few.
+const HEAP_RECLAIMED: usize = 64 * 1024;
+const HEAP_MORE: usize = 36 * 1024;
+
+/// TCP buffers of the MQTT connection, bytes each way.
+const TCP_BUFFER: usize = 2048;
+
+/// Wi-Fi reconnect delays: the first, and the longest (doubling between).
+const WIFI_BACKOFF_MIN: Duration = Duration::from_secs(1);
+const WIFI_BACKOFF_MAX: Duration = Duration::from_secs(60);
+
+/// New BMS events for the MQTT output; a full channel drops the event for it.
+static EVENTS: Channel<CriticalSectionRawMutex, Event, 8> = Channel::new();
+
+/// The limits the CAN output sends (CVL 0.1 V, CCL 0.1 A, DCL 0.1 A).
+pub static LIMITS: Watch<CriticalSectionRawMutex, (u16, u16, u16), 1> = Watch::new();
+
+/// What the MQTT output needs with each snapshot besides the snapshot.
+#[derive(Clone)]
+pub struct Inputs {
+    seq: u32,
+    version: Option<VersionInfo>,
+    online: bool,
+    flagged: Option<&'static str>,
+    link: (u32, u32),
+}
+
+impl Inputs {
+    pub fn from_telemetry(t: &Telemetry, link: (u32, u32)) -> Self {
+        Self {
+            seq: t.snapshot_seq,
+            version: t.version,
+            online: t.online && t.ready,
+            flagged: t.live.flagged.map(|c| c.name()),
+            link,
+        }
+    }
+}
+
+/// A bridge report the MQTT output wants: new BMS events.
+pub fn on_report(report: &Report) {
+    if let Report::NewEvent(e) = report {
+        let _ = EVENTS.try_send(*e);
+    }
+}
+
+/// Starts Wi-Fi and MQTT when the record names a network and a broker.
+pub fn start(spawner: Spawner, wifi: WIFI<'static>, config: &Config) {
+    if config.wifi_ssid.is_empty() || config.mqtt_host.is_empty() {
+        info!(
+            "Wi-Fi off: {=str}",
+            if config.wifi_ssid.is_empty() {
+                "no wifi_ssid (tinybms wifi PORT --ssid NAME)"
+            } else {
+                "no mqtt_host (tinybms mqtt PORT --host HOST)"
+            }
+        );
+        return;
+    }
+    esp_alloc::heap_allocator!(#[esp_hal::ram(reclaimed)] size: HEAP_RECLAIMED);
+    esp_alloc::heap_allocator!(size: HEAP_MORE);
+
+    let Ok(ssid) = Ssid::try_from(config.wifi_ssid.as_str()) else {
+        warn!("Wi-Fi off: the SSID is not valid");
+        return;
+    };
+    let auth = if config.wifi_key.is_empty() {
+        AuthenticationMethodConfig::Open
+    } else {
+        match Password::try_from(config.wifi_key.as_str()) {
+            Ok(p) => AuthenticationMethodConfig::WpaWpa2Personal(p),
+            Err(_) => {
+                warn!("Wi-Fi off: the key is not valid");
+                return;
+            }
+        }
+    };
+    let station = StationConfig::default()
+        .with_ssid(ssid)
+        .with_authentication(auth);
+    let iface = Interface::station();
+    let mac = iface.mac_address();
+    let controller = match WifiController::new(
+        wifi,
+        ControllerConfig::default().with_initial_config(WifiConfig::Station(station)),
+    ) {
+        Ok(c) => c,
+        Err(e) => {
+            warn!("Wi-Fi off: the radio did not start: {}", e);
+            return;
+        }
+    };
+    let hostname = hostname(config, mac);
+    info!(
+        "Wi-Fi: joining {=str} as {=str}; MQTT to {=str}:{=u16}",
+        config.wifi_ssid.as_str(),
+        hostname.as_str(),
+        config.mqtt_host.as_str(),
+        config.mqtt_port
+    );
+    let mut dhcp = DhcpConfig::default();
+    dhcp.hostname = Some(hostname.clone());
+    // The true RNG is on once the controller runs.
+    let rng = Rng::new();
+    let seed = (u64::from(rng.random()) << 32) | u64::from(rng.random());
+    static RESOURCES: StaticCell<StackResources<3>> = StaticCell::new();
+    let (stack, runner) = embassy_net::new(
+        iface,
+        embassy_net::Config::dhcpv4(dhcp),
+        RESOURCES.init(StackResources::new()),
+        seed,
+    );
+    let target = Target::from_config(config, &hostname);
+    let settings = Settings::from_config(config);
+    spawn(spawner, wifi_task(controller));
+    spawn(spawner, net_task(runner));
+    spawn(spawner, mqtt_task(stack, target, settings));
+    spawn(spawner, heap_task());
+}
+
+/// `hostname`, or `tinybms-` and the last three bytes of the MAC address.
+fn hostname(config: &Config, mac: [u8; 6]) -> String<32> {
+    if !config.hostname.is_empty() {
+        return config.hostname.clone();
+    }
+    let mut h = String::new();
+    let _ = h.push_str("tinybms-");
+    for b in mac.get(3..).unwrap_or(&[]) {
+        for nibble in [b >> 4, b & 0xF] {
+            let _ = h.push(char::from_digit(u32::from(nibble), 16).unwrap_or('0'));
+        }
+    }
+    h
+}
+
+/// How often the heap's use is logged.
+const HEAP_LOG_PERIOD: Duration = Duration::from_secs(600);
+
+/// One line: the heap now and its high-water mark (the figure a run on a unit
+/// gives for the README's sizes).
+fn log_heap() {
+    let s = esp_alloc::HEAP.stats();
+    info!(
+        "heap: {=usize} B used, at most {=usize} B so far, of {=usize} B",
+        s.current_usage, s.max_usage, s.size
+    );
+}
+
+#[embassy_executor::task]
+async fn heap_task() {
+    loop {
+        Timer::after(HEAP_LOG_PERIOD).await;
+        log_heap();
+    }
+}
+
+#[embassy_executor::task]
+async fn wifi_task(mut controller: WifiController<'static>) {
+    let mut backoff = WIFI_BACKOFF_MIN;
+    loop {
+        match controller.connect_async().await {
+            Ok(info) => {
+                info!(
+                    "Wi-Fi up: {=str}, channel {=u8}",
+                    info.ssid.as_str(),
+                    info.channel
+                );
+                let up = Instant::now();
+                match controller.wait_for_disconnect_async().await {
+                    Ok(d) => warn!("Wi-Fi down: {}", d.reason),
+                    Err(e) => warn!("Wi-Fi down: {}", e),
+                }
+                if up.elapsed() > WIFI_BACKOFF_MAX {
+                    backoff = WIFI_BACKOFF_MIN;
+                }
+            }
+            Err(e) => warn!(
+                "Wi-Fi: cannot join ({}), next try in {=u64} s",
+                e,
+                backoff.as_secs()
+            ),
+        }
+        Timer::after(backoff).await;
+        backoff = (backoff * 2).min(WIFI_BACKOFF_MAX);
+    }
+}
+
+#[embassy_executor::task]
+async fn net_task(mut runner: Runner<'static, Interface>) {
+    runner.run().await
+}
+
+/// The session's network: TCP sockets from one pooled slot of embassy-net.
+struct ChipNet {
+    stack: Stack<'static>,
+    client: TcpClient<'static, 1, TCP_BUFFER, TCP_BUFFER>,
+    ip_noted: bool,
+}
+
+impl Network for ChipNet {
+    type Conn<'a> = TcpConnection<'a, 1, TCP_BUFFER, TCP_BUFFER>;
+
+    async fn connect<'a>(&'a mut self, host: &str, port: u16) -> Result<Self::Conn<'a>, NetError> {
+        if !self.stack.is_config_up() {
+            self.ip_noted = false;
+            // The only task that waits on the stack's state (one waker).
+            let _ = select(
+                self.stack.wait_config_up(),
+                Timer::after(Duration::from_secs(5)),
+            )
+            .await;
+            if !self.stack.is_config_up() {
+                return Err(NetError::NoNetwork);
+            }
+        }
+        if !self.ip_noted {
+            self.ip_noted = true;
+            if let Some(c) = self.stack.config_v4() {
+                info!("IP {} (DHCP)", c.address);
+            }
+        }
+        let addrs = self
+            .stack
+            .dns_query(host, DnsQueryType::A)
+            .await
+            .map_err(|_| NetError::Dns)?;
+        let addr = addrs.first().copied().ok_or(NetError::Dns)?;
+        let ip: IpAddr = addr.into();
+        self.client
+            .connect(SocketAddr::new(ip, port))
+            .await
+            .map_err(|_| NetError::Connect)
+    }
+}
+
+/// embassy-time as the session's clock.
+struct ChipClock;
+
+impl Clock for ChipClock {
+    fn now(&self) -> u64 {
+        Instant::now().as_micros()
+    }
+
+    async fn sleep_until(&self, t: u64) {
+        Timer::at(Instant::from_micros(t)).await
+    }
+}
+
+/// The shared telemetry, the events and the limits as the session's feed.
+struct ChipFeed {
+    telemetry: Receiver<'static, CriticalSectionRawMutex, SharedSnapshot, 4>,
+    limits: Option<Receiver<'static, CriticalSectionRawMutex, (u16, u16, u16), 1>>,
+    latest: Option<SharedSnapshot>,
+    last_limits: Option<(u16, u16, u16)>,
+}
+
+impl Feed for ChipFeed {
+    fn with_view<R>(&mut self, now: u64, f: impl FnOnce(&View<'_>) -> R) -> R {
+        if let Some(s) = self.telemetry.try_changed() {
+            self.latest = Some(s);
+        }
+        if let Some(l) = self.limits.as_mut().and_then(|r| r.try_changed()) {
+            self.last_limits = Some(l);
+        }
+        let latest = self.latest.as_ref();
+        let view = View {
+            snapshot: latest.map(|s| &s.snapshot),
+            seq: latest.map_or(0, |s| s.mqtt.seq),
+            age_us: latest.map(|s| now.saturating_sub(s.taken_at.as_micros())),
+            online: latest.is_some_and(|s| s.mqtt.online),
+            flagged: latest.and_then(|s| s.mqtt.flagged),
+            identity: latest.and_then(|s| s.mqtt.version.as_ref().map(Identity::from_version)),
+            limits: self.last_limits,
+            link: latest.map_or((0, 0), |s| s.mqtt.link),
+        };
+        f(&view)
+    }
+
+    fn next_event(&mut self) -> Option<Event> {
+        EVENTS.try_receive().ok()
+    }
+
+    async fn changed(&mut self) {
+        // Telemetry (a new snapshot) or an event waiting. Both cancel-safe.
+        let _ = select(self.telemetry.changed(), EVENTS.ready_to_receive()).await;
+    }
+}
+
+#[embassy_executor::task]
+async fn mqtt_task(stack: Stack<'static>, target: Target, settings: Settings) {
+    let Some(telemetry) = TELEMETRY.receiver() else {
+        warn!("telemetry watch has no free receiver slot: no MQTT output");
+        return;
+    };
+    static STATE: StaticCell<TcpClientState<1, TCP_BUFFER, TCP_BUFFER>> = StaticCell::new();
+    let mut client = TcpClient::new(stack, STATE.init(TcpClientState::new()));
+    client.set_timeout(Some(embassy_time::Duration::from_secs(30)));
+    let mut net = ChipNet {
+        stack,
+        client,
+        ip_noted: false,
+    };
+    let mut feed = ChipFeed {
+        telemetry,
+        limits: LIMITS.receiver(),
+        latest: None,
+        last_limits: None,
+    };
+    let mut publisher = Publisher::new(settings, env!("CARGO_PKG_VERSION"));
+    let mut note = |n: Note| match n {
+        Note::Connected => {
+            info!("MQTT: connected to the broker");
+            log_heap();
+        }
+        Note::Disconnected(f, ms) => warn!(
+            "MQTT: connection lost ({=str}), reconnecting in {=u32} ms",
+            f.reason(),
+            ms
+        ),
+        Note::Failed(f, ms) => warn!(
+            "MQTT: cannot connect ({=str}), next try in {=u32} ms",
+            f.reason(),
+            ms
+        ),
+        Note::WaitingForBms => info!("MQTT: waiting for the BMS's serial number"),
+    };
+    session::run(
+        &mut net,
+        &ChipClock,
+        &mut feed,
+        &target,
+        &mut publisher,
+        &mut note,
+    )
+    .await
+}
