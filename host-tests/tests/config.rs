@@ -637,3 +637,41 @@ fn the_guide_lists_every_field_as_the_firmware_has_it() {
         "a field in the guide that the firmware has not"
     );
 }
+
+/// The log line of a changed secret says `set`, never the secret.
+#[test]
+fn a_secret_never_reaches_a_log_line() {
+    use tinybms_firmware::config::state::Note;
+    use tinybms_firmware::text;
+    let key = "ab".repeat(32);
+    let mut s = state();
+    let o = change(
+        &mut s,
+        &[
+            ("wifi_ssid", "home"),
+            ("wifi_key", &key),
+            ("mqtt_user", "u"),
+            ("mqtt_password", "hunter22"),
+        ],
+        None,
+    );
+    assert!(o.iter().all(|(_, o)| *o == Outcome::AtRestart), "{o:?}");
+    let mut lines = Vec::new();
+    while let Some(n) = s.next_note() {
+        let mut l = Line::new();
+        text::config_note(&n, &s, &mut l);
+        lines.push(l.as_str().to_string());
+        if let Note::Changed(id, _) = n {
+            if id.field().is_secret() {
+                assert!(
+                    l.as_str().ends_with("set (at the next restart)"),
+                    "{}",
+                    l.as_str()
+                );
+            }
+        }
+    }
+    let all = lines.join("\n");
+    assert!(!all.contains(&key) && !all.contains("hunter22"), "{all}");
+    assert!(all.contains("config: wifi_ssid = home"), "{all}");
+}

@@ -800,8 +800,14 @@ fn longest_telemetry_line_fits() {
         online: true,
         ready: true,
     };
-    let n =
-        encode::telemetry(&mut buf, head, Some(&snapshot), Some("cell_count_mismatch"), None).unwrap();
+    let n = encode::telemetry(
+        &mut buf,
+        head,
+        Some(&snapshot),
+        Some("cell_count_mismatch"),
+        None,
+    )
+    .unwrap();
     assert!(n < OUT_LINE_MAX * 3 / 4, "{n}");
     check_line(&buf[..n]);
 }

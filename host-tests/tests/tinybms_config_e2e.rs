@@ -237,3 +237,73 @@ fn a_corrupted_flash_file_gives_the_defaults_and_a_bridge_that_runs() {
     let set = tinybms(&["config", &sim.path, "stale_after=6"]);
     assert_eq!(set.code, 0, "{set}");
 }
+
+#[test]
+fn wpa2_keys_are_the_ieee_802_11i_test_vectors() {
+    use host_tests::tool::config::wpa2_psk;
+    assert_eq!(
+        wpa2_psk("IEEE", "password").unwrap(),
+        "f42c6fc52df0ebef9ebb4b90b38a5f902e83fe1b135a70e23aed762e9710a12e"
+    );
+    assert_eq!(
+        wpa2_psk("ThisIsASSID", "ThisIsAPassword").unwrap(),
+        "0dc0d6eb90555ed6419756b9a15ec3e3209b63df707dd508d14581f8982721af"
+    );
+    assert!(wpa2_psk("IEEE", "short").is_err());
+    assert!(wpa2_psk("IEEE", &"x".repeat(64)).is_err());
+    assert!(wpa2_psk("", "password").is_err());
+}
+
+#[test]
+fn wifi_and_mqtt_store_the_key_and_the_broker_and_never_echo_a_secret() {
+    let flash = tmp("config-flash-5.bin");
+    let _ = std::fs::remove_file(&flash);
+    let sim = bridge(&flash, &[]);
+    let wifi = tinybms_with_input(
+        &["wifi", &sim.path, "--ssid", "Home Net"],
+        "correct horse battery\n",
+    );
+    assert_eq!(wifi.code, 0, "{wifi}");
+    assert!(wifi.stdout.contains("wifi_key = set"), "{wifi}");
+    assert!(wifi.stdout.contains("next restart"), "{wifi}");
+    let mqtt = tinybms_with_input(
+        &[
+            "mqtt",
+            &sim.path,
+            "--host",
+            "broker.lan",
+            "--port",
+            "1884",
+            "--user",
+            "bms",
+        ],
+        "s3cret-pass\n",
+    );
+    assert_eq!(mqtt.code, 0, "{mqtt}");
+    let show = tinybms(&["config", &sim.path]);
+    let all = format!("{wifi}{mqtt}{show}");
+    for secret in [
+        "correct horse",
+        "s3cret-pass",
+        &host_tests::tool::config::wpa2_psk("Home Net", "correct horse battery").unwrap(),
+    ] {
+        assert!(!all.contains(secret), "a secret was shown: {secret}");
+    }
+    for line in [
+        "wifi_ssid",
+        "wifi_key",
+        "mqtt_host",
+        "mqtt_port",
+        "mqtt_user",
+        "mqtt_password",
+    ] {
+        let l = show.stdout.lines().find(|l| l.contains(line)).unwrap();
+        assert!(l.starts_with('*'), "{l}");
+    }
+    assert!(show.stdout.contains("broker.lan"), "{show}");
+    assert!(show.stdout.contains("1884"), "{show}");
+    // A passphrase the standard does not allow: refused before anything is sent.
+    let bad = tinybms_with_input(&["wifi", &sim.path, "--ssid", "X"], "short\n");
+    assert_eq!(bad.code, 2, "{bad}");
+    assert!(bad.stderr.contains("8 to 63"), "{bad}");
+}

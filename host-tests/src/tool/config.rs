@@ -535,3 +535,48 @@ pub fn fetch_error(e: ToolError) -> ToolError {
 pub fn error_of(v: &Value) -> ToolError {
     read_only_hint(protocol_error(v))
 }
+
+/// The WPA2 pre-shared key of `passphrase` on the network `ssid`
+/// (IEEE 802.11i: PBKDF2-HMAC-SHA1, 4096 rounds, the SSID as salt, 32 bytes)
+/// as the 64 hex digits the bridge stores and hands to the Wi-Fi driver, so
+/// the chip never derives it.
+pub fn wpa2_psk(ssid: &str, passphrase: &str) -> Result<String, String> {
+    if ssid.is_empty() || ssid.len() > 32 {
+        return Err(format!(
+            "an SSID has 1 to 32 bytes (`{ssid}` has {})",
+            ssid.len()
+        ));
+    }
+    let n = passphrase.chars().count();
+    if !(8..=63).contains(&n) || !passphrase.chars().all(|c| (' '..='~').contains(&c)) {
+        return Err(format!(
+            "a WPA2 passphrase has 8 to 63 printable ASCII characters (this one has {n}{})",
+            if passphrase.is_ascii() {
+                ""
+            } else {
+                ", not all ASCII"
+            }
+        ));
+    }
+    let mut key = [0u8; 32];
+    pbkdf2::pbkdf2_hmac::<sha1::Sha1>(passphrase.as_bytes(), ssid.as_bytes(), 4096, &mut key);
+    Ok(key.iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// A secret typed by the user: without echo at a terminal, else one line of
+/// standard input (scripts, tests). `None` when nothing was given.
+pub fn ask_secret(prompt: &str) -> ToolResult<String> {
+    use std::io::{BufRead, IsTerminal};
+    let text = if std::io::stdin().is_terminal() {
+        rpassword::prompt_password(prompt)
+            .map_err(|e| ToolError::failed(format!("reading the answer: {e}")))?
+    } else {
+        let mut line = String::new();
+        std::io::stdin()
+            .lock()
+            .read_line(&mut line)
+            .map_err(|e| ToolError::failed(format!("reading the answer: {e}")))?;
+        line.trim_end_matches(['\n', '\r']).to_string()
+    };
+    Ok(text)
+}

@@ -102,6 +102,10 @@ commands:
       --save FILE             write the configuration to FILE (secrets left out)
       --load FILE [--dry-run] show what FILE changes, then change it
       --reset                 every field back to its default (asks unless --yes)
+  wifi PORT --ssid NAME       the Wi-Fi network: asks for its passphrase and stores the
+                              WPA2 key derived from it (never the passphrase itself)
+  mqtt PORT --host HOST       the MQTT broker (and --port P, default 1883; --user U: asks
+                              for the password); Wi-Fi and MQTT apply at the next restart
 
 options for every command with a PORT:
   --mode auto|bridge|direct   auto (default): a bridge answers `{\"cmd\":\"hello\"}`;
@@ -127,6 +131,10 @@ struct Args {
     save: Option<String>,
     load: Option<String>,
     reset: bool,
+    ssid: Option<String>,
+    host: Option<String>,
+    port: Option<u16>,
+    user: Option<String>,
     log: Option<String>,
     every: Option<Duration>,
     format: Option<String>,
@@ -167,6 +175,16 @@ fn parse_args(argv: &[String]) -> ToolResult<Args> {
             "--save" => a.save = Some(value("--save")?),
             "--load" => a.load = Some(value("--load")?),
             "--reset" => a.reset = true,
+            "--ssid" => a.ssid = Some(value("--ssid")?),
+            "--host" => a.host = Some(value("--host")?),
+            "--user" => a.user = Some(value("--user")?),
+            "--port" => {
+                a.port = Some(
+                    value("--port")?
+                        .parse()
+                        .map_err(|_| ToolError::usage("--port needs a TCP port, 1 to 65535"))?,
+                )
+            }
             "--log" => a.log = Some(value("--log")?),
             "--every" => a.every = Some(dur(value("--every")?)?),
             "--format" => a.format = Some(value("--format")?),
@@ -438,6 +456,56 @@ fn run(argv: &[String]) -> ToolResult<()> {
             record(&a)
         }
         "config" => run_config(&a),
+        "wifi" => {
+            expect(1, "PORT --ssid NAME")?;
+            let ssid = a
+                .ssid
+                .clone()
+                .ok_or_else(|| ToolError::usage("usage: tinybms wifi PORT --ssid NAME"))?;
+            let pass = config::ask_secret(&format!("Passphrase of `{ssid}` (not shown): "))?;
+            let key = config::wpa2_psk(&ssid, &pass).map_err(ToolError::usage)?;
+            let changes = vec![
+                config::check_assignment("wifi_ssid", &ssid)?,
+                config::check_assignment("wifi_key", &key)?,
+            ];
+            let mut c = connect(&a)?;
+            config::require_bridge(&c)?;
+            config::apply(&mut c, &changes)?;
+            println!(
+                "Wi-Fi: the bridge joins `{ssid}` after its next restart (power-cycle or RESET)"
+            );
+            Ok(())
+        }
+        "mqtt" => {
+            expect(1, "PORT --host HOST [--port P] [--user U]")?;
+            let host = a.host.clone().ok_or_else(|| {
+                ToolError::usage("usage: tinybms mqtt PORT --host HOST [--port P] [--user U]")
+            })?;
+            let mut changes = vec![
+                config::check_assignment("mqtt_host", &host)?,
+                config::check_assignment("mqtt_port", &a.port.unwrap_or(1883).to_string())?,
+            ];
+            match &a.user {
+                Some(user) => {
+                    let pass = config::ask_secret(&format!(
+                        "Password of `{user}` at {host} (not shown): "
+                    ))?;
+                    changes.push(config::check_assignment("mqtt_user", user)?);
+                    changes.push(config::check_assignment("mqtt_password", &pass)?);
+                }
+                None => {
+                    changes.push(config::check_assignment("mqtt_user", "")?);
+                    changes.push(config::check_assignment("mqtt_password", "")?);
+                }
+            }
+            let mut c = connect(&a)?;
+            config::require_bridge(&c)?;
+            let (fields, _) = config::fetch(&mut c).map_err(config::fetch_error)?;
+            config::check_locally(&config::record_of(&fields), &changes)?;
+            config::apply(&mut c, &changes)?;
+            println!("MQTT: the bridge publishes to {host} after its next restart");
+            Ok(())
+        }
         other => Err(ToolError::usage(format!("unknown command `{other}`"))),
     }
 }
