@@ -7,7 +7,10 @@
 # test host-tests/tests/boards.rs checks that those lines and firmware/src/boards.rs
 # list the same boards). Log paths: log-rtt and log-uart. Every image has the full
 # feature set (can, host-link), as the default build and the aliases.
-# Images are kept as target/boards/tinybms-firmware-<board>-<log>.elf.
+# Then every board once more with Wi-Fi and MQTT (feature `wifi`, log-rtt), held
+# to the budget of its own (WIFI_FLASH_BUDGET_KIB, default 1024; WIFI_RAM_BUDGET_KIB,
+# default 256: the radio's heap included).
+# Images are kept as target/boards/tinybms-firmware-<board>-<log>[-wifi].elf.
 # Exit status: 0 = all built and within budget; 1 = some image over budget;
 # anything else = a build or tool failure.
 #
@@ -34,17 +37,21 @@ for entry in $boards; do
         esp32c3) target=riscv32imc-unknown-none-elf ;;
         esp32c6) target=riscv32imac-unknown-none-elf ;;
     esac
-    for log in log-rtt log-uart; do
-        echo "== $board ($chip), $log"
-        cargo build --release --quiet --no-default-features --features "$board,$log,can,host-link" --target "$target"
-        elf="$out/tinybms-firmware-$board-$log.elf"
+    for variant in log-rtt log-uart log-rtt,wifi; do
+        echo "== $board ($chip), $variant"
+        cargo build --release --quiet --no-default-features --features "$board,$variant,can,host-link" --target "$target"
+        elf="$out/tinybms-firmware-$board-${variant/,/-}.elf"
         cp "target/$target/release/tinybms-firmware" "$elf"
-        if report=$(./size-report.sh "$elf"); then :; else
+        budget=()
+        if [[ $variant == *wifi* ]]; then
+            budget=(FLASH_BUDGET_KIB="${WIFI_FLASH_BUDGET_KIB:-1024}" RAM_BUDGET_KIB="${WIFI_RAM_BUDGET_KIB:-256}")
+        fi
+        if report=$(env "${budget[@]}" ./size-report.sh "$elf"); then :; else
             rc=$?
             status=$(( rc > status ? rc : status ))
         fi
         echo "$report"
-        summary+=("$(printf '%-22s %-9s %s' "$board" "$log" "$(head -n1 <<<"$report")")")
+        summary+=("$(printf '%-22s %-14s %s' "$board" "$variant" "$(head -n1 <<<"$report")")")
     done
 done
 

@@ -11,6 +11,7 @@ For every tinybms-<board>[-suffix].bin (merged) and its -app.bin:
   * the partition table at 0x8000 is espflash's default: nvs (data/nvs) at 0x9000,
     0x6000 bytes — the partition the configuration store uses — and the factory
     app at 0x10000;
+  * the app fits its partition;
   * the -app.bin is byte for byte the app inside the merged image;
   * SHA256SUMS lists every image with its right checksum.
 Exit status 0 when all hold; 1 otherwise (each problem printed).
@@ -109,6 +110,9 @@ def check(dirname):
             continue
         if struct.unpack("<H", app[12:14])[0] != chip_id:
             problems.append(f"{n}: the app is not for {chip}")
+        if factory and len(app) > factory[0][3]:
+            problems.append(f"{n}: the app ({len(app)} bytes) does not fit the factory "
+                            f"partition ({factory[0][3]} bytes)")
         info = image_info(chip, app, f"{n} app", problems) or ""
         app_path = os.path.join(dirname, n[:-len(".bin")] + "-app.bin")
         if not os.path.exists(app_path):

@@ -9,6 +9,7 @@ pub mod harness;
 pub mod host_link;
 pub mod hosted;
 pub mod mqtt;
+pub mod mqtt_e2e;
 pub mod profile;
 #[cfg(unix)]
 pub mod pty;

@@ -161,23 +161,44 @@ impl Clock for HostClock {
     }
 }
 
-/// A TCP connection that a test can break abruptly ([`TcpNet::kill`]): the
-/// socket is shut down without an MQTT DISCONNECT, as when the bridge loses its
-/// network — the broker then publishes the will.
-pub struct Conn {
-    io: FromFutures<Async<TcpStream>>,
-    killed: Arc<AtomicBool>,
-    raw: TcpStream,
+/// A switch a test flips to break the session's connection abruptly (no MQTT
+/// DISCONNECT: as when the bridge loses its network); the broker then
+/// publishes the will. The next connect clears it.
+#[derive(Clone, Default)]
+pub struct Kill(Arc<AtomicBool>);
+
+impl Kill {
+    /// Breaks the current connection.
+    pub fn kill(&self) {
+        self.0.store(true, Ordering::Relaxed);
+    }
+    fn killed(&self) -> bool {
+        self.0.load(Ordering::Relaxed)
+    }
+    fn clear(&self) {
+        self.0.store(false, Ordering::Relaxed);
+    }
 }
 
-impl embedded_io_async::ErrorType for Conn {
-    type Error = std::io::Error;
+/// A connection that fails once its [`Kill`] switch is flipped (and shuts its
+/// TCP socket down, when it has one of the host's).
+pub struct KillConn<C> {
+    io: C,
+    kill: Kill,
+    raw: Option<TcpStream>,
 }
 
-impl Conn {
+impl<C> KillConn<C> {
+    /// `io`, breakable by `kill`.
+    pub fn new(io: C, kill: Kill, raw: Option<TcpStream>) -> Self {
+        Self { io, kill, raw }
+    }
+
     fn check(&self) -> Result<(), std::io::Error> {
-        if self.killed.load(Ordering::Relaxed) {
-            let _ = self.raw.shutdown(std::net::Shutdown::Both);
+        if self.kill.killed() {
+            if let Some(r) = &self.raw {
+                let _ = r.shutdown(std::net::Shutdown::Both);
+            }
             return Err(std::io::Error::new(
                 std::io::ErrorKind::ConnectionAborted,
                 "killed by the test",
@@ -187,45 +208,60 @@ impl Conn {
     }
 }
 
-impl embedded_io_async::Read for Conn {
+/// An error of the wrapped connection or of the kill switch.
+#[derive(Debug)]
+pub struct ConnError;
+
+impl std::fmt::Display for ConnError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("the connection broke")
+    }
+}
+
+impl std::error::Error for ConnError {}
+
+impl embedded_io_async::Error for ConnError {
+    fn kind(&self) -> embedded_io_async::ErrorKind {
+        embedded_io_async::ErrorKind::ConnectionAborted
+    }
+}
+
+impl<C: embedded_io_async::ErrorType> embedded_io_async::ErrorType for KillConn<C> {
+    type Error = ConnError;
+}
+
+impl<C: embedded_io_async::Read> embedded_io_async::Read for KillConn<C> {
     async fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
-        self.check()?;
-        let n = embedded_io_async::Read::read(&mut self.io, buf).await?;
-        self.check()?;
+        self.check().map_err(|_| ConnError)?;
+        let n = self.io.read(buf).await.map_err(|_| ConnError)?;
+        self.check().map_err(|_| ConnError)?;
         Ok(n)
     }
 }
 
-impl embedded_io_async::Write for Conn {
+impl<C: embedded_io_async::Write> embedded_io_async::Write for KillConn<C> {
     async fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
-        self.check()?;
-        embedded_io_async::Write::write(&mut self.io, buf).await
+        self.check().map_err(|_| ConnError)?;
+        self.io.write(buf).await.map_err(|_| ConnError)
     }
 
     async fn flush(&mut self) -> Result<(), Self::Error> {
-        self.check()?;
-        embedded_io_async::Write::flush(&mut self.io).await
+        self.check().map_err(|_| ConnError)?;
+        self.io.flush().await.map_err(|_| ConnError)
     }
 }
 
 /// TCP to the broker over the host's network.
 #[derive(Clone, Default)]
 pub struct TcpNet {
-    killed: Arc<AtomicBool>,
-}
-
-impl TcpNet {
-    /// Breaks the current connection (and refuses none after it: the next
-    /// connect clears the switch).
-    pub fn kill(&self) {
-        self.killed.store(true, Ordering::Relaxed);
-    }
+    /// Breaks the current connection.
+    pub kill: Kill,
 }
 
 impl Network for TcpNet {
-    type Conn<'a> = Conn;
+    type Conn<'a> = KillConn<FromFutures<Async<TcpStream>>>;
 
-    async fn connect<'a>(&'a mut self, host: &str, port: u16) -> Result<Conn, NetError> {
+    async fn connect<'a>(&'a mut self, host: &str, port: u16) -> Result<Self::Conn<'a>, NetError> {
         let addr = (host, port)
             .to_socket_addrs()
             .map_err(|_| NetError::Dns)?
@@ -238,12 +274,12 @@ impl Network for TcpNet {
             .get_ref()
             .try_clone()
             .map_err(|_| NetError::Connect)?;
-        self.killed.store(false, Ordering::Relaxed);
-        Ok(Conn {
-            io: FromFutures::new(stream),
-            killed: self.killed.clone(),
-            raw,
-        })
+        self.kill.clear();
+        Ok(KillConn::new(
+            FromFutures::new(stream),
+            self.kill.clone(),
+            Some(raw),
+        ))
     }
 }
 
@@ -267,14 +303,34 @@ pub fn note_text(n: &Note) -> String {
     }
 }
 
-/// Starts the session on a thread of its own. `log`: print its notes to stderr.
-pub fn spawn(
+/// Starts the session on a thread of its own, over `net`. `log`: print its
+/// notes to stderr.
+pub fn spawn<N: Network + Send + 'static>(
     target: Target,
     settings: Settings,
     shared: Shared,
     clock: realtime::Clock,
-    net: TcpNet,
+    net: N,
     log: bool,
+) -> Notes {
+    spawn_with(target, settings, shared, clock, log, move || {
+        (net, Box::pin(std::future::pending()))
+    })
+}
+
+/// A future the session's thread runs beside it (a network stack's runner).
+pub type Beside = std::pin::Pin<Box<dyn std::future::Future<Output = ()>>>;
+
+/// Starts the session on a thread of its own, over the network `make` builds
+/// there, together with the future it returns (which should never end: the
+/// session stops when it does).
+pub fn spawn_with<N: Network + 'static>(
+    target: Target,
+    settings: Settings,
+    shared: Shared,
+    clock: realtime::Clock,
+    log: bool,
+    make: impl FnOnce() -> (N, Beside) + Send + 'static,
 ) -> Notes {
     let notes: Notes = Arc::default();
     let out = notes.clone();
@@ -283,7 +339,7 @@ pub fn spawn(
         .spawn(move || {
             let mut publisher = Publisher::new(settings, env!("CARGO_PKG_VERSION"));
             let mut feed = SharedFeed::new(shared);
-            let mut net = net;
+            let (mut net, beside) = make();
             let clock = HostClock(clock);
             let mut note = |n: Note| {
                 if log {
@@ -291,14 +347,36 @@ pub fn spawn(
                 }
                 out.lock().unwrap_or_else(|e| e.into_inner()).push(n);
             };
-            async_io::block_on(session::run(
+            let session = session::run(
                 &mut net,
                 &clock,
                 &mut feed,
                 &target,
                 &mut publisher,
                 &mut note,
-            ))
+            );
+            async_io::block_on(embassy_futures::select::select(session, beside));
         });
     notes
+}
+
+/// Any network whose connections a [`Kill`] switch breaks.
+pub struct Killable<N> {
+    /// The network.
+    pub net: N,
+    /// Breaks the current connection.
+    pub kill: Kill,
+}
+
+impl<N: Network> Network for Killable<N> {
+    type Conn<'a>
+        = KillConn<N::Conn<'a>>
+    where
+        Self: 'a;
+
+    async fn connect<'a>(&'a mut self, host: &str, port: u16) -> Result<Self::Conn<'a>, NetError> {
+        let c = self.net.connect(host, port).await?;
+        self.kill.clear();
+        Ok(KillConn::new(c, self.kill.clone(), None))
+    }
 }

@@ -407,3 +407,65 @@ proptest! {
         }
     }
 }
+
+/// One entity as the Home Assistant guide lists it.
+fn guide_row(e: &discovery::Entity) -> std::string::String {
+    let read = match e.read {
+        Read::Member(m) => format!("`{m}`"),
+        Read::Nullable(m) => format!("`{m}` (unavailable while null)"),
+        Read::Cell(i) => format!("`cell_voltages_v[{i}]`"),
+        Read::NonZero(m) => format!("`{m}` > 0"),
+    };
+    format!(
+        "| `{}` | {} | {} | {} | {} | {}{} |",
+        e.object,
+        e.name,
+        e.component.name(),
+        e.device_class.unwrap_or("—"),
+        e.unit.unwrap_or("—"),
+        read,
+        if e.category.is_some() {
+            ", diagnostic"
+        } else {
+            ""
+        }
+    )
+}
+
+#[test]
+fn the_home_assistant_guide_lists_every_entity_as_the_firmware_announces_it() {
+    let guide = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../docs/home-assistant.md"
+    ))
+    .unwrap();
+    let rows: Vec<_> = ENTITIES
+        .iter()
+        .chain([discovery::cell(1), discovery::cell(16)].iter())
+        .map(guide_row)
+        .collect();
+    if std::env::var("PRINT_GUIDE_ROWS").is_ok() {
+        println!("{}", rows.join("\n"));
+    }
+    for row in &rows {
+        assert!(guide.contains(row), "docs/home-assistant.md lacks:\n{row}");
+    }
+    let listed = guide
+        .lines()
+        .filter(|l| {
+            l.starts_with("| `")
+                && (l.contains(" | sensor | ") || l.contains(" | binary_sensor | "))
+        })
+        .count();
+    assert_eq!(
+        listed,
+        rows.len(),
+        "an entity in the guide that the firmware has not"
+    );
+    for s in STATUS_OPTIONS {
+        assert!(
+            guide.contains(&format!("`{s}`")),
+            "status {s} not in the guide"
+        );
+    }
+}

@@ -18,6 +18,15 @@
 //! Tasks share the latest telemetry through [`TELEMETRY`] (an embassy-sync
 //! `Watch`) and nothing else; the bridge task never waits on another task.
 //!
+//! Every task runs on `main`'s executor, whose esp-rtos thread gets the highest
+//! task priority ([`MAIN_PRIORITY`]) before anything else starts. esp-rtos would
+//! start it at 0, below the Wi-Fi driver's own threads (the IDF blob asks 23),
+//! which can keep the CPU for up to a second while the station connects
+//! (esp-hal issue #4940); above them, the driver runs only while the executor
+//! waits, so it cannot delay a BMS request or a CAN frame. (An interrupt
+//! executor would preempt them too, but would run the bridge on whatever task
+//! stack it interrupts, the radio's small ones included.) Not measured on a unit.
+//!
 //! Board: the pins come from `tinybms_firmware::boards::SELECTED`, chosen by one
 //! `board-…` feature and checked at compile time. Logging: defmt over RTT
 //! (`log-rtt`, read with `probe-rs run`) or defmt frames on UART0 (`log-uart`,
@@ -104,6 +113,10 @@ struct SharedSnapshot {
     mqtt: wifi::Inputs,
 }
 
+/// esp-rtos task priority of `main`'s thread, which runs every task (module
+/// docs): esp-rtos's highest.
+const MAIN_PRIORITY: usize = 31;
+
 /// Latest telemetry for the other tasks: one sender (the bridge task), up to 4
 /// receivers (the stale watch, the CAN output, the MQTT output).
 static TELEMETRY: Watch<CriticalSectionRawMutex, SharedSnapshot, 4> = Watch::new();
@@ -139,6 +152,7 @@ async fn main(spawner: Spawner) {
 
     // esp-rtos: TIMG0 timer0 as time base + FROM_CPU_INTR0 software interrupt.
     esp_rtos::start(timg0.timer0, p.FROM_CPU_INTR0);
+    esp_rtos::CurrentThreadHandle::get().set_priority(MAIN_PRIORITY);
 
     // The configuration record, before any task that runs with it. (Reading
     // flash stops the CPU only for microseconds; nothing runs yet anyway.)

@@ -12,19 +12,15 @@
 //! * `mqtt_task` — the library's MQTT session (`tinybms_firmware::mqtt`), the
 //!   code the host tests run against mosquitto.
 
-use core::net::{IpAddr, SocketAddr};
-
 use defmt::{info, warn};
 use embassy_executor::Spawner;
 use embassy_futures::select::select;
-use embassy_net::dns::DnsQueryType;
-use embassy_net::tcp::client::{TcpClient, TcpClientState, TcpConnection};
+use embassy_net::tcp::client::{TcpClient, TcpClientState};
 use embassy_net::{DhcpConfig, Runner, Stack, StackResources};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::channel::Channel;
 use embassy_sync::watch::{Receiver, Watch};
 use embassy_time::{Duration, Instant, Timer};
-use embedded_nal_async::TcpConnect;
 use esp_hal::peripherals::WIFI;
 use esp_hal::rng::Rng;
 use esp_radio::wifi::sta::StationConfig;
@@ -37,8 +33,9 @@ use protocol_core::events::Event;
 use protocol_core::views::VersionInfo;
 use static_cell::StaticCell;
 use tinybms_firmware::config::Config;
+use tinybms_firmware::mqtt::net::StackNet;
 use tinybms_firmware::mqtt::publisher::{Publisher, View};
-use tinybms_firmware::mqtt::session::{self, Clock, Feed, NetError, Network, Note, Target};
+use tinybms_firmware::mqtt::session::{self, Clock, Feed, Note, Target};
 use tinybms_firmware::mqtt::{Identity, Settings};
 use tinybms_firmware::{Report, Telemetry};
 
@@ -237,49 +234,6 @@ async fn net_task(mut runner: Runner<'static, Interface>) {
     runner.run().await
 }
 
-/// The session's network: TCP sockets from one pooled slot of embassy-net.
-struct ChipNet {
-    stack: Stack<'static>,
-    client: TcpClient<'static, 1, TCP_BUFFER, TCP_BUFFER>,
-    ip_noted: bool,
-}
-
-impl Network for ChipNet {
-    type Conn<'a> = TcpConnection<'a, 1, TCP_BUFFER, TCP_BUFFER>;
-
-    async fn connect<'a>(&'a mut self, host: &str, port: u16) -> Result<Self::Conn<'a>, NetError> {
-        if !self.stack.is_config_up() {
-            self.ip_noted = false;
-            // The only task that waits on the stack's state (one waker).
-            let _ = select(
-                self.stack.wait_config_up(),
-                Timer::after(Duration::from_secs(5)),
-            )
-            .await;
-            if !self.stack.is_config_up() {
-                return Err(NetError::NoNetwork);
-            }
-        }
-        if !self.ip_noted {
-            self.ip_noted = true;
-            if let Some(c) = self.stack.config_v4() {
-                info!("IP {} (DHCP)", c.address);
-            }
-        }
-        let addrs = self
-            .stack
-            .dns_query(host, DnsQueryType::A)
-            .await
-            .map_err(|_| NetError::Dns)?;
-        let addr = addrs.first().copied().ok_or(NetError::Dns)?;
-        let ip: IpAddr = addr.into();
-        self.client
-            .connect(SocketAddr::new(ip, port))
-            .await
-            .map_err(|_| NetError::Connect)
-    }
-}
-
 /// embassy-time as the session's clock.
 struct ChipClock;
 
@@ -342,11 +296,7 @@ async fn mqtt_task(stack: Stack<'static>, target: Target, settings: Settings) {
     static STATE: StaticCell<TcpClientState<1, TCP_BUFFER, TCP_BUFFER>> = StaticCell::new();
     let mut client = TcpClient::new(stack, STATE.init(TcpClientState::new()));
     client.set_timeout(Some(embassy_time::Duration::from_secs(30)));
-    let mut net = ChipNet {
-        stack,
-        client,
-        ip_noted: false,
-    };
+    let mut net = StackNet::new(stack, client, ChipClock, |a| info!("IP {} (DHCP)", a));
     let mut feed = ChipFeed {
         telemetry,
         limits: LIMITS.receiver(),

@@ -35,6 +35,8 @@
 //! | `homeassistant/sensor/tinybms_S/OBJECT/config` | yes | discovery configs |
 //! | `homeassistant/status` | (subscribed) | Home Assistant's own `online`/`offline` |
 
+#[cfg(feature = "net")]
+pub mod net;
 #[cfg(feature = "mqtt")]
 pub mod session;
 
