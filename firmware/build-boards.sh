@@ -6,7 +6,8 @@
 # Boards: every `board-… = ["esp32c3"|"esp32c6"]` feature line of Cargo.toml (the host
 # test host-tests/tests/boards.rs checks that those lines and firmware/src/boards.rs
 # list the same boards). Log paths: log-rtt and log-uart. Every image has the full
-# feature set (can, host-link), as the default build and the aliases.
+# feature set (can, host-link), as the default build and the aliases — except a
+# log-uart image of a board whose host link runs on UART0 (only `can`).
 # Then every board once more with Wi-Fi and MQTT (feature `wifi`, log-rtt), held
 # to the budget of its own (WIFI_FLASH_BUDGET_KIB, default 1024; WIFI_RAM_BUDGET_KIB,
 # default 256: the radio's heap included).
@@ -28,6 +29,10 @@ if [[ -z $boards ]]; then
     exit 2
 fi
 
+# Boards whose host link runs on UART0 (boards.rs: `host: HostWire::Uart0`):
+# their log-uart image leaves the host link out (defmt frames would share UART0).
+uart0_host=$(awk '/feature: "board-/ { f = $2; gsub(/[",]/, "", f) } /host: HostWire::Uart0/ { print f }' src/boards.rs)
+
 status=0
 summary=()
 for entry in $boards; do
@@ -39,7 +44,11 @@ for entry in $boards; do
     esac
     for variant in log-rtt log-uart log-rtt,wifi; do
         echo "== $board ($chip), $variant"
-        cargo build --release --quiet --no-default-features --features "$board,$variant,can,host-link" --target "$target"
+        rest=can,host-link
+        if [[ $variant == log-uart ]] && grep -qx "$board" <<<"$uart0_host"; then
+            rest=can
+        fi
+        cargo build --release --quiet --no-default-features --features "$board,$variant,$rest" --target "$target"
         elf="$out/tinybms-firmware-$board-${variant/,/-}.elf"
         cp "target/$target/release/tinybms-firmware" "$elf"
         budget=()

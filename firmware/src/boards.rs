@@ -132,6 +132,27 @@ impl LogPath {
     }
 }
 
+/// Where the host link (JSON Lines to a computer, with the bridge's log lines)
+/// runs: on the wire the board's own USB connector reaches.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum HostWire {
+    /// The chip's USB-Serial-JTAG: the connector is the chip's own USB.
+    UsbSerialJtag,
+    /// UART0 at 115 200 8N1 (GPIO21 TX / GPIO20 RX on the C3, GPIO16 / GPIO17
+    /// on the C6): the connector goes to a USB-UART bridge chip on UART0.
+    Uart0,
+}
+
+impl HostWire {
+    /// In a few words.
+    pub const fn name(self) -> &'static str {
+        match self {
+            HostWire::UsbSerialJtag => "USB-Serial-JTAG",
+            HostWire::Uart0 => "UART0 (the board's USB-UART bridge)",
+        }
+    }
+}
+
 /// A part on the board wired to a GPIO.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct OnBoard {
@@ -158,8 +179,12 @@ pub struct Board {
     pub can_tx: u8,
     /// GPIO of the CAN transceiver's RXD (the TWAI input, feature `can`).
     pub can_rx: u8,
-    /// The log path that works with only the board's own USB connector.
+    /// The defmt log path of the board's ready-made image and alias. On a
+    /// board whose connector is a USB-UART bridge, the host link takes UART0
+    /// and the log lines reach the connector as its `log` lines.
     pub log: LogPath,
+    /// Where the host link runs.
+    pub host: HostWire,
     /// GPIOs on the board's pin headers.
     pub header: &'static [u8],
     /// GPIOs wired to parts on the board.
@@ -352,8 +377,9 @@ pub const fn assert_valid(board: &Board) {
 ///
 /// Source: esp-dev-kits "ESP32-C3-DevKitM-1" user guide, Header Block J1/J3 and
 /// Description of Components (RGB LED on GPIO8; the Micro-USB port goes to a
-/// USB-to-UART bridge on UART0). GPIO18/19 are on J3 pins 13/14: RTT needs a
-/// second USB cable wired there, hence `log-uart` as its log path.
+/// USB-to-UART bridge on UART0). GPIO18/19 are on J3 pins 13/14: RTT and the
+/// USB-Serial-JTAG need a second USB cable wired there, hence the host link on
+/// UART0, with the bridge's log lines in it.
 pub const C3_DEVKITM_1: Board = Board {
     name: "ESP32-C3-DevKitM-1",
     feature: "board-c3-devkitm-1",
@@ -362,7 +388,8 @@ pub const C3_DEVKITM_1: Board = Board {
     bms_rx: 6,
     can_tx: 4,
     can_rx: 5,
-    log: LogPath::Uart0,
+    log: LogPath::Rtt,
+    host: HostWire::Uart0,
     header: &[0, 1, 2, 3, 10, 21, 20, 9, 8, 7, 6, 5, 4, 18, 19],
     on_board: &[
         OnBoard {
@@ -392,6 +419,7 @@ pub const C3_SUPERMINI: Board = Board {
     can_tx: 4,
     can_rx: 5,
     log: LogPath::Rtt,
+    host: HostWire::UsbSerialJtag,
     header: &[0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 20, 21],
     on_board: &[
         OnBoard {
@@ -421,6 +449,7 @@ pub const XIAO_ESP32C3: Board = Board {
     can_tx: 4,
     can_rx: 5,
     log: LogPath::Rtt,
+    host: HostWire::UsbSerialJtag,
     header: &[2, 3, 4, 5, 6, 7, 21, 20, 8, 9, 10],
     on_board: &[OnBoard {
         gpio: 9,
@@ -444,6 +473,7 @@ pub const C3_RUST_1: Board = Board {
     can_tx: 4,
     can_rx: 3,
     log: LogPath::Rtt,
+    host: HostWire::UsbSerialJtag,
     header: &[0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 18, 19, 20, 21],
     on_board: &[
         OnBoard {
@@ -486,6 +516,7 @@ pub const LOLIN_C3_MINI: Board = Board {
     can_tx: 4,
     can_rx: 3,
     log: LogPath::Rtt,
+    host: HostWire::UsbSerialJtag,
     header: &[0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 20, 21],
     on_board: &[
         OnBoard {
@@ -516,6 +547,7 @@ pub const C6_DEVKITC_1: Board = Board {
     can_tx: 2,
     can_rx: 21,
     log: LogPath::Rtt,
+    host: HostWire::UsbSerialJtag,
     header: &[
         4, 5, 6, 7, 0, 1, 8, 10, 11, 2, 3, 16, 17, 15, 23, 22, 21, 20, 19, 18, 9, 13, 12,
     ],
@@ -549,6 +581,7 @@ pub const XIAO_ESP32C6: Board = Board {
     can_tx: 2,
     can_rx: 21,
     log: LogPath::Rtt,
+    host: HostWire::UsbSerialJtag,
     header: &[0, 1, 2, 21, 22, 23, 16, 17, 19, 20, 18],
     on_board: &[
         OnBoard {
@@ -622,7 +655,7 @@ const _: () = assert!(
     ))
 ))]
 compile_error!(
-    "a chip feature is enabled but no board: enable one `board-…` feature (see README, \"Boards\")"
+    "a chip feature is enabled but no board: enable one `board-…` feature (see docs/boards.md)"
 );
 
 /// The board chosen by the `board-…` feature.

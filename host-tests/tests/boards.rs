@@ -195,9 +195,29 @@ fn cargo_features_list_the_same_boards_with_their_chips() {
         .collect();
     assert_eq!(features, table);
     assert!(
-        toml.contains("default = [\"board-c3-devkitm-1\", \"log-rtt\", \"can\", \"host-link\"]"),
-        "default build: C3-DevKitM-1 pins, RTT, inverter output and host link"
+        toml.contains("default = [\"board-c3-supermini\", \"log-rtt\", \"can\", \"host-link\"]"),
+        "default build: the C3 SuperMini (one cable), RTT, inverter output and host link"
     );
+}
+
+/// A board whose connector is a USB-UART bridge runs its host link on UART0,
+/// so its image cannot log defmt frames there: its log path is RTT (the log
+/// lines reach the connector as the host link's `log` lines).
+#[test]
+fn a_board_with_the_host_link_on_uart0_does_not_log_there() {
+    use tinybms_firmware::boards::HostWire;
+    let mut uart0 = 0;
+    for b in BOARDS {
+        if b.host == HostWire::Uart0 {
+            uart0 += 1;
+            assert_eq!(b.log, LogPath::Rtt, "{}", b.name);
+        }
+    }
+    assert_eq!(
+        uart0, 1,
+        "only the C3-DevKitM-1 has no native USB connector"
+    );
+    assert_eq!(C3_DEVKITM_1.host, HostWire::Uart0);
 }
 
 #[test]
@@ -244,13 +264,15 @@ fn readme_row(b: &Board) -> String {
 
 #[test]
 fn the_readme_wiring_table_matches_the_board_table() {
-    let readme = repo_file("README.md");
-    for b in BOARDS {
-        let row = readme_row(b);
-        assert!(
-            readme.lines().any(|l| l.starts_with(&row)),
-            "README.md has no wiring row starting with:\n{row}"
-        );
+    for file in ["README.md", "docs/boards.md"] {
+        let text = repo_file(file);
+        for b in BOARDS {
+            let row = readme_row(b);
+            assert!(
+                text.lines().any(|l| l.starts_with(&row)),
+                "{file} has no wiring row starting with:\n{row}"
+            );
+        }
     }
 }
 

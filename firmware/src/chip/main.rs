@@ -30,7 +30,7 @@
 //! Board: the pins come from `tinybms_firmware::boards::SELECTED`, chosen by one
 //! `board-…` feature and checked at compile time. Logging: defmt over RTT
 //! (`log-rtt`, read with `probe-rs run`) or defmt frames on UART0 (`log-uart`,
-//! read with `espflash flash --monitor --log-format defmt`). See README, "Boards".
+//! read with `espflash flash --monitor --log-format defmt`). See docs/boards.md.
 
 #![no_std]
 #![no_main]
@@ -98,6 +98,15 @@ const LOG_PATH: LogPath = if cfg!(feature = "log-uart") {
     LogPath::Rtt
 };
 
+// On a board whose connector is a USB-UART bridge, the host link takes UART0:
+// defmt frames there would be mixed into its lines.
+const _: () = assert!(
+    !(cfg!(feature = "log-uart")
+        && cfg!(feature = "host-link")
+        && matches!(BOARD.host, boards::HostWire::Uart0)),
+    "this board's host link runs on UART0: use `log-rtt` (its log lines reach the host link as `log` lines)"
+);
+
 /// Watchdog timeout (MWDT stage 0 → system reset). Fed by the bridge task.
 const WDT_TIMEOUT: esp_hal::time::Duration = esp_hal::time::Duration::from_secs(4);
 
@@ -162,7 +171,7 @@ async fn main(spawner: Spawner) {
 
     #[cfg(feature = "can")]
     can::start(spawner, p.TWAI0, running.inverter());
-    usb::start(spawner, p.USB_DEVICE, running);
+    usb::start(spawner, p.USB_DEVICE, p.UART0, running);
     #[cfg(feature = "host-link")]
     button::start(spawner);
     #[cfg(feature = "wifi")]

@@ -1,5 +1,11 @@
 //! The panic handler.
 
+#[cfg(feature = "host-link")]
+unsafe extern "C" {
+    /// The ROM's console output: one byte to UART0 (blocking).
+    fn esp_rom_uart_tx_one_char(c: u8) -> i32;
+}
+
 /// After a panic, time for the log reader to fetch the panic line and backtrace
 /// before the reset (RTT is polled by the host; UART0 drains its FIFO). Shorter
 /// than the watchdog's [`crate::WDT_TIMEOUT`], so the watchdog is only the fallback.
@@ -15,12 +21,38 @@ const PANIC_RESET_DELAY_US: u32 = 1_000_000;
 /// message and location handed to `panic_fmt` are never read and drops their
 /// building at every panic site, and with it `core::fmt`, the `Debug` impls of the
 /// dependencies' error types and the source paths (17.8 KB of flash on the C3,
-/// README "Performance"). The backtrace carries the same location.
+/// docs/performance.md). The backtrace carries the same location.
 #[panic_handler]
 fn panic(_info: &core::panic::PanicInfo) -> ! {
     defmt::error!("panic");
-    for frame in esp_backtrace::Backtrace::capture().frames() {
+    let backtrace = esp_backtrace::Backtrace::capture();
+    for frame in backtrace.frames() {
         defmt::error!("  backtrace 0x{=usize:08x}", frame.program_counter());
+    }
+    #[cfg(feature = "host-link")]
+    if matches!(crate::BOARD.host, tinybms_firmware::boards::HostWire::Uart0) {
+        // On this board the log only reaches the cable through the host link:
+        // the same facts as one `log` line, written by the ROM (no driver,
+        // no allocation, whatever state the UART task was in).
+        let out = |b: &[u8]| {
+            for &c in b {
+                // SAFETY: the ROM's console output (UART0), provided by the ROM
+                // linker script of esp-rom-sys; blocking, reentrancy irrelevant
+                // here (nothing else runs any more).
+                unsafe { esp_rom_uart_tx_one_char(c) };
+            }
+        };
+        out(b"\n{\"type\":\"log\",\"level\":\"warn\",\"text\":\"panic, restarting; backtrace");
+        for frame in backtrace.frames() {
+            let pc = frame.program_counter() as u32;
+            let mut hex = *b" 0x00000000";
+            for (i, d) in hex.iter_mut().skip(3).enumerate() {
+                let n = (pc >> (28 - 4 * i as u32)) & 0xF;
+                *d = b"0123456789abcdef"[n as usize];
+            }
+            out(&hex);
+        }
+        out(b"\"}\n");
     }
     esp_hal::rom::ets_delay_us(PANIC_RESET_DELAY_US);
     esp_hal::system::software_reset()

@@ -1,7 +1,9 @@
-//! The host link on the chip's USB-Serial-JTAG (feature `host-link`): its two tasks
-//! and the [`HostPort`] the bridge task drives. Without the feature, [`HostPort`]
-//! is a stub whose calls the compiler removes, so the bridge task reads the same
-//! either way.
+//! The host link (feature `host-link`) on the wire the board's own USB
+//! connector reaches (`BOARD.host`): the chip's USB-Serial-JTAG, or UART0 at
+//! 115 200 8N1 on a board whose connector is a USB-UART bridge. Its two tasks
+//! and the [`HostPort`] the bridge task drives; the bridge's log lines go out
+//! as `log` lines too. Without the feature, [`HostPort`] is a stub whose calls
+//! the compiler removes, so the bridge task reads the same either way.
 
 #[cfg(not(feature = "host-link"))]
 pub use off::*;
@@ -16,9 +18,12 @@ mod on {
     use embassy_sync::pipe::Pipe;
     use embassy_sync::signal::Signal;
     use embassy_time::{with_timeout, Duration};
-    use esp_hal::peripherals::USB_DEVICE;
+    use esp_hal::gpio::AnyPin;
+    use esp_hal::peripherals::{UART0, USB_DEVICE};
+    use esp_hal::uart::{Config as UartConfig, Uart, UartRx, UartTx};
     use esp_hal::usb::usb_serial_jtag::{UsbSerialJtag, UsbSerialJtagRx, UsbSerialJtagTx};
     use esp_hal::Async;
+    use tinybms_firmware::boards::{Chip, HostWire};
     use tinybms_firmware::config::state::ConfigState;
     use tinybms_firmware::config::store::{Saved, StoreError};
     use tinybms_firmware::config::Config;
@@ -47,13 +52,18 @@ mod on {
     /// Bytes written to the USB port at once (the endpoint's FIFO is 64 bytes).
     const USB_WRITE_CHUNK: usize = 256;
 
-    /// The host link on the USB cable (USB-Serial-JTAG, CDC-ACM). Its JTAG side
-    /// (probe-rs, RTT) is a separate USB interface of the same device: both run
-    /// together (README, "Host link").
-    pub fn start(spawner: Spawner, usb: USB_DEVICE<'static>, config: &Config) {
-        let (usb_rx, usb_tx) = UsbSerialJtag::new(usb).into_async().split();
+    /// The host link on the USB cable: the USB-Serial-JTAG (CDC-ACM; its JTAG
+    /// side, probe-rs and RTT, is a separate USB interface of the same device:
+    /// both run together), or UART0 through the board's USB-UART bridge.
+    pub fn start(
+        spawner: Spawner,
+        usb: USB_DEVICE<'static>,
+        uart0: UART0<'static>,
+        config: &Config,
+    ) {
         info!(
-            "host link on USB-Serial-JTAG: {=str}, telemetry every {=u32} ms",
+            "host link on {=str}: {=str}, telemetry every {=u32} ms",
+            BOARD.host.name(),
             if config.read_only {
                 "read-only"
             } else {
@@ -61,8 +71,35 @@ mod on {
             },
             config.stream_period_ms
         );
-        spawn(spawner, usb_rx_task(usb_rx));
-        spawn(spawner, usb_tx_task(usb_tx));
+        match BOARD.host {
+            HostWire::UsbSerialJtag => {
+                let (usb_rx, usb_tx) = UsbSerialJtag::new(usb).into_async().split();
+                spawn(spawner, usb_rx_task(usb_rx));
+                spawn(spawner, usb_tx_task(usb_tx));
+            }
+            HostWire::Uart0 => {
+                // UART0's own pins (the ROM and the bootloader print there too).
+                let (tx, rx) = match BOARD.chip {
+                    Chip::Esp32c3 => (21, 20),
+                    Chip::Esp32c6 => (16, 17),
+                };
+                // SAFETY: UART0's pins, used by nothing else in this build: the
+                // board check keeps every signal of the bridge off them, and
+                // `log-uart` (defmt on UART0) is refused with this host wire (main.rs).
+                let (tx, rx) = unsafe { (AnyPin::steal(tx), AnyPin::steal(rx)) };
+                match Uart::new(uart0, UartConfig::default().with_baudrate(115_200)) {
+                    Ok(u) => {
+                        let (rx, tx) = u.with_tx(tx).with_rx(rx).into_async().split();
+                        spawn(spawner, uart0_rx_task(rx));
+                        spawn(spawner, uart0_tx_task(tx));
+                        // No line state on a UART: a host says `hello`; the
+                        // first one is sent at boot.
+                        HOST_CONNECTED.signal(());
+                    }
+                    Err(_) => defmt::warn!("host link: UART0 config refused"),
+                }
+            }
+        }
     }
 
     /// The bridge task's side of the host link.
@@ -132,6 +169,9 @@ mod on {
             if HOST_CONNECTED.try_take().is_some() {
                 self.link.connected(now_us());
             }
+            while let Some((level, line)) = crate::log::for_host() {
+                self.link.log(level, line.as_str());
+            }
             self.due = self.link.poll(now_us(), bridge);
             while HOST_TX.free_capacity() >= OUT_LINE_MAX {
                 let Some(n) = self
@@ -185,20 +225,50 @@ mod on {
             }
         }
     }
+
+    /// Host → bridge over UART0 (see [`usb_rx_task`]). Receive errors (a
+    /// framing error while the USB-UART bridge powers up) are skipped: the line
+    /// assembler resyncs at the next newline.
+    #[embassy_executor::task]
+    async fn uart0_rx_task(mut rx: UartRx<'static, Async>) {
+        let mut buf = [0u8; 64];
+        loop {
+            if let Ok(n) = rx.read_async(&mut buf).await {
+                HOST_RX.write_all(buf.get(..n).unwrap_or(&[])).await;
+            }
+        }
+    }
+
+    /// Bridge → host over UART0: the UART always drains (115 200 Bd, about
+    /// 11 KB/s), whether or not anyone listens.
+    #[embassy_executor::task]
+    async fn uart0_tx_task(mut tx: UartTx<'static, Async>) {
+        let mut buf = [0u8; USB_WRITE_CHUNK];
+        loop {
+            let n = HOST_TX.read(&mut buf).await;
+            let mut rest = buf.get(..n).unwrap_or(&[]);
+            while !rest.is_empty() {
+                match tx.write_async(rest).await {
+                    Ok(k) => rest = rest.get(k..).unwrap_or(&[]),
+                    Err(_) => break,
+                }
+            }
+        }
+    }
 }
 
 /// Without the host link: nothing to drive (the compiler removes these calls).
 #[cfg(not(feature = "host-link"))]
 mod off {
     use embassy_executor::Spawner;
-    use esp_hal::peripherals::USB_DEVICE;
+    use esp_hal::peripherals::{UART0, USB_DEVICE};
     use tinybms_firmware::config::state::ConfigState;
     use tinybms_firmware::config::store::{Saved, StoreError};
     use tinybms_firmware::config::Config;
     use tinybms_firmware::{Bridge, Report};
 
     /// Nothing to start: the USB port stays unused.
-    pub fn start(_: Spawner, _: USB_DEVICE<'static>, _: &Config) {}
+    pub fn start(_: Spawner, _: USB_DEVICE<'static>, _: UART0<'static>, _: &Config) {}
 
     pub struct HostPort;
 

@@ -25,8 +25,8 @@ use esp_hal::peripherals::WIFI;
 use esp_hal::rng::Rng;
 use esp_radio::wifi::sta::StationConfig;
 use esp_radio::wifi::{
-    AuthenticationMethodConfig, Config as WifiConfig, ControllerConfig, Interface, Password, Ssid,
-    WifiController,
+    AuthenticationMethodConfig, Config as WifiConfig, ConnectionError, ControllerConfig,
+    DisconnectReason, Interface, Password, Ssid, WifiController,
 };
 use heapless::String;
 use protocol_core::events::Event;
@@ -37,7 +37,8 @@ use tinybms_firmware::mqtt::net::StackNet;
 use tinybms_firmware::mqtt::publisher::{Publisher, View};
 use tinybms_firmware::mqtt::session::{self, Clock, Feed, Note, Target};
 use tinybms_firmware::mqtt::{Identity, Settings};
-use tinybms_firmware::{Report, Telemetry};
+use tinybms_firmware::text::Line;
+use tinybms_firmware::{Level, Report, Telemetry};
 
 use crate::{spawn, SharedSnapshot, TELEMETRY};
 
@@ -88,16 +89,50 @@ pub fn on_report(report: &Report) {
     }
 }
 
+/// One log line (defmt and the host link's `log` lines) from pieces.
+fn say(level: Level, pieces: &[&str]) {
+    let mut l = Line::new();
+    for p in pieces {
+        l.push(p);
+    }
+    crate::log::line(level, &l);
+}
+
+/// A disconnect reason in words an owner can act on (defmt logs the exact one).
+fn reason_text(r: DisconnectReason) -> &'static str {
+    use DisconnectReason as R;
+    match r {
+        R::NoAccessPointFound | R::NoAccessPointFoundInRssiThreshold | R::BeaconTimeout => {
+            "network not found (its name? in range?)"
+        }
+        R::NoAccessPointFoundWithCompatibleSecurity | R::NoAccessPointFoundInAuthmodeThreshold => {
+            "the network's security does not fit (WPA3 only? it needs WPA2)"
+        }
+        R::AuthenticationFailed
+        | R::FourWayHandshakeTimeout
+        | R::HandshakeTimeout
+        | R::MicFailure
+        | R::AuthenticationExpired => "the key was not accepted (the passphrase? tinybms wifi)",
+        R::AssociationFailed | R::ConnectionFailed | R::AssociationTooMany => {
+            "the access point refused the station"
+        }
+        _ => "see the reason in the RTT log",
+    }
+}
+
 /// Starts Wi-Fi and MQTT when the record names a network and a broker.
 pub fn start(spawner: Spawner, wifi: WIFI<'static>, config: &Config) {
     if config.wifi_ssid.is_empty() || config.mqtt_host.is_empty() {
-        info!(
-            "Wi-Fi off: {=str}",
-            if config.wifi_ssid.is_empty() {
-                "no wifi_ssid (tinybms wifi PORT --ssid NAME)"
-            } else {
-                "no mqtt_host (tinybms mqtt PORT --host HOST)"
-            }
+        say(
+            Level::Info,
+            &[
+                "Wi-Fi off: ",
+                if config.wifi_ssid.is_empty() {
+                    "no wifi_ssid (tinybms wifi PORT --ssid NAME)"
+                } else {
+                    "no mqtt_host (tinybms mqtt PORT --host HOST)"
+                },
+            ],
         );
         return;
     }
@@ -105,7 +140,7 @@ pub fn start(spawner: Spawner, wifi: WIFI<'static>, config: &Config) {
     esp_alloc::heap_allocator!(size: HEAP_MORE);
 
     let Ok(ssid) = Ssid::try_from(config.wifi_ssid.as_str()) else {
-        warn!("Wi-Fi off: the SSID is not valid");
+        say(Level::Warn, &["Wi-Fi off: the SSID is not valid"]);
         return;
     };
     let auth = if config.wifi_key.is_empty() {
@@ -114,7 +149,7 @@ pub fn start(spawner: Spawner, wifi: WIFI<'static>, config: &Config) {
         match Password::try_from(config.wifi_key.as_str()) {
             Ok(p) => AuthenticationMethodConfig::WpaWpa2Personal(p),
             Err(_) => {
-                warn!("Wi-Fi off: the key is not valid");
+                say(Level::Warn, &["Wi-Fi off: the key is not valid"]);
                 return;
             }
         }
@@ -131,16 +166,25 @@ pub fn start(spawner: Spawner, wifi: WIFI<'static>, config: &Config) {
         Ok(c) => c,
         Err(e) => {
             warn!("Wi-Fi off: the radio did not start: {}", e);
+            say(Level::Warn, &["Wi-Fi off: the radio did not start"]);
             return;
         }
     };
     let hostname = hostname(config, mac);
-    info!(
-        "Wi-Fi: joining {=str} as {=str}; MQTT to {=str}:{=u16}",
-        config.wifi_ssid.as_str(),
-        hostname.as_str(),
-        config.mqtt_host.as_str(),
-        config.mqtt_port
+    let mut port = Line::new();
+    port.uint(config.mqtt_port.into());
+    say(
+        Level::Info,
+        &[
+            "Wi-Fi: joining ",
+            config.wifi_ssid.as_str(),
+            " as ",
+            hostname.as_str(),
+            "; MQTT to ",
+            config.mqtt_host.as_str(),
+            ":",
+            port.as_str(),
+        ],
     );
     let mut dhcp = DhcpConfig::default();
     dhcp.hostname = Some(hostname.clone());
@@ -181,7 +225,7 @@ fn hostname(config: &Config, mac: [u8; 6]) -> String<32> {
 const HEAP_LOG_PERIOD: Duration = Duration::from_secs(600);
 
 /// One line: the heap now and its high-water mark (the figure a run on a unit
-/// gives for the README's sizes).
+/// gives for docs/performance.md).
 fn log_heap() {
     let s = esp_alloc::HEAP.stats();
     info!(
@@ -204,25 +248,51 @@ async fn wifi_task(mut controller: WifiController<'static>) {
     loop {
         match controller.connect_async().await {
             Ok(info) => {
-                info!(
-                    "Wi-Fi up: {=str}, channel {=u8}",
-                    info.ssid.as_str(),
-                    info.channel
+                let mut channel = Line::new();
+                channel.uint(info.channel.into());
+                say(
+                    Level::Info,
+                    &[
+                        "Wi-Fi up: ",
+                        info.ssid.as_str(),
+                        ", channel ",
+                        channel.as_str(),
+                    ],
                 );
                 let up = Instant::now();
                 match controller.wait_for_disconnect_async().await {
-                    Ok(d) => warn!("Wi-Fi down: {}", d.reason),
-                    Err(e) => warn!("Wi-Fi down: {}", e),
+                    Ok(d) => {
+                        warn!("Wi-Fi down: {}", d.reason);
+                        say(Level::Warn, &["Wi-Fi down: ", reason_text(d.reason)]);
+                    }
+                    Err(e) => {
+                        warn!("Wi-Fi down: {}", e);
+                        say(Level::Warn, &["Wi-Fi down"]);
+                    }
                 }
                 if up.elapsed() > WIFI_BACKOFF_MAX {
                     backoff = WIFI_BACKOFF_MIN;
                 }
             }
-            Err(e) => warn!(
-                "Wi-Fi: cannot join ({}), next try in {=u64} s",
-                e,
-                backoff.as_secs()
-            ),
+            Err(e) => {
+                warn!("Wi-Fi: cannot join ({})", e);
+                let why = match e {
+                    ConnectionError::Failed(d) => reason_text(d.reason),
+                    _ => "the driver refused (see the RTT log)",
+                };
+                let mut secs = Line::new();
+                secs.uint(backoff.as_secs());
+                say(
+                    Level::Warn,
+                    &[
+                        "Wi-Fi: cannot join (",
+                        why,
+                        "), next try in ",
+                        secs.as_str(),
+                        " s",
+                    ],
+                );
+            }
         }
         Timer::after(backoff).await;
         backoff = (backoff * 2).min(WIFI_BACKOFF_MAX);
@@ -296,7 +366,20 @@ async fn mqtt_task(stack: Stack<'static>, target: Target, settings: Settings) {
     static STATE: StaticCell<TcpClientState<1, TCP_BUFFER, TCP_BUFFER>> = StaticCell::new();
     let mut client = TcpClient::new(stack, STATE.init(TcpClientState::new()));
     client.set_timeout(Some(embassy_time::Duration::from_secs(30)));
-    let mut net = StackNet::new(stack, client, ChipClock, |a| info!("IP {} (DHCP)", a));
+    let mut net = StackNet::new(stack, client, ChipClock, |a| {
+        info!("IP {} (DHCP)", a);
+        let o = a.address().octets();
+        let mut l = Line::new();
+        l.push("IP ");
+        for (i, b) in o.iter().enumerate() {
+            if i > 0 {
+                l.push(".");
+            }
+            l.uint((*b).into());
+        }
+        l.push("/").uint(a.prefix_len().into()).push(" (DHCP)");
+        crate::log::line(Level::Info, &l);
+    });
     let mut feed = ChipFeed {
         telemetry,
         limits: LIMITS.receiver(),
@@ -304,22 +387,41 @@ async fn mqtt_task(stack: Stack<'static>, target: Target, settings: Settings) {
         last_limits: None,
     };
     let mut publisher = Publisher::new(settings, env!("CARGO_PKG_VERSION"));
-    let mut note = |n: Note| match n {
-        Note::Connected => {
-            info!("MQTT: connected to the broker");
-            log_heap();
+    let mut note = |n: Note| {
+        let mut ms_text = Line::new();
+        match n {
+            Note::Connected => {
+                say(Level::Info, &["MQTT: connected to the broker"]);
+                log_heap();
+            }
+            Note::Disconnected(f, ms) => {
+                ms_text.uint(ms.into());
+                say(
+                    Level::Warn,
+                    &[
+                        "MQTT: connection lost (",
+                        f.reason(),
+                        "), reconnecting in ",
+                        ms_text.as_str(),
+                        " ms",
+                    ],
+                );
+            }
+            Note::Failed(f, ms) => {
+                ms_text.uint(ms.into());
+                say(
+                    Level::Warn,
+                    &[
+                        "MQTT: cannot connect (",
+                        f.reason(),
+                        "), next try in ",
+                        ms_text.as_str(),
+                        " ms",
+                    ],
+                );
+            }
+            Note::WaitingForBms => say(Level::Info, &["MQTT: waiting for the BMS's serial number"]),
         }
-        Note::Disconnected(f, ms) => warn!(
-            "MQTT: connection lost ({=str}), reconnecting in {=u32} ms",
-            f.reason(),
-            ms
-        ),
-        Note::Failed(f, ms) => warn!(
-            "MQTT: cannot connect ({=str}), next try in {=u32} ms",
-            f.reason(),
-            ms
-        ),
-        Note::WaitingForBms => info!("MQTT: waiting for the BMS's serial number"),
     };
     session::run(
         &mut net,

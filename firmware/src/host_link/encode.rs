@@ -632,6 +632,29 @@ pub fn event(out: &mut [u8], req: Option<u32>, e: &Event, history: bool) -> Opti
 }
 
 #[derive(serde::Serialize)]
+struct LogLine<'a> {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    level: &'static str,
+    text: &'a str,
+}
+
+/// A `log` line: one of the bridge's own log lines, as its log has it.
+pub fn log(out: &mut [u8], level: crate::Level, text: &str) -> Option<usize> {
+    line(
+        &LogLine {
+            ty: "log",
+            level: match level {
+                crate::Level::Info => "info",
+                crate::Level::Warn => "warn",
+            },
+            text,
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
 struct LinkLine {
     #[serde(rename = "type")]
     ty: &'static str,

@@ -82,6 +82,10 @@ pub const PENDING_OTHERS: usize = 4;
 /// Longest offending name echoed in an error's detail (longer ones are cut).
 pub const SUBJECT_MAX: usize = 32;
 
+/// The bridge's log lines waiting for the host (`log` lines); when full, the
+/// oldest is dropped and counted (a host that connects sees the latest).
+pub const LOG_QUEUE: usize = 4;
+
 /// Default telemetry stream period, ms.
 pub const DEFAULT_STREAM_PERIOD_MS: u32 = 1_000;
 
@@ -270,6 +274,7 @@ struct State {
     capture: bool,
     queue: Deque<Out, QUEUE>,
     raw: Deque<(Dir, Vec<u8, RAW_CHUNK>), RAW_QUEUE>,
+    logs: Deque<(crate::Level, String<{ crate::text::LINE_MAX }>), LOG_QUEUE>,
     writes: Vec<(Option<u32>, Setting), PENDING_WRITES>,
     follow_ups: Vec<(Option<u32>, Setting), PENDING_WRITES>,
     resets: Deque<Option<u32>, PENDING_OTHERS>,
@@ -317,6 +322,7 @@ impl HostLink {
                 capture: false,
                 queue: Deque::new(),
                 raw: Deque::new(),
+                logs: Deque::new(),
                 writes: Vec::new(),
                 follow_ups: Vec::new(),
                 resets: Deque::new(),
@@ -354,7 +360,27 @@ impl HostLink {
 
     /// True when lines are waiting for [`HostLink::next_line`].
     pub fn has_output(&self) -> bool {
-        !self.s.queue.is_empty() || self.s.stream_due || !self.s.raw.is_empty()
+        !self.s.queue.is_empty()
+            || self.s.stream_due
+            || !self.s.raw.is_empty()
+            || !self.s.logs.is_empty()
+    }
+
+    /// One of the bridge's own log lines (the words of [`crate::text`]), for
+    /// the host as a `log` line: the log on the same cable as the host link.
+    /// Longer than [`crate::text::LINE_MAX`] bytes: cut.
+    pub fn log(&mut self, level: crate::Level, text: &str) {
+        let mut t = String::new();
+        for c in text.chars() {
+            if t.push(c).is_err() {
+                break;
+            }
+        }
+        if self.s.logs.is_full() {
+            self.s.logs.pop_front();
+            self.s.stats.dropped_lines = self.s.stats.dropped_lines.wrapping_add(1);
+        }
+        let _ = self.s.logs.push_back((level, t));
     }
 
     /// Bytes from the host at `now`, in any chunks. Complete lines are parsed and
@@ -453,8 +479,8 @@ impl HostLink {
 
     /// Encodes the next output line into `out` (at least [`OUT_LINE_MAX`] bytes),
     /// `\n`-terminated; returns its length, or `None` when nothing is waiting.
-    /// Order: answers, outcomes and events first, then streamed telemetry, then
-    /// `raw` lines.
+    /// Order: answers, outcomes and events first, then `log` lines, then
+    /// streamed telemetry, then `raw` lines.
     pub fn next_line(
         &mut self,
         now: Instant,
@@ -465,6 +491,8 @@ impl HostLink {
         loop {
             let written = if !self.s.queue.is_empty() {
                 self.s.encode_front(now, bridge, config, out)
+            } else if let Some((level, text)) = self.s.logs.pop_front() {
+                encode::log(out, level, &text)
             } else if self.s.stream_due {
                 self.s.stream_due = false;
                 telemetry(now, bridge, None, out)
