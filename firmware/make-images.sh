@@ -1,7 +1,6 @@
 #!/usr/bin/env bash
 # Ready-made flash images, one set per board, into one folder with their
-# checksums — for owners who flash without a Rust toolchain (README, "Flash a
-# ready-made image").
+# checksums — for owners who flash without a Rust toolchain (docs/flashing.md).
 #
 # Usage: ./make-images.sh [OUT_DIR]            (default: target/images)
 # Needs: espflash (cargo install espflash --locked), the firmware's toolchain.

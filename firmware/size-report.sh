@@ -14,7 +14,7 @@
 # Figures (flash / static RAM, bytes): default C3 238,954 / 31,836, C6 241,626 /
 # 32,688; bridge only C3 107,918 / 19,308, C6 109,138 / 19,640. The tree the 84 KiB /
 # 16 KiB goal was set on, with the goal's measures: ./size-filing-day.sh (C3 81,150 /
-# 15,692). README, "Performance": what makes them up.
+# 15,692). docs/performance.md: what makes them up.
 # With Wi-Fi and MQTT (feature `wifi`; build-boards.sh holds it to 1024 / 256 KiB):
 # C3 769,794 / 197,792, C6 850,414 / 225,448 (a 100 KiB heap included in
 # the RAM; by crate: the radio's C blobs about 320 KiB, rust-mqtt 58 KiB, smoltcp
@@ -23,11 +23,11 @@
 # The flash budget went from 224 to 256 KiB with the bridge's own configuration
 # (issue 17: the record, its field table and text values, the flash store on
 # sequential-storage and esp-storage, the host link's config commands: about
-# 54 KiB of flash, 5 KiB of static RAM; README "Sizes").
+# 54 KiB of flash, 5 KiB of static RAM; docs/performance.md).
 # It went from 160 to 224 KiB with the host link (JSON Lines on USB:
 # about 71 KiB, of which serde-json-core 9.3 KiB, core's f64 parsing it calls about
 # 16 KiB, the derived serializers and the parser/dispatch inlined into the bridge
-# task about 28 KiB; README "Host link", "Flash and RAM"). It was 128 KiB until the inverter output (charge control, CAN
+# task about 28 KiB; docs/host-link.md, docs/performance.md). It was 128 KiB until the inverter output (charge control, CAN
 # frames, TWAI task: about 20 KiB) came on top of the trust work (checks, reads in
 # pieces, event scan: about 14 KiB). The hard limit is the app partition (1 MiB or
 # more with espflash's default table); the budget is there to make growth visible.

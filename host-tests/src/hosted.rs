@@ -142,11 +142,13 @@ impl<P: BytePort> Hosted<P> {
             host.on_config_saved(r);
         }
         while let Some(n) = config.next_note() {
+            let mut l = Line::new();
+            tinybms_firmware::text::config_note(&n, config, &mut l);
             if log {
-                let mut l = Line::new();
-                tinybms_firmware::text::config_note(&n, config, &mut l);
                 eprintln!("{:>10.3}s {}", now as f64 / 1e6, l.as_str());
             }
+            // As the chip's log does: the line to the host link too.
+            host.log(tinybms_firmware::text::config_level(&n), l.as_str());
         }
         let host_deadline = host.poll(now, &driver.bridge);
         while side.can_take() {
@@ -215,9 +217,13 @@ fn tell(host: &mut HostLink, mqtt: Option<&crate::mqtt::Shared>, log: bool, h: H
     match h {
         Happened::Tx(bytes) => host.on_uart_tx(bytes),
         Happened::Report(at, r) => {
+            let mut l = Line::new();
+            tinybms_firmware::text::report(r, &mut l);
             if log {
-                eprintln!("{:>10.3}s {r}", at as f64 / 1e6);
+                eprintln!("{:>10.3}s {}", at as f64 / 1e6, l.as_str());
             }
+            // As the chip's log does: the line to the host link too.
+            host.log(r.level(), l.as_str());
             if let (Some(m), tinybms_firmware::Report::NewEvent(e)) = (mqtt, r) {
                 m.event(*e);
             }
@@ -334,6 +340,8 @@ pub struct BridgePtyOptions {
     pub bridge: Timing,
     /// Print the bridge's log lines to stderr.
     pub log: bool,
+    /// (from, for): the whole bridge stops then, as a hung chip (`--freeze`).
+    pub freeze: Option<(Duration, Duration)>,
 }
 
 /// `sim --bridge-pty`: the bridge and host link against `sim` in real time,
@@ -390,7 +398,14 @@ pub fn serve_bridge_pty(
     let mut none = NoHost;
     let end = duration.map(|d| d.as_micros() as u64);
     h.log = o.log;
+    let mut freeze = o.freeze;
     while !stop.load(Ordering::Relaxed) && end.is_none_or(|e| clock.now() < e) {
+        if let Some((at, long)) = freeze {
+            if clock.now() >= at.as_micros() as u64 {
+                std::thread::sleep(long);
+                freeze = None;
+            }
+        }
         match pty_side.as_mut() {
             Some(side) => h.step(side)?,
             None => h.step(&mut none)?,

@@ -26,24 +26,86 @@ pub fn find_setting(name: &str) -> Option<SettingId> {
     fw::find_setting(name)
 }
 
-fn message(e: &ProfileError<'_>) -> String {
+/// How a setting's value may be written (for messages).
+pub fn value_forms(id: SettingId) -> String {
+    let Some(r) = id.register() else {
+        return "an integer".into();
+    };
+    if !r.options.is_empty() {
+        let names: Vec<&str> = r.options.iter().map(|(_, n)| *n).collect();
+        return format!("one of: {} (or its raw number)", names.join(", "));
+    }
+    let (step, k) = fw::scale_parts(r.scale);
+    let step = tinybms_firmware::units::fixed(step, k)
+        .map(|d| crate::tool::settings::short(d.as_f64()))
+        .unwrap_or_else(|| "1".into());
+    match r.unit {
+        "" => "an integer".into(),
+        u @ ("V" | "A" | "Ah") => {
+            format!("a raw integer, or a value in {u} or m{u} (steps of {step} {u})")
+        }
+        "°C" => format!("a raw integer, or a value in °C or C (steps of {step} °C)"),
+        u => format!("a raw integer, or a value in {u} (steps of {step} {u})"),
+    }
+}
+
+fn message(e: &ProfileError<'_>, id: Option<SettingId>) -> String {
+    let forms = id.map(|id| format!(" ({}: {})", snake_name(id), value_forms(id)));
+    let forms = forms.unwrap_or_default();
     match e.kind {
         fw::ProfileErrorKind::ExpectedAssignment => format!("`{}`: expected NAME=VALUE", e.text),
-        fw::ProfileErrorKind::UnknownSetting => format!("`{}`: no such setting", e.text),
-        fw::ProfileErrorKind::BadValue => format!("`{}`: not an integer (i32)", e.text),
+        fw::ProfileErrorKind::UnknownSetting => {
+            let names: Vec<&str> = SettingId::ALL.iter().map(|&i| fw::setting_key(i)).collect();
+            match crate::tool::suggest(e.text, &names) {
+                Some(s) => format!("`{}`: no such setting (did you mean `{s}`?)", e.text),
+                None => format!("`{}`: no such setting", e.text),
+            }
+        }
+        fw::ProfileErrorKind::Duplicate => {
+            format!("`{}` is given twice: give each setting once", e.text)
+        }
+        kind => format!("`{}`: {}{forms}", e.text, kind.reason()),
     }
+}
+
+/// The setting an assignment names, if it names one.
+fn named(assignment: &str) -> Option<SettingId> {
+    assignment
+        .split_once('=')
+        .and_then(|(n, _)| find_setting(n))
 }
 
 /// Parses one `name=value` assignment.
 pub fn parse_assignment(s: &str) -> Result<(SettingId, i32), String> {
-    fw::parse_assignment(s).map_err(|e| message(&e))
+    fw::parse_assignment(s).map_err(|e| message(&e, named(s)))
 }
 
 /// Parses a profile file.
+/// A setting given twice is an error (which one is meant is not clear).
 pub fn parse_profile(text: &str) -> Result<Vec<(SettingId, i32)>, String> {
-    fw::entries(text)
-        .map(|e| e.map_err(|e| format!("line {}: {}", e.line, message(&e))))
-        .collect()
+    let mut out: Vec<(SettingId, i32, u32)> = Vec::new();
+    let lines: Vec<&str> = text.lines().collect();
+    let mut it = fw::entries(text);
+    while let Some(e) = it.next() {
+        match e {
+            Ok((id, v)) => {
+                let n = it.line();
+                if let Some((_, _, first)) = out.iter().find(|(o, _, _)| *o == id) {
+                    return Err(format!(
+                        "line {n}: `{}` is given twice (also on line {first}): give each setting once",
+                        snake_name(id)
+                    ));
+                }
+                out.push((id, v, n));
+            }
+            Err(e) => {
+                let line = lines.get(e.line as usize - 1).copied().unwrap_or("");
+                let content = line.split('#').next().unwrap_or("");
+                return Err(format!("line {}: {}", e.line, message(&e, named(content))));
+            }
+        }
+    }
+    Ok(out.into_iter().map(|(id, v, _)| (id, v)).collect())
 }
 
 #[cfg(test)]
@@ -162,9 +224,11 @@ mod tests {
             let Some(id) = find_setting(name) else {
                 return Err((line, ProfileErrorKind::UnknownSetting, name.trim().into()));
             };
-            match value.trim().parse::<i32>() {
+            // The value's own syntax (units, names) has tests of its own
+            // (tests/profile_values.rs); here the lines and names are modelled.
+            match tinybms_firmware::bms::profile::parse_value(id, value.trim()) {
                 Ok(v) => Ok((id, v)),
-                Err(_) => Err((line, ProfileErrorKind::BadValue, value.trim().into())),
+                Err(k) => Err((line, k, value.trim().into())),
             }
         }
 
@@ -238,21 +302,41 @@ mod tests {
             // line of the first entry beyond 3.
             let want = str_parser::entries_at(&text);
             let got = fw::parse::<3>(&text);
-            match want.iter().take(4).position(|(_, e)| e.is_err()) {
-                Some(i) => {
-                    let Err(ParseError::Line(e)) = got else {
-                        return Err(TestCaseError::fail(format!("{got:?}, want {:?}", want[i])));
-                    };
-                    prop_assert_eq!(Err((e.line, e.kind, e.text.to_string())), want[i].1.clone());
-                }
-                None if want.len() > 3 => {
-                    prop_assert_eq!(got, Err(ParseError::TooMany { line: want[3].0 }));
-                }
-                None => {
-                    let want: Vec<_> = want.into_iter().map(|(_, e)| e.unwrap()).collect();
-                    prop_assert_eq!(got.map(|p| p.as_slice().to_vec()), Ok(want));
+            // What the whole-profile parse must give: the first error, a
+            // setting given twice, or the entry beyond 3 — whichever comes first.
+            let mut seen: Vec<SettingId> = Vec::new();
+            let mut expected: Result<Vec<(SettingId, i32)>, String> = Ok(Vec::new());
+            for (line, e) in &want {
+                match e {
+                    Err(err) => {
+                        expected = Err(format!("{:?}", Err::<(), _>(err.clone())));
+                        break;
+                    }
+                    Ok((id, _)) if seen.contains(id) => {
+                        expected = Err(format!(
+                            "{:?}",
+                            Err::<(), _>((*line, fw::ProfileErrorKind::Duplicate, setting_key(*id).to_string()))
+                        ));
+                        break;
+                    }
+                    Ok(_) if seen.len() == 3 => {
+                        expected = Err(format!("too many at {line}"));
+                        break;
+                    }
+                    Ok((id, v)) => {
+                        seen.push(*id);
+                        if let Ok(list) = expected.as_mut() {
+                            list.push((*id, *v));
+                        }
+                    }
                 }
             }
+            let got = match got {
+                Ok(p) => Ok(p.as_slice().to_vec()),
+                Err(ParseError::Line(e)) => Err(format!("{:?}", Err::<(), _>((e.line, e.kind, e.text.to_string())))),
+                Err(ParseError::TooMany { line }) => Err(format!("too many at {line}")),
+            };
+            prop_assert_eq!(got, expected);
         }
 
         /// Any characters, control characters (line ends, tabs, NEL) included.

@@ -342,21 +342,31 @@ impl SimOptions {
 /// `sim --pty`: serves `sim` on a new pseudo-terminal in real time until
 /// `duration` has passed (forever when `None`) or `stop` is set. The pty's path
 /// is written to `out` as the first line (flushed) before anything else.
+///
+/// `freeze`: (from, for) — the BMS is silent then (answers nothing).
 pub fn serve_sim_pty(
     mut sim: SimBms,
     duration: Option<Duration>,
+    freeze: Option<(Duration, Duration)>,
     stop: &AtomicBool,
     out: &mut dyn Write,
 ) -> io::Result<()> {
     let pty = Pty::open_announced(out)?;
     let clock = Clock::start();
     let end = duration.map(|d| d.as_micros() as u64);
+    let mut freeze = freeze.map(|(a, f)| (a.as_micros() as u64, f.as_micros() as u64));
     let mut buf = [0u8; 512];
     let mut outbuf = Vec::new();
     while !stop.load(Ordering::Relaxed) {
         let now = clock.now();
         if end.is_some_and(|e| now >= e) {
             break;
+        }
+        if let Some((at, long)) = freeze {
+            if now >= at {
+                sim.set_silent_until(at + long);
+                freeze = None;
+            }
         }
         outbuf.clear();
         sim.take_output(now, &mut outbuf);

@@ -1,7 +1,7 @@
 //! Replays a [`Capture`] through protocol-core and describes every request,
 //! received frame and error as one JSON object (JSON Lines).
 //!
-//! The schema is an interface other tools rely on; see `host-tests/README-capture.md`.
+//! The schema is an interface other tools rely on; see `docs/capture-format.md`.
 //! In short:
 //!
 //! * requests: `{"dir":"tx","kind":"request","cmd":N,"name":..., decoded fields, "line":L}`;
@@ -182,7 +182,7 @@ fn padded(regs: &Regs, first: u16, last: u16) -> RegisterBlock {
 }
 
 /// Decoded quantities of whatever registers are present (see the module docs of
-/// the README for names and units).
+/// docs/capture-format.md for names and units).
 pub fn register_values(regs: &Regs) -> Map<String, Value> {
     let mut v = Map::new();
     let has = |a: u16| regs.contains_key(&a);

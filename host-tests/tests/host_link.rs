@@ -1183,3 +1183,121 @@ fn defaults() -> tinybms_firmware::config::state::ConfigState {
         tinybms_firmware::config::store::Source::Empty,
     )
 }
+
+// ---------------------------------------------------------------- log lines
+
+#[test]
+fn log_lines_carry_the_bridges_log_latest_four_after_answers_before_telemetry() {
+    let mut r = ready();
+    for i in 0..6 {
+        let text = format!("line {i}: 3.304 V, 24.5 °C, \"quoted\" \\ back");
+        r.link.log(tinybms_firmware::Level::Warn, &text);
+    }
+    r.line(r#"{"cmd":"get","what":"link","req":7}"#);
+    let out = r.drain();
+    // The answer first, then the newest four log lines, oldest of them first.
+    assert_eq!(out[0]["type"], "link", "{out:#?}");
+    let logs = of_type(&out, "log");
+    assert_eq!(logs.len(), 4, "{out:#?}");
+    for (k, l) in logs.iter().enumerate() {
+        assert_eq!(l["level"], "warn");
+        assert_eq!(
+            l["text"],
+            format!("line {}: 3.304 V, 24.5 °C, \"quoted\" \\ back", k + 2)
+        );
+    }
+    let first_log = out.iter().position(|l| l["type"] == "log").unwrap();
+    if let Some(t) = out.iter().position(|l| l["type"] == "telemetry") {
+        assert!(t > first_log, "telemetry before the log lines: {out:#?}");
+    }
+    // The two dropped are counted.
+    r.line(r#"{"cmd":"get","what":"link"}"#);
+    let link = r.drain();
+    assert!(of_type(&link, "link")[0]["dropped_lines"].as_u64().unwrap() >= 2);
+}
+
+/// Every line the simulated bridge writes to its host.
+struct Capture(Vec<Value>);
+
+impl host_tests::hosted::HostSide for Capture {
+    fn read(&mut self, _: &mut Vec<u8>) -> std::io::Result<()> {
+        Ok(())
+    }
+    fn can_take(&mut self) -> bool {
+        true
+    }
+    fn write_line(&mut self, line: &[u8]) -> std::io::Result<()> {
+        self.0.push(serde_json::from_slice(line).unwrap());
+        Ok(())
+    }
+}
+
+#[test]
+fn the_bridges_reports_reach_the_host_as_log_lines_in_the_simulated_bridge() {
+    // `sim --bridge-pty` hands every report's log line to the host link, as the
+    // chip's log does: the start of a session has the sync and snapshot lines.
+    use host_tests::flash::{RamFlash, SimFlash};
+    use host_tests::hosted::Hosted;
+    use host_tests::realtime::SimPort;
+    use host_tests::sim::{PackProfile, SimBms, SimConfig};
+    let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 3);
+    let mut h = Hosted::new(
+        SimPort::new(sim),
+        tinybms_firmware::bms::timing::Timing::default(),
+        SimFlash::Ram(RamFlash::new()),
+        "sim",
+    );
+    let mut side = Capture(Vec::new());
+    let end = std::time::Instant::now() + std::time::Duration::from_secs(20);
+    let texts = |c: &Capture| -> Vec<String> {
+        c.0.iter()
+            .filter(|l| l["type"] == "log")
+            .map(|l| l["text"].as_str().unwrap().to_string())
+            .collect()
+    };
+    while !texts(&side).iter().any(|t| t.starts_with("pack ")) {
+        assert!(
+            std::time::Instant::now() < end,
+            "no snapshot line: {:#?}",
+            texts(&side)
+        );
+        h.step(&mut side).unwrap();
+    }
+    let logs: Vec<&Value> = side.0.iter().filter(|l| l["type"] == "log").collect();
+    assert!(logs
+        .iter()
+        .all(|l| l["level"] == "info" || l["level"] == "warn"));
+    assert!(logs.len() >= 2, "{logs:#?}");
+}
+
+/// Right after a `set` is verified, `get settings` shows the value the BMS read
+/// back — not the old one until the next settings read (a second `apply` then
+/// showed the same difference again).
+#[test]
+fn get_settings_right_after_a_verified_write_shows_the_read_back_value() {
+    let mut r = ready();
+    let old = r.h.sim.register(310);
+    let target = if old == 21 { 22 } else { 21 };
+    r.line(&format!(
+        r#"{{"cmd":"set","req":3,"raw":{{"charger_startup_delay":{target}}}}}"#
+    ));
+    // Step until the outcome line is out, then ask at once.
+    let mut outcome = None;
+    for _ in 0..400 {
+        r.run(10 * MS);
+        if let Some(o) = r.drain().into_iter().find(|l| l["type"] == "outcome") {
+            outcome = Some(o);
+            break;
+        }
+    }
+    let outcome = outcome.expect("no outcome within 4 s");
+    assert_eq!(outcome["outcome"], "verified", "{outcome}");
+    r.line(r#"{"cmd":"get","what":"settings","req":4}"#);
+    let lines = r.drain();
+    let line = lines
+        .iter()
+        .find(|l| l["type"] == "setting" && l["name"] == "charger_startup_delay")
+        .unwrap_or_else(|| panic!("{lines:#?}"));
+    assert_eq!(line["raw"], target, "{line}");
+    assert_eq!(r.h.sim.register(310), target);
+}

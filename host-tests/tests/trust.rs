@@ -102,7 +102,7 @@ fn forged_live_blocks_with_a_valid_crc_are_never_published() {
     }
 }
 
-/// What the soaks found (README, "Trust"): on a bad line, a 0x09 piece whose
+/// What the soaks found (docs/trust.md): on a bad line, a 0x09 piece whose
 /// CRC matched by chance, carrying a cell a little off or a current of
 /// -6.8e-21 A: values every consistency check lets through. Every live piece
 /// that changed since the last snapshot is read twice
@@ -384,7 +384,7 @@ fn longest_gap(rate: f64, minutes: u64, seed: u64) -> (Harness, u64) {
 
 /// At 5 % the live block is read in pieces, and every piece that changed since
 /// the last snapshot is read twice (`BlockRead::confirm_pieces`): the longest gap
-/// was 2.9 s over 20 × 6 h before that, 3.5 s since (README, "Trust").
+/// was 2.9 s over 20 × 6 h before that, 3.5 s since (docs/trust.md).
 #[test]
 fn at_5_percent_snapshots_keep_coming_within_4_s() {
     let (h, gap) = longest_gap(0.05, 30, 26);

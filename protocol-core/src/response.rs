@@ -30,6 +30,21 @@ impl RegisterBlock {
         let i = address.checked_sub(self.start)?;
         self.values.get(i as usize).copied()
     }
+
+    /// Replaces the value of register `address`; false (nothing changed) when
+    /// it is not in the block.
+    pub fn set(&mut self, address: u16, value: u16) -> bool {
+        let Some(i) = address.checked_sub(self.start) else {
+            return false;
+        };
+        match self.values.get_mut(i as usize) {
+            Some(v) => {
+                *v = value;
+                true
+            }
+            None => false,
+        }
+    }
     /// 32-bit value at `address` (low word) and `address + 1` (high word).
     pub fn get_u32(&self, address: u16) -> Option<u32> {
         Some(crate::registers::u32_from_words(

@@ -20,8 +20,13 @@
 //! 316 = 2700                     # the register address (whole-register and low-byte settings)
 //! ```
 //!
-//! Values are integers in raw register units (mV, A, s, 0.01 Ah, enumeration
-//! values), as in Rev D §3.4. At start-up every entry goes through the
+//! A value is an integer in raw register units (mV, A, s, 0.01 Ah, enumeration
+//! values, as in Rev D §3.4), or a number with its unit (`3.65 V`, `3650 mV`,
+//! `60 A`, `-10 °C`: converted exactly, refused unless it is a whole number of
+//! the register's steps), or an enumeration value's name (`CC/CV`, `Kilometer`,
+//! `Kilometer (2)` as `tinybms settings` prints it; case, spaces and punctuation
+//! do not matter): [`parse_value`]. A setting given twice is refused. At
+//! start-up every entry goes through the
 //! write/verify machine: validated against Rev D's range and the BMS's own
 //! min/max, read, skipped when already equal, written, read back and compared;
 //! each outcome is logged.
@@ -149,6 +154,25 @@ pub const fn trim(mut s: &str) -> &str {
     s
 }
 
+/// `s` split at its last `byte` (ASCII), the byte itself dropped.
+const fn rsplit_once(s: &str, byte: u8) -> Option<(&str, &str)> {
+    let mut i = s.len();
+    while i > 0 {
+        i -= 1;
+        if let Some((head, tail)) = s.split_at_checked(i) {
+            if let [b, ..] = tail.as_bytes() {
+                if *b == byte {
+                    return match tail.split_at_checked(1) {
+                        Some((_, tail)) => Some((head, tail)),
+                        None => None,
+                    };
+                }
+            }
+        }
+    }
+    None
+}
+
 /// `s` split at its first `byte` (an ASCII byte, so both sides are `str`s), the
 /// byte itself dropped.
 const fn split_once(s: &str, byte: u8) -> Option<(&str, &str)> {
@@ -178,8 +202,21 @@ pub enum ProfileErrorKind {
     ExpectedAssignment,
     /// No setting by that name or address.
     UnknownSetting,
-    /// The value is not an integer that fits in 32 bits.
+    /// The value is not an integer that fits in 32 bits, nor a number with a
+    /// unit, nor the name of an enumeration value.
     BadValue,
+    /// A number with a unit that is not the setting's (nor its milli-unit).
+    WrongUnit,
+    /// A decimal without a unit (plain numbers are raw register units).
+    DecimalWithoutUnit,
+    /// A physical value between two of the register's steps.
+    NotAStep,
+    /// A name that is none of the setting's enumeration values.
+    NotAnOption,
+    /// A name two enumeration values share: give the number too (`Name (N)`).
+    AmbiguousName,
+    /// The setting was given before in the same profile.
+    Duplicate,
 }
 
 impl ProfileErrorKind {
@@ -188,7 +225,13 @@ impl ProfileErrorKind {
         match self {
             Self::ExpectedAssignment => "expected NAME = VALUE",
             Self::UnknownSetting => "no such setting",
-            Self::BadValue => "not an integer",
+            Self::BadValue => "not a number, a number with its unit, or a name",
+            Self::WrongUnit => "not the setting's unit",
+            Self::DecimalWithoutUnit => "a decimal needs its unit (plain numbers are raw units)",
+            Self::NotAStep => "not a whole number of the register's steps",
+            Self::NotAnOption => "not one of the setting's values",
+            Self::AmbiguousName => "two values have this name: add the number, `NAME (N)`",
+            Self::Duplicate => "given twice",
         }
     }
 }
@@ -220,10 +263,263 @@ pub const fn parse_assignment(s: &str) -> Result<(SettingId, i32), ProfileError<
         return Err(err(ProfileErrorKind::UnknownSetting, trim(name)));
     };
     let value = trim(value);
-    match i32::from_str_radix(value, 10) {
+    match parse_value(id, value) {
         Ok(v) => Ok((id, v)),
-        Err(_) => Err(err(ProfileErrorKind::BadValue, value)),
+        Err(kind) => Err(err(kind, value)),
     }
+}
+
+/// A register's scale as an integer step and decimals, `scale = step ×
+/// 10^-decimals` (0.001 → (1, 3), 0.002 → (2, 3), 1.0 → (1, 0)); a `const fn`
+/// twin of [`crate::units::scale_parts`] (a host test checks they agree).
+pub const fn scale_parts(scale: f32) -> (i64, u32) {
+    let scale = scale as f64;
+    let mut k = 0;
+    let mut p = 1.0f64;
+    while k <= 6 {
+        let m = scale * p;
+        let step = (m + 0.5) as i64;
+        let d = m - step as f64;
+        let d = if d < 0.0 { -d } else { d };
+        if step >= 1 && d < 1e-6 * m {
+            return (step, k);
+        }
+        k += 1;
+        p *= 10.0;
+    }
+    (1, 0)
+}
+
+/// ASCII lowercase of letters and digits only (what names are compared on).
+const fn next_alnum(b: &[u8], mut i: usize) -> (Option<u8>, usize) {
+    while let Some((_, [c, ..])) = b.split_at_checked(i) {
+        let c = *c;
+        i += 1;
+        if c.is_ascii_alphanumeric() {
+            return (Some(c.to_ascii_lowercase()), i);
+        }
+        if c >= 0x80 {
+            return (Some(c), i);
+        }
+    }
+    (None, i)
+}
+
+/// `a` and `b` equal but for case, spaces and punctuation (`CC/CV` = `cccv`).
+const fn loose_eq(a: &[u8], b: &[u8]) -> bool {
+    let (mut i, mut j) = (0, 0);
+    loop {
+        let (x, ni) = next_alnum(a, i);
+        let (y, nj) = next_alnum(b, j);
+        match (x, y) {
+            (None, None) => return true,
+            (Some(x), Some(y)) if x == y => {}
+            _ => return false,
+        }
+        (i, j) = (ni, nj);
+    }
+}
+
+/// An enumeration value by its name, maybe followed by `(N)` (which must agree).
+const fn option_value(options: &[(u16, &str)], text: &str) -> Result<i32, ProfileErrorKind> {
+    // `Name (N)`: the number in the last parentheses (names may hold some).
+    let (name, number) = match rsplit_once(text, b'(') {
+        Some((name, rest)) => match split_once(rest, b')') {
+            Some((n, tail)) if trim(tail).is_empty() => match u16::from_str_radix(trim(n), 10) {
+                Ok(v) => (name, Some(v)),
+                Err(_) => (text, None),
+            },
+            _ => (text, None),
+        },
+        None => (text, None),
+    };
+    // Rev D gives two values one name (337: 0x0A and 0x10): then the number
+    // decides, and the name alone is refused.
+    let mut found: Option<u16> = None;
+    let mut rest = options;
+    while let [(v, n), tail @ ..] = rest {
+        if loose_eq(n.as_bytes(), name.as_bytes()) {
+            match number {
+                Some(x) if x == *v => return Ok(*v as i32),
+                Some(_) => {}
+                None if found.is_some() => return Err(ProfileErrorKind::AmbiguousName),
+                None => found = Some(*v),
+            }
+        }
+        rest = tail;
+    }
+    match found {
+        Some(v) => Ok(v as i32),
+        None => Err(ProfileErrorKind::NotAnOption),
+    }
+}
+
+/// A flags register's value from its bits' names joined by `+` (`none`: 0),
+/// maybe followed by `(N)` (which must agree). `options` are (bit, name).
+const fn bits_value(options: &[(u16, &str)], text: &str) -> Result<i32, ProfileErrorKind> {
+    let (names, number) = match rsplit_once(text, b'(') {
+        Some((names, rest)) => match split_once(rest, b')') {
+            Some((n, tail)) if trim(tail).is_empty() => match u16::from_str_radix(trim(n), 10) {
+                Ok(v) => (names, Some(v)),
+                Err(_) => return Err(ProfileErrorKind::NotAnOption),
+            },
+            _ => return Err(ProfileErrorKind::NotAnOption),
+        },
+        None => (text, None),
+    };
+    let mut value: u16 = 0;
+    if !loose_eq(trim(names).as_bytes(), b"none") {
+        let mut rest = names;
+        loop {
+            let (one, tail) = match split_once(rest, b'+') {
+                Some(split) => split,
+                None => (rest, ""),
+            };
+            let mut bit: Option<u16> = None;
+            let mut opts = options;
+            while let [(b, n), more @ ..] = opts {
+                if loose_eq(n.as_bytes(), one.as_bytes()) {
+                    bit = Some(*b);
+                }
+                opts = more;
+            }
+            match bit {
+                Some(b) if b < 16 => value |= 1 << b,
+                _ => return Err(ProfileErrorKind::NotAnOption),
+            }
+            if tail.is_empty() {
+                break;
+            }
+            rest = tail;
+        }
+    }
+    match number {
+        Some(n) if n != value => Err(ProfileErrorKind::NotAnOption),
+        _ => Ok(value as i32),
+    }
+}
+
+/// The value of a setting from its text (see the module's "Format"): a raw
+/// integer, a number with the setting's unit (or its milli-unit: `mV`, `mA`,
+/// `mAh`; `C` for `°C`) converted exactly, or an enumeration value's name
+/// (optionally followed by its number in parentheses, which must agree).
+pub const fn parse_value(id: SettingId, text: &str) -> Result<i32, ProfileErrorKind> {
+    let text = trim(text);
+    if let Ok(v) = i32::from_str_radix(text, 10) {
+        return Ok(v);
+    }
+    let Some(r) = id.register() else {
+        return Err(ProfileErrorKind::BadValue);
+    };
+    // Flags by name: `Name + Name`, `none`, maybe with `(N)`.
+    if matches!(r.value_type, protocol_core::registers::ValueType::Bits) && !r.options.is_empty() {
+        return bits_value(r.options, text);
+    }
+    // A name first: some names look like numbers (338: `0.1 s`).
+    if !r.options.is_empty() {
+        match option_value(r.options, text) {
+            Err(ProfileErrorKind::NotAnOption) => {}
+            other => return other,
+        }
+    }
+    let b = text.as_bytes();
+    // A number: [sign] digits [. digits], then the unit.
+    let mut i = 0;
+    let negative = matches!(b.first(), Some(b'-'));
+    if matches!(b.first(), Some(b'-' | b'+')) {
+        i = 1;
+    }
+    let mut mantissa: i64 = 0;
+    let mut decimals: u32 = 0;
+    let mut digits = 0;
+    let mut point = false;
+    while let Some((_, [c, ..])) = b.split_at_checked(i) {
+        let c = *c;
+        if c.is_ascii_digit() {
+            mantissa = match mantissa.checked_mul(10) {
+                Some(m) => m + (c - b'0') as i64,
+                None => return Err(ProfileErrorKind::BadValue),
+            };
+            if mantissa > 1_000_000_000_000 {
+                return Err(ProfileErrorKind::BadValue);
+            }
+            digits += 1;
+            if point {
+                decimals += 1;
+            }
+        } else if c == b'.' && !point {
+            point = true;
+        } else {
+            break;
+        }
+        i += 1;
+    }
+    if digits > 0 {
+        let unit = trim(match text.split_at_checked(i) {
+            Some((_, u)) => u,
+            None => "",
+        });
+        if unit.is_empty() {
+            return Err(if point {
+                ProfileErrorKind::DecimalWithoutUnit
+            } else {
+                ProfileErrorKind::BadValue
+            });
+        }
+        // The unit's power of ten relative to the register's unit.
+        let u = unit.as_bytes();
+        let base = r.unit.as_bytes();
+        let exp: i32 = if r.unit.is_empty() {
+            return Err(ProfileErrorKind::WrongUnit);
+        } else if unit.eq_ignore_ascii_case(r.unit) {
+            0
+        } else if matches!(u, [b'm', ..])
+            && matches!(base, b"V" | b"A" | b"Ah")
+            && match unit.split_at_checked(1) {
+                Some((_, rest)) => rest.eq_ignore_ascii_case(r.unit),
+                None => false,
+            }
+        {
+            -3
+        } else if matches!(base, b"\xC2\xB0C")
+            && (unit.eq_ignore_ascii_case("C") || unit.eq_ignore_ascii_case("degC"))
+        {
+            0
+        } else {
+            return Err(ProfileErrorKind::WrongUnit);
+        };
+        // raw = mantissa × 10^(exp - decimals) / (step × 10^-k)
+        let (step, k) = scale_parts(r.scale);
+        let mut x = k as i32 + exp - decimals as i32;
+        let mut n = mantissa;
+        while x > 0 {
+            n = match n.checked_mul(10) {
+                Some(n) => n,
+                None => return Err(ProfileErrorKind::BadValue),
+            };
+            x -= 1;
+        }
+        while x < 0 {
+            if n % 10 != 0 {
+                return Err(ProfileErrorKind::NotAStep);
+            }
+            n /= 10;
+            x += 1;
+        }
+        if n % step != 0 {
+            return Err(ProfileErrorKind::NotAStep);
+        }
+        let raw = if negative { -(n / step) } else { n / step };
+        if raw < i32::MIN as i64 || raw > i32::MAX as i64 {
+            return Err(ProfileErrorKind::BadValue);
+        }
+        return Ok(raw as i32);
+    }
+    Err(if r.options.is_empty() {
+        ProfileErrorKind::BadValue
+    } else {
+        ProfileErrorKind::NotAnOption
+    })
 }
 
 /// The next assignment of a profile text after `line` lines were read from it,
@@ -264,6 +560,13 @@ const fn next_entry(
 pub struct Entries<'a> {
     rest: &'a str,
     line: u32,
+}
+
+impl Entries<'_> {
+    /// The line number of the assignment (or error) read last.
+    pub fn line(&self) -> u32 {
+        self.line
+    }
 }
 
 /// Iterates over the assignments of a profile text.
@@ -333,6 +636,20 @@ pub const fn parse<const N: usize>(text: &str) -> Result<Profile<N>, ParseError<
             Ok(entry) => entry,
             Err(e) => return Err(ParseError::Line(e)),
         };
+        let mut seen: &[(SettingId, i32)] = match out.entries.split_at_checked(out.len) {
+            Some((seen, _)) => seen,
+            None => &out.entries,
+        };
+        while let [(id, _), tail @ ..] = seen {
+            if *id as u8 == entry.0 as u8 {
+                return Err(ParseError::Line(ProfileError {
+                    line,
+                    kind: ProfileErrorKind::Duplicate,
+                    text: setting_key(entry.0),
+                }));
+            }
+            seen = tail;
+        }
         match out.entries.split_at_mut_checked(out.len) {
             Some((_, [slot, ..])) => *slot = entry,
             _ => return Err(ParseError::TooMany { line }),

@@ -18,6 +18,17 @@ pub(super) enum Effect {
     RereadSettings,
     /// The BMS's event log was cleared (ACKed).
     EventsCleared,
+    /// A write was verified: the bridge's copy of the settings takes the words
+    /// the BMS read back (register `address`, and the next one for a 32-bit
+    /// setting), so it never shows the old value until the next settings read.
+    ReadBack {
+        /// First register of the setting.
+        address: u16,
+        /// Its words as read back.
+        first: u16,
+        /// The second register's, for a 32-bit setting.
+        second: Option<u16>,
+    },
 }
 
 /// The running job's next step.

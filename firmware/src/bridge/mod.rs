@@ -421,6 +421,18 @@ impl State {
             Effect::Resync => self.resync(),
             Effect::RereadSettings => self.sync.settings_stale = true,
             Effect::EventsCleared => self.known_events.clear(),
+            Effect::ReadBack {
+                address,
+                first,
+                second,
+            } => {
+                if let Some(b) = self.model.telemetry.settings.as_mut() {
+                    b.set(address, first);
+                    if let Some(s) = second {
+                        b.set(address + 1, s);
+                    }
+                }
+            }
         }
     }
 

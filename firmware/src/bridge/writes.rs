@@ -395,6 +395,15 @@ impl Writes {
                         let proof = item.matches_readback(first, second)
                             && !(marker_was_there && w.unconfirmed.is_some());
                         let old = w.current.map(|(f, _)| f);
+                        // What the BMS read back once it took the value (not
+                        // 323/328's marker: their copy waits for the next read).
+                        let read_back = (proof
+                            && !(item.id.reads_back_marker() && first == ACCEPTED_MARKER))
+                            .then_some(Effect::ReadBack {
+                                address: a,
+                                first,
+                                second,
+                            });
                         let outcome = if proof {
                             WriteOutcome::Verified
                         } else if marker_was_there && item.matches_readback(first, second) {
@@ -414,7 +423,7 @@ impl Writes {
                             }
                         };
                         self.finish_item(item, outcome, out);
-                        None
+                        read_back
                     }
                     (WriteStep::ReadBack, Err(f)) => {
                         if w.readback_attempts > 1 {

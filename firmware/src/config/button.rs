@@ -5,7 +5,7 @@
 //! (Holding BOOT *while the chip resets* starts the ROM's download mode
 //! instead — the way to flash it — so the button is read only once the
 //! firmware runs; `erase-region` of the store is the other way out, see the
-//! README.)
+//! docs/configuration.md.)
 //!
 //! The shell samples the button every [`SAMPLE_PERIOD_US`]; a press that
 //! lets go, or a sample that is missed for longer than two periods, starts

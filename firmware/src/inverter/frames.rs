@@ -1,7 +1,7 @@
 //! The CAN frames of the two inverter protocols, byte by byte. Every identifier
 //! and field is a named constant whose doc line names its public source; the
-//! DBC file `host-tests/can/tinybms-inverter.dbc` describes the same layouts and
-//! a host test checks that the two agree. All multi-byte fields little-endian.
+//! DBC files `host-tests/can/tinybms-victron.dbc` and `tinybms-sma.dbc` describe the
+//! same layouts and a host test checks that they agree. All multi-byte fields little-endian.
 
 use super::control::{Conditions, Limits, PackState};
 

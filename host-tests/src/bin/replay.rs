@@ -1,6 +1,6 @@
 //! `replay FILE` (or `-` for standard input): decodes a `.tbms` capture and prints
 //! one JSON object per request, received frame or error, then a summary line.
-//! See `host-tests/README-capture.md`.
+//! See `docs/capture-format.md`.
 //!
 //! Exit status: 0 when the capture was read (decode errors are data), 1 when the
 //! file cannot be read or is malformed, 2 on a usage error.

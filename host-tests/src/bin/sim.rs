@@ -65,6 +65,9 @@ path, e.g. /dev/pts/7; runs until stopped, or for --duration if given):
   --stream-period D  (--bridge-pty) the same as --config stream_period=D
   --boot-button D    (--bridge-pty) hold the BOOT button down from D on, for 6 s
                      (lifts read-only, as on the chip)
+  --freeze AT+FOR    from AT on, for FOR (e.g. 5s+20s): with --pty the simulated
+                     BMS falls silent; with --bridge-pty the whole bridge stops
+                     (no byte on its pty, as a hung chip)
   --mqtt HOST:PORT   the firmware's MQTT output (Home Assistant discovery, state,
                      availability, events) to the broker at HOST:PORT over an
                      ordinary TCP socket; with or without --bridge-pty (the
@@ -114,6 +117,7 @@ struct Options {
     config: Vec<(String, String)>,
     flash: Option<String>,
     boot_button_us: Option<u64>,
+    freeze: Option<(u64, u64)>,
     mqtt: Option<(String, u16)>,
 }
 
@@ -146,6 +150,7 @@ fn parse_args() -> Result<Parsed, String> {
         config: Vec::new(),
         flash: None,
         boot_button_us: None,
+        freeze: None,
         mqtt: None,
     };
     let mut args = std::env::args().skip(1);
@@ -186,6 +191,13 @@ fn parse_args() -> Result<Parsed, String> {
                 o.mqtt = Some((host.to_string(), port));
             }
             "--boot-button" => o.boot_button_us = Some(parse_duration(&value("--boot-button")?)?),
+            "--freeze" => {
+                let v = value("--freeze")?;
+                let (at, long) = v
+                    .split_once('+')
+                    .ok_or_else(|| format!("--freeze {v}: want AT+FOR, e.g. 5s+20s"))?;
+                o.freeze = Some((parse_duration(at)?, parse_duration(long)?));
+            }
             "--fault-rate" => {
                 o.fault_rate = value("--fault-rate")?
                     .parse()
@@ -291,6 +303,9 @@ fn parse_args() -> Result<Parsed, String> {
     }
     if o.pty && o.mqtt.is_some() {
         return Err("--mqtt goes with --bridge-pty or alone, not with --pty".into());
+    }
+    if o.freeze.is_some() && !o.pty && !o.bridge_pty {
+        return Err("--freeze goes with --pty or --bridge-pty".into());
     }
     if !o.bridge_pty
         && o.mqtt.is_none()
@@ -629,7 +644,13 @@ fn run_realtime(o: &Options) -> ExitCode {
     let result = match sim.build() {
         Err(e) => Err(e),
         Ok(bms) if o.pty => {
-            serve_sim_pty(bms, duration, &stop, &mut out).map_err(|e| e.to_string())
+            let freeze = o.freeze.map(|(a, f)| {
+                (
+                    std::time::Duration::from_micros(a),
+                    std::time::Duration::from_micros(f),
+                )
+            });
+            serve_sim_pty(bms, duration, freeze, &stop, &mut out).map_err(|e| e.to_string())
         }
         Ok(bms) => {
             let opts = BridgePtyOptions {
@@ -650,6 +671,12 @@ fn run_realtime(o: &Options) -> ExitCode {
                     ..Timing::default()
                 },
                 log: !o.quiet,
+                freeze: o.freeze.map(|(a, f)| {
+                    (
+                        std::time::Duration::from_micros(a),
+                        std::time::Duration::from_micros(f),
+                    )
+                }),
             };
             serve_bridge_pty(bms, &opts, duration, &stop, &mut out).map_err(|e| e.to_string())
         }

@@ -166,8 +166,10 @@ impl Client {
 
     /// Waits until the bridge is online and ready (settings and limits read);
     /// explains what is wrong when it does not get there within `timeout`.
+    /// Says every few seconds on stderr what it is waiting for; Ctrl-C stops it.
     pub fn wait_ready(&mut self, timeout: Duration) -> ToolResult<Value> {
         let start = Instant::now();
+        let mut next_note = start + Duration::from_secs(3);
         loop {
             let t = self.get_one("snapshot")?;
             if t["ready"] == true && t["online"] == true {
@@ -175,6 +177,26 @@ impl Client {
             }
             if start.elapsed() >= timeout {
                 return Err(self.not_ready_error(&t));
+            }
+            if super::interrupted() {
+                return Err(super::interrupted_error());
+            }
+            if Instant::now() >= next_note {
+                next_note += Duration::from_secs(3);
+                let link = self.get_one("link").unwrap_or(Value::Null);
+                let n = |k: &str| link[k].as_u64().unwrap_or(0);
+                eprintln!(
+                    "waiting for the BMS ({:.0} s of {:.0} s): {} requests sent, {} replies{}",
+                    start.elapsed().as_secs_f64(),
+                    timeout.as_secs_f64(),
+                    n("requests"),
+                    n("replies"),
+                    if t["online"] == true {
+                        ", reading its settings"
+                    } else {
+                        ""
+                    }
+                );
             }
             std::thread::sleep(Duration::from_millis(200));
         }

@@ -391,7 +391,7 @@ fn read_only_hint(e: ToolError) -> ToolError {
         ToolError::failed(
             "the bridge is read-only: it refuses every write, its configuration too. To allow \
              changes, hold the board's BOOT button for 5 seconds while the bridge runs (or erase \
-             its configuration: README, \"Read-only\")",
+             its configuration: docs/configuration.md, \"Read-only, and the way out\")",
         )
     } else {
         e
@@ -523,7 +523,7 @@ pub fn fetch_error(e: ToolError) -> ToolError {
     if e.message.contains("invalid_value") {
         ToolError::failed(
             "the bridge does not know `get config`: its firmware is older than this tool \
-             (flash the current image, README)",
+             (flash the current image, docs/flashing.md)",
         )
     } else {
         e

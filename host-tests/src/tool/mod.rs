@@ -8,24 +8,30 @@
 //! * [`client`] — the protocol's commands as calls.
 //! * [`monitor`], [`settings`] — what the commands print.
 
+pub mod cli;
 pub mod client;
 pub mod config;
 pub mod direct;
+pub mod live;
 pub mod monitor;
 pub mod settings;
 pub mod transport;
 
-use std::io::{BufRead, Write};
+use std::io::{BufRead, IsTerminal, Write};
+use std::path::Path;
 use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
+use clap::{CommandFactory, Parser};
+use protocol_core::settings::SettingId;
 use serde_json::{json, Value};
 
 use crate::capture::{parse_hex, CaptureWriter};
-use crate::profile::{find_setting, parse_profile};
-use crate::realtime::parse_duration;
+use crate::profile::{find_setting, parse_profile, snake_name};
+use cli::{Cli, Command, Conn, FormatArg, ModeArg};
 use client::Client;
-use monitor::{LogFormat, MonitorOptions};
+use monitor::{LogFormat, MonitorOptions, View};
 use transport::{Mode, ModeChoice, SerialLines};
 
 /// What went wrong, in a sentence for the user, and the exit status.
@@ -33,7 +39,8 @@ use transport::{Mode, ModeChoice, SerialLines};
 pub struct ToolError {
     /// The sentence.
     pub message: String,
-    /// 1: the operation failed; 2: usage; 3: could not connect.
+    /// 1: the operation failed; 2: usage; 3: could not connect; 130:
+    /// interrupted.
     pub status: u8,
 }
 
@@ -64,194 +71,66 @@ impl ToolError {
 /// Result of the tool's operations.
 pub type ToolResult<T> = Result<T, ToolError>;
 
-/// The help text.
-pub const USAGE: &str =
-    "tinybms — read and configure a TinyBMS, through the ESP32 bridge or directly
+/// Set by Ctrl-C (SIGINT): long-running commands stop at their next step and
+/// leave the bridge as they found it (the stream period, capture off).
+static INTERRUPTED: AtomicBool = AtomicBool::new(false);
 
-usage: tinybms COMMAND [PORT] [ARGS] [OPTIONS]
-
-commands:
-  ports                       list the serial ports
-  monitor PORT                live view: cells (min/max, * balancing), pack, SOC/SOH,
-                              temperatures, status, age of the data, link quality
-      --json                  print the telemetry lines (JSON Lines) instead
-      --log FILE              also log to FILE (CSV, or JSON Lines for .jsonl/.json)
-      --every D               log period (default 10s)
-      --format csv|jsonl      log format (default: from the extension)
-      --period D              telemetry refresh period asked of the bridge (default 1s)
-      --count N, --duration D stop after N updates / after D
-  settings PORT [--save FILE] every setting: value, raw, Rev D range, the BMS's min/max;
-                              --save writes them as a profile (name = raw  # physical)
-  apply PORT FILE [--dry-run] show what the profile changes, then write and verify each
-  set PORT NAME=VALUE...      write and verify settings; VALUE in the unit `settings`
-                              prints (a suffix of that unit is allowed: 3.65V);
-      --raw                   VALUE in raw register units instead (3650)
-  events PORT                 the BMS's event log, oldest first
-  stats PORT                  the statistics (registers 100-117)
-  version PORT                hardware/firmware version, serial number
-  reset PORT                  restart the BMS        (these three ask for confirmation
-  clear-events PORT           clear the event log     on stdin unless --yes)
-  clear-stats PORT            clear the statistics
-  record PORT FILE.tbms       record the raw UART exchange as a capture `replay` reads
-      --duration D            how long (default 10s)
-  config PORT                 the bridge's own configuration (kept in its flash): every
-                              field with its value, unit, default, range, when it applies
-  config PORT NAME            one field, explained
-  config PORT NAME=VALUE...   change fields (VALUE as shown, a unit may be given: 50A);
-                              one line per field, then saved to the bridge's flash
-      --save FILE             write the configuration to FILE (secrets left out)
-      --load FILE [--dry-run] show what FILE changes, then change it
-      --reset                 every field back to its default (asks unless --yes)
-  wifi PORT --ssid NAME       the Wi-Fi network: asks for its passphrase and stores the
-                              WPA2 key derived from it (never the passphrase itself)
-  mqtt PORT --host HOST       the MQTT broker (and --port P, default 1883; --user U: asks
-                              for the password); Wi-Fi and MQTT apply at the next restart
-
-options for every command with a PORT:
-  --mode auto|bridge|direct   auto (default): a bridge answers `{\"cmd\":\"hello\"}`;
-                              when nothing does, the port is taken to be a USB-UART
-                              adapter wired to the TinyBMS (115200 8N1) and the
-                              firmware's bridge runs inside this tool
-  --yes                       do not ask for confirmation
-  --timeout D                 how long to wait for the BMS to be ready (default 15s)
-
-durations: 500ms, 10s, 5m, 1h. Exit status: 0 ok, 1 failed (a write not verified...),
-2 usage error, 3 cannot reach the device.";
-
-/// Parsed command line.
-#[derive(Debug, Default)]
-struct Args {
-    command: String,
-    positional: Vec<String>,
-    mode: Option<ModeChoice>,
-    yes: bool,
-    json: bool,
-    raw: bool,
-    dry_run: bool,
-    save: Option<String>,
-    load: Option<String>,
-    reset: bool,
-    ssid: Option<String>,
-    host: Option<String>,
-    port: Option<u16>,
-    user: Option<String>,
-    log: Option<String>,
-    every: Option<Duration>,
-    format: Option<String>,
-    period: Option<Duration>,
-    count: Option<u64>,
-    duration: Option<Duration>,
-    timeout: Option<Duration>,
+/// Ctrl-C was pressed.
+pub fn interrupted() -> bool {
+    INTERRUPTED.load(Ordering::Relaxed)
 }
 
-fn parse_args(argv: &[String]) -> ToolResult<Args> {
-    let mut a = Args::default();
-    let mut it = argv.iter();
-    while let Some(arg) = it.next() {
-        let mut value = |name: &str| {
-            it.next()
-                .cloned()
-                .ok_or_else(|| ToolError::usage(format!("{name} needs a value")))
-        };
-        let dur = |s: String| parse_duration(&s).map_err(ToolError::usage);
-        match arg.as_str() {
-            "-h" | "--help" => a.command = "help".into(),
-            "--mode" => {
-                a.mode = Some(match value("--mode")?.as_str() {
-                    "auto" => ModeChoice::Auto,
-                    "bridge" => ModeChoice::Bridge,
-                    "direct" => ModeChoice::Direct,
-                    other => {
-                        return Err(ToolError::usage(format!(
-                            "--mode {other}: auto, bridge or direct"
-                        )))
-                    }
-                })
-            }
-            "--yes" | "-y" => a.yes = true,
-            "--json" => a.json = true,
-            "--raw" => a.raw = true,
-            "--dry-run" => a.dry_run = true,
-            "--save" => a.save = Some(value("--save")?),
-            "--load" => a.load = Some(value("--load")?),
-            "--reset" => a.reset = true,
-            "--ssid" => a.ssid = Some(value("--ssid")?),
-            "--host" => a.host = Some(value("--host")?),
-            "--user" => a.user = Some(value("--user")?),
-            "--port" => {
-                a.port = Some(
-                    value("--port")?
-                        .parse()
-                        .map_err(|_| ToolError::usage("--port needs a TCP port, 1 to 65535"))?,
-                )
-            }
-            "--log" => a.log = Some(value("--log")?),
-            "--every" => a.every = Some(dur(value("--every")?)?),
-            "--format" => a.format = Some(value("--format")?),
-            "--period" => a.period = Some(dur(value("--period")?)?),
-            "--count" => {
-                a.count = Some(
-                    value("--count")?
-                        .parse()
-                        .map_err(|_| ToolError::usage("--count needs a whole number"))?,
-                )
-            }
-            "--duration" => a.duration = Some(dur(value("--duration")?)?),
-            "--timeout" => a.timeout = Some(dur(value("--timeout")?)?),
-            s if s.starts_with('-')
-                && s.len() > 1
-                && !s[1..].starts_with(|c: char| c.is_ascii_digit()) =>
-            {
-                return Err(ToolError::usage(format!("unknown option `{s}`")))
-            }
-            _ if a.command.is_empty() => a.command = arg.clone(),
-            _ => a.positional.push(arg.clone()),
-        }
+/// Stopped by Ctrl-C (exit 130, as a shell reports SIGINT).
+pub fn interrupted_error() -> ToolError {
+    ToolError {
+        message: "interrupted".into(),
+        status: 130,
     }
-    Ok(a)
 }
 
 /// Runs the tool with `argv` (without the program name).
 pub fn main(argv: &[String]) -> ExitCode {
-    match run(argv) {
+    let cli = match Cli::try_parse_from(
+        std::iter::once("tinybms".to_string()).chain(argv.iter().cloned()),
+    ) {
+        Ok(c) => c,
+        Err(e) => {
+            // Help and version go to stdout with status 0; usage errors (with
+            // clap's suggestions) to stderr with status 2.
+            let _ = e.print();
+            return ExitCode::from(e.exit_code().clamp(0, 255) as u8);
+        }
+    };
+    let _ = ctrlc::set_handler(|| {
+        if INTERRUPTED.swap(true, Ordering::Relaxed) {
+            // A second Ctrl-C: the user insists.
+            std::process::exit(130);
+        }
+    });
+    match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
+        Err(e) if e.status == 130 => {
+            eprintln!("tinybms: interrupted");
+            ExitCode::from(130)
+        }
         Err(e) => {
             eprintln!("tinybms: {}", e.message);
             if e.status == 2 {
-                eprintln!("(tinybms --help for the commands)");
+                eprintln!("(tinybms --help for the commands, tinybms COMMAND --help for one)");
             }
             ExitCode::from(e.status)
         }
     }
 }
 
-fn port_arg(a: &Args) -> ToolResult<String> {
-    a.positional.first().cloned().ok_or_else(|| {
-        ToolError::usage(format!(
-            "`{}` needs a PORT (see `tinybms ports`)",
-            a.command
-        ))
-    })
+/// Says on stderr what the tool is doing while the user waits.
+fn status(msg: &str) {
+    eprintln!("{msg}");
 }
 
-fn run(argv: &[String]) -> ToolResult<()> {
-    let a = parse_args(argv)?;
-    let expect = |n: usize, what: &str| -> ToolResult<()> {
-        if a.positional.len() == n {
-            Ok(())
-        } else {
-            Err(ToolError::usage(format!(
-                "usage: tinybms {} {what}",
-                a.command
-            )))
-        }
-    };
-    match a.command.as_str() {
-        "" | "help" => {
-            println!("{USAGE}");
-            Ok(())
-        }
-        "ports" => {
+fn run(cli: Cli) -> ToolResult<()> {
+    match cli.command {
+        Command::Ports => {
             let list = transport::port_list();
             if list.is_empty() {
                 println!("no serial port found (plug the adapter or the ESP32 in; `dmesg` shows it arriving)");
@@ -261,51 +140,79 @@ fn run(argv: &[String]) -> ToolResult<()> {
             }
             Ok(())
         }
-        "monitor" => {
-            expect(1, "PORT")?;
-            let log = match &a.log {
+        Command::Completions { shell } => {
+            clap_complete::generate(
+                shell,
+                &mut Cli::command(),
+                "tinybms",
+                &mut std::io::stdout(),
+            );
+            Ok(())
+        }
+        Command::Monitor {
+            conn,
+            json,
+            plain,
+            log,
+            every,
+            format,
+            period,
+            count,
+            duration,
+        } => {
+            let log = match log {
                 None => None,
                 Some(path) => {
-                    let ext = std::path::Path::new(path)
-                        .extension()
-                        .and_then(|e| e.to_str())
-                        .unwrap_or("");
-                    let name = a.format.clone().unwrap_or_else(|| {
-                        if ext.is_empty() {
-                            "csv".into()
-                        } else {
-                            ext.to_string()
+                    let f = match format {
+                        Some(FormatArg::Csv) => LogFormat::Csv,
+                        Some(FormatArg::Jsonl) => LogFormat::JsonLines,
+                        None => {
+                            let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("csv");
+                            LogFormat::from_name(ext).ok_or_else(|| {
+                                ToolError::usage(format!(
+                                    "log format of `{}`: csv or jsonl (--format, or the file's extension)",
+                                    path.display()
+                                ))
+                            })?
                         }
-                    });
-                    let f = LogFormat::from_name(&name).ok_or_else(|| {
-                        ToolError::usage(format!(
-                            "log format `{name}`: csv or jsonl (--format, or the file's extension)"
-                        ))
-                    })?;
-                    Some((path.clone(), f))
+                    };
+                    Some((path.to_string_lossy().into_owned(), f))
                 }
             };
-            let o = MonitorOptions {
-                json: a.json,
-                log,
-                every: a.every.unwrap_or(Duration::from_secs(10)),
-                count: a.count,
-                duration: a.duration,
-                period_ms: a
-                    .period
-                    .map_or(1000, |d| d.as_millis().clamp(100, 60_000) as u32),
-                ready_timeout: ready_timeout(&a),
+            let view = if json {
+                View::Json
+            } else if plain || !std::io::stdout().is_terminal() {
+                View::Plain
+            } else {
+                View::Live
             };
-            let mut c = connect(&a)?;
+            let o = MonitorOptions {
+                view,
+                log,
+                every,
+                count,
+                duration,
+                period_ms: period.as_millis().clamp(100, 60_000) as u32,
+                ready_timeout: conn.timeout,
+            };
+            let mut c = connect(&conn)?;
             monitor::run(&mut c, &o)
         }
-        "settings" => {
-            expect(1, "PORT [--save FILE]")?;
-            let mut c = connect(&a)?;
-            c.wait_ready(ready_timeout(&a))?;
+        Command::Log { conn, duration } => {
+            let mut c = connect(&conn)?;
+            monitor::log(&mut c, duration)
+        }
+        Command::Settings { conn, save, json } => {
+            let mut c = connect_ready(&conn)?;
             let lines = c.get("settings")?;
-            print!("{}", settings::render_table(&lines));
-            if let Some(path) = &a.save {
+            if json {
+                for l in &lines {
+                    println!("{l}");
+                }
+                return Ok(());
+            }
+            print!("{}", settings::render_groups(&lines));
+            if let Some(path) = &save {
                 let serial = serial_suffix(&mut c);
                 let header = format!(
                     "TinyBMS settings saved by tinybms {} from {} ({}) at {}{}",
@@ -318,77 +225,125 @@ fn run(argv: &[String]) -> ToolResult<()> {
                     monitor::utc_now(),
                     serial
                 );
-                std::fs::write(path, settings::profile_text(&lines, &header))
-                    .map_err(|e| ToolError::failed(format!("cannot write `{path}`: {e}")))?;
-                println!("saved {} settings to {path}", lines.len());
+                let (text, saved) = settings::profile_text(&lines, &header);
+                std::fs::write(path, text).map_err(|e| {
+                    ToolError::failed(format!("cannot write `{}`: {e}", path.display()))
+                })?;
+                let skipped = lines.len().saturating_sub(saved);
+                println!(
+                    "saved {saved} settings to {}{}",
+                    path.display(),
+                    if skipped > 0 {
+                        format!(" ({skipped} left out: not read, or write-only)")
+                    } else {
+                        String::new()
+                    }
+                );
             }
             Ok(())
         }
-        "apply" => {
-            expect(2, "PORT FILE [--dry-run]")?;
-            let path = &a.positional[1];
-            let text = std::fs::read_to_string(path)
-                .map_err(|e| ToolError::failed(format!("cannot read `{path}`: {e}")))?;
-            let wanted =
-                parse_profile(&text).map_err(|e| ToolError::usage(format!("{path}: {e}")))?;
-            let mut c = connect(&a)?;
-            c.wait_ready(ready_timeout(&a))?;
+        Command::Apply {
+            conn,
+            file,
+            dry_run,
+            yes,
+        } => {
+            let text = read_profile(&file, &conn.port)?;
+            let wanted = parse_profile(&text)
+                .map_err(|e| ToolError::usage(format!("{}: {e}", file.display())))?;
+            let mut c = connect_ready(&conn)?;
             let current = c.get("settings")?;
+            settings::check_all(&current, &wanted, None).map_err(ToolError::failed)?;
             let changes = settings::diff(&current, &wanted);
             let unchanged = wanted.len().saturating_sub(changes.len());
-            println!("{path}: {} settings", wanted.len());
+            println!("{}: {} settings", file.display(), wanted.len());
             print!("{}", settings::render_diff(&changes, unchanged));
-            if a.dry_run || changes.is_empty() {
-                if a.dry_run {
-                    println!("dry run: nothing written");
+            if dry_run {
+                println!("dry run: every value checked, nothing written");
+                return Ok(());
+            }
+            if changes.is_empty() {
+                return Ok(());
+            }
+            let items: Vec<(SettingId, i32)> =
+                changes.iter().map(|ch| (ch.id, ch.to as i32)).collect();
+            confirm_restart(yes, &items)?;
+            write_settings(&mut c, &items)
+        }
+        Command::Set {
+            conn,
+            assignments,
+            raw,
+            dry_run,
+            yes,
+        } => {
+            let mut items: Vec<(SettingId, i32)> = Vec::new();
+            let mut bare: Vec<SettingId> = Vec::new();
+            for a in &assignments {
+                let (id, value, was_bare) =
+                    settings::parse_set_arg(a, raw).map_err(ToolError::usage)?;
+                // One value per setting: which one is meant is not clear.
+                if items.iter().any(|(i, _)| *i == id) {
+                    return Err(ToolError::usage(format!(
+                        "`{}` is given twice: give each setting once",
+                        snake_name(id)
+                    )));
+                }
+                if was_bare {
+                    bare.push(id);
+                }
+                items.push((id, value));
+            }
+            let mut c = connect_ready(&conn)?;
+            let current = c.get("settings")?;
+            settings::check_all(&current, &items, Some(&bare)).map_err(ToolError::failed)?;
+            if dry_run {
+                let changes = settings::diff(&current, &items);
+                print!(
+                    "{}",
+                    settings::render_diff(&changes, items.len().saturating_sub(changes.len()))
+                );
+                println!("dry run: every value checked, nothing written");
+                return Ok(());
+            }
+            confirm_restart(yes, &items)?;
+            write_settings(&mut c, &items)
+        }
+        Command::Events { conn, json } => {
+            let mut c = connect_ready(&conn)?;
+            let events = c.get("events")?;
+            // The BMS's clock: its lifetime counter now, against ours.
+            let lifetime = c
+                .get_one("snapshot")
+                .ok()
+                .and_then(|t| t["lifetime_s"].as_u64());
+            let now = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_secs() as i64)
+                .unwrap_or(0);
+            let wall = |ts: u64| lifetime.map(|l| monitor::utc(now - (l as i64 - ts as i64), 0));
+            let list: Vec<&Value> = events.iter().filter(|e| e["type"] == "event").collect();
+            if json {
+                for e in list {
+                    let mut e = e.clone();
+                    let w = wall(e["timestamp_s"].as_u64().unwrap_or(0));
+                    if let (Some(m), Some(w)) = (e.as_object_mut(), w) {
+                        m.insert("time".into(), json!(w));
+                    }
+                    println!("{e}");
                 }
                 return Ok(());
             }
-            let items: Vec<(String, f64)> = changes
-                .iter()
-                .map(|ch| (crate::profile::snake_name(ch.id), ch.to as f64))
-                .collect();
-            confirm_restart(&a, &items)?;
-            write_settings(&mut c, &items, true)
-        }
-        "set" => {
-            if a.positional.len() < 2 {
-                return Err(ToolError::usage(
-                    "usage: tinybms set PORT NAME=VALUE... [--raw]",
-                ));
-            }
-            let items = a.positional[1..]
-                .iter()
-                .map(|s| settings::parse_set_arg(s, a.raw))
-                .collect::<Result<Vec<_>, _>>()
-                .map_err(ToolError::usage)?;
-            // One value per setting: the command object keeps only one, and
-            // which one is meant is not clear.
-            for (i, (name, _)) in items.iter().enumerate() {
-                if items[..i].iter().any(|(n, _)| n == name) {
-                    return Err(ToolError::usage(format!(
-                        "`{name}` is given twice: give each setting once"
-                    )));
-                }
-            }
-            confirm_restart(&a, &items)?;
-            let mut c = connect(&a)?;
-            c.wait_ready(ready_timeout(&a))?;
-            write_settings(&mut c, &items, a.raw)
-        }
-        "events" => {
-            expect(1, "PORT")?;
-            let mut c = connect(&a)?;
-            c.wait_ready(ready_timeout(&a))?;
-            let events = c.get("events")?;
-            if events.is_empty() {
+            if list.is_empty() {
                 println!("no events");
             }
-            for e in events.iter().filter(|e| e["type"] == "event") {
+            for e in list {
                 let t = e["timestamp_s"].as_u64().unwrap_or(0);
+                let when = wall(t)
+                    .map(|w| format!("{}  ", &w[..19].replace('T', " ")))
+                    .unwrap_or_default();
                 println!(
-                    "{:>10} s  ({:>3}d {:02}:{:02}:{:02})  0x{:02X}  {:<8} {}",
-                    t,
+                    "{when}BMS {:>3}d {:02}:{:02}:{:02}  0x{:02X}  {:<8} {}",
                     t / 86_400,
                     t / 3600 % 24,
                     t / 60 % 60,
@@ -398,77 +353,49 @@ fn run(argv: &[String]) -> ToolResult<()> {
                     e["name"].as_str().unwrap_or("?")
                 );
             }
-            Ok(())
-        }
-        "stats" | "version" => {
-            expect(1, "PORT")?;
-            let mut c = connect(&a)?;
-            c.wait_ready(ready_timeout(&a))?;
-            let what = if a.command == "stats" {
-                "statistics"
-            } else {
-                "version"
-            };
-            let v = c.get_one(what)?;
-            print_fields(&v);
-            Ok(())
-        }
-        "reset" | "clear-events" | "clear-stats" => {
-            expect(1, "PORT [--yes]")?;
-            let (question, cmd, done) = match a.command.as_str() {
-                "reset" => ("Restart the BMS", json!({"cmd": "reset"}), "reset_done"),
-                "clear-events" => (
-                    "Clear the BMS's event log",
-                    json!({"cmd": "clear", "what": "events"}),
-                    "cleared",
-                ),
-                _ => (
-                    "Clear the BMS's statistics",
-                    json!({"cmd": "clear", "what": "statistics"}),
-                    "cleared",
-                ),
-            };
-            if !a.yes && !confirm(question)? {
-                return Err(ToolError::failed("not confirmed: nothing done"));
-            }
-            let mut c = connect(&a)?;
-            c.wait_ready(ready_timeout(&a))?;
-            let v = c.command(cmd, done, Duration::from_secs(30))?;
-            let ok = v["ok"] == true || v["confirmed"] == true;
-            match (done, ok) {
-                ("reset_done", true) => {
-                    println!("the BMS restarted (confirmed by its reset reason)")
-                }
-                ("reset_done", false) => {
-                    println!(
-                        "reset sent, but the BMS's reset reason does not confirm a software reset"
-                    )
-                }
-                (_, true) => println!("cleared"),
-                (_, false) => {
-                    return Err(ToolError::failed("the BMS did not acknowledge the clear"))
-                }
+            if lifetime.is_some() {
+                println!(
+                    "(times from the BMS's lifetime counter, which stops while the BMS is off: \
+                     events before a power-down are earlier than shown)"
+                );
             }
             Ok(())
         }
-        "record" => {
-            expect(2, "PORT FILE.tbms [--duration D]")?;
-            record(&a)
-        }
-        "config" => run_config(&a),
-        "wifi" => {
-            expect(1, "PORT --ssid NAME")?;
-            let ssid = a
-                .ssid
-                .clone()
-                .ok_or_else(|| ToolError::usage("usage: tinybms wifi PORT --ssid NAME"))?;
+        Command::Stats { conn, json } => show_one(&conn, "statistics", json),
+        Command::Version { conn, json } => show_one(&conn, "version", json),
+        Command::Reset { conn, yes } => clear_or_reset(&conn, yes, "reset"),
+        Command::ClearEvents { conn, yes } => clear_or_reset(&conn, yes, "events"),
+        Command::ClearStats { conn, yes } => clear_or_reset(&conn, yes, "statistics"),
+        Command::Record {
+            conn,
+            file,
+            duration,
+        } => record(&conn, &file, duration),
+        Command::Config {
+            conn,
+            args,
+            save,
+            load,
+            dry_run,
+            reset,
+            yes,
+        } => run_config(
+            &conn,
+            &args,
+            save.as_deref(),
+            load.as_deref(),
+            dry_run,
+            reset,
+            yes,
+        ),
+        Command::Wifi { conn, ssid } => {
             let pass = config::ask_secret(&format!("Passphrase of `{ssid}` (not shown): "))?;
             let key = config::wpa2_psk(&ssid, &pass).map_err(ToolError::usage)?;
             let changes = vec![
                 config::check_assignment("wifi_ssid", &ssid)?,
                 config::check_assignment("wifi_key", &key)?,
             ];
-            let mut c = connect(&a)?;
+            let mut c = connect(&conn)?;
             config::require_bridge(&c)?;
             config::apply(&mut c, &changes)?;
             println!(
@@ -476,16 +403,17 @@ fn run(argv: &[String]) -> ToolResult<()> {
             );
             Ok(())
         }
-        "mqtt" => {
-            expect(1, "PORT --host HOST [--port P] [--user U]")?;
-            let host = a.host.clone().ok_or_else(|| {
-                ToolError::usage("usage: tinybms mqtt PORT --host HOST [--port P] [--user U]")
-            })?;
+        Command::Mqtt {
+            conn,
+            host,
+            tcp_port,
+            user,
+        } => {
             let mut changes = vec![
                 config::check_assignment("mqtt_host", &host)?,
-                config::check_assignment("mqtt_port", &a.port.unwrap_or(1883).to_string())?,
+                config::check_assignment("mqtt_port", &tcp_port.to_string())?,
             ];
-            match &a.user {
+            match &user {
                 Some(user) => {
                     let pass = config::ask_secret(&format!(
                         "Password of `{user}` at {host} (not shown): "
@@ -498,7 +426,7 @@ fn run(argv: &[String]) -> ToolResult<()> {
                     changes.push(config::check_assignment("mqtt_password", "")?);
                 }
             }
-            let mut c = connect(&a)?;
+            let mut c = connect(&conn)?;
             config::require_bridge(&c)?;
             let (fields, _) = config::fetch(&mut c).map_err(config::fetch_error)?;
             config::check_locally(&config::record_of(&fields), &changes)?;
@@ -506,32 +434,86 @@ fn run(argv: &[String]) -> ToolResult<()> {
             println!("MQTT: the bridge publishes to {host} after its next restart");
             Ok(())
         }
-        other => Err(ToolError::usage(format!("unknown command `{other}`"))),
     }
 }
 
+/// A profile FILE: a regular file (a serial port there means PORT and FILE
+/// were swapped: reading it would wait forever).
+fn read_profile(file: &Path, port: &str) -> ToolResult<String> {
+    let shown = file.display();
+    let meta = std::fs::metadata(file)
+        .map_err(|e| ToolError::usage(format!("cannot read the profile `{shown}`: {e}")))?;
+    if !meta.is_file() {
+        let swapped = Path::new(port).is_file();
+        return Err(ToolError::usage(if swapped {
+            format!(
+                "`{shown}` is a port and `{port}` a file: the order is `tinybms apply PORT FILE` \
+                 (tinybms apply {shown} {port})"
+            )
+        } else {
+            format!("`{shown}` is not a regular file: the profile is a text file (`tinybms apply PORT FILE`)")
+        }));
+    }
+    std::fs::read_to_string(file)
+        .map_err(|e| ToolError::failed(format!("cannot read `{shown}`: {e}")))
+}
+
+fn show_one(conn: &Conn, what: &str, json: bool) -> ToolResult<()> {
+    let mut c = connect_ready(conn)?;
+    let v = c.get_one(what)?;
+    if json {
+        let mut v = v;
+        if let Some(m) = v.as_object_mut() {
+            m.shift_remove("req");
+        }
+        println!("{v}");
+    } else {
+        print_fields(&v);
+    }
+    Ok(())
+}
+
+fn clear_or_reset(conn: &Conn, yes: bool, what: &str) -> ToolResult<()> {
+    let (question, cmd, done) = match what {
+        "reset" => ("Restart the BMS", json!({"cmd": "reset"}), "reset_done"),
+        "events" => (
+            "Clear the BMS's event log",
+            json!({"cmd": "clear", "what": "events"}),
+            "cleared",
+        ),
+        _ => (
+            "Clear the BMS's statistics",
+            json!({"cmd": "clear", "what": "statistics"}),
+            "cleared",
+        ),
+    };
+    if !yes && !confirm(question)? {
+        return Err(ToolError::failed("not confirmed: nothing done"));
+    }
+    let mut c = connect_ready(conn)?;
+    let v = c.command(cmd, done, Duration::from_secs(30))?;
+    let ok = v["ok"] == true || v["confirmed"] == true;
+    match (done, ok) {
+        ("reset_done", true) => println!("the BMS restarted (confirmed by its reset reason)"),
+        ("reset_done", false) => {
+            println!("reset sent, but the BMS's reset reason does not confirm a software reset")
+        }
+        (_, true) => println!("cleared"),
+        (_, false) => return Err(ToolError::failed("the BMS did not acknowledge the clear")),
+    }
+    Ok(())
+}
+
 /// `tinybms config …` (see [`config`]).
-fn run_config(a: &Args) -> ToolResult<()> {
-    if a.positional.is_empty() {
-        return Err(ToolError::usage(
-            "usage: tinybms config PORT [NAME | NAME=VALUE...] [--save FILE | --load FILE | --reset]",
-        ));
-    }
-    let args = &a.positional[1..];
-    let modes = [
-        !args.is_empty(),
-        a.save.is_some(),
-        a.load.is_some(),
-        a.reset,
-    ]
-    .iter()
-    .filter(|m| **m)
-    .count();
-    if modes > 1 {
-        return Err(ToolError::usage(
-            "give one of NAME=VALUE..., --save, --load or --reset",
-        ));
-    }
+fn run_config(
+    conn: &Conn,
+    args: &[String],
+    save: Option<&Path>,
+    load: Option<&Path>,
+    dry_run: bool,
+    reset: bool,
+    yes: bool,
+) -> ToolResult<()> {
     // Everything that can be checked without the bridge is checked first.
     let assignments = if args.iter().any(|x| x.contains('=')) {
         let mut out = Vec::new();
@@ -552,28 +534,34 @@ fn run_config(a: &Args) -> ToolResult<()> {
     };
     if assignments.is_none() && args.len() > 1 {
         return Err(ToolError::usage(
-            "usage: tinybms config PORT NAME (one field), or NAME=VALUE... to change fields",
+            "tinybms config PORT NAME (one field), or NAME=VALUE... to change fields",
         ));
+    }
+    if dry_run && load.is_none() {
+        return Err(ToolError::usage("--dry-run goes with --load"));
     }
     let explain = match (&assignments, args.first()) {
         (None, Some(name)) => Some(config::field_named(name)?),
         _ => None,
     };
-    let loaded = match &a.load {
+    let loaded = match load {
         Some(path) => {
             let text = std::fs::read_to_string(path)
-                .map_err(|e| ToolError::failed(format!("cannot read `{path}`: {e}")))?;
-            Some(config::parse_file(&text).map_err(|e| ToolError::usage(format!("{path}: {e}")))?)
+                .map_err(|e| ToolError::failed(format!("cannot read `{}`: {e}", path.display())))?;
+            Some(
+                config::parse_file(&text)
+                    .map_err(|e| ToolError::usage(format!("{}: {e}", path.display())))?,
+            )
         }
         None => None,
     };
-    if a.reset
-        && !a.yes
+    if reset
+        && !yes
         && !confirm("Set every field of the bridge's configuration back to its default")?
     {
         return Err(ToolError::failed("not confirmed: nothing changed"));
     }
-    let mut c = connect(a)?;
+    let mut c = connect(conn)?;
     config::require_bridge(&c)?;
     let (fields, end) = config::fetch(&mut c).map_err(config::fetch_error)?;
     let current = config::record_of(&fields);
@@ -586,7 +574,7 @@ fn run_config(a: &Args) -> ToolResult<()> {
         config::check_locally(&current, &changes)?;
         println!(
             "{}: {} fields, {} differ from the bridge's",
-            a.load.as_deref().unwrap_or(""),
+            load.map(|p| p.display().to_string()).unwrap_or_default(),
             wanted.len(),
             changes.len()
         );
@@ -600,15 +588,15 @@ fn run_config(a: &Args) -> ToolResult<()> {
                 .unwrap_or("?");
             println!("  {:<24} {now} -> {}", id.name(), l.as_str());
         }
-        if a.dry_run || changes.is_empty() {
-            if a.dry_run {
+        if dry_run || changes.is_empty() {
+            if dry_run {
                 println!("dry run: nothing changed");
             }
             return Ok(());
         }
         return config::apply(&mut c, &changes);
     }
-    if a.reset {
+    if reset {
         return config::reset(&mut c);
     }
     if let Some(id) = explain {
@@ -620,7 +608,7 @@ fn run_config(a: &Args) -> ToolResult<()> {
         return Ok(());
     }
     print!("{}", config::render(&fields, &end));
-    if let Some(path) = &a.save {
+    if let Some(path) = save {
         let header = format!(
             "saved by tinybms {} from {} at {}",
             env!("CARGO_PKG_VERSION"),
@@ -628,11 +616,12 @@ fn run_config(a: &Args) -> ToolResult<()> {
             monitor::utc_now()
         );
         std::fs::write(path, config::file_text(&fields, &header))
-            .map_err(|e| ToolError::failed(format!("cannot write `{path}`: {e}")))?;
+            .map_err(|e| ToolError::failed(format!("cannot write `{}`: {e}", path.display())))?;
         let secrets = fields.iter().filter(|f| f.line["secret"] == true).count();
         println!(
-            "saved {} fields to {path} ({secrets} secrets left out)",
-            fields.len() - secrets
+            "saved {} fields to {} ({secrets} secrets left out)",
+            fields.len() - secrets,
+            path.display()
         );
     }
     Ok(())
@@ -660,10 +649,6 @@ pub fn suggest<'a>(name: &str, candidates: &[&'a str]) -> Option<&'a str> {
         .filter(|(d, c)| *d <= (c.len() / 3).max(2))
         .min_by_key(|(d, _)| *d)
         .map(|(_, c)| c)
-}
-
-fn ready_timeout(a: &Args) -> Duration {
-    a.timeout.unwrap_or(Duration::from_secs(15))
 }
 
 fn serial_suffix(c: &mut Client) -> String {
@@ -696,13 +681,13 @@ fn print_fields(v: &Value) {
 /// A setting whose write restarts the BMS (340, operation mode) is written only
 /// when confirmed (or `--yes`), like `reset`: the BMS switches its outputs off
 /// while it restarts.
-fn confirm_restart(a: &Args, items: &[(String, f64)]) -> ToolResult<()> {
-    let restarting: Vec<&str> = items
+fn confirm_restart(yes: bool, items: &[(SettingId, i32)]) -> ToolResult<()> {
+    let restarting: Vec<String> = items
         .iter()
-        .filter(|(name, _)| find_setting(name).is_some_and(|id| id.restarts_bms()))
-        .map(|(name, _)| name.as_str())
+        .filter(|(id, _)| id.restarts_bms())
+        .map(|(id, _)| snake_name(*id))
         .collect();
-    if restarting.is_empty() || a.yes {
+    if restarting.is_empty() || yes {
         return Ok(());
     }
     let question = format!(
@@ -727,13 +712,16 @@ fn confirm(question: &str) -> ToolResult<bool> {
     Ok(line.trim().eq_ignore_ascii_case("yes") || line.trim().eq_ignore_ascii_case("y"))
 }
 
-/// Writes settings in groups of 8 (the protocol's limit), printing each
-/// outcome; fails when any did not end verified or unchanged.
-fn write_settings(c: &mut Client, items: &[(String, f64)], raw: bool) -> ToolResult<()> {
-    let mut bad = 0;
-    let mut count = 0;
+/// Writes settings (raw values) in groups of 8 (the protocol's limit),
+/// printing each outcome; fails when any did not end verified or unchanged.
+fn write_settings(c: &mut Client, items: &[(SettingId, i32)]) -> ToolResult<()> {
+    let (mut bad, mut verified, mut unchanged) = (0, 0, 0);
     for group in items.chunks(8) {
-        let outcomes = c.set(group, raw, Duration::from_secs(15), |v| {
+        let named: Vec<(String, f64)> = group
+            .iter()
+            .map(|(id, v)| (snake_name(*id), f64::from(*v)))
+            .collect();
+        let outcomes = c.set(&named, true, Duration::from_secs(15), |v| {
             let follow = if v["follow_up"] == true {
                 " (follow-up)"
             } else {
@@ -744,51 +732,60 @@ fn write_settings(c: &mut Client, items: &[(String, f64)], raw: bool) -> ToolRes
                 .filter(|d| !d.is_empty())
                 .map(|d| format!(": {d}"))
                 .unwrap_or_default();
+            let shown = match (v["name"].as_str().and_then(find_setting), v["raw"].as_i64()) {
+                (Some(id), Some(raw)) => settings::physical(id, raw),
+                _ => v["raw"].to_string(),
+            };
             println!(
-                "{:<36} {:>8}  {}{follow}{detail}",
+                "{:<36} {:>24}  {}{follow}{detail}",
                 v["name"].as_str().unwrap_or("?"),
-                v["raw"],
+                shown,
                 v["outcome"].as_str().unwrap_or("?")
             );
         })?;
         // The last word on each setting: a follow-up settles an unconfirmed one.
-        for (name, _) in group {
-            count += 1;
+        for (name, _) in &named {
             let last = outcomes.iter().rev().find(|v| v["name"] == name.as_str());
-            let ok =
-                last.is_some_and(|v| v["outcome"] == "verified" || v["outcome"] == "unchanged");
-            if !ok {
-                bad += 1;
+            match last.and_then(|v| v["outcome"].as_str()) {
+                Some("verified") => verified += 1,
+                Some("unchanged") => unchanged += 1,
+                _ => bad += 1,
             }
         }
     }
+    let plural = |n: usize| if n == 1 { "" } else { "s" };
+    let summary = match (verified, unchanged) {
+        (v, 0) => format!("{v} setting{} verified", plural(v)),
+        (0, u) => format!(
+            "{u} setting{} already held that value (unchanged)",
+            plural(u)
+        ),
+        (v, u) => format!("{v} setting{} verified, {u} unchanged", plural(v)),
+    };
     if bad > 0 {
         return Err(ToolError::failed(format!(
-            "{bad} of {count} settings not verified on the BMS"
+            "{bad} of {} settings not verified on the BMS ({summary})",
+            items.len()
         )));
     }
-    println!(
-        "{count} setting{} verified",
-        if count == 1 { "" } else { "s" }
-    );
+    println!("{summary}");
     Ok(())
 }
 
-fn record(a: &Args) -> ToolResult<()> {
-    let path = &a.positional[1];
-    let duration = a.duration.unwrap_or(Duration::from_secs(10));
-    let file = std::fs::File::create(path)
+fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
+    let path = file.display().to_string();
+    let f = std::fs::File::create(file)
         .map_err(|e| ToolError::failed(format!("cannot create `{path}`: {e}")))?;
     let header = format!(
         "recorded by tinybms {} from {} at {}",
         env!("CARGO_PKG_VERSION"),
-        a.positional[0],
+        conn.port,
         monitor::utc_now()
     );
-    let writer = CaptureWriter::new(Box::new(std::io::BufWriter::new(file)), &header)
+    let writer = CaptureWriter::new(Box::new(std::io::BufWriter::new(f)), &header)
         .map_err(|e| ToolError::failed(format!("writing `{path}`: {e}")))?;
-    let port = port_arg(a)?;
-    let (serial, mode, probe) = open_and_probe(&port, a.mode.unwrap_or(ModeChoice::Auto))?;
+    let port = conn.port.clone();
+    let (serial, mode, probe) = open_and_probe(&port, choice(conn))?;
     let (mut tx, mut rx) = (0usize, 0usize);
     match (mode, probe) {
         (Mode::Direct, _) => {
@@ -796,8 +793,9 @@ fn record(a: &Args) -> ToolResult<()> {
             let mut c = direct::start(serial, port.clone(), Some(writer))?;
             let _ = c.stream(0);
             let end = Instant::now() + duration;
-            while Instant::now() < end {
-                let _ = c.next_pushed(end.saturating_duration_since(Instant::now()))?;
+            while Instant::now() < end && !interrupted() {
+                let left = end.saturating_duration_since(Instant::now());
+                let _ = c.next_pushed(left.min(Duration::from_millis(200)))?;
             }
             let (t, r) = direct::stop(&mut c)?;
             tx = t as usize;
@@ -812,8 +810,10 @@ fn record(a: &Args) -> ToolResult<()> {
             c.recv_for(req, Instant::now() + client::GET_TIMEOUT, "capture")?;
             let end = Instant::now() + duration;
             let werr = |e: std::io::Error| ToolError::failed(format!("writing `{path}`: {e}"));
-            while Instant::now() < end {
-                let Some(v) = c.next_pushed(end.saturating_duration_since(Instant::now()))? else {
+            // Ctrl-C ends the recording early; capture goes off all the same.
+            while Instant::now() < end && !interrupted() {
+                let left = end.saturating_duration_since(Instant::now());
+                let Some(v) = c.next_pushed(left.min(Duration::from_millis(200)))? else {
                     continue;
                 };
                 if v["type"] != "raw" {
@@ -903,10 +903,31 @@ fn open_and_probe(
     }
 }
 
+fn choice(conn: &Conn) -> ModeChoice {
+    match conn.mode {
+        ModeArg::Auto => ModeChoice::Auto,
+        ModeArg::Bridge => ModeChoice::Bridge,
+        ModeArg::Direct => ModeChoice::Direct,
+    }
+}
+
+/// [`connect`], then waits until the BMS is ready (settings and limits read).
+fn connect_ready(conn: &Conn) -> ToolResult<Client> {
+    let mut c = connect(conn)?;
+    c.wait_ready(conn.timeout)?;
+    Ok(c)
+}
+
 /// Opens the port, detects the mode and returns a client speaking the protocol.
-fn connect(a: &Args) -> ToolResult<Client> {
-    let port = port_arg(a)?;
-    let (serial, mode, probe) = open_and_probe(&port, a.mode.unwrap_or(ModeChoice::Auto))?;
+fn connect(conn: &Conn) -> ToolResult<Client> {
+    let port = conn.port.clone();
+    status(&format!("connecting to {port}…"));
+    let (serial, mode, probe) = open_and_probe(&port, choice(conn))?;
+    if mode == Mode::Direct && conn.mode == ModeArg::Auto {
+        status(&format!(
+            "no bridge answered on {port}: talking to a TinyBMS on it directly (a USB-UART adapter; the firmware's bridge runs in this tool)"
+        ));
+    }
     match (mode, probe) {
         (Mode::Bridge, Some((hello, split))) => Ok(Client::new(
             Box::new(SerialLines::new(serial, split)),

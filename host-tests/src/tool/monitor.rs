@@ -1,5 +1,10 @@
-//! `tinybms monitor`: the live view (ANSI, redrawn in place), JSON Lines, and
-//! the CSV / JSON Lines log.
+//! `tinybms monitor`: the live view (full screen on a terminal, [`super::live`]),
+//! plain text (piped, or `--plain`: no escape codes), JSON Lines, and the CSV /
+//! JSON Lines log; `tinybms log`: the bridge's log lines.
+//!
+//! The picture is redrawn on a timer, not only when a line arrives, so the data
+//! age keeps counting: data older than [`STALE_AFTER`] shows as NO DATA (a
+//! bridge that froze, a cable pulled), a BMS the bridge lost as OFFLINE.
 
 use std::io::Write;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -7,22 +12,25 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use serde_json::{json, Value};
 
 use super::client::Client;
-use super::{ToolError, ToolResult};
+use super::{interrupted, interrupted_error, ToolError, ToolResult};
 
-const BOLD: &str = "\x1b[1m";
-const RED: &str = "\x1b[1;31m";
-const BLUE: &str = "\x1b[1;36m";
-const YELLOW: &str = "\x1b[33m";
-const DIM: &str = "\x1b[2m";
-const RESET: &str = "\x1b[0m";
-/// Cursor home (the screen is redrawn over itself).
-pub const HOME: &str = "\x1b[H";
-/// Clear the whole screen.
-pub const CLEAR: &str = "\x1b[2J";
-/// Clear to the end of the line.
-const EOL: &str = "\x1b[K";
-/// Clear to the end of the screen.
-const EOS: &str = "\x1b[J";
+/// Data older than this is shown as NO DATA.
+pub const STALE_AFTER: Duration = Duration::from_secs(5);
+
+/// How often the picture is redrawn without new data (plain text: how often a
+/// NO DATA line repeats).
+pub const REDRAW: Duration = Duration::from_millis(500);
+
+/// How the monitor shows what it gets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum View {
+    /// Full screen (ratatui), on a terminal.
+    Live,
+    /// Plain text blocks, no escape codes.
+    Plain,
+    /// The telemetry lines.
+    Json,
+}
 
 /// Log file format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -47,8 +55,8 @@ impl LogFormat {
 /// What `monitor` does.
 #[derive(Debug, Clone)]
 pub struct MonitorOptions {
-    /// Print the telemetry lines instead of the screen.
-    pub json: bool,
+    /// How it shows the data.
+    pub view: View,
     /// Log file and format.
     pub log: Option<(String, LogFormat)>,
     /// Log period.
@@ -121,29 +129,97 @@ pub fn link_quality(link: &Value) -> Option<String> {
     ))
 }
 
-/// The screen for one telemetry line (without the cursor-home prefix); every
-/// line ends with clear-to-end-of-line so a redraw leaves no leftovers.
-pub fn render_screen(
-    t: &Value,
-    link: Option<&Value>,
-    header: &str,
-    received_ago: Duration,
-) -> String {
+/// How fresh the picture is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Freshness {
+    /// Data `age` old, the BMS online.
+    Fresh(f64),
+    /// The bridge lost the BMS (its telemetry says offline); data `age` old.
+    Offline(Option<f64>),
+    /// Nothing new for too long: the newest data is `age` old (None: never any).
+    NoData(Option<f64>),
+}
+
+/// The age of `t`'s data now (seconds): its `age_ms` when it arrived plus the
+/// time since.
+pub fn data_age(t: &Value, received_ago: Duration) -> Option<f64> {
+    t["age_ms"]
+        .as_f64()
+        .map(|ms| ms / 1000.0 + received_ago.as_secs_f64())
+}
+
+/// What the picture should say about `t`, received `received_ago`.
+pub fn freshness(t: Option<&Value>, received_ago: Duration) -> Freshness {
+    let Some(t) = t else {
+        return Freshness::NoData(None);
+    };
+    let age = data_age(t, received_ago);
+    let stale = received_ago > STALE_AFTER || age.is_none_or(|a| a > STALE_AFTER.as_secs_f64());
+    if t["online"] != true && !stale {
+        return Freshness::Offline(age);
+    }
+    if stale {
+        if t["online"] != true {
+            return Freshness::Offline(age);
+        }
+        return Freshness::NoData(age);
+    }
+    Freshness::Fresh(age.unwrap_or(0.0))
+}
+
+/// One line about the freshness: `Data age 0.4 s`, `NO DATA (newest 12.0 s
+/// old)`, `OFFLINE (…)`.
+pub fn freshness_text(f: Freshness) -> String {
+    let age = |a: Option<f64>| match a {
+        Some(a) => format!("newest data {a:.1} s old"),
+        None => "no data yet".into(),
+    };
+    match f {
+        Freshness::Fresh(a) => format!("Data age {a:.1} s   online"),
+        Freshness::Offline(a) => format!("OFFLINE: the bridge has lost the BMS ({})", age(a)),
+        Freshness::NoData(a) => format!("NO DATA: nothing new from the port ({})", age(a)),
+    }
+}
+
+/// The lowest and highest cell's index (0-based).
+pub fn min_max(cells: &[f64]) -> Option<(usize, usize)> {
+    let mut it = cells.iter().enumerate();
+    let (_, first) = it.next()?;
+    let (mut lo, mut hi) = ((0, *first), (0, *first));
+    for (k, c) in it {
+        if *c < lo.1 {
+            lo = (k, *c);
+        }
+        if *c > hi.1 {
+            hi = (k, *c);
+        }
+    }
+    Some((lo.0, hi.0))
+}
+
+/// The cell voltages of a telemetry line.
+pub fn cells_of(t: &Value) -> Vec<f64> {
+    t["cell_voltages_v"]
+        .as_array()
+        .map(|a| a.iter().filter_map(Value::as_f64).collect())
+        .unwrap_or_default()
+}
+
+/// The plain-text picture of one telemetry line (no escape codes): what
+/// `monitor` prints when its output is not a terminal, or with `--plain`.
+pub fn render_text(t: &Value, link: Option<&Value>, header: &str, f: Freshness) -> String {
     let mut s = String::new();
     let mut line = |l: String| {
-        s.push_str(&l);
-        s.push_str(EOL);
+        s.push_str(l.trim_end());
         s.push('\n');
     };
-    line(format!("{BOLD}TinyBMS{RESET} {header}"));
-    let online = t["online"] == true;
-    let ready = t["ready"] == true;
+    line(format!("TinyBMS {header}"));
     if t.get("pack_voltage_v").is_none() {
-        line(String::new());
         line(format!(
-            "{YELLOW}no snapshot yet{RESET} (online {online}, ready {ready}): waiting for the BMS..."
+            "no snapshot yet (online {}, ready {}): waiting for the BMS...",
+            t["online"], t["ready"]
         ));
-        s.push_str(EOS);
+        line(freshness_text(f));
         return s;
     }
     let v = num(t, "pack_voltage_v");
@@ -152,26 +228,21 @@ pub fn render_screen(
         (Some(v), Some(i)) => Some(v * i),
         _ => None,
     };
-    line(String::new());
     line(format!(
-        "Pack   {BOLD}{}{RESET}   {BOLD}{}{RESET}   {}      SOC {BOLD}{}{RESET}   SOH {}",
+        "Pack   {}   {}   {}      SOC {}   SOH {}",
         fmt_opt(v, 2, "V"),
         fmt_opt(i, 2, "A"),
         fmt_opt(p, 0, "W"),
         fmt_opt(num(t, "soc_percent"), 1, "%"),
         fmt_opt(num(t, "soh_percent"), 1, "%"),
     ));
-    let status = t["online_status"].as_str().unwrap_or("-");
-    let status = match status {
-        "fault" => format!("{RED}{status}{RESET}"),
-        _ => format!("{BOLD}{status}{RESET}"),
-    };
     let temp = |k: &str| match t[k].as_f64() {
         Some(x) => format!("{x:.1} °C"),
-        None => "n/c".into(),
+        None => "not connected".into(),
     };
     line(format!(
-        "Status {status}   Temperatures: internal {}  external {} / {}",
+        "Status {}   Temperatures: internal {}  external {} / {}",
+        t["online_status"].as_str().unwrap_or("-"),
         temp("internal_temperature_c"),
         temp("external_temperature_1_c"),
         temp("external_temperature_2_c"),
@@ -188,71 +259,41 @@ pub fn render_screen(
             life % 60
         ));
     }
-    line(String::new());
-    let cells: Vec<f64> = t["cell_voltages_v"]
-        .as_array()
-        .map(|a| a.iter().filter_map(Value::as_f64).collect())
-        .unwrap_or_default();
+    let cells = cells_of(t);
     let balancing = t["real_balancing_bits"].as_u64().unwrap_or(0);
-    let (mut min_i, mut max_i) = (0, 0);
-    for (k, c) in cells.iter().enumerate() {
-        if *c < cells[min_i] {
-            min_i = k;
-        }
-        if *c > cells[max_i] {
-            max_i = k;
-        }
-    }
-    if let (Some(lo), Some(hi)) = (cells.get(min_i), cells.get(max_i)) {
+    if let Some((lo, hi)) = min_max(&cells) {
         line(format!(
-            "Cells ({})  min {BLUE}#{} {:.4} V{RESET}  max {RED}#{} {:.4} V{RESET}  spread {:.1} mV   (* balancing)",
+            "Cells ({})  lowest #{} {:.4} V  highest #{} {:.4} V  spread {:.1} mV   (< lowest, > highest, * balancing)",
             cells.len(),
-            min_i + 1,
-            lo,
-            max_i + 1,
-            hi,
-            (hi - lo) * 1000.0
+            lo + 1,
+            cells[lo],
+            hi + 1,
+            cells[hi],
+            (cells[hi] - cells[lo]) * 1000.0
         ));
-    }
-    for row in cells.chunks(4).enumerate() {
-        let mut l = String::from(" ");
-        for (j, c) in row.1.iter().enumerate() {
-            let k = row.0 * 4 + j;
-            let mark = if balancing >> k & 1 == 1 { '*' } else { ' ' };
-            let color = if cells.len() > 1 && k == max_i {
-                RED
-            } else if cells.len() > 1 && k == min_i {
-                BLUE
-            } else {
-                ""
-            };
-            let end = if color.is_empty() { "" } else { RESET };
-            l.push_str(&format!("  {:>2} {color}{c:.4} V{end}{mark}", k + 1));
+        for (r, row) in cells.chunks(4).enumerate() {
+            let mut l = String::from(" ");
+            for (j, c) in row.iter().enumerate() {
+                let k = r * 4 + j;
+                let mark = match (k == lo && cells.len() > 1, k == hi && cells.len() > 1) {
+                    (true, _) => '<',
+                    (_, true) => '>',
+                    _ => ' ',
+                };
+                let bal = if balancing >> k & 1 == 1 { '*' } else { ' ' };
+                l.push_str(&format!("  {:>2} {c:.4} V{mark}{bal}", k + 1));
+            }
+            line(l);
         }
-        line(l);
     }
-    line(String::new());
-    let age = t["age_ms"]
-        .as_f64()
-        .map(|ms| ms / 1000.0 + received_ago.as_secs_f64());
     let flagged = match t["flagged"].as_str() {
-        Some(f) => format!("   {RED}flagged: {f}{RESET}"),
+        Some(fl) => format!("   flagged: {fl}"),
         None => String::new(),
     };
-    let online = if online {
-        String::from("online")
-    } else {
-        format!("{RED}OFFLINE{RESET}")
-    };
-    line(format!(
-        "Data age {}   seq {}   {online}{flagged}",
-        fmt_opt(age, 1, "s"),
-        t["seq"]
-    ));
+    line(format!("{}   seq {}{flagged}", freshness_text(f), t["seq"]));
     if let Some(q) = link.and_then(link_quality) {
-        line(format!("{DIM}Link {q}{RESET}"));
+        line(format!("Link {q}"));
     }
-    s.push_str(EOS);
     s
 }
 
@@ -307,7 +348,7 @@ pub fn csv_row(time: &str, t: &Value, cells: usize) -> String {
     row
 }
 
-struct Logger {
+pub(crate) struct Logger {
     path: String,
     out: std::io::BufWriter<std::fs::File>,
     format: LogFormat,
@@ -317,7 +358,7 @@ struct Logger {
 }
 
 impl Logger {
-    fn log(&mut self, t: &Value) -> ToolResult<bool> {
+    pub(crate) fn log(&mut self, t: &Value) -> ToolResult<bool> {
         if Instant::now() < self.next || t.get("pack_voltage_v").is_none() {
             return Ok(false);
         }
@@ -361,7 +402,8 @@ impl Logger {
     }
 }
 
-/// Runs the monitor until `--count`, `--duration` or Ctrl-C.
+/// Runs the monitor until `--count`, `--duration`, `q` or Ctrl-C; the bridge
+/// gets its own stream period back in every case.
 pub fn run(client: &mut Client, o: &MonitorOptions) -> ToolResult<()> {
     let mut logger = match &o.log {
         None => None,
@@ -386,55 +428,78 @@ pub fn run(client: &mut Client, o: &MonitorOptions) -> ToolResult<()> {
     client.stream(o.period_ms)?;
     // A first picture at once, without waiting for the first push; a BMS that
     // does not answer is explained here rather than shown as an empty screen.
-    let first = client.wait_ready(o.ready_timeout)?;
-    client.pushed.push_front(first);
-    if !o.json {
-        let stdout = std::io::stdout();
-        let mut out = stdout.lock();
-        let _ = write!(out, "{CLEAR}{HOME}");
-        let _ = out.flush();
-    }
-    let result = watch(client, o, &mut logger, end);
+    let result = match client.wait_ready(o.ready_timeout) {
+        Ok(first) => {
+            client.pushed.push_front(first);
+            match o.view {
+                View::Live => super::live::run(client, o, &mut logger, end),
+                _ => watch(client, o, &mut logger, end),
+            }
+        }
+        Err(e) => Err(e),
+    };
     // A bridge keeps streaming at whatever period it was last asked for: give
-    // it back the one it announced.
+    // it back the one it announced (also after Ctrl-C).
     if let Some(p) = client.hello["stream_period_ms"].as_u64() {
         let _ = client.stream(p as u32);
     }
     result
 }
 
+/// Plain text and JSON Lines: a picture per telemetry line, and between lines
+/// a NO DATA / OFFLINE line when the data gets old.
 fn watch(
     client: &mut Client,
     o: &MonitorOptions,
     logger: &mut Option<Logger>,
     end: Option<Instant>,
 ) -> ToolResult<()> {
-    let screen = !o.json;
     let stdout = std::io::stdout();
     let header = format!("monitor — {} — {}", client.port, client.mode.describe());
     let mut link: Option<Value> = None;
     let mut next_link = Instant::now();
     let mut updates = 0u64;
+    let mut last: Option<(Value, Instant)> = None;
+    let mut stale_said: Option<Instant> = None;
     loop {
+        if interrupted() {
+            return Err(interrupted_error());
+        }
         if end.is_some_and(|e| Instant::now() >= e) || o.count.is_some_and(|c| updates >= c) {
             break;
         }
-        if screen && Instant::now() >= next_link {
+        if o.view == View::Plain && Instant::now() >= next_link {
             link = client.get_one("link").ok();
             next_link = Instant::now() + Duration::from_secs(5);
         }
-        let wait = end.map_or(Duration::from_secs(1), |e| {
-            e.saturating_duration_since(Instant::now())
-                .min(Duration::from_secs(1))
+        let wait = end.map_or(REDRAW, |e| {
+            e.saturating_duration_since(Instant::now()).min(REDRAW)
         });
-        let Some(v) = client.next_pushed(wait)? else {
+        let got = client.next_pushed(wait)?;
+        let Some(mut v) = got.filter(|v| v["type"] == "telemetry") else {
+            // No new data: say so once it is old (every 10 s while it stays so).
+            let f = freshness(
+                last.as_ref().map(|(t, _)| t),
+                last.as_ref().map_or(Duration::MAX, |(_, at)| at.elapsed()),
+            );
+            if matches!(f, Freshness::NoData(_))
+                && last.is_some()
+                && stale_said.is_none_or(|t| t.elapsed() >= Duration::from_secs(10))
+            {
+                stale_said = Some(Instant::now());
+                let text = freshness_text(f);
+                let mut out = stdout.lock();
+                if o.view == View::Json {
+                    let _ = writeln!(out, "{}", json!({"type": "no_data", "detail": text}));
+                } else {
+                    let _ = writeln!(out, "{text}");
+                }
+                let _ = out.flush();
+            }
             continue;
         };
-        if v["type"] != "telemetry" {
-            continue;
-        }
+        stale_said = None;
         // The first picture answered our `get`: print it like the pushes.
-        let mut v = v;
         if let Some(m) = v.as_object_mut() {
             m.shift_remove("req");
         }
@@ -443,21 +508,56 @@ fn watch(
         if let Some(l) = logger.as_mut() {
             counted |= l.log(&v)?;
         }
-        if o.json {
-            let mut out = stdout.lock();
+        let mut out = stdout.lock();
+        if o.view == View::Json {
             let _ = writeln!(out, "{v}");
-            let _ = out.flush();
             counted = true;
-        } else if screen {
-            let text = render_screen(&v, link.as_ref(), &header, received.elapsed());
-            let mut out = stdout.lock();
-            let _ = write!(out, "{HOME}{text}");
-            let _ = out.flush();
+        } else {
+            let f = freshness(Some(&v), received.elapsed());
+            let _ = writeln!(out, "{}", render_text(&v, link.as_ref(), &header, f));
             counted |= logger.is_none();
         }
+        let _ = out.flush();
+        drop(out);
+        last = Some((v, received));
         if counted {
             updates += 1;
         }
     }
     Ok(())
+}
+
+/// `tinybms log`: the bridge's `log` lines as they come, until `duration` or
+/// Ctrl-C. Telemetry is switched off meanwhile (and given back after).
+pub fn log(client: &mut Client, duration: Option<Duration>) -> ToolResult<()> {
+    client.stream(0)?;
+    let end = duration.map(|d| Instant::now() + d);
+    let stdout = std::io::stdout();
+    let result = loop {
+        if interrupted() {
+            break Err(interrupted_error());
+        }
+        if end.is_some_and(|e| Instant::now() >= e) {
+            break Ok(());
+        }
+        match client.next_pushed(Duration::from_millis(200)) {
+            Err(e) => break Err(e),
+            Ok(Some(v)) if v["type"] == "log" => {
+                let mut out = stdout.lock();
+                let _ = writeln!(
+                    out,
+                    "{}  {:<4}  {}",
+                    &utc_now()[11..23],
+                    v["level"].as_str().unwrap_or("?"),
+                    v["text"].as_str().unwrap_or("")
+                );
+                let _ = out.flush();
+            }
+            Ok(_) => {}
+        }
+    };
+    if let Some(p) = client.hello["stream_period_ms"].as_u64() {
+        let _ = client.stream(p as u32);
+    }
+    result
 }

@@ -2,7 +2,7 @@
 //! text format `host_tests::profile` reads), the difference before an apply,
 //! and the `NAME=VALUE` arguments of `set`.
 
-use protocol_core::registers::option_name;
+use protocol_core::registers::{option_name, ValueType};
 use protocol_core::settings::SettingId;
 use serde_json::Value;
 use tinybms_firmware::units;
@@ -24,6 +24,24 @@ pub fn short(x: f64) -> String {
 /// value's name.
 pub fn physical(id: SettingId, raw: i64) -> String {
     match id.register() {
+        // Flags: the names of the bits set (`none`), then the number.
+        Some(r) if r.value_type == ValueType::Bits && !r.options.is_empty() => {
+            let names: Vec<&str> = r
+                .options
+                .iter()
+                .filter(|(bit, _)| *bit < 63 && raw >> bit & 1 == 1)
+                .map(|(_, n)| *n)
+                .collect();
+            let known: i64 = r.options.iter().map(|(bit, _)| 1i64 << bit).sum();
+            if raw & !known != 0 || raw < 0 {
+                return raw.to_string();
+            }
+            if names.is_empty() {
+                format!("none ({raw})")
+            } else {
+                format!("{} ({raw})", names.join(" + "))
+            }
+        }
         Some(r) => {
             if let Some(name) = u16::try_from(raw).ok().and_then(|v| option_name(r, v)) {
                 if !r.options.is_empty() {
@@ -117,11 +135,219 @@ pub fn render_table(lines: &[Value]) -> String {
     out
 }
 
+/// The groups of settings, as in the BMS's own tool (Battery Insider).
+pub const GROUPS: &[(&str, &[SettingId])] = {
+    use SettingId::*;
+    &[
+        (
+            "Battery",
+            &[
+                FullyChargedVoltage,
+                FullyDischargedVoltage,
+                BatteryCapacity,
+                NumberOfSeriesCells,
+                BatteryMaximumCycles,
+                StateOfHealth,
+                StateOfCharge,
+            ],
+        ),
+        (
+            "Safety",
+            &[
+                OverVoltageCutoff,
+                UnderVoltageCutoff,
+                DischargeOverCurrentCutoff,
+                DischargeOverCurrentTimeout,
+                PeakDischargeCurrentCutoff,
+                ChargeOverCurrentCutoff,
+                OverHeatCutoff,
+                LowTemperatureChargerCutoff,
+                AutomaticRecovery,
+            ],
+        ),
+        ("Balancing", &[EarlyBalancingThreshold, AllowedDisbalance]),
+        (
+            "Charger",
+            &[
+                ChargerType,
+                ChargerSwitchType,
+                ChargerDetection,
+                ChargerStartupDelay,
+                ChargerDisableDelay,
+                ChargeFinishedCurrent,
+                ChargeRestartLevel,
+                PrechargePin,
+                PrechargeDuration,
+            ],
+        ),
+        ("Current sensor and flags", &[ConfigurationFlags]),
+        (
+            "Peripherals",
+            &[
+                LoadSwitchType,
+                SinglePortSwitchType,
+                Ignition,
+                SpeedSensorInput,
+                PulsesPerUnit,
+                DistanceUnit,
+                TemperatureSensorType,
+            ],
+        ),
+        (
+            "Communication and mode",
+            &[BroadcastTime, Protocol, OperationMode],
+        ),
+    ]
+};
+
+/// The `settings` table in [`GROUPS`], one heading per group; a setting in no
+/// group (none today: a test checks) comes last under "Other".
+pub fn render_groups(lines: &[Value]) -> String {
+    let name_of = |l: &Value| l["name"].as_str().and_then(find_setting);
+    let mut out = String::new();
+    let mut shown = 0;
+    let mut groups: Vec<(&str, Vec<Value>)> = GROUPS
+        .iter()
+        .map(|(g, ids)| {
+            let rows = ids
+                .iter()
+                .filter_map(|id| lines.iter().find(|l| name_of(l) == Some(*id)).cloned())
+                .collect();
+            (*g, rows)
+        })
+        .collect();
+    let other: Vec<Value> = lines
+        .iter()
+        .filter(|l| l["type"] == "setting")
+        .filter(|l| {
+            !GROUPS
+                .iter()
+                .any(|(_, ids)| name_of(l).is_some_and(|id| ids.contains(&id)))
+        })
+        .cloned()
+        .collect();
+    groups.push(("Other", other));
+    // One width for all groups, so the columns line up down the page.
+    let all: Vec<Value> = groups.iter().flat_map(|(_, r)| r.iter().cloned()).collect();
+    let table = render_table(&all);
+    let mut rows = table.lines();
+    let header = rows.next().unwrap_or("");
+    out.push_str(header);
+    out.push('\n');
+    for (g, r) in &groups {
+        if r.is_empty() {
+            continue;
+        }
+        out.push_str(&format!("\n{g}\n"));
+        for _ in r {
+            if let Some(row) = rows.next() {
+                out.push_str("  ");
+                out.push_str(row);
+                out.push('\n');
+                shown += 1;
+            }
+        }
+    }
+    let _ = shown;
+    out
+}
+
+/// Checks every (setting, raw value) as the bridge will before it writes
+/// anything: Rev D's range and enumeration, and the BMS's own min/max as the
+/// bridge reported them in `current` (its `setting` lines). `bare`: settings
+/// whose value was a plain number taken in the unit `settings` prints — a
+/// refusal then says what the number would be as a raw value. All problems
+/// at once, or Ok.
+pub fn check_all(
+    current: &[Value],
+    items: &[(SettingId, i32)],
+    bare: Option<&[SettingId]>,
+) -> Result<(), String> {
+    use protocol_core::settings::Setting;
+    let mut problems = Vec::new();
+    for &(id, raw) in items {
+        let name = snake_name(id);
+        let line = current
+            .iter()
+            .find(|l| l["type"] == "setting" && l["name"] == name.as_str());
+        let unit = id.register().map_or("", |r| r.unit);
+        let phys = |x: Option<f64>| x.map(|v| format!("{} {unit}", short(v)).trim().to_string());
+        let bms = line.and_then(|l| {
+            let lo = l["bms_min"].as_f64()?;
+            let hi = l["bms_max"].as_f64()?;
+            let lo = tinybms_firmware::units::raw_from_physical(id, lo)?;
+            let hi = tinybms_firmware::units::raw_from_physical(id, hi)?;
+            Some((lo, hi))
+        });
+        let verdict = Setting::new(id, raw).and_then(|s| s.validate_with(bms));
+        if let Err(e) = verdict {
+            let range = match (id.register().and_then(|r| r.range), bms) {
+                (Some((lo, hi)), Some((bl, bh))) => format!(
+                    "Rev D {}..{}, this BMS {}..{}",
+                    physical(id, i64::from(lo)),
+                    physical(id, i64::from(hi)),
+                    physical(id, i64::from(bl)),
+                    physical(id, i64::from(bh))
+                ),
+                (Some((lo, hi)), None) => format!(
+                    "Rev D {}..{}",
+                    physical(id, i64::from(lo)),
+                    physical(id, i64::from(hi))
+                ),
+                _ => String::new(),
+            };
+            let why = match e.reason() {
+                "out_of_rev_d_range" => "outside Rev D's range",
+                "outside_bms_limits" => "outside this BMS's own limits",
+                "not_an_option" => "not one of its values",
+                other => other,
+            };
+            let mut msg = format!(
+                "{name} = {}: {why}{}",
+                physical(id, i64::from(raw)),
+                if range.is_empty() {
+                    String::new()
+                } else {
+                    format!(" ({range})")
+                }
+            );
+            // A number meant in raw units? Say so when it would fit.
+            if bare.is_some_and(|b| b.contains(&id)) {
+                if let Some(shown) = line.and_then(|_| {
+                    let v = tinybms_firmware::units::physical(id, raw)?.as_f64();
+                    let as_raw = v.round() as i32;
+                    (f64::from(as_raw) == v
+                        && Setting::new(id, as_raw)
+                            .and_then(|s| s.validate_with(bms))
+                            .is_ok())
+                    .then(|| (as_raw, physical(id, i64::from(as_raw))))
+                }) {
+                    msg.push_str(&format!(
+                        "; did you mean the raw value {} ({})? add --raw, or give the unit",
+                        shown.0, shown.1
+                    ));
+                }
+            }
+            let _ = phys;
+            problems.push(msg);
+        }
+    }
+    if problems.is_empty() {
+        Ok(())
+    } else {
+        Err(format!(
+            "nothing written; refused:\n  {}",
+            problems.join("\n  ")
+        ))
+    }
+}
+
 /// A profile of the settings read (`name = raw  # physical`), readable by
 /// `host_tests::profile::parse_profile` (and so by `apply` and `sim --profile`).
 /// Settings that read back a marker instead of their value are left as
 /// comments.
-pub fn profile_text(lines: &[Value], header: &str) -> String {
+pub fn profile_text(lines: &[Value], header: &str) -> (String, usize) {
+    let mut saved = 0;
     let mut out = String::new();
     for l in header.lines() {
         out.push_str(&format!("# {l}\n"));
@@ -139,11 +365,14 @@ pub fn profile_text(lines: &[Value], header: &str) -> String {
             Some(id) if id.reads_back_marker() => out.push_str(&format!(
                 "# {name} = {raw}  # not saved: this register reads back a marker, not its value\n"
             )),
-            Some(id) => out.push_str(&format!("{name} = {raw}  # {}\n", physical(id, raw))),
+            Some(id) => {
+                saved += 1;
+                out.push_str(&format!("{name} = {raw}  # {}\n", physical(id, raw)))
+            }
             None => out.push_str(&format!("# {name} = {raw}  # unknown to this tool\n")),
         }
     }
-    out
+    (out, saved)
 }
 
 /// One setting an apply would change.
@@ -200,50 +429,54 @@ pub fn render_diff(changes: &[Change], unchanged: usize) -> String {
     out
 }
 
-/// Parses one `set` argument. With `raw`, `NAME=INTEGER` in register units;
-/// otherwise `NAME=NUMBER[UNIT]` in the unit `settings` prints for it (the unit
-/// suffix is optional and must be that unit, e.g. `over_voltage_cutoff=3.65V`).
-/// Returns the snake_case name and the number.
-pub fn parse_set_arg(arg: &str, raw: bool) -> Result<(String, f64), String> {
+/// Parses one `set` argument: `NAME=VALUE`. With `raw`, VALUE is an integer in
+/// register units. Otherwise VALUE is in the unit `settings` prints for the
+/// setting (a plain number: `3.65`), with a unit (`3.65V`, `3650mV`), or an
+/// enumeration value's name (`CC/CV`); converted exactly, as a profile's
+/// values are (`tinybms_firmware::bms::profile::parse_value`). Returns the
+/// setting, its raw value, and whether the value was a plain number.
+pub fn parse_set_arg(arg: &str, raw: bool) -> Result<(SettingId, i32, bool), String> {
+    use tinybms_firmware::bms::profile::parse_value;
     let (name, value) = arg
         .split_once('=')
         .ok_or_else(|| format!("`{arg}`: expected NAME=VALUE"))?;
-    let id = find_setting(name).ok_or_else(|| {
-        format!(
-            "`{}`: no such setting (`tinybms settings PORT` lists them)",
-            name.trim()
-        )
-    })?;
+    let Some(id) = find_setting(name) else {
+        let names: Vec<&str> = SettingId::ALL
+            .iter()
+            .map(|&i| tinybms_firmware::bms::profile::setting_key(i))
+            .collect();
+        return Err(match super::suggest(name.trim(), &names) {
+            Some(s) => format!("`{}`: no such setting; did you mean `{s}`?", name.trim()),
+            None => format!(
+                "`{}`: no such setting (`tinybms settings PORT` lists them)",
+                name.trim()
+            ),
+        });
+    };
     let value = value.trim();
+    let forms = crate::profile::value_forms(id);
     if raw {
-        let v: i64 = value
-            .parse()
-            .map_err(|_| format!("`{value}`: --raw values are integers in register units"))?;
-        return Ok((snake_name(id), v as f64));
+        let v: i32 = value.parse().map_err(|_| {
+            format!(
+                "`{value}`: --raw values are integers in register units ({})",
+                snake_name(id)
+            )
+        })?;
+        return Ok((id, v, false));
     }
     let unit = id.register().map_or("", |r| r.unit);
-    let end = value
-        .find(|c: char| !(c.is_ascii_digit() || c == '.' || c == '-' || c == '+' || c == 'e'))
-        .unwrap_or(value.len());
-    let (number, suffix) = value.split_at(end);
-    let suffix = suffix.trim();
-    if !suffix.is_empty() && suffix != unit && !(unit == "°C" && suffix == "C") {
-        return Err(format!(
-            "`{value}`: {} is set in {} (e.g. `{}=12{}`), or give --raw register units",
-            snake_name(id),
-            if unit.is_empty() {
-                "plain numbers".to_string()
-            } else {
-                format!("`{unit}`")
-            },
-            snake_name(id),
-            unit
-        ));
-    }
-    let v: f64 = number
-        .parse()
-        .map_err(|_| format!("`{value}` is not a number"))?;
-    Ok((snake_name(id), v))
+    let plain = !value.is_empty()
+        && value
+            .chars()
+            .all(|c| c.is_ascii_digit() || matches!(c, '.' | '-' | '+'));
+    let text = if plain && !unit.is_empty() {
+        format!("{value} {unit}")
+    } else {
+        value.to_string()
+    };
+    parse_value(id, &text)
+        .map(|v| (id, v, plain))
+        .map_err(|k| format!("`{value}`: {} ({}: {forms})", k.reason(), snake_name(id)))
 }
 
 #[cfg(test)]
@@ -262,7 +495,8 @@ mod tests {
             line("over_voltage_cutoff", 3650, 3.65, "V"),
             line("under_voltage_cutoff", 2700, 2.7, "V"),
         ];
-        let text = profile_text(&lines, "saved by a test");
+        let (text, saved) = profile_text(&lines, "saved by a test");
+        assert_eq!(saved, 2);
         assert!(
             text.contains("over_voltage_cutoff = 3650  # 3.65 V"),
             "{text}"
@@ -314,24 +548,47 @@ mod tests {
 
     #[test]
     fn set_arguments() {
+        use SettingId::*;
+        let ok = |a: &str, raw: bool| parse_set_arg(a, raw).map(|(id, v, _)| (id, v));
         assert_eq!(
-            parse_set_arg("over_voltage_cutoff=3.6V", false).unwrap(),
-            ("over_voltage_cutoff".into(), 3.6)
+            ok("over_voltage_cutoff=3.6V", false),
+            Ok((OverVoltageCutoff, 3600))
         );
         assert_eq!(
-            parse_set_arg("Over-Voltage Cutoff=3.6", false).unwrap(),
-            ("over_voltage_cutoff".into(), 3.6)
+            ok("over_voltage_cutoff=3.6", false),
+            Ok((OverVoltageCutoff, 3600))
         );
-        assert!(parse_set_arg("over_voltage_cutoff=3600mV", false)
+        assert_eq!(
+            ok("over_voltage_cutoff=3600mV", false),
+            Ok((OverVoltageCutoff, 3600))
+        );
+        assert_eq!(
+            ok("Over-Voltage Cutoff=3.6", false),
+            Ok((OverVoltageCutoff, 3600))
+        );
+        assert_eq!(ok("charger_type=CC/CV", false), Ok((ChargerType, 1)));
+        assert_eq!(
+            ok("distance_unit=Kilometer (2)", false),
+            Ok((DistanceUnit, 2))
+        );
+        assert_eq!(
+            ok("over_voltage_cutoff=3600", true),
+            Ok((OverVoltageCutoff, 3600))
+        );
+        // A plain number is physical: 3600 is 3600 V (range check refuses it later).
+        assert_eq!(
+            ok("over_voltage_cutoff=3600", false),
+            Ok((OverVoltageCutoff, 3_600_000))
+        );
+        assert!(parse_set_arg("over_voltage_cutoff=3.6005", false)
             .unwrap_err()
-            .contains("`V`"));
-        assert_eq!(
-            parse_set_arg("over_voltage_cutoff=3600", true).unwrap().1,
-            3600.0
-        );
-        assert!(parse_set_arg("nope=1", false)
+            .contains("steps of 0.001 V"));
+        assert!(parse_set_arg("over_voltage_cutoff=3.6A", false)
             .unwrap_err()
-            .contains("no such"));
+            .contains("in V or mV"));
+        assert!(parse_set_arg("over_volatge_cutoff=3.6", false)
+            .unwrap_err()
+            .contains("did you mean `over_voltage_cutoff`"));
         assert!(parse_set_arg("x", false).is_err());
     }
 

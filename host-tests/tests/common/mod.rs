@@ -73,9 +73,22 @@ impl std::fmt::Display for Out {
     }
 }
 
+/// The `tinybms` binary under test: this build's, or `TINYBMS_BIN` (to show
+/// that a test fails on an older build).
+pub fn tinybms_bin() -> String {
+    std::env::var("TINYBMS_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_tinybms").to_string())
+}
+
 /// Runs `tinybms args`, with `input` on stdin, killed after [`RUN_LIMIT`].
 pub fn tinybms_with_input(args: &[&str], input: &str) -> Out {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_tinybms"))
+    tinybms_limited(args, input, RUN_LIMIT)
+        .unwrap_or_else(|| panic!("tinybms {args:?} did not finish within {RUN_LIMIT:?}"))
+}
+
+/// Runs `tinybms args`, with `input` on stdin; `None` when it had not
+/// finished after `limit` (then it is killed).
+pub fn tinybms_limited(args: &[&str], input: &str, limit: Duration) -> Option<Out> {
+    let mut child = Command::new(tinybms_bin())
         .args(args)
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
@@ -102,18 +115,18 @@ pub fn tinybms_with_input(args: &[&str], input: &str) -> Out {
         if let Some(s) = child.try_wait().unwrap() {
             break s;
         }
-        if start.elapsed() > RUN_LIMIT {
+        if start.elapsed() > limit {
             let _ = child.kill();
             let _ = child.wait();
-            panic!("tinybms {args:?} did not finish within {RUN_LIMIT:?}");
+            return None;
         }
         std::thread::sleep(Duration::from_millis(20));
     };
-    Out {
+    Some(Out {
         code: status.code().unwrap_or(-1),
         stdout: String::from_utf8_lossy(&t_out.join().unwrap()).into_owned(),
         stderr: String::from_utf8_lossy(&t_err.join().unwrap()).into_owned(),
-    }
+    })
 }
 
 pub fn tinybms(args: &[&str]) -> Out {

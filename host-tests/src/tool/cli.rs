@@ -1,0 +1,313 @@
+//! The command line of `tinybms`, declared with clap: per-command help and
+//! options, unknown or misplaced options refused, suggestions for typos, shell
+//! completions (`tinybms completions bash`).
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use clap::{Args, Parser, Subcommand, ValueEnum};
+
+use crate::realtime::parse_duration;
+
+fn duration(s: &str) -> Result<Duration, String> {
+    parse_duration(s)
+}
+
+/// tinybms — read and configure a TinyBMS, through the ESP32 bridge or directly.
+///
+/// PORT is the serial port: the bridge's USB port (`tinybms ports` lists them),
+/// or a USB-UART adapter wired to the TinyBMS (115200 8N1; then the firmware's
+/// bridge runs inside this tool). Durations: 500ms, 10s, 5m, 1h.
+///
+/// Exit status: 0 ok, 1 failed (a write not verified...), 2 usage error,
+/// 3 cannot reach the device, 130 interrupted (Ctrl-C).
+#[derive(Debug, Parser)]
+#[command(name = "tinybms", version, max_term_width = 100)]
+pub struct Cli {
+    /// What to do.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// How to reach the BMS: every command with a PORT has these.
+#[derive(Debug, Clone, Args)]
+pub struct Conn {
+    /// The serial port (see `tinybms ports`).
+    #[arg(value_name = "PORT")]
+    pub port: String,
+    /// auto: a bridge answers `{"cmd":"hello"}`; when nothing does, the port is
+    /// taken to be a USB-UART adapter wired to the TinyBMS.
+    #[arg(long, value_enum, default_value_t = ModeArg::Auto)]
+    pub mode: ModeArg,
+    /// How long to wait for the BMS to be ready.
+    #[arg(long, value_parser = duration, default_value = "15s", value_name = "D")]
+    pub timeout: Duration,
+}
+
+/// `--mode`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ModeArg {
+    /// A bridge if one answers, else direct.
+    Auto,
+    /// Only a bridge (the ESP32's USB port, or `sim --bridge-pty`).
+    Bridge,
+    /// A TinyBMS on a USB-UART adapter.
+    Direct,
+}
+
+/// The monitor's log format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum FormatArg {
+    /// One row per record, cells as columns.
+    Csv,
+    /// The telemetry line with a `time` member.
+    Jsonl,
+}
+
+/// The commands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// List the serial ports.
+    Ports,
+    /// Live view: cells (lowest and highest marked, balancing), pack, SOC/SOH,
+    /// temperatures, status, the age of the data, link quality.
+    ///
+    /// On a terminal a full-screen view (q quits); piped, plain text. The data
+    /// age keeps counting between updates: data older than 5 s shows as NO DATA.
+    Monitor {
+        #[command(flatten)]
+        conn: Conn,
+        /// Print the telemetry lines (JSON Lines) instead.
+        #[arg(long, conflicts_with = "plain")]
+        json: bool,
+        /// Plain text, also on a terminal (no full-screen view, no colours).
+        #[arg(long)]
+        plain: bool,
+        /// Also log to FILE (CSV, or JSON Lines for .jsonl/.json).
+        #[arg(long, value_name = "FILE")]
+        log: Option<PathBuf>,
+        /// Log period.
+        #[arg(long, value_parser = duration, default_value = "10s", value_name = "D", requires = "log")]
+        every: Duration,
+        /// Log format (default: from the file's extension).
+        #[arg(long, value_enum, requires = "log")]
+        format: Option<FormatArg>,
+        /// Telemetry period asked of the bridge (100ms to 60s); the bridge's own
+        /// comes back when the monitor ends, Ctrl-C included.
+        #[arg(long, value_parser = duration, default_value = "1s", value_name = "D")]
+        period: Duration,
+        /// Stop after N updates.
+        #[arg(long, value_name = "N")]
+        count: Option<u64>,
+        /// Stop after D.
+        #[arg(long, value_parser = duration, value_name = "D")]
+        duration: Option<Duration>,
+    },
+    /// The bridge's own log lines, as they come (its reports, the inverter
+    /// output's, Wi-Fi and MQTT).
+    Log {
+        #[command(flatten)]
+        conn: Conn,
+        /// Stop after D.
+        #[arg(long, value_parser = duration, value_name = "D")]
+        duration: Option<Duration>,
+    },
+    /// Every setting, grouped as in the BMS's own tool: value, raw, Rev D range,
+    /// the BMS's min/max.
+    Settings {
+        #[command(flatten)]
+        conn: Conn,
+        /// Write them to FILE as a profile (`name = raw  # physical`).
+        #[arg(long, value_name = "FILE", conflicts_with = "json")]
+        save: Option<PathBuf>,
+        /// Print the `setting` lines (JSON Lines) instead.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Show what a profile changes, then write and verify each setting.
+    Apply {
+        #[command(flatten)]
+        conn: Conn,
+        /// The profile (`name = value` lines; values raw, with a unit, or a name).
+        #[arg(value_name = "FILE")]
+        file: PathBuf,
+        /// Check everything, write nothing.
+        #[arg(long)]
+        dry_run: bool,
+        /// Do not ask for confirmation.
+        #[arg(long, short)]
+        yes: bool,
+    },
+    /// Write and verify settings: NAME=VALUE, VALUE in the unit `settings`
+    /// prints (3.65 or 3.65V or 3650mV), or an enumeration value's name.
+    Set {
+        #[command(flatten)]
+        conn: Conn,
+        /// NAME=VALUE, at least one.
+        #[arg(value_name = "NAME=VALUE", required = true)]
+        assignments: Vec<String>,
+        /// VALUE in raw register units instead (3650).
+        #[arg(long)]
+        raw: bool,
+        /// Check everything, write nothing.
+        #[arg(long)]
+        dry_run: bool,
+        /// Do not ask for confirmation.
+        #[arg(long, short)]
+        yes: bool,
+    },
+    /// The BMS's event log, oldest first, with the wall-clock time.
+    Events {
+        #[command(flatten)]
+        conn: Conn,
+        /// Print the `event` lines (JSON Lines) instead.
+        #[arg(long)]
+        json: bool,
+    },
+    /// The statistics (registers 100-117).
+    Stats {
+        #[command(flatten)]
+        conn: Conn,
+        /// Print the `statistics` line (JSON) instead.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Hardware/firmware version, serial number.
+    Version {
+        #[command(flatten)]
+        conn: Conn,
+        /// Print the `version` line (JSON) instead.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Restart the BMS (asks for confirmation).
+    Reset {
+        #[command(flatten)]
+        conn: Conn,
+        /// Do not ask for confirmation.
+        #[arg(long, short)]
+        yes: bool,
+    },
+    /// Clear the BMS's event log (asks for confirmation).
+    ClearEvents {
+        #[command(flatten)]
+        conn: Conn,
+        /// Do not ask for confirmation.
+        #[arg(long, short)]
+        yes: bool,
+    },
+    /// Clear the BMS's statistics (asks for confirmation).
+    ClearStats {
+        #[command(flatten)]
+        conn: Conn,
+        /// Do not ask for confirmation.
+        #[arg(long, short)]
+        yes: bool,
+    },
+    /// Record the raw UART exchange as a capture `replay` reads.
+    Record {
+        #[command(flatten)]
+        conn: Conn,
+        /// The capture file (`.tbms`).
+        #[arg(value_name = "FILE.tbms")]
+        file: PathBuf,
+        /// How long.
+        #[arg(long, value_parser = duration, default_value = "10s", value_name = "D")]
+        duration: Duration,
+    },
+    /// The bridge's own configuration (kept in its flash): every field, one
+    /// field explained (NAME), or changes (NAME=VALUE..., a unit may be given:
+    /// 50A), saved to the bridge's flash.
+    Config {
+        #[command(flatten)]
+        conn: Conn,
+        /// NAME, or NAME=VALUE...
+        #[arg(value_name = "NAME[=VALUE]")]
+        args: Vec<String>,
+        /// Write the configuration to FILE (secrets left out).
+        #[arg(long, value_name = "FILE", conflicts_with_all = ["load", "reset", "args"])]
+        save: Option<PathBuf>,
+        /// Show what FILE changes, then change it.
+        #[arg(long, value_name = "FILE", conflicts_with_all = ["reset", "args"])]
+        load: Option<PathBuf>,
+        /// With --load: show the changes only.
+        #[arg(long, requires = "load")]
+        dry_run: bool,
+        /// Every field back to its default.
+        #[arg(long, conflicts_with = "args")]
+        reset: bool,
+        /// Do not ask for confirmation.
+        #[arg(long, short)]
+        yes: bool,
+    },
+    /// The Wi-Fi network: asks for its passphrase and stores the WPA2 key
+    /// derived from it (never the passphrase itself). Applies at the next restart.
+    Wifi {
+        #[command(flatten)]
+        conn: Conn,
+        /// The network's name.
+        #[arg(long, value_name = "NAME")]
+        ssid: String,
+    },
+    /// The MQTT broker (and user: asks for the password). Applies at the next
+    /// restart.
+    Mqtt {
+        #[command(flatten)]
+        conn: Conn,
+        /// Host name or IPv4 address.
+        #[arg(long, value_name = "HOST")]
+        host: String,
+        /// TCP port.
+        #[arg(
+            long = "port",
+            id = "tcp_port",
+            value_name = "P",
+            default_value_t = 1883
+        )]
+        tcp_port: u16,
+        /// User name at the broker (asks for its password).
+        #[arg(long, value_name = "U")]
+        user: Option<String>,
+    },
+    /// Shell completions: `tinybms completions bash > /etc/bash_completion.d/tinybms`.
+    Completions {
+        /// bash, zsh, fish, elvish or powershell.
+        #[arg(value_enum)]
+        shell: clap_complete::Shell,
+    },
+}
+
+impl Command {
+    /// The connection options, for the commands that have a PORT.
+    pub fn conn(&self) -> Option<&Conn> {
+        match self {
+            Command::Ports | Command::Completions { .. } => None,
+            Command::Monitor { conn, .. }
+            | Command::Log { conn, .. }
+            | Command::Settings { conn, .. }
+            | Command::Apply { conn, .. }
+            | Command::Set { conn, .. }
+            | Command::Events { conn, .. }
+            | Command::Stats { conn, .. }
+            | Command::Version { conn, .. }
+            | Command::Reset { conn, .. }
+            | Command::ClearEvents { conn, .. }
+            | Command::ClearStats { conn, .. }
+            | Command::Record { conn, .. }
+            | Command::Config { conn, .. }
+            | Command::Wifi { conn, .. }
+            | Command::Mqtt { conn, .. } => Some(conn),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    #[test]
+    fn the_command_line_is_consistent() {
+        Cli::command().debug_assert();
+    }
+}

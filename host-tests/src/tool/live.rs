@@ -1,0 +1,461 @@
+//! `tinybms monitor` on a terminal: a full-screen live view (ratatui) —
+//! every cell as a bar with the lowest and highest marked and balancing
+//! shown, the pack, a few minutes of pack voltage and current as sparklines,
+//! and how fresh the data is (NO DATA / OFFLINE), redrawn on a timer.
+//! `q`, Esc or Ctrl-C quits (the bridge gets its stream period back).
+//!
+//! [`draw`] only reads a [`LiveState`]: the tests render it into ratatui's
+//! `TestBackend` and read the buffer.
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
+use ratatui::layout::{Constraint, Layout, Rect};
+use ratatui::style::{Color, Modifier, Style};
+use ratatui::text::{Line, Span};
+use ratatui::widgets::{Block, Borders, Paragraph, Sparkline};
+use ratatui::Frame;
+use serde_json::Value;
+
+use super::client::Client;
+use super::monitor::{
+    cells_of, freshness, freshness_text, link_quality, min_max, Freshness, Logger, MonitorOptions,
+    REDRAW,
+};
+use super::{interrupted, interrupted_error, ToolResult};
+
+/// How much history the sparklines show.
+pub const HISTORY: Duration = Duration::from_secs(300);
+
+/// What the view shows.
+#[derive(Debug, Default)]
+pub struct LiveState {
+    /// `PORT — mode`.
+    pub header: String,
+    /// The newest telemetry line and when it arrived.
+    pub telemetry: Option<(Value, Instant)>,
+    /// The newest `link` line.
+    pub link: Option<Value>,
+    /// (when, pack V, pack A), oldest first, [`HISTORY`] long.
+    pub history: VecDeque<(Instant, f64, f64)>,
+    /// The bridge's latest log lines (`log` lines), oldest first.
+    pub logs: VecDeque<String>,
+}
+
+/// Log lines the view keeps.
+pub const LOG_LINES: usize = 3;
+
+impl LiveState {
+    /// One of the bridge's log lines.
+    pub fn log(&mut self, level: &str, text: &str) {
+        if self.logs.len() >= LOG_LINES {
+            self.logs.pop_front();
+        }
+        self.logs.push_back(format!("{level:<4} {text}"));
+    }
+
+    /// A new telemetry line.
+    pub fn update(&mut self, t: Value, now: Instant) {
+        if let (Some(v), Some(i)) = (t["pack_voltage_v"].as_f64(), t["pack_current_a"].as_f64()) {
+            self.history.push_back((now, v, i));
+        }
+        while self
+            .history
+            .front()
+            .is_some_and(|(at, _, _)| now.duration_since(*at) > HISTORY)
+        {
+            self.history.pop_front();
+        }
+        self.telemetry = Some((t, now));
+    }
+}
+
+fn num(t: &Value, k: &str, decimals: usize, unit: &str) -> String {
+    match t[k].as_f64() {
+        Some(x) => format!("{x:.decimals$} {unit}"),
+        None => "-".into(),
+    }
+}
+
+/// Sparkline values: `x` scaled into 0..=100 over the window's min..max.
+fn scaled(xs: &[f64]) -> Vec<u64> {
+    let lo = xs.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let span = (hi - lo).max(1e-9);
+    xs.iter()
+        .map(|x| (1.0 + 99.0 * (x - lo) / span).round() as u64)
+        .collect()
+}
+
+/// Draws the view of `s` at `now`.
+pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
+    let area = f.area();
+    let fresh = freshness(
+        s.telemetry.as_ref().map(|(t, _)| t),
+        s.telemetry
+            .as_ref()
+            .map_or(Duration::MAX, |(_, at)| now.saturating_duration_since(*at)),
+    );
+    let alarm = Style::new()
+        .fg(Color::White)
+        .bg(Color::Red)
+        .add_modifier(Modifier::BOLD);
+    let [top, pack, cells_area, spark_area, foot, log_area] = Layout::vertical([
+        Constraint::Length(1),
+        Constraint::Length(3),
+        Constraint::Min(4),
+        Constraint::Length(6),
+        Constraint::Length(2),
+        Constraint::Length(if s.logs.is_empty() {
+            0
+        } else {
+            1 + LOG_LINES as u16
+        }),
+    ])
+    .areas(area);
+    if !s.logs.is_empty() {
+        let lines: Vec<Line> = s.logs.iter().map(|l| Line::raw(l.clone())).collect();
+        f.render_widget(
+            Paragraph::new(lines)
+                .block(Block::new().borders(Borders::TOP).title("The bridge's log")),
+            log_area,
+        );
+    }
+    let state = match fresh {
+        Freshness::Fresh(_) => {
+            Span::styled(" online ", Style::new().fg(Color::Black).bg(Color::Green))
+        }
+        Freshness::Offline(_) => Span::styled(" OFFLINE ", alarm),
+        Freshness::NoData(_) => Span::styled(" NO DATA ", alarm),
+    };
+    f.render_widget(
+        Paragraph::new(Line::from(vec![
+            Span::styled("TinyBMS ", Style::new().add_modifier(Modifier::BOLD)),
+            Span::raw(format!("{}  ", s.header)),
+            state,
+            Span::raw("   q quits"),
+        ])),
+        top,
+    );
+    let Some((t, _)) = s.telemetry.as_ref() else {
+        f.render_widget(Paragraph::new("waiting for the first data..."), pack);
+        return;
+    };
+    // Pack, status, temperatures.
+    let p = match (t["pack_voltage_v"].as_f64(), t["pack_current_a"].as_f64()) {
+        (Some(v), Some(i)) => format!("{:.0} W", v * i),
+        _ => "-".into(),
+    };
+    let temp = |k: &str| match t[k].as_f64() {
+        Some(x) => format!("{x:.1} °C"),
+        None => "not connected".into(),
+    };
+    let status = t["online_status"].as_str().unwrap_or("-");
+    let status_style = if status == "fault" {
+        alarm
+    } else {
+        Style::new().add_modifier(Modifier::BOLD)
+    };
+    let bold = Style::new().add_modifier(Modifier::BOLD);
+    let lines = vec![
+        Line::from(vec![
+            Span::raw("Pack "),
+            Span::styled(num(t, "pack_voltage_v", 2, "V"), bold),
+            Span::raw("  "),
+            Span::styled(num(t, "pack_current_a", 2, "A"), bold),
+            Span::raw(format!("  {p}   SOC ")),
+            Span::styled(num(t, "soc_percent", 1, "%"), bold),
+            Span::raw(format!("   SOH {}", num(t, "soh_percent", 1, "%"))),
+        ]),
+        Line::from(vec![
+            Span::raw("Status "),
+            Span::styled(status.to_string(), status_style),
+            Span::raw(format!(
+                "   internal {}   external {} / {}",
+                temp("internal_temperature_c"),
+                temp("external_temperature_1_c"),
+                temp("external_temperature_2_c")
+            )),
+        ]),
+    ];
+    f.render_widget(
+        Paragraph::new(lines).block(Block::new().borders(Borders::TOP)),
+        pack,
+    );
+    draw_cells(f, t, cells_area);
+    // Sparklines.
+    let [vs, is] = Layout::horizontal([Constraint::Percentage(50), Constraint::Percentage(50)])
+        .areas(spark_area);
+    let volts: Vec<f64> = s.history.iter().map(|(_, v, _)| *v).collect();
+    let amps: Vec<f64> = s.history.iter().map(|(_, _, i)| *i).collect();
+    let range = |xs: &[f64], unit: &str| {
+        let lo = xs.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        if xs.is_empty() {
+            String::new()
+        } else {
+            format!(" {lo:.2}..{hi:.2} {unit}")
+        }
+    };
+    for (area, xs, title, unit) in [
+        (vs, &volts, "Pack voltage", "V"),
+        (is, &amps, "Current", "A"),
+    ] {
+        let w = area.width.saturating_sub(2) as usize;
+        let data = scaled(xs);
+        let data = &data[data.len().saturating_sub(w)..];
+        f.render_widget(
+            Sparkline::default()
+                .block(Block::bordered().title(format!(
+                    "{title}, last {} min{}",
+                    HISTORY.as_secs() / 60,
+                    range(xs, unit)
+                )))
+                .data(data)
+                .max(100)
+                .style(Style::new().fg(Color::Cyan)),
+            area,
+        );
+    }
+    // Freshness and link.
+    let mut foot_lines = vec![Line::from(vec![
+        Span::styled(
+            freshness_text(fresh),
+            if matches!(fresh, Freshness::Fresh(_)) {
+                Style::new()
+            } else {
+                alarm
+            },
+        ),
+        Span::raw(format!("   seq {}", t["seq"])),
+        Span::styled(
+            t["flagged"]
+                .as_str()
+                .map(|fl| format!("   flagged: {fl}"))
+                .unwrap_or_default(),
+            alarm,
+        ),
+    ])];
+    if let Some(q) = s.link.as_ref().and_then(link_quality) {
+        foot_lines.push(Line::styled(
+            format!("Link {q}"),
+            Style::new().add_modifier(Modifier::DIM),
+        ));
+    }
+    f.render_widget(Paragraph::new(foot_lines), foot);
+}
+
+/// Every cell as a bar (scaled over the pack's own spread), the lowest blue,
+/// the highest red, a `*` where the BMS balances.
+fn draw_cells(f: &mut Frame, t: &Value, area: Rect) {
+    let cells = cells_of(t);
+    let balancing = t["real_balancing_bits"].as_u64().unwrap_or(0);
+    let Some((lo_i, hi_i)) = min_max(&cells) else {
+        return;
+    };
+    let (lo, hi) = (cells[lo_i], cells[hi_i]);
+    let title = format!(
+        "Cells ({})  lowest #{} {:.4} V  highest #{} {:.4} V  spread {:.1} mV  (* balancing)",
+        cells.len(),
+        lo_i + 1,
+        lo,
+        hi_i + 1,
+        hi,
+        (hi - lo) * 1000.0
+    );
+    let block = Block::new().borders(Borders::TOP).title(title);
+    let inner = block.inner(area);
+    f.render_widget(block, area);
+    let columns: usize = if inner.height as usize >= cells.len() {
+        1
+    } else {
+        2
+    };
+    let per_col = cells.len().div_ceil(columns);
+    let col_w = (inner.width as usize / columns).max(20);
+    let bar_w = col_w.saturating_sub(18).max(1);
+    // The bars start a little below the lowest cell so it still shows.
+    let floor = lo - ((hi - lo).max(0.002) * 0.25);
+    let mut lines: Vec<Line> = Vec::new();
+    for row in 0..per_col {
+        let mut spans = Vec::new();
+        for col in 0..columns {
+            let k = col * per_col + row;
+            let Some(c) = cells.get(k) else { continue };
+            let frac = ((c - floor) / (hi - floor).max(1e-9)).clamp(0.0, 1.0);
+            let n = (frac * bar_w as f64).round() as usize;
+            let color = if cells.len() > 1 && k == hi_i {
+                Color::Red
+            } else if cells.len() > 1 && k == lo_i {
+                Color::Blue
+            } else {
+                Color::Green
+            };
+            let mark = if balancing >> k & 1 == 1 { '*' } else { ' ' };
+            spans.push(Span::raw(format!("{:>2} {c:.4} V{mark} ", k + 1)));
+            spans.push(Span::styled("█".repeat(n), Style::new().fg(color)));
+            spans.push(Span::raw(" ".repeat(bar_w - n + 1)));
+        }
+        lines.push(Line::from(spans));
+    }
+    f.render_widget(Paragraph::new(lines), inner);
+}
+
+/// Runs the live view until `q`/Esc/Ctrl-C, `--count` or `--duration`.
+pub(super) fn run(
+    client: &mut Client,
+    o: &MonitorOptions,
+    logger: &mut Option<Logger>,
+    end: Option<Instant>,
+) -> ToolResult<()> {
+    let mut s = LiveState {
+        header: format!("{} — {}", client.port, client.mode.describe()),
+        ..LiveState::default()
+    };
+    let mut terminal = ratatui::init();
+    let result = (|| -> ToolResult<()> {
+        let mut updates = 0u64;
+        let mut next_link = Instant::now();
+        let mut next_draw = Instant::now();
+        loop {
+            if interrupted() {
+                return Err(interrupted_error());
+            }
+            if end.is_some_and(|e| Instant::now() >= e) || o.count.is_some_and(|c| updates >= c) {
+                return Ok(());
+            }
+            if Instant::now() >= next_link {
+                s.link = client.get_one("link").ok();
+                next_link = Instant::now() + Duration::from_secs(5);
+            }
+            // Keys (raw mode: Ctrl-C is a key here, not a signal).
+            while event::poll(Duration::ZERO).unwrap_or(false) {
+                if let Ok(Event::Key(k)) = event::read() {
+                    let ctrl_c =
+                        k.code == KeyCode::Char('c') && k.modifiers.contains(KeyModifiers::CONTROL);
+                    if k.kind == KeyEventKind::Press
+                        && (ctrl_c || matches!(k.code, KeyCode::Char('q') | KeyCode::Esc))
+                    {
+                        return Ok(());
+                    }
+                }
+            }
+            if let Some(mut v) = client.next_pushed(Duration::from_millis(50))? {
+                if v["type"] == "log" {
+                    s.log(
+                        v["level"].as_str().unwrap_or("?"),
+                        v["text"].as_str().unwrap_or(""),
+                    );
+                    next_draw = Instant::now();
+                }
+                if v["type"] == "telemetry" {
+                    if let Some(m) = v.as_object_mut() {
+                        m.shift_remove("req");
+                    }
+                    if let Some(l) = logger.as_mut() {
+                        l.log(&v)?;
+                    }
+                    s.update(v, Instant::now());
+                    updates += 1;
+                    next_draw = Instant::now();
+                }
+            }
+            if Instant::now() >= next_draw {
+                let now = Instant::now();
+                let _ = terminal.draw(|f| draw(f, &s, now));
+                next_draw = now + REDRAW;
+            }
+        }
+    })();
+    ratatui::restore();
+    result
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ratatui::backend::TestBackend;
+    use ratatui::Terminal;
+    use serde_json::json;
+
+    fn screen(s: &LiveState, now: Instant) -> String {
+        let mut term = Terminal::new(TestBackend::new(100, 40)).unwrap();
+        term.draw(|f| draw(f, s, now)).unwrap();
+        let buf = term.backend().buffer().clone();
+        let mut out = String::new();
+        for y in 0..buf.area.height {
+            for x in 0..buf.area.width {
+                out.push_str(buf[(x, y)].symbol());
+            }
+            out.push('\n');
+        }
+        out
+    }
+
+    fn telemetry(online: bool) -> Value {
+        json!({"type":"telemetry","seq":7,"age_ms":200,"online":online,"ready":true,
+            "pack_voltage_v":52.9,"pack_current_a":-10.0,"soc_percent":65.0,"soh_percent":97.0,
+            "cell_voltages_v":[3.30,3.31,3.29,3.305],"cell_count":4,
+            "internal_temperature_c":27.0,"external_temperature_1_c":null,
+            "external_temperature_2_c":24.8,"online_status":"discharging",
+            "real_balancing_bits":2,"flagged":null})
+    }
+
+    #[test]
+    fn cells_pack_and_freshness_are_on_the_screen() {
+        let t0 = Instant::now();
+        let mut s = LiveState {
+            header: "/dev/x — through the bridge".into(),
+            ..LiveState::default()
+        };
+        s.update(telemetry(true), t0);
+        let text = screen(&s, t0 + Duration::from_millis(300));
+        assert!(
+            text.contains("52.90 V") && text.contains("-10.00 A"),
+            "{text}"
+        );
+        assert!(text.contains("lowest #3 3.2900 V"), "{text}");
+        assert!(text.contains("highest #2 3.3100 V"), "{text}");
+        assert!(text.contains(" 2 3.3100 V*"), "balancing mark: {text}");
+        assert!(text.contains("not connected"), "{text}");
+        assert!(text.contains("Data age 0.5 s"), "{text}");
+        assert!(text.contains(" online "), "{text}");
+        assert!(!text.contains("NO DATA"), "{text}");
+    }
+
+    /// The age keeps counting without new lines; past 5 s the view says NO
+    /// DATA (a frozen bridge sends nothing that could say so).
+    #[test]
+    fn old_data_is_no_data_and_a_lost_bms_is_offline() {
+        let t0 = Instant::now();
+        let mut s = LiveState::default();
+        s.update(telemetry(true), t0);
+        let text = screen(&s, t0 + Duration::from_secs(3));
+        assert!(text.contains("Data age 3.2 s"), "{text}");
+        let text = screen(&s, t0 + Duration::from_secs(9));
+        assert!(text.contains("NO DATA"), "{text}");
+        assert!(text.contains("newest data 9.2 s old"), "{text}");
+        let mut s = LiveState::default();
+        s.update(telemetry(false), t0);
+        s.log("warn", "BMS offline after 3 failed requests");
+        let text = screen(&s, t0 + Duration::from_millis(100));
+        assert!(text.contains("OFFLINE"), "{text}");
+        assert!(
+            text.contains("warn BMS offline after 3 failed requests"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn history_is_kept_for_five_minutes() {
+        let t0 = Instant::now();
+        let mut s = LiveState::default();
+        for k in 0..400u64 {
+            s.update(telemetry(true), t0 + Duration::from_secs(k));
+        }
+        assert!(s.history.len() <= 301, "{}", s.history.len());
+        let text = screen(&s, t0 + Duration::from_secs(400));
+        assert!(text.contains("Pack voltage, last 5 min"), "{text}");
+    }
+}

@@ -1,0 +1,347 @@
+//! The desktop tool as a newcomer meets it, end to end (the built `tinybms`
+//! against `sim --pty` and `sim --bridge-pty`): every way it could mislead or
+//! hang that a first session found, each with the behaviour it has now. Run
+//! with `TINYBMS_BIN=<an older tinybms>` to see them fail there.
+//!
+//! Every wait is bounded; nothing asserts on timing.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+
+use std::io::Read;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+mod common;
+use common::*;
+
+/// `tinybms apply FILE PORT` (swapped) waited forever reading the port as a
+/// profile; now it says the order.
+#[test]
+fn apply_with_port_and_file_swapped_says_so_instead_of_hanging() {
+    let sim = Sim::start(&["--bridge-pty"]);
+    let profile = tmp("swapped.txt");
+    std::fs::write(&profile, "charger_startup_delay = 21\n").unwrap();
+    let o = tinybms_limited(
+        &["apply", profile.to_str().unwrap(), &sim.path, "--dry-run"],
+        "",
+        Duration::from_secs(30),
+    )
+    .expect("tinybms apply FILE PORT hangs");
+    assert_eq!(o.code, 2, "{o}");
+    assert!(
+        o.stderr.contains("the order is `tinybms apply PORT FILE`"),
+        "{o}"
+    );
+}
+
+/// Options that belong to another command are refused (they were silently
+/// accepted: `stats PORT --save x.txt` exited 0 and wrote nothing).
+#[test]
+fn misplaced_options_are_refused_and_typos_get_a_suggestion() {
+    let save = tmp("never-written.txt");
+    for args in [
+        vec!["stats", "/dev/null", "--save", save.to_str().unwrap()],
+        vec!["version", "/dev/null", "--dry-run"],
+        vec!["version", "/dev/null", "--raw"],
+        vec!["events", "/dev/null", "--log", "f"],
+        vec!["monitor", "/dev/null", "--every", "5s"],
+    ] {
+        let o = tinybms(&args);
+        assert_eq!(o.code, 2, "{args:?}: {o}");
+        assert!(
+            o.stderr.contains("unexpected argument") || o.stderr.contains("required"),
+            "{o}"
+        );
+    }
+    assert!(!save.exists());
+    let o = tinybms(&["monitr", "/dev/null"]);
+    assert_eq!(o.code, 2, "{o}");
+    assert!(o.stderr.contains("'monitor'"), "{o}");
+    let o = tinybms(&["set", "/dev/null", "over_volatge_cutoff=3.6"]);
+    assert_eq!(o.code, 2, "{o}");
+    assert!(
+        o.stderr.contains("did you mean `over_voltage_cutoff`"),
+        "{o}"
+    );
+    let o = tinybms(&["completions", "bash"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(
+        o.stdout.contains("tinybms") && o.stdout.contains("monitor"),
+        "{o}"
+    );
+}
+
+/// A plain number is taken in the unit `settings` prints: `3600` for a
+/// voltage is 3600 V — refused with the range, and the hint that 3600 raw is
+/// 3.6 V. Enumeration names and unit suffixes are accepted.
+#[test]
+fn a_refused_value_shows_the_range_and_the_raw_hint_and_names_are_accepted() {
+    let sim = Sim::start(&["--pty"]);
+    let o = tinybms(&["set", &sim.path, "over_voltage_cutoff=3600"]);
+    assert_eq!(o.code, 1, "{o}");
+    assert!(o.stderr.contains("Rev D 1.2 V..4.5 V"), "{o}");
+    assert!(
+        o.stderr.contains("raw value 3600 (3.6 V)? add --raw"),
+        "{o}"
+    );
+    let o = tinybms(&[
+        "set",
+        &sim.path,
+        "charger_type=CC/CV",
+        "over_voltage_cutoff=3600mV",
+    ]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("CC/CV (1)"), "{o}");
+}
+
+/// `--dry-run` checks what the real run checks (a value out of range showed a
+/// diff and exit 0; the real apply was then refused), and a setting twice in
+/// a profile is an error (it was taken silently, and miscounted).
+#[test]
+fn dry_run_checks_ranges_and_a_setting_twice_is_an_error() {
+    let sim = Sim::start(&["--pty"]);
+    let bad = tmp("out-of-range.txt");
+    std::fs::write(&bad, "over_voltage_cutoff = 9999\n").unwrap();
+    let o = tinybms(&["apply", &sim.path, bad.to_str().unwrap(), "--dry-run"]);
+    assert_eq!(o.code, 1, "{o}");
+    assert!(o.stderr.contains("outside Rev D's range"), "{o}");
+    let twice = tmp("twice.txt");
+    std::fs::write(
+        &twice,
+        "charger_startup_delay = 21\ncharger_startup_delay = 22\n",
+    )
+    .unwrap();
+    let o = tinybms(&["apply", &sim.path, twice.to_str().unwrap(), "--dry-run"]);
+    assert_eq!(o.code, 2, "{o}");
+    assert!(o.stderr.contains("given twice (also on line 1)"), "{o}");
+    let units = tmp("units.txt");
+    std::fs::write(
+        &units,
+        "over_voltage_cutoff = 3.61 V\ncharger_type = CC/CV\n",
+    )
+    .unwrap();
+    let o = tinybms(&["apply", &sim.path, units.to_str().unwrap(), "--dry-run"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("3610 (3.61 V)"), "{o}");
+}
+
+/// Right after `set … → verified`, `settings` through the bridge shows the new
+/// value (it showed the old one for ~2 s, so a second apply showed the same
+/// diff again); `unchanged` is counted as unchanged, not as verified.
+#[test]
+fn settings_right_after_a_write_and_unchanged_counted_as_such() {
+    let sim = Sim::start(&["--bridge-pty"]);
+    let o = tinybms(&["set", &sim.path, "--raw", "charger_startup_delay=23"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("1 setting verified"), "{o}");
+    let o = tinybms(&["settings", &sim.path, "--json"]);
+    assert_eq!(o.code, 0, "{o}");
+    let lines = json_lines(&o.stdout);
+    let l = lines
+        .iter()
+        .find(|l| l["name"] == "charger_startup_delay")
+        .unwrap_or_else(|| panic!("{o}"));
+    assert_eq!(l["raw"], 23, "{l}");
+    let o = tinybms(&["set", &sim.path, "charger_startup_delay=23s"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(
+        o.stdout.contains("already held that value (unchanged)"),
+        "{o}"
+    );
+    assert!(!o.stdout.contains("verified\n1 setting verified"), "{o}");
+}
+
+/// `settings --save` counts what it saved (it said 38 when 2 were comments),
+/// settings are grouped, configuration flags shown by their bits' names.
+#[test]
+fn settings_are_grouped_and_the_save_count_is_what_was_saved() {
+    let sim = Sim::start(&["--pty"]);
+    let file = tmp("saved.txt");
+    let o = tinybms(&["settings", &sim.path, "--save", file.to_str().unwrap()]);
+    assert_eq!(o.code, 0, "{o}");
+    for g in [
+        "\nBattery\n",
+        "\nSafety\n",
+        "\nBalancing\n",
+        "\nCharger\n",
+        "\nPeripherals\n",
+    ] {
+        assert!(o.stdout.contains(g), "{g}: {o}");
+    }
+    let text = std::fs::read_to_string(&file).unwrap();
+    let saved = text
+        .lines()
+        .filter(|l| !l.trim_start().starts_with('#') && l.contains('='))
+        .count();
+    assert!(
+        o.stdout.contains(&format!("saved {saved} settings")),
+        "{saved}: {o}"
+    );
+    let flags = o
+        .stdout
+        .lines()
+        .find(|l| l.contains("configuration_flags"))
+        .unwrap();
+    assert!(
+        flags.contains("none (0)") || flags.contains(" + ") || flags.contains("Enable"),
+        "{flags}"
+    );
+}
+
+/// `--json` on settings, stats, events and version; events with the
+/// wall-clock time from the BMS's clock.
+#[test]
+fn json_on_every_listing_and_events_with_wall_clock_time() {
+    let sim = Sim::start(&["--bridge-pty"]);
+    for cmd in ["settings", "stats", "version", "events"] {
+        let o = tinybms(&[cmd, &sim.path, "--json"]);
+        assert_eq!(o.code, 0, "{cmd}: {o}");
+        let lines = json_lines(&o.stdout);
+        assert!(!lines.is_empty() || cmd == "events", "{cmd}: {o}");
+    }
+    let o = tinybms(&["events", &sim.path, "--json"]);
+    for e in json_lines(&o.stdout) {
+        assert!(
+            e["time"].as_str().is_some_and(|t| t.starts_with("20")),
+            "{e}"
+        );
+    }
+    let o = tinybms(&["events", &sim.path]);
+    assert_eq!(o.code, 0, "{o}");
+    if !o.stdout.contains("no events") {
+        let first = o.stdout.lines().next().unwrap();
+        assert!(first.starts_with("20") && first.contains("BMS"), "{o}");
+    }
+}
+
+/// The monitor keeps counting the data's age: a bridge that freezes (no byte
+/// for 20 s) is shown as NO DATA (it kept showing `Data age 0.2 s … online`);
+/// in direct mode, a BMS that falls silent as OFFLINE.
+#[test]
+fn the_monitor_shows_no_data_and_offline_when_the_data_stops() {
+    let bridge = std::thread::spawn(|| {
+        let sim = Sim::start(&["--bridge-pty", "--freeze", "5s+20s"]);
+        tinybms(&[
+            "monitor",
+            &sim.path,
+            "--duration",
+            "14s",
+            "--period",
+            "500ms",
+        ])
+    });
+    let sim = Sim::start(&["--pty", "--freeze", "5s+30s"]);
+    let o = tinybms(&[
+        "monitor",
+        &sim.path,
+        "--duration",
+        "20s",
+        "--period",
+        "500ms",
+    ]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("OFFLINE"), "{o}");
+    let o = bridge.join().unwrap();
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("Data age"), "{o}");
+    assert!(o.stdout.contains("NO DATA"), "{o}");
+}
+
+/// A silent port: something is said at once and while it waits (16.8 s of
+/// blank screen before).
+#[test]
+fn a_silent_port_says_what_it_is_doing_while_it_waits() {
+    let sim = Sim::start(&["--pty", "--freeze", "0s+600s"]);
+    let o = tinybms(&["monitor", &sim.path, "--timeout", "8s"]);
+    assert_eq!(o.code, 3, "{o}");
+    assert!(
+        o.stderr.starts_with(&format!("connecting to {}", sim.path)),
+        "{o}"
+    );
+    assert!(o.stderr.contains("waiting for the BMS ("), "{o}");
+    assert!(o.stderr.contains("nothing answers"), "{o}");
+}
+
+/// `tinybms log` prints the bridge's own log lines.
+#[test]
+fn log_prints_the_bridges_log_lines() {
+    let sim = Sim::start(&["--bridge-pty"]);
+    let o = tinybms(&["log", &sim.path, "--duration", "12s"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("  info  pack "), "{o}");
+}
+
+/// Ctrl-C in `monitor --period 200ms` gives the bridge its own period back (it
+/// kept streaming every 200 ms); the exit status says it was interrupted.
+#[test]
+fn ctrl_c_gives_the_bridge_its_stream_period_back() {
+    let sim = Sim::start(&["--bridge-pty", "--stream-period", "2s"]);
+    let mut child = Command::new(tinybms_bin())
+        .args(["monitor", &sim.path, "--period", "200ms", "--plain"])
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut out = child.stdout.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = out.read_to_string(&mut s);
+        s
+    });
+    // Until it shows data (bounded), then SIGINT.
+    std::thread::sleep(Duration::from_secs(6));
+    // SAFETY: kill(2) on our own child's pid.
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let start = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(30),
+            "no exit after Ctrl-C"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let shown = reader.join().unwrap();
+    assert!(shown.contains("Data age"), "{shown}");
+    assert_eq!(status.code(), Some(130), "{shown}");
+    // Now listen to the pty without saying hello (a new session would reset
+    // the period by itself): telemetry every 2 s, not every 200 ms.
+    let mut port = serialport::new(&sim.path, 115_200)
+        .timeout(Duration::from_millis(100))
+        .open()
+        .unwrap();
+    let mut buf = [0u8; 4096];
+    let mut text = Vec::new();
+    let end = Instant::now() + Duration::from_secs(5);
+    while Instant::now() < end {
+        if let Ok(n) = port.read(&mut buf) {
+            text.extend_from_slice(&buf[..n]);
+        }
+    }
+    let text = String::from_utf8_lossy(&text);
+    let telemetry = text.matches("\"type\":\"telemetry\"").count();
+    assert!(
+        telemetry <= 4,
+        "{telemetry} telemetry lines in 5 s: still streaming fast"
+    );
+}
+
+/// `cargo tinybms` works inside `firmware/` (the README sends people there to
+/// flash): the alias runs the host tool for this computer, not the chip.
+#[test]
+fn cargo_tinybms_works_inside_firmware() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let config = std::fs::read_to_string(root.join("firmware/.cargo/config.toml")).unwrap();
+    let alias = config
+        .lines()
+        .find(|l| l.starts_with("tinybms = "))
+        .expect("no tinybms alias in firmware/.cargo/config.toml");
+    assert!(
+        alias.contains("--manifest-path ../host-tests/Cargo.toml"),
+        "{alias}"
+    );
+    assert!(alias.contains("--target host-tuple"), "{alias}");
+    assert!(root.join("firmware/../host-tests/Cargo.toml").exists());
+}
