@@ -9,8 +9,8 @@
 # feature set (can, host-link), as the default build and the aliases — except a
 # log-uart image of a board whose host link runs on UART0 (only `can`).
 # Then every board once more with Wi-Fi and MQTT (feature `wifi`, log-rtt), held
-# to the budget of its own (WIFI_FLASH_BUDGET_KIB, default 1024; WIFI_RAM_BUDGET_KIB,
-# default 256: the radio's heap included).
+# to size-report.sh's budget for Wi-Fi images (WIFI_FLASH_BUDGET_KIB, default 1024;
+# WIFI_RAM_BUDGET_KIB, default 256: the radio's heap included).
 # Images are kept as target/boards/tinybms-firmware-<board>-<log>[-wifi].elf.
 # Exit status: 0 = all built and within budget; 1 = some image over budget;
 # anything else = a build or tool failure.
@@ -51,11 +51,7 @@ for entry in $boards; do
         cargo build --release --quiet --no-default-features --features "$board,$variant,$rest" --target "$target"
         elf="$out/tinybms-firmware-$board-${variant/,/-}.elf"
         cp "target/$target/release/tinybms-firmware" "$elf"
-        budget=()
-        if [[ $variant == *wifi* ]]; then
-            budget=(FLASH_BUDGET_KIB="${WIFI_FLASH_BUDGET_KIB:-1024}" RAM_BUDGET_KIB="${WIFI_RAM_BUDGET_KIB:-256}")
-        fi
-        if report=$(env "${budget[@]}" ./size-report.sh "$elf"); then :; else
+        if report=$(./size-report.sh "$elf"); then :; else
             rc=$?
             status=$(( rc > status ? rc : status ))
         fi
