@@ -26,8 +26,8 @@ use protocol_core::decoder::Decoder;
 use protocol_core::request::Request;
 use protocol_core::response::Response;
 use protocol_core::views::LiveSnapshot;
-use tinybms_firmware::bridge::snapshot_line;
 use tinybms_firmware::bms::timing::Timing;
+use tinybms_firmware::bridge::snapshot_line;
 use tinybms_firmware::{Action, Bridge, Step};
 
 static TRACE: &[u8] = include_bytes!("../trace.bin");
