@@ -154,17 +154,15 @@ pub fn freshness(t: Option<&Value>, received_ago: Duration) -> Freshness {
         return Freshness::NoData(None);
     };
     let age = data_age(t, received_ago);
-    let stale = received_ago > STALE_AFTER || age.is_none_or(|a| a > STALE_AFTER.as_secs_f64());
-    if t["online"] != true && !stale {
+    if t["online"] != true {
         return Freshness::Offline(age);
     }
+    let stale = received_ago > STALE_AFTER || age.is_none_or(|a| a > STALE_AFTER.as_secs_f64());
     if stale {
-        if t["online"] != true {
-            return Freshness::Offline(age);
-        }
-        return Freshness::NoData(age);
+        Freshness::NoData(age)
+    } else {
+        Freshness::Fresh(age.unwrap_or(0.0))
     }
-    Freshness::Fresh(age.unwrap_or(0.0))
 }
 
 /// One line about the freshness: `Data age 0.4 s`, `NO DATA (newest 12.0 s

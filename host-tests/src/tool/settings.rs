@@ -205,7 +205,6 @@ pub const GROUPS: &[(&str, &[SettingId])] = {
 pub fn render_groups(lines: &[Value]) -> String {
     let name_of = |l: &Value| l["name"].as_str().and_then(find_setting);
     let mut out = String::new();
-    let mut shown = 0;
     let mut groups: Vec<(&str, Vec<Value>)> = GROUPS
         .iter()
         .map(|(g, ids)| {
@@ -244,11 +243,9 @@ pub fn render_groups(lines: &[Value]) -> String {
                 out.push_str("  ");
                 out.push_str(row);
                 out.push('\n');
-                shown += 1;
             }
         }
     }
-    let _ = shown;
     out
 }
 
@@ -270,8 +267,6 @@ pub fn check_all(
         let line = current
             .iter()
             .find(|l| l["type"] == "setting" && l["name"] == name.as_str());
-        let unit = id.register().map_or("", |r| r.unit);
-        let phys = |x: Option<f64>| x.map(|v| format!("{} {unit}", short(v)).trim().to_string());
         let bms = line.and_then(|l| {
             let lo = l["bms_min"].as_f64()?;
             let hi = l["bms_max"].as_f64()?;
@@ -328,7 +323,6 @@ pub fn check_all(
                     ));
                 }
             }
-            let _ = phys;
             problems.push(msg);
         }
     }
