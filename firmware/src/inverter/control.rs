@@ -355,14 +355,14 @@ pub struct ChargeControl {
 /// A limit that falls at once, rises at a bounded rate, and after being cut to
 /// 0 waits a hold time before it rises.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct Ramp {
+pub(crate) struct Ramp {
     value_da: u16,
     cut_at: Option<Instant>,
     started: bool,
 }
 
 impl Ramp {
-    const fn new() -> Self {
+    pub(crate) const fn new() -> Self {
         Self {
             value_da: 0,
             cut_at: None,
@@ -370,7 +370,19 @@ impl Ramp {
         }
     }
 
-    fn step(&mut self, now: Instant, target: u16, dt_us: Instant, c: &ChargeConfig) -> u16 {
+    /// A rise from here on waits the hold, counted from `now` (the value is
+    /// kept: a lower target still lowers it at once).
+    pub(crate) fn hold_from(&mut self, now: Instant) {
+        self.cut_at = Some(now);
+    }
+
+    pub(crate) fn step(
+        &mut self,
+        now: Instant,
+        target: u16,
+        dt_us: Instant,
+        c: &ChargeConfig,
+    ) -> u16 {
         if !self.started {
             // First value: allowed at once (nothing was cut before) — but a first
             // value of 0 is a cut like any other.

@@ -24,6 +24,7 @@
 
 pub mod control;
 pub mod frames;
+pub mod packs;
 
 use heapless::Deque;
 use protocol_core::events::{Event, EventId};

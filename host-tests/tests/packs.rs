@@ -1,0 +1,630 @@
+//! Several packs, one battery: the summary frames, the table of what was
+//! heard, the election of one speaker and the battery's limits, through the
+//! library's sans-IO interface.
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    clippy::indexing_slicing
+)]
+
+use proptest::prelude::*;
+use tinybms_firmware::inverter::control::{ChargeConfig, Conditions, Limits, PackState};
+use tinybms_firmware::inverter::packs::{
+    aggregate, from_id, summary_id, Battery, BatteryLimits, Election, Member, Packs, Received,
+    Summary, SummaryError, LISTEN_US, PACK_LOST_US, SUMMARY_BASE_ID, SUMMARY_LAST_ID,
+};
+
+const S: u64 = 1_000_000;
+const STALE: u64 = 5 * S;
+
+fn summary() -> Summary {
+    Summary {
+        voltage_cv: 5320,
+        current_da: 123,
+        soc_cpct: 6543,
+        soh_pct: 98,
+        min_cell_mv: 3301,
+        max_cell_mv: 3320,
+        min_temp_dc: 215,
+        max_temp_dc: 248,
+        age_ds: 3,
+        capacity_dah: 2800,
+        limits: Limits {
+            cvl_dv: 552,
+            ccl_da: 1000,
+            dcl_da: 1500,
+            discharge_dv: 480,
+        },
+        conditions: Conditions {
+            high_voltage: 1,
+            cell_imbalance: 2,
+            ..Conditions::default()
+        },
+        fault: false,
+        charge_blocked: false,
+        speaking: true,
+    }
+}
+
+fn arb_conditions() -> impl Strategy<Value = Conditions> {
+    proptest::collection::vec(0u8..=2, 10).prop_map(|v| Conditions {
+        high_voltage: v[0],
+        low_voltage: v[1],
+        high_temperature: v[2],
+        low_temperature: v[3],
+        high_temperature_charge: v[4],
+        low_temperature_charge: v[5],
+        high_discharge_current: v[6],
+        high_charge_current: v[7],
+        bms_internal: v[8],
+        cell_imbalance: v[9],
+        link_lost: 0,
+    })
+}
+
+prop_compose! {
+    fn arb_summary()(
+        voltage_cv in any::<u16>(), current_da in any::<i16>(), soc_cpct in 0u16..=10_000,
+        soh_pct in 0u8..=100, cells in (any::<u16>(), any::<u16>()),
+        temps in (any::<i16>(), any::<i16>()), age_ds in any::<u8>(),
+        capacity_dah in any::<u16>(), l in any::<[u16; 4]>(), conditions in arb_conditions(),
+        flags in any::<[bool; 3]>(),
+    ) -> Summary {
+        Summary {
+            voltage_cv, current_da, soc_cpct, soh_pct,
+            min_cell_mv: cells.0.min(cells.1), max_cell_mv: cells.0.max(cells.1),
+            min_temp_dc: temps.0.min(temps.1), max_temp_dc: temps.0.max(temps.1),
+            age_ds, capacity_dah,
+            limits: Limits { cvl_dv: l[0], ccl_da: l[1], dcl_da: l[2], discharge_dv: l[3] },
+            conditions, fault: flags[0], charge_blocked: flags[1], speaking: flags[2],
+        }
+    }
+}
+
+/// Feeds frames; returns what the last one did.
+fn feed(
+    p: &mut Packs,
+    now: u64,
+    frames: &[tinybms_firmware::inverter::frames::CanFrame],
+) -> Received {
+    let mut last = Received::NotSummary;
+    for f in frames {
+        last = p.on_frame(now, f.id, f.bytes());
+    }
+    last
+}
+
+#[test]
+fn the_identifiers_are_the_documented_range_and_outside_the_inverter_protocols() {
+    assert_eq!(SUMMARY_BASE_ID, 0x6A0);
+    assert_eq!(SUMMARY_LAST_ID, 0x6BF);
+    assert_eq!(summary_id(1, 0), Some(0x6A0));
+    assert_eq!(summary_id(8, 3), Some(0x6BF));
+    assert_eq!(summary_id(0, 0), None);
+    assert_eq!(summary_id(9, 0), None);
+    assert_eq!(summary_id(1, 4), None);
+    for id in 0u16..0x800 {
+        match from_id(id) {
+            Some((n, k)) => assert_eq!(summary_id(n, k), Some(id)),
+            None => assert!(!(SUMMARY_BASE_ID..=SUMMARY_LAST_ID).contains(&id)),
+        }
+    }
+    // Every identifier either protocol sends or the GX sends.
+    for id in [
+        0x305, 0x307, 0x351, 0x355, 0x356, 0x359, 0x35A, 0x35B, 0x35C, 0x35E, 0x35F, 0x370, 0x371,
+        0x372, 0x373, 0x374, 0x375, 0x376, 0x377, 0x378, 0x379, 0x380, 0x381, 0x382,
+    ] {
+        assert_eq!(from_id(id), None, "{id:#x}");
+    }
+}
+
+#[test]
+fn a_summary_is_taken_only_when_all_four_frames_of_one_sequence_arrived() {
+    let mut p = Packs::new(1);
+    let a = summary();
+    let b = Summary {
+        soc_cpct: 1234,
+        current_da: -50,
+        ..a
+    };
+    let fa = a.frames(2, 5).unwrap();
+    let fb = b.frames(2, 6).unwrap();
+    // Three of a, then the last of b: nothing complete.
+    assert_eq!(feed(&mut p, 0, &fa[..3]), Received::Partial);
+    assert_eq!(feed(&mut p, 0, &fb[3..]), Received::Partial);
+    assert!(p.alive(0, 2).is_none());
+    // The rest of b completes b, never a mixture.
+    assert_eq!(feed(&mut p, 0, &fb[..3]), Received::Complete(2));
+    assert_eq!(p.alive(0, 2), Some(&b));
+    // Lost after PACK_LOST_US.
+    assert!(p.alive(PACK_LOST_US, 2).is_some());
+    assert!(p.alive(PACK_LOST_US + 1, 2).is_none());
+}
+
+#[test]
+fn bad_summaries_are_refused_whole_and_counted() {
+    let good = summary().frames(3, 1).unwrap();
+    let cases: Vec<(usize, usize, u8, SummaryError)> = vec![
+        (0, 5, 0x27, SummaryError::Soc),      // SOC 0x2700 + ... > 10000
+        (0, 6, 101, SummaryError::Soc),       // SOH 101 %
+        (1, 3, 0x00, SummaryError::Order),    // max cell below min
+        (2, 6, 0b11, SummaryError::Reserved), // a condition of 3
+        (1, 7, 0x11, SummaryError::Reserved), // a reserved nibble
+        (0, 7, 0x81, SummaryError::Reserved), // a reserved flag
+        (3, 7, 0xC1, SummaryError::Reserved), // condition bits 18-19 = 3
+    ];
+    for (k, byte, value, want) in cases {
+        let mut p = Packs::new(1);
+        let mut f = good;
+        f[k].data[byte] = value;
+        assert_eq!(
+            feed(&mut p, 0, &f),
+            Received::Refused(3, want),
+            "{k} {byte} {value:#x}"
+        );
+        assert!(p.alive(0, 3).is_none());
+        assert_eq!(p.refused(), 1);
+    }
+    // A short frame is refused and drops what was collected.
+    let mut p = Packs::new(1);
+    feed(&mut p, 0, &good[..2]);
+    assert_eq!(
+        p.on_frame(0, good[2].id, &good[2].data[..7]),
+        Received::Refused(3, SummaryError::Length)
+    );
+    assert_eq!(feed(&mut p, 0, &good[2..]), Received::Partial);
+    assert!(p.alive(0, 3).is_none());
+    // Our own node number from another bridge: counted, never taken.
+    let mut p = Packs::new(3);
+    assert_eq!(feed(&mut p, 0, &good), Received::DuplicateNode);
+    assert_eq!(p.duplicates(), 4);
+    assert!(p.alive(0, 3).is_none());
+    // A lone bridge (node 0) hears nobody.
+    let mut p = Packs::new(0);
+    assert_eq!(feed(&mut p, 0, &good), Received::NotSummary);
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 2000, .. ProptestConfig::default() })]
+
+    #[test]
+    fn every_valid_summary_round_trips(s in arb_summary(), node in 1u8..=8, seq in 0u8..16) {
+        let mut p = Packs::new(if node == 1 { 2 } else { 1 });
+        let f = s.frames(node, seq).unwrap();
+        prop_assert!(f.iter().all(|f| f.len == 8));
+        prop_assert_eq!(feed(&mut p, 7, &f), Received::Complete(node));
+        prop_assert_eq!(p.alive(7, node), Some(&s));
+    }
+
+    /// Frames of two summaries interleaved in any order, some dropped: what is
+    /// taken is always one of the two whole, never a mixture.
+    #[test]
+    fn interleaved_and_dropped_frames_never_make_a_mixture(
+        a in arb_summary(), b in arb_summary(), seq in 0u8..15,
+        order in proptest::collection::vec(0usize..8, 0..40),
+    ) {
+        let fa = a.frames(5, seq).unwrap();
+        let fb = b.frames(5, seq + 1).unwrap();
+        let all: Vec<_> = fa.iter().chain(fb.iter()).copied().collect();
+        let mut p = Packs::new(1);
+        for i in order {
+            let f = all[i];
+            if let Received::Complete(_) = p.on_frame(0, f.id, f.bytes()) {
+                let got = *p.alive(0, 5).unwrap();
+                prop_assert!(got == a || got == b, "{got:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn any_bytes_on_the_summary_ids_never_panic(
+        frames in proptest::collection::vec((SUMMARY_BASE_ID..=SUMMARY_LAST_ID, proptest::collection::vec(any::<u8>(), 0..9)), 0..64),
+    ) {
+        let mut p = Packs::new(4);
+        for (i, (id, d)) in frames.iter().enumerate() {
+            let _ = p.on_frame(i as u64, *id, d);
+        }
+        for (_, s, _) in p.known(64) {
+            prop_assert!(s.soc_cpct <= 10_000 && s.min_cell_mv <= s.max_cell_mv);
+        }
+    }
+}
+
+/// Nodes on one bus: each sends its summary every second (the speaking flag
+/// from its election), everyone hears everyone unless cut off.
+struct Bus {
+    nodes: Vec<(Packs, Election, bool)>, // table, election, on the bus
+}
+
+impl Bus {
+    fn new(n: u8, start: u64) -> Self {
+        Self {
+            nodes: (1..=n)
+                .map(|i| (Packs::new(i), Election::new(start), true))
+                .collect(),
+        }
+    }
+
+    /// One second at `now`: returns the speakers.
+    fn second(&mut self, now: u64, seq: u8) -> Vec<u8> {
+        let mut sent = Vec::new();
+        for (i, (_, e, on)) in self.nodes.iter().enumerate() {
+            if *on {
+                let s = Summary {
+                    speaking: e.speaking(),
+                    ..summary()
+                };
+                sent.push(s.frames(i as u8 + 1, seq).unwrap());
+            }
+        }
+        let mut speakers = Vec::new();
+        for (i, (p, e, on)) in self.nodes.iter_mut().enumerate() {
+            if !*on {
+                continue;
+            }
+            for f in &sent {
+                feed(p, now, f);
+            }
+            if e.update(now, p) {
+                speakers.push(i as u8 + 1);
+            }
+        }
+        speakers
+    }
+}
+
+#[test]
+fn one_speaker_the_lowest_node_and_a_deterministic_takeover() {
+    let mut bus = Bus::new(3, 0);
+    let mut log = Vec::new();
+    for t in 0..80u64 {
+        match t {
+            10 => bus.nodes[0].2 = false, // the primary falls silent
+            30 => {
+                bus.nodes[0].2 = true; // and comes back (restarted)
+                bus.nodes[0].0 = Packs::new(1);
+                bus.nodes[0].1 = Election::new(t * S);
+            }
+            50 => bus.nodes[1].2 = false, // the speaker falls silent
+            _ => {}
+        }
+        let speakers = bus.second(t * S, (t % 16) as u8);
+        assert!(speakers.len() <= 1, "two speakers at {t} s: {speakers:?}");
+        log.push(speakers.first().copied());
+    }
+    let first = |n: u8, from: usize| {
+        log.iter()
+            .skip(from)
+            .position(|s| *s == Some(n))
+            .map(|i| i + from)
+    };
+    // Node 1 speaks once it has listened.
+    assert_eq!(first(1, 0), Some((LISTEN_US / S) as usize));
+    // Node 2 takes over once node 1 is lost (its last summary at 9 s).
+    let takeover = first(2, 10).unwrap();
+    assert_eq!(takeover as u64, 10 + PACK_LOST_US / S, "{log:?}");
+    assert!(takeover as u64 - 9 <= 3, "within the 3 s a GX waits");
+    // Node 1 comes back, finds a speaker and stays quiet: no handover, no gap.
+    assert!(log[takeover..50].iter().all(|s| *s == Some(2)), "{log:?}");
+    // Node 2 falls silent: node 1 (the lowest heard) takes over, node 3 never.
+    assert_eq!(first(1, 50), Some(50 + (PACK_LOST_US / S) as usize));
+    assert!(log[52..].iter().all(|s| *s == Some(1)));
+    assert_eq!(first(3, 0), None);
+}
+
+#[test]
+fn a_returning_node_waits_for_a_quiet_bus_and_two_speakers_resolve_at_once() {
+    // Node 2 speaks; node 1 comes back: it stays quiet while node 2 speaks,
+    // and starts only once node 2 is heard saying it stopped or is lost.
+    let mut p1 = Packs::new(1);
+    let mut e1 = Election::new(0);
+    let speaking = Summary {
+        speaking: true,
+        ..summary()
+    };
+    let quiet = Summary {
+        speaking: false,
+        ..summary()
+    };
+    feed(&mut p1, 4 * S, &speaking.frames(2, 0).unwrap());
+    assert!(!e1.update(4 * S, &p1), "a speaker is heard");
+    feed(&mut p1, 5 * S, &quiet.frames(2, 1).unwrap());
+    assert!(e1.update(5 * S, &p1));
+    // A speaker that hears a higher node speaking goes on; one that hears a
+    // lower speaker stops.
+    feed(&mut p1, 6 * S, &speaking.frames(2, 2).unwrap());
+    assert!(e1.update(6 * S, &p1));
+    let mut p3 = Packs::new(3);
+    let mut e3 = Election::new(0);
+    assert!(e3.update(4 * S, &p3), "alone on the bus");
+    feed(&mut p3, 6 * S, &speaking.frames(1, 0).unwrap());
+    assert!(!e3.update(6 * S, &p3));
+    // A bus-off recovery listens again.
+    e1.restart(7 * S);
+    feed(&mut p1, 7 * S, &quiet.frames(2, 3).unwrap());
+    assert!(!e1.update(7 * S, &p1));
+    assert!(!e1.update(7 * S + LISTEN_US - 1, &p1));
+    assert!(e1.update(7 * S + LISTEN_US, &p1));
+    // A lone bridge (node 0) never speaks for a battery.
+    let p0 = Packs::new(0);
+    assert!(!Election::new(0).update(10 * S, &p0));
+}
+
+fn member(s: Summary) -> Member {
+    Member {
+        summary: s,
+        alive: true,
+    }
+}
+
+#[test]
+fn the_battery_adds_up_its_packs() {
+    let a = Summary {
+        capacity_dah: 1000,
+        soc_cpct: 8000,
+        soh_pct: 100,
+        current_da: 100,
+        ..summary()
+    };
+    let b = Summary {
+        capacity_dah: 3000,
+        soc_cpct: 4000,
+        soh_pct: 80,
+        current_da: 300,
+        min_cell_mv: 3290,
+        max_cell_mv: 3350,
+        min_temp_dc: 100,
+        max_temp_dc: 300,
+        limits: Limits {
+            cvl_dv: 548,
+            ccl_da: 800,
+            dcl_da: 900,
+            discharge_dv: 490,
+        },
+        conditions: Conditions {
+            low_voltage: 2,
+            ..Conditions::default()
+        },
+        ..summary()
+    };
+    let bat = aggregate(&[member(a), member(b)], STALE).unwrap();
+    assert_eq!(bat.capacity_dah, 4000);
+    assert_eq!(bat.state.soc_pct, 50.0); // (1000·80 + 3000·40) / 4000
+    assert_eq!(bat.state.soh_pct, 85.0);
+    assert_eq!(bat.state.current_a, 40.0);
+    assert_eq!((bat.state.min_cell_mv, bat.state.max_cell_mv), (3290, 3350));
+    assert_eq!((bat.state.min_temp_c, bat.state.max_temp_c), (10.0, 30.0));
+    assert_eq!(bat.limits.cvl_dv, 548);
+    assert_eq!(bat.limits.discharge_dv, 490);
+    // CCL: present 40 A + the smallest headroom (b: 80 − 30 = 50 A).
+    assert_eq!(bat.limits.ccl_da, 900);
+    // DCL: −40 A + min(150 + 10, 90 + 30) = 80 A.
+    assert_eq!(bat.limits.dcl_da, 800);
+    assert_eq!(bat.conditions.low_voltage, 2);
+    assert_eq!(bat.conditions.high_voltage, 1);
+    assert_eq!(bat.conditions.cell_imbalance, 2);
+    assert_eq!((bat.online, bat.offline), (2, 0));
+
+    // A faulted pack, a silent one and a stale one leave the sums; each shows
+    // as a warning.
+    let faulted = member(Summary { fault: true, ..b });
+    let silent = Member {
+        alive: false,
+        ..member(b)
+    };
+    let stale = member(Summary { age_ds: 51, ..b });
+    for (m, field) in [(faulted, 8usize), (silent, 10), (stale, 10)] {
+        let bat = aggregate(&[member(a), m], STALE).unwrap();
+        assert_eq!(bat.capacity_dah, 1000);
+        assert_eq!(bat.state.soc_pct, 80.0);
+        assert_eq!((bat.online, bat.offline), (1, 1));
+        assert_eq!(bat.limits.cvl_dv, 552);
+        assert_eq!(bat.conditions.all()[field], 1);
+        assert_eq!(bat.conditions.low_voltage, 0, "b's alarm left with it");
+    }
+    assert_eq!(aggregate(&[silent, stale, faulted], STALE), None);
+    assert_eq!(aggregate(&[], STALE), None);
+}
+
+#[test]
+fn a_pack_past_its_limit_cuts_the_battery_by_its_overshoot_times_the_packs() {
+    let a = Summary {
+        current_da: 1100,
+        ..summary()
+    }; // 110 A against CCL 100 A
+    let b = Summary {
+        current_da: 300,
+        ..summary()
+    };
+    let bat = aggregate(&[member(a), member(b)], STALE).unwrap();
+    // 140 A − 2 × 10 A.
+    assert_eq!(bat.limits.ccl_da, 1200);
+    // Never above the sum of the packs' limits, never below 0.
+    let idle = aggregate(
+        &[member(Summary {
+            current_da: 0,
+            ..summary()
+        })],
+        STALE,
+    )
+    .unwrap();
+    assert_eq!(idle.limits.ccl_da, 1000);
+    let far = Summary {
+        current_da: 3000,
+        limits: Limits {
+            ccl_da: 100,
+            ..summary().limits
+        },
+        ..summary()
+    };
+    assert_eq!(
+        aggregate(&[member(far), member(b)], STALE)
+            .unwrap()
+            .limits
+            .ccl_da,
+        0
+    );
+}
+
+/// Packs in parallel on one bus voltage: V = (I + Σ G·OCV) / Σ G, I_k = G_k (V − OCV_k).
+struct Parallel {
+    ocv_v: Vec<f64>,
+    r_ohm: Vec<f64>,
+}
+
+impl Parallel {
+    fn split(&self, total_a: f64) -> Vec<f64> {
+        let g: Vec<f64> = self.r_ohm.iter().map(|r| 1.0 / r).collect();
+        let gs: f64 = g.iter().sum();
+        let v = (total_a + g.iter().zip(&self.ocv_v).map(|(g, o)| g * o).sum::<f64>()) / gs;
+        g.iter()
+            .zip(&self.ocv_v)
+            .map(|(g, o)| g * (v - o))
+            .collect()
+    }
+}
+
+fn pack_summary(current_a: f64, ccl_a: f64) -> Summary {
+    Summary {
+        current_da: (current_a * 10.0).round() as i16,
+        limits: Limits {
+            ccl_da: (ccl_a * 10.0) as u16,
+            ..summary().limits
+        },
+        ..summary()
+    }
+}
+
+/// The split rule in a loop: a charger delivering min(CCL, its maximum) into
+/// packs of different voltages and resistances, the battery's CCL recomputed
+/// every second from the measured currents (with the single pack's ramp).
+/// No pack ever takes more than its own CCL.
+#[test]
+fn uneven_packs_in_parallel_are_never_pushed_past_their_own_limits() {
+    let cases = [
+        // one pack lower than three others (at rest it takes their current)
+        (
+            vec![52.6, 52.8, 52.8, 52.8],
+            vec![0.010, 0.010, 0.010, 0.010],
+            vec![50.0, 50.0, 50.0, 50.0],
+        ),
+        // equal voltages, one pack of a third of the resistance
+        (
+            vec![52.0, 52.0, 52.0],
+            vec![0.004, 0.012, 0.012],
+            vec![60.0, 60.0, 60.0],
+        ),
+        // a small pack with a small limit
+        (vec![52.0, 52.1], vec![0.020, 0.008], vec![20.0, 100.0]),
+    ];
+    for (ocv, r, ccl) in cases {
+        let model = Parallel {
+            ocv_v: ocv.clone(),
+            r_ohm: r.clone(),
+        };
+        let mut ramp = BatteryLimits::new();
+        let c = ChargeConfig::default();
+        let mut total = 0.0f64;
+        let mut highest = vec![f64::MIN; ocv.len()];
+        let mut last_ccl = 0.0;
+        for t in 0..600u64 {
+            let currents = model.split(total);
+            for (h, i) in highest.iter_mut().zip(&currents) {
+                *h = h.max(*i);
+            }
+            let members: Vec<Member> = currents
+                .iter()
+                .zip(&ccl)
+                .map(|(i, l)| member(pack_summary(*i, *l)))
+                .collect();
+            let bat: Battery = aggregate(&members, STALE).unwrap();
+            let lim = ramp.step(t * S, &bat, 0b1111, &c);
+            last_ccl = f64::from(lim.ccl_da) / 10.0;
+            total = last_ccl.min(400.0); // the charger obeys at once
+        }
+        for (k, (h, l)) in highest.iter().zip(&ccl).enumerate() {
+            assert!(
+                *h <= l + 0.15,
+                "pack {k}: {h:.2} A against its CCL {l} A ({ocv:?} {r:?})"
+            );
+        }
+        // And the battery is not starved: some pack is within 2 A of its limit.
+        let currents = model.split(total);
+        let close = currents.iter().zip(&ccl).any(|(i, l)| l - i < 2.0);
+        assert!(close, "CCL {last_ccl} A, currents {currents:?}");
+    }
+}
+
+#[test]
+fn a_pack_leaving_drops_the_limits_at_once_and_they_come_back_after_the_hold() {
+    let c = ChargeConfig::default();
+    let mut ramp = BatteryLimits::new();
+    let idle = |ccl_a| member(pack_summary(0.0, ccl_a));
+    let two = aggregate(&[idle(50.0), idle(50.0)], STALE).unwrap();
+    let l = ramp.step(0, &two, 0b11, &c);
+    assert_eq!(l.ccl_da, 500);
+    // Both packs take 25 A: CCL may rise towards 75 A at the ramp rate.
+    let busy = aggregate(
+        &[
+            member(pack_summary(25.0, 50.0)),
+            member(pack_summary(25.0, 50.0)),
+        ],
+        STALE,
+    )
+    .unwrap();
+    let l = ramp.step(S, &busy, 0b11, &c);
+    assert_eq!(l.ccl_da, 500 + c.ramp_da_per_s);
+    // Pack 2 is lost: at once its share goes.
+    let one = aggregate(&[member(pack_summary(40.0, 50.0))], STALE).unwrap();
+    let l = ramp.step(2 * S, &one, 0b01, &c);
+    assert_eq!(l.ccl_da, 500, "40 A + 10 A headroom");
+    // Then nothing rises for the hold, whatever the target.
+    // (the pack's own CCL rose to 80 A meanwhile)
+    let light = aggregate(&[member(pack_summary(10.0, 80.0))], STALE).unwrap();
+    for t in 3..(2 + c.hold_us / S) {
+        let l = ramp.step(t * S, &light, 0b01, &c);
+        assert_eq!(l.ccl_da, 500, "at {t} s");
+    }
+    let after = ramp.step(2 * S + c.hold_us, &light, 0b01, &c);
+    assert!(after.ccl_da > 500, "{after:?}");
+    assert!(after.ccl_da <= 500 + c.ramp_da_per_s);
+    // A cut starts from 0.
+    ramp.cut(100 * S);
+    let l = ramp.step(101 * S, &light, 0b01, &c);
+    assert_eq!(l.ccl_da, 0);
+}
+
+#[test]
+fn the_own_summary_rounds_and_carries_no_link_lost() {
+    let p = PackState {
+        min_cell_mv: 3300,
+        max_cell_mv: 3310,
+        pack_v: 52.916,
+        current_a: -12.34,
+        soc_pct: 55.555,
+        soh_pct: 99.6,
+        min_temp_c: -5.04,
+        max_temp_c: 24.96,
+        fault: false,
+        charge_blocked: true,
+    };
+    let cond = Conditions {
+        link_lost: 2,
+        high_voltage: 1,
+        ..Conditions::default()
+    };
+    let s = Summary::own(&p, 1_250_000, &summary().limits, &cond, 28_000, false);
+    assert_eq!(s.voltage_cv, 5292);
+    assert_eq!(s.current_da, -123);
+    assert_eq!(s.soc_cpct, 5556);
+    assert_eq!(s.soh_pct, 100);
+    assert_eq!((s.min_temp_dc, s.max_temp_dc), (-50, 250));
+    assert_eq!(s.age_ds, 12);
+    assert_eq!(s.capacity_dah, 2800);
+    assert_eq!(s.conditions.link_lost, 0);
+    assert_eq!(s.conditions.high_voltage, 1);
+    assert!(s.charge_blocked);
+    let old = Summary::own(&p, 3_600 * S, &summary().limits, &cond, 28_000, false);
+    assert_eq!(old.age_ds, 255);
+}
