@@ -482,15 +482,48 @@ pub fn inverter(r: &InverterReport, out: &mut Line) {
                 .push(" ms");
         }
         InverterReport::Limits(l) => {
-            out.push("CAN limits: charge voltage ")
-                .fixed(i64::from(l.cvl_dv), 1)
-                .push(" V, charge current ")
-                .fixed(i64::from(l.ccl_da), 1)
-                .push(" A, discharge current ")
-                .fixed(i64::from(l.dcl_da), 1)
-                .push(" A");
+            out.push("CAN limits: ");
+            limits(l, out);
+        }
+        InverterReport::BatteryLimits(l) => {
+            out.push("CAN limits of the battery (all packs): ");
+            limits(l, out);
+        }
+        InverterReport::Speaker(true) => {
+            out.push("CAN: this bridge now speaks to the inverter for the battery");
+        }
+        InverterReport::Speaker(false) => {
+            out.push("CAN: this bridge no longer speaks to the inverter");
+        }
+        InverterReport::Packs { online, offline } => {
+            out.push("CAN: battery of ")
+                .uint(u64::from(*online))
+                .push(if *online == 1 { " pack" } else { " packs" });
+            if *offline > 0 {
+                out.push(", ")
+                    .uint(u64::from(*offline))
+                    .push(" left (lost, stale or faulted)");
+            }
+        }
+        InverterReport::BatteryLost => {
+            out.push("CAN: no pack takes part in the battery: nothing sent to the inverter");
+        }
+        InverterReport::DuplicateNode(n) => {
+            out.push("CAN: another bridge sends summaries as node ")
+                .uint(u64::from(*n))
+                .push(": give each bridge its own pack_node");
         }
     }
+}
+
+fn limits(l: &crate::inverter::control::Limits, out: &mut Line) {
+    out.push("charge voltage ")
+        .fixed(i64::from(l.cvl_dv), 1)
+        .push(" V, charge current ")
+        .fixed(i64::from(l.ccl_da), 1)
+        .push(" A, discharge current ")
+        .fixed(i64::from(l.dcl_da), 1)
+        .push(" A");
 }
 
 /// Log level of a configuration note: what needs attention is a warning.

@@ -10,6 +10,7 @@ pub mod host_link;
 pub mod hosted;
 pub mod mqtt;
 pub mod mqtt_e2e;
+pub mod multi_pack;
 pub mod profile;
 #[cfg(unix)]
 pub mod pty;

@@ -289,6 +289,9 @@ fn the_record_drives_the_inverter_and_the_host_link() {
     assert_eq!(i.charge.tail_current_a, 3.5);
     assert_eq!(i.stale_after_us, 8 * SECOND);
     assert_eq!(i.stale_policy, StalePolicy::HoldChargeZero(300 * SECOND));
+    assert_eq!(i.node, 0, "alone by default");
+    c.pack_node = 2;
+    assert_eq!(c.inverter().node, 2);
     c.read_only = true;
     c.stream_period_ms = 0;
     let h = c.host_link("sim");
@@ -314,6 +317,7 @@ fn full_record() -> Config {
     c.topic_prefix.push_str(&"t".repeat(32)).unwrap();
     c.discovery_prefix.clear();
     c.discovery_prefix.push_str(&"d".repeat(32)).unwrap();
+    c.pack_node = 3;
     c
 }
 
@@ -328,6 +332,51 @@ fn the_codec_round_trips_and_the_longest_record_fits() {
     let n = encoded(&full_record()).len();
     assert!(n <= RECORD_MAX, "{n}");
     println!("longest record: {n} bytes of {RECORD_MAX}");
+}
+
+/// A record of version 1 (before `pack_node`): as a v1 firmware wrote it.
+fn v1_record(c: &Config) -> Vec<u8> {
+    let v2 = encoded(c);
+    let mut out = vec![b'T', b'C', 1, 0];
+    let mut rest = &v2[4..];
+    let mut n = 0u8;
+    while let [tag, len, tail @ ..] = rest {
+        let (value, after) = tail.split_at(usize::from(*len));
+        if codec::introduced(*tag) == 1 {
+            out.extend_from_slice(&[*tag, *len]);
+            out.extend_from_slice(value);
+            n += 1;
+        }
+        rest = after;
+    }
+    out[3] = n;
+    out
+}
+
+#[test]
+fn a_version_1_record_keeps_the_owners_configuration_and_pack_node_defaults() {
+    let mut c = full_record();
+    c.pack_node = 0;
+    let v1 = v1_record(&c);
+    assert_eq!(v1[2], 1);
+    assert_eq!(usize::from(v1[3]), FIELDS.len() - 1);
+    assert_eq!(codec::decode(&v1).unwrap(), c);
+    // A field a version-1 record cannot hold is refused in one.
+    let mut with_node = v1.clone();
+    with_node[3] += 1;
+    with_node.extend_from_slice(&[6, 4, 2, 0, 0, 0]);
+    assert_eq!(codec::decode(&with_node), Err(DecodeError::UnknownTag(6)));
+    // A version-2 record without it is incomplete.
+    let mut v2_short = v1;
+    v2_short[2] = 2;
+    assert_eq!(
+        codec::decode(&v2_short),
+        Err(DecodeError::Missing(FieldId::PackNode))
+    );
+    // Version 0 does not exist.
+    let mut zero = encoded(&Config::default());
+    zero[2] = 0;
+    assert_eq!(codec::decode(&zero), Err(DecodeError::Version(0)));
 }
 
 #[test]

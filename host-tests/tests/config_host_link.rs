@@ -97,7 +97,7 @@ fn get_config_lists_every_field_with_unit_range_default_and_when_it_applies() {
     let end = of_type(&out, "config_end");
     assert_eq!(end.len(), 1);
     assert_eq!(end[0]["count"], FIELDS.len());
-    assert_eq!(end[0]["version"], 1);
+    assert_eq!(end[0]["version"], tinybms_firmware::config::VERSION);
     assert_eq!(end[0]["source"], "defaults");
     assert_eq!(out.last().unwrap()["type"], "config_end");
 }

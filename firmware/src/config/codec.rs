@@ -2,7 +2,7 @@
 //!
 //! ```text
 //! 0   2   'T' 'C'           magic
-//! 2   1   VERSION           layout version (super::VERSION)
+//! 2   1   VERSION           layout version (super::VERSION; 1 is read too)
 //! 3   1   N                 fields that follow
 //! 4   ..  N × (tag, len, value)
 //!           tag   1         the field's stable number (Field::tag)
@@ -14,7 +14,10 @@
 //! Decoding believes nothing: the magic, the version, every tag known and
 //! given once, every length right for its kind, every value within its field's
 //! range, every field of the version present, nothing after the last, and the
-//! rules between fields ([`Config::validate`]). Any of these failing is a
+//! rules between fields ([`Config::validate`]). A record of an older version
+//! (1) holds the fields of that version only; those added since
+//! ([`introduced`]) take their defaults, so an update keeps the owner's
+//! configuration. Any of these failing is a
 //! [`DecodeError`] and the bridge runs with the defaults. (`sequential-storage`
 //! already checks a CRC over the item: this catches the rest — another version,
 //! a bug, a record written by something else.)
@@ -27,6 +30,15 @@ pub const MAGIC: [u8; 2] = *b"TC";
 
 /// Longest encoded record, bytes (every text field at its longest: 560).
 pub const RECORD_MAX: usize = 640;
+
+/// The layout version that added the field stored under `tag` (version 2:
+/// `pack_node`).
+pub const fn introduced(tag: u8) -> u8 {
+    match tag {
+        6 => 2,
+        _ => 1,
+    }
+}
 
 /// Why bytes are not a record.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -116,7 +128,7 @@ pub fn decode(bytes: &[u8]) -> Result<Config, DecodeError> {
         return Err(DecodeError::Magic);
     }
     let version = header.get(2).copied().unwrap_or(0);
-    if version != VERSION {
+    if version == 0 || version > VERSION {
         return Err(DecodeError::Version(version));
     }
     let count = header.get(3).copied().unwrap_or(0);
@@ -130,7 +142,9 @@ pub fn decode(bytes: &[u8]) -> Result<Config, DecodeError> {
             .get(..usize::from(len))
             .ok_or(DecodeError::Truncated)?;
         rest = after.get(usize::from(len)..).unwrap_or(&[]);
-        let id = FieldId::from_tag(tag).ok_or(DecodeError::UnknownTag(tag))?;
+        let id = FieldId::from_tag(tag)
+            .filter(|_| introduced(tag) <= version)
+            .ok_or(DecodeError::UnknownTag(tag))?;
         let index = FIELDS
             .iter()
             .position(|f| f.id == id)
@@ -158,7 +172,11 @@ pub fn decode(bytes: &[u8]) -> Result<Config, DecodeError> {
     if !rest.is_empty() {
         return Err(DecodeError::Trailing);
     }
-    if let Some(i) = seen.iter().position(|s| !s) {
+    let missing = seen
+        .iter()
+        .zip(FIELDS)
+        .position(|(s, f)| !s && introduced(f.tag) <= version);
+    if let Some(i) = missing {
         let id = FIELDS.get(i).map(|f| f.id).unwrap_or(FieldId::CanOutput);
         return Err(DecodeError::Missing(id));
     }

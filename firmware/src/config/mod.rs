@@ -40,9 +40,11 @@ use crate::{Instant, SECOND};
 
 pub use value::{FieldError, Value};
 
-/// Version of the record's layout in flash ([`codec`]). A record of another
-/// version is not read: the bridge runs with the defaults and says so.
-pub const VERSION: u8 = 1;
+/// Version of the record's layout in flash ([`codec`]). A record of an older
+/// version is read with the fields added since at their defaults
+/// ([`codec::introduced`]); one of a newer version is not read: the bridge
+/// runs with the defaults and says so.
+pub const VERSION: u8 = 2;
 
 /// When a change of a field takes effect.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -241,6 +243,8 @@ fields! {
         "On stale data: stop (stop sending; the inverter stops charging and discharging) or hold (charge limit 0, discharge allowed, for stale_hold).";
     StaleHold = 5, "stale_hold", "s", Inverter, Now, num(10, 3600, 0),
         "With stale_policy hold: how long the inverter may keep discharging on stale data.";
+    PackNode = 6, "pack_node", "", Inverter, Restart, num_or(1, 8, 0, "alone"),
+        "Packs in parallel, one bridge each, on one CAN bus: this bridge's number (1 = the primary, which speaks to the inverter); alone = this pack is the whole battery.";
     AbsorptionVoltage = 10, "absorption_voltage", "mV", Charge, Now, num_or(1000, 4500, 0, "bms"),
         "Charge target per cell; bms = the BMS's fully charged voltage (register 300).";
     AbsorptionMargin = 11, "absorption_margin", "mV", Charge, Now, num(20, 500, 0),
@@ -362,6 +366,8 @@ pub struct Config {
     pub stale_policy: StaleMode,
     /// `stale_hold`, s.
     pub stale_hold_s: u16,
+    /// `pack_node` (0: alone).
+    pub pack_node: u8,
     /// `absorption_voltage`, mV per cell (0: the BMS's register 300).
     pub absorption_mv: u16,
     /// `absorption_margin`, mV.
@@ -449,6 +455,7 @@ impl Default for Config {
             stale_after_s: (i.stale_after_us / SECOND) as u16,
             stale_policy: StaleMode::Stop,
             stale_hold_s: 120,
+            pack_node: i.node,
             absorption_mv: c.absorption_mv.unwrap_or(0),
             absorption_margin_mv: c.absorption_margin_mv,
             float_mv: c.float_mv.unwrap_or(0),
@@ -520,6 +527,7 @@ impl Config {
                 StaleMode::Hold => 1,
             }),
             StaleHold => n(self.stale_hold_s.into()),
+            PackNode => n(self.pack_node.into()),
             AbsorptionVoltage => n(self.absorption_mv.into()),
             AbsorptionMargin => n(self.absorption_margin_mv.into()),
             FloatVoltage => n(self.float_mv.into()),
@@ -589,6 +597,7 @@ impl Config {
             }
             (StaleAfter, Value::Number(n)) => self.stale_after_s = n as u16,
             (StaleHold, Value::Number(n)) => self.stale_hold_s = n as u16,
+            (PackNode, Value::Number(n)) => self.pack_node = n as u8,
             (AbsorptionVoltage, Value::Number(n)) => self.absorption_mv = n as u16,
             (AbsorptionMargin, Value::Number(n)) => self.absorption_margin_mv = n as u16,
             (FloatVoltage, Value::Number(n)) => self.float_mv = n as u16,
@@ -737,6 +746,7 @@ impl Config {
                     StalePolicy::HoldChargeZero(Instant::from(self.stale_hold_s) * SECOND)
                 }
             },
+            node: self.pack_node,
             ..InverterConfig::default()
         }
     }

@@ -350,6 +350,7 @@ pub struct ChargeControl {
     ccl: Ramp,
     dcl: Ramp,
     last_update: Option<Instant>,
+    targets: (u16, u16),
 }
 
 /// A limit that falls at once, rises at a bounded rate, and after being cut to
@@ -443,6 +444,7 @@ impl ChargeControl {
             ccl: Ramp::new(),
             dcl: Ramp::new(),
             last_update: None,
+            targets: (0, 0),
         }
     }
 
@@ -478,6 +480,13 @@ impl ChargeControl {
     /// Absorption or float.
     pub fn phase(&self) -> Phase {
         self.phase
+    }
+
+    /// CCL and DCL of the last update before the hold and ramp, 0.1 A: what
+    /// the pack may take now, which a battery of several packs holds and
+    /// ramps as a whole (see [`super::packs`]).
+    pub fn targets(&self) -> (u16, u16) {
+        self.targets
     }
 
     /// Per-cell targets (absorption, float), mV, for these settings.
@@ -628,6 +637,7 @@ impl ChargeControl {
         if p.charge_blocked {
             ccl_target = 0;
         }
+        self.targets = (ccl_target, dcl_target);
         let ccl_da = self.ccl.step(now, ccl_target, dt_us, &c);
         let dcl_da = self.dcl.step(now, dcl_target, dt_us, &c);
 

@@ -309,11 +309,22 @@ pub fn sma_info(hardware: u16, capacity_ah: u16, software: u16) -> CanFrame {
 /// Victron 0x372: one module (the TinyBMS), online; blocking charge / discharge
 /// when the limits say so.
 pub fn modules(l: &Limits, online: bool) -> CanFrame {
+    module_counts((
+        u16::from(online),
+        u16::from(online && l.ccl_da == 0),
+        u16::from(online && l.dcl_da == 0),
+        u16::from(!online),
+    ))
+}
+
+/// Victron 0x372: modules online, blocking charge, blocking discharge, offline
+/// (one module per pack).
+pub fn module_counts((online, charge, discharge, offline): (u16, u16, u16, u16)) -> CanFrame {
     let mut d = [0u8; 8];
-    put16(&mut d, 0, u16::from(online));
-    put16(&mut d, 2, u16::from(online && l.ccl_da == 0));
-    put16(&mut d, 4, u16::from(online && l.dcl_da == 0));
-    put16(&mut d, 6, u16::from(!online));
+    put16(&mut d, 0, online);
+    put16(&mut d, 2, charge);
+    put16(&mut d, 4, discharge);
+    put16(&mut d, 6, offline);
     frame(ID_MODULES, &d)
 }
 

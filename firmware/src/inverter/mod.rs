@@ -32,6 +32,7 @@ use protocol_core::views::{LiveSnapshot, VersionInfo};
 
 use self::control::{ChargeConfig, ChargeControl, Conditions, Limits, PackSettings, PackState};
 use self::frames::CanFrame;
+use self::packs::{Battery, BatteryLimits, Election, Member, Packs, Received, Summary};
 use crate::Instant;
 
 /// Which inverter protocol.
@@ -77,6 +78,9 @@ pub struct InverterConfig {
     /// Pause after a bus-off before the controller is recovered, µs (doubles
     /// up to 16 × on repeated bus-offs).
     pub bus_off_backoff_us: Instant,
+    /// Node number among bridges of packs in parallel on one bus (1..=8, see
+    /// [`packs`]); 0 = this bridge's pack is the whole battery.
+    pub node: u8,
 }
 
 impl Default for InverterConfig {
@@ -91,6 +95,7 @@ impl Default for InverterConfig {
             slow_period_us: 5 * crate::SECOND,
             inverter_timeout_us: 5 * crate::SECOND,
             bus_off_backoff_us: crate::SECOND,
+            node: 0,
         }
     }
 }
@@ -150,15 +155,39 @@ pub enum InverterReport {
         /// Pause before recovery, ms.
         backoff_ms: u32,
     },
-    /// New limits (logged when they change).
+    /// New limits (logged when they change). With a node number: this pack's own.
     Limits(Limits),
+    /// The battery's limits this bridge sends as the speaker (logged when
+    /// they change).
+    BatteryLimits(Limits),
+    /// This bridge started or stopped speaking to the inverter for the battery.
+    Speaker(bool),
+    /// The packs taking part in the battery changed.
+    Packs {
+        /// Taking part.
+        online: u8,
+        /// Known but not taking part (lost, stale, faulted).
+        offline: u8,
+    },
+    /// No pack takes part: the speaker sends nothing (Victron) or stops the
+    /// inverter (SMA: CCL 0, DCL 0).
+    BatteryLost,
+    /// Another bridge sends summaries with this bridge's node number.
+    DuplicateNode(u8),
 }
 
 impl InverterReport {
     /// Log level: what needs attention is a warning.
     pub fn level(&self) -> crate::Level {
         match self {
-            Self::InverterSeen | Self::Fresh | Self::BusOk | Self::Limits(_) => crate::Level::Info,
+            Self::InverterSeen
+            | Self::Fresh
+            | Self::BusOk
+            | Self::Limits(_)
+            | Self::BatteryLimits(_)
+            | Self::Speaker(_)
+            | Self::Packs { .. } => crate::Level::Info,
+            Self::BatteryLost | Self::DuplicateNode(_) => crate::Level::Warn,
             Self::InverterLost
             | Self::Stale { .. }
             | Self::StaleHoldEnded
@@ -172,8 +201,8 @@ impl InverterReport {
 /// been out of "fault" this long, µs.
 pub const CHARGE_BLOCK_TIMEOUT_US: Instant = 5 * 60 * crate::SECOND;
 
-/// Frames in one burst at most.
-const QUEUE: usize = 10;
+/// Frames in one burst at most (a summary and a slow period of the battery's).
+const QUEUE: usize = 16;
 /// Failed transmissions in a row before "no ACK" is reported (and sending slows
 /// to the fast period only).
 const NO_ACK_AFTER: u32 = 8;
@@ -208,6 +237,16 @@ pub struct Inverter {
     /// A stale policy given while the data is stale: it applies from the next
     /// stale episode on (see [`Inverter::reconfigure`]).
     next_stale_policy: Option<StalePolicy>,
+    /// Several packs: what was heard, who speaks, the battery's limits.
+    packs: Packs,
+    election: Election,
+    battery_limits: BatteryLimits,
+    battery: Option<(Battery, Limits)>,
+    logged_battery: Option<Limits>,
+    logged_packs: Option<(u8, u8)>,
+    battery_lost: bool,
+    duplicate_reported: bool,
+    seq: u8,
 }
 
 impl Inverter {
@@ -240,7 +279,41 @@ impl Inverter {
             frames_sent: 0,
             reports: Deque::new(),
             next_stale_policy: None,
+            packs: Packs::new(if config.node <= packs::MAX_NODES {
+                config.node
+            } else {
+                0
+            }),
+            election: Election::new(now),
+            battery_limits: BatteryLimits::new(),
+            battery: None,
+            logged_battery: None,
+            logged_packs: None,
+            battery_lost: false,
+            duplicate_reported: false,
+            seq: 0,
         }
+    }
+
+    /// The node number it runs with (0 = alone).
+    pub fn node(&self) -> u8 {
+        self.packs.node()
+    }
+
+    /// Several packs: the battery last computed and the limits sent for it
+    /// (computed by every node, sent by the speaker only).
+    pub fn battery(&self) -> Option<&(Battery, Limits)> {
+        self.battery.as_ref()
+    }
+
+    /// Several packs: this bridge speaks to the inverter.
+    pub fn speaking(&self) -> bool {
+        self.election.speaking()
+    }
+
+    /// Several packs: what was heard of the other nodes.
+    pub fn packs(&self) -> &Packs {
+        &self.packs
     }
 
     /// The configuration changed while running (a `set_config` of fields that
@@ -255,6 +328,7 @@ impl Inverter {
         let mut c = new;
         c.enabled = self.config.enabled;
         c.protocol = self.config.protocol;
+        c.node = self.config.node;
         if self.stale_since.is_some() && c.stale_policy != self.config.stale_policy {
             self.next_stale_policy = Some(c.stale_policy);
             c.stale_policy = self.config.stale_policy;
@@ -358,9 +432,16 @@ impl Inverter {
     }
 
     /// A frame from the bus (the GX keep-alive).
-    pub fn on_received(&mut self, now: Instant, id: u16, _data: &[u8]) {
+    pub fn on_received(&mut self, now: Instant, id: u16, data: &[u8]) {
         if !self.config.enabled {
             return; // output off: the bus is none of our business
+        }
+        if let Received::DuplicateNode = self.packs.on_frame(now, id, data) {
+            if !self.duplicate_reported {
+                self.duplicate_reported = true;
+                let n = self.packs.node();
+                self.report(InverterReport::DuplicateNode(n));
+            }
         }
         if id == frames::ID_GX_KEEPALIVE || id == frames::ID_GX_KEEPALIVE_2 {
             self.inverter_seen_at = Some(now);
@@ -421,8 +502,17 @@ impl Inverter {
                 return InverterAction::WaitUntil(t);
             }
             self.bus_off = None;
-            // The inverter saw no limits meanwhile: they ramp back.
-            self.control.cut(now);
+            if self.packs.node() == 0 {
+                // The inverter saw no limits meanwhile: they ramp back.
+                self.control.cut(now);
+            }
+            // With a node number: listen again before speaking; the battery's
+            // limits come back after the hold.
+            if self.election.speaking() {
+                self.report(InverterReport::Speaker(false));
+            }
+            self.election.restart(now);
+            self.battery_limits.cut(now);
             return InverterAction::Recover;
         }
         if let Some(f) = self.queue.pop_front() {
@@ -459,6 +549,10 @@ impl Inverter {
 
     /// Computes the limits and queues this period's frames.
     fn fill(&mut self, now: Instant, slow: bool) {
+        if self.packs.node() != 0 {
+            self.fill_member(now, slow);
+            return;
+        }
         let (Some(settings), Some((state, taken_at))) = (self.settings, self.state) else {
             return; // nothing the BMS said yet: nothing to send
         };
@@ -517,32 +611,206 @@ impl Inverter {
             self.report(InverterReport::Limits(limits));
         }
         let capacity_ah = settings.capacity_cah / 100;
+        let modules = (
+            1,
+            u16::from(limits.ccl_da == 0),
+            u16::from(limits.dcl_da == 0),
+            0,
+        );
+        self.push_inverter_frames(&limits, &state, &conditions, capacity_ah, modules, slow);
+    }
+
+    /// The frames of the inverter protocol for a battery in this state.
+    fn push_inverter_frames(
+        &mut self,
+        limits: &Limits,
+        state: &PackState,
+        conditions: &Conditions,
+        capacity_ah: u16,
+        modules: (u16, u16, u16, u16),
+        slow: bool,
+    ) {
+        let (firmware, hardware) = (self.firmware, self.hardware);
         let mut push = |f: CanFrame| {
             let _ = self.queue.push_back(f);
         };
-        push(frames::limits(&limits));
+        push(frames::limits(limits));
         match self.config.protocol {
             Protocol::Victron => {
-                push(frames::victron_alarms(&conditions));
-                push(frames::soc(&state));
-                push(frames::measurements(&state));
+                push(frames::victron_alarms(conditions));
+                push(frames::soc(state));
+                push(frames::measurements(state));
                 if slow {
                     push(frames::name());
-                    push(frames::victron_info(self.firmware, capacity_ah));
-                    push(frames::modules(&limits, true));
-                    push(frames::cell_extremes(&state));
+                    push(frames::victron_info(firmware, capacity_ah));
+                    push(frames::module_counts(modules));
+                    push(frames::cell_extremes(state));
                     push(frames::capacity(capacity_ah));
                 }
             }
             Protocol::SmaSunnyIsland => {
-                push(frames::sma_alarms(&conditions));
-                push(frames::soc(&state));
-                push(frames::sma_measurements(&state));
+                push(frames::sma_alarms(conditions));
+                push(frames::soc(state));
+                push(frames::sma_measurements(state));
                 if slow {
                     push(frames::name());
-                    push(frames::sma_info(self.hardware, capacity_ah, self.firmware));
+                    push(frames::sma_info(hardware, capacity_ah, firmware));
                 }
             }
+        }
+    }
+
+    /// With a node number: this pack's limits and summary, the battery of all
+    /// packs heard, and — when this bridge is the speaker — the inverter
+    /// frames for the battery.
+    fn fill_member(&mut self, now: Instant, slow: bool) {
+        let stale_after = self.config.stale_after_us;
+        // This pack: its own limits while its data is fresh.
+        let own = match (self.settings, self.state) {
+            (Some(settings), Some((state, taken_at))) => {
+                let age = now.saturating_sub(taken_at);
+                if age > stale_after {
+                    if self.stale_since.is_none() {
+                        self.stale_since = Some(now);
+                        self.report(InverterReport::Stale {
+                            age_ms: (age / crate::MS).min(u64::from(u32::MAX)) as u32,
+                            policy: self.config.stale_policy,
+                        });
+                    }
+                } else {
+                    if self.stale_since.take().is_some() {
+                        // This pack left the battery meanwhile; the battery's
+                        // hold and ramp rule its return (see `packs`).
+                        self.report(InverterReport::Fresh);
+                    }
+                    let (limits, mut conditions) = self.control.update(now, &settings, &state);
+                    conditions.link_lost = 0;
+                    self.limits = Some(limits);
+                    self.conditions = conditions;
+                    if self.logged_limits != Some(limits) {
+                        self.logged_limits = Some(limits);
+                        self.report(InverterReport::Limits(limits));
+                    }
+                }
+                // The summary carries the pack's limits before its own hold
+                // and ramp: the battery holds and ramps as a whole, so a pack
+                // that comes back after a cut adds its share at once instead of
+                // holding the whole battery at 0.
+                let (ccl_da, dcl_da) = self.control.targets();
+                self.limits.map(|l| {
+                    let unheld = Limits {
+                        ccl_da,
+                        dcl_da,
+                        ..l
+                    };
+                    (state, age, unheld, self.conditions, settings.capacity_cah)
+                })
+            }
+            _ => None,
+        };
+        // Who speaks, then this pack's summary (saying so).
+        let was = self.election.speaking();
+        let speaking = self.election.update(now, &self.packs);
+        if speaking != was {
+            self.report(InverterReport::Speaker(speaking));
+        }
+        let node = self.packs.node();
+        // Every pack once (this one first), and the nodes taking part as bits.
+        let mut members: heapless::Vec<Member, { packs::MAX_NODES as usize }> =
+            heapless::Vec::new();
+        let mut mask = 0u16;
+        let mut add = |n: u8, m: Member| {
+            if m.takes_part(stale_after) {
+                mask |= 1 << (n.saturating_sub(1) & 15);
+            }
+            let _ = members.push(m);
+        };
+        if let Some((state, age, limits, conditions, cap)) = own {
+            let summary = Summary::own(&state, age, &limits, &conditions, cap, speaking);
+            if let Some(fs) = summary.frames(node, self.seq) {
+                for f in fs {
+                    let _ = self.queue.push_back(f);
+                }
+            }
+            self.seq = (self.seq + 1) & 0x0F;
+            add(
+                node,
+                Member {
+                    summary,
+                    alive: true,
+                },
+            );
+        }
+        for (n, summary, alive) in self.packs.known(now) {
+            add(
+                n,
+                Member {
+                    summary: *summary,
+                    alive,
+                },
+            );
+        }
+        let battery = packs::aggregate(&members, stale_after);
+        let counts = battery.map_or((0, members.len() as u8), |b| (b.online, b.offline));
+        if self.logged_packs != Some(counts) {
+            self.logged_packs = Some(counts);
+            self.report(InverterReport::Packs {
+                online: counts.0,
+                offline: counts.1,
+            });
+        }
+        let Some(battery) = battery else {
+            let last = self.battery.take().map(|(_, l)| l);
+            self.battery_limits.cut(now);
+            if !self.battery_lost {
+                self.battery_lost = true;
+                self.report(InverterReport::BatteryLost);
+            }
+            if speaking && self.config.protocol == Protocol::SmaSunnyIsland {
+                // A Sunny Island obeys the last 0x351 for 60 s: stop it.
+                if let Some(last) = last {
+                    let stop = Limits {
+                        ccl_da: 0,
+                        dcl_da: 0,
+                        ..last
+                    };
+                    let _ = self.queue.push_back(frames::limits(&stop));
+                }
+            }
+            return;
+        };
+        self.battery_lost = false;
+        if !self.election.listened(now) {
+            // Not every pack heard yet: no battery limits (nor speaking).
+            self.battery = None;
+            return;
+        }
+        let limits = self
+            .battery_limits
+            .step(now, &battery, mask, &self.config.charge);
+        self.battery = Some((battery, limits));
+        if speaking {
+            if self.logged_battery != Some(limits) {
+                self.logged_battery = Some(limits);
+                self.report(InverterReport::BatteryLimits(limits));
+            }
+            let capacity_ah = (battery.capacity_dah / 10).min(u32::from(u16::MAX)) as u16;
+            let modules = (
+                u16::from(battery.online),
+                u16::from(battery.blocking_charge),
+                u16::from(battery.blocking_discharge),
+                u16::from(battery.offline),
+            );
+            self.push_inverter_frames(
+                &limits,
+                &battery.state,
+                &battery.conditions,
+                capacity_ah,
+                modules,
+                slow,
+            );
+        } else {
+            self.logged_battery = None;
         }
     }
 

@@ -25,10 +25,20 @@
 //!   than its headroom. A pack already past its own CCL turns the headroom
 //!   negative, scaled by the number of packs (its share of a cut is about
 //!   1/N). Never above the sum of the packs' CCLs; never below 0.
-//!   DCL the same way with discharge currents.
+//!   DCL the same way with discharge currents. Each pack's limit counts 2 %
+//!   (at least 0.5 A) less ([`usable`]): its current was measured a moment ago.
+//! * **One pack may open its switch at any moment** (a fault, a cutoff): until
+//!   the inverter hears new limits, the others carry its current. So the total
+//!   is also kept where, without any one pack, each other pack's share
+//!   (measured: its current over the total) would stay within its own limit:
+//!   `total ≤ limit_k × (total − I_j) / I_k` for every pair. Four equal packs
+//!   are asked for at most three packs' current; two, for one pack's — the
+//!   price of never tripping the others in a cascade.
 //! * Those limits then go through the single pack's hold and ramp
 //!   ([`super::control`]): they fall at once; they rise at most
-//!   `ramp_da_per_s`; when a pack leaves, a rise waits `hold_us` first.
+//!   `ramp_da_per_s`; when a pack leaves or comes (back), a rise waits
+//!   `hold_us` first. They start once the bridge has listened for
+//!   [`LISTEN_US`] (it knows every pack then).
 //! * SOC and SOH weighted by capacity; capacity, current summed; voltage the
 //!   mean; cell and temperature extremes across the packs; alarms and warnings
 //!   of the packs taking part combined (the highest level of each field). A
@@ -37,12 +47,13 @@
 //!
 //! **One speaker** ([`Election`]): a bridge that is not speaking starts only
 //! when (a) it has listened for [`LISTEN_US`] since it started or recovered from
-//! a bus-off, (b) no other node heard within [`PACK_LOST_US`] says it is
+//! a bus-off, (b) no other node heard within [`SPEAKER_LOST_US`] says it is
 //! speaking, and (c) no lower node number is heard. A speaker goes on until it
 //! hears a *lower* node that says it is speaking. So node 1, the primary,
 //! speaks after its first 3 s; when the speaker falls silent, the lowest node
-//! still heard takes over [`PACK_LOST_US`] after its last summary, within the
-//! 3 s a Victron GX waits for limits; a node that comes back finds a speaker
+//! still heard takes over once [`SPEAKER_LOST_US`] have passed since its last
+//! summary: the inverter is without limits for at most 2.5 s (a Victron GX
+//! waits 3 s); a node that comes back finds a speaker
 //! and stays quiet (no handover, no gap). Two speakers exist only while one of
 //! them hears nothing of the bus; the moment they hear each other, the higher
 //! one stops.
@@ -63,8 +74,16 @@ pub const MAX_NODES: u8 = 8;
 pub const SUMMARY_FRAMES: usize = 4;
 /// Last identifier of the summary range.
 pub const SUMMARY_LAST_ID: u16 = SUMMARY_BASE_ID + (MAX_NODES as u16) * 4 - 1;
-/// A node whose last complete summary is older than this is lost, µs.
-pub const PACK_LOST_US: Instant = 2 * crate::SECOND;
+/// A pack whose last complete summary is older than this is lost and leaves
+/// the battery, µs (one summary may go missing).
+pub const PACK_LOST_US: Instant = 2_500_000;
+/// A speaker (or a lower node) counts as silent for the election after this
+/// long without a summary, µs: short enough that a new speaker's first 0x351
+/// comes within 2.5 s of the last one (a GX stops after 3 s without).
+pub const SPEAKER_LOST_US: Instant = 1_500_000;
+/// Below this total current (0.1 A) the shares of the packs are not known well
+/// enough for the rule that one pack may drop out.
+pub const REDUNDANCY_MIN_DA: i32 = 20;
 /// After a start or a bus-off recovery, a node listens this long before it may
 /// speak, µs.
 pub const LISTEN_US: Instant = 3 * crate::SECOND;
@@ -455,11 +474,16 @@ impl Packs {
 
     /// Node `node`'s last summary if heard within [`PACK_LOST_US`].
     pub fn alive(&self, now: Instant, node: u8) -> Option<&Summary> {
+        self.heard_within(now, node, PACK_LOST_US)
+    }
+
+    /// Node `node`'s last summary if heard within `us`.
+    pub fn heard_within(&self, now: Instant, node: u8, us: Instant) -> Option<&Summary> {
         let h = self
             .heard
             .get(usize::from(node.checked_sub(1)?))?
             .as_ref()?;
-        (now.saturating_sub(h.at) <= PACK_LOST_US).then_some(&h.summary)
+        (now.saturating_sub(h.at) <= us).then_some(&h.summary)
     }
 
     /// Every node ever heard (1..=8) with its summary and whether it is alive.
@@ -499,10 +523,16 @@ impl Election {
         self.speaking
     }
 
+    /// It has listened for [`LISTEN_US`] since it started or recovered: it
+    /// knows the other packs.
+    pub fn listened(&self, now: Instant) -> bool {
+        now.saturating_sub(self.listening_since) >= LISTEN_US
+    }
+
     /// Decides at `now` from what has been heard.
     pub fn update(&mut self, now: Instant, packs: &Packs) -> bool {
         let me = packs.node();
-        let heard = |n: u8| packs.alive(now, n);
+        let heard = |n: u8| packs.heard_within(now, n, SPEAKER_LOST_US);
         let speaks = |n: u8| n != me && heard(n).is_some_and(|s| s.speaking);
         self.speaking = if me == 0 {
             false
@@ -555,6 +585,13 @@ impl Member {
     }
 }
 
+/// What the battery may ask of a pack whose own limit is `limit_da`: 2 % (at
+/// least 0.5 A) less, for the current measured a moment ago and its noise.
+pub fn usable(limit_da: u16) -> i32 {
+    let l = i32::from(limit_da);
+    l - (l / 50).max(5).min(l)
+}
+
 /// The battery of `members` (each pack once, this bridge's own included);
 /// `None` when no pack takes part.
 pub fn aggregate(members: &[Member], stale_after_us: Instant) -> Option<Battery> {
@@ -578,7 +615,7 @@ pub fn aggregate(members: &[Member], stale_after_us: Instant) -> Option<Battery>
         cvl = cvl.min(s.limits.cvl_dv);
         discharge = discharge.max(s.limits.discharge_dv);
         let i = i32::from(s.current_da);
-        let (ccl, dcl) = (i32::from(s.limits.ccl_da), i32::from(s.limits.dcl_da));
+        let (ccl, dcl) = (usable(s.limits.ccl_da), usable(s.limits.dcl_da));
         i_sum += i;
         ccl_sum += ccl;
         dcl_sum += dcl;
@@ -597,8 +634,8 @@ pub fn aggregate(members: &[Member], stale_after_us: Instant) -> Option<Battery>
         for (acc, v) in cond.iter_mut().zip(s.conditions.all()) {
             *acc = (*acc).max(v);
         }
-        block_c += u8::from(ccl == 0);
-        block_d += u8::from(dcl == 0);
+        block_c += u8::from(s.limits.ccl_da == 0);
+        block_d += u8::from(s.limits.dcl_da == 0);
     }
     let mut offline = 0u8;
     for m in members.iter().filter(|m| !m.takes_part(stale_after_us)) {
@@ -610,8 +647,40 @@ pub fn aggregate(members: &[Member], stale_after_us: Instant) -> Option<Battery>
         }
     }
     let clamp_da = |x: i32| x.clamp(0, i32::from(u16::MAX)) as u16;
-    let ccl = clamp_da(i_sum.saturating_add(ch_room).min(ccl_sum));
-    let dcl = clamp_da((-i_sum).saturating_add(dis_room).min(dcl_sum));
+    let ccl = i_sum.saturating_add(ch_room).min(ccl_sum);
+    let dcl = (-i_sum).saturating_add(dis_room).min(dcl_sum);
+    // One pack may open its switch at any moment: the others then share its
+    // current until the inverter hears the new limits. Keep the total low
+    // enough that they stay within their own limits then.
+    let spare = |sign: i32, limit: fn(&Summary) -> u16| -> i32 {
+        let share = |m: &Member| (sign * i32::from(m.summary.current_da)).max(0);
+        let total: i32 = part().map(share).sum();
+        if n < 2 || total < REDUNDANCY_MIN_DA {
+            return i32::MAX; // no current to share out (yet): the ramp rules
+        }
+        let mut most = i32::MAX;
+        for (k, mk) in part().enumerate() {
+            let own = share(mk);
+            if own == 0 {
+                continue;
+            }
+            let largest_other = part()
+                .enumerate()
+                .filter(|(j, _)| *j != k)
+                .map(|(_, m)| share(m))
+                .max()
+                .unwrap_or(0);
+            // Pack k carries own/total of the battery's current; without
+            // pack j, own/(total − d_j). So the total may be at most
+            // limit_k × (total − d_j) / own.
+            let t = i64::from(usable(limit(&mk.summary))) * i64::from(total - largest_other)
+                / i64::from(own);
+            most = most.min(t.clamp(0, i64::from(i32::MAX)) as i32);
+        }
+        most
+    };
+    let ccl = clamp_da(ccl.min(spare(1, |s| s.limits.ccl_da)));
+    let dcl = clamp_da(dcl.min(spare(-1, |s| s.limits.dcl_da)));
     let (soc, soh) = if cap > 0 {
         (soc_w / cap, soh_w / cap)
     } else {
@@ -712,9 +781,10 @@ impl BatteryLimits {
         members: u16,
         c: &ChargeConfig,
     ) -> Limits {
-        if self.members & !members != 0 {
-            // A pack left: its share is gone at once (the target falls), and
-            // whatever rises waits the hold.
+        if self.last.is_some() && self.members != members {
+            // A pack left: its share is gone at once (the target falls). A
+            // pack came (back): what it adds waits the hold, then ramps — the
+            // single pack's rule after a cut.
             self.ccl.hold_from(now);
             self.dcl.hold_from(now);
         }

@@ -191,6 +191,30 @@ impl Live {
         self.full = self.soc >= 99.9;
     }
 
+    /// Open-circuit voltage of the pack now (the cells' OCV at this SOC, the
+    /// knee of a full cell and the fixed offsets, no I·R), V.
+    pub(crate) fn open_circuit_v(&self) -> f64 {
+        let knee = if self.capacity_ah > 0.0 {
+            (self.over_ah / self.capacity_ah * 1000.0 * 0.15).min(1.5)
+        } else {
+            0.0
+        };
+        let base = ocv(self.curve, self.soc) + knee;
+        (0..self.cells.min(16))
+            .map(|i| base + self.offsets_v.get(i).copied().unwrap_or(0.0))
+            .sum()
+    }
+
+    /// Internal resistance of the pack (cells in series), Ω.
+    pub(crate) fn resistance_ohm(&self) -> f64 {
+        self.r_cell * self.cells as f64
+    }
+
+    /// Sets the internal resistance of every cell, Ω.
+    pub(crate) fn set_cell_resistance(&mut self, ohm: f64) {
+        self.r_cell = ohm.max(0.0);
+    }
+
     /// Sets the fixed offset of cell `i` (a runner), volts.
     pub(crate) fn set_offset(&mut self, i: usize, v: f64) {
         if let Some(o) = self.offsets_v.get_mut(i) {

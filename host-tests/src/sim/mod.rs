@@ -574,6 +574,21 @@ impl SimBms {
         self.live.set_offset(index, mv / 1000.0);
     }
 
+    /// Packs in parallel: the pack's open-circuit voltage now, V.
+    pub fn open_circuit_v(&self) -> f64 {
+        self.live.open_circuit_v()
+    }
+
+    /// Packs in parallel: the pack's internal resistance, Ω.
+    pub fn internal_resistance_ohm(&self) -> f64 {
+        self.live.resistance_ohm()
+    }
+
+    /// Packs in parallel: sets every cell's internal resistance, Ω.
+    pub fn set_cell_resistance_ohm(&mut self, ohm: f64) {
+        self.live.set_cell_resistance(ohm);
+    }
+
     /// Sets the state of charge, %.
     pub fn set_soc_percent(&mut self, soc: f64) {
         self.live.set_soc(soc);

@@ -1,0 +1,197 @@
+//! Several packs in parallel, one battery: the closed loop with N simulated
+//! packs whose current splits by physics, N bridges on one virtual CAN bus and
+//! the inverter model — every scenario of `sim --packs 4 --scenario NAME`.
+//! In every one, no pack goes past its own cutoffs (cells, charge and discharge
+//! current: the packs' truth, not what the bridges said), never two bridges
+//! speak, and the inverter is never without limits for the 3 s a GX waits.
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    clippy::indexing_slicing
+)]
+
+use host_tests::multi_pack::{problems, run_scenario, table, MultiLoop, SCENARIOS};
+use tinybms_firmware::inverter::control::ChargeConfig;
+use tinybms_firmware::inverter::{InverterConfig, InverterReport, Protocol};
+
+const S: u64 = 1_000_000;
+const MIN: u64 = 60 * S;
+
+fn run(name: &str, n: usize, protocol: Protocol) -> (MultiLoop, u64) {
+    let config = InverterConfig {
+        protocol,
+        ..InverterConfig::default()
+    };
+    let (l, end) = run_scenario(name, n, config, |_| {}).unwrap();
+    println!("{}", table(name, &l, end));
+    let p = problems(&l, ChargeConfig::default().ov_margin_mv);
+    assert!(p.is_empty(), "{name}: {p:#?}");
+    (l, end)
+}
+
+/// Capacity (Ah) and packs taking part in the speaker's battery at `t`.
+fn battery_at(l: &MultiLoop, t: u64) -> (u32, u8) {
+    let e = l.figures.timeline.iter().rev().find(|e| e.0 <= t).unwrap();
+    (e.2 / 10, e.3)
+}
+
+/// Capacity (Ah) of `n` of the packs (register 306, 0.01 Ah; all alike).
+fn packs_ah(l: &MultiLoop, n: u32) -> u32 {
+    u32::from(l.nodes[0].h.sim.register(306)) / 100 * n
+}
+
+fn dcl_at(l: &MultiLoop, t: u64) -> u16 {
+    l.sent_limits
+        .iter()
+        .rev()
+        .find(|e| e.0 <= t)
+        .unwrap()
+        .2
+        .dcl_da
+}
+
+#[test]
+fn four_packs_charge_to_float_sharing_the_current_by_physics() {
+    let (l, _) = run("full-charge", 4, Protocol::Victron);
+    let b = &l.figures;
+    assert!(b.float_at_us.is_some(), "the battery never reached float");
+    assert_eq!(b.speaker_changes.len(), 1, "node 1 spoke throughout");
+    assert_eq!(b.speaker_changes[0].1, 1);
+    // The battery asked for what three packs can carry (one may drop out):
+    // at most 3 × 60 A, and it did use most of it.
+    assert!(b.highest_ccl_da <= 1800, "{}", b.highest_ccl_da);
+    assert!(b.highest_ccl_da >= 1500, "{}", b.highest_ccl_da);
+    // The battery's capacity is the four packs'.
+    assert_eq!(battery_at(&l, 60 * MIN), (packs_ah(&l, 4), 4));
+    // CVL went to float: the lowest CVL sent is below the first.
+    let first = l.sent_limits[0].2.cvl_dv;
+    let last = l.sent_limits.last().unwrap().2.cvl_dv;
+    assert!(last < first, "CVL {first} → {last}");
+    // The bus: four summaries of four frames a second and the inverter frames.
+    assert!(b.bus_load_percent(4 * 3600 * S) < 1.0);
+}
+
+#[test]
+fn a_low_pack_joined_to_three_full_ones_takes_the_most_and_stays_within_its_cutoffs() {
+    let (l, end) = run("joined", 4, Protocol::Victron);
+    let low = &l.nodes[3];
+    let others = l.nodes[..3]
+        .iter()
+        .map(|p| p.figures.highest_charge_a)
+        .fold(0.0, f64::max);
+    assert!(
+        low.figures.highest_charge_a > 2.0 * others,
+        "the split is by physics: {} A against {} A",
+        low.figures.highest_charge_a,
+        others
+    );
+    // The full packs gave current to the low one at first (no charger needed).
+    assert!(l.nodes[0].figures.highest_discharge_a > 5.0);
+    // And it was charged.
+    let soc = low.h.sim.register(46);
+    assert!(soc > 0, "{soc}");
+    assert!(
+        low.h
+            .bridge
+            .telemetry()
+            .snapshot
+            .as_ref()
+            .unwrap()
+            .soc_percent()
+            > 40.0
+    );
+    let _ = end;
+}
+
+#[test]
+fn a_pack_that_faults_at_full_load_leaves_at_once_and_comes_back_after_the_hold() {
+    let (l, _) = run("pack-fault", 4, Protocol::Victron);
+    // Full load before the fault: the battery's DCL is what three packs can
+    // carry; the loads draw it.
+    let before = dcl_at(&l, 5 * MIN - S);
+    assert!(before >= 1500, "{before}");
+    assert_eq!(battery_at(&l, 5 * MIN - S), (packs_ah(&l, 4), 4));
+    // Within 3 s of the fault the pack is out of the sums and the limit fell.
+    assert_eq!(battery_at(&l, 5 * MIN + 3 * S), (packs_ah(&l, 3), 3));
+    let after = dcl_at(&l, 5 * MIN + 3 * S);
+    assert!(after < before, "DCL {before} → {after}");
+    // The BMS clears its fault at 12 min: the pack comes back; the limit
+    // does not rise for the hold (30 s), then ramps.
+    let back = l
+        .figures
+        .timeline
+        .iter()
+        .find(|e| e.0 > 12 * MIN && e.3 == 4)
+        .unwrap()
+        .0;
+    assert!(back < 12 * MIN + 10 * S, "{back}");
+    let at_back = dcl_at(&l, back);
+    let hold = ChargeConfig::default().hold_us;
+    for e in l
+        .sent_limits
+        .iter()
+        .filter(|e| e.0 > back && e.0 < back + hold - 2 * S)
+    {
+        assert!(
+            e.2.dcl_da <= at_back,
+            "rose during the hold at {} s",
+            e.0 / S
+        );
+    }
+    assert!(dcl_at(&l, back + hold + 60 * S) > at_back);
+    // The faulted pack's current stopped (its switch is open).
+    let faulted = &l.nodes[1];
+    assert!(faulted.h.sim.fault().is_none(), "cleared at the end");
+}
+
+#[test]
+fn a_bridge_that_loses_its_bms_takes_its_pack_out_of_the_battery() {
+    let (l, _) = run("uart-lost", 4, Protocol::Victron);
+    assert_eq!(battery_at(&l, 5 * MIN - S), (packs_ah(&l, 4), 4));
+    // Stale after 5 s: out of the sums.
+    assert_eq!(battery_at(&l, 5 * MIN + 10 * S), (packs_ah(&l, 3), 3));
+    assert_eq!(battery_at(&l, 9 * MIN), (packs_ah(&l, 3), 3));
+    // Back once its BMS answers again.
+    assert_eq!(battery_at(&l, 10 * MIN + 30 * S), (packs_ah(&l, 4), 4));
+    let reports: Vec<_> = l
+        .figures
+        .reports
+        .iter()
+        .filter(|(_, n, r)| *n == 2 && matches!(r, InverterReport::Stale { .. }))
+        .collect();
+    assert_eq!(reports.len(), 1);
+}
+
+#[test]
+fn the_primary_lost_node_2_takes_over_within_the_time_a_gx_waits() {
+    let (l, _) = run("primary-lost", 4, Protocol::Victron);
+    let changes = &l.figures.speaker_changes;
+    assert_eq!(changes.len(), 2, "{changes:?}");
+    assert_eq!(changes[1].1, 2);
+    assert!(changes[1].0 > 5 * MIN && changes[1].0 < 5 * MIN + 3 * S);
+    // Node 1's pack is no longer reported: 3 packs.
+    assert_eq!(battery_at(&l, 6 * MIN), (packs_ah(&l, 3), 3));
+}
+
+#[test]
+fn bus_off_of_the_speaker_hands_over_and_a_recovered_node_stays_quiet() {
+    let (l, _) = run("bus-off", 4, Protocol::Victron);
+    let changes: Vec<u8> = l.figures.speaker_changes.iter().map(|c| c.1).collect();
+    // Node 1 speaks, goes bus-off at 5 min: node 2; node 1 recovers and stays
+    // quiet; node 2 goes bus-off at 10 min: node 1 again.
+    assert_eq!(changes, vec![1, 2, 1]);
+    assert!(l.figures.speaker_changes[2].0 > 10 * MIN);
+}
+
+#[test]
+fn every_scenario_with_a_sunny_island_and_with_two_and_eight_packs() {
+    for name in SCENARIOS {
+        run(name, 4, Protocol::SmaSunnyIsland);
+    }
+    for n in [2, 8] {
+        for name in ["full-charge", "pack-fault", "primary-lost"] {
+            run(name, n, Protocol::Victron);
+        }
+    }
+}
