@@ -605,3 +605,76 @@ proptest! {
         }
     }
 }
+
+/// The pack summaries' DBC (`host-tests/can/tinybms-packs.dbc`) describes
+/// exactly what the encoder sends: every id of the 8 nodes, every bit, every
+/// value.
+#[test]
+fn the_pack_summary_dbc_describes_the_encoder() {
+    use tinybms_firmware::inverter::packs::Summary;
+    let s = Summary {
+        voltage_cv: 5321,
+        current_da: -1234,
+        soc_cpct: 6543,
+        soh_pct: 97,
+        min_cell_mv: 3301,
+        max_cell_mv: 3345,
+        min_temp_dc: -52,
+        max_temp_dc: 318,
+        age_ds: 7,
+        capacity_dah: 2800,
+        limits: Limits {
+            cvl_dv: 552,
+            ccl_da: 588,
+            dcl_da: 1176,
+            discharge_dv: 480,
+        },
+        conditions: Conditions {
+            high_voltage: 1,
+            low_temperature: 2,
+            high_charge_current: 1,
+            bms_internal: 2,
+            cell_imbalance: 1,
+            ..Conditions::default()
+        },
+        fault: true,
+        charge_blocked: false,
+        speaking: true,
+    };
+    let expect = [
+        ("Voltage", 53.21),
+        ("Current", -123.4),
+        ("StateOfCharge", 65.43),
+        ("StateOfHealth", 97.0),
+        ("Sequence", 9.0),
+        ("Speaking", 1.0),
+        ("Fault", 1.0),
+        ("ChargeBlocked", 0.0),
+        ("MinCellVoltage", 3301.0),
+        ("MaxCellVoltage", 3345.0),
+        ("MinTemperature", -5.2),
+        ("DataAge", 0.7),
+        ("MaxTemperature", 31.8),
+        ("Capacity", 280.0),
+        ("DischargeVoltage", 48.0),
+        ("HighVoltage", 1.0),
+        ("LowVoltage", 0.0),
+        ("HighTemperature", 0.0),
+        ("LowTemperature", 2.0),
+        ("ChargeVoltageLimit", 55.2),
+        ("ChargeCurrentLimit", 58.8),
+        ("DischargeCurrentLimit", 117.6),
+        ("HighTemperatureCharge", 0.0),
+        ("LowTemperatureCharge", 0.0),
+        ("HighDischargeCurrent", 0.0),
+        ("HighChargeCurrent", 1.0),
+        ("BmsInternal", 2.0),
+        ("CellImbalance", 1.0),
+    ];
+    let sent: Vec<CanFrame> = (1..=8).flat_map(|n| s.frames(n, 9).unwrap()).collect();
+    check_dbc(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/can/tinybms-packs.dbc"),
+        &sent,
+        &expect,
+    );
+}

@@ -84,6 +84,11 @@ pack and an inverter/charger that obeys the frames):
   --json FILE        every published snapshot and the limits, JSON Lines with
                      the field names of `replay`
   --stale-policy P   stop (default) or hold:DURATION (CCL 0, keep discharging)
+  --packs N          N packs in parallel (2-8), one bridge each with node numbers
+                     1..N on one CAN bus, current split by physics; --scenario
+                     full-charge, joined, pack-fault, uart-lost, primary-lost,
+                     bus-off or all; prints each pack's highest cell and current
+                     against its own cutoffs (--can-log: the whole bus)
 
 exit status: 0 when every published value was sent by the BMS and no write was
 reported successful that the BMS did not hold; 1 otherwise; 2 on a usage error";
@@ -119,6 +124,7 @@ struct Options {
     boot_button_us: Option<u64>,
     freeze: Option<(u64, u64)>,
     mqtt: Option<(String, u16)>,
+    packs: Option<usize>,
 }
 
 enum Parsed {
@@ -152,6 +158,7 @@ fn parse_args() -> Result<Parsed, String> {
         boot_button_us: None,
         freeze: None,
         mqtt: None,
+        packs: None,
     };
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
@@ -272,10 +279,22 @@ fn parse_args() -> Result<Parsed, String> {
             }
             "--scenario" => {
                 let v = value("--scenario")?;
-                if v != "all" && !SCENARIOS.contains(&v.as_str()) {
+                let known = SCENARIOS.contains(&v.as_str())
+                    || host_tests::multi_pack::SCENARIOS.contains(&v.as_str());
+                if v != "all" && !known {
                     return Err(format!("unknown scenario `{v}`"));
                 }
                 o.scenario = Some(v);
+                o.inverter.get_or_insert(Protocol::Victron);
+            }
+            "--packs" => {
+                let v = value("--packs")?;
+                let n: usize = v
+                    .parse()
+                    .ok()
+                    .filter(|n| (2..=8).contains(n))
+                    .ok_or_else(|| format!("--packs takes 2 to 8, not `{v}`"))?;
+                o.packs = Some(n);
                 o.inverter.get_or_insert(Protocol::Victron);
             }
             "--can-log" => {
@@ -551,6 +570,9 @@ fn main() -> ExitCode {
     if o.pty || o.bridge_pty || o.mqtt.is_some() {
         return run_realtime(&o);
     }
+    if let (Some(protocol), Some(n)) = (o.inverter, o.packs) {
+        return run_packs(&o, protocol, n);
+    }
     if let Some(protocol) = o.inverter {
         return run_inverter(&o, protocol);
     }
@@ -696,6 +718,60 @@ fn open_log(path: &Option<String>) -> Result<Option<Box<dyn std::io::Write>>, St
         Some(p) => std::fs::File::create(p)
             .map(|f| Some(Box::new(std::io::BufWriter::new(f)) as Box<dyn std::io::Write>))
             .map_err(|e| format!("{p}: {e}")),
+    }
+}
+
+/// Packs in parallel: one scenario or all of them with `n` packs. Prints each
+/// pack's figures; exits 1 if any pack went past its own cutoffs, two bridges
+/// spoke, or the inverter was without limits too long.
+fn run_packs(o: &Options, protocol: Protocol, n: usize) -> ExitCode {
+    use host_tests::multi_pack;
+    let config = InverterConfig {
+        protocol,
+        stale_policy: o.stale_policy,
+        ..InverterConfig::default()
+    };
+    let names: Vec<String> = match &o.scenario {
+        None => vec!["full-charge".to_string()],
+        Some(s) if s == "all" => multi_pack::SCENARIOS.iter().map(|s| s.to_string()).collect(),
+        Some(s) if multi_pack::SCENARIOS.contains(&s.as_str()) => vec![s.clone()],
+        Some(s) => {
+            eprintln!(
+                "sim: `{s}` is a single-pack scenario; with --packs: {}",
+                multi_pack::SCENARIOS.join(", ")
+            );
+            return ExitCode::from(2);
+        }
+    };
+    let mut can_log = match open_log(&o.can_log) {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("sim: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    let mut all_ok = true;
+    for name in names {
+        let start = |l: &mut multi_pack::MultiLoop| l.can_log = can_log.take();
+        let Some((mut l, end)) = multi_pack::run_scenario(&name, n, config, start) else {
+            eprintln!("sim: unknown scenario `{name}`");
+            return ExitCode::from(2);
+        };
+        print!("{}", multi_pack::table(&name, &l, end));
+        let problems = multi_pack::problems(&l, config.charge.ov_margin_mv);
+        for p in &problems {
+            println!("  FAIL: {p}");
+        }
+        all_ok &= problems.is_empty();
+        can_log = l.can_log.take();
+        if let Some(w) = can_log.as_mut() {
+            let _ = w.flush();
+        }
+    }
+    if all_ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
     }
 }
 
