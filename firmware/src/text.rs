@@ -506,7 +506,7 @@ pub fn inverter(r: &InverterReport, out: &mut Line) {
             }
         }
         InverterReport::BatteryLost => {
-            out.push("CAN: no pack takes part in the battery: nothing sent to the inverter");
+            out.push("CAN: no pack takes part in the battery: the inverter is stopped");
         }
         InverterReport::DuplicateNode(n) => {
             out.push("CAN: another bridge sends summaries as node ")

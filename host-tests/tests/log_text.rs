@@ -254,3 +254,60 @@ proptest! {
         prop_assert_eq!(l.as_str(), std);
     }
 }
+
+#[test]
+fn the_lines_of_packs_in_parallel() {
+    let l = Limits {
+        cvl_dv: 552,
+        ccl_da: 1764,
+        dcl_da: 3528,
+        discharge_dv: 500,
+    };
+    let cases = [
+        (
+            InverterReport::BatteryLimits(l),
+            "CAN limits of the battery (all packs): charge voltage 55.2 V, charge current 176.4 A, discharge current 352.8 A",
+            Level::Info,
+        ),
+        (
+            InverterReport::Speaker(true),
+            "CAN: this bridge now speaks to the inverter for the battery",
+            Level::Info,
+        ),
+        (
+            InverterReport::Speaker(false),
+            "CAN: this bridge no longer speaks to the inverter",
+            Level::Info,
+        ),
+        (
+            InverterReport::Packs {
+                online: 3,
+                offline: 1,
+            },
+            "CAN: battery of 3 packs, 1 left (lost, stale or faulted)",
+            Level::Info,
+        ),
+        (
+            InverterReport::Packs {
+                online: 1,
+                offline: 0,
+            },
+            "CAN: battery of 1 pack",
+            Level::Info,
+        ),
+        (
+            InverterReport::BatteryLost,
+            "CAN: no pack takes part in the battery: the inverter is stopped",
+            Level::Warn,
+        ),
+        (
+            InverterReport::DuplicateNode(2),
+            "CAN: another bridge sends summaries as node 2: give each bridge its own pack_node",
+            Level::Warn,
+        ),
+    ];
+    for (r, text, level) in cases {
+        assert_eq!(said_inverter(&r), text);
+        assert_eq!(r.level(), level, "{text}");
+    }
+}

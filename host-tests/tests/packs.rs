@@ -669,3 +669,122 @@ fn the_own_summary_rounds_and_carries_no_link_lost() {
     let old = Summary::own(&p, 3_600 * S, &summary().limits, &cond, 28_000, false);
     assert_eq!(old.age_ds, 255);
 }
+
+mod through_the_inverter_output {
+    use super::S;
+    use host_tests::sim::{PackProfile, SimBms, SimConfig};
+    use protocol_core::response::RegisterBlock;
+    use protocol_core::views::LiveSnapshot;
+    use tinybms_firmware::inverter::control::PackSettings;
+    use tinybms_firmware::inverter::frames::{CanFrame, ID_LIMITS};
+    use tinybms_firmware::inverter::packs::from_id;
+    use tinybms_firmware::inverter::{
+        Inverter, InverterAction, InverterConfig, InverterReport, Protocol, TxResult,
+    };
+
+    fn inputs() -> (LiveSnapshot, PackSettings) {
+        let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 1);
+        let block = |first: u16, n: u16| RegisterBlock {
+            start: first,
+            values: (first..first + n).map(|a| sim.register(a)).collect(),
+        };
+        let snap = LiveSnapshot::from_registers(&block(0, 56)).unwrap();
+        let settings = PackSettings::from_registers(&block(300, 44)).unwrap();
+        (snap, settings)
+    }
+
+    /// Two bridges on a bus for `secs`, fed fresh snapshots until `fresh_until`;
+    /// the frames each sent, with the time.
+    fn two(protocol: Protocol, secs: u64, fresh_until: u64) -> [Vec<(u64, CanFrame)>; 2] {
+        let (snap, settings) = inputs();
+        let mut nodes: Vec<Inverter> = (1..=2)
+            .map(|node| {
+                Inverter::new(
+                    InverterConfig {
+                        protocol,
+                        node,
+                        ..InverterConfig::default()
+                    },
+                    0,
+                )
+            })
+            .collect();
+        let mut sent = [Vec::new(), Vec::new()];
+        for t in 0..secs * 10 {
+            let now = t * S / 10;
+            let mut bus = Vec::new();
+            for (k, inv) in nodes.iter_mut().enumerate() {
+                if now <= fresh_until && t % 2 == 0 {
+                    inv.on_snapshot(now, &snap, Some(settings), None);
+                }
+                while let InverterAction::Send(f) = inv.poll(now) {
+                    inv.on_tx(now, TxResult::Sent);
+                    bus.push((k, f));
+                    sent[k].push((now, f));
+                }
+            }
+            for (from, f) in &bus {
+                let to = 1 - from;
+                nodes[to].on_received(now, f.id, f.bytes());
+            }
+        }
+        sent
+    }
+
+    #[test]
+    fn only_node_1_sends_the_inverter_frames_and_both_send_summaries() {
+        let [a, b] = two(Protocol::Victron, 20, u64::MAX);
+        assert!(a.iter().any(|(_, f)| f.id == ID_LIMITS));
+        assert!(!b.iter().any(|(_, f)| from_id(f.id).is_none()), "node 2 only summarises");
+        for frames in [&a, &b] {
+            let summaries = frames.iter().filter(|(_, f)| from_id(f.id).is_some()).count();
+            assert!((19 * 4..=21 * 4).contains(&summaries), "{summaries}");
+        }
+        // Not before node 1 has listened for 3 s.
+        let first = a.iter().find(|(_, f)| f.id == ID_LIMITS).unwrap().0;
+        assert!(first >= 3 * S, "{first}");
+    }
+
+    #[test]
+    fn when_no_pack_takes_part_a_gx_hears_nothing_and_a_sunny_island_is_stopped() {
+        // Fresh until 10 s, stale after 15 s (5 s stale age).
+        let [victron, _] = two(Protocol::Victron, 30, 10 * S);
+        let last = victron.iter().rev().find(|(_, f)| f.id == ID_LIMITS).unwrap().0;
+        assert!(last <= 16 * S, "limits sent on stale data at {last}");
+        let [sma, _] = two(Protocol::SmaSunnyIsland, 30, 10 * S);
+        let late: Vec<_> = sma.iter().filter(|(t, f)| *t > 17 * S && f.id == ID_LIMITS).collect();
+        assert!(!late.is_empty());
+        for (_, f) in late {
+            assert_eq!(&f.data[2..6], &[0, 0, 0, 0], "CCL 0 and DCL 0");
+        }
+        // Only 0x351 (and the summaries): no measurement frames on stale data.
+        assert!(!sma.iter().any(|(t, f)| *t > 17 * S && f.id == 0x356));
+    }
+
+    #[test]
+    fn two_bridges_with_one_node_number_say_so_once() {
+        let (snap, settings) = inputs();
+        let config = InverterConfig {
+            node: 3,
+            ..InverterConfig::default()
+        };
+        let mut a = Inverter::new(config, 0);
+        let mut b = Inverter::new(config, 0);
+        for t in 0..5u64 {
+            let now = t * S;
+            a.on_snapshot(now, &snap, Some(settings), None);
+            while let InverterAction::Send(f) = a.poll(now) {
+                a.on_tx(now, TxResult::Sent);
+                b.on_received(now, f.id, f.bytes());
+            }
+        }
+        let mut dup = 0;
+        while let Some(r) = b.next_report() {
+            if r == InverterReport::DuplicateNode(3) {
+                dup += 1;
+            }
+        }
+        assert_eq!(dup, 1);
+        assert_eq!(b.packs().duplicates(), 20);
+    }
+}

@@ -91,6 +91,12 @@ pub fn start(spawner: Spawner, twai0: TWAI0<'static>, config: InverterConfig) {
         BOARD.can_tx,
         BOARD.can_rx,
     );
+    if config.node != 0 {
+        info!(
+            "CAN: pack node {=u8} of packs in parallel (summaries on 0x6A0-0x6BF; node 1 speaks first)",
+            config.node
+        );
+    }
     spawn(spawner, can_task(twai, config));
 }
 
@@ -159,11 +165,21 @@ async fn can_task(mut twai: Twai<'static, Async>, config: InverterConfig) {
             }
         }
         while let Some(r) = inverter.next_report() {
+            // What the inverter is sent: this pack's limits when alone, the
+            // battery's when this bridge speaks for several packs.
             #[cfg(feature = "wifi")]
-            if let tinybms_firmware::inverter::InverterReport::Limits(l) = r {
-                crate::wifi::LIMITS
-                    .sender()
-                    .send((l.cvl_dv, l.ccl_da, l.dcl_da));
+            {
+                use tinybms_firmware::inverter::InverterReport as R;
+                let sent = match r {
+                    R::Limits(l) if inverter.node() == 0 => Some(l),
+                    R::BatteryLimits(l) => Some(l),
+                    _ => None,
+                };
+                if let Some(l) = sent {
+                    crate::wifi::LIMITS
+                        .sender()
+                        .send((l.cvl_dv, l.ccl_da, l.dcl_da));
+                }
             }
             crate::log::inverter(&r);
         }

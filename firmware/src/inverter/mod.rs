@@ -245,6 +245,9 @@ pub struct Inverter {
     logged_battery: Option<Limits>,
     logged_packs: Option<(u8, u8)>,
     battery_lost: bool,
+    /// The battery's limits last sent as the speaker (for the stop frames a
+    /// Sunny Island needs when the battery is lost).
+    sent_battery: Option<Limits>,
     duplicate_reported: bool,
     seq: u8,
 }
@@ -290,6 +293,7 @@ impl Inverter {
             logged_battery: None,
             logged_packs: None,
             battery_lost: false,
+            sent_battery: None,
             duplicate_reported: false,
             seq: 0,
         }
@@ -760,7 +764,7 @@ impl Inverter {
             });
         }
         let Some(battery) = battery else {
-            let last = self.battery.take().map(|(_, l)| l);
+            self.battery = None;
             self.battery_limits.cut(now);
             if !self.battery_lost {
                 self.battery_lost = true;
@@ -768,7 +772,7 @@ impl Inverter {
             }
             if speaking && self.config.protocol == Protocol::SmaSunnyIsland {
                 // A Sunny Island obeys the last 0x351 for 60 s: stop it.
-                if let Some(last) = last {
+                if let Some(last) = self.sent_battery {
                     let stop = Limits {
                         ccl_da: 0,
                         dcl_da: 0,
@@ -794,6 +798,7 @@ impl Inverter {
                 self.logged_battery = Some(limits);
                 self.report(InverterReport::BatteryLimits(limits));
             }
+            self.sent_battery = Some(limits);
             let capacity_ah = (battery.capacity_dah / 10).min(u32::from(u16::MAX)) as u16;
             let modules = (
                 u16::from(battery.online),
