@@ -103,6 +103,8 @@ pub struct BatteryFigures {
     pub speaker_changes: Vec<(u64, u8)>,
     /// Highest CCL sent, 0.1 A.
     pub highest_ccl_da: u16,
+    /// Victron 0x35A frames that said "system offline" while packs took part.
+    pub offline_flags: u64,
     /// The first pack in float: the battery's CVL goes to float (the lowest
     /// CVL of the packs), µs.
     pub float_at_us: Option<u64>,
@@ -340,6 +342,13 @@ impl MultiLoop {
                 self.model.on_frame(now, f);
                 self.limits_heard(now, node, f);
             }
+            let (byte, bit) = frames::VICTRON_SYSTEM_STATUS;
+            let offline = (f.data[usize::from(byte)] >> bit) & 3 == frames::VICTRON_ACTIVE;
+            let victron = self.nodes[*from].inverter.config().protocol
+                == tinybms_firmware::inverter::Protocol::Victron;
+            if f.id == frames::ID_ALARMS && victron && offline {
+                self.figures.offline_flags += 1;
+            }
             if let Some(w) = self.can_log.as_mut() {
                 let _ = writeln!(w, "{}", candump_line(now, f));
             }
@@ -540,6 +549,12 @@ pub fn problems(l: &MultiLoop, ceiling_margin_mv: u16) -> Vec<String> {
         out.push(format!(
             "two bridges sent 0x351 in {} seconds",
             b.two_speaker_seconds
+        ));
+    }
+    if b.offline_flags > 0 {
+        out.push(format!(
+            "{} alarm frames told the GX the battery is offline",
+            b.offline_flags
         ));
     }
     if l.sent_limits.is_empty() {

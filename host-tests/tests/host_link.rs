@@ -1301,3 +1301,124 @@ fn get_settings_right_after_a_verified_write_shows_the_read_back_value() {
     assert_eq!(line["raw"], target, "{line}");
     assert_eq!(r.h.sim.register(310), target);
 }
+
+/// Packs in parallel: after each streamed telemetry line, the battery and one
+/// line per pack, as the inverter output sees them.
+#[test]
+fn a_bridge_with_a_node_number_streams_the_battery_and_its_packs() {
+    use tinybms_firmware::inverter::control::{Conditions, Limits};
+    use tinybms_firmware::inverter::packs::{
+        aggregate, BatteryView, Member, PackPart, PackView, Summary,
+    };
+    let s = Summary {
+        voltage_cv: 5321,
+        current_da: -41,
+        soc_cpct: 6543,
+        soh_pct: 97,
+        min_cell_mv: 3301,
+        max_cell_mv: 3345,
+        min_temp_dc: 215,
+        max_temp_dc: 248,
+        age_ds: 7,
+        capacity_dah: 2800,
+        limits: Limits {
+            cvl_dv: 552,
+            ccl_da: 588,
+            dcl_da: 1176,
+            discharge_dv: 480,
+        },
+        conditions: Conditions::default(),
+        fault: false,
+        charge_blocked: false,
+        speaking: false,
+    };
+    let me = Summary {
+        speaking: true,
+        ..s
+    };
+    let lost = Summary { age_ds: 2, ..s };
+    let members = [
+        Member {
+            summary: me,
+            alive: true,
+        },
+        Member {
+            summary: s,
+            alive: true,
+        },
+        Member {
+            summary: lost,
+            alive: false,
+        },
+    ];
+    let battery = aggregate(&members, 5 * SECOND).unwrap();
+    let sent = Limits {
+        ccl_da: 1000,
+        ..battery.limits
+    };
+    let mut packs = heapless::Vec::new();
+    for (node, m, part) in [
+        (1, me, PackPart::Part),
+        (2, s, PackPart::Part),
+        (3, lost, PackPart::Lost),
+    ] {
+        packs
+            .push(PackView {
+                node,
+                summary: m,
+                part,
+            })
+            .unwrap();
+    }
+    let view = BatteryView {
+        node: 1,
+        speaking: true,
+        battery: Some((battery, sent)),
+        packs,
+    };
+    let mut r = Rig::ready(config(false, 1000));
+    r.drain();
+    r.link.on_battery(Some(view.clone()));
+    let out = r.run_reading(3 * SECOND + 500 * MS);
+    let types: Vec<&str> = out.iter().filter_map(|l| l["type"].as_str()).collect();
+    let period = ["telemetry", "battery", "pack", "pack", "pack"];
+    assert!(types.len() >= 15, "{types:?}");
+    for chunk in types.chunks(5).take(3) {
+        assert_eq!(chunk, period);
+    }
+    let b = of_type(&out, "battery")[0];
+    assert_eq!(
+        *b,
+        json!({"type":"battery","node":1,"speaking":true,"packs_online":2,"packs_offline":1,
+               "capacity_ah":560.0,"soc_percent":65.43,"soh_percent":97.0,"voltage_v":53.21,
+               "current_a":-8.2,"min_cell_v":3.301,"max_cell_v":3.345,"min_temperature_c":21.5,
+               "max_temperature_c":24.8,"cvl_v":55.2,"ccl_a":100.0,"dcl_a":battery.limits.dcl_da as f64 / 10.0})
+    );
+    let p = of_type(&out, "pack");
+    assert_eq!(
+        *p[0],
+        json!({"type":"pack","node":1,"state":"part","speaking":true,"voltage_v":53.21,
+               "current_a":-4.1,"soc_percent":65.43,"soh_percent":97,"min_cell_v":3.301,
+               "max_cell_v":3.345,"min_temperature_c":21.5,"max_temperature_c":24.8,
+               "capacity_ah":280.0,"data_age_s":0.7,"cvl_v":55.2,"ccl_a":58.8,"dcl_a":117.6})
+    );
+    assert_eq!(p[2]["state"], "lost");
+    assert_eq!(p[2]["data_age_s"], 0.2);
+    // No pack takes part: the counts, everything else null.
+    let none = BatteryView {
+        battery: None,
+        ..view
+    };
+    r.link.on_battery(Some(none));
+    let out = r.run_reading(1100 * MS);
+    let b = of_type(&out, "battery")[0];
+    assert_eq!(b["packs_online"], 0);
+    assert_eq!(b["packs_offline"], 3);
+    assert_eq!(b["ccl_a"], Value::Null);
+    assert_eq!(b["soc_percent"], Value::Null);
+    // A bridge alone streams neither.
+    r.link.on_battery(None);
+    let out = r.run_reading(2 * SECOND);
+    assert!(of_type(&out, "battery").is_empty() && of_type(&out, "pack").is_empty());
+    assert!(!of_type(&out, "telemetry").is_empty());
+}

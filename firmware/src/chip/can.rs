@@ -27,6 +27,13 @@ use crate::{now_us, spawn, BOARD, TELEMETRY};
 /// drops the event for it (the BMS status still says "fault").
 static EVENTS: Channel<CriticalSectionRawMutex, Event, 8> = Channel::new();
 
+/// Packs in parallel: the battery as the inverter output sees it, once a
+/// second (latest wins), for the host link's `battery` and `pack` lines.
+pub static BATTERY: Signal<
+    CriticalSectionRawMutex,
+    tinybms_firmware::inverter::packs::BatteryView,
+> = Signal::new();
+
 /// The configuration's at-once fields changed (latest wins): the bridge task
 /// signals, the CAN task applies them (`Inverter::reconfigure`).
 static RECONFIGURE: Signal<CriticalSectionRawMutex, InverterConfig> = Signal::new();
@@ -110,6 +117,7 @@ async fn can_task(mut twai: Twai<'static, Async>, config: InverterConfig) {
         return;
     };
     let mut inverter = Inverter::new(config, now_us());
+    let mut next_view = now_us();
     loop {
         if let Some(c) = RECONFIGURE.try_take() {
             inverter.reconfigure(c);
@@ -162,6 +170,12 @@ async fn can_task(mut twai: Twai<'static, Async>, config: InverterConfig) {
                         inverter.on_received(now_us(), id.as_raw(), frame.data());
                     }
                 }
+            }
+        }
+        if inverter.node() != 0 && now_us() >= next_view {
+            next_view = now_us() + 1_000_000;
+            if let Some(v) = inverter.battery_view(now_us()) {
+                BATTERY.signal(v);
             }
         }
         while let Some(r) = inverter.next_report() {

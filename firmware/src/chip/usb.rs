@@ -172,6 +172,10 @@ mod on {
             while let Some((level, line)) = crate::log::for_host() {
                 self.link.log(level, line.as_str());
             }
+            #[cfg(feature = "can")]
+            if let Some(v) = crate::can::BATTERY.try_take() {
+                self.link.on_battery(Some(v));
+            }
             self.due = self.link.poll(now_us(), bridge);
             while HOST_TX.free_capacity() >= OUT_LINE_MAX {
                 let Some(n) = self

@@ -1099,3 +1099,106 @@ pub fn config_done(out: &mut [u8], done: &super::ConfigDone) -> Option<usize> {
         out,
     )
 }
+
+#[derive(serde::Serialize)]
+struct BatteryLine {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    node: u8,
+    speaking: bool,
+    packs_online: u8,
+    packs_offline: u8,
+    capacity_ah: Option<Dec>,
+    soc_percent: Option<Dec>,
+    soh_percent: Option<Dec>,
+    voltage_v: Option<Dec>,
+    current_a: Option<Dec>,
+    min_cell_v: Option<Dec>,
+    max_cell_v: Option<Dec>,
+    min_temperature_c: Option<Dec>,
+    max_temperature_c: Option<Dec>,
+    cvl_v: Option<Dec>,
+    ccl_a: Option<Dec>,
+    dcl_a: Option<Dec>,
+}
+
+/// A `battery` line: the battery of packs in parallel as this bridge sees it
+/// (all `null` but the counts while no pack takes part).
+pub fn battery(out: &mut [u8], v: &crate::inverter::packs::BatteryView) -> Option<usize> {
+    let b = v.battery.as_ref();
+    let offline = v
+        .packs
+        .len()
+        .saturating_sub(b.map_or(0, |(b, _)| usize::from(b.online)));
+    line(
+        &BatteryLine {
+            ty: "battery",
+            node: v.node,
+            speaking: v.speaking,
+            packs_online: b.map_or(0, |(b, _)| b.online),
+            packs_offline: offline.min(usize::from(u8::MAX)) as u8,
+            capacity_ah: b.and_then(|(b, _)| fixed(i64::from(b.capacity_dah), 1)),
+            soc_percent: b.and_then(|(b, _)| rounded(f64::from(b.state.soc_pct), 2)),
+            soh_percent: b.and_then(|(b, _)| rounded(f64::from(b.state.soh_pct), 0)),
+            voltage_v: b.and_then(|(b, _)| rounded(f64::from(b.state.pack_v), 2)),
+            current_a: b.and_then(|(b, _)| rounded(f64::from(b.state.current_a), 1)),
+            min_cell_v: b.and_then(|(b, _)| fixed(i64::from(b.state.min_cell_mv), 3)),
+            max_cell_v: b.and_then(|(b, _)| fixed(i64::from(b.state.max_cell_mv), 3)),
+            min_temperature_c: b.and_then(|(b, _)| rounded(f64::from(b.state.min_temp_c), 1)),
+            max_temperature_c: b.and_then(|(b, _)| rounded(f64::from(b.state.max_temp_c), 1)),
+            cvl_v: b.and_then(|(_, l)| fixed(i64::from(l.cvl_dv), 1)),
+            ccl_a: b.and_then(|(_, l)| fixed(i64::from(l.ccl_da), 1)),
+            dcl_a: b.and_then(|(_, l)| fixed(i64::from(l.dcl_da), 1)),
+        },
+        out,
+    )
+}
+
+#[derive(serde::Serialize)]
+struct PackLine {
+    #[serde(rename = "type")]
+    ty: &'static str,
+    node: u8,
+    state: &'static str,
+    speaking: bool,
+    voltage_v: Option<Dec>,
+    current_a: Option<Dec>,
+    soc_percent: Option<Dec>,
+    soh_percent: u8,
+    min_cell_v: Option<Dec>,
+    max_cell_v: Option<Dec>,
+    min_temperature_c: Option<Dec>,
+    max_temperature_c: Option<Dec>,
+    capacity_ah: Option<Dec>,
+    data_age_s: Option<Dec>,
+    cvl_v: Option<Dec>,
+    ccl_a: Option<Dec>,
+    dcl_a: Option<Dec>,
+}
+
+/// A `pack` line: one pack of the battery, from its summary.
+pub fn pack(out: &mut [u8], p: &crate::inverter::packs::PackView) -> Option<usize> {
+    let s = &p.summary;
+    line(
+        &PackLine {
+            ty: "pack",
+            node: p.node,
+            state: p.part.name(),
+            speaking: s.speaking,
+            voltage_v: fixed(i64::from(s.voltage_cv), 2),
+            current_a: fixed(i64::from(s.current_da), 1),
+            soc_percent: fixed(i64::from(s.soc_cpct), 2),
+            soh_percent: s.soh_pct,
+            min_cell_v: fixed(i64::from(s.min_cell_mv), 3),
+            max_cell_v: fixed(i64::from(s.max_cell_mv), 3),
+            min_temperature_c: fixed(i64::from(s.min_temp_dc), 1),
+            max_temperature_c: fixed(i64::from(s.max_temp_dc), 1),
+            capacity_ah: fixed(i64::from(s.capacity_dah), 1),
+            data_age_s: fixed(i64::from(s.age_ds), 1),
+            cvl_v: fixed(i64::from(s.limits.cvl_dv), 1),
+            ccl_a: fixed(i64::from(s.limits.ccl_da), 1),
+            dcl_a: fixed(i64::from(s.limits.dcl_da), 1),
+        },
+        out,
+    )
+}

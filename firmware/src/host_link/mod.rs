@@ -271,6 +271,11 @@ struct State {
     stream_period_ms: u32,
     next_stream: Option<Instant>,
     stream_due: bool,
+    /// Packs in parallel: the battery as the inverter output sees it, and the
+    /// lines of it still to send after this period's telemetry (the battery
+    /// line, then one per pack).
+    battery: Option<crate::inverter::packs::BatteryView>,
+    battery_lines: usize,
     capture: bool,
     queue: Deque<Out, QUEUE>,
     raw: Deque<(Dir, Vec<u8, RAW_CHUNK>), RAW_QUEUE>,
@@ -319,6 +324,8 @@ impl HostLink {
                 stream_period_ms: 0,
                 next_stream: None,
                 stream_due: false,
+                battery: None,
+                battery_lines: 0,
                 capture: false,
                 queue: Deque::new(),
                 raw: Deque::new(),
@@ -441,6 +448,13 @@ impl HostLink {
         self.s.on_report(report);
     }
 
+    /// Packs in parallel: the battery as the inverter output sees it now
+    /// (`Inverter::battery_view`); streamed after each telemetry line as a
+    /// `battery` line and a `pack` line per pack. `None` for a bridge alone.
+    pub fn on_battery(&mut self, view: Option<crate::inverter::packs::BatteryView>) {
+        self.s.battery = view;
+    }
+
     /// Bytes sent to the BMS (for capture).
     pub fn on_uart_tx(&mut self, bytes: &[u8]) {
         self.s.capture_bytes(Dir::Tx, bytes);
@@ -495,7 +509,21 @@ impl HostLink {
                 encode::log(out, level, &text)
             } else if self.s.stream_due {
                 self.s.stream_due = false;
+                self.s.battery_lines = self.s.battery.as_ref().map_or(0, |v| 1 + v.packs.len());
                 telemetry(now, bridge, None, out)
+            } else if self.s.battery_lines > 0 {
+                let v = self.s.battery.as_ref();
+                let total = v.map_or(0, |v| 1 + v.packs.len());
+                let i = total.saturating_sub(self.s.battery_lines);
+                self.s.battery_lines -= 1;
+                match (v, i) {
+                    (Some(v), 0) => encode::battery(out, v),
+                    (Some(v), i) => match v.packs.get(i - 1) {
+                        Some(p) => encode::pack(out, p),
+                        None => continue,
+                    },
+                    (None, _) => continue,
+                }
             } else if let Some((dir, bytes)) = self.s.raw.pop_front() {
                 let dir = match dir {
                     Dir::Tx => "tx",

@@ -32,7 +32,10 @@ use protocol_core::views::{LiveSnapshot, VersionInfo};
 
 use self::control::{ChargeConfig, ChargeControl, Conditions, Limits, PackSettings, PackState};
 use self::frames::CanFrame;
-use self::packs::{Battery, BatteryLimits, Election, Member, Packs, Received, Summary};
+use self::packs::{
+    Battery, BatteryLimits, BatteryView, Election, Member, PackPart, PackView, Packs, Received,
+    Summary,
+};
 use crate::Instant;
 
 /// Which inverter protocol.
@@ -250,6 +253,7 @@ pub struct Inverter {
     sent_battery: Option<Limits>,
     duplicate_reported: bool,
     seq: u8,
+    own_summary: Option<Summary>,
 }
 
 impl Inverter {
@@ -296,6 +300,7 @@ impl Inverter {
             sent_battery: None,
             duplicate_reported: false,
             seq: 0,
+            own_summary: None,
         }
     }
 
@@ -318,6 +323,35 @@ impl Inverter {
     /// Several packs: what was heard of the other nodes.
     pub fn packs(&self) -> &Packs {
         &self.packs
+    }
+
+    /// Several packs: the battery and every pack as this bridge sees them at
+    /// `now`; `None` for a bridge alone (node 0).
+    pub fn battery_view(&self, now: Instant) -> Option<BatteryView> {
+        let node = self.packs.node();
+        if node == 0 {
+            return None;
+        }
+        let stale = self.config.stale_after_us;
+        let mut packs: heapless::Vec<PackView, { packs::MAX_NODES as usize }> =
+            heapless::Vec::new();
+        let own = self.own_summary.map(|summary| (node, summary, true));
+        let others = self.packs.known(now).map(|(n, s, alive)| (n, *s, alive));
+        for (n, summary, alive) in own.into_iter().chain(others) {
+            let m = Member { summary, alive };
+            let _ = packs.push(PackView {
+                node: n,
+                summary,
+                part: PackPart::of(&m, stale),
+            });
+        }
+        packs.sort_unstable_by_key(|p| p.node);
+        Some(BatteryView {
+            node,
+            speaking: self.election.speaking(),
+            battery: self.battery,
+            packs,
+        })
     }
 
     /// The configuration changed while running (a `set_config` of fields that
@@ -737,6 +771,7 @@ impl Inverter {
                 }
             }
             self.seq = (self.seq + 1) & 0x0F;
+            self.own_summary = Some(summary);
             add(
                 node,
                 Member {

@@ -42,8 +42,9 @@
 //! * SOC and SOH weighted by capacity; capacity, current summed; voltage the
 //!   mean; cell and temperature extremes across the packs; alarms and warnings
 //!   of the packs taking part combined (the highest level of each field). A
-//!   pack that left shows as a warning (BMS internal for a fault, link lost for
-//!   a silent or stale one), never as an alarm that would stop the whole battery.
+//!   pack that left shows as a BMS internal *warning* — never as an alarm that
+//!   would stop the whole battery, nor as "link lost", which a GX reads as the
+//!   battery offline.
 //!
 //! **One speaker** ([`Election`]): a bridge that is not speaking starts only
 //! when (a) it has listened for [`LISTEN_US`] since it started or recovered from
@@ -638,13 +639,11 @@ pub fn aggregate(members: &[Member], stale_after_us: Instant) -> Option<Battery>
         block_d += u8::from(s.limits.dcl_da == 0);
     }
     let mut offline = 0u8;
-    for m in members.iter().filter(|m| !m.takes_part(stale_after_us)) {
+    for _ in members.iter().filter(|m| !m.takes_part(stale_after_us)) {
         offline = offline.saturating_add(1);
-        if m.summary.fault {
-            cond[8] = cond[8].max(1); // BMS internal: a warning
-        } else {
-            cond[10] = cond[10].max(1); // link lost: a warning
-        }
+        // A BMS internal warning: never "link lost", which a Victron GX reads
+        // as the whole battery offline.
+        cond[8] = cond[8].max(1);
     }
     let clamp_da = |x: i32| x.clamp(0, i32::from(u16::MAX)) as u16;
     let ccl = i_sum.saturating_add(ch_room).min(ccl_sum);
@@ -800,4 +799,69 @@ impl BatteryLimits {
             ..battery.limits
         }
     }
+}
+
+/// Where a pack stands in the battery.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum PackPart {
+    /// Taking part.
+    Part,
+    /// Not heard within [`PACK_LOST_US`].
+    Lost,
+    /// Heard, but its data is older than the stale age.
+    Stale,
+    /// Its BMS reports a fault (its switch is open).
+    Fault,
+}
+
+impl PackPart {
+    /// As the host link and MQTT write it.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Part => "part",
+            Self::Lost => "lost",
+            Self::Stale => "stale",
+            Self::Fault => "fault",
+        }
+    }
+
+    /// Of a member, with the stale age.
+    pub fn of(m: &Member, stale_after_us: Instant) -> Self {
+        if !m.alive {
+            Self::Lost
+        } else if m.summary.fault {
+            Self::Fault
+        } else if m.takes_part(stale_after_us) {
+            Self::Part
+        } else {
+            Self::Stale
+        }
+    }
+}
+
+/// One pack as a bridge sees it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PackView {
+    /// Node number.
+    pub node: u8,
+    /// Its last summary (this bridge's own: as it sent it).
+    pub summary: Summary,
+    /// Where it stands.
+    pub part: PackPart,
+}
+
+/// What a bridge with a node number knows of the battery: for the host link
+/// and MQTT.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BatteryView {
+    /// This bridge's node number.
+    pub node: u8,
+    /// This bridge speaks to the inverter.
+    pub speaking: bool,
+    /// The battery and the limits for it (sent when speaking); `None` while
+    /// no pack takes part or before the bridge has listened.
+    pub battery: Option<(Battery, Limits)>,
+    /// Every pack known, by node number.
+    pub packs: heapless::Vec<PackView, { MAX_NODES as usize }>,
 }

@@ -733,7 +733,10 @@ fn run_packs(o: &Options, protocol: Protocol, n: usize) -> ExitCode {
     };
     let names: Vec<String> = match &o.scenario {
         None => vec!["full-charge".to_string()],
-        Some(s) if s == "all" => multi_pack::SCENARIOS.iter().map(|s| s.to_string()).collect(),
+        Some(s) if s == "all" => multi_pack::SCENARIOS
+            .iter()
+            .map(|s| s.to_string())
+            .collect(),
         Some(s) if multi_pack::SCENARIOS.contains(&s.as_str()) => vec![s.clone()],
         Some(s) => {
             eprintln!(

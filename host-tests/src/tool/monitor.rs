@@ -295,6 +295,59 @@ pub fn render_text(t: &Value, link: Option<&Value>, header: &str, f: Freshness) 
     s
 }
 
+/// Packs in parallel: one line of text for a `battery` or `pack` line of a
+/// bridge with a node number (what `monitor --plain` prints after each picture).
+pub fn render_battery_line(v: &Value) -> String {
+    let f = |k: &str, d: usize, unit: &str| fmt_opt(num(v, k), d, unit);
+    if v["type"] == "battery" {
+        let online = v["packs_online"].as_u64().unwrap_or(0);
+        let offline = v["packs_offline"].as_u64().unwrap_or(0);
+        let who = if v["speaking"] == true {
+            format!("node {} speaks to the inverter", v["node"])
+        } else {
+            format!("node {} listens", v["node"])
+        };
+        if online == 0 {
+            return format!(
+                "Battery ({who}): no pack takes part ({offline} known): the inverter is stopped"
+            );
+        }
+        return format!(
+            "Battery ({who}): {online} of {} packs   {}   SOC {}   {}   {}   cells {} to {}   sent: CVL {}  CCL {}  DCL {}",
+            online + offline,
+            f("capacity_ah", 0, "Ah"),
+            f("soc_percent", 1, "%"),
+            f("voltage_v", 2, "V"),
+            f("current_a", 1, "A"),
+            f("min_cell_v", 3, "V"),
+            f("max_cell_v", 3, "V"),
+            f("cvl_v", 1, "V"),
+            f("ccl_a", 1, "A"),
+            f("dcl_a", 1, "A"),
+        );
+    }
+    let state = match v["state"].as_str() {
+        Some("part") => "in the battery",
+        Some("lost") => "LOST (no summary)",
+        Some("stale") => "STALE (its BMS data is old)",
+        Some("fault") => "FAULT (its switch is open)",
+        _ => "?",
+    };
+    format!(
+        "  pack {}{}  {state}   {}   {}   SOC {}   cells {} to {}   own CCL {}  DCL {}   data age {}",
+        v["node"],
+        if v["speaking"] == true { "*" } else { " " },
+        f("voltage_v", 2, "V"),
+        f("current_a", 1, "A"),
+        f("soc_percent", 1, "%"),
+        f("min_cell_v", 3, "V"),
+        f("max_cell_v", 3, "V"),
+        f("ccl_a", 1, "A"),
+        f("dcl_a", 1, "A"),
+        f("data_age_s", 1, "s"),
+    )
+}
+
 /// The CSV header for `cells` cells.
 pub fn csv_header(cells: usize) -> String {
     let mut h = String::from(
@@ -474,6 +527,20 @@ fn watch(
             e.saturating_duration_since(Instant::now()).min(REDRAW)
         });
         let got = client.next_pushed(wait)?;
+        if let Some(b) = got
+            .as_ref()
+            .filter(|v| v["type"] == "battery" || v["type"] == "pack")
+        {
+            // Packs in parallel: the battery and its packs after each picture.
+            let mut out = stdout.lock();
+            if o.view == View::Json {
+                let _ = writeln!(out, "{b}");
+            } else {
+                let _ = writeln!(out, "{}", render_battery_line(b));
+            }
+            let _ = out.flush();
+            continue;
+        }
         let Some(mut v) = got.filter(|v| v["type"] == "telemetry") else {
             // No new data: say so once it is old (every 10 s while it stays so).
             let f = freshness(
@@ -558,4 +625,37 @@ pub fn log(client: &mut Client, duration: Option<Duration>) -> ToolResult<()> {
         let _ = client.stream(p as u32);
     }
     result
+}
+
+#[cfg(test)]
+mod tests {
+    use super::render_battery_line;
+    use serde_json::json;
+
+    #[test]
+    fn the_battery_and_its_packs_read_as_text() {
+        let b = json!({"type":"battery","node":1,"speaking":true,"packs_online":3,"packs_offline":1,
+            "capacity_ah":840.0,"soc_percent":65.43,"soh_percent":100.0,"voltage_v":53.2,"current_a":-12.3,
+            "min_cell_v":3.301,"max_cell_v":3.345,"min_temperature_c":21.5,"max_temperature_c":24.8,
+            "cvl_v":55.2,"ccl_a":176.4,"dcl_a":352.8});
+        assert_eq!(
+            render_battery_line(&b),
+            "Battery (node 1 speaks to the inverter): 3 of 4 packs   840 Ah   SOC 65.4 %   53.20 V   -12.3 A   \
+             cells 3.301 V to 3.345 V   sent: CVL 55.2 V  CCL 176.4 A  DCL 352.8 A"
+        );
+        let none = json!({"type":"battery","node":2,"speaking":false,"packs_online":0,"packs_offline":3,
+            "capacity_ah":null,"soc_percent":null,"cvl_v":null,"ccl_a":null,"dcl_a":null});
+        assert_eq!(
+            render_battery_line(&none),
+            "Battery (node 2 listens): no pack takes part (3 known): the inverter is stopped"
+        );
+        let p = json!({"type":"pack","node":3,"state":"stale","speaking":false,"voltage_v":53.21,
+            "current_a":-4.1,"soc_percent":65.43,"soh_percent":97,"min_cell_v":3.301,"max_cell_v":3.345,
+            "capacity_ah":280.0,"data_age_s":12.5,"cvl_v":55.2,"ccl_a":58.8,"dcl_a":117.6});
+        assert_eq!(
+            render_battery_line(&p),
+            "  pack 3   STALE (its BMS data is old)   53.21 V   -4.1 A   SOC 65.4 %   cells 3.301 V to 3.345 V   \
+             own CCL 58.8 A  DCL 117.6 A   data age 12.5 s"
+        );
+    }
 }
