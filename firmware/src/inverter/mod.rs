@@ -335,17 +335,24 @@ impl Inverter {
         let stale = self.config.stale_after_us;
         let mut packs: heapless::Vec<PackView, { packs::MAX_NODES as usize }> =
             heapless::Vec::new();
-        let own = self.own_summary.map(|summary| (node, summary, true));
-        let others = self.packs.known(now).map(|(n, s, alive)| (n, *s, alive));
-        for (n, summary, alive) in own.into_iter().chain(others) {
-            let m = Member { summary, alive };
-            let _ = packs.push(PackView {
-                node: n,
-                summary,
-                part: PackPart::of(&m, stale),
-            });
+        // By node number: the others come in order; this one goes between.
+        let view = |n: u8, summary: Summary, alive: bool| PackView {
+            node: n,
+            summary,
+            part: PackPart::of(&Member { summary, alive }, stale),
+        };
+        let mut own = self.own_summary.map(|s| view(node, s, true));
+        for (n, s, alive) in self.packs.known(now) {
+            if n > node {
+                if let Some(o) = own.take() {
+                    let _ = packs.push(o);
+                }
+            }
+            let _ = packs.push(view(n, *s, alive));
         }
-        packs.sort_unstable_by_key(|p| p.node);
+        if let Some(o) = own {
+            let _ = packs.push(o);
+        }
         Some(BatteryView {
             node,
             speaking: self.election.speaking(),
