@@ -125,6 +125,7 @@ impl Feed for SharedFeed {
             identity: s.identity,
             limits: s.limits,
             link: s.link,
+            battery: None,
         };
         f(&view)
     }

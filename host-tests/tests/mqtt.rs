@@ -47,6 +47,7 @@ fn view<'a>(snap: &'a LiveSnapshot, age_s: u64) -> View<'a> {
         identity: Some(id()),
         limits: Some((568, 600, 1000)),
         link: (100, 99),
+        battery: None,
     }
 }
 
@@ -442,6 +443,7 @@ fn the_home_assistant_guide_lists_every_entity_as_the_firmware_announces_it() {
     let rows: Vec<_> = ENTITIES
         .iter()
         .chain([discovery::cell(1), discovery::cell(16)].iter())
+        .chain(tinybms_firmware::mqtt::battery::ENTITIES.iter())
         .map(guide_row)
         .collect();
     if std::env::var("PRINT_GUIDE_ROWS").is_ok() {
@@ -467,5 +469,201 @@ fn the_home_assistant_guide_lists_every_entity_as_the_firmware_announces_it() {
             guide.contains(&format!("`{s}`")),
             "status {s} not in the guide"
         );
+    }
+}
+
+mod the_battery_of_packs_in_parallel {
+    use super::*;
+    use tinybms_firmware::inverter::control::{Conditions, Limits};
+    use tinybms_firmware::inverter::packs::{
+        aggregate, BatteryView, Member, PackPart, PackView, Summary,
+    };
+    use tinybms_firmware::mqtt::battery;
+
+    fn battery_view(speaking: bool, with_battery: bool) -> BatteryView {
+        let s = Summary {
+            voltage_cv: 5321,
+            current_da: -41,
+            soc_cpct: 6543,
+            soh_pct: 97,
+            min_cell_mv: 3301,
+            max_cell_mv: 3345,
+            min_temp_dc: 215,
+            max_temp_dc: 248,
+            age_ds: 7,
+            capacity_dah: 2800,
+            limits: Limits {
+                cvl_dv: 552,
+                ccl_da: 588,
+                dcl_da: 1176,
+                discharge_dv: 480,
+            },
+            conditions: Conditions::default(),
+            fault: false,
+            charge_blocked: false,
+            speaking,
+        };
+        let members = [
+            Member {
+                summary: s,
+                alive: true,
+            },
+            Member {
+                summary: Summary {
+                    speaking: false,
+                    ..s
+                },
+                alive: true,
+            },
+        ];
+        let b = aggregate(&members, 5 * SECOND).unwrap();
+        let mut packs = heapless::Vec::new();
+        for (node, m) in [(1, members[0]), (2, members[1])] {
+            packs
+                .push(PackView {
+                    node,
+                    summary: m.summary,
+                    part: PackPart::Part,
+                })
+                .unwrap();
+        }
+        BatteryView {
+            node: 1,
+            speaking,
+            battery: with_battery.then_some((b, b.limits)),
+            packs,
+        }
+    }
+
+    fn with<'a>(snap: &'a LiveSnapshot, b: &'a BatteryView) -> View<'a> {
+        View {
+            battery: Some(b),
+            ..view(snap, 0)
+        }
+    }
+
+    #[test]
+    fn the_speaker_announces_one_battery_device_and_publishes_its_state() {
+        let (snap, _) = inputs();
+        let b = battery_view(true, true);
+        let mut p = Publisher::new(settings(), "test");
+        p.connected(0, id());
+        let out = drain(&mut p, 0, &with(&snap, &b));
+        let configs: Vec<_> = out
+            .iter()
+            .filter(|m| m.2 == Kind::BatteryDiscovery)
+            .collect();
+        assert_eq!(configs.len(), battery::ENTITIES.len());
+        // After the pack's own configs and state.
+        let first = out
+            .iter()
+            .position(|m| m.2 == Kind::BatteryDiscovery)
+            .unwrap();
+        assert!(out[..first].iter().any(|m| m.2 == Kind::State));
+        let mut ids = std::collections::HashSet::new();
+        for (topic, payload, _, retain) in &configs {
+            assert!(retain);
+            let parts: Vec<&str> = topic.split('/').collect();
+            assert_eq!(parts.len(), 5, "{topic}");
+            assert_eq!(parts[0], "homeassistant");
+            assert_eq!(parts[2], "tinybms_battery_tinybms");
+            assert!(is_id(parts[2]) && is_id(parts[3]), "{topic}");
+            let c = json(payload);
+            let uid = c["unique_id"].as_str().unwrap();
+            assert!(is_id(uid) && ids.insert(uid.to_string()), "{uid}");
+            assert_eq!(c["device"]["identifiers"][0], "tinybms_battery_tinybms");
+            assert_eq!(c["state_topic"], "tinybms/battery/state");
+            // Unavailable when the speaker falls silent, whichever it was.
+            assert_eq!(c["expire_after"], 15, "3 publish periods of 5 s");
+            if let Some(class) = c["device_class"].as_str() {
+                let unit = c["unit_of_measurement"].as_str();
+                assert!(
+                    unit.is_some_and(|u| units_for(class).contains(&u)),
+                    "{uid}: {class} in {unit:?}"
+                );
+            }
+            assert!(payload.len() < PAYLOAD_MAX);
+        }
+        // The state: the battery line, every member an entity reads present.
+        let state = out.iter().find(|m| m.2 == Kind::BatteryState).unwrap();
+        assert_eq!(state.0, "tinybms/battery/state");
+        assert!(!state.3, "the state is not retained");
+        let s = json(&state.1);
+        assert_eq!(s["packs_online"], 2);
+        assert_eq!(s["capacity_ah"], 560.0);
+        for e in battery::ENTITIES {
+            let m = e.read.member();
+            assert!(s.get(m).is_some_and(|v| !v.is_null()), "{m} in {s}");
+        }
+        // Every period, not before.
+        assert!(drain(&mut p, SECOND, &with(&snap, &b))
+            .iter()
+            .all(|m| m.2 != Kind::BatteryState));
+        assert!(p.next_due() <= 5 * SECOND);
+        let later = drain(&mut p, 5 * SECOND, &with(&snap, &b));
+        assert_eq!(
+            later.iter().filter(|m| m.2 == Kind::BatteryState).count(),
+            1
+        );
+        // Home Assistant restarted: announced again.
+        p.on_ha_status(b"online");
+        let again = drain(&mut p, 6 * SECOND, &with(&snap, &b));
+        assert_eq!(
+            again
+                .iter()
+                .filter(|m| m.2 == Kind::BatteryDiscovery)
+                .count(),
+            battery::ENTITIES.len()
+        );
+    }
+
+    #[test]
+    fn a_bridge_that_does_not_speak_publishes_no_battery() {
+        let (snap, _) = inputs();
+        let b = battery_view(false, true);
+        let mut p = Publisher::new(settings(), "test");
+        p.connected(0, id());
+        for t in [0, 5, 10] {
+            let out = drain(&mut p, t * SECOND, &with(&snap, &b));
+            assert!(out.iter().all(|m| !matches!(
+                m.2,
+                Kind::BatteryDiscovery | Kind::BatteryState | Kind::BatteryRemoval
+            )));
+        }
+        // It starts speaking: configs, then the state.
+        let s = battery_view(true, true);
+        let out = drain(&mut p, 11 * SECOND, &with(&snap, &s));
+        assert_eq!(
+            out.iter().filter(|m| m.2 == Kind::BatteryDiscovery).count(),
+            battery::ENTITIES.len()
+        );
+        assert_eq!(out.iter().filter(|m| m.2 == Kind::BatteryState).count(), 1);
+        // No pack takes part: the state says so with nulls (entities unavailable).
+        let none = battery_view(true, false);
+        let out = drain(&mut p, 20 * SECOND, &with(&snap, &none));
+        let st = json(&out.iter().find(|m| m.2 == Kind::BatteryState).unwrap().1);
+        assert_eq!(st["packs_online"], 0);
+        assert!(st["soc_percent"].is_null() && st["ccl_a"].is_null());
+    }
+
+    #[test]
+    fn discovery_off_removes_the_battery_device_too() {
+        let (snap, _) = inputs();
+        let b = battery_view(true, true);
+        let mut s = settings();
+        s.discovery = false;
+        let mut p = Publisher::new(s, "test");
+        p.connected(0, id());
+        let out = drain(&mut p, 0, &with(&snap, &b));
+        let removed: Vec<_> = out.iter().filter(|m| m.2 == Kind::BatteryRemoval).collect();
+        assert_eq!(removed.len(), battery::ENTITIES.len());
+        assert!(removed.iter().all(|m| m.1.is_empty() && m.3));
+        assert!(out.iter().all(|m| m.2 != Kind::BatteryDiscovery));
+        // The state all the same (for other MQTT clients).
+        assert_eq!(out.iter().filter(|m| m.2 == Kind::BatteryState).count(), 1);
+        // Removed once per connection.
+        let out = drain(&mut p, 5 * SECOND, &with(&snap, &b));
+        assert!(out.iter().all(|m| m.2 != Kind::BatteryRemoval));
+        assert_eq!(out.iter().filter(|m| m.2 == Kind::BatteryState).count(), 1);
     }
 }

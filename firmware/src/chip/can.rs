@@ -7,6 +7,7 @@ use embassy_futures::select::{select, Either};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::channel::Channel;
 use embassy_sync::signal::Signal;
+use embassy_sync::watch::Watch;
 use embassy_time::{with_timeout, Duration, Instant, Timer};
 use esp_hal::gpio::AnyPin;
 use esp_hal::peripherals::TWAI0;
@@ -28,11 +29,13 @@ use crate::{now_us, spawn, BOARD, TELEMETRY};
 static EVENTS: Channel<CriticalSectionRawMutex, Event, 8> = Channel::new();
 
 /// Packs in parallel: the battery as the inverter output sees it, once a
-/// second (latest wins), for the host link's `battery` and `pack` lines.
-pub static BATTERY: Signal<
+/// second (latest wins): for the host link's `battery` and `pack` lines (the
+/// bridge task) and the battery's device in Home Assistant (the Wi-Fi task).
+pub static BATTERY: Watch<
     CriticalSectionRawMutex,
     tinybms_firmware::inverter::packs::BatteryView,
-> = Signal::new();
+    2,
+> = Watch::new();
 
 /// The configuration's at-once fields changed (latest wins): the bridge task
 /// signals, the CAN task applies them (`Inverter::reconfigure`).
@@ -175,7 +178,7 @@ async fn can_task(mut twai: Twai<'static, Async>, config: InverterConfig) {
         if inverter.node() != 0 && now_us() >= next_view {
             next_view = now_us() + 1_000_000;
             if let Some(v) = inverter.battery_view(now_us()) {
-                BATTERY.signal(v);
+                BATTERY.sender().send(v);
             }
         }
         while let Some(r) = inverter.next_report() {

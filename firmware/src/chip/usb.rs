@@ -110,6 +110,16 @@ mod on {
         due: u64,
         rx_buf: [u8; 64],
         line: [u8; OUT_LINE_MAX],
+        /// Packs in parallel: the battery from the CAN task.
+        #[cfg(feature = "can")]
+        battery: Option<
+            embassy_sync::watch::Receiver<
+                'static,
+                embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex,
+                tinybms_firmware::inverter::packs::BatteryView,
+                2,
+            >,
+        >,
     }
 
     impl HostPort {
@@ -121,6 +131,8 @@ mod on {
                 due,
                 rx_buf: [0; 64],
                 line: [0; OUT_LINE_MAX],
+                #[cfg(feature = "can")]
+                battery: crate::can::BATTERY.receiver(),
             }
         }
 
@@ -173,7 +185,7 @@ mod on {
                 self.link.log(level, line.as_str());
             }
             #[cfg(feature = "can")]
-            if let Some(v) = crate::can::BATTERY.try_take() {
+            if let Some(v) = self.battery.as_mut().and_then(|r| r.try_changed()) {
                 self.link.on_battery(Some(v));
             }
             self.due = self.link.poll(now_us(), bridge);

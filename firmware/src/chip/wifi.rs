@@ -323,6 +323,18 @@ struct ChipFeed {
     limits: Option<Receiver<'static, CriticalSectionRawMutex, (u16, u16, u16), 1>>,
     latest: Option<SharedSnapshot>,
     last_limits: Option<(u16, u16, u16)>,
+    /// Packs in parallel: the battery from the CAN task.
+    #[cfg(feature = "can")]
+    battery: Option<
+        Receiver<
+            'static,
+            CriticalSectionRawMutex,
+            tinybms_firmware::inverter::packs::BatteryView,
+            2,
+        >,
+    >,
+    #[cfg(feature = "can")]
+    last_battery: Option<tinybms_firmware::inverter::packs::BatteryView>,
 }
 
 impl Feed for ChipFeed {
@@ -333,6 +345,14 @@ impl Feed for ChipFeed {
         if let Some(l) = self.limits.as_mut().and_then(|r| r.try_changed()) {
             self.last_limits = Some(l);
         }
+        #[cfg(feature = "can")]
+        if let Some(b) = self.battery.as_mut().and_then(|r| r.try_changed()) {
+            self.last_battery = Some(b);
+        }
+        #[cfg(feature = "can")]
+        let battery = self.last_battery.as_ref();
+        #[cfg(not(feature = "can"))]
+        let battery = None;
         let latest = self.latest.as_ref();
         let view = View {
             snapshot: latest.map(|s| &s.snapshot),
@@ -343,6 +363,7 @@ impl Feed for ChipFeed {
             identity: latest.and_then(|s| s.mqtt.version.as_ref().map(Identity::from_version)),
             limits: self.last_limits,
             link: latest.map_or((0, 0), |s| s.mqtt.link),
+            battery,
         };
         f(&view)
     }
@@ -385,6 +406,10 @@ async fn mqtt_task(stack: Stack<'static>, target: Target, settings: Settings) {
         limits: LIMITS.receiver(),
         latest: None,
         last_limits: None,
+        #[cfg(feature = "can")]
+        battery: crate::can::BATTERY.receiver(),
+        #[cfg(feature = "can")]
+        last_battery: None,
     };
     let mut publisher = Publisher::new(settings, env!("CARGO_PKG_VERSION"));
     let mut note = |n: Note| {

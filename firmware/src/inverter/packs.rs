@@ -222,9 +222,16 @@ impl Summary {
             data: [0; 8],
         }; SUMMARY_FRAMES];
         let cond = conditions_bits(&self.conditions);
-        let flags = u8::from(self.speaking) * FLAG_SPEAKING
-            | u8::from(self.fault) * FLAG_FAULT
-            | u8::from(self.charge_blocked) * FLAG_CHARGE_BLOCKED;
+        let mut flags = 0;
+        for (on, flag) in [
+            (self.speaking, FLAG_SPEAKING),
+            (self.fault, FLAG_FAULT),
+            (self.charge_blocked, FLAG_CHARGE_BLOCKED),
+        ] {
+            if on {
+                flags |= flag;
+            }
+        }
         for (k, f) in out.iter_mut().enumerate() {
             f.id = summary_id(node, k as u8)?;
             let d = &mut f.data;
@@ -680,17 +687,19 @@ pub fn aggregate(members: &[Member], stale_after_us: Instant) -> Option<Battery>
     };
     let ccl = clamp_da(ccl.min(spare(1, |s| s.limits.ccl_da)));
     let dcl = clamp_da(dcl.min(spare(-1, |s| s.limits.dcl_da)));
-    let (soc, soh) = if cap > 0 {
-        (soc_w / cap, soh_w / cap)
-    } else {
-        // No capacity known: plain means.
-        let (s1, s2) = part().fold((0u64, 0u64), |(a, b), m| {
-            (
-                a + u64::from(m.summary.soc_cpct),
-                b + u64::from(m.summary.soh_pct),
-            )
-        });
-        (s1 / n as u64, s2 / n as u64)
+    let (soc, soh) = match (soc_w.checked_div(cap), soh_w.checked_div(cap)) {
+        (Some(soc), Some(soh)) => (soc, soh),
+        _ => {
+            // No capacity known: plain means (n ≥ 1 here).
+            let (s1, s2) = part().fold((0u64, 0u64), |(a, b), m| {
+                (
+                    a + u64::from(m.summary.soc_cpct),
+                    b + u64::from(m.summary.soh_pct),
+                )
+            });
+            let n = n.max(1) as u64;
+            (s1 / n, s2 / n)
+        }
     };
     let conditions = Conditions {
         high_voltage: cond[0],

@@ -40,6 +40,7 @@ pub mod net;
 #[cfg(feature = "mqtt")]
 pub mod session;
 
+pub mod battery;
 pub mod discovery;
 pub mod publisher;
 

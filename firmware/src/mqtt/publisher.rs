@@ -15,6 +15,7 @@ use heapless::{Deque, String};
 use protocol_core::events::{Event, OnlineStatus};
 use protocol_core::views::LiveSnapshot;
 
+use super::battery;
 use super::discovery::{self, DeviceInfo, MAX_CELLS};
 use super::{device_topic, Identity, Settings, TOPIC_MAX};
 use crate::host_link::encode::{self, StateExtras, TelemetryHead};
@@ -43,6 +44,9 @@ pub struct View<'a> {
     pub limits: Option<(u16, u16, u16)>,
     /// Requests sent to the BMS and replies received, since start-up.
     pub link: (u32, u32),
+    /// Packs in parallel: the battery as the inverter output sees it (its
+    /// device is published while this bridge speaks: [`super::battery`]).
+    pub battery: Option<&'a crate::inverter::packs::BatteryView>,
 }
 
 impl View<'_> {
@@ -65,6 +69,12 @@ pub enum Kind {
     State,
     /// An event.
     Event,
+    /// A discovery config of the battery's device.
+    BatteryDiscovery,
+    /// An empty retained config of the battery's device (discovery off).
+    BatteryRemoval,
+    /// The battery's state.
+    BatteryState,
 }
 
 /// A message [`Publisher::next`] wrote: its topic is in the caller's topic
@@ -114,6 +124,11 @@ pub struct Publisher {
     /// Link counters at the previous state, for the quality figure.
     prev_link: Option<(u32, u32)>,
     quality_permille: Option<u32>,
+    /// The battery's device: the next config (or removal) to send on this
+    /// connection; `None` once all are out.
+    battery_next: Option<usize>,
+    /// When the battery's next state is due (`None`: not speaking).
+    battery_due: Option<Instant>,
     stats: PublisherStats,
 }
 
@@ -134,6 +149,8 @@ impl Publisher {
             events: Deque::new(),
             prev_link: None,
             quality_permille: None,
+            battery_next: Some(0),
+            battery_due: None,
             stats: PublisherStats::default(),
         }
     }
@@ -158,6 +175,8 @@ impl Publisher {
         self.availability = None;
         self.state_due = true;
         self.next_state_at = now;
+        self.battery_next = Some(0);
+        self.battery_due = None;
     }
 
     /// The connection is gone (the broker has the will: `offline`).
@@ -179,6 +198,8 @@ impl Publisher {
         if payload.trim_ascii() == b"online" && self.connected {
             self.discovery_next = Some(0);
             self.state_due = true;
+            self.battery_next = Some(0);
+            self.battery_due = self.battery_due.map(|_| 0);
         }
     }
 
@@ -195,6 +216,7 @@ impl Publisher {
     /// When [`Publisher::next`] may have something new (the next state), µs.
     pub fn next_due(&self) -> Instant {
         self.next_state_at
+            .min(self.battery_due.unwrap_or(Instant::MAX))
     }
 
     /// The next message at `now`, written into `topic` and `payload` (at least
@@ -257,6 +279,9 @@ impl Publisher {
                 return Some(m);
             }
         }
+        if let Some(m) = self.battery(now, view, topic, payload) {
+            return Some(m);
+        }
         if let Some(e) = self.events.pop_front() {
             if !device_topic(topic, &self.settings, &id, "event") {
                 return None;
@@ -270,6 +295,70 @@ impl Publisher {
             }));
         }
         None
+    }
+
+    /// The battery's device (packs in parallel): its configs once per
+    /// connection and its state every period while this bridge speaks; with
+    /// discovery off, its configs removed once per connection (the state
+    /// still published while speaking).
+    fn battery(
+        &mut self,
+        now: Instant,
+        view: &View<'_>,
+        topic: &mut String<TOPIC_MAX>,
+        payload: &mut [u8],
+    ) -> Option<Message> {
+        let s = &self.settings;
+        if let (false, Some(n)) = (s.discovery, self.battery_next) {
+            if let Some(e) = battery::ENTITIES.get(n) {
+                self.battery_next = Some(n + 1);
+                if !battery::config_topic(topic, s, e) {
+                    return None;
+                }
+                return Some(self.emit(Kind::BatteryRemoval, true, b"", payload));
+            }
+            self.battery_next = None;
+        }
+        let Some(b) = view.battery.filter(|b| b.speaking) else {
+            self.battery_due = None;
+            return None;
+        };
+        if let (true, Some(n)) = (s.discovery, self.battery_next) {
+            let Some(e) = battery::ENTITIES.get(n) else {
+                self.battery_next = None;
+                self.battery_due = Some(now);
+                return self.battery(now, view, topic, payload);
+            };
+            self.battery_next = Some(n + 1);
+            if !battery::config_topic(topic, s, e) {
+                return None;
+            }
+            return match battery::config(payload, s, self.bridge_version, e) {
+                Some(len) => Some(self.count(Message {
+                    kind: Kind::BatteryDiscovery,
+                    retain: true,
+                    len,
+                })),
+                None => {
+                    self.stats.too_long = self.stats.too_long.wrapping_add(1);
+                    None
+                }
+            };
+        }
+        if now < self.battery_due.unwrap_or(0) {
+            return None;
+        }
+        self.battery_due = Some(now.saturating_add(s.publish_period_us));
+        if !battery::state_topic(topic, s) {
+            return None;
+        }
+        let n = encode::battery(payload, b)?;
+        // The line's `\n` is not part of the payload.
+        Some(self.count(Message {
+            kind: Kind::BatteryState,
+            retain: false,
+            len: n.saturating_sub(1),
+        }))
     }
 
     fn emit(&mut self, kind: Kind, retain: bool, text: &[u8], payload: &mut [u8]) -> Message {
