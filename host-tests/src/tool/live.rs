@@ -41,6 +41,9 @@ pub struct LiveState {
     pub history: VecDeque<(Instant, f64, f64)>,
     /// The bridge's latest log lines (`log` lines), oldest first.
     pub logs: VecDeque<String>,
+    /// Packs in parallel: the newest `battery` line and the `pack` lines that
+    /// followed it, as text ([`super::monitor::render_battery_line`]).
+    pub battery: Vec<String>,
 }
 
 /// Log lines the view keeps.
@@ -53,6 +56,17 @@ impl LiveState {
             self.logs.pop_front();
         }
         self.logs.push_back(format!("{level:<4} {text}"));
+    }
+
+    /// A `battery` line (it starts a new list) or a `pack` line.
+    pub fn battery_line(&mut self, v: &Value) {
+        if v["type"] == "battery" {
+            self.battery.clear();
+        }
+        if self.battery.len() <= usize::from(tinybms_firmware::inverter::packs::MAX_NODES) {
+            self.battery
+                .push(super::monitor::render_battery_line(v).trim().to_string());
+        }
     }
 
     /// A new telemetry line.
@@ -101,12 +115,17 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         .fg(Color::White)
         .bg(Color::Red)
         .add_modifier(Modifier::BOLD);
-    let [top, pack, cells_area, spark_area, foot, log_area] = Layout::vertical([
+    let [top, pack, cells_area, spark_area, foot, battery_area, log_area] = Layout::vertical([
         Constraint::Length(1),
         Constraint::Length(3),
         Constraint::Min(4),
         Constraint::Length(6),
         Constraint::Length(2),
+        Constraint::Length(if s.battery.is_empty() {
+            0
+        } else {
+            1 + s.battery.len() as u16
+        }),
         Constraint::Length(if s.logs.is_empty() {
             0
         } else {
@@ -114,6 +133,17 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         }),
     ])
     .areas(area);
+    if !s.battery.is_empty() {
+        let lines: Vec<Line> = s.battery.iter().map(|l| Line::raw(l.clone())).collect();
+        f.render_widget(
+            Paragraph::new(lines).block(
+                Block::new()
+                    .borders(Borders::TOP)
+                    .title("Packs in parallel (* speaks to the inverter)"),
+            ),
+            battery_area,
+        );
+    }
     if !s.logs.is_empty() {
         let lines: Vec<Line> = s.logs.iter().map(|l| Line::raw(l.clone())).collect();
         f.render_widget(
@@ -349,6 +379,10 @@ pub(super) fn run(
                     );
                     next_draw = Instant::now();
                 }
+                if v["type"] == "battery" || v["type"] == "pack" {
+                    s.battery_line(&v);
+                    next_draw = Instant::now();
+                }
                 if v["type"] == "telemetry" {
                     if let Some(m) = v.as_object_mut() {
                         m.shift_remove("req");
@@ -445,6 +479,40 @@ mod tests {
             text.contains("warn BMS offline after 3 failed requests"),
             "{text}"
         );
+    }
+
+    #[test]
+    fn the_battery_and_its_packs_are_under_the_pack() {
+        let t0 = Instant::now();
+        let mut s = LiveState::default();
+        s.update(telemetry(true), t0);
+        s.battery_line(
+            &json!({"type":"battery","node":2,"speaking":false,"packs_online":2,
+            "packs_offline":0,"capacity_ah":560.0,"soc_percent":65.0,"voltage_v":53.2,
+            "current_a":-8.2,"min_cell_v":3.301,"max_cell_v":3.345,"cvl_v":55.2,"ccl_a":100.0,
+            "dcl_a":200.0}),
+        );
+        for (node, speaking) in [(1, true), (2, false)] {
+            s.battery_line(
+                &json!({"type":"pack","node":node,"state":"part","speaking":speaking,
+                "voltage_v":53.2,"current_a":-4.1,"soc_percent":65.0,"min_cell_v":3.301,
+                "max_cell_v":3.345,"data_age_s":0.3,"ccl_a":58.8,"dcl_a":117.6}),
+            );
+        }
+        let text = screen(&s, t0);
+        assert!(text.contains("Packs in parallel"), "{text}");
+        assert!(
+            text.contains("Battery (node 2 listens): 2 of 2 packs"),
+            "{text}"
+        );
+        assert!(text.contains("pack 1*  in the battery"), "{text}");
+        assert!(text.contains("pack 2   in the battery"), "{text}");
+        // A new battery line starts the list again.
+        s.battery_line(
+            &json!({"type":"battery","node":2,"speaking":false,"packs_online":0,
+            "packs_offline":2}),
+        );
+        assert_eq!(s.battery.len(), 1);
     }
 
     #[test]
