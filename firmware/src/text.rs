@@ -511,7 +511,7 @@ pub fn inverter(r: &InverterReport, out: &mut Line) {
         InverterReport::DuplicateNode(n) => {
             out.push("CAN: another bridge sends summaries as node ")
                 .uint(u64::from(*n))
-                .push(": give each bridge its own pack_node");
+                .push(": give each bridge its own pack_node (this one sends no summary until it restarts)");
         }
     }
 }

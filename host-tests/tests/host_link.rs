@@ -1341,14 +1341,17 @@ fn a_bridge_with_a_node_number_streams_the_battery_and_its_packs() {
         Member {
             summary: me,
             alive: true,
+            heard_ago_us: 0,
         },
         Member {
             summary: s,
             alive: true,
+            heard_ago_us: 0,
         },
         Member {
             summary: lost,
             alive: false,
+            heard_ago_us: 0,
         },
     ];
     let battery = aggregate(&members, 5 * SECOND).unwrap();

@@ -302,7 +302,7 @@ fn the_lines_of_packs_in_parallel() {
         ),
         (
             InverterReport::DuplicateNode(2),
-            "CAN: another bridge sends summaries as node 2: give each bridge its own pack_node",
+            "CAN: another bridge sends summaries as node 2: give each bridge its own pack_node (this one sends no summary until it restarts)",
             Level::Warn,
         ),
     ];

@@ -507,6 +507,7 @@ mod the_battery_of_packs_in_parallel {
             Member {
                 summary: s,
                 alive: true,
+                heard_ago_us: 0,
             },
             Member {
                 summary: Summary {
@@ -514,6 +515,7 @@ mod the_battery_of_packs_in_parallel {
                     ..s
                 },
                 alive: true,
+                heard_ago_us: 0,
             },
         ];
         let b = aggregate(&members, 5 * SECOND).unwrap();

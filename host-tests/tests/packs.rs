@@ -12,8 +12,8 @@ use proptest::prelude::*;
 use tinybms_firmware::inverter::control::{ChargeConfig, Conditions, Limits, PackState};
 use tinybms_firmware::inverter::packs::{
     aggregate, from_id, summary_id, Battery, BatteryLimits, Election, Member, Packs, Received,
-    Summary, SummaryError, LISTEN_US, PACK_LOST_US, SPEAKER_LOST_US, SUMMARY_BASE_ID,
-    SUMMARY_LAST_ID,
+    Summary, SummaryError, LISTEN_US, PACK_LOST_US, PARTIAL_MAX_US, SPEAKER_LOST_US,
+    SUMMARY_BASE_ID, SUMMARY_LAST_ID,
 };
 
 const S: u64 = 1_000_000;
@@ -226,7 +226,8 @@ proptest! {
         for (i, (id, d)) in frames.iter().enumerate() {
             let _ = p.on_frame(i as u64, *id, d);
         }
-        for (_, s, _) in p.known(64) {
+        for (_, m) in p.known(64) {
+            let s = m.summary;
             prop_assert!(s.soc_cpct <= 10_000 && s.min_cell_mv <= s.max_cell_mv);
         }
     }
@@ -267,7 +268,7 @@ impl Bus {
             for f in &sent {
                 feed(p, now, f);
             }
-            if e.update(now, p) {
+            if e.update(now, p, true) {
                 speakers.push(i as u8 + 1);
             }
         }
@@ -332,33 +333,34 @@ fn a_returning_node_waits_for_a_quiet_bus_and_two_speakers_resolve_at_once() {
         ..summary()
     };
     feed(&mut p1, 4 * S, &speaking.frames(2, 0).unwrap());
-    assert!(!e1.update(4 * S, &p1), "a speaker is heard");
+    assert!(!e1.update(4 * S, &p1, true), "a speaker is heard");
     feed(&mut p1, 5 * S, &quiet.frames(2, 1).unwrap());
-    assert!(e1.update(5 * S, &p1));
+    assert!(e1.update(5 * S, &p1, true));
     // A speaker that hears a higher node speaking goes on; one that hears a
     // lower speaker stops.
     feed(&mut p1, 6 * S, &speaking.frames(2, 2).unwrap());
-    assert!(e1.update(6 * S, &p1));
+    assert!(e1.update(6 * S, &p1, true));
     let mut p3 = Packs::new(3);
     let mut e3 = Election::new(0);
-    assert!(e3.update(4 * S, &p3), "alone on the bus");
+    assert!(e3.update(4 * S, &p3, true), "alone on the bus");
     feed(&mut p3, 6 * S, &speaking.frames(1, 0).unwrap());
-    assert!(!e3.update(6 * S, &p3));
+    assert!(!e3.update(6 * S, &p3, true));
     // A bus-off recovery listens again.
     e1.restart(7 * S);
     feed(&mut p1, 7 * S, &quiet.frames(2, 3).unwrap());
-    assert!(!e1.update(7 * S, &p1));
-    assert!(!e1.update(7 * S + LISTEN_US - 1, &p1));
-    assert!(e1.update(7 * S + LISTEN_US, &p1));
+    assert!(!e1.update(7 * S, &p1, true));
+    assert!(!e1.update(7 * S + LISTEN_US - 1, &p1, true));
+    assert!(e1.update(7 * S + LISTEN_US, &p1, true));
     // A lone bridge (node 0) never speaks for a battery.
     let p0 = Packs::new(0);
-    assert!(!Election::new(0).update(10 * S, &p0));
+    assert!(!Election::new(0).update(10 * S, &p0, true));
 }
 
 fn member(s: Summary) -> Member {
     Member {
         summary: s,
         alive: true,
+        heard_ago_us: 0,
     }
 }
 
@@ -405,8 +407,9 @@ fn the_battery_adds_up_its_packs() {
     // CCL: present 40 A + the smallest headroom (b: 78.4 − 30 = 48.4 A) = 88.4 A;
     // but should a go, b takes all: 78.4 A × (40 − 10) / 30 = 78.4 A.
     assert_eq!(bat.limits.ccl_da, 784);
-    // DCL: −40 A + min(147 + 10, 88.2 + 30) = 78.2 A.
-    assert_eq!(bat.limits.dcl_da, 782);
+    // DCL while the battery charges: from 0 current, the smallest pack's
+    // (88.2 A) — never a 0 computed from the charge current.
+    assert_eq!(bat.limits.dcl_da, 882);
     assert_eq!(bat.conditions.low_voltage, 2);
     assert_eq!(bat.conditions.high_voltage, 1);
     assert_eq!(bat.conditions.cell_imbalance, 2);
@@ -778,6 +781,69 @@ mod through_the_inverter_output {
     }
 
     #[test]
+    fn a_bridge_without_bms_data_never_speaks_and_the_other_does() {
+        // Node 1 gets no snapshot at all: node 2 speaks, node 1 never.
+        let (snap, settings) = inputs();
+        let mut nodes: Vec<Inverter> = (1..=2)
+            .map(|node| {
+                Inverter::new(
+                    InverterConfig {
+                        node,
+                        ..InverterConfig::default()
+                    },
+                    0,
+                )
+            })
+            .collect();
+        let mut limits_from = [0u32; 2];
+        for t in 0..200u64 {
+            let now = t * S / 10;
+            let mut bus = Vec::new();
+            for (k, inv) in nodes.iter_mut().enumerate() {
+                if k == 1 && t % 2 == 0 {
+                    inv.on_snapshot(now, &snap, Some(settings), None);
+                }
+                while let InverterAction::Send(f) = inv.poll(now) {
+                    inv.on_tx(now, TxResult::Sent);
+                    if f.id == ID_LIMITS {
+                        limits_from[k] += 1;
+                    }
+                    bus.push((k, f));
+                }
+            }
+            for (from, f) in &bus {
+                nodes[1 - from].on_received(now, f.id, f.bytes());
+            }
+        }
+        assert_eq!(limits_from[0], 0);
+        assert!(limits_from[1] > 10, "{limits_from:?}");
+    }
+
+    #[test]
+    fn a_bus_off_ends_speaking_and_the_battery_shown() {
+        let (snap, settings) = inputs();
+        let mut a = Inverter::new(
+            InverterConfig {
+                node: 1,
+                ..InverterConfig::default()
+            },
+            0,
+        );
+        for t in 0..6u64 {
+            a.on_snapshot(t * S, &snap, Some(settings), None);
+            while let InverterAction::Send(_) = a.poll(t * S) {
+                a.on_tx(t * S, TxResult::Sent);
+            }
+        }
+        assert!(a.speaking());
+        assert!(a.battery_view(6 * S).unwrap().battery.is_some());
+        a.on_bus_off(6 * S);
+        assert!(!a.speaking());
+        let v = a.battery_view(6 * S).unwrap();
+        assert!(!v.speaking && v.battery.is_none());
+    }
+
+    #[test]
     fn two_bridges_with_one_node_number_say_so_once() {
         let (snap, settings) = inputs();
         let config = InverterConfig {
@@ -802,5 +868,122 @@ mod through_the_inverter_output {
         }
         assert_eq!(dup, 1);
         assert_eq!(b.packs().duplicates(), 20);
+        // b falls silent (and never speaks) until it restarts.
+        for t in 5..10u64 {
+            b.on_snapshot(t * S, &snap, Some(settings), None);
+            while let InverterAction::Send(f) = b.poll(t * S) {
+                b.on_tx(t * S, TxResult::Sent);
+                assert!(from_id(f.id).is_none() && f.id != ID_LIMITS, "{:#x}", f.id);
+            }
+        }
+        assert!(!b.speaking());
+    }
+}
+
+mod what_review_found {
+    use super::*;
+
+    #[test]
+    fn data_is_judged_by_its_age_now_and_the_top_of_the_field_is_never_fresh() {
+        let s = Summary {
+            age_ds: 30,
+            ..summary()
+        };
+        let m = |ago| Member {
+            summary: s,
+            alive: true,
+            heard_ago_us: ago,
+        };
+        assert!(m(S).takes_part(5 * S), "3 s + 1 s");
+        assert!(!m(2_400_000).takes_part(5 * S), "3 s + 2.4 s is past 5 s");
+        // 25.5 s or more: never fresh, whatever the stale age (up to 60 s).
+        let old = Member::now(Summary {
+            age_ds: 255,
+            ..summary()
+        });
+        assert!(!old.takes_part(60 * S));
+        assert_eq!(old.data_age_us(), None);
+    }
+
+    #[test]
+    fn a_battery_charging_still_offers_a_discharge_limit_and_the_other_way_round() {
+        // 4 packs charging 34 A each, DCL 100 A each: the DCL is one pack's.
+        let charging = member(Summary {
+            current_da: 340,
+            limits: Limits {
+                dcl_da: 1000,
+                ..summary().limits
+            },
+            ..summary()
+        });
+        let b = aggregate(&[charging; 4], STALE).unwrap();
+        assert_eq!(b.limits.dcl_da, 980);
+        // 2 packs discharging 50 A each, CCL 50 A each: the CCL is one pack's.
+        let discharging = member(Summary {
+            current_da: -500,
+            limits: Limits {
+                ccl_da: 500,
+                ..summary().limits
+            },
+            ..summary()
+        });
+        let b = aggregate(&[discharging; 2], STALE).unwrap();
+        assert_eq!(b.limits.ccl_da, 490);
+    }
+
+    #[test]
+    fn a_bridge_that_sends_no_summary_never_speaks() {
+        let p = Packs::new(1);
+        let mut e = Election::new(0);
+        assert!(!e.update(10 * S, &p, false));
+        assert!(e.update(10 * S, &p, true));
+        assert!(!e.update(11 * S, &p, false), "stops at once");
+    }
+
+    #[test]
+    fn one_incomplete_summary_of_the_speaker_does_not_start_a_takeover() {
+        let mut p = Packs::new(2);
+        let mut e = Election::new(0);
+        let speaking = Summary {
+            speaking: true,
+            ..summary()
+        };
+        feed(&mut p, 3 * S, &speaking.frames(1, 0).unwrap());
+        assert!(!e.update(3 * S, &p, true));
+        // Its next summary loses a frame; the one after too: its other frames
+        // still say it is there.
+        let f = speaking.frames(1, 1).unwrap();
+        feed(&mut p, 4 * S, &f[..3]);
+        let f = speaking.frames(1, 2).unwrap();
+        feed(&mut p, 5 * S, &f[1..]);
+        assert!(!e.update(5 * S + 500_000, &p, true));
+        // Silent: the takeover.
+        assert!(e.update(5 * S + SPEAKER_LOST_US + 1, &p, true));
+    }
+
+    #[test]
+    fn frames_of_two_sends_with_one_sequence_never_make_a_summary() {
+        let a = summary();
+        let b = Summary {
+            soc_cpct: 1111,
+            current_da: -77,
+            ..summary()
+        };
+        let fa = a.frames(3, 0).unwrap();
+        let fb = b.frames(3, 0).unwrap();
+        // A bridge restarts in the middle of a burst and sends seq 0 again,
+        // losing a frame: 0, 1, 2 of a; then 0, 1, 3 of b.
+        let mut p = Packs::new(1);
+        feed(&mut p, 0, &fa[..3]);
+        feed(&mut p, 1000, &[fb[0], fb[1], fb[3]]);
+        assert!(p.alive(1000, 3).is_none(), "no mixture");
+        // A summary incomplete for longer than a burst is dropped.
+        let mut p = Packs::new(1);
+        feed(&mut p, 0, &fa[..3]);
+        assert_eq!(
+            p.on_frame(PARTIAL_MAX_US + 1, fa[3].id, fa[3].bytes()),
+            Received::Partial
+        );
+        assert!(p.alive(PARTIAL_MAX_US + 1, 3).is_none());
     }
 }

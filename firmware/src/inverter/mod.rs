@@ -336,19 +336,25 @@ impl Inverter {
         let mut packs: heapless::Vec<PackView, { packs::MAX_NODES as usize }> =
             heapless::Vec::new();
         // By node number: the others come in order; this one goes between.
-        let view = |n: u8, summary: Summary, alive: bool| PackView {
+        // The data's age now (sent age plus the time since), as the line shows it.
+        let view = |n: u8, m: Member| PackView {
             node: n,
-            summary,
-            part: PackPart::of(&Member { summary, alive }, stale),
+            summary: Summary {
+                age_ds: m
+                    .data_age_us()
+                    .map_or(u8::MAX, |a| (a / (100 * crate::MS)).min(255) as u8),
+                ..m.summary
+            },
+            part: PackPart::of(&m, stale),
         };
-        let mut own = self.own_summary.map(|s| view(node, s, true));
-        for (n, s, alive) in self.packs.known(now) {
+        let mut own = self.own_summary.map(|s| view(node, Member::now(s)));
+        for (n, m) in self.packs.known(now) {
             if n > node {
                 if let Some(o) = own.take() {
                     let _ = packs.push(o);
                 }
             }
-            let _ = packs.push(view(n, *s, alive));
+            let _ = packs.push(view(n, m));
         }
         if let Some(o) = own {
             let _ = packs.push(o);
@@ -524,6 +530,13 @@ impl Inverter {
 
     /// The controller went bus-off.
     pub fn on_bus_off(&mut self, now: Instant) {
+        // With a node number: not the speaker while off the bus, and no battery
+        // shown as current meanwhile; it listens again after the recovery.
+        if self.election.speaking() {
+            self.report(InverterReport::Speaker(false));
+        }
+        self.election.restart(now);
+        self.battery = None;
         self.bus_offs = self.bus_offs.saturating_add(1);
         let shift = self.bus_offs.saturating_sub(1).min(4);
         let backoff = self.config.bus_off_backoff_us.saturating_mul(1 << shift);
@@ -553,9 +566,6 @@ impl Inverter {
             }
             // With a node number: listen again before speaking; the battery's
             // limits come back after the hold.
-            if self.election.speaking() {
-                self.report(InverterReport::Speaker(false));
-            }
             self.election.restart(now);
             self.battery_limits.cut(now);
             return InverterAction::Recover;
@@ -753,9 +763,12 @@ impl Inverter {
             }
             _ => None,
         };
-        // Who speaks, then this pack's summary (saying so).
+        // Who speaks, then this pack's summary (saying so). A bridge that sends
+        // no summary (no BMS data yet; another bridge has its number) must not
+        // speak: the others would not know.
+        let able = own.is_some() && !self.duplicate_reported;
         let was = self.election.speaking();
-        let speaking = self.election.update(now, &self.packs);
+        let speaking = self.election.update(now, &self.packs, able);
         if speaking != was {
             self.report(InverterReport::Speaker(speaking));
         }
@@ -772,29 +785,22 @@ impl Inverter {
         };
         if let Some((state, age, limits, conditions, cap)) = own {
             let summary = Summary::own(&state, age, &limits, &conditions, cap, speaking);
-            if let Some(fs) = summary.frames(node, self.seq) {
-                for f in fs {
-                    let _ = self.queue.push_back(f);
+            // Another bridge with this node number: this one falls silent (the
+            // same identifiers with other data would collide on the bus) until
+            // it restarts; the log says why.
+            if !self.duplicate_reported {
+                if let Some(fs) = summary.frames(node, self.seq) {
+                    for f in fs {
+                        let _ = self.queue.push_back(f);
+                    }
                 }
             }
             self.seq = (self.seq + 1) & 0x0F;
             self.own_summary = Some(summary);
-            add(
-                node,
-                Member {
-                    summary,
-                    alive: true,
-                },
-            );
+            add(node, Member::now(summary));
         }
-        for (n, summary, alive) in self.packs.known(now) {
-            add(
-                n,
-                Member {
-                    summary: *summary,
-                    alive,
-                },
-            );
+        for (n, m) in self.packs.known(now) {
+            add(n, m);
         }
         let battery = packs::aggregate(&members, stale_after);
         let counts = battery.map_or((0, members.len() as u8), |b| (b.online, b.offline));

@@ -24,7 +24,9 @@
 //!   (`CCL_k − I_k`): whichever way the extra current splits, no pack gets more
 //!   than its headroom. A pack already past its own CCL turns the headroom
 //!   negative, scaled by the number of packs (its share of a cut is about
-//!   1/N). Never above the sum of the packs' CCLs; never below 0.
+//!   1/N). Never above the sum of the packs' CCLs; never below 0. While the
+//!   battery discharges (or rests), the CCL starts from 0 current: the
+//!   smallest headroom, so a limit is never 0 for a current that is not there.
 //!   DCL the same way with discharge currents. Each pack's limit counts 2 %
 //!   (at least 0.5 A) less ([`usable`]): its current was measured a moment ago.
 //! * **One pack may open its switch at any moment** (a fault, a cutoff): until
@@ -55,9 +57,13 @@
 //! still heard takes over once [`SPEAKER_LOST_US`] have passed since its last
 //! summary: the inverter is without limits for at most 2.5 s (a Victron GX
 //! waits 3 s); a node that comes back finds a speaker
-//! and stays quiet (no handover, no gap). Two speakers exist only while one of
-//! them hears nothing of the bus; the moment they hear each other, the higher
-//! one stops.
+//! and stays quiet (no handover, no gap). A bridge speaks only while it sends
+//! its own summary (it has BMS data, and no other bridge has its number), so
+//! the others always hear the speaker; "heard" counts any frame of a node, so
+//! one refused or incomplete summary does not start a takeover. Two speakers
+//! exist only while one of them hears nothing of the bus, and at most for one
+//! period after a speaker's summaries went missing for 1.5 s; as soon as they
+//! hear each other, the higher one stops.
 //!
 //! Every bridge with a node number computes the battery every second, speaker
 //! or not, so a new speaker takes over with the hold and ramp state of the
@@ -359,8 +365,13 @@ impl Summary {
 struct Partial {
     seq: u8,
     have: u8,
+    started: Instant,
     data: [[u8; 8]; SUMMARY_FRAMES],
 }
+
+/// The frames of one summary go out back to back: a summary still incomplete
+/// this long after its first frame is dropped, µs.
+pub const PARTIAL_MAX_US: Instant = 200 * crate::MS;
 
 /// What is known of one node.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -394,6 +405,9 @@ pub struct Packs {
     node: u8,
     partial: [Option<Partial>; MAX_NODES as usize],
     heard: [Option<Heard>; MAX_NODES as usize],
+    /// When any 8-byte frame of each node last arrived (the election's
+    /// "heard": one refused or incomplete summary does not silence a node).
+    frame_at: [Option<Instant>; MAX_NODES as usize],
     refused: u32,
     duplicates: u32,
 }
@@ -405,6 +419,7 @@ impl Packs {
             node,
             partial: [None; MAX_NODES as usize],
             heard: [None; MAX_NODES as usize],
+            frame_at: [None; MAX_NODES as usize],
             refused: 0,
             duplicates: 0,
         }
@@ -445,15 +460,28 @@ impl Packs {
             }
             return Received::Refused(node, SummaryError::Length);
         };
+        if let Some(t) = self.frame_at.get_mut(i) {
+            *t = Some(now);
+        }
         let seq = d[7] & 0x0F;
         let Some(slot) = self.partial.get_mut(i) else {
             return Received::NotSummary;
         };
+        // A frame of the same sequence only continues a summary that is young
+        // and lacks that frame: never a mixture of two sends (a bridge that
+        // restarted, one frame of a burst lost).
         let mut p = match *slot {
-            Some(p) if p.seq == seq => p,
+            Some(p)
+                if p.seq == seq
+                    && p.have & (1 << k) == 0
+                    && now.saturating_sub(p.started) <= PARTIAL_MAX_US =>
+            {
+                p
+            }
             _ => Partial {
                 seq,
                 have: 0,
+                started: now,
                 data: [[0; 8]; SUMMARY_FRAMES],
             },
         };
@@ -494,13 +522,37 @@ impl Packs {
         (now.saturating_sub(h.at) <= us).then_some(&h.summary)
     }
 
-    /// Every node ever heard (1..=8) with its summary and whether it is alive.
-    pub fn known(&self, now: Instant) -> impl Iterator<Item = (u8, &Summary, bool)> + '_ {
+    /// Every node ever heard (1..=8) as a [`Member`] of the battery: its
+    /// summary, whether it is alive, and how long ago it came.
+    pub fn known(&self, now: Instant) -> impl Iterator<Item = (u8, Member)> + '_ {
         self.heard.iter().enumerate().filter_map(move |(i, h)| {
             let h = h.as_ref()?;
-            let alive = now.saturating_sub(h.at) <= PACK_LOST_US;
-            Some((i as u8 + 1, &h.summary, alive))
+            let ago = now.saturating_sub(h.at);
+            Some((
+                i as u8 + 1,
+                Member {
+                    summary: h.summary,
+                    alive: ago <= PACK_LOST_US,
+                    heard_ago_us: ago,
+                },
+            ))
         })
+    }
+
+    /// For the election: whether node `node` was heard (any frame) within
+    /// `us`, and whether its last summary says it speaks.
+    pub fn heard_speaking(&self, now: Instant, node: u8, us: Instant) -> Option<bool> {
+        let i = usize::from(node.checked_sub(1)?);
+        let at = (*self.frame_at.get(i)?)?;
+        if now.saturating_sub(at) > us {
+            return None;
+        }
+        Some(
+            self.heard
+                .get(i)
+                .and_then(|h| h.as_ref())
+                .is_some_and(|h| h.summary.speaking),
+        )
     }
 }
 
@@ -537,12 +589,14 @@ impl Election {
         now.saturating_sub(self.listening_since) >= LISTEN_US
     }
 
-    /// Decides at `now` from what has been heard.
-    pub fn update(&mut self, now: Instant, packs: &Packs) -> bool {
+    /// Decides at `now` from what has been heard. `able`: this bridge sends
+    /// its own summary this period (it has BMS data and no other bridge has
+    /// its number) — one that the others cannot hear must not speak.
+    pub fn update(&mut self, now: Instant, packs: &Packs, able: bool) -> bool {
         let me = packs.node();
-        let heard = |n: u8| packs.heard_within(now, n, SPEAKER_LOST_US);
-        let speaks = |n: u8| n != me && heard(n).is_some_and(|s| s.speaking);
-        self.speaking = if me == 0 {
+        let heard = |n: u8| packs.heard_speaking(now, n, SPEAKER_LOST_US);
+        let speaks = |n: u8| n != me && heard(n) == Some(true);
+        self.speaking = if me == 0 || !able {
             false
         } else if self.speaking {
             !(1..me).any(speaks)
@@ -582,14 +636,33 @@ pub struct Member {
     pub summary: Summary,
     /// Heard within [`PACK_LOST_US`] (this bridge's own pack: always).
     pub alive: bool,
+    /// How long ago the summary came (this bridge's own: 0), µs.
+    pub heard_ago_us: Instant,
 }
 
 impl Member {
-    /// Takes part in the battery: alive, data younger than `stale_after_us`,
-    /// no fault.
+    /// This bridge's own pack, or a summary just heard.
+    pub const fn now(summary: Summary) -> Self {
+        Self {
+            summary,
+            alive: true,
+            heard_ago_us: 0,
+        }
+    }
+
+    /// The age of its data now: the age it was sent with plus the time since,
+    /// µs; `None` when it was sent as 25.5 s or more (the field's top).
+    pub fn data_age_us(&self) -> Option<Instant> {
+        (self.summary.age_ds < u8::MAX).then(|| {
+            (u64::from(self.summary.age_ds) * 100 * crate::MS).saturating_add(self.heard_ago_us)
+        })
+    }
+
+    /// Takes part in the battery: alive, data younger than `stale_after_us`
+    /// (its age now, not when it was sent), no fault.
     pub fn takes_part(&self, stale_after_us: Instant) -> bool {
-        let age_us = u64::from(self.summary.age_ds) * 100 * crate::MS;
-        self.alive && age_us <= stale_after_us && !self.summary.fault
+        let fresh = self.data_age_us().is_some_and(|a| a <= stale_after_us);
+        self.alive && fresh && !self.summary.fault
     }
 }
 
@@ -628,8 +701,11 @@ pub fn aggregate(members: &[Member], stale_after_us: Instant) -> Option<Battery>
         ccl_sum += ccl;
         dcl_sum += dcl;
         let room = |r: i32| if r >= 0 { r } else { r.saturating_mul(n_i) };
-        ch_room = ch_room.min(room(ccl - i));
-        dis_room = dis_room.min(room(dcl + i));
+        // Headroom in each direction from the pack's current in that
+        // direction (a pack going the other way counts as 0: it has at least
+        // its whole limit).
+        ch_room = ch_room.min(room(ccl - i.max(0)));
+        dis_room = dis_room.min(room(dcl - (-i).max(0)));
         let c = u64::from(s.capacity_dah);
         cap += c;
         soc_w += c * u64::from(s.soc_cpct);
@@ -653,8 +729,12 @@ pub fn aggregate(members: &[Member], stale_after_us: Instant) -> Option<Battery>
         cond[8] = cond[8].max(1);
     }
     let clamp_da = |x: i32| x.clamp(0, i32::from(u16::MAX)) as u16;
-    let ccl = i_sum.saturating_add(ch_room).min(ccl_sum);
-    let dcl = (-i_sum).saturating_add(dis_room).min(dcl_sum);
+    // From the battery's present current in that direction; while it goes
+    // the other way (or rests), from 0: the smallest pack's headroom, never a
+    // 0 computed from a current that is not there (a DCL of 0 while charging
+    // would switch a Victron inverter off).
+    let ccl = i_sum.max(0).saturating_add(ch_room).min(ccl_sum);
+    let dcl = (-i_sum).max(0).saturating_add(dis_room).min(dcl_sum);
     // One pack may open its switch at any moment: the others then share its
     // current until the inverter hears the new limits. Keep the total low
     // enough that they stay within their own limits then.
@@ -771,8 +851,9 @@ impl BatteryLimits {
         }
     }
 
-    /// The inverter was without the battery's limits (a takeover, a bus-off,
-    /// the battery lost): both limits start from 0 and come back after the hold.
+    /// The inverter was without the battery's limits (this bridge's bus-off,
+    /// the battery lost): both limits start from 0 and come back after the
+    /// hold. (A takeover keeps the state: every node steps the battery.)
     pub fn cut(&mut self, now: Instant) {
         for r in [&mut self.ccl, &mut self.dcl] {
             *r = Ramp::new();
