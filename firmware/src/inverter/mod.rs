@@ -657,14 +657,7 @@ impl Inverter {
             }
             self.report(InverterReport::Fresh);
         }
-        let (limits, mut conditions) = self.control.update(now, &settings, &state);
-        conditions.link_lost = 0;
-        self.limits = Some(limits);
-        self.conditions = conditions;
-        if self.logged_limits != Some(limits) {
-            self.logged_limits = Some(limits);
-            self.report(InverterReport::Limits(limits));
-        }
+        let (limits, conditions) = self.update_own(now, &settings, &state);
         let capacity_ah = settings.capacity_cah / 100;
         let modules = (
             1,
@@ -673,6 +666,25 @@ impl Inverter {
             0,
         );
         self.push_inverter_frames(&limits, &state, &conditions, capacity_ah, modules, slow);
+    }
+
+    /// This pack's limits and conditions from fresh data: kept, and logged
+    /// when the limits change.
+    fn update_own(
+        &mut self,
+        now: Instant,
+        settings: &PackSettings,
+        state: &PackState,
+    ) -> (Limits, Conditions) {
+        let (limits, mut conditions) = self.control.update(now, settings, state);
+        conditions.link_lost = 0;
+        self.limits = Some(limits);
+        self.conditions = conditions;
+        if self.logged_limits != Some(limits) {
+            self.logged_limits = Some(limits);
+            self.report(InverterReport::Limits(limits));
+        }
+        (limits, conditions)
     }
 
     /// The frames of the inverter protocol for a battery in this state.
@@ -738,14 +750,7 @@ impl Inverter {
                         // hold and ramp rule its return (see `packs`).
                         self.report(InverterReport::Fresh);
                     }
-                    let (limits, mut conditions) = self.control.update(now, &settings, &state);
-                    conditions.link_lost = 0;
-                    self.limits = Some(limits);
-                    self.conditions = conditions;
-                    if self.logged_limits != Some(limits) {
-                        self.logged_limits = Some(limits);
-                        self.report(InverterReport::Limits(limits));
-                    }
+                    self.update_own(now, &settings, &state);
                 }
                 // The summary carries the pack's limits before its own hold
                 // and ramp: the battery holds and ramps as a whole, so a pack

@@ -13,7 +13,7 @@
 
 use heapless::String;
 
-use super::discovery::{value_template, Component, Entity, Read};
+use super::discovery::{presence_template, value_template, Component, Entity, Read};
 use super::{topic, Settings, TOPIC_MAX};
 
 /// The battery's entities expire after this many publish periods without a
@@ -229,12 +229,10 @@ pub fn config(out: &mut [u8], s: &Settings, bridge_version: &str, e: &Entity) ->
     }
     let template = value_template(e.read);
     // A value that is null (no pack takes part) makes the entity unavailable.
-    let mut presence: String<112> = String::new();
-    if let Read::Nullable(m) = e.read {
-        presence.push_str("{{ 'offline' if value_json.").ok()?;
-        presence.push_str(m).ok()?;
-        presence.push_str(" is none else 'online' }}").ok()?;
-    }
+    let presence = match e.read {
+        Read::Nullable(m) => Some(presence_template(m)),
+        _ => None,
+    };
     let period_s = s.publish_period_us / crate::SECOND;
     let c = Config {
         name: e.name,
@@ -246,10 +244,12 @@ pub fn config(out: &mut [u8], s: &Settings, bridge_version: &str, e: &Entity) ->
         unit_of_measurement: e.unit,
         suggested_display_precision: e.precision,
         expire_after: (period_s * EXPIRE_AFTER_PERIODS).max(EXPIRE_AFTER_PERIODS),
-        availability: (!presence.is_empty()).then_some([Availability {
-            topic: &state,
-            value_template: &presence,
-        }]),
+        availability: presence.as_deref().map(|t| {
+            [Availability {
+                topic: &state,
+                value_template: t,
+            }]
+        }),
         device: Device {
             identifiers: [&id],
             name: "TinyBMS battery",

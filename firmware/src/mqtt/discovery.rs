@@ -432,7 +432,7 @@ pub fn value_template(r: Read) -> String<96> {
 }
 
 /// The availability template of a nullable member: `offline` while it is null.
-fn presence_template(m: &str) -> String<112> {
+pub(crate) fn presence_template(m: &str) -> String<112> {
     let mut t = String::new();
     let _ = t.push_str("{{ 'offline' if value_json.");
     let _ = t.push_str(m);
