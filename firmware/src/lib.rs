@@ -47,9 +47,12 @@ pub mod bms;
 pub mod boards;
 pub mod bridge;
 pub mod config;
+pub mod freshness;
 pub mod host_link;
 pub mod inverter;
+pub mod line;
 pub mod mqtt;
+pub mod station;
 pub mod text;
 pub mod units;
 

@@ -172,7 +172,7 @@ fn main() {
                 value,
             });
             let _ = h
-                .bridge
+                .bridge_mut()
                 .submit(tinybms_firmware::Command::ApplySettings(items));
             k += 1;
         }

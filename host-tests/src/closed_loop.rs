@@ -16,14 +16,11 @@ use protocol_core::views::cell_mv;
 
 use embassy_futures::block_on;
 use tinybms_firmware::bms::timing::Timing;
-use tinybms_firmware::config::state::ConfigState;
-use tinybms_firmware::config::store::{save_when_quiet, Store};
-use tinybms_firmware::host_link::{HostLink, OUT_LINE_MAX};
+use tinybms_firmware::config::store::{Loaded, Source};
+use tinybms_firmware::config::Config;
 use tinybms_firmware::inverter::frames::{self, CanFrame};
-use tinybms_firmware::inverter::{
-    Inverter, InverterAction, InverterConfig, InverterReport, TxResult,
-};
-use tinybms_firmware::Report;
+use tinybms_firmware::inverter::{Inverter, InverterConfig, InverterReport};
+use tinybms_firmware::station::{Logged, Setup, Station};
 
 use crate::flash::RamFlash;
 use crate::harness::Harness;
@@ -149,12 +146,11 @@ pub fn frame_bits(len: u8) -> u64 {
     raw + raw / 5
 }
 
-/// The bridge, the simulated BMS, the inverter output and the inverter model.
+/// The station (bridge and inverter output), the simulated BMS and the
+/// inverter model.
 pub struct ClosedLoop {
-    /// Bridge and simulated BMS.
+    /// The station and simulated BMS (its CAN controller on the loop's bus).
     pub h: Harness,
-    /// The firmware's inverter output.
-    pub inverter: Inverter,
     /// The inverter/charger.
     pub model: InverterModel,
     /// Figures so far.
@@ -167,42 +163,48 @@ pub struct ClosedLoop {
     pub can_log: Option<Box<dyn Write>>,
     /// A JSON Lines log being written (`--json`).
     pub json_log: Option<Box<dyn Write>>,
-    /// The CAN controller is bus-off until this time (a scenario's fault).
-    pub bus_off_until: Option<u64>,
-    /// The host link and the bridge's configuration, when the loop runs with
-    /// them ([`ClosedLoop::from_flash`]): as the chip's bridge task.
+    /// The host side, when the loop runs with a host link and the record in
+    /// flash ([`ClosedLoop::from_flash`]).
     pub host: Option<LoopHost>,
     seen_seq: u32,
-    log_seen: usize,
     last_cvl: Option<u16>,
 }
 
 /// The host side of a [`ClosedLoop`] made by [`ClosedLoop::from_flash`].
 pub struct LoopHost {
-    /// The host link.
-    pub link: HostLink,
-    /// The bridge's configuration.
-    pub config: ConfigState,
-    /// Its store.
-    pub store: Store<RamFlash>,
-    /// The flash it is on (shared with the store).
+    /// The flash the record is on (shared with the store).
     pub flash: RamFlash,
     /// Every line the host link wrote, parsed.
     pub lines: Vec<serde_json::Value>,
-    forwarded: usize,
 }
 
 /// Epoch of the candump timestamps (virtual time 0), s.
 pub const CANDUMP_EPOCH_S: u64 = 1_700_000_000;
 
 impl ClosedLoop {
-    /// A loop with a simulated 16S LiFePO4 pack (or `profile`) and a charger.
+    /// A loop with a simulated 16S LiFePO4 pack (or `profile`) and a charger;
+    /// the inverter output runs with `inverter` (not the record's settings).
     pub fn new(
         profile: PackProfile,
         seed: u64,
         inverter: InverterConfig,
         charger_max_a: f64,
     ) -> Self {
+        let setup = Setup {
+            timing: Timing::default(),
+            chip: "sim",
+            host_link: false,
+            can: true,
+            inverter: Some(inverter),
+        };
+        let loaded = Loaded {
+            config: Config::default(),
+            source: Source::Empty,
+        };
+        Self::with_station(profile, seed, Station::new(setup, loaded, 0), charger_max_a)
+    }
+
+    fn with_station(profile: PackProfile, seed: u64, station: Station, charger_max_a: f64) -> Self {
         let mut sim = SimBms::new(profile, SimConfig::default(), seed);
         sim.set_external_current(Some(0.0));
         let cells = profile.cell_count() as f64;
@@ -210,28 +212,27 @@ impl ClosedLoop {
             PackProfile::LiFePO4_16S => 0.0003,
             PackProfile::LiIon_14S => 0.0015,
         };
-        let mut h = Harness::with_config(sim, Timing::default());
+        let mut h = Harness::with_station(sim, station);
         h.retain = true;
+        h.can.attached = true;
+        h.finish_at_end = true;
         Self {
             h,
-            inverter: Inverter::new(inverter, 0),
             model: InverterModel::new(charger_max_a, (cells * r_cell).max(0.001)),
             figures: LoopFigures::default(),
             sent_limits: Vec::new(),
             sent_ids: Vec::new(),
             can_log: None,
             json_log: None,
-            bus_off_until: None,
             host: None,
             seen_seq: 0,
-            log_seen: 0,
             last_cvl: None,
         }
     }
 
     /// A loop as a bridge with its configuration record in `flash` starts it:
-    /// the inverter output runs with the record (the defaults when the flash
-    /// holds none), and a host link takes configuration changes
+    /// the station runs with the record (the defaults when the flash holds
+    /// none), and a host link takes configuration changes
     /// ([`ClosedLoop::host_line`]) that apply at once where they may and are
     /// saved to `flash` when the BMS link is quiet.
     pub fn from_flash(
@@ -240,65 +241,44 @@ impl ClosedLoop {
         flash: RamFlash,
         charger_max_a: f64,
     ) -> Self {
-        let mut store = crate::flash::store(flash.clone());
-        let loaded = block_on(store.load());
-        let mut l = Self::new(profile, seed, loaded.config.inverter(), charger_max_a);
+        let loaded = block_on(crate::flash::store(flash.clone()).load());
+        let setup = Setup {
+            timing: Timing::default(),
+            chip: "sim",
+            host_link: true,
+            can: true,
+            inverter: None,
+        };
+        let station = Station::new(setup, loaded, 0);
+        let mut l = Self::with_station(profile, seed, station, charger_max_a);
+        l.h.saver = Some(crate::host_link::ram_saver(
+            &flash,
+            std::rc::Rc::new(std::cell::Cell::new(0)),
+        ));
+        l.h.host_lines = Some(Vec::new());
         l.host = Some(LoopHost {
-            link: HostLink::new(loaded.config.host_link("sim"), 0),
-            config: ConfigState::new(loaded.config, loaded.source),
-            store,
             flash,
             lines: Vec::new(),
-            forwarded: 0,
         });
         l
     }
 
-    /// One line from the host (needs [`ClosedLoop::from_flash`]).
-    pub fn host_line(&mut self, line: &str) {
-        if let Some(host) = self.host.as_mut() {
-            let mut b = line.as_bytes().to_vec();
-            b.push(b'\n');
-            host.link
-                .handle_rx(self.h.now, &b, &mut self.h.bridge, &mut host.config);
-        }
-        self.service_host();
+    /// The inverter output.
+    pub fn inverter(&self) -> &Inverter {
+        self.h
+            .station
+            .inverter()
+            .expect("a loop's station is built with its CAN output")
     }
 
-    /// What the chip's bridge task does for the host link and the
-    /// configuration after a pass.
-    fn service_host(&mut self) {
-        let Some(host) = self.host.as_mut() else {
-            return;
-        };
+    /// One line from the host (needs [`ClosedLoop::from_flash`]).
+    pub fn host_line(&mut self, line: &str) {
+        let mut b = line.as_bytes().to_vec();
+        b.push(b'\n');
         let now = self.h.now;
-        while let Some(l) = self.h.log.get(host.forwarded) {
-            host.link.on_report(&l.report);
-            host.forwarded += 1;
-        }
-        if let Some(c) = host.config.take_running_change() {
-            host.link.apply_config(now, c);
-            // The CAN task's side: at-once fields to the inverter output.
-            self.inverter.reconfigure(c.inverter());
-        }
-        if let Some(r) = block_on(save_when_quiet(
-            &mut host.config,
-            &mut host.store,
-            &self.h.bridge,
-            now,
-        )) {
-            host.link.on_config_saved(r);
-        }
-        let mut buf = [0u8; OUT_LINE_MAX];
-        host.link.poll(now, &self.h.bridge);
-        while let Some(n) = host
-            .link
-            .next_line(now, &self.h.bridge, &host.config, &mut buf)
-        {
-            if let Ok(v) = serde_json::from_slice(&buf[..n]) {
-                host.lines.push(v);
-            }
-        }
+        self.h.station.host_rx(now, &b);
+        self.h.run_until(now);
+        self.after_step(now);
     }
 
     /// Runs until virtual time `end_us`.
@@ -306,12 +286,10 @@ impl ClosedLoop {
         while self.h.now < end_us {
             let t = (self.h.now + STEP_US).min(end_us);
             self.h.run_until(t);
-            self.service_host();
-            self.feed_inverter();
-            self.pump_can(t);
+            self.after_step(t);
             let pack_v = f64::from(
                 self.h
-                    .bridge
+                    .bridge()
                     .telemetry()
                     .snapshot
                     .as_ref()
@@ -322,33 +300,50 @@ impl ClosedLoop {
         }
     }
 
-    fn feed_inverter(&mut self) {
-        // Events from the bridge's log.
-        while self.log_seen < self.h.log.len() {
-            if let Some(Report::NewEvent(e)) = self.h.log.get(self.log_seen).map(|l| &l.report) {
-                self.inverter.on_event(e);
-            }
-            self.log_seen += 1;
+    /// What the station did up to `now`: its frames onto the bus (and to the
+    /// model), its reports and host lines into the figures.
+    fn after_step(&mut self, now: u64) {
+        self.watch_snapshots();
+        for (at, f) in std::mem::take(&mut self.h.can.outbox) {
+            self.on_frame(at, &f);
         }
-        let t = self.h.bridge.telemetry();
+        for (at, item) in std::mem::take(&mut self.h.other_log) {
+            if let Logged::Inverter(r) = item {
+                self.figures.reports.push((at, r));
+            }
+        }
+        if let (Some(host), Some(lines)) = (self.host.as_mut(), self.h.host_lines.as_mut()) {
+            for l in lines.drain(..) {
+                if let Ok(v) = serde_json::from_str(&l) {
+                    host.lines.push(v);
+                }
+            }
+        }
+        if self.figures.float_at_us.is_none()
+            && self.inverter().phase() == tinybms_firmware::inverter::control::Phase::Float
+        {
+            self.figures.float_at_us = Some(now);
+        }
+    }
+
+    fn watch_snapshots(&mut self) {
+        let t = self.h.bridge().telemetry();
         if t.snapshot_seq == self.seen_seq {
             return;
         }
         self.seen_seq = t.snapshot_seq;
-        let (Some(s), Some(at), Some(settings)) = (&t.snapshot, t.snapshot_at, &t.settings) else {
+        let (Some(s), Some(at)) = (&t.snapshot, t.snapshot_at) else {
             return;
         };
         if let Some((_, raw)) = s.cells.max() {
             self.figures.max_cell_mv = self.figures.max_cell_mv.max(cell_mv(raw));
         }
-        let pack = tinybms_firmware::inverter::control::PackSettings::from_registers(settings);
-        self.inverter.on_snapshot(at, s, pack, t.version.as_ref());
         if let Some(w) = self.json_log.as_mut() {
             if let Some(b) = &t.live_registers {
                 let regs: BTreeMap<u16, u16> = b.iter().collect();
                 let mut v = crate::replay::register_values(&regs);
                 v.insert("t_s".into(), serde_json::json!(at as f64 / 1e6));
-                if let Some(l) = self.inverter.limits() {
+                if let Some(l) = self.h.station.inverter().and_then(|i| i.limits()) {
                     v.insert(
                         "cvl_v".into(),
                         serde_json::json!(f64::from(l.cvl_dv) / 10.0),
@@ -367,66 +362,32 @@ impl ClosedLoop {
         }
     }
 
-    fn pump_can(&mut self, now: u64) {
-        if let Some(until) = self.bus_off_until {
-            if now < until {
-                // Frames fail while the bus is down; the controller went bus-off.
-                return;
+    fn on_frame(&mut self, now: u64, f: &CanFrame) {
+        self.figures.frames += 1;
+        self.figures.bits += frame_bits(f.len);
+        self.sent_ids.push((now, f.id));
+        self.model.on_frame(now, f);
+        if let Some(l) = frames::limits_of(f) {
+            let (cvl, ccl, dcl) = (l.cvl_dv, l.ccl_da, l.dcl_da);
+            self.sent_limits.push((now, cvl, ccl, dcl));
+            self.figures.min_cvl_dv = Some(self.figures.min_cvl_dv.map_or(cvl, |m| m.min(cvl)));
+            self.figures.max_cvl_dv = Some(self.figures.max_cvl_dv.map_or(cvl, |m| m.max(cvl)));
+            if self.last_cvl.is_some_and(|c| c != cvl) {
+                self.figures.cvl_changes += 1;
             }
-            self.bus_off_until = None;
-        }
-        for _ in 0..32 {
-            match self.inverter.poll(now) {
-                InverterAction::Send(f) => {
-                    self.inverter.on_tx(now, TxResult::Sent);
-                    self.figures.frames += 1;
-                    self.figures.bits += frame_bits(f.len);
-                    self.sent_ids.push((now, f.id));
-                    self.model.on_frame(now, &f);
-                    if f.id == frames::ID_LIMITS {
-                        let d = f.data;
-                        let cvl = u16::from_le_bytes([d[0], d[1]]);
-                        let ccl = u16::from_le_bytes([d[2], d[3]]);
-                        let dcl = u16::from_le_bytes([d[4], d[5]]);
-                        self.sent_limits.push((now, cvl, ccl, dcl));
-                        self.figures.min_cvl_dv =
-                            Some(self.figures.min_cvl_dv.map_or(cvl, |m| m.min(cvl)));
-                        self.figures.max_cvl_dv =
-                            Some(self.figures.max_cvl_dv.map_or(cvl, |m| m.max(cvl)));
-                        if self.last_cvl.is_some_and(|c| c != cvl) {
-                            self.figures.cvl_changes += 1;
-                        }
-                        self.last_cvl = Some(cvl);
-                        let stale = self
-                            .h
-                            .bridge
-                            .telemetry()
-                            .snapshot_age_us(now)
-                            .is_none_or(|a| a > 5_000_000);
-                        if stale {
-                            self.figures.stale_frames += 1;
-                        }
-                    }
-                    if let Some(w) = self.can_log.as_mut() {
-                        let _ = writeln!(w, "{}", candump_line(now, &f));
-                    }
-                }
-                InverterAction::Recover => {}
-                InverterAction::WaitUntil(_) => break,
+            self.last_cvl = Some(cvl);
+            let stale = self
+                .h
+                .bridge()
+                .telemetry()
+                .snapshot_age_us(now)
+                .is_none_or(|a| a > 5_000_000);
+            if stale {
+                self.figures.stale_frames += 1;
             }
         }
-        while let Some(r) = self.inverter.next_report() {
-            if self.figures.float_at_us.is_none()
-                && self.inverter.phase() == tinybms_firmware::inverter::control::Phase::Float
-            {
-                self.figures.float_at_us = Some(now);
-            }
-            self.figures.reports.push((now, r));
-        }
-        if self.figures.float_at_us.is_none()
-            && self.inverter.phase() == tinybms_firmware::inverter::control::Phase::Float
-        {
-            self.figures.float_at_us = Some(now);
+        if let Some(w) = self.can_log.as_mut() {
+            let _ = writeln!(w, "{}", candump_line(now, f));
         }
     }
 
@@ -439,12 +400,12 @@ impl ClosedLoop {
             .collect()
     }
 
-    /// The CAN controller goes bus-off now for `duration_us` (the inverter
-    /// output is told; the loop delivers nothing meanwhile).
+    /// The CAN controller goes bus-off now for `duration_us`: the station is
+    /// told, and a recovery before the end fails.
     pub fn bus_off(&mut self, duration_us: u64) {
         let now = self.h.now;
-        self.inverter.on_bus_off(now);
-        self.bus_off_until = Some(now + duration_us);
+        self.h.station.can_bus_off(now);
+        self.h.can.bus_off_until = Some(now + duration_us);
     }
 }
 

@@ -1,7 +1,9 @@
-//! Runs the firmware's own bridge logic ([`tinybms_firmware::Bridge`]) against the
-//! simulated TinyBMS in virtual time: the same loop as the chip shell's
-//! `bridge_task`, with the UART replaced by [`crate::sim::SimBms`] and the clock by
-//! a number. No threads, no sleeps: hours of polling run in seconds.
+//! Runs the firmware's own station ([`tinybms_firmware::station::Station`]: the
+//! bridge with its configuration, host link and inverter output) against the
+//! simulated TinyBMS in virtual time, doing what the station says as the chip
+//! shell's `station_task` does, with the UART replaced by [`crate::sim::SimBms`],
+//! the CAN bus by an outbox and the clock by a number. No threads, no sleeps:
+//! hours of polling run in seconds.
 
 use std::collections::HashMap;
 
@@ -13,9 +15,14 @@ use protocol_core::views::{LiveSnapshot, VersionInfo};
 use tinybms_firmware::bms::event_log::ts_newer;
 use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
 use tinybms_firmware::bridge::report::WriteOutcome;
-use tinybms_firmware::{Action, Bridge, Level, Report};
+use tinybms_firmware::config::store::{Loaded, Saved, Source, StoreError};
+use tinybms_firmware::config::Config;
+use tinybms_firmware::inverter::frames::CanFrame;
+use tinybms_firmware::inverter::TxResult;
+use tinybms_firmware::station::{Action, Logged, Setup, Station};
+use tinybms_firmware::{Bridge, Level, Report};
 
-use crate::sim::SimBms;
+use crate::sim::{PackProfile, SimBms, SimConfig};
 use crate::truth;
 
 /// How long the simulator keeps the blocks it answered, for the ground-truth
@@ -136,10 +143,37 @@ impl core::fmt::Display for LogLine {
     }
 }
 
-/// The bridge, the simulated BMS and the virtual clock.
+/// The CAN controller of a harness's station: what it sent, and a bus-off
+/// in progress.
+#[derive(Debug, Clone, Default)]
+pub struct CanPort {
+    /// Frames go on a bus (false: no other node acknowledges them).
+    pub attached: bool,
+    /// Frames sent and not yet taken by the loop that delivers them: (time,
+    /// frame).
+    pub outbox: Vec<(u64, CanFrame)>,
+    /// The controller is bus-off until this time (a scenario's fault): a
+    /// recovery before it fails.
+    pub bus_off_until: Option<u64>,
+}
+
+/// Saves the station's record: the result and for how long the save stops
+/// the CPU, µs.
+pub type Saver = Box<dyn FnMut(&Config, &SimBms) -> (Result<Saved, StoreError>, u64)>;
+
+/// The record of a bridge with nothing but the BMS link: the CAN output off
+/// (no inverter output), everything else at its default.
+pub fn bridge_only() -> Config {
+    Config {
+        can_output: false,
+        ..Config::default()
+    }
+}
+
+/// The station, the simulated BMS and the virtual clock.
 pub struct Harness {
-    /// The firmware logic under test.
-    pub bridge: Bridge,
+    /// The firmware's station (the bridge and its consumers) under test.
+    pub station: Station,
     /// The simulated BMS.
     pub sim: SimBms,
     /// Virtual time, µs.
@@ -180,6 +214,21 @@ pub struct Harness {
     /// When set, every call made to the bridge is appended here in the format of
     /// [`crate::trace`] (the recorded trace the RISC-V cost benchmark replays).
     pub trace: Option<Vec<u8>>,
+    /// What else the station logged (configuration notes, inverter reports).
+    pub other_log: Vec<(u64, Logged)>,
+    /// The CAN controller.
+    pub can: CanPort,
+    /// The configuration store (`None`: none; a save then fails as on a chip
+    /// without a usable partition).
+    pub saver: Option<Saver>,
+    /// Lines the host link wrote, collected after every pass when set.
+    pub host_lines: Option<Vec<String>>,
+    /// [`Harness::run_until`] also does what the station wants done at the
+    /// end time itself (up to its next wait) before it returns: for loops
+    /// that step other parts at that time (the closed loops' CAN bus and
+    /// inverter model). Off: it returns at the end time, as a plain
+    /// `while now < end` loop.
+    pub finish_at_end: bool,
 }
 
 impl Harness {
@@ -188,10 +237,26 @@ impl Harness {
         Self::with_config(sim, Timing::default())
     }
 
-    /// A harness at time 0.
+    /// A harness at time 0 with a bridge alone (no consumer: [`bridge_only`]).
     pub fn with_config(sim: SimBms, config: Timing) -> Self {
+        let setup = Setup {
+            timing: config,
+            chip: "sim",
+            host_link: false,
+            can: false,
+            inverter: None,
+        };
+        let loaded = Loaded {
+            config: bridge_only(),
+            source: Source::Empty,
+        };
+        Self::with_station(sim, Station::new(setup, loaded, 0))
+    }
+
+    /// A harness at time 0 around `station`.
+    pub fn with_station(sim: SimBms, station: Station) -> Self {
         Self {
-            bridge: Bridge::new(config, 0),
+            station,
             sim,
             now: 0,
             log: Vec::new(),
@@ -209,7 +274,22 @@ impl Harness {
             trace: None,
             fifo_lost_bytes: 0,
             stalls: (0, 0),
+            other_log: Vec::new(),
+            can: CanPort::default(),
+            saver: None,
+            host_lines: None,
+            finish_at_end: false,
         }
+    }
+
+    /// The bridge.
+    pub fn bridge(&self) -> &Bridge {
+        self.station.bridge()
+    }
+
+    /// The bridge, for commands.
+    pub fn bridge_mut(&mut self) -> &mut Bridge {
+        self.station.bridge_mut()
     }
 
     /// A harness that checks every published value and write outcome against
@@ -299,35 +379,82 @@ impl Harness {
             crate::trace::record_rx(t, self.now, rx);
         }
         // The chip's way: the UART driver writes into the bridge's receive
-        // space (`rx_buffer` + `handle_received`).
+        // space (`rx_buffer` + `received`).
         let mut rest: &[u8] = rx;
         while !rest.is_empty() {
-            let space = self.bridge.rx_buffer();
+            let space = self.station.rx_buffer();
             let n = space.len().min(rest.len());
             space[..n].copy_from_slice(&rest[..n]);
-            self.bridge.handle_received(self.now, n);
+            self.station.received(self.now, n);
             rest = &rest[n..];
         }
     }
 
-    /// As [`Harness::run_until`], calling `after_pass(bridge, sim, now)` at the
-    /// end of every pass of the loop, where the chip's bridge task does its
-    /// other work; it returns for how long that work stops the CPU (0: not at
-    /// all), which is then [`Harness::stall`]ed. (`sim` is there for checks:
+    /// As [`Harness::run_until`], calling `after_pass(station, sim, now)` at
+    /// the end of every pass of the loop, where the chip's station task does
+    /// its other work; it returns for how long that work stops the CPU (0: not
+    /// at all), which is then [`Harness::stall`]ed. (`sim` is there for checks:
     /// what the BMS has on its way.)
+    ///
+    /// With [`Harness::finish_at_end`], what the station wants done at
+    /// `end_us` itself is done before it returns (up to its next wait), so a
+    /// loop that steps other parts at `end_us` sees what the station did then.
     pub fn run_until_hooked(
         &mut self,
         end_us: u64,
-        after_pass: &mut dyn FnMut(&mut Bridge, &SimBms, u64) -> u64,
+        after_pass: &mut dyn FnMut(&mut Station, &SimBms, u64) -> u64,
     ) {
         let mut rx = Vec::new();
-        while self.now < end_us {
-            let action = self.bridge.poll(self.now);
-            if let Some(t) = self.trace.as_mut() {
-                crate::trace::record_poll(t, self.now, &action);
-            }
+        // Past the end (a request's wire time, a stall): done; at it: up to
+        // the station's next wait when `finish_at_end`.
+        while self.now < end_us || (self.finish_at_end && self.now == end_us) {
+            let at_end = self.now >= end_us;
+            let action = self.station.poll(self.now);
             match action {
-                Action::Transmit(bytes) => {
+                Action::Log(item) => {
+                    self.logged(item);
+                    continue;
+                }
+                Action::Can(f) => {
+                    if self.can.attached {
+                        self.can.outbox.push((self.now, f));
+                        self.station.can_sent(self.now, TxResult::Sent);
+                    } else {
+                        self.station.can_sent(self.now, TxResult::Failed);
+                    }
+                    continue;
+                }
+                Action::CanRecover => {
+                    let ok = self.can.bus_off_until.is_none_or(|u| self.now >= u);
+                    if ok {
+                        self.can.bus_off_until = None;
+                    }
+                    self.station.can_recovered(self.now, ok);
+                    continue;
+                }
+                Action::Save => {
+                    let (result, stall) = match self.saver.as_mut() {
+                        Some(save) => save(self.station.record(), &self.sim),
+                        None => (Err(StoreError::Partition), 0),
+                    };
+                    self.station.saved(result);
+                    if stall > 0 {
+                        self.stall(stall);
+                    }
+                    self.drain();
+                    continue;
+                }
+                Action::Transmit => {
+                    let bytes = self.station.transmit_bytes().to_vec();
+                    if let Some(t) = self.trace.as_mut() {
+                        let mut tx = tinybms_firmware::Transmit::new();
+                        let _ = tx.extend_from_slice(&bytes);
+                        crate::trace::record_poll(
+                            t,
+                            self.now,
+                            &tinybms_firmware::Action::Transmit(tx),
+                        );
+                    }
                     self.count_request(&bytes);
                     self.sim.host_send(self.now, &bytes);
                     self.tx_bytes += bytes.len() as u64;
@@ -337,6 +464,16 @@ impl Harness {
                     self.now += wire;
                 }
                 Action::WaitUntil(t) => {
+                    if at_end {
+                        break;
+                    }
+                    if let Some(tr) = self.trace.as_mut() {
+                        crate::trace::record_poll(
+                            tr,
+                            self.now,
+                            &tinybms_firmware::Action::WaitUntil(t),
+                        );
+                    }
                     let t = t.clamp(self.now, end_us);
                     let wake = match self.sim.next_output_at() {
                         Some(first) if first <= t => (first.max(self.now) + RX_CHUNK_US).min(t),
@@ -350,13 +487,43 @@ impl Harness {
                 }
             }
             self.drain();
-            let stall = after_pass(&mut self.bridge, &self.sim, self.now);
+            let stall = after_pass(&mut self.station, &self.sim, self.now);
             if stall > 0 {
                 self.stall(stall);
                 self.drain();
             }
         }
         self.sim.advance(self.now);
+    }
+
+    /// Something the station logged.
+    fn logged(&mut self, item: Logged) {
+        match item {
+            Logged::Bridge(report) => {
+                let line = LogLine {
+                    at_us: self.now,
+                    level: report.level(),
+                    report,
+                };
+                if self.echo {
+                    println!("{line}");
+                }
+                self.check_report(&line);
+                if self.retain {
+                    self.log.push(line);
+                }
+            }
+            other => {
+                if self.echo {
+                    let mut l = tinybms_firmware::text::Line::new();
+                    self.station.log_text(&other, &mut l);
+                    println!("{:>10.3}s {}", self.now as f64 / 1e6, l.as_str());
+                }
+                if self.retain {
+                    self.other_log.push((self.now, other));
+                }
+            }
+        }
     }
 
     fn count_request(&mut self, bytes: &[u8]) {
@@ -375,21 +542,7 @@ impl Harness {
     }
 
     fn drain(&mut self) {
-        while let Some(report) = self.bridge.next_report() {
-            let line = LogLine {
-                at_us: self.now,
-                level: report.level(),
-                report,
-            };
-            if self.echo {
-                println!("{line}");
-            }
-            self.check_report(&line);
-            if self.retain {
-                self.log.push(line);
-            }
-        }
-        let t = self.bridge.telemetry();
+        let t = self.station.bridge().telemetry();
         if t.snapshot_seq != self.seen_seq {
             self.seen_seq = t.snapshot_seq;
             if let (Some(s), Some(at)) = (&t.snapshot, t.snapshot_at) {
@@ -401,6 +554,13 @@ impl Harness {
             self.check_snapshot();
         }
         self.check_blocks();
+        if let Some(lines) = self.host_lines.as_mut() {
+            let mut buf = [0u8; tinybms_firmware::host_link::OUT_LINE_MAX];
+            while let Some(n) = self.station.next_host_line(self.now, &mut buf) {
+                let text = String::from_utf8_lossy(&buf[..n]);
+                lines.push(text.trim_end_matches('\n').to_string());
+            }
+        }
     }
 
     fn check_report(&mut self, line: &LogLine) {
@@ -459,7 +619,7 @@ impl Harness {
         let Some(soak) = self.soak.as_mut() else {
             return;
         };
-        let t = self.bridge.telemetry();
+        let t = self.station.bridge().telemetry();
         let (Some(block), Some(at)) = (&t.live_registers, t.snapshot_at) else {
             return;
         };
@@ -488,7 +648,7 @@ impl Harness {
         let Some(soak) = self.soak.as_mut() else {
             return;
         };
-        let t = self.bridge.telemetry();
+        let t = self.station.bridge().telemetry();
         let reads = self.sim.recent_reads();
         if t.settings != soak.last_settings {
             soak.last_settings = t.settings.clone();
@@ -594,4 +754,24 @@ fn holds(sim: &SimBms, s: &Setting) -> bool {
     let a = s.id.address();
     let second = (s.id.register_count() == 2).then(|| sim.register(a + 1));
     s.matches_readback(sim.register(a), second)
+}
+
+/// The benchmark's trace ([`crate::trace`]): runs the default bridge against a clean simulated BMS for `duration_us` and
+/// returns the trace (None if no live reply was ever sent).
+pub fn record_clean(seed: u64, duration_us: u64) -> Option<Vec<u8>> {
+    let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), seed);
+    let mut h = Harness::new(sim);
+    h.retain = false;
+    h.trace = Some(Vec::new());
+    h.run_until(duration_us);
+    let body = h.trace.take().unwrap_or_default();
+    let rx = crate::trace::received(&body);
+    let reply = crate::trace::find_live_reply(&rx)?.to_vec();
+    let mut out = Vec::with_capacity(body.len() + 128);
+    out.extend_from_slice(crate::trace::MAGIC);
+    out.push(reply.len() as u8);
+    out.extend_from_slice(&reply);
+    out.extend_from_slice(&body);
+    out.push(b'E');
+    Some(out)
 }

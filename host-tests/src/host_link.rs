@@ -1,39 +1,33 @@
-//! The firmware's host link ([`tinybms_firmware::host_link::HostLink`]) wired to
-//! the virtual-time harness: the same loop as the chip shell (bridge reports
-//! forwarded to the host link, its stream timer polled, output drained line by
-//! line), plus the body of the `host_link` fuzz target, which the tests also run
-//! on stable over random inputs.
+//! The firmware's host link ([`tinybms_firmware::host_link::HostLink`]) in the
+//! station the chip runs, in the virtual-time harness (a host reads the lines
+//! the station writes), plus the body of the `host_link` fuzz target, which the
+//! tests also run on stable over random inputs.
 
+use std::cell::Cell;
+use std::rc::Rc;
 use std::sync::OnceLock;
 
 use embassy_futures::block_on;
 use serde_json::Value;
 use tinybms_firmware::config::state::ConfigState;
-use tinybms_firmware::config::store::{save_when_quiet, Source, Store};
+use tinybms_firmware::config::store::{Loaded, Source};
 use tinybms_firmware::config::Config;
 use tinybms_firmware::host_link::{HostLink, HostLinkConfig, OUT_LINE_MAX};
+use tinybms_firmware::station::{Setup, Station};
 use tinybms_firmware::{Bridge, MS, SECOND};
 
 use crate::flash::RamFlash;
-use crate::harness::Harness;
+use crate::harness::{Harness, Saver};
 use crate::sim::{PackProfile, SimBms, SimConfig};
 
-/// A bridge against the simulated BMS with a host link on top.
+/// A station with a host link against the simulated BMS: the chip's wiring,
+/// driven by a host in virtual time.
 pub struct Rig {
-    /// Bridge, simulated BMS and clock.
+    /// Station, simulated BMS and clock.
     pub h: Harness,
-    /// The host link under test.
-    pub link: HostLink,
-    /// The bridge's configuration.
-    pub config: ConfigState,
-    /// Its store, on a flash in RAM.
-    pub store: Store<RamFlash>,
-    /// That flash (shared with the store).
+    /// The flash of the configuration store.
     pub flash: RamFlash,
-    /// Saves of the configuration made.
-    pub saves: u64,
-    /// Log lines already handed to the host link.
-    forwarded: usize,
+    saves: Rc<Cell<u64>>,
 }
 
 /// A configuration record with the host link settings of `config`.
@@ -52,67 +46,91 @@ pub fn config(read_only: bool, stream_period_ms: u32) -> HostLinkConfig {
         stream_period_ms,
         firmware: "test",
         chip: "sim",
+        ..HostLinkConfig::default()
     }
 }
 
+/// A saver that writes the record to a store on `flash` and counts the saves.
+pub fn ram_saver(flash: &RamFlash, saves: Rc<Cell<u64>>) -> Saver {
+    let mut store = crate::flash::store(flash.clone());
+    Box::new(move |record: &Config, _: &SimBms| {
+        saves.set(saves.get() + 1);
+        (block_on(store.save(record)), 0)
+    })
+}
+
 impl Rig {
-    /// A 16S LiFePO4 simulated BMS, a fresh bridge and a host link at time 0.
+    /// A 16S LiFePO4 simulated BMS, a fresh station with a host link at time 0.
     pub fn new(config: HostLinkConfig) -> Self {
         let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 1);
-        let mut h = Harness::new(sim);
+        let setup = Setup {
+            timing: tinybms_firmware::bms::timing::Timing::default(),
+            chip: config.chip,
+            host_link: true,
+            can: false,
+            inverter: None,
+        };
+        let loaded = Loaded {
+            config: record_for(&config),
+            source: Source::Empty,
+        };
+        let mut h = Harness::with_station(sim, Station::new(setup, loaded, 0));
         h.echo = false;
         let flash = RamFlash::new();
-        Self {
-            link: HostLink::new(config, h.now),
-            config: ConfigState::new(record_for(&config), Source::Empty),
-            store: crate::flash::store(flash.clone()),
-            flash,
-            saves: 0,
-            h,
-            forwarded: 0,
-        }
+        let saves = Rc::new(Cell::new(0));
+        h.saver = Some(ram_saver(&flash, saves.clone()));
+        Self { h, flash, saves }
     }
 
-    /// A rig whose bridge is synced (ready).
+    /// A rig whose bridge is synced (ready), read by a host meanwhile.
     pub fn ready(config: HostLinkConfig) -> Self {
         let mut r = Self::new(config);
-        r.run(6 * SECOND);
-        assert!(r.h.bridge.telemetry().ready, "bridge not ready after 6 s");
+        r.run_reading(6 * SECOND);
+        assert!(r.h.bridge().telemetry().ready, "bridge not ready after 6 s");
         r
     }
 
-    /// Runs bridge and host link for `us` of virtual time, in 50 ms steps,
-    /// without reading the host link's output.
-    pub fn run(&mut self, us: u64) {
-        let end = self.h.now + us;
-        while self.h.now < end {
-            let step = (self.h.now + 50 * MS).min(end);
-            self.h.run_until(step);
-            self.forward();
-            self.service_config();
-            self.link.poll(self.h.now, &self.h.bridge);
-        }
+    /// The host link.
+    pub fn link(&self) -> &HostLink {
+        self.h.station.host_link().expect("the rig has a host link")
     }
 
-    /// What the chip's bridge task does for the configuration after a pass:
-    /// at-once changes to the host link, the save when the link is quiet.
-    pub fn service_config(&mut self) {
+    /// The host link, to drive it past the station.
+    pub fn link_mut(&mut self) -> &mut HostLink {
+        self.h
+            .station
+            .host_link_mut()
+            .expect("the rig has a host link")
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &ConfigState {
+        self.h.station.config()
+    }
+
+    /// Saves of the configuration made.
+    pub fn saves(&self) -> u64 {
+        self.saves.get()
+    }
+
+    /// Runs for `us` of virtual time without reading the host link's output.
+    pub fn run(&mut self, us: u64) {
+        let end = self.h.now + us;
+        self.h.run_until(end);
+    }
+
+    /// Holds the BOOT button for `us`, sampled as the chip's button task does,
+    /// then lets it go.
+    pub fn hold_button(&mut self, us: u64) {
+        let period = tinybms_firmware::config::button::SAMPLE_PERIOD_US;
+        let end = self.h.now + us;
+        while self.h.now < end {
+            let now = self.h.now;
+            self.h.station.button(now, true);
+            self.run(period);
+        }
         let now = self.h.now;
-        if let Some(c) = self.config.take_running_change() {
-            self.link.apply_config(now, c);
-        }
-        let due = self.config.save_due() && self.h.bridge.quiet(now);
-        if let Some(r) = block_on(save_when_quiet(
-            &mut self.config,
-            &mut self.store,
-            &self.h.bridge,
-            now,
-        )) {
-            self.link.on_config_saved(r);
-        }
-        if due {
-            self.saves += 1;
-        }
+        self.h.station.button(now, false);
     }
 
     /// Runs like [`Rig::run`], with a host that reads every line as it comes
@@ -123,22 +141,15 @@ impl Rig {
         while self.h.now < end {
             let step = (self.h.now + 50 * MS).min(end);
             self.run(step - self.h.now);
-            out.extend(self.drain());
+            out.extend(self.drain_all());
         }
         out
     }
 
-    fn forward(&mut self) {
-        while let Some(l) = self.h.log.get(self.forwarded) {
-            self.link.on_report(&l.report);
-            self.forwarded += 1;
-        }
-    }
-
     /// Sends bytes from the host.
     pub fn send(&mut self, bytes: &[u8]) {
-        self.link
-            .handle_rx(self.h.now, bytes, &mut self.h.bridge, &mut self.config);
+        let now = self.h.now;
+        self.h.station.host_rx(now, bytes);
     }
 
     /// Sends one line (a `\n` is appended).
@@ -152,17 +163,23 @@ impl Rig {
     pub fn drain_text(&mut self) -> Vec<String> {
         let mut out = Vec::new();
         let mut buf = [0u8; OUT_LINE_MAX];
-        while let Some(n) = self
-            .link
-            .next_line(self.h.now, &self.h.bridge, &self.config, &mut buf)
-        {
+        let now = self.h.now;
+        while let Some(n) = self.h.station.next_host_line(now, &mut buf) {
             out.push(check_line(buf.get(..n).unwrap_or(&[])));
         }
         out
     }
 
-    /// Every line waiting, parsed.
+    /// Every line waiting, parsed, but the bridge's own `log` lines (see
+    /// [`Rig::drain_all`]).
     pub fn drain(&mut self) -> Vec<Value> {
+        let mut out = self.drain_all();
+        out.retain(|l| l["type"] != "log");
+        out
+    }
+
+    /// Every line waiting, parsed, `log` lines included.
+    pub fn drain_all(&mut self) -> Vec<Value> {
         self.drain_text()
             .iter()
             .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
@@ -183,10 +200,10 @@ pub fn check_line(bytes: &[u8]) -> String {
 /// A synced bridge, made once (cloned for every fuzz input).
 fn ready_bridge() -> &'static Bridge {
     static READY: OnceLock<Bridge> = OnceLock::new();
-    READY.get_or_init(|| Rig::ready(config(false, 0)).h.bridge)
+    READY.get_or_init(|| Rig::ready(config(false, 0)).h.bridge().clone())
 }
 
-/// The `host_link` fuzz target's body (protocol-core/fuzz/fuzz_targets/host_link.rs).
+/// The `host_link` fuzz target's body (host-tests/fuzz/fuzz_targets/host_link.rs).
 ///
 /// Input: byte 0 = chunk size (0: byte at a time); byte 1 bit 0 = read-only, bit 1
 /// = bridge not synced yet; the rest = bytes from the host. They are fed in chunks

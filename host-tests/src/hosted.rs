@@ -1,16 +1,12 @@
-//! The firmware's bridge **and** its host link in real time: what the ESP32
-//! runs, on the desktop. Used by `sim --bridge-pty` (the host side on a
-//! pseudo-terminal, the BMS simulated) and by `tinybms` in direct mode (the
-//! host side an in-process channel, the BMS on a USB-UART adapter).
+//! The firmware's station in real time: what the ESP32 runs, on the desktop.
+//! Used by `sim --bridge-pty` (the host side on a pseudo-terminal, the BMS
+//! simulated), `sim --mqtt` and by `tinybms` in direct mode (the host side an
+//! in-process channel, the BMS on a USB-UART adapter).
 //!
-//! The loop is the chip's: UART bytes go to [`Bridge::handle_rx`] and are
-//! mirrored to the host link (its `capture` / `raw` lines), every report goes
-//! to [`HostLink::on_report`], host bytes to [`HostLink::handle_rx`] (which
-//! submits commands to the bridge), and lines come out of
-//! [`HostLink::next_line`] only when the host side can take them — otherwise
-//! they wait in the host link's bounded queue, which drops telemetry first.
-//!
-//! [`Bridge::handle_rx`]: tinybms_firmware::Bridge::handle_rx
+//! The loop is the chip's station task: the station does what it decides
+//! (requests, logs, saves), host bytes go in, and lines come out only when
+//! the host side can take them — otherwise they wait in the host link's
+//! bounded queue, which drops telemetry first.
 
 use std::io::{self, Write};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -20,11 +16,8 @@ use std::time::Duration;
 use embassy_futures::block_on;
 use protocol_core::settings::SettingId;
 use tinybms_firmware::bms::timing::Timing;
-use tinybms_firmware::config::button::Hold;
-use tinybms_firmware::config::state::ConfigState;
-use tinybms_firmware::config::store::{save_when_quiet, Store};
-use tinybms_firmware::host_link::{HostLink, HostLinkConfig};
-use tinybms_firmware::text::Line;
+use tinybms_firmware::config::state::Note;
+use tinybms_firmware::station::{Logged, Setup, Station};
 
 use crate::flash::SimFlash;
 use crate::pty::Pty;
@@ -44,126 +37,106 @@ pub trait HostSide {
     fn write_line(&mut self, line: &[u8]) -> io::Result<()>;
 }
 
-/// Bridge + host link on a byte port.
+/// The station (bridge, host link, inverter output, configuration) on a byte
+/// port.
 pub struct Hosted<P: BytePort> {
-    /// The bridge on its port.
+    /// The station on its port.
     pub driver: Driver<P>,
-    /// The host link.
-    pub host: HostLink,
-    /// The bridge's configuration.
-    pub config: ConfigState,
-    /// Its store.
-    pub store: Store<SimFlash>,
     /// The BOOT button: held from this time (µs) for this long, if ever
     /// (`sim --bridge-pty --boot-button`).
     pub boot_button: Option<(u64, u64)>,
-    hold: Hold,
     /// The MQTT output's feed, when it runs (`sim --mqtt`).
     pub mqtt: Option<crate::mqtt::Shared>,
-    /// Print every report to stderr, as the device logs it.
+    /// Print every log line to stderr, as the device logs it.
     pub log: bool,
     line: Vec<u8>,
     input: Vec<u8>,
+    next_sample: u64,
 }
 
 impl<P: BytePort> Hosted<P> {
-    /// Both at time 0 (now), with the configuration record in `flash` (the
-    /// defaults when it holds none; `chip` names the host link's chip). The
-    /// host link has not seen a connection yet: call [`Hosted::connected`].
+    /// The station at time 0 (now), with the configuration record in `flash`
+    /// (the defaults when it holds none; `chip` names the host link's chip).
+    /// The host link has not seen a connection yet: call [`Hosted::connected`].
     pub fn new(port: P, bridge: Timing, flash: SimFlash, chip: &'static str) -> Self {
-        let driver = Driver::new(port, bridge);
-        let now = driver.clock().now();
+        let clock = crate::realtime::Clock::start();
         let mut store = crate::flash::store(flash);
         let loaded = block_on(store.load());
-        let host: HostLinkConfig = loaded.config.host_link(chip);
-        let config = ConfigState::new(loaded.config, loaded.source);
+        let setup = Setup {
+            timing: bridge,
+            chip,
+            host_link: true,
+            can: false,
+            inverter: None,
+        };
+        let station = Station::new(setup, loaded, clock.now());
+        let mut driver = Driver::with_station(port, station, clock);
+        driver.store = Some(store);
         Self {
-            host: HostLink::new(host, now),
-            config,
-            store,
-            boot_button: None,
-            hold: Hold::new(),
-            mqtt: None,
             driver,
+            boot_button: None,
+            mqtt: None,
             log: false,
             line: vec![0; LINE_BUF],
             input: Vec::new(),
+            next_sample: 0,
         }
+    }
+
+    /// The station.
+    pub fn station(&mut self) -> &mut Station {
+        &mut self.driver.station
     }
 
     /// The host opened its port (queues the hello).
     pub fn connected(&mut self) {
         let now = self.driver.clock().now();
-        self.host.connected(now);
+        self.driver.station.host_connected(now);
     }
 
-    /// One round of the loop: the bridge transmits what it wants, host bytes
-    /// are handled, lines go out, then UART bytes are awaited until the next
-    /// deadline (at most [`MAX_SLICE`]).
+    /// One round of the chip's station task: what the station wants done,
+    /// host bytes in, lines out while the host side takes them, then UART
+    /// bytes awaited until the next deadline (at most [`MAX_SLICE`]).
     pub fn step(&mut self, side: &mut dyn HostSide) -> io::Result<()> {
-        let Self {
-            driver,
-            host,
-            config,
-            store,
-            boot_button,
-            hold,
-            mqtt,
-            log,
-            line,
-            input,
-        } = self;
-        let log = *log;
-        let mqtt = mqtt.as_ref();
-        driver.service(|h| tell(host, mqtt, log, h))?;
-        input.clear();
-        side.read(input)?;
-        if !input.is_empty() {
-            let now = driver.clock().now();
-            host.handle_rx(now, input, &mut driver.bridge, config);
+        let log = self.log;
+        let print = |h: Happened<'_>| {
+            if let (true, Happened::Log(at, _, text)) = (log, h) {
+                eprintln!("{:>10.3}s {text}", at as f64 / 1e6);
+            }
+        };
+        self.driver.service(print)?;
+        self.input.clear();
+        side.read(&mut self.input)?;
+        if !self.input.is_empty() {
+            let now = self.driver.clock().now();
+            self.driver.station.host_rx(now, &self.input);
             // A submitted command may have something to send at once.
-            driver.service(|h| tell(host, mqtt, log, h))?;
+            self.driver.service(print)?;
         }
-        let now = driver.clock().now();
-        if let Some(m) = mqtt {
-            let s = driver.bridge.link_stats();
-            m.update(driver.bridge.telemetry(), (s.requests, s.replies));
-        }
-        if let Some((from, long)) = *boot_button {
-            let pressed = now >= from && now < from + long;
-            if hold.sample(now, pressed) {
-                config.unlock();
+        let now = self.driver.clock().now();
+        if let Some((from, long)) = self.boot_button {
+            if now >= self.next_sample {
+                self.next_sample = now + tinybms_firmware::config::button::SAMPLE_PERIOD_US;
+                let pressed = now >= from && now < from + long;
+                self.driver.station.button(now, pressed);
             }
         }
-        if let Some(c) = config.take_running_change() {
-            host.apply_config(now, c);
+        if let Some(m) = &self.mqtt {
+            m.update(&mut self.driver.station, now);
         }
-        if let Some(r) = block_on(save_when_quiet(config, store, &driver.bridge, now)) {
-            host.on_config_saved(r);
-        }
-        while let Some(n) = config.next_note() {
-            let mut l = Line::new();
-            tinybms_firmware::text::config_note(&n, config, &mut l);
-            if log {
-                eprintln!("{:>10.3}s {}", now as f64 / 1e6, l.as_str());
-            }
-            // As the chip's log does: the line to the host link too.
-            host.log(tinybms_firmware::text::config_level(&n), l.as_str());
-        }
-        let host_deadline = host.poll(now, &driver.bridge);
         while side.can_take() {
-            match host.next_line(now, &driver.bridge, config, line) {
-                Some(n) => side.write_line(line.get(..n).unwrap_or(&[]))?,
+            match self.driver.station.next_host_line(now, &mut self.line) {
+                Some(n) => side.write_line(self.line.get(..n).unwrap_or(&[]))?,
                 None => break,
             }
         }
-        let mut wait = MAX_SLICE.min(driver.clock().until(host_deadline));
-        if boot_button.is_some() {
+        let mut wait = MAX_SLICE;
+        if self.boot_button.is_some() {
             wait = wait.min(Duration::from_micros(
                 tinybms_firmware::config::button::SAMPLE_PERIOD_US,
             ));
         }
-        driver.receive(wait, |rx| host.on_uart_rx(rx))?;
+        self.driver.receive(wait, |_| {})?;
         Ok(())
     }
 }
@@ -186,7 +159,8 @@ impl<P: BytePort> Hosted<P> {
                 .map_err(|e| format!("{name} = {text}: {}", e.detail))?;
             parsed.push((id, v));
         }
-        for (id, o) in self.config.change(&parsed, false, None) {
+        let now = self.driver.clock().now();
+        for (id, o) in self.driver.station.change_config(now, &parsed) {
             if let Outcome::Refused(e) = o {
                 return Err(format!("{}: {}", id.name(), e.detail));
             }
@@ -194,40 +168,18 @@ impl<P: BytePort> Hosted<P> {
                 return Err(format!("{}: {d}", id.name()));
             }
         }
-        // Before any request: the link is quiet, the save may go now.
-        if let Some(Err(e)) = block_on(save_when_quiet(
-            &mut self.config,
-            &mut self.store,
-            &self.driver.bridge,
-            self.driver.clock().now(),
-        )) {
-            return Err(format!("saving the configuration: {}", e.reason()));
-        }
-        if let Some(c) = self.config.take_running_change() {
-            let now = self.driver.clock().now();
-            self.host.apply_config(now, c);
-        }
-        Ok(())
-    }
-}
-
-/// Hands what the driver did to the host link, the MQTT output (new events)
-/// and the log.
-fn tell(host: &mut HostLink, mqtt: Option<&crate::mqtt::Shared>, log: bool, h: Happened<'_>) {
-    match h {
-        Happened::Tx(bytes) => host.on_uart_tx(bytes),
-        Happened::Report(at, r) => {
-            let mut l = Line::new();
-            tinybms_firmware::text::report(r, &mut l);
-            if log {
-                eprintln!("{:>10.3}s {}", at as f64 / 1e6, l.as_str());
-            }
-            // As the chip's log does: the line to the host link too.
-            host.log(r.level(), l.as_str());
-            if let (Some(m), tinybms_firmware::Report::NewEvent(e)) = (mqtt, r) {
-                m.event(*e);
-            }
-            host.on_report(r);
+        // Before any request: the link is quiet, the save goes now.
+        let mut failed = None;
+        self.driver
+            .service(|h| {
+                if let Happened::Log(_, Logged::Config(Note::SaveFailed(e)), _) = h {
+                    failed = Some(e.reason());
+                }
+            })
+            .map_err(|e| e.to_string())?;
+        match failed {
+            Some(reason) => Err(format!("saving the configuration: {reason}")),
+            None => Ok(()),
         }
     }
 }
@@ -362,13 +314,12 @@ pub fn serve_bridge_pty(
     h.boot_button = o
         .boot_button
         .map(|(from, long)| (from.as_micros() as u64, long.as_micros() as u64));
-    h.driver
-        .bridge
+    h.station()
         .submit_profile(&o.profile)
         .map_err(|_| io::Error::other("the profile does not fit the bridge's command queue"))?;
     let clock = h.driver.clock();
     if let Some((host, port)) = &o.mqtt {
-        let record = h.config.running().clone();
+        let record = h.station().config().running().clone();
         let mut target =
             tinybms_firmware::mqtt::session::Target::from_config(&record, "tinybms-sim");
         target.host.clear();

@@ -23,6 +23,7 @@ pub mod sim;
 pub mod tool;
 pub mod trace;
 pub mod truth;
+pub mod words;
 
 impl pty::Pty {
     /// Opens a new pair and writes its path to `out` as a first line (flushed):

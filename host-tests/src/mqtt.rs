@@ -3,8 +3,8 @@
 //! fed by a bridge running against the simulated BMS (`sim --mqtt HOST:PORT`,
 //! the MQTT end-to-end tests).
 //!
-//! * [`Shared`] — what the bridge's loop hands over after every pass: a copy
-//!   of the latest telemetry and the new events (never a wait: a full event
+//! * [`Shared`] — what the station's loop hands over after every pass: a copy
+//!   of what it publishes and its new events (never a wait: a full event
 //!   queue drops the oldest, as on the chip).
 //! * [`HostClock`], [`TcpNet`] — the session's time and network on `async-io`:
 //!   an ordinary TCP socket to the broker.
@@ -20,11 +20,10 @@ use std::time::Duration;
 use async_io::{Async, Timer};
 use embedded_io_adapters::futures_03::FromFutures;
 use protocol_core::events::Event;
-use protocol_core::views::LiveSnapshot;
-use tinybms_firmware::bridge::Telemetry;
 use tinybms_firmware::mqtt::publisher::{Publisher, View};
 use tinybms_firmware::mqtt::session::{self, Clock, Feed, NetError, Network, Note, Target};
-use tinybms_firmware::mqtt::{Identity, Settings};
+use tinybms_firmware::mqtt::Settings;
+use tinybms_firmware::station::{Published, Station};
 use tinybms_firmware::Instant;
 
 use crate::realtime;
@@ -32,31 +31,22 @@ use crate::realtime;
 /// Events kept for the session; beyond, the oldest are dropped.
 pub const EVENTS: usize = 16;
 
-/// What the session sees of the bridge.
+/// What the session sees of the station.
 #[derive(Debug, Clone, Default)]
 pub struct FeedState {
-    /// The latest snapshot, its sequence number and when it was taken (µs on
-    /// the bridge's clock).
-    pub snapshot: Option<(LiveSnapshot, u32, Instant)>,
-    /// BMS link up and synced.
-    pub online: bool,
-    /// The check a flagged snapshot failed.
-    pub flagged: Option<&'static str>,
-    /// The BMS's identity.
-    pub identity: Option<Identity>,
-    /// Limits sent to the inverter, if any.
-    pub limits: Option<(u16, u16, u16)>,
-    /// Link counters (requests, replies).
-    pub link: (u32, u32),
+    /// What the station published last.
+    pub published: Published,
     /// New events.
     pub events: VecDeque<Event>,
     /// Events dropped because the session did not take them.
     pub events_dropped: u64,
     /// Bumped on every change.
     pub generation: u64,
+    /// The station's generation last copied.
+    station_generation: Option<u32>,
 }
 
-/// The bridge's side and the session's side of the feed.
+/// The station's side and the session's side of the feed.
 #[derive(Clone, Default)]
 pub struct Shared(pub Arc<Mutex<FeedState>>);
 
@@ -66,36 +56,24 @@ impl Shared {
         self.0.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// After a pass of the bridge: the telemetry copied when it changed.
-    pub fn update(&self, t: &Telemetry, link: (u32, u32)) {
+    /// After a pass of the station: what it publishes, copied when it
+    /// changed, and its new events (what the chip's station task hands the
+    /// MQTT task).
+    pub fn update(&self, station: &mut Station, now: Instant) {
         let mut s = self.lock();
-        let seq_changed = s.snapshot.as_ref().map(|x| x.1) != Some(t.snapshot_seq);
-        let identity = t.version.as_ref().map(Identity::from_version);
-        if seq_changed {
-            if let (Some(snap), Some(at)) = (&t.snapshot, t.snapshot_at) {
-                s.snapshot = Some((snap.clone(), t.snapshot_seq, at));
-                s.generation += 1;
-            }
-        }
-        let online = t.online && t.ready;
-        if s.online != online || s.identity != identity {
-            s.online = online;
-            s.identity = identity;
+        if s.station_generation != Some(station.generation()) {
+            s.station_generation = Some(station.generation());
+            s.published = station.published(now);
             s.generation += 1;
         }
-        s.flagged = t.live.flagged.map(|c| c.name());
-        s.link = link;
-    }
-
-    /// A new event (the oldest dropped when the session is behind).
-    pub fn event(&self, e: Event) {
-        let mut s = self.lock();
-        if s.events.len() >= EVENTS {
-            s.events.pop_front();
-            s.events_dropped += 1;
+        while let Some(e) = station.take_event() {
+            if s.events.len() >= EVENTS {
+                s.events.pop_front();
+                s.events_dropped += 1;
+            }
+            s.events.push_back(e);
+            s.generation += 1;
         }
-        s.events.push_back(e);
-        s.generation += 1;
     }
 }
 
@@ -116,18 +94,7 @@ impl Feed for SharedFeed {
     fn with_view<R>(&mut self, now: Instant, f: impl FnOnce(&View<'_>) -> R) -> R {
         let s = self.shared.lock();
         self.seen = s.generation;
-        let view = View {
-            snapshot: s.snapshot.as_ref().map(|x| &x.0),
-            seq: s.snapshot.as_ref().map_or(0, |x| x.1),
-            age_us: s.snapshot.as_ref().map(|x| now.saturating_sub(x.2)),
-            online: s.online,
-            flagged: s.flagged,
-            identity: s.identity,
-            limits: s.limits,
-            link: s.link,
-            battery: None,
-        };
-        f(&view)
+        f(&View::of(&s.published, now))
     }
 
     fn next_event(&mut self) -> Option<Event> {
@@ -135,7 +102,7 @@ impl Feed for SharedFeed {
     }
 
     async fn changed(&mut self) {
-        // Polled every 20 ms: the bridge's loop has no waker to call.
+        // Polled every 20 ms: the station's loop has no waker to call.
         loop {
             if self.shared.lock().generation != self.seen {
                 return;

@@ -268,7 +268,7 @@ impl BridgeThread {
                 if h.step(&mut NoHost).is_err() {
                     break;
                 }
-                let t = h.driver.bridge.telemetry();
+                let t = h.driver.station.bridge().telemetry();
                 if t.snapshot_seq != seen {
                     seen = t.snapshot_seq;
                     if let Some(b) = &t.live_registers {

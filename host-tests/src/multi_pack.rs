@@ -21,12 +21,12 @@ use std::io::Write;
 
 use protocol_core::views::cell_mv;
 use tinybms_firmware::bms::timing::Timing;
-use tinybms_firmware::inverter::control::{Limits, PackSettings, Phase};
+use tinybms_firmware::config::store::{Loaded, Source};
+use tinybms_firmware::config::Config;
+use tinybms_firmware::inverter::control::{Limits, Phase};
 use tinybms_firmware::inverter::frames::{self, CanFrame};
-use tinybms_firmware::inverter::{
-    Inverter, InverterAction, InverterConfig, InverterReport, TxResult,
-};
-use tinybms_firmware::Report;
+use tinybms_firmware::inverter::{Inverter, InverterConfig, InverterReport};
+use tinybms_firmware::station::{Logged, Setup, Station};
 
 use crate::closed_loop::{candump_line, frame_bits, InverterModel, STEP_US};
 use crate::harness::Harness;
@@ -65,23 +65,27 @@ impl PackFigures {
 pub struct PackNode {
     /// Node number (1..=8).
     pub node: u8,
-    /// Its bridge and simulated BMS.
+    /// Its station (bridge and inverter output) and simulated BMS.
     pub h: Harness,
-    /// Its bridge's inverter output.
-    pub inverter: Inverter,
     /// Resistance of its cables and fuse to the common bus, Ω.
     pub cable_ohm: f64,
     /// The bridge runs (false: it is lost — no poll, no CAN; the pack stays on
     /// the bus and its BMS still protects it).
     pub bridge_on: bool,
-    /// The node's CAN controller is bus-off until this time.
-    pub bus_off_until: Option<u64>,
     /// Its current now, A (truth, positive = charging).
     pub current_a: f64,
     /// What it went through.
     pub figures: PackFigures,
-    seen_seq: u32,
-    log_seen: usize,
+}
+
+impl PackNode {
+    /// Its bridge's inverter output.
+    pub fn inverter(&self) -> &Inverter {
+        self.h
+            .station
+            .inverter()
+            .expect("a loop's station is built with its CAN output")
+    }
 }
 
 /// Figures of the whole run.
@@ -186,20 +190,29 @@ impl MultiLoop {
                     discharge_cutoff_a: f64::from(regs[317]),
                     ..PackFigures::default()
                 };
-                let mut h = Harness::with_config(sim, Timing::default());
-                h.retain = true;
                 let node = k as u8 + 1;
+                let setup = Setup {
+                    timing: Timing::default(),
+                    chip: "sim",
+                    host_link: false,
+                    can: true,
+                    inverter: Some(InverterConfig { node, ..inverter }),
+                };
+                let loaded = Loaded {
+                    config: Config::default(),
+                    source: Source::Empty,
+                };
+                let mut h = Harness::with_station(sim, Station::new(setup, loaded, 0));
+                h.retain = true;
+                h.can.attached = true;
+                h.finish_at_end = true;
                 PackNode {
                     node,
                     h,
-                    inverter: Inverter::new(InverterConfig { node, ..inverter }, 0),
                     cable_ohm: cable_ohm.get(k).copied().unwrap_or(0.005),
                     bridge_on: true,
-                    bus_off_until: None,
                     current_a: 0.0,
                     figures,
-                    seen_seq: 0,
-                    log_seen: 0,
                 }
             })
             .collect::<Vec<_>>();
@@ -253,9 +266,9 @@ impl MultiLoop {
             for p in &mut self.nodes {
                 if p.bridge_on {
                     p.h.run_until(t);
-                    feed(p);
                 } else {
                     p.h.sim.advance(t);
+                    p.h.can.outbox.clear();
                 }
             }
             self.pump_can(t);
@@ -273,7 +286,12 @@ impl MultiLoop {
                 for r in regs.iter().skip(first).take(16) {
                     f.highest_cell_mv = f.highest_cell_mv.max(cell_mv(*r));
                 }
-                if f.float_at_us.is_none() && p.inverter.phase() == Phase::Float {
+                if f.float_at_us.is_none()
+                    && p.h
+                        .station
+                        .inverter()
+                        .is_some_and(|i| i.phase() == Phase::Float)
+                {
                     f.float_at_us = Some(t);
                 }
             }
@@ -286,9 +304,9 @@ impl MultiLoop {
                 let speaker = self
                     .nodes
                     .iter()
-                    .find(|p| p.bridge_on && p.inverter.speaking());
+                    .find(|p| p.bridge_on && p.inverter().speaking());
                 if let Some((p, (b, lim))) =
-                    speaker.and_then(|p| p.inverter.battery().map(|b| (p, b)))
+                    speaker.and_then(|p| p.inverter().battery().map(|b| (p, b)))
                 {
                     self.figures
                         .timeline
@@ -300,62 +318,48 @@ impl MultiLoop {
     }
 
     fn pump_can(&mut self, now: u64) {
-        // Every node that can transmit puts out what it has; the bus delivers
-        // in arbitration order.
-        let mut on_bus: Vec<(u16, usize, CanFrame)> = Vec::new();
+        // What every node sent up to now; the bus delivers in time order,
+        // simultaneous frames in arbitration order (lowest identifier first).
+        let mut on_bus: Vec<(u64, u16, usize, CanFrame)> = Vec::new();
         for (k, p) in self.nodes.iter_mut().enumerate() {
-            if !p.bridge_on {
-                continue;
-            }
-            if let Some(until) = p.bus_off_until {
-                if now < until {
-                    continue;
-                }
-                p.bus_off_until = None;
-            }
-            for _ in 0..48 {
-                match p.inverter.poll(now) {
-                    InverterAction::Send(f) => {
-                        p.inverter.on_tx(now, TxResult::Sent);
-                        on_bus.push((f.id, k, f));
-                    }
-                    InverterAction::Recover => {}
-                    InverterAction::WaitUntil(_) => break,
-                }
+            for (at, f) in std::mem::take(&mut p.h.can.outbox) {
+                on_bus.push((at, f.id, k, f));
             }
         }
-        on_bus.sort_by_key(|(id, k, _)| (*id, *k));
-        for (_, from, f) in &on_bus {
+        on_bus.sort_by_key(|(at, id, k, _)| (*at, *id, *k));
+        for (at, _, from, f) in &on_bus {
             self.figures.frames += 1;
             self.figures.bits += frame_bits(f.len);
             if tinybms_firmware::inverter::packs::from_id(f.id).is_some() {
                 self.figures.summary_frames += 1;
             }
             for (k, p) in self.nodes.iter_mut().enumerate() {
-                let listening = p.bridge_on && p.bus_off_until.is_none_or(|u| now >= u);
+                let listening = p.bridge_on && p.h.can.bus_off_until.is_none_or(|u| now >= u);
                 if k != *from && listening {
-                    p.inverter.on_received(now, f.id, f.bytes());
+                    p.h.station.can_received(now, f.id, f.bytes());
                 }
             }
             let node = self.nodes[*from].node;
             if f.id == frames::ID_LIMITS {
-                self.model.on_frame(now, f);
-                self.limits_heard(now, node, f);
+                self.model.on_frame(*at, f);
+                self.limits_heard(*at, node, f);
             }
             let (byte, bit) = frames::VICTRON_SYSTEM_STATUS;
             let offline = (f.data[usize::from(byte)] >> bit) & 3 == frames::VICTRON_ACTIVE;
-            let victron = self.nodes[*from].inverter.config().protocol
+            let victron = self.nodes[*from].inverter().config().protocol
                 == tinybms_firmware::inverter::Protocol::Victron;
             if f.id == frames::ID_ALARMS && victron && offline {
                 self.figures.offline_flags += 1;
             }
             if let Some(w) = self.can_log.as_mut() {
-                let _ = writeln!(w, "{}", candump_line(now, f));
+                let _ = writeln!(w, "{}", candump_line(*at, f));
             }
         }
         for p in &mut self.nodes {
-            while let Some(r) = p.inverter.next_report() {
-                self.figures.reports.push((now, p.node, r));
+            for (at, item) in std::mem::take(&mut p.h.other_log) {
+                if let Logged::Inverter(r) = item {
+                    self.figures.reports.push((at, p.node, r));
+                }
             }
         }
     }
@@ -399,8 +403,8 @@ impl MultiLoop {
     pub fn bus_off(&mut self, node: u8, duration_us: u64) {
         let now = self.now;
         if let Some(p) = self.nodes.iter_mut().find(|p| p.node == node) {
-            p.inverter.on_bus_off(now);
-            p.bus_off_until = Some(now + duration_us);
+            p.h.station.can_bus_off(now);
+            p.h.can.bus_off_until = Some(now + duration_us);
         }
     }
 
@@ -408,26 +412,6 @@ impl MultiLoop {
     pub fn speaker(&self) -> Option<u8> {
         self.last_limits.map(|(_, n)| n)
     }
-}
-
-/// Snapshots and events of a node's bridge into its inverter output.
-fn feed(p: &mut PackNode) {
-    while p.log_seen < p.h.log.len() {
-        if let Some(Report::NewEvent(e)) = p.h.log.get(p.log_seen).map(|l| &l.report) {
-            p.inverter.on_event(e);
-        }
-        p.log_seen += 1;
-    }
-    let t = p.h.bridge.telemetry();
-    if t.snapshot_seq == p.seen_seq {
-        return;
-    }
-    p.seen_seq = t.snapshot_seq;
-    let (Some(s), Some(at), Some(settings)) = (&t.snapshot, t.snapshot_at, &t.settings) else {
-        return;
-    };
-    let pack = PackSettings::from_registers(settings);
-    p.inverter.on_snapshot(at, s, pack, t.version.as_ref());
 }
 
 /// Runs one multi-pack scenario with `n` packs (2..=8; see [`SCENARIOS`]) to

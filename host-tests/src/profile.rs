@@ -37,7 +37,7 @@ pub fn value_forms(id: SettingId) -> String {
     }
     let (step, k) = fw::scale_parts(r.scale);
     let step = tinybms_firmware::units::fixed(step, k)
-        .map(|d| crate::tool::settings::short(d.as_f64()))
+        .map(|d| crate::words::short(d.as_f64()))
         .unwrap_or_else(|| "1".into());
     match r.unit {
         "" => "an integer".into(),
@@ -56,7 +56,7 @@ fn message(e: &ProfileError<'_>, id: Option<SettingId>) -> String {
         fw::ProfileErrorKind::ExpectedAssignment => format!("`{}`: expected NAME=VALUE", e.text),
         fw::ProfileErrorKind::UnknownSetting => {
             let names: Vec<&str> = SettingId::ALL.iter().map(|&i| fw::setting_key(i)).collect();
-            match crate::tool::suggest(e.text, &names) {
+            match crate::words::suggest(e.text, &names) {
                 Some(s) => format!("`{}`: no such setting (did you mean `{s}`?)", e.text),
                 None => format!("`{}`: no such setting", e.text),
             }

@@ -5,10 +5,10 @@
 //! * [`BytePort`] — anything that moves UART bytes: a `serialport` port (a
 //!   USB-UART adapter wired to a TinyBMS, or a pty), or [`SimPort`], the
 //!   simulated BMS in-process with its clock on the wall clock.
-//! * [`Driver`] — the firmware's [`Bridge`] on a [`BytePort`]: the same loop as
-//!   the chip shell's bridge task (transmit what the bridge asks for, hand
-//!   received bytes in, sleep until the next deadline), so wake-up, resync and
-//!   write/verify are the firmware's own code. It can record the raw exchange as
+//! * [`Driver`] — the firmware's [`Station`] on a [`BytePort`]: the chip's
+//!   station task (do what the station asks for, hand received bytes in,
+//!   sleep until the next deadline), so wake-up, resync, write/verify and the
+//!   wiring of the consumers are the firmware's own code. It can record the raw exchange as
 //!   a `.tbms` capture ([`crate::capture::CaptureWriter`]).
 //! * [`serve_sim_pty`] — the simulated BMS on a pseudo-terminal (`sim --pty`).
 //!
@@ -21,7 +21,14 @@ use std::time::Duration;
 
 use protocol_core::settings::{Setting, SettingId};
 use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
-use tinybms_firmware::{Action, Bridge, Instant, Report};
+use tinybms_firmware::config::store::{Loaded, Source, Store, StoreError};
+use tinybms_firmware::inverter::frames::CanFrame;
+use tinybms_firmware::inverter::TxResult;
+use tinybms_firmware::station::{Action, Logged, Setup, Station};
+use tinybms_firmware::text::Line;
+use tinybms_firmware::{Instant, Report};
+
+use crate::flash::SimFlash;
 
 use crate::capture::CaptureWriter;
 use crate::pty::Pty;
@@ -167,16 +174,31 @@ impl BytePort for SimPort {
 pub enum Happened<'a> {
     /// These bytes were sent to the BMS.
     Tx(&'a [u8]),
-    /// The bridge reported this, at this time.
-    Report(Instant, &'a Report),
+    /// The station logged this, at this time, in these words.
+    Log(Instant, &'a Logged, &'a str),
 }
 
-/// The firmware's [`Bridge`] on a [`BytePort`], in real time.
+/// The CAN controller of a desktop station: a virtual bus.
+pub trait CanSide: Send {
+    /// Sends a frame at `now`.
+    fn send(&mut self, now: Instant, frame: &CanFrame) -> TxResult;
+    /// A bus-off recovery at `now`: back on the bus?
+    fn recover(&mut self, now: Instant) -> bool;
+    /// A frame received from the bus, if one waits.
+    fn receive(&mut self) -> Option<(u16, Vec<u8>)>;
+}
+
+/// The firmware's [`Station`] on a [`BytePort`], in real time.
 pub struct Driver<P: BytePort> {
     /// The port to the BMS.
     pub port: P,
-    /// The firmware's bridge logic.
-    pub bridge: Bridge,
+    /// The firmware's station.
+    pub station: Station,
+    /// The configuration store (`None`: a save fails, as on a chip without
+    /// a usable partition).
+    pub store: Option<Store<SimFlash>>,
+    /// The CAN bus (`None`: nothing acknowledges a frame).
+    pub can: Option<Box<dyn CanSide>>,
     clock: Clock,
     capture: Option<CaptureWriter>,
     rx: Vec<u8>,
@@ -187,13 +209,38 @@ pub struct Driver<P: BytePort> {
     pub rx_bytes: u64,
 }
 
+/// A station with nothing but the BMS link at `now` (`chip` for the host
+/// link's hello when `host_link`).
+pub fn bridge_station(config: Timing, now: Instant) -> Station {
+    let setup = Setup {
+        timing: config,
+        chip: "host",
+        host_link: false,
+        can: false,
+        inverter: None,
+    };
+    let loaded = Loaded {
+        config: crate::harness::bridge_only(),
+        source: Source::Empty,
+    };
+    Station::new(setup, loaded, now)
+}
+
 impl<P: BytePort> Driver<P> {
-    /// A driver whose time 0 is now.
+    /// A bridge alone (no consumer) whose time 0 is now.
     pub fn new(port: P, config: Timing) -> Self {
         let clock = Clock::start();
+        let station = bridge_station(config, clock.now());
+        Self::with_station(port, station, clock)
+    }
+
+    /// `station` on `port`, on `clock`.
+    pub fn with_station(port: P, station: Station, clock: Clock) -> Self {
         Self {
             port,
-            bridge: Bridge::new(config, clock.now()),
+            station,
+            store: None,
+            can: None,
             clock,
             capture: None,
             rx: vec![0; 512],
@@ -220,13 +267,25 @@ impl<P: BytePort> Driver<P> {
         Some(c)
     }
 
-    /// Does what the bridge asks until it waits (transmits go out) and drains
-    /// its reports; both are told to `on`. Returns the bridge's next deadline.
+    /// Does what the station asks until it waits (requests go out, frames on
+    /// the bus, the record to the store); tells `on` what was sent and
+    /// logged. Returns the station's next deadline.
     pub fn service(&mut self, mut on: impl FnMut(Happened<'_>)) -> io::Result<Instant> {
+        if let Some(can) = self.can.as_mut() {
+            while let Some((id, data)) = can.receive() {
+                self.station.can_received(self.clock.now(), id, &data);
+            }
+        }
         loop {
             let now = self.clock.now();
-            match self.bridge.poll(now) {
-                Action::Transmit(bytes) => {
+            match self.station.poll(now) {
+                Action::Log(item) => {
+                    let mut line = Line::new();
+                    self.station.log_text(&item, &mut line);
+                    on(Happened::Log(now, &item, line.as_str()));
+                }
+                Action::Transmit => {
+                    let bytes = self.station.transmit_bytes().to_vec();
                     self.port.send(&bytes)?;
                     self.tx_bytes += bytes.len() as u64;
                     if let Some(c) = self.capture.as_mut() {
@@ -234,21 +293,35 @@ impl<P: BytePort> Driver<P> {
                     }
                     on(Happened::Tx(&bytes));
                 }
+                Action::Can(f) => match self.can.as_mut() {
+                    Some(can) => {
+                        let r = can.send(now, &f);
+                        self.station.can_sent(now, r);
+                    }
+                    None => self.station.can_sent(now, TxResult::Failed),
+                },
+                Action::CanRecover => {
+                    let ok = self.can.as_mut().is_some_and(|c| c.recover(now));
+                    self.station.can_recovered(now, ok);
+                }
+                Action::Save => {
+                    let r = match self.store.as_mut() {
+                        Some(store) => embassy_futures::block_on(store.save(self.station.record())),
+                        None => Err(StoreError::Partition),
+                    };
+                    self.station.saved(r);
+                }
                 Action::WaitUntil(t) => {
                     self.deadline = t;
                     break;
                 }
             }
         }
-        let now = self.clock.now();
-        while let Some(r) = self.bridge.next_report() {
-            on(Happened::Report(now, &r));
-        }
         Ok(self.deadline)
     }
 
-    /// Waits for UART bytes until the bridge's deadline (at most `max_wait`)
-    /// and hands what came to the bridge (and to `on_rx`). Returns how many.
+    /// Waits for UART bytes until the station's deadline (at most `max_wait`)
+    /// and hands what came to it (and to `on_rx`). Returns how many.
     pub fn receive(
         &mut self,
         max_wait: Duration,
@@ -258,7 +331,7 @@ impl<P: BytePort> Driver<P> {
         let n = self.port.recv(&mut self.rx, wait)?;
         if n > 0 {
             let bytes = &self.rx[..n];
-            self.bridge.handle_rx(self.clock.now(), bytes);
+            self.station.handle_rx(self.clock.now(), bytes);
             self.rx_bytes += n as u64;
             if let Some(c) = self.capture.as_mut() {
                 c.rx(bytes)?;
@@ -268,8 +341,8 @@ impl<P: BytePort> Driver<P> {
         Ok(n)
     }
 
-    /// Runs the bridge alone for `duration` (or until `stop`), reports to
-    /// `on_report`.
+    /// Runs the station alone for `duration` (or until `stop`); its bridge's
+    /// reports to `on_report`.
     pub fn run_for(
         &mut self,
         duration: Duration,
@@ -279,7 +352,7 @@ impl<P: BytePort> Driver<P> {
         let end = self.clock.now() + duration.as_micros() as u64;
         while self.clock.now() < end && !stop.load(Ordering::Relaxed) {
             self.service(|h| {
-                if let Happened::Report(t, r) = h {
+                if let Happened::Log(t, Logged::Bridge(r), _) = h {
                     on_report(t, r)
                 }
             })?;
@@ -425,15 +498,18 @@ mod tests {
         let stop = AtomicBool::new(false);
         let mut reports = Vec::new();
         let end = std::time::Instant::now() + Duration::from_secs(60);
-        while d.bridge.telemetry().snapshot.is_none() && std::time::Instant::now() < end {
+        while d.station.bridge().telemetry().snapshot.is_none() && std::time::Instant::now() < end {
             d.run_for(Duration::from_millis(200), &stop, |_, r| {
                 reports.push(r.to_string())
             })
             .unwrap();
         }
-        let t = d.bridge.telemetry();
+        let t = d.station.bridge().telemetry();
         assert!(t.ready && t.snapshot.is_some(), "{reports:#?}");
-        assert!(d.bridge.link_stats().wakeup_resends >= 1, "{reports:#?}");
+        assert!(
+            d.station.bridge().link_stats().wakeup_resends >= 1,
+            "{reports:#?}"
+        );
         assert!(d.tx_bytes > 0 && d.rx_bytes > 0);
     }
 

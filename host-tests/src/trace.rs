@@ -21,9 +21,6 @@
 use protocol_core::crc::crc16;
 use tinybms_firmware::Action;
 
-use crate::harness::Harness;
-use crate::sim::{PackProfile, SimBms, SimConfig};
-
 /// Magic bytes at the start of a trace.
 pub const MAGIC: &[u8; 4] = b"TBT1";
 /// Virtual time of the checked-in benchmark trace, µs.
@@ -66,26 +63,6 @@ pub fn find_live_reply(rx: &[u8]) -> Option<&[u8]> {
             w[LIVE_REPLY_LEN - 2..] == crc.to_le_bytes()
         }
     })
-}
-
-/// Runs the default bridge against a clean simulated BMS for `duration_us` and
-/// returns the trace (None if no live reply was ever sent).
-pub fn record_clean(seed: u64, duration_us: u64) -> Option<Vec<u8>> {
-    let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), seed);
-    let mut h = Harness::new(sim);
-    h.retain = false;
-    h.trace = Some(Vec::new());
-    h.run_until(duration_us);
-    let body = h.trace.take().unwrap_or_default();
-    let rx = received(&body);
-    let reply = find_live_reply(&rx)?.to_vec();
-    let mut out = Vec::with_capacity(body.len() + 128);
-    out.extend_from_slice(MAGIC);
-    out.push(reply.len() as u8);
-    out.extend_from_slice(&reply);
-    out.extend_from_slice(&body);
-    out.push(b'E');
-    Some(out)
 }
 
 /// One recorded call, as [`calls`] reads it back.
@@ -150,7 +127,7 @@ pub fn calls(trace: &[u8]) -> Option<Vec<Call>> {
 }
 
 /// The received bytes of a trace body, concatenated.
-fn received(body: &[u8]) -> Vec<u8> {
+pub fn received(body: &[u8]) -> Vec<u8> {
     let mut rx = Vec::new();
     let mut i = 0;
     while let Some(&tag) = body.get(i) {

@@ -13,7 +13,7 @@ use host_tests::closed_loop::ClosedLoop;
 use host_tests::sim::PackProfile;
 use protocol_core::events::EventId;
 use tinybms_firmware::inverter::control::Phase;
-use tinybms_firmware::inverter::{InverterConfig, InverterReport, Protocol, StalePolicy};
+use tinybms_firmware::inverter::{InverterConfig, InverterReport, Protocol, StaleMode};
 
 const S: u64 = 1_000_000;
 const MIN: u64 = 60 * S;
@@ -70,7 +70,7 @@ fn a_full_charge_from_20_percent_ends_in_float_with_no_cell_over_the_limit() {
     invariants(&l);
     let float_at = l.figures.float_at_us.expect("reached float");
     assert!(float_at < 5 * H, "float at {float_at}");
-    assert_eq!(l.inverter.phase(), Phase::Float);
+    assert_eq!(l.inverter().phase(), Phase::Float);
     // Absorption at 16 × 3.55 V, then float at 16 × 3.328 V.
     assert!(l.sent_limits.iter().any(|s| s.1 == CVL_ABSORPTION_DV));
     let last = l.sent_limits.last().unwrap();
@@ -187,7 +187,7 @@ fn a_lost_uart_link_stops_the_frames_and_the_inverter() {
     assert!(l.figures.reports.iter().any(|(_, r)| matches!(
         r,
         InverterReport::Stale {
-            policy: StalePolicy::StopSending,
+            policy: StaleMode::Stop,
             ..
         }
     )));
@@ -204,7 +204,8 @@ fn a_lost_uart_link_stops_the_frames_and_the_inverter() {
 #[test]
 fn with_hold_charge_zero_the_inverter_keeps_discharging_for_a_bounded_time() {
     let config = InverterConfig {
-        stale_policy: StalePolicy::HoldChargeZero(60 * S),
+        stale_policy: StaleMode::Hold,
+        stale_hold_us: 60 * S,
         ..InverterConfig::default()
     };
     let mut l = ClosedLoop::new(PackProfile::LiFePO4_16S, 7, config, 100.0);
@@ -235,7 +236,8 @@ fn with_hold_charge_zero_the_inverter_keeps_discharging_for_a_bounded_time() {
 #[test]
 fn after_a_hold_the_discharge_limit_is_not_cut_when_the_link_returns() {
     let config = InverterConfig {
-        stale_policy: StalePolicy::HoldChargeZero(10 * MIN),
+        stale_policy: StaleMode::Hold,
+        stale_hold_us: 10 * MIN,
         ..InverterConfig::default()
     };
     let mut l = ClosedLoop::new(PackProfile::LiFePO4_16S, 7, config, 100.0);

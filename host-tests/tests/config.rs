@@ -13,7 +13,7 @@ use tinybms_firmware::config::value::{self, Parsed};
 use tinybms_firmware::config::{
     Applies, Config, FieldId, Kind, PackSettings, Value, FIELDS, VERSION,
 };
-use tinybms_firmware::inverter::{InverterConfig, Protocol, StalePolicy};
+use tinybms_firmware::inverter::{InverterConfig, Protocol, StaleMode};
 use tinybms_firmware::text::Line;
 use tinybms_firmware::SECOND;
 
@@ -279,7 +279,7 @@ fn the_record_drives_the_inverter_and_the_host_link() {
     c.protocol = Protocol::SmaSunnyIsland;
     c.ccl_cap_da = 500;
     c.stale_after_s = 8;
-    c.stale_policy = tinybms_firmware::config::StaleMode::Hold;
+    c.stale_policy = StaleMode::Hold;
     c.stale_hold_s = 300;
     c.tail_current_da = 35;
     let i = c.inverter();
@@ -287,8 +287,9 @@ fn the_record_drives_the_inverter_and_the_host_link() {
     assert_eq!(i.charge.ccl_cap_da, Some(500));
     assert_eq!(i.charge.dcl_cap_da, None);
     assert_eq!(i.charge.tail_current_a, 3.5);
-    assert_eq!(i.stale_after_us, 8 * SECOND);
-    assert_eq!(i.stale_policy, StalePolicy::HoldChargeZero(300 * SECOND));
+    assert_eq!(i.freshness.limit_us, 8 * SECOND);
+    assert_eq!(i.stale_policy, StaleMode::Hold);
+    assert_eq!(i.stale_hold_us, 300 * SECOND);
     assert_eq!(i.node, 0, "alone by default");
     c.pack_node = 2;
     assert_eq!(c.inverter().node, 2);

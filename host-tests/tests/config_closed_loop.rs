@@ -94,7 +94,7 @@ fn a_protocol_switch_applies_after_a_restart_and_survives_it() {
     assert!(victron.contains(&frames::ID_CELL_EXTREMES));
     // Restart: a new bridge on the same flash.
     let mut l2 = charging_loop(flash.copy());
-    assert_eq!(l2.inverter.config().protocol, Protocol::SmaSunnyIsland);
+    assert_eq!(l2.inverter().config().protocol, Protocol::SmaSunnyIsland);
     l2.run_until(2 * MIN);
     let sma = ids(&l2, 0);
     assert!(

@@ -1,8 +1,8 @@
 //! A configuration save must never cost a BMS reply. On the chip a flash
 //! erase or write stops the CPU (the cache is off) for up to hundreds of
 //! milliseconds, and the UART's 128-byte FIFO overflows after 11 ms of reply.
-//! The bridge task therefore saves only when [`Bridge::quiet`] says no reply can
-//! be on its way, and sends nothing until the save is done.
+//! The station therefore saves only when the bridge says no reply can be on
+//! its way (`Bridge::quiet`), and sends nothing until the save is done.
 //!
 //! Here the bridge runs against the simulated BMS in virtual time; the
 //! configuration changes every second or so and is saved to
@@ -12,7 +12,7 @@
 //! (`Harness::stall`). The same run without the gate loses replies: the test can
 //! fail.
 
-use std::cell::Cell;
+use std::cell::{Cell, RefCell};
 use std::rc::Rc;
 
 use embassy_futures::block_on;
@@ -24,8 +24,9 @@ use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::config::state::ConfigState;
 use tinybms_firmware::config::store::Store;
 use tinybms_firmware::config::value::Parsed;
-use tinybms_firmware::config::FieldId;
-use tinybms_firmware::{Bridge, SECOND};
+use tinybms_firmware::config::{Config, FieldId};
+use tinybms_firmware::station::Station;
+use tinybms_firmware::SECOND;
 
 type Flash = MockFlashBase<6, 4, 1024>;
 
@@ -46,7 +47,8 @@ struct Run {
 /// When a due save is written.
 #[derive(Clone, Copy, PartialEq)]
 enum Placement {
-    /// Only when [`Bridge::quiet`]: what the chip does.
+    /// When the station says so (only when the bridge is quiet): what the
+    /// chip does.
     WhenQuiet,
     /// At the first moment the bridge is *not* quiet (a request outstanding,
     /// a reply arriving): the worst moment, what an ungated writer can hit.
@@ -56,70 +58,101 @@ enum Placement {
 /// Runs `seconds` of virtual time, changing the configuration about every
 /// `change_every_us`, saving at `placement`. `every_save_erases`: stop the CPU
 /// for a sector erase at every save (the worst case), not only when the store
-/// erases one.
+/// erases one. Gated, the station decides when to save (its `Save` action);
+/// ungated, the test writes a record of its own at the worst moments.
 fn run(seconds: u64, change_every_us: u64, placement: Placement, every_save_erases: bool) -> Run {
     let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 7);
     let mut h = Harness::checked(sim, Timing::default());
     h.retain = false;
     let (flash, stall): (Timed<Flash>, Rc<Cell<u64>>) =
         Timed::new(Flash::new(WriteCountCheck::Disabled, None, true));
-    let mut store = Store::new(flash, 0..0x6000).unwrap();
-    let loaded = block_on(store.load());
+    let store = Rc::new(RefCell::new(Store::new(flash, 0..0x6000).unwrap()));
+    let loaded = block_on(store.borrow_mut().load());
     let mut state = ConfigState::new(loaded.config, loaded.source);
-    let mut next_change = 0;
-    let mut n = 0u32;
-    let mut saves = 0u64;
-    let mut erasing = 0u64;
-    let mut longest = 0u64;
-    let mut seed = 12345u64;
-    let mut reply_due = 0u64;
-    let mut hook = |bridge: &mut Bridge, sim: &SimBms, now: u64| -> u64 {
-        if now >= next_change {
-            n += 1;
-            // A harmless at-once field, a new value each time.
-            let cap = Parsed::Number(100 + (n % 5000) as i32);
-            state.change(&[(FieldId::ChargeCurrentCap, cap)], false, None);
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            // Jitter: changes land at every phase of the poll cycle.
-            next_change = now + change_every_us / 2 + (seed >> 33) % change_every_us;
-        }
-        let quiet = bridge.quiet(now);
-        let now_ok = match placement {
-            Placement::WhenQuiet => quiet,
-            Placement::MidTransaction => !quiet,
-        };
-        if state.save_due() && now_ok {
+    let saves = Rc::new(Cell::new(0u64));
+    let erasing = Rc::new(Cell::new(0u64));
+    let longest = Rc::new(Cell::new(0u64));
+    let reply_due = Rc::new(Cell::new(0u64));
+    // One save: the store writes, the CPU stops for as long as the flash took.
+    let save_one = {
+        let (store, stall) = (store.clone(), stall.clone());
+        let (saves, erasing, longest, reply_due) = (
+            saves.clone(),
+            erasing.clone(),
+            longest.clone(),
+            reply_due.clone(),
+        );
+        move |record: &Config, sim: &SimBms| {
             if sim.next_output_at().is_some() {
-                reply_due += 1;
+                reply_due.set(reply_due.get() + 1);
             }
             stall.set(0);
-            let r = block_on(store.save(state.stored()));
-            state.saved(r);
-            saves += 1;
+            let r = block_on(store.borrow_mut().save(record));
+            saves.set(saves.get() + 1);
             let us = if every_save_erases {
                 stall.get().max(ERASE_STALL_US)
             } else {
                 stall.get()
             };
             if us >= ERASE_STALL_US {
-                erasing += 1;
+                erasing.set(erasing.get() + 1);
             }
-            longest = longest.max(us);
+            longest.set(longest.get().max(us));
+            (r, us)
+        }
+    };
+    let save_own = save_one.clone();
+    if placement == Placement::WhenQuiet {
+        let save = save_one;
+        h.saver = Some(Box::new(move |record: &Config, sim: &SimBms| {
+            save(record, sim)
+        }));
+    }
+    let mut next_change = 0;
+    let mut n = 0u32;
+    let mut seed = 12345u64;
+    let mut hook = |station: &mut Station, sim: &SimBms, now: u64| -> u64 {
+        if now >= next_change {
+            n += 1;
+            // A harmless at-once field, a new value each time.
+            let cap = [(
+                FieldId::ChargeCurrentCap,
+                Parsed::Number(100 + (n % 400) as i32),
+            )];
+            match placement {
+                Placement::WhenQuiet => {
+                    station.change_config(now, &cap);
+                }
+                Placement::MidTransaction => {
+                    state.change(&cap, false, None);
+                }
+            }
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            // Jitter: changes land at every phase of the poll cycle.
+            next_change = now + change_every_us / 2 + (seed >> 33) % change_every_us;
+        }
+        // The ungated writer: at the first moment the bridge is *not* quiet.
+        if placement == Placement::MidTransaction
+            && state.save_due()
+            && !station.bridge().quiet(now)
+        {
+            let (r, us) = save_own(state.stored(), sim);
+            state.saved(r);
             return us;
         }
         0
     };
     h.run_until_hooked(seconds * SECOND, &mut hook);
-    let stats = h.bridge.link_stats();
+    let stats = h.bridge().link_stats();
     let soak = h.soak.as_ref().unwrap();
     Run {
         lost_bytes: h.fifo_lost_bytes,
-        saves_with_reply_due: reply_due,
-        saves,
-        erasing_saves: erasing,
-        longest_stall_us: longest,
+        saves_with_reply_due: reply_due.get(),
+        saves: saves.get(),
+        erasing_saves: erasing.get(),
+        longest_stall_us: longest.get(),
         timeouts: stats.timeouts,
         crc_errors: stats.crc_errors,
         retries: stats.retries,

@@ -35,7 +35,8 @@ fn set(r: &mut Rig, req: u32, fields: Value) -> Vec<Value> {
         }
         out.extend(r.run_reading(50 * MS));
     }
-    out.retain(|l| l["type"] != "telemetry");
+    // The log lines of the change (as on the chip) are checked elsewhere.
+    out.retain(|l| l["type"] != "telemetry" && l["type"] != "log");
     out
 }
 
@@ -128,8 +129,8 @@ fn set_config_gives_one_outcome_per_field_then_saves() {
     assert_eq!(done[0]["restart_needed"], 1);
     assert_eq!(out.last().unwrap()["type"], "config_done");
     // It runs now where it may, and it is in flash.
-    assert_eq!(r.config.running().ccl_cap_da, 500);
-    assert_eq!(r.config.running().protocol, Protocol::Victron);
+    assert_eq!(r.config().running().ccl_cap_da, 500);
+    assert_eq!(r.config().running().protocol, Protocol::Victron);
     let f = in_flash(&r);
     assert_eq!(f.ccl_cap_da, 500);
     assert_eq!(f.protocol, Protocol::SmaSunnyIsland);
@@ -148,7 +149,7 @@ fn set_config_gives_one_outcome_per_field_then_saves() {
 #[test]
 fn a_refused_field_changes_nothing_and_says_why() {
     let mut r = ready();
-    let before = r.config.stored().clone();
+    let before = r.config().stored().clone();
     let out = set(
         &mut r,
         4,
@@ -166,8 +167,8 @@ fn a_refused_field_changes_nothing_and_says_why() {
     let done = of_type(&out, "config_done");
     assert_eq!(done[0]["changed"], 0);
     assert_eq!(done[0]["saved"], Value::Null);
-    assert_eq!(r.config.stored(), &before);
-    assert_eq!(r.saves, 0);
+    assert_eq!(r.config().stored(), &before);
+    assert_eq!(r.saves(), 0);
 }
 
 #[test]
@@ -208,7 +209,7 @@ fn read_only_refuses_configuration_writes_too() {
         assert_eq!(out[0]["type"], "error");
         assert_eq!(out[0]["error"], "read_only");
     }
-    assert!(r.config.stored().read_only);
+    assert!(r.config().stored().read_only);
     // get config still works.
     assert_eq!(of_type(&get_config(&mut r), "config").len(), FIELDS.len());
 }
@@ -218,7 +219,7 @@ fn the_boot_button_lifts_read_only() {
     let mut r = ready();
     set(&mut r, 1, json!({"read_only":"on"}));
     assert!(in_flash(&r).read_only);
-    r.config.unlock();
+    r.hold_button(5_100_000);
     r.run(SECOND);
     let out = set(&mut r, 2, json!({"charge_current_cap":"10"}));
     assert_eq!(of_type(&out, "config_outcome")[0]["outcome"], "applied");
@@ -243,7 +244,7 @@ fn secrets_are_never_echoed() {
     assert!(!text.contains(&key), "the key was echoed");
     assert!(!text.contains("s3cr"), "the password was echoed");
     // Escapes in the JSON string are resolved before storing.
-    assert_eq!(r.config.stored().mqtt_password.as_str(), pass);
+    assert_eq!(r.config().stored().mqtt_password.as_str(), pass);
     assert_eq!(in_flash(&r).mqtt_password.as_str(), pass);
     let key_line = of_type(&all, "config")
         .into_iter()
@@ -284,7 +285,7 @@ fn reset_config_goes_back_to_the_defaults() {
         }
         out.extend(r.run_reading(50 * MS));
     }
-    out.retain(|l| l["type"] != "telemetry");
+    out.retain(|l| l["type"] != "telemetry" && l["type"] != "log");
     assert_eq!(out[0]["cmd"], "reset_config");
     let done = of_type(&out, "config_done");
     // The two set above, and the rig's stream period (off) back to 1000 ms.
@@ -317,7 +318,32 @@ fn malformed_set_config_lines_are_errors() {
         assert_eq!(out[0]["error"], code, "{line}: {}", out[0]);
     }
     assert_eq!(
-        r.config.stored(),
+        r.config().stored(),
         &host_tests::host_link::record_for(&config(false, 0))
     );
+}
+
+#[test]
+fn a_new_stale_limit_reaches_the_telemetry_lines_the_desktop_reads() {
+    let mut r = ready();
+    let snapshot = |r: &mut Rig| {
+        r.line(r#"{"cmd":"get","what":"snapshot","req":5}"#);
+        r.drain()
+            .into_iter()
+            .find(|l| l["type"] == "telemetry")
+            .unwrap()
+    };
+    assert_eq!(snapshot(&mut r)["stale_after_ms"], 5000);
+    let out = set(&mut r, 1, json!({"stale_after": "12"}));
+    assert!(of_type(&out, "config_done").len() == 1, "{out:?}");
+    let t = snapshot(&mut r);
+    assert_eq!(t["stale_after_ms"], 12_000, "{t}");
+    // The desktop monitor goes stale by that limit, not by a constant: data
+    // 8 s old is still current.
+    let mut old = t.clone();
+    old["age_ms"] = json!(8000);
+    assert!(matches!(
+        host_tests::tool::monitor::freshness(Some(&old), std::time::Duration::ZERO),
+        host_tests::tool::monitor::Freshness::Fresh(_)
+    ));
 }

@@ -210,7 +210,7 @@ fn a_charge_side_fault_event_blocks_charging_until_its_own_recovery() {
 /// "stop" to "hold" mid-episode must not re-allow a discharge.
 #[test]
 fn reconfigure_keeps_the_protocol_and_defers_a_stale_policy_change() {
-    use tinybms_firmware::inverter::StalePolicy;
+    use tinybms_firmware::inverter::StaleMode;
     let (snap, settings) = inputs();
     let stop = InverterConfig {
         protocol: Protocol::SmaSunnyIsland,
@@ -241,13 +241,14 @@ fn reconfigure_keeps_the_protocol_and_defers_a_stale_policy_change() {
     let hold = InverterConfig {
         protocol: Protocol::Victron,
         enabled: false,
-        stale_policy: StalePolicy::HoldChargeZero(600 * S),
+        stale_policy: StaleMode::Hold,
+        stale_hold_us: 600 * S,
         ..InverterConfig::default()
     };
     inv.reconfigure(hold);
     assert_eq!(inv.config().protocol, Protocol::SmaSunnyIsland);
     assert!(inv.config().enabled);
-    assert_eq!(inv.config().stale_policy, StalePolicy::StopSending);
+    assert_eq!(inv.config().stale_policy, StaleMode::Stop);
     // Still stale: SMA "stop" sends CCL 0 and DCL 0 — never the held DCL.
     for f in frames_at(&mut inv, 20 * S, 30 * S, false) {
         if f.id == frames::ID_LIMITS {
@@ -256,10 +257,8 @@ fn reconfigure_keeps_the_protocol_and_defers_a_stale_policy_change() {
     }
     // Fresh again: the new policy is in force for the next episode.
     frames_at(&mut inv, 30 * S, 40 * S, true);
-    assert_eq!(
-        inv.config().stale_policy,
-        StalePolicy::HoldChargeZero(600 * S)
-    );
+    assert_eq!(inv.config().stale_policy, StaleMode::Hold);
+    assert_eq!(inv.config().stale_hold_us, 600 * S);
     // A charge cap applies at once.
     let mut capped = *inv.config();
     capped.charge.ccl_cap_da = Some(55);

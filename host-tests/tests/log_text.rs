@@ -9,7 +9,7 @@ use protocol_core::settings::{Setting, SettingId};
 use tinybms_firmware::bms::link::{Failure, LinkStats};
 use tinybms_firmware::bridge::report::{SnapshotLine, WriteOutcome};
 use tinybms_firmware::inverter::control::Limits;
-use tinybms_firmware::inverter::{InverterReport, StalePolicy};
+use tinybms_firmware::inverter::{InverterReport, StaleMode};
 use tinybms_firmware::text::{self, Line, LINE_MAX};
 use tinybms_firmware::{Level, Report, SECOND};
 
@@ -142,7 +142,8 @@ fn inverter_lines_read_in_volts_amps_and_seconds() {
     );
     let s = InverterReport::Stale {
         age_ms: 5230,
-        policy: StalePolicy::HoldChargeZero(300 * SECOND),
+        policy: StaleMode::Hold,
+        hold_us: 300 * SECOND,
     };
     assert_eq!(
         said_inverter(&s),

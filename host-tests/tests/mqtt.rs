@@ -48,6 +48,7 @@ fn view<'a>(snap: &'a LiveSnapshot, age_s: u64) -> View<'a> {
         limits: Some((568, 600, 1000)),
         link: (100, 99),
         battery: None,
+        freshness: tinybms_firmware::freshness::Freshness::new(5 * SECOND),
     }
 }
 
@@ -394,7 +395,7 @@ proptest! {
             }
             let mut v = view(&snap, age);
             v.online = online;
-            let fresh = v.fresh(5 * SECOND);
+            let fresh = v.fresh();
             for (topic, payload, kind, _) in drain(&mut p, now, &v) {
                 prop_assert!(topic.len() <= TOPIC_MAX && !topic.contains('#') && !topic.contains('+'));
                 prop_assert!(!topic.starts_with('/') && !topic.ends_with('/'));
@@ -518,7 +519,11 @@ mod the_battery_of_packs_in_parallel {
                 heard_ago_us: 0,
             },
         ];
-        let b = aggregate(&members, 5 * SECOND).unwrap();
+        let b = aggregate(
+            &members,
+            tinybms_firmware::freshness::Freshness::new(5 * SECOND),
+        )
+        .unwrap();
         let mut packs = heapless::Vec::new();
         for (node, m) in [(1, members[0]), (2, members[1])] {
             packs

@@ -42,7 +42,7 @@ use tinybms_firmware::mqtt::session::{
     self, Clock, Failure, Feed, NetError, Network, Note, Target,
 };
 use tinybms_firmware::mqtt::Settings;
-use tinybms_firmware::{Instant, Report};
+use tinybms_firmware::Instant;
 
 // ---- the session's heap, counted while it is polled ----
 
@@ -472,21 +472,12 @@ fn run_beside_the_session() -> (LoopOutput, SessionOutput) {
         ));
         let mut cx = Context::from_waker(Waker::noop());
         let mut t = 0;
-        let mut forwarded = 0;
         while t < RUN_US {
             t += STEP_US;
             l.run_until(t);
-            // What the chip's bridge and CAN tasks hand the MQTT task: copies.
+            // What the chip's station task hands the MQTT task: copies.
             clock.0.set(t);
-            let s = l.h.bridge.link_stats();
-            shared.update(l.h.bridge.telemetry(), (s.requests, s.replies));
-            while let Some(line) = l.h.log.get(forwarded) {
-                if let Report::NewEvent(e) = &line.report {
-                    shared.event(*e);
-                }
-                forwarded += 1;
-            }
-            shared.lock().limits = l.inverter.limits().map(|x| (x.cvl_dv, x.ccl_da, x.dcl_da));
+            shared.update(&mut l.h.station, t);
             for _ in 0..8 {
                 COUNTING.store(true, Ordering::Relaxed);
                 let start = WallInstant::now();

@@ -93,7 +93,7 @@ fn a_low_pack_joined_to_three_full_ones_takes_the_most_and_stays_within_its_cuto
     assert!(soc > 0, "{soc}");
     assert!(
         low.h
-            .bridge
+            .bridge()
             .telemetry()
             .snapshot
             .as_ref()

@@ -17,7 +17,8 @@ use tinybms_firmware::inverter::packs::{
 };
 
 const S: u64 = 1_000_000;
-const STALE: u64 = 5 * S;
+const STALE: tinybms_firmware::freshness::Freshness =
+    tinybms_firmware::freshness::Freshness::new(5 * S);
 
 fn summary() -> Summary {
     Summary {
@@ -894,14 +895,20 @@ mod what_review_found {
             alive: true,
             heard_ago_us: ago,
         };
-        assert!(m(S).takes_part(5 * S), "3 s + 1 s");
-        assert!(!m(2_400_000).takes_part(5 * S), "3 s + 2.4 s is past 5 s");
+        assert!(
+            m(S).takes_part(tinybms_firmware::freshness::Freshness::new(5 * S)),
+            "3 s + 1 s"
+        );
+        assert!(
+            !m(2_400_000).takes_part(tinybms_firmware::freshness::Freshness::new(5 * S)),
+            "3 s + 2.4 s is past 5 s"
+        );
         // 25.5 s or more: never fresh, whatever the stale age (up to 60 s).
         let old = Member::now(Summary {
             age_ds: 255,
             ..summary()
         });
-        assert!(!old.takes_part(60 * S));
+        assert!(!old.takes_part(tinybms_firmware::freshness::Freshness::new(60 * S)));
         assert_eq!(old.data_age_us(), None);
     }
 

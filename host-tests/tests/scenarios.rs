@@ -73,7 +73,7 @@ fn cold_start_with_a_sleeping_bms() {
         1,
     );
     h.run_until(5 * S);
-    let s = h.bridge.link_stats();
+    let s = h.bridge().link_stats();
     assert_eq!(s.wakeup_resends, 1, "{s:?}");
     assert_eq!(h.sim.stats().wakeups, 1);
     assert_eq!(
@@ -105,7 +105,7 @@ fn cold_start_with_a_sleeping_bms() {
 fn an_awake_bms_gets_every_request_exactly_once() {
     let mut h = harness(PackProfile::LiIon_14S, SimConfig::default(), 2);
     h.run_until(60 * S);
-    let s = h.bridge.link_stats();
+    let s = h.bridge().link_stats();
     assert_eq!(u64::from(s.requests), h.sim.stats().requests);
     assert_eq!(s.wakeup_resends + s.retries + s.timeouts, 0, "{s:?}");
     assert!(h.published.len() >= 235);
@@ -130,7 +130,7 @@ fn an_awake_bms_gets_every_request_exactly_once() {
     );
     assert_eq!(last.external2_dc, None);
     // Snapshot age is known to readers.
-    let t = h.bridge.telemetry();
+    let t = h.bridge().telemetry();
     assert!(t.ready && t.online);
     assert!(t.snapshot_age_us(h.now).unwrap() <= 250_000);
     assert_published_are_genuine(&h);
@@ -149,7 +149,7 @@ fn hours_of_polling_with_1_percent_byte_corruption() {
         3,
     );
     h.run_until(2 * 3600 * S);
-    let s = h.bridge.link_stats();
+    let s = h.bridge().link_stats();
     // The line really was bad, and the link recovered every time.
     assert!(h.sim.stats().faults.bit_flips > 10_000 && h.sim.stats().faults.dropped_bytes > 10_000);
     assert!(
@@ -234,9 +234,9 @@ fn bms_silent_for_10_s_then_back() {
     assert!(h.published.len() > before + 30);
     assert!(h.sim.stats().requests_by_command[&0x03] > version_reads);
     // While offline it probed slowly (every 2 s), not at the live rate.
-    let probes_while_silent = h.bridge.link_stats().wakeup_resends;
+    let probes_while_silent = h.bridge().link_stats().wakeup_resends;
     assert!(probes_while_silent < 20, "{probes_while_silent}");
-    assert!(h.bridge.telemetry().online && h.bridge.telemetry().ready);
+    assert!(h.bridge().telemetry().online && h.bridge().telemetry().ready);
     assert_published_are_genuine(&h);
 }
 
@@ -251,7 +251,7 @@ fn ascii_broadcasts_on() {
         "{}",
         h.sim.stats().broadcasts
     );
-    let s = h.bridge.link_stats();
+    let s = h.bridge().link_stats();
     assert!(s.skipped_bytes > 20_000, "{s:?}");
     assert_eq!(s.crc_errors + s.framing_errors + s.failures, 0, "{s:?}");
     assert!(h.published.len() >= 235);
@@ -277,7 +277,7 @@ fn a_settings_profile_is_applied_and_verified() {
         (SettingId::PulsesPerUnit, 70_000), // 32 bits over 312-313
         (SettingId::FullyChargedVoltage, h.sim.register(300) as i32), // already equal
     ];
-    h.bridge.submit_profile(&profile).unwrap();
+    h.bridge_mut().submit_profile(&profile).unwrap();
     h.run_until(20 * S);
     let w = writes(&h);
     assert_eq!(w.len(), profile.len(), "{}", h.log_text());
@@ -300,7 +300,7 @@ fn a_settings_profile_is_applied_and_verified() {
     );
     // Settings re-read after the writes, and they show the new values; the
     // live data kept flowing meanwhile (no second sync, no second "ready").
-    let settings = h.bridge.telemetry().settings.clone().unwrap();
+    let settings = h.bridge().telemetry().settings.clone().unwrap();
     assert_eq!(settings.get(315), Some(3600));
     assert_eq!(count(&h, |r| matches!(r, Report::Ready { .. })), 1);
     // Five registers written: five writes, no more (the unchanged one was skipped).
@@ -314,7 +314,7 @@ fn out_of_range_settings_are_rejected_before_any_byte() {
     h.run_until(S);
     let before = h.sim.stats().requests;
     let tx_before = h.tx_bytes;
-    h.bridge
+    h.bridge_mut()
         .submit(group(&[
             (SettingId::OverVoltageCutoff, 4600),      // Rev D: 1200..=4500
             (SettingId::PrechargePin, 0x01),           // not an option of Rev D
@@ -359,7 +359,7 @@ fn a_read_back_mismatch_is_reported_as_such() {
     let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 8);
     h.sim.ignore_writes_to(308);
     let old = h.sim.register(308);
-    h.bridge
+    h.bridge_mut()
         .submit(group(&[(SettingId::AllowedDisbalance, 30)]))
         .unwrap();
     h.run_until(5 * S);
@@ -387,7 +387,7 @@ fn a_nacked_write_is_reported_with_its_code() {
     h.run_until(S);
     h.sim.config_mut().current_sensor = CurrentSensor::InternalResistor;
     let old = h.sim.register(318);
-    h.bridge
+    h.bridge_mut()
         .submit(group(&[(SettingId::ChargeOverCurrentCutoff, 200)]))
         .unwrap();
     h.run_until(3 * S);
@@ -402,7 +402,7 @@ fn a_nacked_write_is_reported_with_its_code() {
     assert_eq!(write_requests(&h), 1, "never re-sent after a NACK");
     assert_eq!(h.sim.register(318), old);
     // The limits were re-read after the attempt: the bridge now knows 60 A.
-    let max = h.bridge.telemetry().limits_max.clone().unwrap();
+    let max = h.bridge().telemetry().limits_max.clone().unwrap();
     assert_eq!(SettingId::ChargeOverCurrentCutoff.read(&max), Some(60));
 }
 
@@ -412,7 +412,7 @@ fn a_write_to_340_waits_for_the_reboot_and_confirms() {
     h.run_until(2 * S);
     let old = h.sim.register(340) & 0xFF;
     let new = if old == 0 { 1 } else { 0 };
-    h.bridge
+    h.bridge_mut()
         .submit(group(&[(SettingId::OperationMode, i32::from(new))]))
         .unwrap();
     h.run_until(12 * S);
@@ -442,7 +442,7 @@ fn a_write_to_340_waits_for_the_reboot_and_confirms() {
 fn a_reset_gets_no_ack_and_is_confirmed() {
     let mut h = harness(PackProfile::LiIon_14S, SimConfig::default(), 11);
     h.run_until(2 * S);
-    h.bridge.submit(Command::ResetBms).unwrap();
+    h.bridge_mut().submit(Command::ResetBms).unwrap();
     h.run_until(12 * S);
     assert_eq!(h.sim.stats().reboots, 1);
     assert_eq!(
@@ -469,8 +469,8 @@ fn a_reset_gets_no_ack_and_is_confirmed() {
 fn clear_events_and_statistics() {
     let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 12);
     h.run_until(2 * S);
-    h.bridge.submit(Command::ClearEvents).unwrap();
-    h.bridge.submit(Command::ClearStatistics).unwrap();
+    h.bridge_mut().submit(Command::ClearEvents).unwrap();
+    h.bridge_mut().submit(Command::ClearStatistics).unwrap();
     h.run_until(4 * S);
     assert_eq!(
         count(&h, |r| matches!(r, Report::Cleared { ok: true, .. })),
@@ -559,7 +559,7 @@ fn faults_of_every_kind_never_publish_a_wrong_value() {
     let mut h = harness(PackProfile::LiIon_14S, config, 14);
     h.sim.set_register(342, 0x03);
     h.sim.set_register(343, 0x01);
-    h.bridge
+    h.bridge_mut()
         .submit(group(&[
             (SettingId::OverVoltageCutoff, 4150),
             (SettingId::ChargerType, 1),
@@ -571,7 +571,7 @@ fn faults_of_every_kind_never_publish_a_wrong_value() {
         f.duplicated > 0 && f.delayed > 0 && f.truncated > 0 && f.no_reply > 0,
         "{f:?}"
     );
-    assert!(h.bridge.link_stats().unsolicited > 0);
+    assert!(h.bridge().link_stats().unsolicited > 0);
     for (id, _, outcome) in writes(&h) {
         // Success only with a matching read-back; the sim holds what was reported.
         if outcome == WriteOutcome::Verified {
@@ -599,7 +599,7 @@ fn a_lost_write_to_328_is_not_verified_by_its_marker() {
     h.run_until(S);
     assert_eq!(h.sim.register(328), 0xFFFF);
     h.sim.drop_next_requests(0x10, 10);
-    h.bridge
+    h.bridge_mut()
         .submit(group(&[(SettingId::StateOfCharge, 40_000)]))
         .unwrap();
     h.run_until(4 * S);
@@ -630,7 +630,7 @@ fn a_write_whose_echo_was_lost_is_decided_by_the_read_back() {
     h.run_until(S);
     // The first write request is lost: the retry is applied and echoed.
     h.sim.drop_next_requests(0x10, 1);
-    h.bridge
+    h.bridge_mut()
         .submit(group(&[(SettingId::OverVoltageCutoff, 3620)]))
         .unwrap();
     h.run_until(3 * S);
@@ -650,7 +650,7 @@ fn a_lost_reset_is_not_confirmed() {
     h.sim
         .set_register(114, (h.sim.register(114) & 0xFF00) | 0x04);
     h.sim.drop_next_requests(0x02, 1);
-    h.bridge.submit(Command::ResetBms).unwrap();
+    h.bridge_mut().submit(Command::ResetBms).unwrap();
     h.run_until(15 * S);
     assert_eq!(h.sim.stats().reboots, 0);
     assert_eq!(
@@ -681,9 +681,9 @@ fn a_bms_that_never_answers_0x1d_is_still_polled() {
         "{}",
         h.log_text()
     );
-    assert!(h.bridge.telemetry().limits_max.is_none());
+    assert!(h.bridge().telemetry().limits_max.is_none());
     // Writes still validate against Rev D and go through write/verify.
-    h.bridge
+    h.bridge_mut()
         .submit(group(&[(SettingId::OverVoltageCutoff, 3610)]))
         .unwrap();
     h.run_until(33 * S);
@@ -700,7 +700,7 @@ fn a_long_group_does_not_stop_the_live_polling() {
     let items: Vec<(SettingId, i32)> = (0..16)
         .map(|i| (SettingId::ChargerStartupDelay, 10 + i))
         .collect();
-    h.bridge.submit(group(&items)).unwrap();
+    h.bridge_mut().submit(group(&items)).unwrap();
     h.run_until(8 * S);
     assert_eq!(writes(&h).len(), 16);
     assert!(writes(&h).iter().all(|w| w.2 == WriteOutcome::Verified));

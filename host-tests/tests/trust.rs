@@ -122,7 +122,7 @@ fn a_crc_collision_in_a_piece_is_never_published() {
             26,
         );
         h.run_until(60 * S);
-        assert!(h.bridge.piece_registers() < 56, "{name}: read in pieces");
+        assert!(h.bridge().piece_registers() < 56, "{name}: read in pieces");
         // The line clears (the piece size grows back only after 12 clean reads):
         // the forged piece arrives intact.
         h.sim.config_mut().faults = FaultConfig::all(0.0);
@@ -150,7 +150,7 @@ fn a_real_broken_sense_wire_is_published_flagged_once_confirmed() {
     h.sim.pin_register(5, 0);
     h.run_until(20 * S);
     genuine(&h);
-    let t = h.bridge.telemetry();
+    let t = h.bridge().telemetry();
     assert_eq!(t.live.flagged, Some(Check::CellVoltage));
     assert_eq!(t.snapshot.as_ref().unwrap().cells.raw[5], 0);
     let flagged: Vec<_> = h
@@ -293,7 +293,7 @@ fn a_noisy_line_never_goes_offline() {
     h.run_until(60 * MIN);
     let s = h.soak.as_ref().unwrap();
     assert_eq!(s.offline_transitions, 0);
-    assert!(h.bridge.link_stats().failures > 100, "the line was bad");
+    assert!(h.bridge().link_stats().failures > 100, "the line was bad");
     genuine(&h);
 }
 
@@ -391,8 +391,8 @@ fn at_5_percent_snapshots_keep_coming_within_4_s() {
     genuine(&h);
     assert!(gap <= 4 * S, "longest gap {gap} µs");
     // Read in pieces, each snapshot says how it was made.
-    assert!(h.bridge.piece_registers() < 56);
-    assert!(h.bridge.telemetry().live.pieces > 1);
+    assert!(h.bridge().piece_registers() < 56);
+    assert!(h.bridge().telemetry().live.pieces > 1);
     assert!(h.soak.as_ref().unwrap().published > 30 * 60 / 2);
 }
 
@@ -425,8 +425,8 @@ fn a_clean_line_reads_the_live_block_in_one_request() {
     let mut h = checked(PackProfile::LiFePO4_16S, SimConfig::default(), 29);
     h.run_until(10 * S);
     genuine(&h);
-    assert_eq!(h.bridge.telemetry().live.pieces, 1);
-    let s = h.bridge.link_stats();
+    assert_eq!(h.bridge().telemetry().live.pieces, 1);
+    let s = h.bridge().link_stats();
     assert_eq!(s.retries, 0);
     assert_eq!(count(&h, |r| matches!(r, Report::LineQuality { .. })), 0);
 }
@@ -523,7 +523,7 @@ fn an_applied_write_whose_replies_were_lost_is_unconfirmed_then_verified() {
     // The write is applied but every echo is lost (so it is re-sent only while
     // nothing came back); every read-back is lost too.
     h.sim.drop_next_replies(0x10, 3);
-    h.bridge
+    h.bridge_mut()
         .submit(group(SettingId::OverVoltageCutoff, 3620))
         .unwrap();
     h.run_until(2 * S + 150_000);
@@ -553,7 +553,7 @@ fn a_lost_write_with_lost_read_backs_is_unconfirmed_then_failed() {
     h.run_until(2 * S);
     let old = h.sim.register(315);
     h.sim.drop_next_requests(0x10, 10);
-    h.bridge
+    h.bridge_mut()
         .submit(group(SettingId::OverVoltageCutoff, 3620))
         .unwrap();
     h.run_until(2 * S + 150_000);
@@ -580,7 +580,7 @@ fn a_lost_write_whose_read_back_shows_the_old_value_is_failed() {
     h.run_until(2 * S);
     let old = h.sim.register(315);
     h.sim.drop_next_requests(0x10, 10);
-    h.bridge
+    h.bridge_mut()
         .submit(group(SettingId::OverVoltageCutoff, 3620))
         .unwrap();
     h.run_until(6 * S);
@@ -603,7 +603,7 @@ fn at_5_percent_no_write_is_reported_failed_that_was_applied() {
     let values = [3600, 3610];
     for k in 0..60u64 {
         h.run_until((k + 1) * 20 * S);
-        let _ = h.bridge.submit(group(
+        let _ = h.bridge_mut().submit(group(
             SettingId::OverVoltageCutoff,
             values[(k % 2) as usize],
         ));
@@ -632,7 +632,7 @@ fn counters_near_the_wrap_point_do_not_panic() {
         36,
     );
     let max = u32::MAX - 3;
-    h.bridge.preset_link_stats(LinkStats {
+    h.bridge_mut().preset_link_stats(LinkStats {
         requests: max,
         replies: max,
         timeouts: max,
@@ -652,7 +652,7 @@ fn counters_near_the_wrap_point_do_not_panic() {
         latency_sum_us: u64::MAX - 10,
     });
     h.run_until(2 * MIN);
-    let s = h.bridge.link_stats();
+    let s = h.bridge().link_stats();
     assert!(s.requests < 10_000 && s.replies < 10_000, "wrapped: {s:?}");
     genuine(&h);
 }
@@ -718,10 +718,10 @@ fn a_sensor_dependent_setting_follows_the_bms_limits() {
     let mut h = checked(PackProfile::LiFePO4_16S, config, 39);
     h.sim.override_limits(317, 1, 1000);
     h.run_until(3 * S);
-    h.bridge
+    h.bridge_mut()
         .submit(group(SettingId::DischargeOverCurrentCutoff, 900))
         .unwrap();
-    h.bridge
+    h.bridge_mut()
         .submit(group(SettingId::DischargeOverCurrentCutoff, 1001))
         .unwrap();
     h.run_until(10 * S);
@@ -736,7 +736,7 @@ fn a_sensor_dependent_setting_follows_the_bms_limits() {
 fn register_337_accepts_0x0a() {
     let mut h = checked(PackProfile::LiFePO4_16S, SimConfig::default(), 40);
     h.run_until(3 * S);
-    h.bridge
+    h.bridge_mut()
         .submit(group(SettingId::PrechargePin, 0x0A))
         .unwrap();
     h.run_until(6 * S);

@@ -75,6 +75,7 @@
 
 mod events;
 mod job;
+mod purpose;
 pub mod report;
 mod reports;
 mod reset;
@@ -90,8 +91,9 @@ use protocol_core::settings::{Setting, SettingId};
 use protocol_core::views::{Statistics, VersionInfo};
 
 use self::job::Effect;
+use self::purpose::{Aux, Purpose};
 use self::reports::Reports;
-use self::schedule::{on_piece, Aux, Purpose, Schedule};
+use self::schedule::{on_piece, Schedule};
 use self::sync::SyncState;
 use self::telemetry::TelemetryModel;
 use self::writes::Writes;

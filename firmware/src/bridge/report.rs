@@ -2,8 +2,6 @@
 //! Their words are [`crate::text::report`]'s: the chip shell logs that text with
 //! `defmt`, the host simulator prints it ([`core::fmt::Display`]).
 
-use core::fmt;
-
 use protocol_core::events::{Event, OnlineStatus, Severity};
 use protocol_core::frame::NackCode;
 use protocol_core::settings::{Setting, SettingError};
@@ -226,14 +224,5 @@ pub fn permille(part: u32, whole: u32) -> u32 {
         1000
     } else {
         (u64::from(part) * 1000 / u64::from(whole)).min(1000) as u32
-    }
-}
-
-/// The same words as the chip's log ([`crate::text::report`]).
-impl fmt::Display for Report {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let mut line = crate::text::Line::new();
-        crate::text::report(self, &mut line);
-        f.write_str(line.as_str())
     }
 }

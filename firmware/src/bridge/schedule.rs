@@ -26,6 +26,7 @@ use protocol_core::response::{RegisterBlock, Response};
 
 use super::events::slot_request;
 use super::job::JobNext;
+use super::purpose::{Ask, Aux, Purpose};
 use super::sync::{limits_request, version_request, Phase, SyncStep};
 use super::State;
 use crate::bms::link::{Failure, Silence};
@@ -33,37 +34,11 @@ use crate::bms::reader::{self, Assembled, BlockRead, LineQuality, Mode};
 use crate::bms::timing::{self, Timing};
 use crate::Instant;
 
-/// How the silence of a request counts, and what its answer is for. The
-/// request itself is written in place, into the link's slot (see
-/// [`State::next_request`]): it is hundreds of bytes.
-pub(super) type Ask = (Silence, Purpose);
-
 /// `*slot = request`, for the requests that are built whole (the block reads'
 /// pieces are written into the slot directly).
 fn ask(slot: &mut Request, request: Request, silence: Silence, purpose: Purpose) -> Ask {
     *slot = request;
     (silence, purpose)
-}
-
-/// What a confirmed block read is for.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) enum Aux {
-    Version,
-    Settings,
-    Stats,
-    Events,
-}
-
-/// What the request in flight is for.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) enum Purpose {
-    Live,
-    Aux(Aux),
-    Limits(SettingsOption),
-    NewestEvents,
-    EventSlot,
-    Probe,
-    Job,
 }
 
 /// The timers and the block reads in progress.

@@ -19,7 +19,7 @@
 use protocol_core::request::{Request, SettingsOption};
 use protocol_core::response::{RegisterBlock, Response};
 
-use super::schedule::{Ask, Purpose};
+use super::purpose::{Ask, Purpose};
 use super::telemetry::Telemetry;
 use crate::bms::link::{Failure, Silence};
 use crate::bms::timing::Timing;

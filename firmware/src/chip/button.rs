@@ -1,20 +1,15 @@
-//! The BOOT button: held down for 5 s while the bridge runs, it lifts
-//! read-only (`tinybms_firmware::config::button`, tested on the host). The pin
-//! is the board's BOOT button from the board table (GPIO9 on every supported
-//! board: a strapping pin, read here only once the firmware runs; held while
-//! the chip resets, it starts the ROM's download mode instead).
+//! The BOOT button: samples to the station, which lifts read-only when it is
+//! held for 5 s (`tinybms_firmware::config::button`, tested on the host). The
+//! pin is the board's BOOT button from the board table (GPIO9 on every
+//! supported board: a strapping pin, read here only once the firmware runs;
+//! held while the chip resets, it starts the ROM's download mode instead).
 
 use embassy_executor::Spawner;
-use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
-use embassy_sync::signal::Signal;
 use embassy_time::{Duration, Timer};
 use esp_hal::gpio::{AnyPin, Input, InputConfig, Pull};
-use tinybms_firmware::config::button::{Hold, SAMPLE_PERIOD_US};
+use tinybms_firmware::config::button::SAMPLE_PERIOD_US;
 
-use crate::{now_us, spawn, BOARD};
-
-/// Raised when the button has been held long enough; the bridge task takes it.
-pub static UNLOCK: Signal<CriticalSectionRawMutex, ()> = Signal::new();
+use crate::{spawn, wires, BOARD};
 
 /// Starts watching the board's BOOT button (when it has one).
 pub fn start(spawner: Spawner) {
@@ -27,14 +22,20 @@ pub fn start(spawner: Spawner) {
     }
 }
 
+/// Samples the pin every [`SAMPLE_PERIOD_US`]; the station hears every
+/// sample while the button is down and the one that says it is up (so the
+/// station task is not woken while nobody touches it).
 #[embassy_executor::task]
 async fn button_task(pin: Input<'static>) {
-    let mut hold = Hold::new();
+    let mut was_pressed = false;
     loop {
         // The button pulls the pin low.
-        if hold.sample(now_us(), pin.is_low()) {
-            UNLOCK.signal(());
+        let pressed = pin.is_low();
+        if pressed || was_pressed {
+            wires::BUTTON.signal(pressed);
+            wires::wake();
         }
+        was_pressed = pressed;
         Timer::after(Duration::from_micros(SAMPLE_PERIOD_US)).await;
     }
 }

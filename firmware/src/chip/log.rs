@@ -1,57 +1,34 @@
-//! Reports → defmt lines. The words are the library's (`tinybms_firmware::text`,
-//! tested on the host); here they only get their level. With the host link,
-//! each line also goes to the host as a `log` line (through [`for_host`]: the
-//! bridge task hands them on), so the log is on the host link's cable too.
+//! Log lines → defmt. The words are the library's (`tinybms_firmware::text`,
+//! tested on the host); here they only get their level. The station hands its
+//! own lines to the host link itself; lines of other tasks ([`line`]) reach it
+//! through [`crate::wires::FOREIGN_LOG`].
 
 use defmt::{info, warn};
-use tinybms_firmware::config::state::{ConfigState, Note};
-#[cfg(feature = "can")]
-use tinybms_firmware::inverter::InverterReport;
-use tinybms_firmware::text::{self, Line};
-use tinybms_firmware::{Level, Report};
+use tinybms_firmware::station::{Logged, Station};
+use tinybms_firmware::text::Line;
+use tinybms_firmware::Level;
 
-/// Lines for the host link, from any task; when full, a line is only logged.
-#[cfg(feature = "host-link")]
-static FOR_HOST: embassy_sync::channel::Channel<
-    embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex,
-    (Level, Line),
-    2,
-> = embassy_sync::channel::Channel::new();
-
-/// Logs `line` at `level` (and hands it to the host link).
-pub fn line(level: Level, line: &Line) {
+fn print(level: Level, line: &Line) {
     match level {
         Level::Info => info!("{=str}", line.as_str()),
         Level::Warn => warn!("{=str}", line.as_str()),
     }
+}
+
+/// What the station says to log.
+pub fn logged(station: &Station, item: &Logged) {
+    let mut out = Line::new();
+    station.log_text(item, &mut out);
+    print(item.level(), &out);
+}
+
+/// A line of another task: logged, and handed to the host link.
+#[cfg_attr(not(feature = "wifi"), allow(dead_code))]
+pub fn line(level: Level, line: &Line) {
+    print(level, line);
     #[cfg(feature = "host-link")]
-    let _ = FOR_HOST.try_send((level, line.clone()));
-}
-
-/// The next line for the host link (the bridge task's pass takes them).
-#[cfg(feature = "host-link")]
-pub fn for_host() -> Option<(Level, Line)> {
-    FOR_HOST.try_receive().ok()
-}
-
-/// One line per bridge report.
-pub fn report(r: &Report) {
-    let mut out = Line::new();
-    text::report(r, &mut out);
-    line(r.level(), &out);
-}
-
-/// One line per configuration note (secrets only as set/unset).
-pub fn config(n: &Note, config: &ConfigState) {
-    let mut out = Line::new();
-    text::config_note(n, config, &mut out);
-    line(text::config_level(n), &out);
-}
-
-/// One line per inverter report.
-#[cfg(feature = "can")]
-pub fn inverter(r: &InverterReport) {
-    let mut out = Line::new();
-    text::inverter(r, &mut out);
-    line(r.level(), &out);
+    {
+        let _ = crate::wires::FOREIGN_LOG.try_send((level, line.clone()));
+        crate::wires::wake();
+    }
 }

@@ -5,18 +5,19 @@
 //!
 //! | module | task | wire |
 //! | --- | --- | --- |
-//! | [`bms`] | `bridge_task` | UART1 to the TinyBMS; owns the `Bridge` and the host link |
-//! | [`can`] | `can_task` | TWAI to the inverter (feature `can`) |
-//! | [`usb`] | `usb_rx_task`, `usb_tx_task` | USB-Serial-JTAG to a computer (feature `host-link`) |
-//! | [`stale`] | `stale_task` | none: says when the shared telemetry goes stale |
-//! | [`store`] | — | the configuration record in the `nvs` flash partition |
-//! | [`button`] | `button_task` | the BOOT button: held 5 s, it lifts read-only |
+//! | [`station`] | `station_task` | UART1 to the TinyBMS; owns the library's `Station` |
+//! | [`can`] | `can_task` | TWAI to the inverter (feature `can`): a pump |
+//! | [`usb`] | `usb_rx_task`, `usb_tx_task` (or `uart0_…`) | the host link's wire (feature `host-link`): pumps |
+//! | [`button`] | `button_task` | the BOOT button's samples (feature `host-link`) |
 //! | [`wifi`] | `wifi_task`, `net_task`, `mqtt_task` | Wi-Fi and MQTT to Home Assistant (feature `wifi`) |
-//! | [`log`] | — | reports → defmt lines (the words come from the library) |
+//! | [`store`] | — | the configuration record in the `nvs` flash partition |
+//! | [`log`] | — | log lines → defmt (the words come from the library) |
+//! | [`wires`] | — | every static the tasks share, each with its role |
 //! | [`panic`] | — | the panic handler: backtrace, then reset |
 //!
-//! Tasks share the latest telemetry through [`TELEMETRY`] (an embassy-sync
-//! `Watch`) and nothing else; the bridge task never waits on another task.
+//! The station task owns the `Station` and does what it says; the other tasks
+//! only move bytes and frames between a driver and the queues in [`wires`].
+//! The station task never waits on another task.
 //!
 //! Every task runs on `main`'s executor, whose esp-rtos thread gets the highest
 //! task priority ([`MAIN_PRIORITY`]) before anything else starts. esp-rtos would
@@ -44,32 +45,31 @@ compile_error!(
     "select a log path: feature `log-rtt` (RTT via probe-rs) or `log-uart` (UART0 via espflash)"
 );
 
-mod bms;
 #[cfg(feature = "host-link")]
 mod button;
 #[cfg(feature = "can")]
 mod can;
 mod log;
 mod panic;
-mod stale;
+mod station;
 mod store;
 mod usb;
 #[cfg(feature = "wifi")]
 mod wifi;
+mod wires;
 
 use defmt::info;
 #[cfg(feature = "log-rtt")]
 use defmt_rtt as _; // defmt global logger: RTT
 use embassy_executor::{SpawnError, SpawnToken, Spawner};
-use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
-use embassy_sync::watch::Watch;
 use embassy_time::Instant;
 use esp_hal::clock::CpuClock;
 use esp_hal::timer::timg::{MwdtStage, TimerGroup};
 #[cfg(feature = "log-uart")]
 use esp_println as _; // defmt global logger: UART0, espflash's defmt framing
-use protocol_core::views::LiveSnapshot;
+use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::boards::{self, Board, Chip, LogPath};
+use tinybms_firmware::station::{Setup, Station};
 
 // ESP-IDF 2nd-stage bootloader requires an application descriptor in the image.
 esp_bootloader_esp_idf::esp_app_desc!();
@@ -107,28 +107,12 @@ const _: () = assert!(
     "this board's host link runs on UART0: use `log-rtt` (its log lines reach the host link as `log` lines)"
 );
 
-/// Watchdog timeout (MWDT stage 0 → system reset). Fed by the bridge task.
+/// Watchdog timeout (MWDT stage 0 → system reset). Fed by the station task.
 const WDT_TIMEOUT: esp_hal::time::Duration = esp_hal::time::Duration::from_secs(4);
-
-/// The latest live snapshot, with the time it was decoded (so readers know its age)
-/// and, for the inverter output, the BMS settings charge control needs and the version.
-#[derive(Clone)]
-struct SharedSnapshot {
-    snapshot: LiveSnapshot,
-    taken_at: Instant,
-    #[cfg(feature = "can")]
-    inverter: can::Inputs,
-    #[cfg(feature = "wifi")]
-    mqtt: wifi::Inputs,
-}
 
 /// esp-rtos task priority of `main`'s thread, which runs every task (module
 /// docs): esp-rtos's highest.
 const MAIN_PRIORITY: usize = 31;
-
-/// Latest telemetry for the other tasks: one sender (the bridge task), up to 4
-/// receivers (the stale watch, the CAN output, the MQTT output).
-static TELEMETRY: Watch<CriticalSectionRawMutex, SharedSnapshot, 4> = Watch::new();
 
 #[esp_rtos::main]
 async fn main(spawner: Spawner) {
@@ -166,26 +150,30 @@ async fn main(spawner: Spawner) {
     // The configuration record, before any task that runs with it. (Reading
     // flash stops the CPU only for microseconds; nothing runs yet anyway.)
     let (store, loaded) = store::open(p.FLASH);
-    let config = tinybms_firmware::config::state::ConfigState::new(loaded.config, loaded.source);
-    let running = config.running();
+    // In a static of its own, not in the task's future: an `async fn`'s
+    // argument and the local it becomes would each take its size.
+    static STATION: static_cell::StaticCell<Station> = static_cell::StaticCell::new();
+    let station = STATION.init(Station::new(
+        Setup {
+            timing: Timing::default(),
+            chip: BOARD.chip.name(),
+            host_link: cfg!(feature = "host-link"),
+            can: cfg!(feature = "can"),
+            inverter: None,
+        },
+        loaded,
+        now_us(),
+    ));
+    let running = station.config().running();
 
     #[cfg(feature = "can")]
-    can::start(spawner, p.TWAI0, running.inverter());
+    can::start(spawner, p.TWAI0, &running.inverter());
     usb::start(spawner, p.USB_DEVICE, p.UART0, running);
     #[cfg(feature = "host-link")]
     button::start(spawner);
     #[cfg(feature = "wifi")]
     wifi::start(spawner, p.WIFI, running);
-    bms::start(
-        spawner,
-        p.UART1,
-        wdt,
-        bms::Configuration {
-            state: config,
-            store,
-        },
-    );
-    stale::start(spawner);
+    station::start(spawner, p.UART1, wdt, station, store);
 }
 
 /// Spawns a task. A pool without a free slot is a bug in this shell: it panics

@@ -23,10 +23,8 @@ mod on {
     use esp_hal::peripherals::FLASH;
     use esp_storage::FlashStorage;
     use static_cell::StaticCell;
-    use tinybms_firmware::config::state::ConfigState;
     use tinybms_firmware::config::store::{Loaded, Saved, Source, Store, StoreError};
     use tinybms_firmware::config::Config;
-    use tinybms_firmware::Bridge;
 
     /// The flash the store works on.
     pub type Flash = BlockingAsync<NorFlashRegion<'static, 'static, 'static>>;
@@ -96,22 +94,14 @@ mod on {
         }
     }
 
-    /// The one rule for writing the record (the library's `save_when_quiet`),
-    /// driven to completion here: `BlockingAsync` never waits, and its state stays
-    /// on the stack instead of in the bridge task's static future. Without a store
-    /// a due save fails at once (the change holds in RAM).
-    pub fn save_when_quiet(
-        config: &mut ConfigState,
-        store: &mut Option<Store<Flash>>,
-        bridge: &Bridge,
-        now: u64,
-    ) -> Option<Result<Saved, StoreError>> {
+    /// Writes the record (when the station says so: the BMS link is quiet),
+    /// driven to completion here: `BlockingAsync` never waits, and its state
+    /// stays on the stack instead of in the station task's static future.
+    /// Without a store the save fails at once (the change holds in RAM).
+    pub fn save(store: &mut Option<Store<Flash>>, record: &Config) -> Result<Saved, StoreError> {
         match store.as_mut() {
-            Some(s) => embassy_futures::block_on(tinybms_firmware::config::store::save_when_quiet(
-                config, s, bridge, now,
-            )),
-            None if config.save_due() => config.saved(Err(StoreError::Partition)),
-            None => None,
+            Some(s) => embassy_futures::block_on(s.save(record)),
+            None => Err(StoreError::Partition),
         }
     }
 }
@@ -120,10 +110,8 @@ mod on {
 #[cfg(not(feature = "store"))]
 mod off {
     use esp_hal::peripherals::FLASH;
-    use tinybms_firmware::config::state::ConfigState;
     use tinybms_firmware::config::store::{Loaded, Saved, Source, StoreError};
     use tinybms_firmware::config::Config;
-    use tinybms_firmware::Bridge;
 
     /// No store.
     pub enum ChipStore {}
@@ -139,13 +127,8 @@ mod off {
         )
     }
 
-    /// Nothing changes the record without the host link.
-    pub fn save_when_quiet(
-        _: &mut ConfigState,
-        _: &mut Option<ChipStore>,
-        _: &Bridge,
-        _: u64,
-    ) -> Option<Result<Saved, StoreError>> {
-        None
+    /// Nothing changes the record without the host link (never called).
+    pub fn save(_: &mut Option<ChipStore>, _: &Config) -> Result<Saved, StoreError> {
+        Err(StoreError::Partition)
     }
 }

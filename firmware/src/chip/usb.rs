@@ -1,9 +1,32 @@
-//! The host link (feature `host-link`) on the wire the board's own USB
+//! The host link's wire (feature `host-link`), the one the board's own USB
 //! connector reaches (`BOARD.host`): the chip's USB-Serial-JTAG, or UART0 at
-//! 115 200 8N1 on a board whose connector is a USB-UART bridge. Its two tasks
-//! and the [`HostPort`] the bridge task drives; the bridge's log lines go out
-//! as `log` lines too. Without the feature, [`HostPort`] is a stub whose calls
-//! the compiler removes, so the bridge task reads the same either way.
+//! 115 200 8N1 on a board whose connector is a USB-UART bridge. Two pumps per
+//! wire: bytes from the host into [`wires::HOST_RX`], whole lines from
+//! [`wires::HOST_TX`] to the host.
+//!
+//! **A host that does not read never holds the station back.** The station
+//! only puts lines into the pipe when one fits whole and never waits on it.
+//! The writer gives a line whole or not at all, and waits a bounded time:
+//!
+//! * USB-Serial-JTAG (esp-hal 1.2): `write_async` puts up to 64 bytes in the
+//!   IN endpoint's FIFO, sets WR_DONE, then waits for the IN_EMPTY interrupt
+//!   *and* the `serial_in_ep_data_free` bit; when no host reads (a USB charger,
+//!   a power-only cable, a closed terminal) it never returns, and on an
+//!   endpoint that keeps raising the interrupt without room it loops, taking
+//!   the interrupt-enable lock each time. So the writer never starts a line
+//!   unless the FIFO has room (it tries its first byte with the non-blocking
+//!   `write_byte_nb`, every [`PROBE_STEP`], for at most [`LINE_START_WAIT`]),
+//!   and gives the rest [`LINE_WRITE_TIMEOUT`]. A host that took nothing in
+//!   that time is *absent*: its lines are dropped whole without touching the
+//!   driver, and a probe every [`ABSENT_PROBE_PERIOD`] finds it again; then
+//!   a newline closes a line cut by a timeout (the host's decoder rejects the
+//!   piece and resyncs) and `hello` follows.
+//! * UART0: the UART always drains (115 200 Bd, about 11 KB/s), whether or
+//!   not anyone listens; `write_async` waits only for FIFO room. A write error
+//!   drops the rest of that line and the writer ends it with a newline.
+//!
+//! Lines dropped on the wire are counted ([`wires::host_lines_dropped`]) and
+//! reach the host link's `dropped_lines` (`stats`, `hello`).
 
 #[cfg(not(feature = "host-link"))]
 pub use off::*;
@@ -14,43 +37,27 @@ pub use on::*;
 mod on {
     use defmt::info;
     use embassy_executor::Spawner;
-    use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
-    use embassy_sync::pipe::Pipe;
-    use embassy_sync::signal::Signal;
-    use embassy_time::{with_timeout, Duration};
+    use embassy_time::{with_deadline, with_timeout, Duration, Instant, Timer};
     use esp_hal::gpio::AnyPin;
     use esp_hal::peripherals::{UART0, USB_DEVICE};
     use esp_hal::uart::{Config as UartConfig, Uart, UartRx, UartTx};
     use esp_hal::usb::usb_serial_jtag::{UsbSerialJtag, UsbSerialJtagRx, UsbSerialJtagTx};
     use esp_hal::Async;
     use tinybms_firmware::boards::{Chip, HostWire};
-    use tinybms_firmware::config::state::ConfigState;
-    use tinybms_firmware::config::store::{Saved, StoreError};
     use tinybms_firmware::config::Config;
-    use tinybms_firmware::host_link::{HostLink, OUT_LINE_MAX};
-    use tinybms_firmware::{Bridge, Report};
 
-    use crate::{now_us, spawn, BOARD};
+    use crate::{spawn, wires, BOARD};
 
-    /// Bytes from the host (USB-Serial-JTAG → bridge task). When full, `usb_rx_task`
-    /// waits, and the USB endpoint makes the host wait: nothing is lost.
-    static HOST_RX: Pipe<CriticalSectionRawMutex, HOST_RX_PIPE> = Pipe::new();
-    /// Encoded lines for the host (bridge task → `usb_tx_task`).
-    static HOST_TX: Pipe<CriticalSectionRawMutex, HOST_TX_PIPE> = Pipe::new();
-    /// `usb_tx_task` saw a write go through after none could (at boot, or after a
-    /// timeout): a host has (re)opened the port. The bridge task then queues `hello`.
-    static HOST_CONNECTED: Signal<CriticalSectionRawMutex, ()> = Signal::new();
-
-    /// Size of [`HOST_RX`], bytes.
-    const HOST_RX_PIPE: usize = 256;
-    /// Size of [`HOST_TX`], bytes: two of the longest lines.
-    const HOST_TX_PIPE: usize = 2 * OUT_LINE_MAX;
-    /// Longest a write of one chunk to the USB port may take (the host reads the IN
-    /// endpoint every millisecond while the port is open). On timeout the chunk is
-    /// dropped and the host is deemed gone until a write goes through again.
-    const USB_WRITE_TIMEOUT: Duration = Duration::from_millis(50);
-    /// Bytes written to the USB port at once (the endpoint's FIFO is 64 bytes).
-    const USB_WRITE_CHUNK: usize = 256;
+    /// Longest the writer waits for room to start a line.
+    const LINE_START_WAIT: Duration = Duration::from_millis(20);
+    /// How often it looks for room meanwhile.
+    const PROBE_STEP: Duration = Duration::from_millis(1);
+    /// Longest the rest of a started line may take (the host reads the IN
+    /// endpoint every millisecond while the port is open: a line of
+    /// `OUT_LINE_MAX` bytes is 16 packets).
+    const LINE_WRITE_TIMEOUT: Duration = Duration::from_millis(100);
+    /// An absent host is looked for again this often.
+    const ABSENT_PROBE_PERIOD: Duration = Duration::from_secs(1);
 
     /// The host link on the USB cable: the USB-Serial-JTAG (CDC-ACM; its JTAG
     /// side, probe-rs and RTT, is a separate USB interface of the same device:
@@ -94,7 +101,8 @@ mod on {
                         spawn(spawner, uart0_tx_task(tx));
                         // No line state on a UART: a host says `hello`; the
                         // first one is sent at boot.
-                        HOST_CONNECTED.signal(());
+                        wires::HOST_CONNECTED.signal(());
+                        wires::wake();
                     }
                     Err(_) => defmt::warn!("host link: UART0 config refused"),
                 }
@@ -102,147 +110,157 @@ mod on {
         }
     }
 
-    /// The bridge task's side of the host link.
-    pub struct HostPort {
-        link: HostLink,
-        /// When the host link's timers want it called again (set at the end of every
-        /// pass, after whatever the pass changed).
-        due: u64,
-        rx_buf: [u8; 64],
-        line: [u8; OUT_LINE_MAX],
-        /// Packs in parallel: the battery from the CAN task.
-        #[cfg(feature = "can")]
-        battery: Option<
-            embassy_sync::watch::Receiver<
-                'static,
-                embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex,
-                tinybms_firmware::inverter::packs::BatteryView,
-                2,
-            >,
-        >,
+    /// Bytes the writers take from the pipe at once.
+    const CHUNK: usize = 64;
+
+    /// Splits what the writer reads into pieces of lines: each piece ends at
+    /// a newline or at the end of what was read. The station writes lines
+    /// whole, so once a line has begun, its rest is already in the pipe.
+    struct Pieces {
+        buf: [u8; CHUNK],
+        start: usize,
+        end: usize,
     }
 
-    impl HostPort {
-        pub fn new(bridge: &Bridge, config: &Config) -> Self {
-            let mut link = HostLink::new(config.host_link(BOARD.chip.name()), now_us());
-            let due = link.poll(now_us(), bridge);
+    impl Pieces {
+        const fn new() -> Self {
             Self {
-                link,
-                due,
-                rx_buf: [0; 64],
-                line: [0; OUT_LINE_MAX],
-                #[cfg(feature = "can")]
-                battery: crate::can::BATTERY.receiver(),
+                buf: [0; CHUNK],
+                start: 0,
+                end: 0,
             }
         }
 
-        pub fn on_report(&mut self, report: &Report) {
-            self.link.on_report(report);
-        }
-
-        pub fn on_uart_tx(&mut self, bytes: &[u8]) {
-            self.link.on_uart_tx(bytes);
-        }
-
-        pub fn on_uart_rx(&mut self, bytes: &[u8]) {
-            self.link.on_uart_rx(bytes);
-        }
-
-        /// When the host link wants to be called again (µs).
-        pub fn due(&self) -> u64 {
-            self.due
-        }
-
-        /// Waits for bytes from the host (cancellation-safe); their count.
-        pub async fn receive(&mut self) -> usize {
-            HOST_RX.read(&mut self.rx_buf).await
-        }
-
-        /// The `n` bytes [`HostPort::receive`] got, into the host link.
-        pub fn handle_rx(&mut self, n: usize, bridge: &mut Bridge, config: &mut ConfigState) {
-            let bytes = self.rx_buf.get(..n).unwrap_or(&[]);
-            self.link.handle_rx(now_us(), bytes, bridge, config);
-        }
-
-        /// The running configuration changed.
-        pub fn apply_config(&mut self, running: &Config) {
-            self.link.apply_config(now_us(), running);
-        }
-
-        /// The configuration's save is done.
-        pub fn on_config_saved(&mut self, result: Result<Saved, StoreError>) {
-            self.link.on_config_saved(result);
-        }
-
-        /// End of a bridge-task pass: a (re)connected host gets `hello`; streamed
-        /// telemetry when due; encoded lines move to the USB writer while its pipe
-        /// has room for a whole one (no I/O here, never a wait).
-        pub fn after_pass(&mut self, bridge: &Bridge, config: &ConfigState) {
-            if HOST_CONNECTED.try_take().is_some() {
-                self.link.connected(now_us());
+        /// The next piece, and whether it ends a line.
+        async fn next(&mut self) -> (&[u8], bool) {
+            if self.start >= self.end {
+                self.start = 0;
+                self.end = wires::HOST_TX.read(&mut self.buf).await;
             }
-            while let Some((level, line)) = crate::log::for_host() {
-                self.link.log(level, line.as_str());
-            }
-            #[cfg(feature = "can")]
-            if let Some(v) = self.battery.as_mut().and_then(|r| r.try_changed()) {
-                self.link.on_battery(Some(v));
-            }
-            self.due = self.link.poll(now_us(), bridge);
-            while HOST_TX.free_capacity() >= OUT_LINE_MAX {
-                let Some(n) = self
-                    .link
-                    .next_line(now_us(), bridge, config, &mut self.line)
-                else {
-                    break;
-                };
-                let _ = HOST_TX.try_write(self.line.get(..n).unwrap_or(&[]));
-            }
+            let rest = self.buf.get(self.start..self.end).unwrap_or(&[]);
+            let len = rest
+                .iter()
+                .position(|&b| b == b'\n')
+                .map_or(rest.len(), |i| i + 1);
+            let piece = rest.get(..len).unwrap_or(&[]);
+            self.start += len;
+            (piece, piece.last() == Some(&b'\n'))
         }
     }
 
-    /// Host → bridge: bytes from the USB port into [`HOST_RX`]. Waits (and so makes
-    /// the host wait) while the bridge task has not taken the previous ones.
+    /// Host → station: bytes from the USB port into [`wires::HOST_RX`]. Waits
+    /// (and so makes the host wait) while the station has not taken the
+    /// previous ones.
     #[embassy_executor::task]
     async fn usb_rx_task(mut rx: UsbSerialJtagRx<'static, Async>) {
         use embedded_io_async::Read;
         let mut buf = [0u8; 64];
         loop {
             let Ok(n) = rx.read(&mut buf).await; // the error type is `Infallible`
-            HOST_RX.write_all(buf.get(..n).unwrap_or(&[])).await;
+            wires::HOST_RX.write_all(buf.get(..n).unwrap_or(&[])).await;
+            wires::wake();
         }
     }
 
-    /// Bridge → host: lines from [`HOST_TX`] to the USB port, each chunk with a
-    /// timeout. A chunk that times out is dropped (the host sees a cut line and
-    /// resyncs at the next newline); the first write that goes through afterwards
-    /// (and the first one after boot) signals [`HOST_CONNECTED`].
+    /// Tries to put `byte` in the IN FIFO, every [`PROBE_STEP`], for at most
+    /// `wait`; whether it went in.
+    async fn start_line(
+        tx: &mut UsbSerialJtagTx<'static, Async>,
+        byte: u8,
+        wait: Duration,
+    ) -> bool {
+        let until = Instant::now() + wait;
+        loop {
+            if tx.write_byte_nb(byte).is_ok() {
+                return true;
+            }
+            if Instant::now() >= until {
+                return false;
+            }
+            Timer::after(PROBE_STEP).await;
+        }
+    }
+
+    /// Station → host over USB: see the module documentation.
     #[embassy_executor::task]
     async fn usb_tx_task(mut tx: UsbSerialJtagTx<'static, Async>) {
         use embedded_io_async::Write;
-        let mut buf = [0u8; USB_WRITE_CHUNK];
-        let mut reading = false;
+        let mut pieces = Pieces::new();
+        // At boot nobody is known to read: the first line that goes through
+        // says a host is there.
+        let mut present = false;
+        // A line was cut by a timeout: its start is in the FIFO.
+        let mut cut = false;
+        let mut next_probe = Instant::now();
+        let mut at_start = true;
+        let mut dropping = false;
+        let mut deadline = Instant::now();
         loop {
-            let n = HOST_TX.read(&mut buf).await;
-            let chunk = buf.get(..n).unwrap_or(&[]);
-            let sent = with_timeout(USB_WRITE_TIMEOUT, async {
-                tx.write_all(chunk).await?;
-                tx.flush().await
-            })
-            .await;
-            match sent {
-                Ok(Ok(())) => {
-                    if !reading {
-                        reading = true;
-                        HOST_CONNECTED.signal(());
+            let (mut piece, ends_line) = pieces.next().await;
+            if at_start {
+                let Some(&first) = piece.first() else {
+                    continue;
+                };
+                deadline = Instant::now() + LINE_WRITE_TIMEOUT;
+                if present {
+                    dropping = !start_line(&mut tx, first, LINE_START_WAIT).await;
+                    if dropping {
+                        present = false;
+                        next_probe = Instant::now() + ABSENT_PROBE_PERIOD;
+                    }
+                } else if Instant::now() < next_probe {
+                    dropping = true;
+                } else {
+                    next_probe = Instant::now() + ABSENT_PROBE_PERIOD;
+                    let probe = if cut { b'\n' } else { first };
+                    dropping = true;
+                    if tx.write_byte_nb(probe).is_ok() {
+                        present = true;
+                        wires::HOST_CONNECTED.signal(());
+                        wires::wake();
+                        if cut {
+                            // The piece in the FIFO is ended; this line is
+                            // dropped (`hello` comes first).
+                            cut = false;
+                            let _ = with_timeout(LINE_WRITE_TIMEOUT, tx.flush()).await;
+                        } else {
+                            dropping = false;
+                        }
                     }
                 }
-                _ => reading = false,
+                if !dropping {
+                    piece = piece.get(1..).unwrap_or(&[]);
+                }
+            }
+            if !dropping {
+                let sent = with_deadline(deadline, async {
+                    if at_start {
+                        // The first byte goes out alone: `write_async` fills
+                        // 64 bytes without looking, and expects an empty FIFO.
+                        tx.flush().await?;
+                    }
+                    tx.write_all(piece).await?;
+                    if ends_line {
+                        tx.flush().await?;
+                    }
+                    Ok::<(), core::convert::Infallible>(())
+                })
+                .await;
+                if !matches!(sent, Ok(Ok(()))) {
+                    present = false;
+                    cut = true;
+                    dropping = true;
+                    next_probe = Instant::now() + ABSENT_PROBE_PERIOD;
+                }
+            }
+            at_start = ends_line;
+            if ends_line && dropping {
+                wires::host_lines_dropped(1);
             }
         }
     }
 
-    /// Host → bridge over UART0 (see [`usb_rx_task`]). Receive errors (a
+    /// Host → station over UART0 (see [`usb_rx_task`]). Receive errors (a
     /// framing error while the USB-UART bridge powers up) are skipped: the line
     /// assembler resyncs at the next newline.
     #[embassy_executor::task]
@@ -250,60 +268,47 @@ mod on {
         let mut buf = [0u8; 64];
         loop {
             if let Ok(n) = rx.read_async(&mut buf).await {
-                HOST_RX.write_all(buf.get(..n).unwrap_or(&[])).await;
+                wires::HOST_RX.write_all(buf.get(..n).unwrap_or(&[])).await;
+                wires::wake();
             }
         }
     }
 
-    /// Bridge → host over UART0: the UART always drains (115 200 Bd, about
-    /// 11 KB/s), whether or not anyone listens.
+    /// Station → host over UART0: whole lines; a write error drops the rest of
+    /// the line, which is then ended with a newline (counted).
     #[embassy_executor::task]
     async fn uart0_tx_task(mut tx: UartTx<'static, Async>) {
-        let mut buf = [0u8; USB_WRITE_CHUNK];
+        let mut pieces = Pieces::new();
+        let mut dropping = false;
         loop {
-            let n = HOST_TX.read(&mut buf).await;
-            let mut rest = buf.get(..n).unwrap_or(&[]);
-            while !rest.is_empty() {
-                match tx.write_async(rest).await {
-                    Ok(k) => rest = rest.get(k..).unwrap_or(&[]),
-                    Err(_) => break,
+            let (piece, ends_line) = pieces.next().await;
+            let mut rest = piece;
+            while !rest.is_empty() && !dropping {
+                match with_timeout(LINE_WRITE_TIMEOUT, tx.write_async(rest)).await {
+                    Ok(Ok(k)) => rest = rest.get(k..).unwrap_or(&[]),
+                    _ => {
+                        dropping = true;
+                        let _ = with_timeout(LINE_WRITE_TIMEOUT, tx.write_async(b"\n")).await;
+                    }
                 }
+            }
+            if ends_line {
+                if dropping {
+                    wires::host_lines_dropped(1);
+                }
+                dropping = false;
             }
         }
     }
 }
 
-/// Without the host link: nothing to drive (the compiler removes these calls).
+/// Without the host link: the USB port stays unused.
 #[cfg(not(feature = "host-link"))]
 mod off {
     use embassy_executor::Spawner;
     use esp_hal::peripherals::{UART0, USB_DEVICE};
-    use tinybms_firmware::config::state::ConfigState;
-    use tinybms_firmware::config::store::{Saved, StoreError};
     use tinybms_firmware::config::Config;
-    use tinybms_firmware::{Bridge, Report};
 
-    /// Nothing to start: the USB port stays unused.
+    /// Nothing to start.
     pub fn start(_: Spawner, _: USB_DEVICE<'static>, _: UART0<'static>, _: &Config) {}
-
-    pub struct HostPort;
-
-    impl HostPort {
-        pub fn new(_: &Bridge, _: &Config) -> Self {
-            Self
-        }
-        pub fn apply_config(&mut self, _: &Config) {}
-        pub fn on_config_saved(&mut self, _: Result<Saved, StoreError>) {}
-        pub fn on_report(&mut self, _: &Report) {}
-        pub fn on_uart_tx(&mut self, _: &[u8]) {}
-        pub fn on_uart_rx(&mut self, _: &[u8]) {}
-        pub fn due(&self) -> u64 {
-            u64::MAX
-        }
-        pub async fn receive(&mut self) -> usize {
-            core::future::pending().await
-        }
-        pub fn handle_rx(&mut self, _: usize, _: &mut Bridge, _: &mut ConfigState) {}
-        pub fn after_pass(&mut self, _: &Bridge, _: &ConfigState) {}
-    }
 }

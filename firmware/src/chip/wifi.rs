@@ -1,8 +1,9 @@
 //! Wi-Fi and MQTT (feature `wifi`): the battery in Home Assistant. Publish
-//! only, and never in the charge-control path: these tasks read copies of the
-//! telemetry ([`crate::TELEMETRY`], the events channel, the limits the CAN task
-//! sends) and nothing waits on them — a missing network or a bad broker only
-//! costs their own reconnects.
+//! only, and never in the charge-control path: these tasks read the copy the
+//! station publishes ([`wires::PUBLISHED`]: the snapshot with its freshness,
+//! the limits the inverter is told, the battery) and its events
+//! ([`wires::MQTT_EVENTS`]), and nothing waits on them — a missing network or
+//! a bad broker only costs their own reconnects.
 //!
 //! * `wifi_task` — station mode with the record's SSID and 64-hex pre-shared
 //!   key (the ESP Wi-Fi driver takes 64 hex digits as the PSK itself, so the chip
@@ -18,8 +19,7 @@ use embassy_futures::select::select;
 use embassy_net::tcp::client::{TcpClient, TcpClientState};
 use embassy_net::{DhcpConfig, Runner, Stack, StackResources};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
-use embassy_sync::channel::Channel;
-use embassy_sync::watch::{Receiver, Watch};
+use embassy_sync::watch::Receiver;
 use embassy_time::{Duration, Instant, Timer};
 use esp_hal::peripherals::WIFI;
 use esp_hal::rng::Rng;
@@ -30,17 +30,17 @@ use esp_radio::wifi::{
 };
 use heapless::String;
 use protocol_core::events::Event;
-use protocol_core::views::VersionInfo;
 use static_cell::StaticCell;
 use tinybms_firmware::config::Config;
 use tinybms_firmware::mqtt::net::StackNet;
 use tinybms_firmware::mqtt::publisher::{Publisher, View};
 use tinybms_firmware::mqtt::session::{self, Clock, Feed, Note, Target};
-use tinybms_firmware::mqtt::{Identity, Settings};
+use tinybms_firmware::mqtt::Settings;
+use tinybms_firmware::station::Published;
 use tinybms_firmware::text::Line;
-use tinybms_firmware::{Level, Report, Telemetry};
+use tinybms_firmware::Level;
 
-use crate::{spawn, SharedSnapshot, TELEMETRY};
+use crate::{spawn, wires};
 
 /// Heap for the Wi-Fi driver and the MQTT client's packet buffers, bytes: the
 /// station needs 47-57 KiB (esp-radio's documentation), MQTT a few.
@@ -53,41 +53,6 @@ const TCP_BUFFER: usize = 2048;
 /// Wi-Fi reconnect delays: the first, and the longest (doubling between).
 const WIFI_BACKOFF_MIN: Duration = Duration::from_secs(1);
 const WIFI_BACKOFF_MAX: Duration = Duration::from_secs(60);
-
-/// New BMS events for the MQTT output; a full channel drops the event for it.
-static EVENTS: Channel<CriticalSectionRawMutex, Event, 8> = Channel::new();
-
-/// The limits the CAN output sends (CVL 0.1 V, CCL 0.1 A, DCL 0.1 A).
-pub static LIMITS: Watch<CriticalSectionRawMutex, (u16, u16, u16), 1> = Watch::new();
-
-/// What the MQTT output needs with each snapshot besides the snapshot.
-#[derive(Clone)]
-pub struct Inputs {
-    seq: u32,
-    version: Option<VersionInfo>,
-    online: bool,
-    flagged: Option<&'static str>,
-    link: (u32, u32),
-}
-
-impl Inputs {
-    pub fn from_telemetry(t: &Telemetry, link: (u32, u32)) -> Self {
-        Self {
-            seq: t.snapshot_seq,
-            version: t.version,
-            online: t.online && t.ready,
-            flagged: t.live.flagged.map(|c| c.name()),
-            link,
-        }
-    }
-}
-
-/// A bridge report the MQTT output wants: new BMS events.
-pub fn on_report(report: &Report) {
-    if let Report::NewEvent(e) = report {
-        let _ = EVENTS.try_send(*e);
-    }
-}
 
 /// One log line (defmt and the host link's `log` lines) from pieces.
 fn say(level: Level, pieces: &[&str]) {
@@ -317,71 +282,43 @@ impl Clock for ChipClock {
     }
 }
 
-/// The shared telemetry, the events and the limits as the session's feed.
+/// What the station published, and its events, as the session's feed.
 struct ChipFeed {
-    telemetry: Receiver<'static, CriticalSectionRawMutex, SharedSnapshot, 4>,
-    limits: Option<Receiver<'static, CriticalSectionRawMutex, (u16, u16, u16), 1>>,
-    latest: Option<SharedSnapshot>,
-    last_limits: Option<(u16, u16, u16)>,
-    /// Packs in parallel: the battery from the CAN task.
-    #[cfg(feature = "can")]
-    battery: Option<
-        Receiver<
-            'static,
-            CriticalSectionRawMutex,
-            tinybms_firmware::inverter::packs::BatteryView,
-            2,
-        >,
-    >,
-    #[cfg(feature = "can")]
-    last_battery: Option<tinybms_firmware::inverter::packs::BatteryView>,
+    published: Receiver<'static, CriticalSectionRawMutex, Published, 1>,
+    latest: Published,
 }
 
 impl Feed for ChipFeed {
     fn with_view<R>(&mut self, now: u64, f: impl FnOnce(&View<'_>) -> R) -> R {
-        if let Some(s) = self.telemetry.try_changed() {
-            self.latest = Some(s);
+        if let Some(p) = self.published.try_changed() {
+            self.latest = p;
         }
-        if let Some(l) = self.limits.as_mut().and_then(|r| r.try_changed()) {
-            self.last_limits = Some(l);
-        }
-        #[cfg(feature = "can")]
-        if let Some(b) = self.battery.as_mut().and_then(|r| r.try_changed()) {
-            self.last_battery = Some(b);
-        }
-        #[cfg(feature = "can")]
-        let battery = self.last_battery.as_ref();
-        #[cfg(not(feature = "can"))]
-        let battery = None;
-        let latest = self.latest.as_ref();
-        let view = View {
-            snapshot: latest.map(|s| &s.snapshot),
-            seq: latest.map_or(0, |s| s.mqtt.seq),
-            age_us: latest.map(|s| now.saturating_sub(s.taken_at.as_micros())),
-            online: latest.is_some_and(|s| s.mqtt.online),
-            flagged: latest.and_then(|s| s.mqtt.flagged),
-            identity: latest.and_then(|s| s.mqtt.version.as_ref().map(Identity::from_version)),
-            limits: self.last_limits,
-            link: latest.map_or((0, 0), |s| s.mqtt.link),
-            battery,
-        };
-        f(&view)
+        f(&View::of(&self.latest, now))
     }
 
     fn next_event(&mut self) -> Option<Event> {
-        EVENTS.try_receive().ok()
+        let e = wires::MQTT_EVENTS.try_receive().ok();
+        if e.is_some() {
+            // Room again: the station hands on the next one.
+            wires::wake();
+        }
+        e
     }
 
     async fn changed(&mut self) {
-        // Telemetry (a new snapshot) or an event waiting. Both cancel-safe.
-        let _ = select(self.telemetry.changed(), EVENTS.ready_to_receive()).await;
+        // A new picture or an event waiting. Both cancel-safe.
+        let _ = select(
+            self.published.changed(),
+            wires::MQTT_EVENTS.ready_to_receive(),
+        )
+        .await;
     }
 }
 
 #[embassy_executor::task]
 async fn mqtt_task(stack: Stack<'static>, target: Target, settings: Settings) {
-    let Some(telemetry) = TELEMETRY.receiver() else {
-        warn!("telemetry watch has no free receiver slot: no MQTT output");
+    let Some(published) = wires::PUBLISHED.receiver() else {
+        warn!("the published watch has no free receiver slot: no MQTT output");
         return;
     };
     static STATE: StaticCell<TcpClientState<1, TCP_BUFFER, TCP_BUFFER>> = StaticCell::new();
@@ -402,14 +339,8 @@ async fn mqtt_task(stack: Stack<'static>, target: Target, settings: Settings) {
         crate::log::line(Level::Info, &l);
     });
     let mut feed = ChipFeed {
-        telemetry,
-        limits: LIMITS.receiver(),
-        latest: None,
-        last_limits: None,
-        #[cfg(feature = "can")]
-        battery: crate::can::BATTERY.receiver(),
-        #[cfg(feature = "can")]
-        last_battery: None,
+        published,
+        latest: Published::default(),
     };
     let mut publisher = Publisher::new(settings, env!("CARGO_PKG_VERSION"));
     let mut note = |n: Note| {

@@ -27,17 +27,19 @@
 
 pub mod button;
 pub mod codec;
+mod host;
 pub mod state;
 pub mod store;
 pub mod value;
 
 use heapless::String;
 
-use crate::host_link::HostLinkConfig;
+use crate::freshness::Freshness;
 use crate::inverter::control::ChargeConfig;
-use crate::inverter::{InverterConfig, Protocol, StalePolicy};
+use crate::inverter::{InverterConfig, Protocol};
 use crate::{Instant, SECOND};
 
+pub use host::{HostLinkConfig, DEFAULT_STREAM_PERIOD_MS};
 pub use value::{FieldError, Value};
 
 /// Version of the record's layout in flash ([`codec`]). A record of an older
@@ -172,16 +174,7 @@ impl Field {
 /// Longest text of any field, bytes.
 pub const TEXT_MAX: usize = 64;
 
-/// What stale telemetry makes the inverter output do (the record's form of
-/// [`StalePolicy`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum StaleMode {
-    /// Stop sending: the inverter stops charging and discharging.
-    Stop,
-    /// Send CCL 0 (discharge allowed) for at most `stale_hold_s`, then stop.
-    Hold,
-}
+pub use crate::freshness::StaleMode;
 
 macro_rules! fields {
     ($( $id:ident = $tag:literal, $name:literal, $unit:literal, $group:ident, $applies:ident,
@@ -452,9 +445,9 @@ impl Default for Config {
         Self {
             can_output: true,
             protocol: Protocol::Victron,
-            stale_after_s: (i.stale_after_us / SECOND) as u16,
+            stale_after_s: (i.freshness.limit_us / SECOND) as u16,
             stale_policy: StaleMode::Stop,
-            stale_hold_s: 120,
+            stale_hold_s: (i.stale_hold_us / SECOND) as u16,
             pack_node: i.node,
             absorption_mv: c.absorption_mv.unwrap_or(0),
             absorption_margin_mv: c.absorption_margin_mv,
@@ -476,7 +469,7 @@ impl Default for Config {
             warning_margin_mv: c.warn_margin_mv,
             warning_current_pct: c.warn_current_pct,
             read_only: false,
-            stream_period_ms: crate::host_link::DEFAULT_STREAM_PERIOD_MS,
+            stream_period_ms: DEFAULT_STREAM_PERIOD_MS,
             wifi_ssid: String::new(),
             wifi_key: String::new(),
             hostname: String::new(),
@@ -739,13 +732,9 @@ impl Config {
             enabled: self.can_output,
             protocol: self.protocol,
             charge: self.charge(),
-            stale_after_us: Instant::from(self.stale_after_s) * SECOND,
-            stale_policy: match self.stale_policy {
-                StaleMode::Stop => StalePolicy::StopSending,
-                StaleMode::Hold => {
-                    StalePolicy::HoldChargeZero(Instant::from(self.stale_hold_s) * SECOND)
-                }
-            },
+            freshness: Freshness::new(Instant::from(self.stale_after_s) * SECOND),
+            stale_policy: self.stale_policy,
+            stale_hold_us: Instant::from(self.stale_hold_s) * SECOND,
             node: self.pack_node,
             ..InverterConfig::default()
         }
@@ -758,6 +747,7 @@ impl Config {
             stream_period_ms: self.stream_period_ms,
             firmware: env!("CARGO_PKG_VERSION"),
             chip,
+            stale_after_ms: u64::from(self.stale_after_s) * 1000,
         }
     }
 

@@ -224,21 +224,3 @@ impl<S: NorFlash> Store<S> {
         self.map.erase_all().await.map_err(store_error)
     }
 }
-
-/// The one rule for writing the record: a save is made only when one is due
-/// and the BMS link is quiet at `now` ([`crate::Bridge::quiet`]: no reply can be
-/// on its way), and the caller sends nothing to the BMS until it returns (the
-/// poll is held). Returns the final result of the save once there is one (for
-/// the host that asked for the change: [`super::state::ConfigState::saved`]).
-pub async fn save_when_quiet<S: NorFlash>(
-    state: &mut super::state::ConfigState,
-    store: &mut Store<S>,
-    bridge: &crate::Bridge,
-    now: crate::Instant,
-) -> Option<Result<Saved, StoreError>> {
-    if !state.save_due() || !bridge.quiet(now) {
-        return None;
-    }
-    let result = store.save(state.stored()).await;
-    state.saved(result)
-}

@@ -19,7 +19,7 @@
 use heapless::String;
 
 use super::{Field, Kind, TextRule, TEXT_MAX};
-use crate::text::Line;
+use crate::line::Line;
 
 /// A value of some field.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

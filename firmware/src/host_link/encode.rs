@@ -288,6 +288,8 @@ struct TelemetryLine {
     req: Option<u32>,
     seq: u32,
     age_ms: Option<u64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    stale_after_ms: Option<u64>,
     online: bool,
     ready: bool,
 }
@@ -301,6 +303,8 @@ struct TelemetryFull<'a> {
     req: Option<u32>,
     seq: u32,
     age_ms: Option<u64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    stale_after_ms: Option<u64>,
     online: bool,
     ready: bool,
     pack_voltage_v: Option<Dec>,
@@ -366,6 +370,9 @@ pub struct TelemetryHead {
     pub seq: u32,
     /// Snapshot age, ms.
     pub age_ms: Option<u64>,
+    /// The freshness rule's limit the bridge runs with, ms (the host link's
+    /// lines carry it, so a host shows "stale" by the bridge's rule).
+    pub stale_after_ms: Option<u64>,
     /// Link up.
     pub online: bool,
     /// Settings and limits read.
@@ -388,6 +395,7 @@ pub fn telemetry(
                 req: head.req,
                 seq: head.seq,
                 age_ms: head.age_ms,
+                stale_after_ms: head.stale_after_ms,
                 online: head.online,
                 ready: head.ready,
             },
@@ -402,6 +410,7 @@ pub fn telemetry(
             req: head.req,
             seq: head.seq,
             age_ms: head.age_ms,
+            stale_after_ms: head.stale_after_ms,
             online: head.online,
             ready: head.ready,
             pack_voltage_v: f32v(s.pack_voltage_v),

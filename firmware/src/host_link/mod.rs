@@ -86,8 +86,7 @@ pub const SUBJECT_MAX: usize = 32;
 /// oldest is dropped and counted (a host that connects sees the latest).
 pub const LOG_QUEUE: usize = 4;
 
-/// Default telemetry stream period, ms.
-pub const DEFAULT_STREAM_PERIOD_MS: u32 = 1_000;
+pub use crate::config::{HostLinkConfig, DEFAULT_STREAM_PERIOD_MS};
 
 /// Error codes of `error` lines (PROTOCOL.md).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -132,30 +131,6 @@ impl ErrorCode {
             Self::ReadOnly => "read_only",
             Self::Busy => "busy",
             Self::NotReady => "not_ready",
-        }
-    }
-}
-
-/// Configuration of the host link.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct HostLinkConfig {
-    /// Refuse `set`, `reset` and `clear` (a read-only bridge).
-    pub read_only: bool,
-    /// Telemetry stream period at start, ms (0: off; else 100-60000).
-    pub stream_period_ms: u32,
-    /// Firmware version for `hello`.
-    pub firmware: &'static str,
-    /// Chip name for `hello` (`esp32c3`, `esp32c6`, `sim`).
-    pub chip: &'static str,
-}
-
-impl Default for HostLinkConfig {
-    fn default() -> Self {
-        Self {
-            read_only: false,
-            stream_period_ms: DEFAULT_STREAM_PERIOD_MS,
-            firmware: env!("CARGO_PKG_VERSION"),
-            chip: "unknown",
         }
     }
 }
@@ -360,6 +335,11 @@ impl HostLink {
         self.s.stream_period_ms
     }
 
+    /// The port dropped `n` whole lines (a host that does not read).
+    pub fn lines_dropped(&mut self, n: u32) {
+        self.s.stats.dropped_lines = self.s.stats.dropped_lines.wrapping_add(n);
+    }
+
     /// True while capture (`raw` lines) is on.
     pub fn capturing(&self) -> bool {
         self.s.capture
@@ -510,7 +490,7 @@ impl HostLink {
             } else if self.s.stream_due {
                 self.s.stream_due = false;
                 self.s.battery_lines = self.s.battery.as_ref().map_or(0, |v| 1 + v.packs.len());
-                telemetry(now, bridge, None, out)
+                telemetry(now, bridge, None, self.s.config.stale_after_ms, out)
             } else if self.s.battery_lines > 0 {
                 let v = self.s.battery.as_ref();
                 let total = v.map_or(0, |v| 1 + v.packs.len());
@@ -543,12 +523,19 @@ impl HostLink {
     }
 }
 
-fn telemetry(now: Instant, bridge: &Bridge, req: Option<u32>, out: &mut [u8]) -> Option<usize> {
+fn telemetry(
+    now: Instant,
+    bridge: &Bridge,
+    req: Option<u32>,
+    stale_after_ms: u64,
+    out: &mut [u8],
+) -> Option<usize> {
     let t = bridge.telemetry();
     let head = encode::TelemetryHead {
         req,
         seq: t.snapshot_seq,
         age_ms: t.snapshot_age_us(now).map(|a| a / crate::MS),
+        stale_after_ms: Some(stale_after_ms),
         online: t.online,
         ready: t.ready,
     };
@@ -619,6 +606,7 @@ impl State {
     /// Read-only and the stream period from the running configuration.
     fn apply_config(&mut self, now: Instant, running: &Config) {
         self.config.read_only = running.read_only;
+        self.config.stale_after_ms = u64::from(running.stale_after_s) * 1000;
         if self.config.stream_period_ms != running.stream_period_ms {
             self.config.stream_period_ms = running.stream_period_ms;
             self.set_stream(now, configured_period(&self.config));
@@ -1004,7 +992,7 @@ impl State {
                 self.config.read_only,
                 self.stream_period_ms,
             ),
-            Out::Telemetry(req) => telemetry(now, bridge, *req, out),
+            Out::Telemetry(req) => telemetry(now, bridge, *req, self.config.stale_after_ms, out),
             Out::Error {
                 req,
                 code,

@@ -337,6 +337,20 @@ pub struct Limits {
     pub discharge_dv: u16,
 }
 
+/// Absorption is reached when the highest cell is within this of the target
+/// (mV; with the current tapered below the tail current).
+pub const AT_TARGET_CELL_MV: u16 = 10;
+/// Or when the average cell is within this of it (the pack held at CVL), mV.
+pub const AT_TARGET_AVERAGE_MV: i32 = 15;
+/// A runner's CVL offset is released once the highest cell is this far below
+/// the target, mV (hysteresis against the tolerance it was set with).
+pub const RUNNER_RELEASE_MV: u16 = 5;
+/// Float without a configured value: this fraction of absorption (15/16:
+/// 3.45 V → 3.23 V per LiFePO4 cell).
+pub const FLOAT_OF_ABSORPTION: (u32, u32) = (15, 16);
+/// The pack counts as charging above this current, A (below: noise, or rest).
+pub const CHARGING_ABOVE_A: f32 = 0.5;
+
 /// The charge controller. Call [`ChargeControl::update`] with each new snapshot.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ChargeControl {
@@ -508,7 +522,9 @@ impl ChargeControl {
         let float = self
             .config
             .float_mv
-            .unwrap_or((u32::from(absorption) * 15 / 16) as u16)
+            .unwrap_or(
+                (u32::from(absorption) * FLOAT_OF_ABSORPTION.0 / FLOAT_OF_ABSORPTION.1) as u16,
+            )
             .max(s.uv_cutoff_mv)
             .min(absorption);
         (absorption, float)
@@ -534,10 +550,10 @@ impl ChargeControl {
         match self.phase {
             Phase::Absorption => {
                 // At the target: the highest cell there, or the pack held at CVL
-                // (the average cell within 15 mV of the target).
+                // (the average cell within AT_TARGET_AVERAGE_MV of the target).
                 let avg_mv = (p.pack_v * 1000.0 / n as f32) as i32;
-                let at_target = p.max_cell_mv.saturating_add(10) >= absorption
-                    || avg_mv.saturating_add(15) >= i32::from(absorption);
+                let at_target = p.max_cell_mv.saturating_add(AT_TARGET_CELL_MV) >= absorption
+                    || avg_mv.saturating_add(AT_TARGET_AVERAGE_MV) >= i32::from(absorption);
                 let tapered = p.current_a < c.tail_current_a;
                 if at_target && tapered {
                     let since = *self.full_since.get_or_insert(now);
@@ -569,7 +585,7 @@ impl ChargeControl {
         let lead_mv = u32::from(p.max_cell_mv).saturating_sub(avg_mv);
         if p.max_cell_mv > target {
             self.runner_offset_mv = n * lead_mv.saturating_sub(u32::from(c.runner_tolerance_mv));
-        } else if p.max_cell_mv.saturating_add(5) < target {
+        } else if p.max_cell_mv.saturating_add(RUNNER_RELEASE_MV) < target {
             self.runner_offset_mv = 0;
         }
         let floor_mv = n * u32::from(s.uv_cutoff_mv);
@@ -655,7 +671,7 @@ impl ChargeControl {
         let w = c.warn_margin_mv;
         let pct = |a: u16| u32::from(a) * u32::from(c.warn_current_pct) / 100;
         let spread = p.max_cell_mv.saturating_sub(p.min_cell_mv);
-        let charging = p.current_a > 0.5;
+        let charging = p.current_a > CHARGING_ABOVE_A;
         let conditions = Conditions {
             high_voltage: level(
                 p.max_cell_mv >= s.ov_cutoff_mv,

@@ -178,6 +178,23 @@ pub fn limits(l: &Limits) -> CanFrame {
     frame(ID_LIMITS, &d)
 }
 
+/// The limits a 0x351 frame carries (`None` for another frame).
+pub fn limits_of(f: &CanFrame) -> Option<Limits> {
+    if f.id != ID_LIMITS || f.len < 8 {
+        return None;
+    }
+    let g = |i: usize| {
+        let b = |k: usize| f.data.get(k).copied().unwrap_or(0);
+        u16::from_le_bytes([b(i), b(i + 1)])
+    };
+    Some(Limits {
+        cvl_dv: g(0),
+        ccl_da: g(2),
+        dcl_da: g(4),
+        discharge_dv: g(6),
+    })
+}
+
 /// 0x355: SOC and SOH in whole percent (rounded down, so 100 % means really
 /// full), high-resolution SOC in 0.01 %.
 pub fn soc(p: &PackState) -> CanFrame {

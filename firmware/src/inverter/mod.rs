@@ -13,18 +13,19 @@
 //! what to log.
 //!
 //! **Stale data is never sent as fresh.** When the newest snapshot is older than
-//! [`InverterConfig::stale_after_us`], the configured [`StalePolicy`] applies.
+//! [`InverterConfig::freshness`] allows, the configured [`StaleMode`] applies.
 //! The default, [`StalePolicy::StopSending`], sends nothing more to a Victron
 //! GX: it stops charging and discharging 3 s after the last 0x351 (what
 //! Victron's own devices do on a lost battery). A Sunny Island would keep
 //! obeying the last 0x351 until 0x355 has been missing for 60 s, so it gets
-//! 0x351 with CCL 0 and DCL 0 (and no measurement frames: standby after 60 s). [`StalePolicy::HoldChargeZero`] keeps the inverter running on
+//! 0x351 with CCL 0 and DCL 0 (and no measurement frames: standby after 60 s). [`StaleMode::Hold`] keeps the inverter running on
 //! the battery for a bounded time: CCL 0, DCL and CVL as last computed, the
 //! alarm frame saying "BMS link lost", no measurement frames; then it stops too.
 
 pub mod control;
 pub mod frames;
 pub mod packs;
+pub mod protocol;
 
 use heapless::Deque;
 use protocol_core::events::{Event, EventId};
@@ -38,25 +39,8 @@ use self::packs::{
 };
 use crate::Instant;
 
-/// Which inverter protocol.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum Protocol {
-    /// Victron-compatible CAN-bus BMS (500 kbit/s).
-    Victron,
-    /// SMA Sunny Island (500 kbit/s).
-    SmaSunnyIsland,
-}
-
-/// What happens when the telemetry goes stale (see the module documentation).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum StalePolicy {
-    /// Stop sending at once: the inverter sees the battery as lost and stops.
-    StopSending,
-    /// Keep sending CCL = 0 (discharge allowed) for at most this long, µs.
-    HoldChargeZero(Instant),
-}
+pub use self::protocol::Protocol;
+pub use crate::freshness::{Freshness, StaleMode};
 
 /// Inverter output settings; [`Default`] gives the documented defaults.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -68,10 +52,12 @@ pub struct InverterConfig {
     pub protocol: Protocol,
     /// Charge control.
     pub charge: ChargeConfig,
-    /// Telemetry older than this is stale, µs (default 5 s: 20 live periods).
-    pub stale_after_us: Instant,
+    /// When telemetry is stale (the one rule; default 5 s: 20 live periods).
+    pub freshness: Freshness,
     /// What to do then.
-    pub stale_policy: StalePolicy,
+    pub stale_policy: StaleMode,
+    /// With [`StaleMode::Hold`]: how long, µs (default 120 s).
+    pub stale_hold_us: Instant,
     /// Period of 0x351, 0x355, 0x356, 0x35A, µs (1 s).
     pub fast_period_us: Instant,
     /// Period of the other frames, µs (5 s).
@@ -92,8 +78,9 @@ impl Default for InverterConfig {
             enabled: true,
             protocol: Protocol::Victron,
             charge: ChargeConfig::default(),
-            stale_after_us: 5 * crate::SECOND,
-            stale_policy: StalePolicy::StopSending,
+            freshness: Freshness::default(),
+            stale_policy: StaleMode::Stop,
+            stale_hold_us: 120 * crate::SECOND,
             fast_period_us: crate::SECOND,
             slow_period_us: 5 * crate::SECOND,
             inverter_timeout_us: 5 * crate::SECOND,
@@ -138,7 +125,9 @@ pub enum InverterReport {
         /// Age of the newest snapshot, ms.
         age_ms: u32,
         /// The policy applied.
-        policy: StalePolicy,
+        policy: StaleMode,
+        /// With [`StaleMode::Hold`], for how long, µs.
+        hold_us: Instant,
     },
     /// Hold-charge-zero time is up: sending stopped.
     StaleHoldEnded,
@@ -239,7 +228,7 @@ pub struct Inverter {
     reports: Deque<InverterReport, 8>,
     /// A stale policy given while the data is stale: it applies from the next
     /// stale episode on (see [`Inverter::reconfigure`]).
-    next_stale_policy: Option<StalePolicy>,
+    next_stale_policy: Option<(StaleMode, Instant)>,
     /// Several packs: what was heard, who speaks, the battery's limits.
     packs: Packs,
     election: Election,
@@ -254,6 +243,8 @@ pub struct Inverter {
     duplicate_reported: bool,
     seq: u8,
     own_summary: Option<Summary>,
+    /// The last 0x351 handed out, and when.
+    told: Option<(Limits, Instant)>,
 }
 
 impl Inverter {
@@ -301,6 +292,7 @@ impl Inverter {
             duplicate_reported: false,
             seq: 0,
             own_summary: None,
+            told: None,
         }
     }
 
@@ -332,7 +324,7 @@ impl Inverter {
         if node == 0 {
             return None;
         }
-        let stale = self.config.stale_after_us;
+        let freshness = self.config.freshness;
         let mut packs: heapless::Vec<PackView, { packs::MAX_NODES as usize }> =
             heapless::Vec::new();
         // By node number: the others come in order; this one goes between.
@@ -345,7 +337,7 @@ impl Inverter {
                     .map_or(u8::MAX, |a| (a / (100 * crate::MS)).min(255) as u8),
                 ..m.summary
             },
-            part: PackPart::of(&m, stale),
+            part: PackPart::of(&m, freshness),
         };
         let mut own = self.own_summary.map(|s| view(node, Member::now(s)));
         for (n, m) in self.packs.known(now) {
@@ -380,9 +372,10 @@ impl Inverter {
         c.enabled = self.config.enabled;
         c.protocol = self.config.protocol;
         c.node = self.config.node;
-        if self.stale_since.is_some() && c.stale_policy != self.config.stale_policy {
-            self.next_stale_policy = Some(c.stale_policy);
-            c.stale_policy = self.config.stale_policy;
+        let policy = |c: &InverterConfig| (c.stale_policy, c.stale_hold_us);
+        if self.stale_since.is_some() && policy(&c) != policy(&self.config) {
+            self.next_stale_policy = Some(policy(&c));
+            (c.stale_policy, c.stale_hold_us) = policy(&self.config);
         } else {
             self.next_stale_policy = None;
         }
@@ -398,6 +391,16 @@ impl Inverter {
     /// The limits last computed.
     pub fn limits(&self) -> Option<Limits> {
         self.limits
+    }
+
+    /// What the inverter is told at `now`: the limits of the last 0x351 this
+    /// output sent, while it sends them (one came within two fast periods) —
+    /// this pack's limits for a bridge alone, the battery's while this bridge
+    /// speaks for several packs; `None` when nothing is sent (output off, stale
+    /// data with "stop", a bridge of several packs that does not speak).
+    pub fn limits_sent(&self, now: Instant) -> Option<Limits> {
+        let (l, at) = self.told?;
+        (now.saturating_sub(at) <= 2 * self.config.fast_period_us).then_some(l)
     }
 
     /// Alarms and warnings last computed.
@@ -571,7 +574,7 @@ impl Inverter {
             return InverterAction::Recover;
         }
         if let Some(f) = self.queue.pop_front() {
-            return InverterAction::Send(f);
+            return self.send(now, f);
         }
         if now >= self.next_fast {
             self.next_fast = now.saturating_add(self.config.fast_period_us);
@@ -581,7 +584,7 @@ impl Inverter {
             }
             self.fill(now, slow);
             if let Some(f) = self.queue.pop_front() {
-                return InverterAction::Send(f);
+                return self.send(now, f);
             }
         }
         let mut wake = self.next_fast;
@@ -591,6 +594,13 @@ impl Inverter {
             }
         }
         InverterAction::WaitUntil(wake.max(now.saturating_add(1)))
+    }
+
+    fn send(&mut self, now: Instant, f: CanFrame) -> InverterAction {
+        if let Some(l) = frames::limits_of(&f) {
+            self.told = Some((l, now));
+        }
+        InverterAction::Send(f)
     }
 
     fn check_inverter(&mut self, now: Instant) {
@@ -612,25 +622,26 @@ impl Inverter {
             return; // nothing the BMS said yet: nothing to send
         };
         let age = now.saturating_sub(taken_at);
-        let stale = age > self.config.stale_after_us;
+        let stale = !self.config.freshness.young(Some(age));
         if stale {
             let since = *self.stale_since.get_or_insert(now);
             if since == now {
                 self.report(InverterReport::Stale {
                     age_ms: (age / crate::MS).min(u64::from(u32::MAX)) as u32,
                     policy: self.config.stale_policy,
+                    hold_us: self.config.stale_hold_us,
                 });
             }
             match self.config.stale_policy {
                 // A Sunny Island keeps obeying the last 0x351 until 0x355 has been
                 // missing for 60 s: tell it to stop at once (CCL 0, DCL 0, no
                 // measurement frames, so it goes to standby after 60 s as well).
-                StalePolicy::StopSending if self.config.protocol == Protocol::SmaSunnyIsland => {
+                StaleMode::Stop if self.config.protocol.obeys_last_limits() => {
                     self.queue_stale(true);
                 }
-                StalePolicy::StopSending => {}
-                StalePolicy::HoldChargeZero(max) => {
-                    if now.saturating_sub(since) <= max {
+                StaleMode::Stop => {}
+                StaleMode::Hold => {
+                    if now.saturating_sub(since) <= self.config.stale_hold_us {
                         self.queue_stale(false);
                     } else if !self.hold_ended {
                         self.hold_ended = true;
@@ -644,16 +655,16 @@ impl Inverter {
             // The inverter stopped (or ran without charge): limits ramp back —
             // only CCL after a hold that kept discharging (a DCL of 0 would switch
             // a Victron inverter off just as the link is back).
-            let held = matches!(self.config.stale_policy, StalePolicy::HoldChargeZero(_))
-                && !self.hold_ended;
+            let held = self.config.stale_policy == StaleMode::Hold && !self.hold_ended;
             if held {
                 self.control.cut_charge(now);
             } else {
                 self.control.cut(now);
             }
             self.hold_ended = false;
-            if let Some(p) = self.next_stale_policy.take() {
+            if let Some((p, hold)) = self.next_stale_policy.take() {
                 self.config.stale_policy = p;
+                self.config.stale_hold_us = hold;
             }
             self.report(InverterReport::Fresh);
         }
@@ -702,46 +713,36 @@ impl Inverter {
             let _ = self.queue.push_back(f);
         };
         push(frames::limits(limits));
-        match self.config.protocol {
-            Protocol::Victron => {
-                push(frames::victron_alarms(conditions));
-                push(frames::soc(state));
-                push(frames::measurements(state));
-                if slow {
-                    push(frames::name());
-                    push(frames::victron_info(firmware, capacity_ah));
-                    push(frames::module_counts(modules));
-                    push(frames::cell_extremes(state));
-                    push(frames::capacity(capacity_ah));
-                }
-            }
-            Protocol::SmaSunnyIsland => {
-                push(frames::sma_alarms(conditions));
-                push(frames::soc(state));
-                push(frames::sma_measurements(state));
-                if slow {
-                    push(frames::name());
-                    push(frames::sma_info(hardware, capacity_ah, firmware));
-                }
-            }
-        }
+        self.config.protocol.period_frames(
+            &protocol::Period {
+                state,
+                conditions,
+                capacity_ah,
+                modules,
+                firmware,
+                hardware,
+                slow,
+            },
+            &mut push,
+        );
     }
 
     /// With a node number: this pack's limits and summary, the battery of all
     /// packs heard, and — when this bridge is the speaker — the inverter
     /// frames for the battery.
     fn fill_member(&mut self, now: Instant, slow: bool) {
-        let stale_after = self.config.stale_after_us;
+        let freshness = self.config.freshness;
         // This pack: its own limits while its data is fresh.
         let own = match (self.settings, self.state) {
             (Some(settings), Some((state, taken_at))) => {
                 let age = now.saturating_sub(taken_at);
-                if age > stale_after {
+                if !freshness.young(Some(age)) {
                     if self.stale_since.is_none() {
                         self.stale_since = Some(now);
                         self.report(InverterReport::Stale {
                             age_ms: (age / crate::MS).min(u64::from(u32::MAX)) as u32,
                             policy: self.config.stale_policy,
+                            hold_us: self.config.stale_hold_us,
                         });
                     }
                 } else {
@@ -783,7 +784,7 @@ impl Inverter {
             heapless::Vec::new();
         let mut mask = 0u16;
         let mut add = |n: u8, m: Member| {
-            if m.takes_part(stale_after) {
+            if m.takes_part(freshness) {
                 mask |= 1 << (n.saturating_sub(1) & 15);
             }
             let _ = members.push(m);
@@ -807,7 +808,7 @@ impl Inverter {
         for (n, m) in self.packs.known(now) {
             add(n, m);
         }
-        let battery = packs::aggregate(&members, stale_after);
+        let battery = packs::aggregate(&members, freshness);
         let counts = battery.map_or((0, members.len() as u8), |b| (b.online, b.offline));
         if self.logged_packs != Some(counts) {
             self.logged_packs = Some(counts);
@@ -823,7 +824,7 @@ impl Inverter {
                 self.battery_lost = true;
                 self.report(InverterReport::BatteryLost);
             }
-            if speaking && self.config.protocol == Protocol::SmaSunnyIsland {
+            if speaking && self.config.protocol.obeys_last_limits() {
                 // A Sunny Island obeys the last 0x351 for 60 s: stop it.
                 if let Some(last) = self.sent_battery {
                     let stop = Limits {
@@ -893,10 +894,6 @@ impl Inverter {
         let mut c = self.conditions;
         c.link_lost = 1;
         let _ = self.queue.push_back(frames::limits(&stale));
-        let alarms = match self.config.protocol {
-            Protocol::Victron => frames::victron_alarms(&c),
-            Protocol::SmaSunnyIsland => frames::sma_alarms(&c),
-        };
-        let _ = self.queue.push_back(alarms);
+        let _ = self.queue.push_back(self.config.protocol.alarms(&c));
     }
 }

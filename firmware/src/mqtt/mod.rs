@@ -70,8 +70,6 @@ pub struct Settings {
     pub discovery_prefix: String<32>,
     /// State period, µs.
     pub publish_period_us: Instant,
-    /// BMS data older than this is not published (availability goes offline), µs.
-    pub stale_after_us: Instant,
 }
 
 impl Settings {
@@ -82,7 +80,6 @@ impl Settings {
             discovery: c.discovery,
             discovery_prefix: c.discovery_prefix.clone(),
             publish_period_us: Instant::from(c.publish_period_s) * crate::SECOND,
-            stale_after_us: Instant::from(c.stale_after_s) * crate::SECOND,
         }
     }
 }

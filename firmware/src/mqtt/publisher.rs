@@ -18,7 +18,9 @@ use protocol_core::views::LiveSnapshot;
 use super::battery;
 use super::discovery::{self, DeviceInfo, MAX_CELLS};
 use super::{device_topic, Identity, Settings, TOPIC_MAX};
+use crate::freshness::Freshness;
 use crate::host_link::encode::{self, StateExtras, TelemetryHead};
+use crate::station::Published;
 use crate::Instant;
 
 /// Events waiting to be published; beyond, the oldest are dropped (counted).
@@ -47,12 +49,30 @@ pub struct View<'a> {
     /// Packs in parallel: the battery as the inverter output sees it (its
     /// device is published while this bridge speaks: [`super::battery`]).
     pub battery: Option<&'a crate::inverter::packs::BatteryView>,
+    /// The freshness rule the station runs with.
+    pub freshness: Freshness,
 }
 
-impl View<'_> {
-    /// True when the data may be published as current.
-    pub fn fresh(&self, stale_after_us: Instant) -> bool {
-        self.online && self.snapshot.is_some() && self.age_us.is_some_and(|a| a <= stale_after_us)
+impl<'a> View<'a> {
+    /// The view of what the station published, at `now`.
+    pub fn of(p: &'a Published, now: Instant) -> Self {
+        Self {
+            snapshot: p.snapshot.as_ref(),
+            seq: p.seq,
+            age_us: p.age_us(now),
+            online: p.online,
+            flagged: p.flagged,
+            identity: p.version.as_ref().map(Identity::from_version),
+            limits: p.limits,
+            link: p.link,
+            battery: p.battery.as_ref(),
+            freshness: p.freshness,
+        }
+    }
+
+    /// True when the data may be published as current (the one rule).
+    pub fn fresh(&self) -> bool {
+        self.snapshot.is_some() && self.freshness.fresh(self.online, self.age_us)
     }
 }
 
@@ -232,7 +252,7 @@ impl Publisher {
             return None;
         }
         let id = self.announced?;
-        let fresh = view.fresh(self.settings.stale_after_us);
+        let fresh = view.fresh();
         // A status change is worth a state at once.
         let status = view.snapshot.map(|s| s.status);
         if status.is_some() && status != self.last_status {
@@ -467,6 +487,7 @@ impl Publisher {
             req: None,
             seq: view.seq,
             age_ms: view.age_us.map(|a| a / crate::MS),
+            stale_after_ms: None,
             online: view.online,
             ready: true,
         };

@@ -15,7 +15,7 @@ use host_tests::realtime::{serve_sim_pty, SimOptions};
 use host_tests::sim::{FaultConfig, PackProfile, SimBms, SimConfig};
 use protocol_core::settings::{Setting, SettingId};
 use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
-use tinybms_firmware::inverter::{InverterConfig, Protocol, StalePolicy};
+use tinybms_firmware::inverter::{InverterConfig, Protocol, StaleMode};
 use tinybms_firmware::Command;
 
 const USAGE: &str =
@@ -115,7 +115,8 @@ struct Options {
     scenario: Option<String>,
     can_log: Option<String>,
     json: Option<String>,
-    stale_policy: StalePolicy,
+    /// The stale policy and its hold time, µs.
+    stale_policy: (StaleMode, u64),
     duration_given: bool,
     pty: bool,
     bridge_pty: bool,
@@ -149,7 +150,7 @@ fn parse_args() -> Result<Parsed, String> {
         scenario: None,
         can_log: None,
         json: None,
-        stale_policy: StalePolicy::StopSending,
+        stale_policy: (StaleMode::Stop, InverterConfig::default().stale_hold_us),
         duration_given: false,
         pty: false,
         bridge_pty: false,
@@ -308,8 +309,8 @@ fn parse_args() -> Result<Parsed, String> {
             "--stale-policy" => {
                 let v = value("--stale-policy")?;
                 o.stale_policy = match v.split_once(':') {
-                    None if v == "stop" => StalePolicy::StopSending,
-                    Some(("hold", d)) => StalePolicy::HoldChargeZero(parse_duration(d)?),
+                    None if v == "stop" => (StaleMode::Stop, o.stale_policy.1),
+                    Some(("hold", d)) => (StaleMode::Hold, parse_duration(d)?),
                     _ => return Err(format!("bad --stale-policy `{v}` (stop or hold:60s)")),
                 };
             }
@@ -392,7 +393,7 @@ fn run_seed(o: &Options, seed: u64, t: &mut Totals) -> Result<(), String> {
     let mut h = Harness::checked(sim, bridge_config);
     h.retain = false;
     h.echo = !o.quiet;
-    h.bridge
+    h.bridge_mut()
         .submit_profile(&o.profile)
         .map_err(|e| format!("profile does not fit the command queue: {e:?}"))?;
     let mut next_write = o.write_every_us;
@@ -419,7 +420,7 @@ fn run_seed(o: &Options, seed: u64, t: &mut Totals) -> Result<(), String> {
                 let mut items = heapless::Vec::new();
                 let _ = items.push(Setting { id, value });
                 // A full queue just skips this change.
-                let _ = h.bridge.submit(Command::ApplySettings(items));
+                let _ = h.bridge_mut().submit(Command::ApplySettings(items));
                 k += 1;
                 next_write = Some(t + every);
             }
@@ -467,7 +468,7 @@ fn run_seed(o: &Options, seed: u64, t: &mut Totals) -> Result<(), String> {
     t.history += ev.history;
     t.lines += s.lines;
     t.warn_lines += s.warn_lines;
-    let ls = h.bridge.link_stats();
+    let ls = h.bridge().link_stats();
     t.requests += u64::from(ls.requests);
     t.clean_first += u64::from(ls.replies);
     t.faults += h.sim.stats().faults.total();
@@ -507,7 +508,7 @@ fn plausible_forgery(sim: &SimBms) -> Vec<u8> {
 }
 
 fn print_link(h: &Harness) {
-    let s = h.bridge.link_stats();
+    let s = h.bridge().link_stats();
     let secs = h.now as f64 / 1e6;
     let live_reply = 3 + 2 * 56 + 2;
     let live_request = 8;
@@ -550,7 +551,7 @@ fn print_link(h: &Harness) {
         100.0 * busy / h.now.max(1) as f64,
         h.tx_bytes,
         h.rx_bytes,
-        h.bridge.piece_registers()
+        h.bridge().piece_registers()
     );
 }
 
@@ -728,7 +729,8 @@ fn run_packs(o: &Options, protocol: Protocol, n: usize) -> ExitCode {
     use host_tests::multi_pack;
     let config = InverterConfig {
         protocol,
-        stale_policy: o.stale_policy,
+        stale_policy: o.stale_policy.0,
+        stale_hold_us: o.stale_policy.1,
         ..InverterConfig::default()
     };
     let names: Vec<String> = match &o.scenario {
@@ -784,7 +786,8 @@ fn run_packs(o: &Options, protocol: Protocol, n: usize) -> ExitCode {
 fn run_inverter(o: &Options, protocol: Protocol) -> ExitCode {
     let config = InverterConfig {
         protocol,
-        stale_policy: o.stale_policy,
+        stale_policy: o.stale_policy.0,
+        stale_hold_us: o.stale_policy.1,
         ..InverterConfig::default()
     };
     let names: Vec<String> = match &o.scenario {
@@ -836,7 +839,7 @@ fn run_inverter(o: &Options, protocol: Protocol) -> ExitCode {
             }
         };
         let ceiling =
-            l.h.bridge
+            l.h.bridge()
                 .telemetry()
                 .settings
                 .as_ref()

@@ -19,7 +19,7 @@ use ratatui::Frame;
 use serde_json::Value;
 
 use super::client::Client;
-use super::monitor::{
+use super::picture::{
     cells_of, freshness, freshness_text, link_quality, min_max, Freshness, Logger, MonitorOptions,
     REDRAW,
 };
@@ -42,7 +42,7 @@ pub struct LiveState {
     /// The bridge's latest log lines (`log` lines), oldest first.
     pub logs: VecDeque<String>,
     /// Packs in parallel: the newest `battery` line and the `pack` lines that
-    /// followed it, as text ([`super::monitor::render_battery_line`]).
+    /// followed it, as text ([`super::picture::render_battery_line`]).
     pub battery: Vec<String>,
 }
 
@@ -65,7 +65,7 @@ impl LiveState {
         }
         if self.battery.len() <= usize::from(tinybms_firmware::inverter::packs::MAX_NODES) {
             self.battery
-                .push(super::monitor::render_battery_line(v).trim().to_string());
+                .push(super::picture::render_battery_line(v).trim().to_string());
         }
     }
 

@@ -14,6 +14,7 @@ pub mod config;
 pub mod direct;
 pub mod live;
 pub mod monitor;
+pub mod picture;
 pub mod settings;
 pub mod transport;
 
@@ -627,29 +628,7 @@ fn run_config(
     Ok(())
 }
 
-/// The candidate closest to `name` when it is close enough to be a typo.
-pub fn suggest<'a>(name: &str, candidates: &[&'a str]) -> Option<&'a str> {
-    let dist = |a: &str, b: &str| -> usize {
-        let (a, b): (Vec<char>, Vec<char>) = (a.chars().collect(), b.chars().collect());
-        let mut prev: Vec<usize> = (0..=b.len()).collect();
-        for (i, ca) in a.iter().enumerate() {
-            let mut cur = vec![i + 1; b.len() + 1];
-            for (j, cb) in b.iter().enumerate() {
-                let sub = prev[j] + usize::from(ca != cb);
-                cur[j + 1] = sub.min(prev[j + 1] + 1).min(cur[j] + 1);
-            }
-            prev = cur;
-        }
-        prev[b.len()]
-    };
-    let lower = name.to_ascii_lowercase();
-    candidates
-        .iter()
-        .map(|c| (dist(&lower, c), *c))
-        .filter(|(d, c)| *d <= (c.len() / 3).max(2))
-        .min_by_key(|(d, _)| *d)
-        .map(|(_, c)| c)
-}
+pub use crate::words::suggest;
 
 fn serial_suffix(c: &mut Client) -> String {
     c.get_one("version")

@@ -9,16 +9,7 @@ use tinybms_firmware::units;
 
 use crate::profile::{find_setting, snake_name};
 
-/// A number as short as it is exact: `3.65`, `60`, `-20`.
-pub fn short(x: f64) -> String {
-    let s = format!("{x:.6}");
-    let s = s.trim_end_matches('0').trim_end_matches('.');
-    if s == "-0" {
-        "0".into()
-    } else {
-        s.to_string()
-    }
-}
+pub use crate::words::short;
 
 /// The physical value of `raw` for `id`: `3.65 V`, `60 A`, or the enumerated
 /// value's name.

@@ -1,0 +1,342 @@
+//! The station task: the library's sans-IO [`Station`] (the bridge, its
+//! configuration, the host link, the inverter output, what MQTT publishes)
+//! on UART1 to the TinyBMS, with every other wire reached through the queues
+//! of [`crate::wires`]. It decides nothing: it does what [`Station::poll`]
+//! says, hands in what arrived, and waits for the earliest of the station's
+//! wake time, a byte from the BMS, a byte from the host or anything a pump
+//! queued.
+
+use defmt::{info, warn};
+use embassy_executor::Spawner;
+use embassy_futures::select::{select4, Either4};
+use embassy_time::{Duration, Instant, Timer};
+use esp_hal::gpio::AnyPin;
+use esp_hal::peripherals::{TIMG0, UART1};
+use esp_hal::timer::timg::Wdt;
+use esp_hal::uart::{Config as UartConfig, RxConfig, RxError, Uart, UartRx, UartTx};
+use esp_hal::Async;
+use tinybms_firmware::bms::profile;
+use tinybms_firmware::station::{Action, Station};
+
+use crate::{log, now_us, spawn, store, wires, BOARD};
+
+/// TinyBMS UART baud rate (8N1 is the esp-hal default frame format; Rev D §1).
+const BMS_BAUDRATE: u32 = 115_200;
+/// UART1 RX FIFO "full" interrupt level, bytes (of the 128-byte FIFO).
+///
+/// esp-hal's default is 120, which leaves 8 bytes (≈ 0.7 ms at 115 200 Bd) between
+/// the interrupt and an overflow; replies longer than 120 bytes exist (0x03 with
+/// ≥ 58 registers, packetized events). An overflow resets the FIFO: a CRC error
+/// and a retry. At 64 the task has 64 bytes ≈ 5.5 ms to read (issue 11).
+const RX_FIFO_FULL_THRESHOLD: u16 = 64;
+/// Most `read_buffered` calls when draining the FIFO at a deadline (128-byte FIFO,
+/// read into the bridge's receive space, which holds a whole reply's remaining
+/// bytes and grows as the bridge takes them; the bound only guards against a line
+/// that keeps delivering).
+const DEADLINE_DRAIN_READS: usize = 4;
+/// Longest the station task sleeps without feeding the watchdog.
+const MAX_WAIT: Duration = Duration::from_millis(500);
+/// UART receive errors are logged at most once per this period.
+const RX_ERROR_LOG_PERIOD: Duration = Duration::from_secs(10);
+
+/// UART1 to the TinyBMS on the board's pins, and the station task on it.
+pub fn start(
+    spawner: Spawner,
+    uart1: UART1<'static>,
+    wdt: Wdt<TIMG0<'static>>,
+    station: &'static mut Station,
+    store: Option<store::ChipStore>,
+) {
+    // SAFETY: `AnyPin::steal` hands out a second handle to a GPIO. These two GPIOs
+    // are used nowhere else: the shell never touches `p.GPIOn`, and the board
+    // check (const, main.rs) guarantees they exist on the chip, are distinct from
+    // each other and from the CAN pins, and are not flash/USB/UART0 pins.
+    let (tx_pin, rx_pin) = unsafe { (AnyPin::steal(BOARD.bms_tx), AnyPin::steal(BOARD.bms_rx)) };
+    let uart_config = UartConfig::default()
+        .with_baudrate(BMS_BAUDRATE)
+        .with_rx(RxConfig::default().with_fifo_full_threshold(RX_FIFO_FULL_THRESHOLD));
+    let uart = Uart::new(uart1, uart_config)
+        .expect("UART1 config")
+        .with_tx(tx_pin)
+        .with_rx(rx_pin)
+        .into_async();
+    let (rx, tx) = uart.split();
+    info!(
+        "UART1 {=u32} 8N1 to the BMS: TX=GPIO{=u8} RX=GPIO{=u8} (rx fifo threshold {=u16})",
+        BMS_BAUDRATE, BOARD.bms_tx, BOARD.bms_rx, RX_FIFO_FULL_THRESHOLD,
+    );
+    spawn(spawner, station_task(rx, tx, wdt, station, store));
+}
+
+/// UART receive errors, counted as they happen and logged (rate-limited) when
+/// the station logs, i.e. never while a reply is arriving.
+struct RxErrors {
+    count: u32,
+    last: Option<RxError>,
+    next_log: Instant,
+}
+
+impl RxErrors {
+    fn record(&mut self, e: RxError) {
+        self.count = self.count.wrapping_add(1);
+        self.last = Some(e);
+    }
+
+    fn log(&mut self) {
+        if let Some(e) = self.last {
+            if Instant::now() >= self.next_log {
+                warn!("uart rx error: {} ({=u32} so far)", e, self.count);
+                self.next_log = Instant::now() + RX_ERROR_LOG_PERIOD;
+                self.last = None;
+            }
+        }
+    }
+}
+
+/// Does what the station says; see the module documentation.
+///
+/// When the timer wins the race against `read_async`, bytes may already be in
+/// the FIFO: below the full threshold, the RX-timeout interrupt (10 symbols ≈
+/// 0.9 ms) has not fired yet. They are drained with `read_buffered` and handed
+/// in *before* the station handles the deadline, so a reply that ends just at
+/// the deadline still completes its transaction
+/// (host-tests/tests/deadline_drain.rs).
+#[embassy_executor::task]
+async fn station_task(
+    mut rx: UartRx<'static, Async>,
+    mut tx: UartTx<'static, Async>,
+    mut wdt: Wdt<TIMG0<'static>>,
+    station: &'static mut Station,
+    mut store: Option<store::ChipStore>,
+) {
+    submit_profile(station);
+    let mut rx_errors = RxErrors {
+        count: 0,
+        last: None,
+        next_log: Instant::now(),
+    };
+    let mut pumps = Pumps::new();
+    loop {
+        wdt.feed();
+        pumps.take_in(station);
+        pumps.hand_out(station);
+        match station.poll(now_us()) {
+            Action::Log(item) => {
+                log::logged(station, &item);
+                rx_errors.log();
+            }
+            Action::Transmit => {
+                // The line is quiet until the request is out.
+                rx_errors.log();
+                // Written from where the link keeps them (no copy).
+                let mut rest: &[u8] = station.transmit_bytes();
+                while !rest.is_empty() {
+                    match tx.write_async(rest).await {
+                        Ok(n) => rest = rest.get(n..).unwrap_or(&[]),
+                        Err(e) => {
+                            warn!("uart tx error: {}", e);
+                            break;
+                        }
+                    }
+                }
+                if let Err(e) = tx.flush_async().await {
+                    warn!("uart flush error: {}", e);
+                }
+            }
+            Action::Save => {
+                let result = store::save(&mut store, station.record());
+                station.saved(result);
+            }
+            #[cfg(feature = "can")]
+            Action::Can(frame) => {
+                if wires::CAN_COMMAND
+                    .try_send(wires::CanCommand::Send(frame))
+                    .is_err()
+                {
+                    // No CAN task takes it (cannot happen: one at a time).
+                    station.can_sent(now_us(), tinybms_firmware::inverter::TxResult::Failed);
+                }
+            }
+            #[cfg(feature = "can")]
+            Action::CanRecover => {
+                if wires::CAN_COMMAND
+                    .try_send(wires::CanCommand::Recover)
+                    .is_err()
+                {
+                    station.can_recovered(now_us(), false);
+                }
+            }
+            #[cfg(not(feature = "can"))]
+            Action::Can(_) | Action::CanRecover => {}
+            Action::WaitUntil(t) => {
+                let deadline = Instant::from_micros(t).min(Instant::now() + MAX_WAIT);
+                // `read_async`, `Pipe::read` and `Signal::wait` are
+                // cancellation-safe: racing them against a timer loses nothing.
+                // The UART driver writes straight into the bridge's receive
+                // space (no copy of ours).
+                match select4(
+                    rx.read_async(station.rx_buffer()),
+                    Timer::at(deadline),
+                    pumps.host_receive(),
+                    wires::WAKE.wait(),
+                )
+                .await
+                {
+                    Either4::First(Ok(n)) => station.received(now_us(), n),
+                    Either4::First(Err(e)) => rx_errors.record(e),
+                    Either4::Third(n) => pumps.host_received(station, n),
+                    Either4::Fourth(()) => {}
+                    Either4::Second(()) => {
+                        // Bytes already received but not yet signalled go in
+                        // before the deadline is handled by the next `poll`.
+                        for _ in 0..DEADLINE_DRAIN_READS {
+                            match rx.read_buffered(station.rx_buffer()) {
+                                Ok(0) => break,
+                                Ok(n) => station.received(now_us(), n),
+                                Err(e) => {
+                                    rx_errors.record(e);
+                                    break;
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The station's side of the queues to the other tasks.
+struct Pumps {
+    #[cfg(feature = "host-link")]
+    rx: [u8; 64],
+    #[cfg(feature = "host-link")]
+    line: [u8; tinybms_firmware::host_link::OUT_LINE_MAX],
+    #[cfg(feature = "wifi")]
+    generation: Option<u32>,
+}
+
+impl Pumps {
+    fn new() -> Self {
+        Self {
+            #[cfg(feature = "host-link")]
+            rx: [0; 64],
+            #[cfg(feature = "host-link")]
+            line: [0; tinybms_firmware::host_link::OUT_LINE_MAX],
+            #[cfg(feature = "wifi")]
+            generation: None,
+        }
+    }
+
+    /// Everything the pumps queued, into the station (never waits).
+    #[allow(clippy::unused_self)]
+    fn take_in(&mut self, station: &mut Station) {
+        #[cfg(feature = "can")]
+        {
+            while let Ok(done) = wires::CAN_DONE.try_receive() {
+                let now = now_us();
+                match done {
+                    wires::CanDone::Sent => {
+                        station.can_sent(now, tinybms_firmware::inverter::TxResult::Sent)
+                    }
+                    wires::CanDone::Failed => {
+                        station.can_sent(now, tinybms_firmware::inverter::TxResult::Failed)
+                    }
+                    wires::CanDone::BusOff => station.can_bus_off(now),
+                    wires::CanDone::Recovered(ok) => station.can_recovered(now, ok),
+                }
+            }
+            while let Ok(f) = wires::CAN_RX.try_receive() {
+                station.can_received(now_us(), f.id, f.bytes());
+            }
+        }
+        #[cfg(feature = "host-link")]
+        {
+            if let Some(pressed) = wires::BUTTON.try_take() {
+                station.button(now_us(), pressed);
+            }
+            let dropped = wires::take_host_lines_dropped();
+            if dropped > 0 {
+                station.host_lines_dropped(dropped);
+            }
+            if wires::HOST_CONNECTED.try_take().is_some() {
+                station.host_connected(now_us());
+            }
+            while let Ok((level, line)) = wires::FOREIGN_LOG.try_receive() {
+                station.foreign_log(level, line.as_str());
+            }
+        }
+        #[cfg(not(any(feature = "host-link", feature = "can")))]
+        let _ = station;
+    }
+
+    /// What the station has for the other tasks, into their queues (never
+    /// waits: a host line goes only when the pipe holds it whole).
+    #[allow(clippy::unused_self)]
+    fn hand_out(&mut self, station: &mut Station) {
+        #[cfg(feature = "host-link")]
+        while wires::HOST_TX.free_capacity() >= self.line.len() {
+            let Some(n) = station.next_host_line(now_us(), &mut self.line) else {
+                break;
+            };
+            let _ = wires::HOST_TX.try_write(self.line.get(..n).unwrap_or(&[]));
+        }
+        #[cfg(feature = "wifi")]
+        {
+            // A copy into the Watch, no I/O: only when it changed.
+            if self.generation != Some(station.generation()) {
+                self.generation = Some(station.generation());
+                wires::PUBLISHED.sender().send(station.published(now_us()));
+            }
+            while wires::MQTT_EVENTS.free_capacity() > 0 {
+                let Some(e) = station.take_event() else {
+                    break;
+                };
+                let _ = wires::MQTT_EVENTS.try_send(e);
+            }
+        }
+        #[cfg(not(any(feature = "host-link", feature = "wifi")))]
+        let _ = station;
+    }
+
+    /// Waits for bytes from the host (cancellation-safe); their count.
+    async fn host_receive(&mut self) -> usize {
+        #[cfg(feature = "host-link")]
+        return wires::HOST_RX.read(&mut self.rx).await;
+        #[cfg(not(feature = "host-link"))]
+        core::future::pending().await
+    }
+
+    /// The `n` bytes [`Pumps::host_receive`] got, into the station.
+    #[allow(clippy::unused_self)]
+    fn host_received(&mut self, station: &mut Station, n: usize) {
+        #[cfg(feature = "host-link")]
+        station.host_rx(now_us(), self.rx.get(..n).unwrap_or(&[]));
+        #[cfg(not(feature = "host-link"))]
+        let _ = (station, n);
+    }
+}
+
+/// The start-up profile (`firmware/profile.txt`), parsed at compile time: a
+/// profile that does not parse fails the build, and the chip links neither the
+/// parser nor the names it matches against (snake_case keys), nor the file's text.
+const STARTUP_PROFILE: profile::Profile<{ profile::MAX_PROFILE_ENTRIES }> =
+    match profile::parse(profile::PROFILE_TEXT) {
+        Ok(p) => p,
+        Err(_) => panic!(
+            "firmware/profile.txt does not parse (or holds too many settings): \
+             `cargo run -p host-tests --bin sim -- --profile firmware/profile.txt` names the line"
+        ),
+    };
+
+/// Queues the start-up profile: every assignment.
+fn submit_profile(station: &mut Station) {
+    if STARTUP_PROFILE.is_empty() {
+        info!("settings profile empty: nothing written");
+    } else {
+        info!("settings profile: {=usize} settings", STARTUP_PROFILE.len());
+        if station.submit_profile(STARTUP_PROFILE.as_slice()).is_err() {
+            warn!("settings profile too long for the command queue");
+        }
+    }
+}

@@ -1,0 +1,359 @@
+//! The battery the packs add up to: who takes part, the sums, the reserve
+//! for one pack dropping out, and the limits' hold and ramp.
+
+use super::summary::{Summary, MAX_NODES};
+use crate::freshness::Freshness;
+use crate::inverter::control::{ChargeConfig, Conditions, Limits, PackState, Ramp};
+use crate::Instant;
+
+/// Below this total current (0.1 A) the shares of the packs are not known well
+/// enough for the rule that one pack may drop out.
+pub const REDUNDANCY_MIN_DA: i32 = 20;
+
+/// The battery the packs add up to.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Battery {
+    /// The state to report (sums, means and extremes).
+    pub state: PackState,
+    /// The limits before the battery's hold and ramp.
+    pub limits: Limits,
+    /// Combined alarms and warnings.
+    pub conditions: Conditions,
+    /// Capacity of the packs taking part, 0.1 Ah.
+    pub capacity_dah: u32,
+    /// Packs taking part.
+    pub online: u8,
+    /// Packs known but not taking part (lost, stale, faulted).
+    pub offline: u8,
+    /// Packs taking part with CCL 0.
+    pub blocking_charge: u8,
+    /// Packs taking part with DCL 0.
+    pub blocking_discharge: u8,
+}
+
+/// One pack as the aggregation sees it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Member {
+    /// Its summary.
+    pub summary: Summary,
+    /// Heard within [`PACK_LOST_US`] (this bridge's own pack: always).
+    pub alive: bool,
+    /// How long ago the summary came (this bridge's own: 0), µs.
+    pub heard_ago_us: Instant,
+}
+
+impl Member {
+    /// This bridge's own pack, or a summary just heard.
+    pub const fn now(summary: Summary) -> Self {
+        Self {
+            summary,
+            alive: true,
+            heard_ago_us: 0,
+        }
+    }
+
+    /// The age of its data now: the age it was sent with plus the time since,
+    /// µs; `None` when it was sent as 25.5 s or more (the field's top).
+    pub fn data_age_us(&self) -> Option<Instant> {
+        (self.summary.age_ds < u8::MAX).then(|| {
+            (u64::from(self.summary.age_ds) * 100 * crate::MS).saturating_add(self.heard_ago_us)
+        })
+    }
+
+    /// Takes part in the battery: alive, data fresh by the one rule
+    /// (its age now, not when it was sent), no fault.
+    pub fn takes_part(&self, freshness: Freshness) -> bool {
+        let fresh = freshness.young(self.data_age_us());
+        self.alive && fresh && !self.summary.fault
+    }
+}
+
+/// What the battery may ask of a pack whose own limit is `limit_da`: 2 % (at
+/// least 0.5 A) less, for the current measured a moment ago and its noise.
+pub fn usable(limit_da: u16) -> i32 {
+    let l = i32::from(limit_da);
+    l - (l / 50).max(5).min(l)
+}
+
+/// The battery of `members` (each pack once, this bridge's own included);
+/// `None` when no pack takes part.
+pub fn aggregate(members: &[Member], freshness: Freshness) -> Option<Battery> {
+    let part = || members.iter().filter(|m| m.takes_part(freshness));
+    let n = part().count();
+    if n == 0 {
+        return None;
+    }
+    let n_i = n as i32;
+    let mut cvl = u16::MAX;
+    let mut discharge = 0u16;
+    let (mut i_sum, mut ccl_sum, mut dcl_sum) = (0i32, 0i32, 0i32);
+    let (mut ch_room, mut dis_room) = (i32::MAX, i32::MAX);
+    let (mut cap, mut soc_w, mut soh_w, mut v_sum) = (0u64, 0u64, 0u64, 0u64);
+    let (mut min_cell, mut max_cell) = (u16::MAX, 0u16);
+    let (mut min_t, mut max_t) = (i16::MAX, i16::MIN);
+    let mut cond = [0u8; 11];
+    let (mut block_c, mut block_d) = (0u8, 0u8);
+    for m in part() {
+        let s = &m.summary;
+        cvl = cvl.min(s.limits.cvl_dv);
+        discharge = discharge.max(s.limits.discharge_dv);
+        let i = i32::from(s.current_da);
+        let (ccl, dcl) = (usable(s.limits.ccl_da), usable(s.limits.dcl_da));
+        i_sum += i;
+        ccl_sum += ccl;
+        dcl_sum += dcl;
+        let room = |r: i32| if r >= 0 { r } else { r.saturating_mul(n_i) };
+        // Headroom in each direction from the pack's current in that
+        // direction (a pack going the other way counts as 0: it has at least
+        // its whole limit).
+        ch_room = ch_room.min(room(ccl - i.max(0)));
+        dis_room = dis_room.min(room(dcl - (-i).max(0)));
+        let c = u64::from(s.capacity_dah);
+        cap += c;
+        soc_w += c * u64::from(s.soc_cpct);
+        soh_w += c * u64::from(s.soh_pct);
+        v_sum += u64::from(s.voltage_cv);
+        min_cell = min_cell.min(s.min_cell_mv);
+        max_cell = max_cell.max(s.max_cell_mv);
+        min_t = min_t.min(s.min_temp_dc);
+        max_t = max_t.max(s.max_temp_dc);
+        for (acc, v) in cond.iter_mut().zip(s.conditions.all()) {
+            *acc = (*acc).max(v);
+        }
+        block_c += u8::from(s.limits.ccl_da == 0);
+        block_d += u8::from(s.limits.dcl_da == 0);
+    }
+    let mut offline = 0u8;
+    for _ in members.iter().filter(|m| !m.takes_part(freshness)) {
+        offline = offline.saturating_add(1);
+        // A BMS internal warning: never "link lost", which a Victron GX reads
+        // as the whole battery offline.
+        cond[8] = cond[8].max(1);
+    }
+    let clamp_da = |x: i32| x.clamp(0, i32::from(u16::MAX)) as u16;
+    // From the battery's present current in that direction; while it goes
+    // the other way (or rests), from 0: the smallest pack's headroom, never a
+    // 0 computed from a current that is not there (a DCL of 0 while charging
+    // would switch a Victron inverter off).
+    let ccl = i_sum.max(0).saturating_add(ch_room).min(ccl_sum);
+    let dcl = (-i_sum).max(0).saturating_add(dis_room).min(dcl_sum);
+    // One pack may open its switch at any moment: the others then share its
+    // current until the inverter hears the new limits. Keep the total low
+    // enough that they stay within their own limits then.
+    let spare = |sign: i32, limit: fn(&Summary) -> u16| -> i32 {
+        let share = |m: &Member| (sign * i32::from(m.summary.current_da)).max(0);
+        let total: i32 = part().map(share).sum();
+        if n < 2 || total < REDUNDANCY_MIN_DA {
+            return i32::MAX; // no current to share out (yet): the ramp rules
+        }
+        let mut most = i32::MAX;
+        for (k, mk) in part().enumerate() {
+            let own = share(mk);
+            if own == 0 {
+                continue;
+            }
+            let largest_other = part()
+                .enumerate()
+                .filter(|(j, _)| *j != k)
+                .map(|(_, m)| share(m))
+                .max()
+                .unwrap_or(0);
+            // Pack k carries own/total of the battery's current; without
+            // pack j, own/(total − d_j). So the total may be at most
+            // limit_k × (total − d_j) / own.
+            let t = i64::from(usable(limit(&mk.summary))) * i64::from(total - largest_other)
+                / i64::from(own);
+            most = most.min(t.clamp(0, i64::from(i32::MAX)) as i32);
+        }
+        most
+    };
+    let ccl = clamp_da(ccl.min(spare(1, |s| s.limits.ccl_da)));
+    let dcl = clamp_da(dcl.min(spare(-1, |s| s.limits.dcl_da)));
+    let (soc, soh) = match (soc_w.checked_div(cap), soh_w.checked_div(cap)) {
+        (Some(soc), Some(soh)) => (soc, soh),
+        _ => {
+            // No capacity known: plain means (n ≥ 1 here).
+            let (s1, s2) = part().fold((0u64, 0u64), |(a, b), m| {
+                (
+                    a + u64::from(m.summary.soc_cpct),
+                    b + u64::from(m.summary.soh_pct),
+                )
+            });
+            let n = n.max(1) as u64;
+            (s1 / n, s2 / n)
+        }
+    };
+    let conditions = Conditions {
+        high_voltage: cond[0],
+        low_voltage: cond[1],
+        high_temperature: cond[2],
+        low_temperature: cond[3],
+        high_temperature_charge: cond[4],
+        low_temperature_charge: cond[5],
+        high_discharge_current: cond[6],
+        high_charge_current: cond[7],
+        bms_internal: cond[8],
+        cell_imbalance: cond[9],
+        link_lost: cond[10],
+    };
+    let charge_blocked = part().all(|m| m.summary.charge_blocked);
+    Some(Battery {
+        state: PackState {
+            min_cell_mv: min_cell,
+            max_cell_mv: max_cell,
+            pack_v: (v_sum / n as u64) as f32 / 100.0,
+            current_a: i_sum as f32 / 10.0,
+            soc_pct: soc as f32 / 100.0,
+            soh_pct: soh as f32,
+            min_temp_c: f32::from(min_t) / 10.0,
+            max_temp_c: f32::from(max_t) / 10.0,
+            fault: false,
+            charge_blocked,
+        },
+        limits: Limits {
+            cvl_dv: cvl,
+            ccl_da: ccl,
+            dcl_da: dcl,
+            discharge_dv: discharge,
+        },
+        conditions,
+        capacity_dah: cap as u32,
+        online: n as u8,
+        offline,
+        blocking_charge: block_c,
+        blocking_discharge: block_d,
+    })
+}
+
+/// The battery's limits after the single pack's hold and ramp: they fall at
+/// once, rise at most `ramp_da_per_s`, and after a pack left (or a cut) a rise
+/// waits `hold_us`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BatteryLimits {
+    ccl: Ramp,
+    dcl: Ramp,
+    members: u16,
+    last: Option<Instant>,
+}
+
+impl Default for BatteryLimits {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl BatteryLimits {
+    /// Nothing sent yet: the first limits apply at once.
+    pub const fn new() -> Self {
+        Self {
+            ccl: Ramp::new(),
+            dcl: Ramp::new(),
+            members: 0,
+            last: None,
+        }
+    }
+
+    /// The inverter was without the battery's limits (this bridge's bus-off,
+    /// the battery lost): both limits start from 0 and come back after the
+    /// hold. (A takeover keeps the state: every node steps the battery.)
+    pub fn cut(&mut self, now: Instant) {
+        for r in [&mut self.ccl, &mut self.dcl] {
+            *r = Ramp::new();
+            let _ = r.step(now, 0, 0, &ChargeConfig::default());
+        }
+    }
+
+    /// The limits to send at `now` for `battery`, whose packs taking part are
+    /// the bits of `members` (bit n − 1 for node n, bit 15 for a lone bridge).
+    pub fn step(
+        &mut self,
+        now: Instant,
+        battery: &Battery,
+        members: u16,
+        c: &ChargeConfig,
+    ) -> Limits {
+        if self.last.is_some() && self.members != members {
+            // A pack left: its share is gone at once (the target falls). A
+            // pack came (back): what it adds waits the hold, then ramps — the
+            // single pack's rule after a cut.
+            self.ccl.hold_from(now);
+            self.dcl.hold_from(now);
+        }
+        self.members = members;
+        let dt = self
+            .last
+            .map_or(crate::SECOND, |t| now.saturating_sub(t))
+            .min(60 * crate::SECOND);
+        self.last = Some(now);
+        Limits {
+            ccl_da: self.ccl.step(now, battery.limits.ccl_da, dt, c),
+            dcl_da: self.dcl.step(now, battery.limits.dcl_da, dt, c),
+            ..battery.limits
+        }
+    }
+}
+
+/// Where a pack stands in the battery.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum PackPart {
+    /// Taking part.
+    Part,
+    /// Not heard within [`PACK_LOST_US`].
+    Lost,
+    /// Heard, but its data is older than the stale age.
+    Stale,
+    /// Its BMS reports a fault (its switch is open).
+    Fault,
+}
+
+impl PackPart {
+    /// As the host link and MQTT write it.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Part => "part",
+            Self::Lost => "lost",
+            Self::Stale => "stale",
+            Self::Fault => "fault",
+        }
+    }
+
+    /// Of a member, with the stale age.
+    pub fn of(m: &Member, freshness: Freshness) -> Self {
+        if !m.alive {
+            Self::Lost
+        } else if m.summary.fault {
+            Self::Fault
+        } else if m.takes_part(freshness) {
+            Self::Part
+        } else {
+            Self::Stale
+        }
+    }
+}
+
+/// One pack as a bridge sees it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PackView {
+    /// Node number.
+    pub node: u8,
+    /// Its last summary (this bridge's own: as it sent it).
+    pub summary: Summary,
+    /// Where it stands.
+    pub part: PackPart,
+}
+
+/// What a bridge with a node number knows of the battery: for the host link
+/// and MQTT.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BatteryView {
+    /// This bridge's node number.
+    pub node: u8,
+    /// This bridge speaks to the inverter.
+    pub speaking: bool,
+    /// The battery and the limits for it (sent when speaking); `None` while
+    /// no pack takes part or before the bridge has listened.
+    pub battery: Option<(Battery, Limits)>,
+    /// Every pack known, by node number.
+    pub packs: heapless::Vec<PackView, { MAX_NODES as usize }>,
+}

@@ -1,0 +1,654 @@
+//! The station: everything one bridge is, wired together, sans-IO. It owns
+//! the [`Bridge`] (the BMS side), the bridge's configuration
+//! ([`ConfigState`]), the host link ([`HostLink`]), the inverter output
+//! ([`Inverter`]) and what the MQTT output reads ([`Published`]); the chip
+//! shell and every desktop runner (the virtual-time harness and its closed
+//! loops, the multi-pack loop, `sim --bridge-pty`, the MQTT runner, the
+//! desktop tool's direct mode) drive this same type, so the wiring the chip
+//! runs is the wiring every test runs.
+//!
+//! **Inputs**: bytes from the BMS ([`Station::rx_buffer`] +
+//! [`Station::received`]), bytes from the host ([`Station::host_rx`]), a host
+//! that (re)connected ([`Station::host_connected`]), CAN frames and what the
+//! controller did ([`Station::can_received`], [`Station::can_sent`],
+//! [`Station::can_bus_off`], [`Station::can_recovered`]), the BOOT button
+//! ([`Station::button`]), the end of a save ([`Station::saved`]), log lines of
+//! other tasks ([`Station::foreign_log`]), and time: every call takes `now`.
+//!
+//! **Outputs**: [`Station::poll`] says what to do next ([`Action`]): log a
+//! line, send [`Station::transmit_bytes`] to the BMS, hand a frame to the CAN
+//! controller (one at a time: the next only after its result), recover the
+//! bus, save [`Station::record`] to flash (only when no BMS reply can be on its
+//! way; nothing is sent meanwhile), or wait until a time. Lines for the host
+//! come out of [`Station::next_host_line`] whenever the port has room for a
+//! whole one. What the MQTT output publishes is [`Station::published`]
+//! (changed when [`Station::generation`] does), its events
+//! [`Station::take_event`].
+//!
+//! **Rules that live here** (and nowhere in a shell):
+//! * log lines go out only when the BMS link is quiet (just before a request,
+//!   or while waiting with no reply on its way): a log write that blocks never
+//!   delays reading a reply;
+//! * a save of the record happens only when the link is quiet, and nothing is
+//!   sent to the BMS until it is done;
+//! * every bridge report reaches the host link (outcomes, events), the
+//!   inverter output (charge-blocking events), the MQTT output (events) and
+//!   the log, in that order;
+//! * a change of the running configuration reaches the host link and the
+//!   inverter output at once;
+//! * what the inverter is told ([`Inverter::limits_sent`]) is what MQTT shows.
+
+use heapless::Deque;
+use protocol_core::events::Event;
+
+use crate::bms::timing::Timing;
+use crate::bridge::report::{Level, Report};
+use crate::bridge::{Bridge, Command, Step};
+use crate::config::button::Hold;
+use crate::config::state::{ConfigState, Note, Outcomes};
+use crate::config::store::{Loaded, Saved, StoreError};
+use crate::config::value::Parsed;
+use crate::config::{Config, FieldId};
+use crate::freshness::Freshness;
+#[cfg(feature = "host-link")]
+use crate::host_link::HostLink;
+use crate::inverter::control::{Limits, PackSettings};
+use crate::inverter::frames::CanFrame;
+use crate::inverter::packs::BatteryView;
+#[cfg(feature = "can")]
+use crate::inverter::Inverter;
+use crate::inverter::{InverterAction, InverterReport, TxResult};
+use crate::text::{self, Line};
+use crate::Instant;
+
+pub use self::published::Published;
+
+mod parts;
+mod published;
+
+/// How often a bridge of several packs hands the battery to the host link
+/// and the MQTT output, µs.
+pub const BATTERY_VIEW_PERIOD_US: Instant = crate::SECOND;
+
+/// BMS events kept for the MQTT output until it takes them; beyond, the
+/// oldest go (counted in [`Station::events_dropped`]).
+pub const MQTT_EVENTS: usize = 8;
+
+/// What the station is built with besides its record.
+#[derive(Debug, Clone, Copy)]
+pub struct Setup {
+    /// The bridge's timing.
+    pub timing: Timing,
+    /// The chip's name for the host link's `hello` (`esp32c3`, `sim`, ...).
+    pub chip: &'static str,
+    /// A host link is built in (a port to a computer).
+    pub host_link: bool,
+    /// A CAN controller is built in (without one the inverter output is off,
+    /// whatever the record says).
+    pub can: bool,
+    /// The inverter output's settings instead of the record's (for desktop
+    /// runs of settings the record cannot hold: its periods and timeouts);
+    /// `None` on the chip. A later change of the running configuration
+    /// replaces them as usual.
+    pub inverter: Option<crate::inverter::InverterConfig>,
+}
+
+/// What happened that the log shows.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Logged {
+    /// A bridge report.
+    Bridge(Report),
+    /// A configuration note.
+    Config(Note),
+    /// An inverter output report.
+    Inverter(InverterReport),
+}
+
+impl Logged {
+    /// The level it is logged at.
+    pub fn level(&self) -> Level {
+        match self {
+            Self::Bridge(r) => r.level(),
+            Self::Config(n) => text::config_level(n),
+            Self::Inverter(r) => r.level(),
+        }
+    }
+}
+
+/// What the shell must do next.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Action {
+    /// Log this (the words: [`Station::log_text`]), then poll again.
+    Log(Logged),
+    /// Write [`Station::transmit_bytes`] to the BMS, then poll again.
+    Transmit,
+    /// Hand this frame to the CAN controller; report the result with
+    /// [`Station::can_sent`] or [`Station::can_bus_off`].
+    Can(CanFrame),
+    /// Start the CAN controller's bus-off recovery; report it with
+    /// [`Station::can_recovered`].
+    CanRecover,
+    /// Save [`Station::record`] now and report with [`Station::saved`];
+    /// send nothing to the BMS before.
+    Save,
+    /// Nothing before this time, unless an input arrives.
+    WaitUntil(Instant),
+}
+
+/// The CAN controller as the station sees it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Can {
+    /// Ready for a frame; the inverter output wants to be polled at this time.
+    Idle(Instant),
+    /// A frame or a recovery is with the controller.
+    Busy,
+}
+
+/// One bridge. See the module documentation.
+#[derive(Debug, Clone)]
+pub struct Station {
+    bridge: Bridge,
+    config: ConfigState,
+    host: Option<parts::Host>,
+    inverter: Option<parts::Output>,
+    chip: &'static str,
+    can: Can,
+    hold: Hold,
+    /// [`Bridge::step`] said "transmit": the logs go first.
+    transmit_pending: bool,
+    /// The snapshot the inverter output has (its sequence number).
+    fed_seq: u32,
+    /// Several packs: the battery view, and when it is handed on next.
+    battery: Option<BatteryView>,
+    next_view: Instant,
+    /// What the MQTT output reads changed: bumped on a new snapshot, a change
+    /// of online, the limits sent, the battery view.
+    generation: u32,
+    last_online: bool,
+    last_limits: Option<Limits>,
+    events: Deque<Event, MQTT_EVENTS>,
+    events_dropped: u32,
+}
+
+impl Station {
+    /// A station at `now` with the record it loaded.
+    pub fn new(setup: Setup, loaded: Loaded, now: Instant) -> Self {
+        #[cfg(feature = "can")]
+        let inverter = setup.can.then(|| {
+            let c = setup.inverter.unwrap_or_else(|| loaded.config.inverter());
+            Inverter::new(c, now)
+        });
+        #[cfg(not(feature = "can"))]
+        let inverter = None;
+        #[cfg(feature = "host-link")]
+        let host = setup
+            .host_link
+            .then(|| HostLink::new(loaded.config.host_link(setup.chip), now));
+        #[cfg(not(feature = "host-link"))]
+        let host = None;
+        Self {
+            bridge: Bridge::new(setup.timing, now),
+            config: ConfigState::new(loaded.config, loaded.source),
+            host,
+            inverter,
+            chip: setup.chip,
+            can: Can::Idle(now),
+            hold: Hold::new(),
+            transmit_pending: false,
+            fed_seq: 0,
+            battery: None,
+            next_view: now,
+            generation: 0,
+            last_online: false,
+            last_limits: None,
+            events: Deque::new(),
+            events_dropped: 0,
+        }
+    }
+
+    /// The bridge.
+    pub fn bridge(&self) -> &Bridge {
+        &self.bridge
+    }
+
+    /// The bridge, for commands (`submit`) and counters.
+    pub fn bridge_mut(&mut self) -> &mut Bridge {
+        &mut self.bridge
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &ConfigState {
+        &self.config
+    }
+
+    /// The host link, when built in.
+    #[cfg(feature = "host-link")]
+    pub fn host_link(&self) -> Option<&HostLink> {
+        self.host.as_ref()
+    }
+
+    /// The host link, to drive it past the station (tests of the host link's
+    /// own lines).
+    #[cfg(feature = "host-link")]
+    pub fn host_link_mut(&mut self) -> Option<&mut HostLink> {
+        self.host.as_mut()
+    }
+
+    /// The inverter output, when built in.
+    #[cfg(feature = "can")]
+    pub fn inverter(&self) -> Option<&Inverter> {
+        self.inverter.as_ref()
+    }
+
+    /// The inverter output's node number (0: this bridge alone).
+    fn node(&self) -> u8 {
+        self.inverter.as_ref().map_or(0, |i| i.node())
+    }
+
+    /// The chip's name the host link gives.
+    pub fn chip(&self) -> &'static str {
+        self.chip
+    }
+
+    /// Changes the configuration as a host's `set_config` would (not
+    /// read-only-checked: the start-up options of a desktop runner). The
+    /// changes apply like any other; the save follows through [`Action::Save`].
+    pub fn change_config(&mut self, now: Instant, changes: &[(FieldId, Parsed)]) -> Outcomes {
+        let settings = self.bridge.telemetry().settings.clone();
+        let pack = settings
+            .as_ref()
+            .and_then(crate::config::PackSettings::from_registers);
+        let out = self.config.change(changes, false, pack.as_ref());
+        self.apply_running(now);
+        out
+    }
+
+    // ---- the BMS ----
+
+    /// Where the UART driver writes received bytes (see [`Bridge::rx_buffer`]).
+    pub fn rx_buffer(&mut self) -> &mut [u8] {
+        self.bridge.rx_buffer()
+    }
+
+    /// The first `n` bytes of [`Station::rx_buffer`] were received at `now`.
+    pub fn received(&mut self, now: Instant, n: usize) {
+        if let Some(h) = self.host.as_mut() {
+            if h.capturing() {
+                let bytes = self.bridge.rx_buffer().get(..n).unwrap_or(&[]);
+                h.on_uart_rx(bytes);
+            }
+        }
+        self.bridge.handle_received(now, n);
+        self.feed_inverter();
+    }
+
+    /// Bytes received at `now`, from a buffer of the caller's.
+    pub fn handle_rx(&mut self, now: Instant, bytes: &[u8]) {
+        let mut rest = bytes;
+        while !rest.is_empty() {
+            let space = self.bridge.rx_buffer();
+            let n = space.len().min(rest.len());
+            if let (Some(dst), Some(src)) = (space.get_mut(..n), rest.get(..n)) {
+                dst.copy_from_slice(src);
+            }
+            self.received(now, n);
+            rest = rest.get(n..).unwrap_or(&[]);
+        }
+    }
+
+    /// The bytes to write after [`Action::Transmit`].
+    pub fn transmit_bytes(&self) -> &[u8] {
+        self.bridge.transmit_bytes()
+    }
+
+    // ---- the host ----
+
+    /// A host (re)opened the port: `hello` first.
+    pub fn host_connected(&mut self, now: Instant) {
+        if let Some(h) = self.host.as_mut() {
+            h.connected(now);
+        }
+    }
+
+    /// Bytes from the host at `now`.
+    pub fn host_rx(&mut self, now: Instant, bytes: &[u8]) {
+        if let Some(h) = self.host.as_mut() {
+            h.handle_rx(now, bytes, &mut self.bridge, &mut self.config);
+        }
+        self.apply_running(now);
+    }
+
+    /// The next line for the host (`\n`-terminated) into `out` (at least
+    /// [`crate::host_link::OUT_LINE_MAX`] bytes); call only when the port can
+    /// take a whole line.
+    pub fn next_host_line(&mut self, now: Instant, out: &mut [u8]) -> Option<usize> {
+        let h = self.host.as_mut()?;
+        h.next_line(now, &self.bridge, &self.config, out)
+    }
+
+    /// Lines are waiting for the host.
+    pub fn host_has_output(&self) -> bool {
+        self.host.as_ref().is_some_and(parts::Host::has_output)
+    }
+
+    /// The port dropped `n` whole lines (a host that does not read): counted
+    /// in the host link's `dropped_lines`.
+    pub fn host_lines_dropped(&mut self, n: u32) {
+        if let Some(h) = self.host.as_mut() {
+            h.lines_dropped(n);
+        }
+    }
+
+    /// A log line of another task (Wi-Fi, MQTT) for the host link's `log`
+    /// lines (the task logs it itself).
+    pub fn foreign_log(&mut self, level: Level, text: &str) {
+        if let Some(h) = self.host.as_mut() {
+            h.log(level, text);
+        }
+    }
+
+    // ---- the CAN bus ----
+
+    /// A frame from the bus.
+    pub fn can_received(&mut self, now: Instant, id: u16, data: &[u8]) {
+        if let Some(i) = self.inverter.as_mut() {
+            i.on_received(now, id, data);
+        }
+    }
+
+    /// The frame of the last [`Action::Can`] was sent or failed.
+    pub fn can_sent(&mut self, now: Instant, result: TxResult) {
+        self.can = Can::Idle(now);
+        if let Some(i) = self.inverter.as_mut() {
+            i.on_tx(now, result);
+        }
+    }
+
+    /// The controller went bus-off (with the last frame, or by itself).
+    pub fn can_bus_off(&mut self, now: Instant) {
+        self.can = Can::Idle(now);
+        if let Some(i) = self.inverter.as_mut() {
+            i.on_bus_off(now);
+        }
+    }
+
+    /// The recovery asked for by [`Action::CanRecover`] ended: the controller
+    /// is back on the bus (`ok`) or still off.
+    pub fn can_recovered(&mut self, now: Instant, ok: bool) {
+        self.can = Can::Idle(now);
+        if !ok {
+            if let Some(i) = self.inverter.as_mut() {
+                i.on_bus_off(now);
+            }
+        }
+    }
+
+    // ---- the button, the store ----
+
+    /// A sample of the BOOT button (see [`crate::config::button`]): held long
+    /// enough, it lifts read-only.
+    pub fn button(&mut self, now: Instant, pressed: bool) {
+        if self.hold.sample(now, pressed) {
+            self.config.unlock();
+            self.apply_running(now);
+        }
+    }
+
+    /// The record to write after [`Action::Save`].
+    pub fn record(&self) -> &Config {
+        self.config.stored()
+    }
+
+    /// The save of [`Action::Save`] is done.
+    pub fn saved(&mut self, result: Result<Saved, StoreError>) {
+        if let Some(r) = self.config.saved(result) {
+            if let Some(h) = self.host.as_mut() {
+                h.on_config_saved(r);
+            }
+        }
+    }
+
+    // ---- what the MQTT output reads ----
+
+    /// Bumped whenever [`Station::published`] changes.
+    pub fn generation(&self) -> u32 {
+        self.generation
+    }
+
+    /// The picture to publish at `now` (see [`Published`]).
+    pub fn published(&self, now: Instant) -> Published {
+        let t = self.bridge.telemetry();
+        let s = self.bridge.link_stats();
+        Published {
+            snapshot: t.snapshot.clone(),
+            seq: t.snapshot_seq,
+            taken_at: t.snapshot_at,
+            online: t.online && t.ready,
+            flagged: t.live.flagged.map(|c| c.name()),
+            version: t.version,
+            link: (s.requests, s.replies),
+            limits: self
+                .inverter
+                .as_ref()
+                .and_then(|i| i.limits_sent(now))
+                .map(|l| (l.cvl_dv, l.ccl_da, l.dcl_da)),
+            freshness: self.freshness(),
+            battery: self.battery.clone(),
+        }
+    }
+
+    /// The one freshness rule, with the limit the configuration sets.
+    pub fn freshness(&self) -> Freshness {
+        match self.inverter.as_ref() {
+            Some(i) => i.config().freshness,
+            None => self.config.running().inverter().freshness,
+        }
+    }
+
+    /// The next BMS event for the MQTT output.
+    pub fn take_event(&mut self) -> Option<Event> {
+        self.events.pop_front()
+    }
+
+    /// Events the MQTT output did not take in time.
+    pub fn events_dropped(&self) -> u32 {
+        self.events_dropped
+    }
+
+    /// Several packs: the battery as this bridge sees it (refreshed every
+    /// [`BATTERY_VIEW_PERIOD_US`]).
+    pub fn battery_view(&self) -> Option<&BatteryView> {
+        self.battery.as_ref()
+    }
+
+    // ---- the log ----
+
+    /// The words of a logged item (as the chip prints them).
+    pub fn log_text(&self, item: &Logged, out: &mut Line) {
+        match item {
+            Logged::Bridge(r) => text::report(r, out),
+            Logged::Config(n) => text::config_note(n, &self.config, out),
+            // An image without the output has no reports of it (and links
+            // none of their words).
+            Logged::Inverter(r) if cfg!(feature = "can") => text::inverter(r, out),
+            Logged::Inverter(_) => {}
+        }
+    }
+
+    // ---- what to do next ----
+
+    /// What to do at `now`.
+    pub fn poll(&mut self, now: Instant) -> Action {
+        self.feed_inverter();
+        self.apply_running(now);
+        self.tick_battery(now);
+        if self.transmit_pending {
+            if let Some(item) = self.next_logged(now) {
+                return Action::Log(item);
+            }
+            self.transmit_pending = false;
+            return self.transmit();
+        }
+        // The flash write stops the CPU: only when no reply can be on its way,
+        // and before the next request (the poll is held until `saved`).
+        if self.config.save_due() && self.bridge.quiet(now) {
+            return Action::Save;
+        }
+        let mut wake = Instant::MAX;
+        if let (Can::Idle(_), Some(inverter)) = (self.can, self.inverter.as_mut()) {
+            match inverter.poll(now) {
+                InverterAction::Send(f) => {
+                    self.can = Can::Busy;
+                    self.note_limits(now);
+                    return Action::Can(f);
+                }
+                InverterAction::Recover => {
+                    self.can = Can::Busy;
+                    return Action::CanRecover;
+                }
+                InverterAction::WaitUntil(t) => {
+                    self.can = Can::Idle(t);
+                    self.note_limits(now);
+                    wake = t;
+                }
+            }
+        }
+        match self.bridge.step(now) {
+            Step::Transmit => {
+                if let Some(item) = self.next_logged(now) {
+                    self.transmit_pending = true;
+                    return Action::Log(item);
+                }
+                self.transmit()
+            }
+            Step::WaitUntil(t) => {
+                if self.bridge.quiet(now) {
+                    if let Some(item) = self.next_logged(now) {
+                        return Action::Log(item);
+                    }
+                }
+                if let Some(h) = self.host.as_mut() {
+                    wake = wake.min(h.poll(now, &self.bridge));
+                }
+                if self.node() != 0 {
+                    wake = wake.min(self.next_view);
+                }
+                Action::WaitUntil(t.min(wake))
+            }
+        }
+    }
+
+    fn transmit(&mut self) -> Action {
+        if let Some(h) = self.host.as_mut() {
+            if h.capturing() {
+                h.on_uart_tx(self.bridge.transmit_bytes());
+            }
+        }
+        Action::Transmit
+    }
+
+    /// The next thing to log, with what it means for the others.
+    fn next_logged(&mut self, now: Instant) -> Option<Logged> {
+        let item = if let Some(r) = self.bridge.next_report() {
+            if let Some(h) = self.host.as_mut() {
+                h.on_report(&r);
+            }
+            if let Report::NewEvent(e) = &r {
+                if let Some(i) = self.inverter.as_mut() {
+                    i.on_event(e);
+                }
+                if self.events.is_full() {
+                    self.events.pop_front();
+                    self.events_dropped = self.events_dropped.wrapping_add(1);
+                }
+                let _ = self.events.push_back(*e);
+                self.generation = self.generation.wrapping_add(1);
+            }
+            Logged::Bridge(r)
+        } else if let Some(n) = self.config.next_note() {
+            Logged::Config(n)
+        } else if let Some(r) = self.inverter.as_mut().and_then(|i| i.next_report()) {
+            Logged::Inverter(r)
+        } else {
+            return None;
+        };
+        let _ = now;
+        if self.host.is_some() {
+            let mut line = Line::new();
+            self.log_text(&item, &mut line);
+            if let Some(h) = self.host.as_mut() {
+                h.log(item.level(), line.as_str());
+            }
+        }
+        Some(item)
+    }
+
+    /// A new snapshot goes to the inverter output (with the settings charge
+    /// control uses and the version), and changes what MQTT reads.
+    fn feed_inverter(&mut self) {
+        let t = self.bridge.telemetry();
+        let online = t.online && t.ready;
+        if online != self.last_online {
+            self.last_online = online;
+            self.generation = self.generation.wrapping_add(1);
+        }
+        if t.snapshot_seq == self.fed_seq {
+            return;
+        }
+        self.fed_seq = t.snapshot_seq;
+        self.generation = self.generation.wrapping_add(1);
+        if let (Some(s), Some(at)) = (&t.snapshot, t.snapshot_at) {
+            let settings = t.settings.as_ref().and_then(PackSettings::from_registers);
+            if let Some(i) = self.inverter.as_mut() {
+                i.on_snapshot(at, s, settings, t.version.as_ref());
+            }
+        }
+    }
+
+    /// The limits the inverter is told changed: MQTT shows them.
+    fn note_limits(&mut self, now: Instant) {
+        let l = self.inverter.as_ref().and_then(|i| i.limits_sent(now));
+        if l != self.last_limits {
+            self.last_limits = l;
+            self.generation = self.generation.wrapping_add(1);
+        }
+    }
+
+    /// The running configuration changed: the host link and the inverter
+    /// output follow it at once.
+    fn apply_running(&mut self, now: Instant) {
+        if let Some(c) = self.config.take_running_change() {
+            if let Some(h) = self.host.as_mut() {
+                h.apply_config(now, c);
+            }
+            if let Some(i) = self.inverter.as_mut() {
+                i.reconfigure(c.inverter());
+            }
+        }
+    }
+
+    /// Several packs: the battery to the host link and MQTT once a period.
+    fn tick_battery(&mut self, now: Instant) {
+        if self.node() == 0 || now < self.next_view {
+            return;
+        }
+        self.next_view = now.saturating_add(BATTERY_VIEW_PERIOD_US);
+        let v = self.inverter.as_ref().and_then(|i| i.battery_view(now));
+        if let Some(h) = self.host.as_mut() {
+            h.on_battery(v.clone());
+        }
+        if v != self.battery {
+            self.battery = v;
+            self.generation = self.generation.wrapping_add(1);
+        }
+    }
+
+    /// Queues the start-up profile.
+    #[allow(clippy::result_large_err)] // the command itself is handed back
+    pub fn submit_profile(
+        &mut self,
+        profile: &[(protocol_core::settings::SettingId, i32)],
+    ) -> Result<(), Command> {
+        self.bridge.submit_profile(profile)
+    }
+}

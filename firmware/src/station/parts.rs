@@ -1,0 +1,142 @@
+//! The parts an image may leave out. The host link (feature `host-link`)
+//! and the inverter output (feature `can`) are in the station when the image
+//! has the wire for them; without the feature their slot holds an
+//! uninhabited stand-in, so `Option<NoHost>` is always `None`, takes no
+//! memory, and the compiler removes every call on it (the bridge-only image
+//! links neither part, as before the station).
+
+#[cfg(not(any(feature = "host-link", feature = "can")))]
+use crate::Instant;
+
+/// The host link's slot.
+#[cfg(feature = "host-link")]
+pub type Host = crate::host_link::HostLink;
+/// The host link's slot: none in this image.
+#[cfg(not(feature = "host-link"))]
+pub type Host = NoHost;
+
+/// The inverter output's slot.
+#[cfg(feature = "can")]
+pub type Output = crate::inverter::Inverter;
+/// The inverter output's slot: none in this image.
+#[cfg(not(feature = "can"))]
+pub type Output = NoOutput;
+
+/// No host link: a type without values.
+#[cfg(not(feature = "host-link"))]
+#[derive(Debug, Clone)]
+pub enum NoHost {}
+
+#[cfg(not(feature = "host-link"))]
+#[allow(clippy::unused_self, missing_docs)]
+impl NoHost {
+    pub fn connected(&mut self, _: Instant) {
+        match *self {}
+    }
+    pub fn handle_rx(
+        &mut self,
+        _: Instant,
+        _: &[u8],
+        _: &mut crate::Bridge,
+        _: &mut crate::config::state::ConfigState,
+    ) {
+        match *self {}
+    }
+    pub fn next_line(
+        &mut self,
+        _: Instant,
+        _: &crate::Bridge,
+        _: &crate::config::state::ConfigState,
+        _: &mut [u8],
+    ) -> Option<usize> {
+        match *self {}
+    }
+    pub fn has_output(&self) -> bool {
+        match *self {}
+    }
+    pub fn lines_dropped(&mut self, _: u32) {
+        match *self {}
+    }
+    pub fn log(&mut self, _: crate::Level, _: &str) {
+        match *self {}
+    }
+    pub fn capturing(&self) -> bool {
+        match *self {}
+    }
+    pub fn on_uart_rx(&mut self, _: &[u8]) {
+        match *self {}
+    }
+    pub fn on_uart_tx(&mut self, _: &[u8]) {
+        match *self {}
+    }
+    pub fn on_report(&mut self, _: &crate::Report) {
+        match *self {}
+    }
+    pub fn on_config_saved(
+        &mut self,
+        _: Result<crate::config::store::Saved, crate::config::store::StoreError>,
+    ) {
+        match *self {}
+    }
+    pub fn apply_config(&mut self, _: Instant, _: &crate::config::Config) {
+        match *self {}
+    }
+    pub fn poll(&mut self, _: Instant, _: &crate::Bridge) -> Instant {
+        match *self {}
+    }
+    pub fn on_battery(&mut self, _: Option<crate::inverter::packs::BatteryView>) {
+        match *self {}
+    }
+}
+
+/// No inverter output: a type without values.
+#[cfg(not(feature = "can"))]
+#[derive(Debug, Clone)]
+pub enum NoOutput {}
+
+#[cfg(not(feature = "can"))]
+#[allow(clippy::unused_self, missing_docs)]
+impl NoOutput {
+    pub fn on_snapshot(
+        &mut self,
+        _: Instant,
+        _: &protocol_core::views::LiveSnapshot,
+        _: Option<crate::inverter::control::PackSettings>,
+        _: Option<&protocol_core::views::VersionInfo>,
+    ) {
+        match *self {}
+    }
+    pub fn on_event(&mut self, _: &protocol_core::events::Event) {
+        match *self {}
+    }
+    pub fn on_received(&mut self, _: Instant, _: u16, _: &[u8]) {
+        match *self {}
+    }
+    pub fn on_tx(&mut self, _: Instant, _: crate::inverter::TxResult) {
+        match *self {}
+    }
+    pub fn on_bus_off(&mut self, _: Instant) {
+        match *self {}
+    }
+    pub fn poll(&mut self, _: Instant) -> crate::inverter::InverterAction {
+        match *self {}
+    }
+    pub fn reconfigure(&mut self, _: crate::inverter::InverterConfig) {
+        match *self {}
+    }
+    pub fn limits_sent(&self, _: Instant) -> Option<crate::inverter::control::Limits> {
+        match *self {}
+    }
+    pub fn next_report(&mut self) -> Option<crate::inverter::InverterReport> {
+        match *self {}
+    }
+    pub fn node(&self) -> u8 {
+        match *self {}
+    }
+    pub fn battery_view(&self, _: Instant) -> Option<crate::inverter::packs::BatteryView> {
+        match *self {}
+    }
+    pub fn config(&self) -> &crate::inverter::InverterConfig {
+        match *self {}
+    }
+}

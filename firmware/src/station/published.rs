@@ -1,0 +1,50 @@
+//! What the station publishes for the MQTT output: a copy (the chip puts it
+//! in a `Watch`; the desktop runners in a mutex) that the session reads at its
+//! own pace, so nothing of the session reaches back into the station.
+
+use protocol_core::views::{LiveSnapshot, VersionInfo};
+
+use crate::freshness::{DataState, Freshness};
+use crate::inverter::packs::BatteryView;
+use crate::Instant;
+
+/// The published picture. See the module documentation.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Published {
+    /// The latest snapshot.
+    pub snapshot: Option<LiveSnapshot>,
+    /// Its sequence number.
+    pub seq: u32,
+    /// When it was decoded (µs on the station's clock).
+    pub taken_at: Option<Instant>,
+    /// The BMS link is up and the bridge synced.
+    pub online: bool,
+    /// The check a flagged snapshot failed.
+    pub flagged: Option<&'static str>,
+    /// The BMS's version block.
+    pub version: Option<VersionInfo>,
+    /// Requests sent to the BMS and replies received.
+    pub link: (u32, u32),
+    /// What the inverter is told (CVL 0.1 V, CCL 0.1 A, DCL 0.1 A), while the
+    /// CAN output sends it.
+    pub limits: Option<(u16, u16, u16)>,
+    /// The freshness rule with the configured limit.
+    pub freshness: Freshness,
+    /// Several packs: the battery as this bridge sees it.
+    pub battery: Option<BatteryView>,
+}
+
+impl Published {
+    /// The snapshot's age at `now`, µs.
+    pub fn age_us(&self, now: Instant) -> Option<Instant> {
+        self.taken_at.map(|t| now.saturating_sub(t))
+    }
+
+    /// How current it is at `now` (the one rule).
+    pub fn state(&self, now: Instant) -> DataState {
+        if self.snapshot.is_none() {
+            return DataState::NoData;
+        }
+        self.freshness.state(self.online, self.age_us(now))
+    }
+}

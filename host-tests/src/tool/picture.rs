@@ -1,0 +1,459 @@
+//! What the monitor's picture says, whichever view shows it (plain text, JSON,
+//! CSV, full screen in [`super::live`]): the freshness by the bridge's rule,
+//! the cells, the link quality, the battery line, the options and the log
+//! writer. Shared by `monitor` and `live`, which import it (not each other).
+
+use std::io::Write;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use serde_json::{json, Value};
+
+use super::{ToolError, ToolResult};
+
+/// How often the picture is redrawn without new data (plain text: how often a
+/// NO DATA line repeats).
+pub const REDRAW: Duration = Duration::from_millis(500);
+
+/// How the monitor shows what it gets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum View {
+    /// Full screen (ratatui), on a terminal.
+    Live,
+    /// Plain text blocks, no escape codes.
+    Plain,
+    /// The telemetry lines.
+    Json,
+}
+
+/// Log file format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LogFormat {
+    /// One row per record, cells as columns.
+    Csv,
+    /// The telemetry line with a `time` member.
+    JsonLines,
+}
+
+impl LogFormat {
+    /// From `--format` or the file's extension.
+    pub fn from_name(s: &str) -> Option<Self> {
+        match s {
+            "csv" => Some(Self::Csv),
+            "jsonl" | "json" | "ndjson" => Some(Self::JsonLines),
+            _ => None,
+        }
+    }
+}
+
+/// What `monitor` does.
+#[derive(Debug, Clone)]
+pub struct MonitorOptions {
+    /// How it shows the data.
+    pub view: View,
+    /// Log file and format.
+    pub log: Option<(String, LogFormat)>,
+    /// Log period.
+    pub every: Duration,
+    /// Stop after this many updates (screens, JSON lines or log records).
+    pub count: Option<u64>,
+    /// Stop after this long.
+    pub duration: Option<Duration>,
+    /// Telemetry push period asked of the bridge.
+    pub period_ms: u32,
+    /// How long to wait for the BMS to be ready.
+    pub ready_timeout: Duration,
+}
+
+/// UTC time `2024-05-01T12:00:00.123Z` (no dependency for one format).
+pub fn utc_now() -> String {
+    let d = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .unwrap_or_default();
+    utc(d.as_secs() as i64, d.subsec_millis())
+}
+
+/// UTC time of `secs` since 1970 (civil-from-days, proleptic Gregorian).
+pub fn utc(secs: i64, millis: u32) -> String {
+    let days = secs.div_euclid(86_400);
+    let tod = secs.rem_euclid(86_400);
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    format!(
+        "{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}.{millis:03}Z",
+        tod / 3600,
+        tod / 60 % 60,
+        tod % 60
+    )
+}
+
+fn num(v: &Value, k: &str) -> Option<f64> {
+    v[k].as_f64()
+}
+
+fn fmt_opt(v: Option<f64>, decimals: usize, unit: &str) -> String {
+    match v {
+        Some(x) => format!("{x:.decimals$} {unit}"),
+        None => "-".into(),
+    }
+}
+
+/// Link quality from a `link` line: share of requests answered at once, and the
+/// counts.
+pub fn link_quality(link: &Value) -> Option<String> {
+    let requests = link["requests"].as_u64()?;
+    let replies = link["replies"].as_u64().unwrap_or(0);
+    let failures = link["failures"].as_u64().unwrap_or(0);
+    let pct = if requests == 0 {
+        100.0
+    } else {
+        100.0 * (requests.saturating_sub(failures)) as f64 / requests as f64
+    };
+    Some(format!(
+        "{pct:.1} % ok ({requests} requests, {replies} replies, {failures} failed, {} retries, {} CRC errors)",
+        link["retries"].as_u64().unwrap_or(0),
+        link["crc_errors"].as_u64().unwrap_or(0)
+    ))
+}
+
+/// How fresh the picture is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Freshness {
+    /// Data `age` old, the BMS online.
+    Fresh(f64),
+    /// The bridge lost the BMS (its telemetry says offline); data `age` old.
+    Offline(Option<f64>),
+    /// Nothing new for too long: the newest data is `age` old (None: never any).
+    NoData(Option<f64>),
+}
+
+/// The age of `t`'s data now (seconds): its `age_ms` when it arrived plus the
+/// time since.
+pub fn data_age(t: &Value, received_ago: Duration) -> Option<f64> {
+    t["age_ms"]
+        .as_f64()
+        .map(|ms| ms / 1000.0 + received_ago.as_secs_f64())
+}
+
+/// The freshness rule of the bridge that sent `t`: the limit its line gives
+/// (`stale_after_ms`), or the default for a bridge whose lines carry none.
+pub fn rule_of(t: &Value) -> tinybms_firmware::freshness::Freshness {
+    let limit_us = t["stale_after_ms"]
+        .as_u64()
+        .map_or(tinybms_firmware::freshness::DEFAULT_STALE_AFTER_US, |ms| {
+            ms.saturating_mul(1000)
+        });
+    tinybms_firmware::freshness::Freshness::new(limit_us)
+}
+
+/// What the picture should say about `t`, received `received_ago`: the
+/// firmware's one freshness rule with the bridge's limit, on the age the line
+/// gave plus the time since it came (a bridge that stopped sending ages too).
+pub fn freshness(t: Option<&Value>, received_ago: Duration) -> Freshness {
+    use tinybms_firmware::freshness::DataState;
+    let Some(t) = t else {
+        return Freshness::NoData(None);
+    };
+    let age = data_age(t, received_ago);
+    let age_us = age.map(|a| (a * 1e6) as u64);
+    match rule_of(t).state(t["online"] == true, age_us) {
+        DataState::Offline => Freshness::Offline(age),
+        DataState::Fresh => Freshness::Fresh(age.unwrap_or(0.0)),
+        DataState::NoData | DataState::Stale => Freshness::NoData(age),
+    }
+}
+
+/// One line about the freshness: `Data age 0.4 s`, `NO DATA (newest 12.0 s
+/// old)`, `OFFLINE (…)`.
+pub fn freshness_text(f: Freshness) -> String {
+    let age = |a: Option<f64>| match a {
+        Some(a) => format!("newest data {a:.1} s old"),
+        None => "no data yet".into(),
+    };
+    match f {
+        Freshness::Fresh(a) => format!("Data age {a:.1} s   online"),
+        Freshness::Offline(a) => format!("OFFLINE: the bridge has lost the BMS ({})", age(a)),
+        Freshness::NoData(a) => format!("NO DATA: nothing new from the port ({})", age(a)),
+    }
+}
+
+/// The lowest and highest cell's index (0-based).
+pub fn min_max(cells: &[f64]) -> Option<(usize, usize)> {
+    let mut it = cells.iter().enumerate();
+    let (_, first) = it.next()?;
+    let (mut lo, mut hi) = ((0, *first), (0, *first));
+    for (k, c) in it {
+        if *c < lo.1 {
+            lo = (k, *c);
+        }
+        if *c > hi.1 {
+            hi = (k, *c);
+        }
+    }
+    Some((lo.0, hi.0))
+}
+
+/// The cell voltages of a telemetry line.
+pub fn cells_of(t: &Value) -> Vec<f64> {
+    t["cell_voltages_v"]
+        .as_array()
+        .map(|a| a.iter().filter_map(Value::as_f64).collect())
+        .unwrap_or_default()
+}
+
+/// The plain-text picture of one telemetry line (no escape codes): what
+/// `monitor` prints when its output is not a terminal, or with `--plain`.
+pub fn render_text(t: &Value, link: Option<&Value>, header: &str, f: Freshness) -> String {
+    let mut s = String::new();
+    let mut line = |l: String| {
+        s.push_str(l.trim_end());
+        s.push('\n');
+    };
+    line(format!("TinyBMS {header}"));
+    if t.get("pack_voltage_v").is_none() {
+        line(format!(
+            "no snapshot yet (online {}, ready {}): waiting for the BMS...",
+            t["online"], t["ready"]
+        ));
+        line(freshness_text(f));
+        return s;
+    }
+    let v = num(t, "pack_voltage_v");
+    let i = num(t, "pack_current_a");
+    let p = match (v, i) {
+        (Some(v), Some(i)) => Some(v * i),
+        _ => None,
+    };
+    line(format!(
+        "Pack   {}   {}   {}      SOC {}   SOH {}",
+        fmt_opt(v, 2, "V"),
+        fmt_opt(i, 2, "A"),
+        fmt_opt(p, 0, "W"),
+        fmt_opt(num(t, "soc_percent"), 1, "%"),
+        fmt_opt(num(t, "soh_percent"), 1, "%"),
+    ));
+    let temp = |k: &str| match t[k].as_f64() {
+        Some(x) => format!("{x:.1} °C"),
+        None => "not connected".into(),
+    };
+    line(format!(
+        "Status {}   Temperatures: internal {}  external {} / {}",
+        t["online_status"].as_str().unwrap_or("-"),
+        temp("internal_temperature_c"),
+        temp("external_temperature_1_c"),
+        temp("external_temperature_2_c"),
+    ));
+    if let Some(left) = t["estimated_time_left_s"].as_u64() {
+        let life = t["lifetime_s"].as_u64().unwrap_or(0);
+        line(format!(
+            "Time left {}h{:02}   BMS lifetime {}d {:02}:{:02}:{:02}",
+            left / 3600,
+            left / 60 % 60,
+            life / 86_400,
+            life / 3600 % 24,
+            life / 60 % 60,
+            life % 60
+        ));
+    }
+    let cells = cells_of(t);
+    let balancing = t["real_balancing_bits"].as_u64().unwrap_or(0);
+    if let Some((lo, hi)) = min_max(&cells) {
+        line(format!(
+            "Cells ({})  lowest #{} {:.4} V  highest #{} {:.4} V  spread {:.1} mV   (< lowest, > highest, * balancing)",
+            cells.len(),
+            lo + 1,
+            cells[lo],
+            hi + 1,
+            cells[hi],
+            (cells[hi] - cells[lo]) * 1000.0
+        ));
+        for (r, row) in cells.chunks(4).enumerate() {
+            let mut l = String::from(" ");
+            for (j, c) in row.iter().enumerate() {
+                let k = r * 4 + j;
+                let mark = match (k == lo && cells.len() > 1, k == hi && cells.len() > 1) {
+                    (true, _) => '<',
+                    (_, true) => '>',
+                    _ => ' ',
+                };
+                let bal = if balancing >> k & 1 == 1 { '*' } else { ' ' };
+                l.push_str(&format!("  {:>2} {c:.4} V{mark}{bal}", k + 1));
+            }
+            line(l);
+        }
+    }
+    let flagged = match t["flagged"].as_str() {
+        Some(fl) => format!("   flagged: {fl}"),
+        None => String::new(),
+    };
+    line(format!("{}   seq {}{flagged}", freshness_text(f), t["seq"]));
+    if let Some(q) = link.and_then(link_quality) {
+        line(format!("Link {q}"));
+    }
+    s
+}
+
+/// Packs in parallel: one line of text for a `battery` or `pack` line of a
+/// bridge with a node number (what `monitor --plain` prints after each picture).
+pub fn render_battery_line(v: &Value) -> String {
+    let f = |k: &str, d: usize, unit: &str| fmt_opt(num(v, k), d, unit);
+    if v["type"] == "battery" {
+        let online = v["packs_online"].as_u64().unwrap_or(0);
+        let offline = v["packs_offline"].as_u64().unwrap_or(0);
+        let who = if v["speaking"] == true {
+            format!("node {} speaks to the inverter", v["node"])
+        } else {
+            format!("node {} listens", v["node"])
+        };
+        if online == 0 {
+            return format!(
+                "Battery ({who}): no pack takes part ({offline} known): the inverter is stopped"
+            );
+        }
+        return format!(
+            "Battery ({who}): {online} of {} packs   {}   SOC {}   {}   {}   cells {} to {}   sent: CVL {}  CCL {}  DCL {}",
+            online + offline,
+            f("capacity_ah", 0, "Ah"),
+            f("soc_percent", 1, "%"),
+            f("voltage_v", 2, "V"),
+            f("current_a", 1, "A"),
+            f("min_cell_v", 3, "V"),
+            f("max_cell_v", 3, "V"),
+            f("cvl_v", 1, "V"),
+            f("ccl_a", 1, "A"),
+            f("dcl_a", 1, "A"),
+        );
+    }
+    let state = match v["state"].as_str() {
+        Some("part") => "in the battery",
+        Some("lost") => "LOST (no summary)",
+        Some("stale") => "STALE (its BMS data is old)",
+        Some("fault") => "FAULT (its switch is open)",
+        _ => "?",
+    };
+    format!(
+        "  pack {}{}  {state}   {}   {}   SOC {}   cells {} to {}   own CCL {}  DCL {}   data age {}",
+        v["node"],
+        if v["speaking"] == true { "*" } else { " " },
+        f("voltage_v", 2, "V"),
+        f("current_a", 1, "A"),
+        f("soc_percent", 1, "%"),
+        f("min_cell_v", 3, "V"),
+        f("max_cell_v", 3, "V"),
+        f("ccl_a", 1, "A"),
+        f("dcl_a", 1, "A"),
+        f("data_age_s", 1, "s"),
+    )
+}
+
+/// The CSV header for `cells` cells.
+pub fn csv_header(cells: usize) -> String {
+    let mut h = String::from(
+        "time,seq,age_ms,online,pack_voltage_v,pack_current_a,soc_percent,soh_percent,\
+         min_cell_voltage_v,max_cell_voltage_v,internal_temperature_c,external_temperature_1_c,\
+         external_temperature_2_c,online_status,real_balancing_bits,flagged",
+    );
+    for k in 1..=cells {
+        h.push_str(&format!(",cell_{k}_v"));
+    }
+    h
+}
+
+/// One CSV row of a telemetry line.
+pub fn csv_row(time: &str, t: &Value, cells: usize) -> String {
+    let field = |k: &str| match &t[k] {
+        Value::Null => String::new(),
+        Value::String(s) => s.clone(),
+        other => other.to_string(),
+    };
+    let mut row = time.to_string();
+    for k in [
+        "seq",
+        "age_ms",
+        "online",
+        "pack_voltage_v",
+        "pack_current_a",
+        "soc_percent",
+        "soh_percent",
+        "min_cell_voltage_v",
+        "max_cell_voltage_v",
+        "internal_temperature_c",
+        "external_temperature_1_c",
+        "external_temperature_2_c",
+        "online_status",
+        "real_balancing_bits",
+        "flagged",
+    ] {
+        row.push(',');
+        row.push_str(&field(k));
+    }
+    let list = t["cell_voltages_v"].as_array().cloned().unwrap_or_default();
+    for k in 0..cells {
+        row.push(',');
+        if let Some(c) = list.get(k) {
+            row.push_str(&c.to_string());
+        }
+    }
+    row
+}
+
+/// The CSV / JSON Lines log (`--log`).
+pub(crate) struct Logger {
+    pub(crate) path: String,
+    pub(crate) out: std::io::BufWriter<std::fs::File>,
+    pub(crate) format: LogFormat,
+    pub(crate) cells: Option<usize>,
+    pub(crate) every: Duration,
+    pub(crate) next: Instant,
+}
+
+impl Logger {
+    pub(crate) fn log(&mut self, t: &Value) -> ToolResult<bool> {
+        if Instant::now() < self.next || t.get("pack_voltage_v").is_none() {
+            return Ok(false);
+        }
+        self.next += self.every;
+        if self.next < Instant::now() {
+            self.next = Instant::now() + self.every;
+        }
+        let time = utc_now();
+        let err = |e: std::io::Error| ToolError::failed(format!("writing the log: {e}"));
+        match self.format {
+            LogFormat::Csv => {
+                let n = t["cell_count"].as_u64().unwrap_or(0) as usize;
+                let first = self.cells.is_none();
+                let cells = *self.cells.get_or_insert(n);
+                let header = csv_header(cells);
+                if self.out.get_ref().metadata().map(|m| m.len()).unwrap_or(0) == 0 {
+                    writeln!(self.out, "{header}").map_err(err)?;
+                } else if first {
+                    // Appending: only under the same columns.
+                    let text = std::fs::read_to_string(&self.path).map_err(err)?;
+                    if text.lines().next() != Some(header.as_str()) {
+                        return Err(ToolError::failed(format!(
+                            "`{}` holds a log with other columns (another cell count, or not \
+                             a tinybms CSV log): log to a new file",
+                            self.path
+                        )));
+                    }
+                }
+                writeln!(self.out, "{}", csv_row(&time, t, cells)).map_err(err)?;
+            }
+            LogFormat::JsonLines => {
+                let mut v = t.clone();
+                if let Some(m) = v.as_object_mut() {
+                    m.insert("time".into(), json!(time));
+                }
+                writeln!(self.out, "{v}").map_err(err)?;
+            }
+        }
+        self.out.flush().map_err(err)?;
+        Ok(true)
+    }
+}
