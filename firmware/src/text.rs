@@ -408,6 +408,10 @@ pub fn config_note(
             out.push("configuration store cannot be read (")
                 .push(e.reason())
                 .push("): running with the defaults");
+            if let Some(site) = config.site() {
+                out.push("; ");
+                store_site(&site, out);
+            }
         }
         Note::Changed(id, applies) => {
             let f = id.field();
@@ -437,7 +441,57 @@ pub fn config_note(
         }
         Note::SaveFailed(e) => {
             out.push("config save failed: ").push(e.reason());
+            if let Some(site) = config.site() {
+                out.push("; ");
+                store_site(&site, out);
+            }
         }
+    }
+}
+
+/// Where the store lives, with the figures an owner needs to see why it
+/// fails: `flash 4096 KiB (as the chip reports it), nvs partition at 0x9000,
+/// 24 KiB; the store needs 8 KiB in whole 4 KiB sectors inside the flash`.
+pub fn store_site(site: &crate::config::store::StoreSite, out: &mut Line) {
+    use crate::config::store::STORE_MIN_BYTES;
+    out.push("flash ")
+        .uint(u64::from(site.flash_bytes / 1024))
+        .push(" KiB (as the chip reports it), ");
+    match site.partition {
+        Some((offset, size)) => {
+            out.push("nvs partition at 0x");
+            hex(u64::from(offset), out);
+            out.push(", ");
+            if size % 1024 == 0 {
+                out.uint(u64::from(size / 1024)).push(" KiB");
+            } else {
+                out.uint(u64::from(size)).push(" bytes");
+            }
+        }
+        None => {
+            out.push("no nvs partition");
+        }
+    }
+    out.push("; the store needs ")
+        .uint(u64::from(STORE_MIN_BYTES / 1024))
+        .push(" KiB in whole 4 KiB sectors inside the flash");
+    if let Some(p) = site.problem() {
+        out.push(": ").push(p.reason());
+    }
+}
+
+/// `n` in lowercase hexadecimal, without leading zeros.
+fn hex(n: u64, out: &mut Line) {
+    let mut started = false;
+    for shift in (0..16u32).rev() {
+        let d = ((n >> (shift * 4)) & 0xF) as u32;
+        if d == 0 && !started && shift > 0 {
+            continue;
+        }
+        started = true;
+        let c = char::from_digit(d, 16).unwrap_or('?');
+        let mut b = [0u8; 4];
+        out.push(c.encode_utf8(&mut b));
     }
 }
 

@@ -190,10 +190,22 @@ impl ClosedLoop {
         inverter: InverterConfig,
         charger_max_a: f64,
     ) -> Self {
+        Self::new_with(profile, seed, inverter, charger_max_a, false)
+    }
+
+    /// As [`ClosedLoop::new`], with the station's host link built in or not
+    /// (its port: [`Harness::host_port`] or [`Harness::host_lines`]).
+    pub fn new_with(
+        profile: PackProfile,
+        seed: u64,
+        inverter: InverterConfig,
+        charger_max_a: f64,
+        host_link: bool,
+    ) -> Self {
         let setup = Setup {
             timing: Timing::default(),
             chip: "sim",
-            host_link: false,
+            host_link,
             can: true,
             inverter: Some(inverter),
         };
@@ -434,12 +446,22 @@ pub const SCENARIOS: [&str; 7] = [
 pub fn run_scenario(
     name: &str,
     inverter: InverterConfig,
+    on_start: impl FnMut(&mut ClosedLoop),
+) -> Option<(ClosedLoop, u64)> {
+    let l = ClosedLoop::new(PackProfile::LiFePO4_16S, 1, inverter, 100.0);
+    run_scenario_on(name, l, on_start)
+}
+
+/// [`run_scenario`] on a loop built by the caller (seed 1, a 100 A charger,
+/// as `run_scenario`'s).
+pub fn run_scenario_on(
+    name: &str,
+    mut l: ClosedLoop,
     mut on_start: impl FnMut(&mut ClosedLoop),
 ) -> Option<(ClosedLoop, u64)> {
     const S: u64 = 1_000_000;
     const MIN: u64 = 60 * S;
     const H: u64 = 3600 * S;
-    let mut l = ClosedLoop::new(PackProfile::LiFePO4_16S, 1, inverter, 100.0);
     on_start(&mut l);
     let end = match name {
         "full-charge" => {

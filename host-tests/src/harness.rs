@@ -223,6 +223,11 @@ pub struct Harness {
     pub saver: Option<Saver>,
     /// Lines the host link wrote, collected after every pass when set.
     pub host_lines: Option<Vec<String>>,
+    /// Or the host link's port as the chip's writer drives it, with a host
+    /// that drains it as it likes ([`crate::host_port`]).
+    pub host_port: Option<crate::host_port::HostPort>,
+    /// For how long the port's writer kept the CPU (a spinning writer).
+    port_busy_us: u64,
     /// [`Harness::run_until`] also does what the station wants done at the
     /// end time itself (up to its next wait) before it returns: for loops
     /// that step other parts at that time (the closed loops' CAN bus and
@@ -278,6 +283,8 @@ impl Harness {
             can: CanPort::default(),
             saver: None,
             host_lines: None,
+            host_port: None,
+            port_busy_us: 0,
             finish_at_end: false,
         }
     }
@@ -487,7 +494,8 @@ impl Harness {
                 }
             }
             self.drain();
-            let stall = after_pass(&mut self.station, &self.sim, self.now);
+            let stall = after_pass(&mut self.station, &self.sim, self.now)
+                + std::mem::take(&mut self.port_busy_us);
             if stall > 0 {
                 self.stall(stall);
                 self.drain();
@@ -554,6 +562,9 @@ impl Harness {
             self.check_snapshot();
         }
         self.check_blocks();
+        if let Some(port) = self.host_port.as_mut() {
+            self.port_busy_us += port.pump(self.now, &mut self.station);
+        }
         if let Some(lines) = self.host_lines.as_mut() {
             let mut buf = [0u8; tinybms_firmware::host_link::OUT_LINE_MAX];
             while let Some(n) = self.station.next_host_line(self.now, &mut buf) {

@@ -7,6 +7,7 @@ pub mod closed_loop;
 pub mod flash;
 pub mod harness;
 pub mod host_link;
+pub mod host_port;
 pub mod hosted;
 pub mod mqtt;
 pub mod mqtt_e2e;

@@ -725,3 +725,106 @@ fn a_secret_never_reaches_a_log_line() {
     assert!(!all.contains(&key) && !all.contains("hunter22"), "{all}");
     assert!(all.contains("config: wifi_ssid = home"), "{all}");
 }
+
+// ------------------------------------------------- the store explains itself
+
+mod store_site {
+    use tinybms_firmware::config::state::{ConfigState, Note};
+    use tinybms_firmware::config::store::{SiteProblem, Source, StoreError, StoreSite};
+    use tinybms_firmware::config::Config;
+    use tinybms_firmware::text::{self, Line};
+
+    fn said(site: Option<StoreSite>, note: Note) -> String {
+        let mut s = ConfigState::new(Config::default(), Source::Unreadable(StoreError::Partition));
+        if let Some(site) = site {
+            s.set_site(site);
+        }
+        let mut l = Line::new();
+        text::config_note(&note, &s, &mut l);
+        l.as_str().to_string()
+    }
+
+    const MIB4: u32 = 4 * 1024 * 1024;
+
+    #[test]
+    fn every_store_message_names_the_flash_the_partition_and_what_the_store_needs() {
+        let good = StoreSite {
+            flash_bytes: MIB4,
+            partition: Some((0x9000, 0x6000)),
+        };
+        assert_eq!(good.problem(), None);
+        let cases = [
+            (
+                StoreSite {
+                    flash_bytes: MIB4,
+                    partition: None,
+                },
+                Some(SiteProblem::NoPartition),
+                "flash 4096 KiB (as the chip reports it), no nvs partition; the store needs 8 KiB \
+                 in whole 4 KiB sectors inside the flash: no `nvs` partition in the partition table",
+            ),
+            (
+                StoreSite {
+                    flash_bytes: MIB4,
+                    partition: Some((0x9000, 0x1000)),
+                },
+                Some(SiteProblem::TooSmall),
+                "flash 4096 KiB (as the chip reports it), nvs partition at 0x9000, 4 KiB; the store \
+                 needs 8 KiB in whole 4 KiB sectors inside the flash: the `nvs` partition is smaller \
+                 than the store needs",
+            ),
+            (
+                StoreSite {
+                    flash_bytes: MIB4,
+                    partition: Some((0x9000, 0x6800)),
+                },
+                Some(SiteProblem::NotAligned),
+                "flash 4096 KiB (as the chip reports it), nvs partition at 0x9000, 26 KiB; the store \
+                 needs 8 KiB in whole 4 KiB sectors inside the flash: the `nvs` partition is not on \
+                 4 KiB sector boundaries",
+            ),
+            (
+                // The emulator's flash: no answer to the read-ID command.
+                StoreSite {
+                    flash_bytes: 0,
+                    partition: Some((0x9000, 0x6000)),
+                },
+                Some(SiteProblem::BeyondFlash),
+                "flash 0 KiB (as the chip reports it), nvs partition at 0x9000, 24 KiB; the store \
+                 needs 8 KiB in whole 4 KiB sectors inside the flash: the `nvs` partition ends past \
+                 the flash the chip reports",
+            ),
+        ];
+        for (site, problem, words) in cases {
+            assert_eq!(site.problem(), problem);
+            let start = said(
+                Some(site),
+                Note::Loaded(Source::Unreadable(StoreError::Partition)),
+            );
+            assert_eq!(
+                start,
+                format!(
+                    "configuration store cannot be read (the partition cannot hold a store): \
+                     running with the defaults; {words}"
+                )
+            );
+            let save = said(Some(site), Note::SaveFailed(StoreError::Partition));
+            assert_eq!(
+                save,
+                format!("config save failed: the partition cannot hold a store; {words}")
+            );
+        }
+        // A good site with a failing flash: the figures, no problem named.
+        assert_eq!(
+            said(Some(good), Note::SaveFailed(StoreError::Flash)),
+            "config save failed: flash driver error; flash 4096 KiB (as the chip reports it), nvs \
+             partition at 0x9000, 24 KiB; the store needs 8 KiB in whole 4 KiB sectors inside the \
+             flash"
+        );
+        // Without a site (a desktop run): as before.
+        assert_eq!(
+            said(None, Note::SaveFailed(StoreError::Flash)),
+            "config save failed: flash driver error"
+        );
+    }
+}

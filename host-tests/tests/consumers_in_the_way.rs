@@ -226,3 +226,248 @@ fn a_controller_that_stays_bus_off_does_not_hold_the_bridge_back() {
         );
     }
 }
+
+// ------------------------------------------------- the closed-loop scenarios
+
+use host_tests::closed_loop::{run_scenario_on, ClosedLoop};
+use host_tests::host_port::{Drain, HostPort};
+use tinybms_firmware::inverter::InverterConfig;
+
+/// How the loop's consumers misbehave.
+#[derive(Clone, Copy, Debug)]
+struct Trouble {
+    drain: Drain,
+    /// The bus never acknowledges: every frame fails (error passive).
+    deaf_bus: bool,
+}
+
+/// What a loop did at the BMS, on the bus and at the host.
+struct LoopRun {
+    tx: Vec<(u64, Vec<u8>)>,
+    rx: Vec<u8>,
+    snapshots: Vec<u64>,
+    frames: Vec<(u64, u16)>,
+    limits: Vec<(u64, u16, u16, u16)>,
+    port: HostPort,
+    deaf_bus: bool,
+}
+
+fn run_loop(name: &str, t: Trouble, charger_a: f64) -> LoopRun {
+    run_loop_with(name, t, charger_a, |_| {})
+}
+
+fn run_loop_with(
+    name: &str,
+    t: Trouble,
+    charger_a: f64,
+    port: impl FnOnce(&mut HostPort),
+) -> LoopRun {
+    let mut l = ClosedLoop::new_with(
+        PackProfile::LiFePO4_16S,
+        1,
+        InverterConfig::default(),
+        charger_a,
+        true,
+    );
+    l.h.trace = Some(Vec::new());
+    let mut p = HostPort::new(t.drain, 5);
+    port(&mut p);
+    l.h.host_port = Some(p);
+    let (mut l, _) = run_scenario_on(name, l, |l| {
+        if t.deaf_bus {
+            l.h.can.attached = false;
+        }
+    })
+    .unwrap();
+    let mut trace = MAGIC.to_vec();
+    trace.push(0);
+    trace.extend(l.h.trace.take().unwrap());
+    trace.push(b'E');
+    let mut tx = Vec::new();
+    let mut rx = Vec::new();
+    for call in calls(&trace).unwrap() {
+        match call {
+            Call::Poll { now, action } => {
+                if let Action::Transmit(b) = *action {
+                    tx.push((now, b.to_vec()));
+                }
+            }
+            Call::Rx { bytes, .. } => rx.extend(bytes),
+        }
+    }
+    LoopRun {
+        tx,
+        rx,
+        snapshots: l.h.published.iter().map(|(at, _)| *at).collect(),
+        frames: l.sent_ids.clone(),
+        limits: l.sent_limits.clone(),
+        port: l.h.host_port.take().unwrap(),
+        deaf_bus: t.deaf_bus,
+    }
+}
+
+/// How far a request or a snapshot may move: four UART chunks (16 bytes
+/// each, the RX FIFO's timeout/threshold model), µs.
+const SHIFT_US: i64 = 4 * host_tests::harness::RX_CHUNK_US as i64;
+
+/// `Err` (what differs) when `r`'s bridge was held back against
+/// `reference`'s: every request the same, in the same order, at the same time
+/// within [`SHIFT_US`] (a reply's last bytes are handed in at the station's
+/// next wake, which a consumer's timer — the host link's, after a host came
+/// back — can bring forward, as on the chip, where every timer wake drains the
+/// UART's FIFO); every byte from the BMS the same; every snapshot, within
+/// [`SHIFT_US`]; the CAN frames and limits the same where the bus takes them.
+fn held_back(reference: &LoopRun, r: &LoopRun) -> Result<String, String> {
+    let (ref_tx, r_tx) = (&reference.tx, &r.tx);
+    if ref_tx.len() != r_tx.len() {
+        return Err(format!("{} requests against {}", r_tx.len(), ref_tx.len()));
+    }
+    let mut late_us = 0i64;
+    let mut early_us = 0i64;
+    for (i, ((ta, a), (tb, b))) in ref_tx.iter().zip(r_tx).enumerate() {
+        if a != b {
+            return Err(format!("request {i}: {b:02x?} against {a:02x?}"));
+        }
+        late_us = late_us.max(*tb as i64 - *ta as i64);
+        early_us = early_us.max(*ta as i64 - *tb as i64);
+    }
+    if late_us > SHIFT_US || early_us > SHIFT_US {
+        return Err(format!(
+            "requests up to {late_us} µs later, {early_us} µs earlier"
+        ));
+    }
+    if reference.rx != r.rx {
+        return Err("other bytes from the BMS".into());
+    }
+    if reference.snapshots.len() != r.snapshots.len() {
+        return Err(format!(
+            "{} snapshots against {}",
+            r.snapshots.len(),
+            reference.snapshots.len()
+        ));
+    }
+    let shift = reference
+        .snapshots
+        .iter()
+        .zip(&r.snapshots)
+        .map(|(a, b)| a.abs_diff(*b))
+        .max()
+        .unwrap_or(0);
+    if shift > SHIFT_US as u64 {
+        return Err(format!("a snapshot {shift} µs off"));
+    }
+    if !r.deaf_bus && (reference.frames != r.frames || reference.limits != r.limits) {
+        return Err("other CAN frames".into());
+    }
+    Ok(format!(
+        "requests up to {late_us} µs later, {early_us} µs earlier, snapshots {shift} µs"
+    ))
+}
+
+fn check_host_lines(port: &HostPort, what: &str) -> usize {
+    let mut pieces = 0;
+    for line in port.lines() {
+        if line.is_empty() {
+            continue;
+        }
+        let ok = serde_json::from_slice::<serde_json::Value>(line)
+            .map(|v| v["type"].is_string())
+            .unwrap_or(false);
+        if !ok {
+            pieces += 1;
+        }
+    }
+    assert!(
+        pieces as u64 <= port.dropped,
+        "{what}: {pieces} broken lines, {} dropped or cut",
+        port.dropped
+    );
+    pieces
+}
+
+#[test]
+fn no_consumer_holds_the_closed_loops_back() {
+    let good = Trouble {
+        drain: Drain::All,
+        deaf_bus: false,
+    };
+    let troubles = [
+        Trouble {
+            drain: Drain::Never,
+            deaf_bus: false,
+        },
+        Trouble {
+            drain: Drain::BytesPerSecond(1),
+            deaf_bus: false,
+        },
+        Trouble {
+            drain: Drain::Fits(0.3),
+            deaf_bus: false,
+        },
+        Trouble {
+            drain: Drain::All,
+            deaf_bus: true,
+        },
+        Trouble {
+            drain: Drain::Never,
+            deaf_bus: true,
+        },
+    ];
+    for name in ["bms-fault", "uart-lost", "bus-off", "hot-pack"] {
+        let reference = run_loop(name, good, 100.0);
+        // Without limits on the bus the charger would run otherwise, and the
+        // pack with it (other values, other reads): the deaf bus is compared
+        // with a charger that does nothing either way.
+        let idle_reference = run_loop(name, good, 0.0);
+        assert!(reference.tx.len() > 1000, "{name}");
+        assert!(reference.port.lines().len() > 100, "{name}");
+        assert_eq!(check_host_lines(&reference.port, name), 0, "{name}");
+        assert_eq!(reference.port.dropped, 0, "{name}");
+        for t in troubles {
+            let what = format!("{name}, {t:?}");
+            let (reference, r) = if t.deaf_bus {
+                (&idle_reference, run_loop(name, t, 0.0))
+            } else {
+                (&reference, run_loop(name, t, 100.0))
+            };
+            let shifts = held_back(reference, &r).unwrap_or_else(|e| panic!("{what}: {e}"));
+            let pieces = check_host_lines(&r.port, &what);
+            println!(
+                "{what}: {} requests, {} snapshots as without trouble ({shifts}); host got {} lines \
+                 ({pieces} pieces), {} dropped",
+                r.tx.len(),
+                r.snapshots.len(),
+                r.port.lines().len(),
+                r.port.dropped
+            );
+        }
+    }
+}
+
+/// The comparison above can fail: a writer that waits by spinning (the CPU is
+/// its while the host does not read, as the old driver loop's), with the
+/// library's bounds or without them, holds the bridge back, and the same
+/// measure says so.
+#[test]
+fn a_writer_that_spins_or_waits_unbounded_is_caught() {
+    let good = Trouble {
+        drain: Drain::All,
+        deaf_bus: false,
+    };
+    let deaf = Trouble {
+        drain: Drain::Never,
+        deaf_bus: false,
+    };
+    let reference = run_loop("bms-fault", good, 100.0);
+    let bounded_spin = run_loop_with("bms-fault", deaf, 100.0, |p| p.spins = true);
+    let e = held_back(&reference, &bounded_spin).expect_err("a spinning writer must be seen");
+    println!("spinning writer, bounded waits: {e}");
+    let unbounded = run_loop_with("bms-fault", deaf, 100.0, |p| {
+        p.spins = true;
+        p.unbounded = true;
+    });
+    let e = held_back(&reference, &unbounded).expect_err("an unbounded writer must be seen");
+    println!("spinning writer, no bound: {e}");
+    // The same host, the writer waiting as the chip's does: not held back.
+    held_back(&reference, &run_loop("bms-fault", deaf, 100.0)).unwrap();
+}

@@ -351,10 +351,33 @@ fn hello_on_connect_and_on_request() {
     let h = only(&r.drain()).clone();
     assert_eq!(
         h,
-        json!({"type":"hello","protocol":1,"firmware":env!("CARGO_PKG_VERSION"),"chip":"sim","read_only":false,"stream_period_ms":1000})
+        json!({"type":"hello","protocol":1,"firmware":env!("CARGO_PKG_VERSION"),"chip":"sim","read_only":false,"stream_period_ms":1000,"dropped_lines":0})
     );
     r.line(r#"{"cmd":"hello","req":77}"#);
     assert_eq!(only(&r.drain())["req"], 77);
+}
+
+#[test]
+fn hello_names_the_store_and_the_lines_a_host_missed() {
+    use tinybms_firmware::config::store::StoreSite;
+    let mut r = Rig::new(config(false, 1000));
+    r.h.station.set_store_site(StoreSite {
+        flash_bytes: 0,
+        partition: Some((0x9000, 0x6000)),
+    });
+    // A host that did not read: the port dropped 12 lines.
+    r.h.station.host_lines_dropped(12);
+    r.h.station.host_connected(0);
+    let h = only(&r.drain()).clone();
+    assert_eq!(h["dropped_lines"], 12, "{h}");
+    assert_eq!(
+        h["store"],
+        json!({"flash_kib":0,"partition_offset":0x9000,"partition_bytes":0x6000,"needs_bytes":8192,
+               "problem":"the `nvs` partition ends past the flash the chip reports"})
+    );
+    r.line(r#"{"cmd":"get","what":"link","req":3}"#);
+    let link = r.drain().into_iter().find(|l| l["type"] == "link").unwrap();
+    assert_eq!(link["dropped_lines"], 12, "{link}");
 }
 
 #[test]

@@ -149,7 +149,7 @@ async fn main(spawner: Spawner) {
 
     // The configuration record, before any task that runs with it. (Reading
     // flash stops the CPU only for microseconds; nothing runs yet anyway.)
-    let (store, loaded) = store::open(p.FLASH);
+    let (store, loaded, site) = store::open(p.FLASH);
     // In a static of its own, not in the task's future: an `async fn`'s
     // argument and the local it becomes would each take its size.
     static STATION: static_cell::StaticCell<Station> = static_cell::StaticCell::new();
@@ -164,6 +164,10 @@ async fn main(spawner: Spawner) {
         loaded,
         now_us(),
     ));
+    #[cfg(feature = "store")]
+    station.set_store_site(site);
+    #[cfg(not(feature = "store"))]
+    let _ = site;
     let running = station.config().running();
 
     #[cfg(feature = "can")]

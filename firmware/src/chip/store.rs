@@ -23,7 +23,7 @@ mod on {
     use esp_hal::peripherals::FLASH;
     use esp_storage::FlashStorage;
     use static_cell::StaticCell;
-    use tinybms_firmware::config::store::{Loaded, Saved, Source, Store, StoreError};
+    use tinybms_firmware::config::store::{Loaded, Saved, Source, Store, StoreError, StoreSite};
     use tinybms_firmware::config::Config;
 
     /// The flash the store works on.
@@ -47,8 +47,15 @@ mod on {
     /// the load is driven to completion here on the stack (an `async fn` would
     /// keep the 3 KiB partition table buffer and the load's state in the main
     /// task's static future for good).
-    pub fn open(flash: FLASH<'static>) -> (Option<Store<Flash>>, Loaded) {
+    pub fn open(flash: FLASH<'static>) -> (Option<Store<Flash>>, Loaded, StoreSite) {
         let storage = STORAGE.init(FlashStorage::new(flash));
+        // What the flash says of its size (its read-ID answer): named in the
+        // log and `hello` with the partition, so a failing store says why.
+        let flash_bytes = u32::try_from(storage.capacity()).unwrap_or(u32::MAX);
+        let mut site = StoreSite {
+            flash_bytes,
+            partition: None,
+        };
         let entry = {
             let mut table = [0u8; partitions::PARTITION_TABLE_MAX_LEN];
             match partitions::read_partition_table(storage, &mut table) {
@@ -64,25 +71,36 @@ mod on {
         };
         let Some(entry) = entry else {
             warn!("no `nvs` partition in the partition table: configuration in RAM only");
-            return (None, defaults(StoreError::Partition));
+            return (None, defaults(StoreError::Partition), site);
         };
+        site.partition = Some((entry.offset(), entry.len()));
+        if let Some(p) = site.problem() {
+            warn!(
+                "configuration in RAM only: {=str} (flash {=u32} KiB, nvs at {=u32:#x}, {=u32} bytes)",
+                p.reason(),
+                flash_bytes / 1024,
+                entry.offset(),
+                entry.len()
+            );
+            return (None, defaults(StoreError::Partition), site);
+        }
         let region = REGION.init(entry.as_flash_region(storage));
         let Ok(nor) = region.as_nor_flash() else {
             warn!("the `nvs` partition is encrypted: configuration in RAM only");
-            return (None, defaults(StoreError::Partition));
+            return (None, defaults(StoreError::Partition), site);
         };
         let len = entry.len();
         match Store::new(BlockingAsync::new(nor), 0..len) {
             Ok(mut store) => {
                 let loaded = embassy_futures::block_on(store.load());
-                (Some(store), loaded)
+                (Some(store), loaded, site)
             }
             Err(e) => {
                 warn!(
                     "the `nvs` partition cannot hold the store ({=u32} bytes)",
                     len
                 );
-                (None, defaults(e))
+                (None, defaults(e), site)
             }
         }
     }
@@ -116,14 +134,15 @@ mod off {
     /// No store.
     pub enum ChipStore {}
 
-    /// The defaults.
-    pub fn open(_: FLASH<'static>) -> (Option<ChipStore>, Loaded) {
+    /// The defaults (and no site: nothing is stored).
+    pub fn open(_: FLASH<'static>) -> (Option<ChipStore>, Loaded, Option<()>) {
         (
             None,
             Loaded {
                 config: Config::default(),
                 source: Source::Empty,
             },
+            None,
         )
     }
 

@@ -13,14 +13,12 @@
 //!   *and* the `serial_in_ep_data_free` bit; when no host reads (a USB charger,
 //!   a power-only cable, a closed terminal) it never returns, and on an
 //!   endpoint that keeps raising the interrupt without room it loops, taking
-//!   the interrupt-enable lock each time. So the writer never starts a line
-//!   unless the FIFO has room (it tries its first byte with the non-blocking
-//!   `write_byte_nb`, every [`PROBE_STEP`], for at most [`LINE_START_WAIT`]),
-//!   and gives the rest [`LINE_WRITE_TIMEOUT`]. A host that took nothing in
-//!   that time is *absent*: its lines are dropped whole without touching the
-//!   driver, and a probe every [`ABSENT_PROBE_PERIOD`] finds it again; then
-//!   a newline closes a line cut by a timeout (the host's decoder rejects the
-//!   piece and resyncs) and `hello` follows.
+//!   the interrupt-enable lock each time. So the writer follows the library's
+//!   rule (`tinybms_firmware::host_link::writer`, tested on the host): a line
+//!   starts only when its first byte fits (`write_byte_nb`, tried every
+//!   [`PROBE_STEP`]), the rest has a deadline, an absent host's lines are
+//!   dropped whole without touching the driver, and a probe a second finds it
+//!   again (`hello` follows).
 //! * UART0: the UART always drains (115 200 Bd, about 11 KB/s), whether or
 //!   not anyone listens; `write_async` waits only for FIFO room. A write error
 //!   drops the rest of that line and the writer ends it with a newline.
@@ -45,19 +43,14 @@ mod on {
     use esp_hal::Async;
     use tinybms_firmware::boards::{Chip, HostWire};
     use tinybms_firmware::config::Config;
+    use tinybms_firmware::host_link::writer::{LineWriter, Start};
 
-    use crate::{spawn, wires, BOARD};
+    use crate::{now_us, spawn, wires, BOARD};
 
-    /// Longest the writer waits for room to start a line.
-    const LINE_START_WAIT: Duration = Duration::from_millis(20);
     /// How often it looks for room meanwhile.
     const PROBE_STEP: Duration = Duration::from_millis(1);
-    /// Longest the rest of a started line may take (the host reads the IN
-    /// endpoint every millisecond while the port is open: a line of
-    /// `OUT_LINE_MAX` bytes is 16 packets).
+    /// Longest a UART0 write of a piece may take.
     const LINE_WRITE_TIMEOUT: Duration = Duration::from_millis(100);
-    /// An absent host is looked for again this often.
-    const ABSENT_PROBE_PERIOD: Duration = Duration::from_secs(1);
 
     /// The host link on the USB cable: the USB-Serial-JTAG (CDC-ACM; its JTAG
     /// side, probe-rs and RTT, is a separate USB interface of the same device:
@@ -181,60 +174,56 @@ mod on {
         }
     }
 
-    /// Station → host over USB: see the module documentation.
+    /// Hands the writer's counts to the station.
+    fn report(w: &mut LineWriter) {
+        let dropped = w.take_dropped();
+        if dropped > 0 {
+            wires::host_lines_dropped(dropped);
+        }
+        if w.take_back() {
+            wires::HOST_CONNECTED.signal(());
+        }
+        wires::wake();
+    }
+
+    /// Station → host over USB: the library's [`LineWriter`] says what to do
+    /// with each line (see the module documentation).
     #[embassy_executor::task]
     async fn usb_tx_task(mut tx: UsbSerialJtagTx<'static, Async>) {
         use embedded_io_async::Write;
         let mut pieces = Pieces::new();
-        // At boot nobody is known to read: the first line that goes through
-        // says a host is there.
-        let mut present = false;
-        // A line was cut by a timeout: its start is in the FIFO.
-        let mut cut = false;
-        let mut next_probe = Instant::now();
+        let mut w = LineWriter::new();
         let mut at_start = true;
         let mut dropping = false;
         let mut deadline = Instant::now();
         loop {
             let (mut piece, ends_line) = pieces.next().await;
+            let first_piece = at_start;
             if at_start {
                 let Some(&first) = piece.first() else {
                     continue;
                 };
-                deadline = Instant::now() + LINE_WRITE_TIMEOUT;
-                if present {
-                    dropping = !start_line(&mut tx, first, LINE_START_WAIT).await;
-                    if dropping {
-                        present = false;
-                        next_probe = Instant::now() + ABSENT_PROBE_PERIOD;
-                    }
-                } else if Instant::now() < next_probe {
-                    dropping = true;
-                } else {
-                    next_probe = Instant::now() + ABSENT_PROBE_PERIOD;
-                    let probe = if cut { b'\n' } else { first };
-                    dropping = true;
-                    if tx.write_byte_nb(probe).is_ok() {
-                        present = true;
-                        wires::HOST_CONNECTED.signal(());
-                        wires::wake();
-                        if cut {
-                            // The piece in the FIFO is ended; this line is
-                            // dropped (`hello` comes first).
-                            cut = false;
-                            let _ = with_timeout(LINE_WRITE_TIMEOUT, tx.flush()).await;
-                        } else {
-                            dropping = false;
+                dropping = true;
+                if let Start::Try {
+                    wait_us,
+                    newline_first,
+                } = w.line_ready(now_us())
+                {
+                    let probe = if newline_first { b'\n' } else { first };
+                    let ok = start_line(&mut tx, probe, Duration::from_micros(wait_us)).await;
+                    if let Some(d) = w.started(now_us(), ok) {
+                        deadline = Instant::from_micros(d);
+                        dropping = false;
+                        if !newline_first {
+                            piece = piece.get(1..).unwrap_or(&[]);
                         }
                     }
                 }
-                if !dropping {
-                    piece = piece.get(1..).unwrap_or(&[]);
-                }
+                report(&mut w);
             }
             if !dropping {
                 let sent = with_deadline(deadline, async {
-                    if at_start {
+                    if first_piece {
                         // The first byte goes out alone: `write_async` fills
                         // 64 bytes without looking, and expects an empty FIFO.
                         tx.flush().await?;
@@ -247,16 +236,14 @@ mod on {
                 })
                 .await;
                 if !matches!(sent, Ok(Ok(()))) {
-                    present = false;
-                    cut = true;
+                    w.finished(now_us(), false);
                     dropping = true;
-                    next_probe = Instant::now() + ABSENT_PROBE_PERIOD;
+                    report(&mut w);
+                } else if ends_line {
+                    w.finished(now_us(), true);
                 }
             }
             at_start = ends_line;
-            if ends_line && dropping {
-                wires::host_lines_dropped(1);
-            }
         }
     }
 

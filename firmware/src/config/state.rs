@@ -17,7 +17,7 @@
 
 use heapless::{Deque, Vec};
 
-use super::store::{Saved, Source, StoreError};
+use super::store::{Saved, Source, StoreError, StoreSite};
 use super::value::{FieldError, Parsed};
 use super::{Applies, Config, FieldId, PackSettings, RuleError, FIELDS};
 
@@ -94,6 +94,7 @@ pub struct ConfigState {
     /// At-once fields changed since [`ConfigState::take_running_change`].
     running_changed: bool,
     notes: Deque<Note, 8>,
+    site: Option<StoreSite>,
 }
 
 impl ConfigState {
@@ -108,7 +109,19 @@ impl ConfigState {
             save: None,
             running_changed: false,
             notes,
+            site: None,
         }
+    }
+
+    /// Where the store lives (the chip's flash, its partition): the log and
+    /// `hello` name it.
+    pub fn set_site(&mut self, site: StoreSite) {
+        self.site = Some(site);
+    }
+
+    /// Where the store lives, when the shell said.
+    pub fn site(&self) -> Option<StoreSite> {
+        self.site
     }
 
     /// What the bridge runs with.

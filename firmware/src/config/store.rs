@@ -46,6 +46,71 @@ type Uncached = Cache<
     u8,
 >;
 
+/// A flash sector (the unit the store erases), bytes.
+pub const SECTOR_BYTES: u32 = 4096;
+/// What the store needs at least: two sectors (sequential-storage's map
+/// always keeps one erased), bytes.
+pub const STORE_MIN_BYTES: u32 = 2 * SECTOR_BYTES;
+
+/// Where the store lives and what the chip says it has: named in the log and
+/// in `hello`, so that an owner whose store fails can tell why (a partition
+/// table without `nvs`, a partition too small or not on sector boundaries, a
+/// flash smaller than the table says).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct StoreSite {
+    /// The flash size the chip reports (the flash's answer to its read-ID
+    /// command), bytes; 0: no answer.
+    pub flash_bytes: u32,
+    /// The `nvs` partition found: offset and size, bytes (`None`: none in
+    /// the partition table).
+    pub partition: Option<(u32, u32)>,
+}
+
+/// Why a [`StoreSite`] cannot hold the store.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum SiteProblem {
+    /// The partition table has no `nvs` partition.
+    NoPartition,
+    /// Fewer than [`STORE_MIN_BYTES`].
+    TooSmall,
+    /// Not on [`SECTOR_BYTES`] boundaries.
+    NotAligned,
+    /// It ends past the flash the chip reports.
+    BeyondFlash,
+}
+
+impl SiteProblem {
+    /// In words.
+    pub const fn reason(self) -> &'static str {
+        match self {
+            Self::NoPartition => "no `nvs` partition in the partition table",
+            Self::TooSmall => "the `nvs` partition is smaller than the store needs",
+            Self::NotAligned => "the `nvs` partition is not on 4 KiB sector boundaries",
+            Self::BeyondFlash => "the `nvs` partition ends past the flash the chip reports",
+        }
+    }
+}
+
+impl StoreSite {
+    /// Why the store cannot live here, if it cannot.
+    pub fn problem(&self) -> Option<SiteProblem> {
+        let Some((offset, size)) = self.partition else {
+            return Some(SiteProblem::NoPartition);
+        };
+        if size < STORE_MIN_BYTES {
+            Some(SiteProblem::TooSmall)
+        } else if offset % SECTOR_BYTES != 0 || size % SECTOR_BYTES != 0 {
+            Some(SiteProblem::NotAligned)
+        } else if u64::from(offset) + u64::from(size) > u64::from(self.flash_bytes) {
+            Some(SiteProblem::BeyondFlash)
+        } else {
+            None
+        }
+    }
+}
+
 /// Why the store could not do what was asked.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]

@@ -254,26 +254,61 @@ struct HelloLine<'a> {
     chip: &'a str,
     read_only: bool,
     stream_period_ms: u32,
+    dropped_lines: u32,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    store: Option<StoreLine>,
+}
+
+/// Where the configuration store lives (in `hello`).
+#[derive(serde::Serialize)]
+struct StoreLine {
+    flash_kib: u32,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    partition_offset: Option<u32>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    partition_bytes: Option<u32>,
+    needs_bytes: u32,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    problem: Option<&'static str>,
+}
+
+/// What a `hello` line says.
+#[derive(Debug, Clone, Copy)]
+pub struct HelloFields<'a> {
+    /// This firmware's version.
+    pub firmware: &'a str,
+    /// The chip's name.
+    pub chip: &'a str,
+    /// Read-only.
+    pub read_only: bool,
+    /// The stream period, ms.
+    pub stream_period_ms: u32,
+    /// Lines the host did not get since start-up (a host that did not read,
+    /// a full queue).
+    pub dropped_lines: u32,
+    /// Where the configuration store lives, when the shell said.
+    pub store: Option<crate::config::store::StoreSite>,
 }
 
 /// Writes a `hello` line.
-pub fn hello(
-    out: &mut [u8],
-    req: Option<u32>,
-    firmware: &str,
-    chip: &str,
-    read_only: bool,
-    stream_period_ms: u32,
-) -> Option<usize> {
+pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<usize> {
     line(
         &HelloLine {
             ty: "hello",
             req,
             protocol: super::PROTOCOL_VERSION,
-            firmware,
-            chip,
-            read_only,
-            stream_period_ms,
+            firmware: f.firmware,
+            chip: f.chip,
+            read_only: f.read_only,
+            stream_period_ms: f.stream_period_ms,
+            dropped_lines: f.dropped_lines,
+            store: f.store.map(|s| StoreLine {
+                flash_kib: s.flash_bytes / 1024,
+                partition_offset: s.partition.map(|p| p.0),
+                partition_bytes: s.partition.map(|p| p.1),
+                needs_bytes: crate::config::store::STORE_MIN_BYTES,
+                problem: s.problem().map(|p| p.reason()),
+            }),
         },
         out,
     )

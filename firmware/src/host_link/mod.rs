@@ -31,6 +31,7 @@
 pub mod command;
 pub mod encode;
 pub mod line;
+pub mod writer;
 
 use heapless::{Deque, String, Vec};
 use protocol_core::events::Event;
@@ -987,10 +988,14 @@ impl State {
             Out::Hello(req) => encode::hello(
                 out,
                 *req,
-                self.config.firmware,
-                self.config.chip,
-                self.config.read_only,
-                self.stream_period_ms,
+                &encode::HelloFields {
+                    firmware: self.config.firmware,
+                    chip: self.config.chip,
+                    read_only: self.config.read_only,
+                    stream_period_ms: self.stream_period_ms,
+                    dropped_lines: self.stats.dropped_lines,
+                    store: config.site(),
+                },
             ),
             Out::Telemetry(req) => telemetry(now, bridge, *req, self.config.stale_after_ms, out),
             Out::Error {

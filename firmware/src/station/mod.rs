@@ -399,6 +399,12 @@ impl Station {
         self.config.stored()
     }
 
+    /// Where the store lives (the chip's flash and its partition), for the
+    /// log and `hello`.
+    pub fn set_store_site(&mut self, site: crate::config::store::StoreSite) {
+        self.config.set_site(site);
+    }
+
     /// The save of [`Action::Save`] is done.
     pub fn saved(&mut self, result: Result<Saved, StoreError>) {
         if let Some(r) = self.config.saved(result) {

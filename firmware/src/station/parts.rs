@@ -5,7 +5,7 @@
 //! memory, and the compiler removes every call on it (the bridge-only image
 //! links neither part, as before the station).
 
-#[cfg(not(any(feature = "host-link", feature = "can")))]
+#[cfg(not(all(feature = "host-link", feature = "can")))]
 use crate::Instant;
 
 /// The host link's slot.
