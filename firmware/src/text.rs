@@ -176,7 +176,28 @@ pub fn report(r: &Report, out: &mut Line) {
             out.push(": ").push(outcome.name());
             match outcome {
                 WriteOutcome::Rejected(e) => {
-                    out.push(" (").push(e.reason()).push(")");
+                    out.push(" (").push(e.reason());
+                    if let protocol_core::settings::SettingError::Contradicts {
+                        relation,
+                        other,
+                        ..
+                    } = e
+                    {
+                        let (low, high) = (relation.low.name(), relation.high.name());
+                        out.push(": ")
+                            .push(low)
+                            .push(if relation.gap > 0 {
+                                " must stay below "
+                            } else {
+                                " may not exceed "
+                            })
+                            .push(high)
+                            .push(", ")
+                            .push(if s.id == relation.low { high } else { low })
+                            .push(" is ")
+                            .int(i64::from(*other));
+                    }
+                    out.push(")");
                 }
                 WriteOutcome::Mismatch { read_back } => {
                     out.push(" (read back ")
@@ -459,9 +480,7 @@ pub fn store_site(site: &crate::config::store::StoreSite, out: &mut Line) {
         .push(" KiB (as the chip reports it), ");
     match site.partition {
         Some((offset, size)) => {
-            out.push("nvs partition at 0x");
-            hex(u64::from(offset), out);
-            out.push(", ");
+            out.push("nvs partition at ").hex(offset).push(", ");
             if size % 1024 == 0 {
                 out.uint(u64::from(size / 1024)).push(" KiB");
             } else {
@@ -477,21 +496,6 @@ pub fn store_site(site: &crate::config::store::StoreSite, out: &mut Line) {
         .push(" KiB in whole 4 KiB sectors inside the flash");
     if let Some(p) = site.problem() {
         out.push(": ").push(p.reason());
-    }
-}
-
-/// `n` in lowercase hexadecimal, without leading zeros.
-fn hex(n: u64, out: &mut Line) {
-    let mut started = false;
-    for shift in (0..16u32).rev() {
-        let d = ((n >> (shift * 4)) & 0xF) as u32;
-        if d == 0 && !started && shift > 0 {
-            continue;
-        }
-        started = true;
-        let c = char::from_digit(d, 16).unwrap_or('?');
-        let mut b = [0u8; 4];
-        out.push(c.encode_utf8(&mut b));
     }
 }
 

@@ -165,7 +165,8 @@ fn main() {
         while t < 2 * 3600 * 1_000_000 {
             t += 30 * 1_000_000;
             h.run_until(t);
-            let value = if k.is_multiple_of(2) { 3640 } else { 3650 };
+            // Above the fully-charged voltage (3.65 V): a lower cutoff is refused.
+            let value = if k.is_multiple_of(2) { 3660 } else { 3650 };
             let mut items = heapless::Vec::new();
             let _ = items.push(protocol_core::settings::Setting {
                 id: protocol_core::settings::SettingId::OverVoltageCutoff,

@@ -828,3 +828,33 @@ mod store_site {
         );
     }
 }
+
+/// A typed 0 never turns into the field's word for 0: a cap of 0 is not "no
+/// cap" (issue 26), 0 mV is not "the BMS's own setting", node 0 is not a node.
+#[test]
+fn a_typed_zero_is_never_the_word_for_zero() {
+    use tinybms_firmware::config::FieldId;
+    for id in [FieldId::ChargeCurrentCap, FieldId::DischargeCurrentCap] {
+        let f = id.field();
+        for zero in ["0", "0 A", "0.0", "0A", " 0 "] {
+            let e = value::parse(f, zero).expect_err(zero);
+            assert!(e.detail.contains("no cap"), "{zero}: {}", e.detail);
+        }
+        assert_eq!(value::parse(f, "none").unwrap(), Parsed::Number(0));
+        assert_eq!(value::parse(f, "0.1").unwrap(), Parsed::Number(1));
+        assert_eq!(value::parse(f, "50 A").unwrap(), Parsed::Number(500));
+    }
+    for id in [
+        FieldId::AbsorptionVoltage,
+        FieldId::FloatVoltage,
+        FieldId::PackNode,
+    ] {
+        let f = id.field();
+        assert!(value::parse(f, "0").is_err(), "{}", f.name);
+    }
+    // `off` is what 0 says: a stream period of 0 is off.
+    assert_eq!(
+        value::parse(FieldId::StreamPeriod.field(), "0").unwrap(),
+        Parsed::Number(0)
+    );
+}

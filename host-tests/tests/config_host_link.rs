@@ -347,3 +347,24 @@ fn a_new_stale_limit_reaches_the_telemetry_lines_the_desktop_reads() {
         host_tests::tool::monitor::Freshness::Fresh(_)
     ));
 }
+
+/// `charge_current_cap=0` from a host is refused, never applied as `none` (no
+/// cap at all, the BMS's own cutoff): the record keeps its cap.
+#[test]
+fn a_cap_of_zero_is_refused_not_read_as_no_cap() {
+    let mut r = ready();
+    let out = set(&mut r, 1, json!({"charge_current_cap":"40"}));
+    assert_eq!(of_type(&out, "config_outcome")[0]["outcome"], "applied");
+    for (req, field) in [(2, "charge_current_cap"), (3, "discharge_current_cap")] {
+        let out = set(&mut r, req, json!({ field: "0" }));
+        let o = of_type(&out, "config_outcome");
+        assert_eq!(o.len(), 1, "{out:?}");
+        assert_eq!(o[0]["outcome"], "refused", "{out:?}");
+        assert!(
+            o[0]["detail"].as_str().unwrap_or("").contains("no cap"),
+            "{out:?}"
+        );
+    }
+    assert_eq!(r.config().running().ccl_cap_da, 400);
+    assert_eq!(in_flash(&r).ccl_cap_da, 400);
+}

@@ -494,7 +494,8 @@ fn event_lines_are_replays_events() {
 fn set_reset_clear_and_outcome_correlation() {
     let mut r = ready();
     let ovc = r.h.sim.register(315);
-    let target = if ovc == 3600 { 3650 } else { 3600 };
+    // Above the fully-charged voltage (3.65 V): a lower cutoff contradicts it.
+    let target = if ovc == 3700 { 3750 } else { 3700 };
     r.line(&format!(
         r#"{{"cmd":"set","req":7,"values":{{"over_voltage_cutoff":{},"under_voltage_cutoff":2.8}}}}"#,
         f64::from(target) / 1000.0
@@ -581,10 +582,11 @@ fn set_reset_clear_and_outcome_correlation() {
 #[test]
 fn follow_up_outcome_keeps_the_req() {
     let mut r = ready();
-    let target = if r.h.sim.register(315) == 3600 {
-        3650
+    // Above the fully-charged voltage (3.65 V): a lower cutoff contradicts it.
+    let target = if r.h.sim.register(315) == 3700 {
+        3750
     } else {
-        3600
+        3700
     };
     // The read-back after the write is lost: unconfirmed, then settled by the
     // settings read that follows.
@@ -692,10 +694,11 @@ fn stream_and_capture() {
 fn slow_host_loses_telemetry_not_outcomes() {
     let mut r = Rig::ready(config(false, 100));
     r.drain();
-    let target = if r.h.sim.register(315) == 3600 {
-        3650
+    // Above the fully-charged voltage (3.65 V): a lower cutoff contradicts it.
+    let target = if r.h.sim.register(315) == 3700 {
+        3750
     } else {
-        3600
+        3700
     };
     r.line(&format!(
         r#"{{"cmd":"set","req":5,"raw":{{"over_voltage_cutoff":{target}}}}}"#

@@ -269,7 +269,7 @@ fn a_settings_profile_is_applied_and_verified() {
     // 330: charger type (low byte) and over-current timeout (high byte) share a register.
     h.sim.set_register(330, 0x0A01);
     let profile = [
-        (SettingId::OverVoltageCutoff, 3600),
+        (SettingId::OverVoltageCutoff, 3700),
         (SettingId::UnderVoltageCutoff, 2600),
         (SettingId::ChargerType, 0),
         (SettingId::BroadcastTime, 0x04),
@@ -289,7 +289,7 @@ fn a_settings_profile_is_applied_and_verified() {
         };
         assert_eq!(*outcome, expected, "{id:?} = {value}");
     }
-    assert_eq!(h.sim.register(315), 3600);
+    assert_eq!(h.sim.register(315), 3700);
     assert_eq!(h.sim.register(316), 2600);
     assert_eq!(h.sim.register(330), 0x0A00, "high byte (timeout) kept");
     assert_eq!(h.sim.register(342) & 0xFF, 0x04);
@@ -301,7 +301,7 @@ fn a_settings_profile_is_applied_and_verified() {
     // Settings re-read after the writes, and they show the new values; the
     // live data kept flowing meanwhile (no second sync, no second "ready").
     let settings = h.bridge().telemetry().settings.clone().unwrap();
-    assert_eq!(settings.get(315), Some(3600));
+    assert_eq!(settings.get(315), Some(3700));
     assert_eq!(count(&h, |r| matches!(r, Report::Ready { .. })), 1);
     // Five registers written: five writes, no more (the unchanged one was skipped).
     assert_eq!(write_requests(&h), 6);
@@ -631,15 +631,15 @@ fn a_write_whose_echo_was_lost_is_decided_by_the_read_back() {
     // The first write request is lost: the retry is applied and echoed.
     h.sim.drop_next_requests(0x10, 1);
     h.bridge_mut()
-        .submit(group(&[(SettingId::OverVoltageCutoff, 3620)]))
+        .submit(group(&[(SettingId::OverVoltageCutoff, 3720)]))
         .unwrap();
     h.run_until(3 * S);
     assert_eq!(
         writes(&h),
-        vec![(SettingId::OverVoltageCutoff, 3620, WriteOutcome::Verified)]
+        vec![(SettingId::OverVoltageCutoff, 3720, WriteOutcome::Verified)]
     );
     assert_eq!(h.sim.stats().requests_by_command[&0x10], 2);
-    assert_eq!(h.sim.register(315), 3620);
+    assert_eq!(h.sim.register(315), 3720);
 }
 
 #[test]
@@ -684,12 +684,12 @@ fn a_bms_that_never_answers_0x1d_is_still_polled() {
     assert!(h.bridge().telemetry().limits_max.is_none());
     // Writes still validate against Rev D and go through write/verify.
     h.bridge_mut()
-        .submit(group(&[(SettingId::OverVoltageCutoff, 3610)]))
+        .submit(group(&[(SettingId::OverVoltageCutoff, 3710)]))
         .unwrap();
     h.run_until(33 * S);
     assert_eq!(
         writes(&h),
-        vec![(SettingId::OverVoltageCutoff, 3610, WriteOutcome::Verified)]
+        vec![(SettingId::OverVoltageCutoff, 3710, WriteOutcome::Verified)]
     );
 }
 
@@ -718,4 +718,69 @@ fn event_timestamps_wrap_after_24_bits() {
     assert!(!ts_newer(0x00FF_FFF0, 5));
     assert!(ts_newer(0x10, 0x0F));
     assert!(!ts_newer(7, 7));
+}
+
+/// A setting that contradicts another is never written (issue 26): an
+/// over-voltage cutoff below the under-voltage cutoff, a fully-charged voltage
+/// above the over-voltage cutoff (4.2 V on a LiFePO4 pack). Checked against
+/// the values the BMS holds and those written with it; nothing reaches the
+/// BMS, and the outcome names both settings.
+#[test]
+fn a_setting_that_contradicts_another_is_never_written() {
+    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 3);
+    h.run_until(5 * S);
+    let uv = h.sim.register(316);
+    let ov = h.sim.register(315);
+    assert!(uv > 2000 && ov > uv, "uv {uv} ov {ov}");
+    let before = write_requests(&h);
+    h.bridge_mut()
+        .submit(group(&[(
+            SettingId::OverVoltageCutoff,
+            i32::from(uv) - 100,
+        )]))
+        .unwrap();
+    h.bridge_mut()
+        .submit(group(&[(SettingId::FullyChargedVoltage, 4200)]))
+        .unwrap();
+    h.run_until(15 * S);
+    assert_eq!(write_requests(&h), before, "nothing was sent to the BMS");
+    assert_eq!(h.sim.register(315), ov);
+    let w = writes(&h);
+    assert_eq!(w.len(), 2, "{w:?}");
+    for (id, _, outcome) in &w {
+        assert!(
+            matches!(
+                outcome,
+                WriteOutcome::Rejected(SettingError::Contradicts { .. })
+            ),
+            "{id:?}: {outcome:?}"
+        );
+    }
+    let said: Vec<String> = h
+        .log
+        .iter()
+        .filter(|l| matches!(l.report, Report::Write { .. }))
+        .map(|l| l.report.to_string())
+        .collect();
+    assert!(
+        said[0].contains("Under-Voltage Cutoff must stay below Over-Voltage Cutoff, Under-Voltage Cutoff is 2500"),
+        "{said:?}"
+    );
+    assert!(
+        said[1].contains(
+            "Fully Charged Voltage may not exceed Over-Voltage Cutoff, Over-Voltage Cutoff is 3650"
+        ),
+        "{said:?}"
+    );
+    // Both moved together, consistently: written.
+    h.bridge_mut()
+        .submit(group(&[
+            (SettingId::UnderVoltageCutoff, 2600),
+            (SettingId::FullyDischargedVoltage, 2900),
+        ]))
+        .unwrap();
+    h.run_until(30 * S);
+    assert_eq!(h.sim.register(316), 2600);
+    assert_eq!(h.sim.register(301), 2900);
+    assert_published_are_genuine(&h);
 }

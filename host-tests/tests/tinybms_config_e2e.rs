@@ -105,8 +105,18 @@ fn save_load_and_reset() {
     assert_eq!(dry.code, 0, "{dry}");
     assert!(dry.stdout.contains("stale_after"), "{dry}");
     assert!(dry.stdout.contains("dry run: nothing changed"), "{dry}");
+    assert!(dry.stdout.contains("not restored: mqtt_password"), "{dry}");
     let load = tinybms(&["config", &sim.path, "--load", file.to_str().unwrap()]);
     assert_eq!(load.code, 0, "{load}");
+    // Issue 26: the secrets the file could not hold are named, with the way
+    // to set them again.
+    assert!(
+        load.stdout.contains(
+            "not restored: mqtt_password (secrets are never saved in a file). Set it again: \
+             `tinybms mqtt PORT --host HOST --user USER` (asks for the password)"
+        ),
+        "{load}"
+    );
     let show = tinybms(&["config", &sim.path, "stale_after"]);
     assert!(show.stdout.contains("value    8 s"), "{show}");
     // The password was not in the file: unset after the reset.
@@ -306,4 +316,30 @@ fn wifi_and_mqtt_store_the_key_and_the_broker_and_never_echo_a_secret() {
     let bad = tinybms_with_input(&["wifi", &sim.path, "--ssid", "X"], "short\n");
     assert_eq!(bad.code, 2, "{bad}");
     assert!(bad.stderr.contains("8 to 63"), "{bad}");
+}
+
+/// Issue 26: `read_only=on` is one-way over USB, so it asks first; `no`
+/// changes nothing, `yes` (or `--yes`) locks. A cap of 0 is refused, never
+/// applied as `none` (no cap).
+#[test]
+fn one_way_changes_ask_and_a_cap_of_zero_is_refused() {
+    let flash = tmp("config-flash-oneway.bin");
+    let _ = std::fs::remove_file(&flash);
+    let sim = bridge(&flash, &[]);
+    let zero = tinybms(&["config", &sim.path, "charge_current_cap=0"]);
+    assert_ne!(zero.code, 0, "{zero}");
+    assert!(zero.stderr.contains("no cap"), "{zero}");
+    let show = tinybms(&["config", &sim.path, "charge_current_cap"]);
+    assert!(show.stdout.contains("value    none"), "{show}");
+    let no = tinybms_with_input(&["config", &sim.path, "read_only=on"], "no\n");
+    assert_eq!(no.code, 1, "{no}");
+    assert!(no.stdout.contains("read_only=on is one-way"), "{no}");
+    assert!(no.stdout.contains("BOOT button"), "{no}");
+    assert!(no.stderr.contains("not confirmed: nothing changed"), "{no}");
+    let show = tinybms(&["config", &sim.path, "read_only"]);
+    assert!(show.stdout.contains("value    off"), "{show}");
+    let yes = tinybms_with_input(&["config", &sim.path, "read_only=on"], "yes\n");
+    assert_eq!(yes.code, 0, "{yes}");
+    let show = tinybms(&["config", &sim.path, "read_only"]);
+    assert!(show.stdout.contains("value    on"), "{show}");
 }

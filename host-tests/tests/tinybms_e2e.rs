@@ -250,7 +250,7 @@ fn direct_settings_dump_save_apply_verify() {
         .unwrap()
         .1;
     // Change one setting by editing the saved profile, apply it.
-    let new = if ov == 3600 { 3610 } else { 3600 };
+    let new = if ov == 3700 { 3710 } else { 3700 }; // above fully_charged (3.65 V)
     let edited = saved.replace(
         &format!("over_voltage_cutoff = {ov} "),
         &format!("over_voltage_cutoff = {new} "),
@@ -281,9 +281,9 @@ fn direct_refused_value_and_physical_set() {
                 .contains("outside Rev D's range (Rev D 1.2 V..4.5 V"),
         "{o}"
     );
-    let o = tinybms(&["set", &sim.path, "over_voltage_cutoff=3.62V"]);
+    let o = tinybms(&["set", &sim.path, "over_voltage_cutoff=3.72V"]);
     assert_eq!(o.code, 0, "{o}");
-    assert!(o.stdout.contains("3.62 V"), "{o}");
+    assert!(o.stdout.contains("3.72 V"), "{o}");
     assert!(o.stdout.contains("verified"), "{o}");
     // A setting that restarts the BMS asks first; refused, nothing is sent.
     let o = tinybms_with_input(&["set", &sim.path, "operation_mode=1"], "no\n");
@@ -291,6 +291,42 @@ fn direct_refused_value_and_physical_set() {
     assert!(o.stdout.contains("operation_mode restarts the BMS"), "{o}");
     assert!(o.stderr.contains("not confirmed: nothing written"), "{o}");
     assert!(!o.stdout.contains("verified"), "{o}");
+}
+
+/// Issue 26: a setting that contradicts another is refused before anything
+/// is written, by the tool (with `--dry-run` too) and by the bridge behind it.
+#[test]
+fn a_setting_against_another_is_refused_before_any_write() {
+    for mode in [&["--pty"][..], &["--bridge-pty"][..]] {
+        let sim = Sim::start(mode);
+        let o = tinybms(&["set", &sim.path, "over_voltage_cutoff=2.4V"]);
+        assert_eq!(o.code, 1, "{o}");
+        assert!(
+            o.stderr.contains("nothing written")
+                && o.stderr.contains(
+                    "under_voltage_cutoff must stay below over_voltage_cutoff (under_voltage_cutoff is 2.5 V)"
+                ),
+            "{o}"
+        );
+        let o = tinybms(&["set", &sim.path, "fully_charged_voltage=4.2V", "--dry-run"]);
+        assert_eq!(o.code, 1, "{o}");
+        assert!(
+            o.stderr.contains(
+                "fully_charged_voltage may not exceed over_voltage_cutoff (over_voltage_cutoff is 3.65 V)"
+            ),
+            "{o}"
+        );
+        assert!(!o.stdout.contains("verified"), "{o}");
+        // Both moved together: fine.
+        let o = tinybms(&[
+            "set",
+            &sim.path,
+            "under_voltage_cutoff=2.6V",
+            "fully_discharged_voltage=2.9V",
+        ]);
+        assert_eq!(o.code, 0, "{o}");
+        assert!(o.stdout.contains("verified"), "{o}");
+    }
 }
 
 #[test]
@@ -404,7 +440,7 @@ fn bridge_monitor_settings_set_record() {
 #[test]
 fn read_only_bridge_refuses_writes() {
     let sim = Sim::start(&["--bridge-pty", "--read-only"]);
-    let o = tinybms(&["set", &sim.path, "over_voltage_cutoff=3.6"]);
+    let o = tinybms(&["set", &sim.path, "over_voltage_cutoff=3.7"]);
     assert_eq!(o.code, 1, "{o}");
     assert!(o.stderr.contains("read_only"), "{o}");
     // Reading still works.

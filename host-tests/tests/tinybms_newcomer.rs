@@ -87,7 +87,7 @@ fn a_refused_value_shows_the_range_and_the_raw_hint_and_names_are_accepted() {
         "set",
         &sim.path,
         "charger_type=CC/CV",
-        "over_voltage_cutoff=3600mV",
+        "over_voltage_cutoff=3700mV",
     ]);
     assert_eq!(o.code, 0, "{o}");
     assert!(o.stdout.contains("CC/CV (1)"), "{o}");
@@ -116,12 +116,12 @@ fn dry_run_checks_ranges_and_a_setting_twice_is_an_error() {
     let units = tmp("units.txt");
     std::fs::write(
         &units,
-        "over_voltage_cutoff = 3.61 V\ncharger_type = CC/CV\n",
+        "over_voltage_cutoff = 3.71 V\ncharger_type = CC/CV\n",
     )
     .unwrap();
     let o = tinybms(&["apply", &sim.path, units.to_str().unwrap(), "--dry-run"]);
     assert_eq!(o.code, 0, "{o}");
-    assert!(o.stdout.contains("3610 (3.61 V)"), "{o}");
+    assert!(o.stdout.contains("3710 (3.71 V)"), "{o}");
 }
 
 /// Right after `set … → verified`, `settings` through the bridge shows the new

@@ -524,7 +524,7 @@ fn an_applied_write_whose_replies_were_lost_is_unconfirmed_then_verified() {
     // nothing came back); every read-back is lost too.
     h.sim.drop_next_replies(0x10, 3);
     h.bridge_mut()
-        .submit(group(SettingId::OverVoltageCutoff, 3620))
+        .submit(group(SettingId::OverVoltageCutoff, 3720))
         .unwrap();
     h.run_until(2 * S + 150_000);
     h.sim.drop_next_replies(0x09, 12);
@@ -540,7 +540,7 @@ fn an_applied_write_whose_replies_were_lost_is_unconfirmed_then_verified() {
         ),
         "{o:?}"
     );
-    assert_eq!(h.sim.register(315), 3620);
+    assert_eq!(h.sim.register(315), 3720);
     genuine(&h);
 }
 
@@ -554,7 +554,7 @@ fn a_lost_write_with_lost_read_backs_is_unconfirmed_then_failed() {
     let old = h.sim.register(315);
     h.sim.drop_next_requests(0x10, 10);
     h.bridge_mut()
-        .submit(group(SettingId::OverVoltageCutoff, 3620))
+        .submit(group(SettingId::OverVoltageCutoff, 3720))
         .unwrap();
     h.run_until(2 * S + 150_000);
     h.sim.drop_next_replies(0x09, 12);
@@ -581,7 +581,7 @@ fn a_lost_write_whose_read_back_shows_the_old_value_is_failed() {
     let old = h.sim.register(315);
     h.sim.drop_next_requests(0x10, 10);
     h.bridge_mut()
-        .submit(group(SettingId::OverVoltageCutoff, 3620))
+        .submit(group(SettingId::OverVoltageCutoff, 3720))
         .unwrap();
     h.run_until(6 * S);
     let o = outcomes(&h);
@@ -600,7 +600,7 @@ fn at_5_percent_no_write_is_reported_failed_that_was_applied() {
         35,
     );
     h.retain = false;
-    let values = [3600, 3610];
+    let values = [3700, 3710]; // above fully_charged (3.65 V)
     for k in 0..60u64 {
         h.run_until((k + 1) * 20 * S);
         let _ = h.bridge_mut().submit(group(

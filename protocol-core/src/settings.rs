@@ -261,6 +261,97 @@ pub enum SettingError {
         /// Setting.
         id: SettingId,
     },
+    /// The value would break a relation with another setting (the value the
+    /// BMS holds, or the one written with it): see [`RELATIONS`].
+    Contradicts {
+        /// Setting.
+        id: SettingId,
+        /// Value asked for.
+        value: i32,
+        /// The relation it breaks.
+        relation: Relation,
+        /// The other setting's value it was checked against.
+        other: i32,
+    },
+}
+
+/// `low` must stay below `high` (by at least `gap`, raw units): a relation
+/// between two BMS settings that Rev D's per-register ranges cannot express.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Relation {
+    /// The setting that must be lower.
+    pub low: SettingId,
+    /// The setting that must be higher.
+    pub high: SettingId,
+    /// By at least this much (0: equal is allowed).
+    pub gap: i32,
+}
+
+/// The relations every write is checked against, with the BMS's other
+/// values: an under-voltage cutoff above the over-voltage cutoff shuts the
+/// pack down at once; a fully-charged voltage above the over-voltage cutoff
+/// (4.2 V on a LiFePO4 pack) drives the cells into the cutoff before the
+/// charge counts as done; a fully-discharged voltage below the under-voltage
+/// cutoff never comes; a charge cut-off temperature above the overheat one
+/// leaves no temperature to charge at.
+pub const RELATIONS: &[Relation] = &[
+    Relation {
+        low: SettingId::UnderVoltageCutoff,
+        high: SettingId::OverVoltageCutoff,
+        gap: 1,
+    },
+    Relation {
+        low: SettingId::FullyDischargedVoltage,
+        high: SettingId::FullyChargedVoltage,
+        gap: 1,
+    },
+    Relation {
+        low: SettingId::FullyChargedVoltage,
+        high: SettingId::OverVoltageCutoff,
+        gap: 0,
+    },
+    Relation {
+        low: SettingId::UnderVoltageCutoff,
+        high: SettingId::FullyDischargedVoltage,
+        gap: 0,
+    },
+    Relation {
+        low: SettingId::LowTemperatureChargerCutoff,
+        high: SettingId::OverHeatCutoff,
+        gap: 1,
+    },
+];
+
+/// Checks `s` against [`RELATIONS`], the other settings' values given by
+/// `value_of` (those written with it first, else what the BMS holds; `None`:
+/// unknown, not checked).
+pub fn check_relations(
+    s: &Setting,
+    value_of: impl Fn(SettingId) -> Option<i32>,
+) -> Result<(), SettingError> {
+    for r in RELATIONS {
+        let (other_id, low, high) = if r.low == s.id {
+            (r.high, Some(s.value), value_of(r.high))
+        } else if r.high == s.id {
+            (r.low, value_of(r.low), Some(s.value))
+        } else {
+            continue;
+        };
+        let _ = other_id;
+        if let (Some(low), Some(high)) = (low, high) {
+            if high.saturating_sub(low) < r.gap {
+                let other = if r.low == s.id { high } else { low };
+                return Err(SettingError::Contradicts {
+                    id: s.id,
+                    value: s.value,
+                    relation: *r,
+                    other,
+                });
+            }
+        }
+    }
+    Ok(())
 }
 
 impl SettingError {
@@ -271,6 +362,7 @@ impl SettingError {
             Self::NotAnOption { .. } => "not_an_option",
             Self::OutsideBmsLimits { .. } => "outside_bms_limits",
             Self::CurrentValueUnknown { .. } => "current_value_unknown",
+            Self::Contradicts { .. } => "contradicts_another_setting",
         }
     }
 }

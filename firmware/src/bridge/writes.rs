@@ -462,8 +462,19 @@ fn start_job(cmd: Command, telemetry: &Telemetry, out: &mut Reports) -> Option<J
         Command::ClearStatistics => Some(Job::Clear(ResetOption::ClearStatistics)),
         Command::ApplySettings(settings) => {
             let mut items = Vec::new();
-            for s in settings {
-                match check_setting(&s, telemetry) {
+            // Each setting against the others: those of this group first,
+            // else what the BMS holds.
+            let value_of = |id: SettingId| {
+                settings
+                    .iter()
+                    .find(|x| x.id == id)
+                    .map(|x| x.value)
+                    .or_else(|| telemetry.settings.as_ref().and_then(|b| id.read(b)))
+            };
+            for s in settings.iter().copied() {
+                let checked = check_setting(&s, telemetry)
+                    .and_then(|()| protocol_core::settings::check_relations(&s, value_of));
+                match checked {
                     Ok(()) => {
                         let _fits = items.push(s); // same capacity
                     }

@@ -8,7 +8,8 @@
 //!   field's unit, with or without a space (`50`, `50 A`, `50.5A`); a related unit
 //!   is converted exactly (`3.45 V` for a field in mV, `2 min` for one in s,
 //!   `1.5 s` for one in ms); the field's word for 0 (`none`, `bms`, `auto`,
-//!   `off`) where it has one;
+//!   `alone`, `off`) where it has one — a typed `0` means the word only for
+//!   `off`: a cap of `0` is refused, never read as `none` (no cap);
 //! * text: as it is (empty: not set);
 //! * a secret: as it is; shown only as `set` or `unset`.
 //!
@@ -32,6 +33,21 @@ pub enum Value<'a> {
     Number(i32),
     /// Text or a secret.
     Text(&'a str),
+}
+
+/// Why a typed 0 is refused for a field whose 0 is `word` (`None`: 0 means
+/// the word, as `off` does).
+fn zero_is_not(word: &str) -> Option<&'static str> {
+    match word {
+        "off" => None,
+        "none" => Some(
+            "0 would read as `none` (no cap at all): give the cap (the smallest is the range's low end), or `none` for no cap",
+        ),
+        "bms" => Some("0 is not a voltage: `bms` takes the BMS's own setting"),
+        "auto" => Some("0 is not a voltage: `auto` derives it from absorption"),
+        "alone" => Some("node numbers start at 1: `alone` for a bridge of one pack"),
+        _ => Some("0 is not a value of this field: use its word"),
+    }
 }
 
 /// A value parsed from text, owning its text.
@@ -274,6 +290,15 @@ pub fn parse(field: &Field, text: &str) -> Result<Parsed, FieldError> {
                     "more decimals than the field holds, or too large",
                 ))?;
             let raw = i32::try_from(raw).map_err(|_| FieldError::range("too large"))?;
+            // A field whose 0 has a word of its own: a typed 0 never means the
+            // word (a cap of 0 is not "no cap", 0 mV is not "the BMS's own").
+            if raw == 0 {
+                if let Some(word) = off {
+                    if let Some(why) = zero_is_not(word) {
+                        return Err(FieldError::range(why));
+                    }
+                }
+            }
             Parsed::Number(raw)
         }
         Kind::Text { .. } | Kind::Secret { .. } => {

@@ -545,10 +545,18 @@ fn run_config(
         (None, Some(name)) => Some(config::field_named(name)?),
         _ => None,
     };
+    // Secrets the saved bridge had set (the file names them, without values).
+    let mut secrets_in_file: Vec<String> = Vec::new();
     let loaded = match load {
         Some(path) => {
             let text = std::fs::read_to_string(path)
                 .map_err(|e| ToolError::failed(format!("cannot read `{}`: {e}", path.display())))?;
+            secrets_in_file = text
+                .lines()
+                .filter_map(|l| l.strip_prefix("# "))
+                .filter_map(|l| l.strip_suffix(": set (secrets are not saved)"))
+                .map(str::to_string)
+                .collect();
             Some(
                 config::parse_file(&text)
                     .map_err(|e| ToolError::usage(format!("{}: {e}", path.display())))?,
@@ -568,6 +576,7 @@ fn run_config(
     let current = config::record_of(&fields);
     if let Some(changes) = assignments {
         config::check_locally(&current, &changes)?;
+        confirm_one_way(yes, &current, &changes)?;
         return config::apply(&mut c, &changes);
     }
     if let Some(wanted) = loaded {
@@ -589,13 +598,37 @@ fn run_config(
                 .unwrap_or("?");
             println!("  {:<24} {now} -> {}", id.name(), l.as_str());
         }
+        // Secrets are never in a file: say which the bridge now lacks, and how.
+        let missing: Vec<&String> = secrets_in_file
+            .iter()
+            .filter(|name| {
+                fields
+                    .iter()
+                    .any(|f| f.line["name"] == name.as_str() && f.line["value"] == "unset")
+            })
+            .collect();
+        let say_missing = || {
+            if !missing.is_empty() {
+                let names: Vec<&str> = missing.iter().map(|s| s.as_str()).collect();
+                println!(
+                    "not restored: {} (secrets are never saved in a file). Set {} again: {}",
+                    names.join(", "),
+                    if names.len() == 1 { "it" } else { "them" },
+                    secrets_hint(&names)
+                );
+            }
+        };
         if dry_run || changes.is_empty() {
             if dry_run {
                 println!("dry run: nothing changed");
             }
+            say_missing();
             return Ok(());
         }
-        return config::apply(&mut c, &changes);
+        confirm_one_way(yes, &current, &changes)?;
+        config::apply(&mut c, &changes)?;
+        say_missing();
+        return Ok(());
     }
     if reset {
         return config::reset(&mut c);
@@ -677,6 +710,51 @@ fn confirm_restart(yes: bool, items: &[(SettingId, i32)]) -> ToolResult<()> {
         Ok(())
     } else {
         Err(ToolError::failed("not confirmed: nothing written"))
+    }
+}
+
+/// The commands that set the secrets `names` again.
+fn secrets_hint(names: &[&str]) -> String {
+    let mut out = Vec::new();
+    if names.contains(&"wifi_key") {
+        out.push("`tinybms wifi PORT --ssid NAME` (asks for the passphrase)");
+    }
+    if names.contains(&"mqtt_password") {
+        out.push("`tinybms mqtt PORT --host HOST --user USER` (asks for the password)");
+    }
+    if out.is_empty() {
+        out.push("`tinybms config PORT NAME=VALUE`");
+    }
+    out.join(" and ")
+}
+
+/// A change that nothing over the host link can undo (`read_only=on`: from
+/// then on the bridge refuses every change, this one's undoing included) is
+/// made only when confirmed (or `--yes`), like `reset`.
+fn confirm_one_way(
+    yes: bool,
+    current: &tinybms_firmware::config::Config,
+    changes: &[(
+        tinybms_firmware::config::FieldId,
+        tinybms_firmware::config::value::Parsed,
+    )],
+) -> ToolResult<()> {
+    use tinybms_firmware::config::value::Parsed;
+    use tinybms_firmware::config::FieldId;
+    let locks = !current.read_only
+        && changes
+            .iter()
+            .any(|(id, p)| *id == FieldId::ReadOnly && *p == Parsed::Bool(true));
+    if !locks || yes {
+        return Ok(());
+    }
+    let question = "read_only=on is one-way: from then on the bridge refuses every change \
+                    over USB, turning it off included; only the BOOT button held 5 s while the \
+                    bridge runs (or erasing the flash) lifts it. Turn it on";
+    if confirm(question)? {
+        Ok(())
+    } else {
+        Err(ToolError::failed("not confirmed: nothing changed"))
     }
 }
 

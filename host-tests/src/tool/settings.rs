@@ -265,7 +265,51 @@ pub fn check_all(
             let hi = tinybms_firmware::units::raw_from_physical(id, hi)?;
             Some((lo, hi))
         });
+        // The firmware's own relations between settings: against the values
+        // written with it first, else the ones the BMS holds.
+        let value_of = |other: SettingId| {
+            items
+                .iter()
+                .find(|(i, _)| *i == other)
+                .map(|(_, v)| *v)
+                .or_else(|| {
+                    let n = snake_name(other);
+                    current
+                        .iter()
+                        .find(|l| l["type"] == "setting" && l["name"] == n.as_str())
+                        .and_then(|l| l["raw"].as_i64())
+                        .and_then(|v| i32::try_from(v).ok())
+                })
+        };
         let verdict = Setting::new(id, raw).and_then(|s| s.validate_with(bms));
+        let relation = verdict.as_ref().ok().map(|()| {
+            protocol_core::settings::check_relations(&Setting { id, value: raw }, value_of)
+        });
+        if let Some(Err(protocol_core::settings::SettingError::Contradicts {
+            relation,
+            other,
+            ..
+        })) = relation
+        {
+            let (low, high) = (snake_name(relation.low), snake_name(relation.high));
+            let other_id = if relation.low == id {
+                relation.high
+            } else {
+                relation.low
+            };
+            problems.push(format!(
+                "{name} = {}: {low} {} {high} ({} is {}); change both together if both should move",
+                physical(id, i64::from(raw)),
+                if relation.gap > 0 {
+                    "must stay below"
+                } else {
+                    "may not exceed"
+                },
+                snake_name(other_id),
+                physical(other_id, i64::from(other))
+            ));
+            continue;
+        }
         if let Err(e) = verdict {
             let range = match (id.register().and_then(|r| r.range), bms) {
                 (Some((lo, hi)), Some((bl, bh))) => format!(
