@@ -378,6 +378,22 @@ fn hello_names_the_store_and_the_lines_a_host_missed() {
     r.line(r#"{"cmd":"get","what":"link","req":3}"#);
     let link = r.drain().into_iter().find(|l| l["type"] == "link").unwrap();
     assert_eq!(link["dropped_lines"], 12, "{link}");
+    // And the log says it once the host is back (here and in the chip's log).
+    let logs: Vec<Value> = r
+        .run_reading(SECOND)
+        .into_iter()
+        .filter(|l| l["type"] == "log")
+        .collect();
+    assert!(
+        logs.iter().any(|l| l["level"] == "warn"
+            && l["text"] == "host link: 12 lines dropped while no host read the port"),
+        "{logs:?}"
+    );
+    assert!(r
+        .h
+        .other_log
+        .iter()
+        .any(|(_, l)| *l == tinybms_firmware::station::Logged::HostMissed(12)));
 }
 
 #[test]

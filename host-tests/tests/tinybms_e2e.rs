@@ -502,3 +502,54 @@ fn malformed_and_over_long_lines_into_the_bridge() {
         .unwrap();
     assert_eq!(unknown["req"], 7, "{unknown}");
 }
+
+/// Issue 26: `tinybms monitor PORT | head -1` (and `--json`, and `log`) ends
+/// when the reader is gone and lets go of the port: the next command works.
+#[test]
+fn a_reader_that_goes_away_ends_the_command_and_frees_the_port() {
+    use std::io::BufRead;
+    let sim = Sim::start(&["--bridge-pty"]);
+    for args in [
+        vec!["monitor", sim.path.as_str(), "--plain"],
+        vec!["monitor", sim.path.as_str(), "--json"],
+        vec!["log", sim.path.as_str()],
+    ] {
+        let mut child = std::process::Command::new(tinybms_bin())
+            .args(&args)
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        let out = child.stdout.take().unwrap();
+        if args[0] == "log" {
+            // A log line comes when the bridge has something to say: ask.
+            let _ = tinybms(&["config", &sim.path, "charge_current_cap=41"]);
+        }
+        let mut first = String::new();
+        let mut reader = std::io::BufReader::new(out);
+        let _ = reader.read_line(&mut first);
+        drop(reader); // `head -1` exits: the pipe closes
+        if args[0] == "log" {
+            let _ = tinybms(&["config", &sim.path, "charge_current_cap=42"]);
+        }
+        let start = std::time::Instant::now();
+        let status = loop {
+            if let Some(s) = child.try_wait().unwrap() {
+                break Some(s);
+            }
+            if start.elapsed() > std::time::Duration::from_secs(15) {
+                let _ = child.kill();
+                let _ = child.wait();
+                break None;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        };
+        assert!(
+            status.is_some(),
+            "{args:?} kept running after its reader went"
+        );
+        let o = tinybms(&["version", &sim.path]);
+        assert_eq!(o.code, 0, "{args:?}: the port was not freed: {o}");
+    }
+}

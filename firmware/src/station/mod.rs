@@ -102,6 +102,9 @@ pub enum Logged {
     Config(Note),
     /// An inverter output report.
     Inverter(InverterReport),
+    /// A host came back after this many of its lines were dropped (nobody
+    /// read the port).
+    HostMissed(u32),
 }
 
 impl Logged {
@@ -111,6 +114,7 @@ impl Logged {
             Self::Bridge(r) => r.level(),
             Self::Config(n) => text::config_level(n),
             Self::Inverter(r) => r.level(),
+            Self::HostMissed(_) => Level::Warn,
         }
     }
 }
@@ -168,6 +172,10 @@ pub struct Station {
     last_limits: Option<Limits>,
     events: Deque<Event, MQTT_EVENTS>,
     events_dropped: u32,
+    /// Lines the port dropped since a host last came; and how many of them
+    /// the log still has to say (once the host is back).
+    host_missed: u32,
+    missed_to_log: u32,
 }
 
 impl Station {
@@ -203,6 +211,8 @@ impl Station {
             last_limits: None,
             events: Deque::new(),
             events_dropped: 0,
+            host_missed: 0,
+            missed_to_log: 0,
         }
     }
 
@@ -308,6 +318,10 @@ impl Station {
         if let Some(h) = self.host.as_mut() {
             h.connected(now);
         }
+        if self.host_missed > 0 {
+            self.missed_to_log = self.missed_to_log.saturating_add(self.host_missed);
+            self.host_missed = 0;
+        }
     }
 
     /// Bytes from the host at `now`.
@@ -336,6 +350,7 @@ impl Station {
     pub fn host_lines_dropped(&mut self, n: u32) {
         if let Some(h) = self.host.as_mut() {
             h.lines_dropped(n);
+            self.host_missed = self.host_missed.saturating_add(n);
         }
     }
 
@@ -478,6 +493,11 @@ impl Station {
             // none of their words).
             Logged::Inverter(r) if cfg!(feature = "can") => text::inverter(r, out),
             Logged::Inverter(_) => {}
+            Logged::HostMissed(n) => {
+                out.push("host link: ")
+                    .uint(u64::from(*n))
+                    .push(" lines dropped while no host read the port");
+            }
         }
     }
 
@@ -575,6 +595,8 @@ impl Station {
             Logged::Config(n)
         } else if let Some(r) = self.inverter.as_mut().and_then(|i| i.next_report()) {
             Logged::Inverter(r)
+        } else if self.missed_to_log > 0 {
+            Logged::HostMissed(core::mem::take(&mut self.missed_to_log))
         } else {
             return None;
         };

@@ -61,6 +61,13 @@ pub fn run(client: &mut Client, o: &MonitorOptions) -> ToolResult<()> {
     result
 }
 
+/// Writes one line and flushes it; false when the reader is gone (a closed
+/// pipe: `tinybms monitor PORT | head -3`), so the command ends, gives the
+/// bridge its stream period back and lets go of the port.
+fn say(out: &mut impl Write, line: std::fmt::Arguments<'_>) -> bool {
+    writeln!(out, "{line}").is_ok() && out.flush().is_ok()
+}
+
 /// Plain text and JSON Lines: a picture per telemetry line, and between lines
 /// a NO DATA / OFFLINE line when the data gets old.
 fn watch(
@@ -97,12 +104,14 @@ fn watch(
         {
             // Packs in parallel: the battery and its packs after each picture.
             let mut out = stdout.lock();
-            if o.view == View::Json {
-                let _ = writeln!(out, "{b}");
+            let said = if o.view == View::Json {
+                say(&mut out, format_args!("{b}"))
             } else {
-                let _ = writeln!(out, "{}", render_battery_line(b));
+                say(&mut out, format_args!("{}", render_battery_line(b)))
+            };
+            if !said {
+                return Ok(()); // the reader is gone (`| head`): done
             }
-            let _ = out.flush();
             continue;
         }
         let Some(mut v) = got.filter(|v| v["type"] == "telemetry") else {
@@ -118,12 +127,17 @@ fn watch(
                 stale_said = Some(Instant::now());
                 let text = freshness_text(f);
                 let mut out = stdout.lock();
-                if o.view == View::Json {
-                    let _ = writeln!(out, "{}", json!({"type": "no_data", "detail": text}));
+                let said = if o.view == View::Json {
+                    say(
+                        &mut out,
+                        format_args!("{}", json!({"type": "no_data", "detail": text})),
+                    )
                 } else {
-                    let _ = writeln!(out, "{text}");
+                    say(&mut out, format_args!("{text}"))
+                };
+                if !said {
+                    return Ok(());
                 }
-                let _ = out.flush();
             }
             continue;
         };
@@ -138,16 +152,21 @@ fn watch(
             counted |= l.log(&v)?;
         }
         let mut out = stdout.lock();
-        if o.view == View::Json {
-            let _ = writeln!(out, "{v}");
+        let said = if o.view == View::Json {
             counted = true;
+            say(&mut out, format_args!("{v}"))
         } else {
             let f = freshness(Some(&v), received.elapsed());
-            let _ = writeln!(out, "{}", render_text(&v, link.as_ref(), &header, f));
             counted |= logger.is_none();
-        }
-        let _ = out.flush();
+            say(
+                &mut out,
+                format_args!("{}", render_text(&v, link.as_ref(), &header, f)),
+            )
+        };
         drop(out);
+        if !said {
+            return Ok(());
+        }
         last = Some((v, received));
         if counted {
             updates += 1;
@@ -173,14 +192,18 @@ pub fn log(client: &mut Client, duration: Option<Duration>) -> ToolResult<()> {
             Err(e) => break Err(e),
             Ok(Some(v)) if v["type"] == "log" => {
                 let mut out = stdout.lock();
-                let _ = writeln!(
-                    out,
-                    "{}  {:<4}  {}",
-                    &utc_now()[11..23],
-                    v["level"].as_str().unwrap_or("?"),
-                    v["text"].as_str().unwrap_or("")
+                let said = say(
+                    &mut out,
+                    format_args!(
+                        "{}  {:<4}  {}",
+                        &utc_now()[11..23],
+                        v["level"].as_str().unwrap_or("?"),
+                        v["text"].as_str().unwrap_or("")
+                    ),
                 );
-                let _ = out.flush();
+                if !said {
+                    break Ok(()); // the reader is gone (`| head`): done
+                }
             }
             Ok(_) => {}
         }
