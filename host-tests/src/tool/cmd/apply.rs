@@ -1,0 +1,35 @@
+//! `tinybms apply`: A settings profile: the difference first, then only what differs, each verified.
+
+use std::path::PathBuf;
+
+use protocol_core::settings::SettingId;
+
+use crate::profile::parse_profile;
+use crate::tool::cli::Conn;
+use crate::tool::{
+    confirm_restart, connect_ready, read_profile, settings, write_settings, ToolError, ToolResult,
+};
+
+/// Runs `tinybms apply`.
+pub fn run(conn: Conn, file: PathBuf, dry_run: bool, yes: bool) -> ToolResult<()> {
+    let text = read_profile(&file, &conn.port)?;
+    let wanted =
+        parse_profile(&text).map_err(|e| ToolError::usage(format!("{}: {e}", file.display())))?;
+    let mut c = connect_ready(&conn)?;
+    let current = c.get("settings")?;
+    settings::check_all(&current, &wanted, None).map_err(ToolError::failed)?;
+    let changes = settings::diff(&current, &wanted);
+    let unchanged = wanted.len().saturating_sub(changes.len());
+    println!("{}: {} settings", file.display(), wanted.len());
+    print!("{}", settings::render_diff(&changes, unchanged));
+    if dry_run {
+        println!("dry run: every value checked, nothing written");
+        return Ok(());
+    }
+    if changes.is_empty() {
+        return Ok(());
+    }
+    let items: Vec<(SettingId, i32)> = changes.iter().map(|ch| (ch.id, ch.to as i32)).collect();
+    confirm_restart(yes, &items)?;
+    write_settings(&mut c, &items)
+}

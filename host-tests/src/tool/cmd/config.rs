@@ -1,0 +1,205 @@
+//! `tinybms config`: the bridge's own configuration: show, change (one-way changes ask), save to a file and load it back (the secrets it cannot restore named).
+
+use std::path::Path;
+
+use crate::tool::cli::Conn;
+use crate::tool::{config, confirm, connect, monitor, ToolError, ToolResult};
+
+/// `tinybms config …` (see [`config`]).
+pub fn run_config(
+    conn: &Conn,
+    args: &[String],
+    save: Option<&Path>,
+    load: Option<&Path>,
+    dry_run: bool,
+    reset: bool,
+    yes: bool,
+) -> ToolResult<()> {
+    // Everything that can be checked without the bridge is checked first.
+    let assignments = if args.iter().any(|x| x.contains('=')) {
+        let mut out = Vec::new();
+        for arg in args {
+            let (name, text) = config::split_assignment(arg)?;
+            let (id, p) = config::check_assignment(&name, &text)?;
+            if out.iter().any(|(o, _)| *o == id) {
+                return Err(ToolError::usage(format!(
+                    "`{}` is given twice: give each field once",
+                    id.name()
+                )));
+            }
+            out.push((id, p));
+        }
+        Some(out)
+    } else {
+        None
+    };
+    if assignments.is_none() && args.len() > 1 {
+        return Err(ToolError::usage(
+            "tinybms config PORT NAME (one field), or NAME=VALUE... to change fields",
+        ));
+    }
+    if dry_run && load.is_none() {
+        return Err(ToolError::usage("--dry-run goes with --load"));
+    }
+    let explain = match (&assignments, args.first()) {
+        (None, Some(name)) => Some(config::field_named(name)?),
+        _ => None,
+    };
+    // Secrets the saved bridge had set (the file names them, without values).
+    let mut secrets_in_file: Vec<String> = Vec::new();
+    let loaded = match load {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .map_err(|e| ToolError::failed(format!("cannot read `{}`: {e}", path.display())))?;
+            secrets_in_file = text
+                .lines()
+                .filter_map(|l| l.strip_prefix("# "))
+                .filter_map(|l| l.strip_suffix(": set (secrets are not saved)"))
+                .map(str::to_string)
+                .collect();
+            Some(
+                config::parse_file(&text)
+                    .map_err(|e| ToolError::usage(format!("{}: {e}", path.display())))?,
+            )
+        }
+        None => None,
+    };
+    if reset
+        && !yes
+        && !confirm("Set every field of the bridge's configuration back to its default")?
+    {
+        return Err(ToolError::failed("not confirmed: nothing changed"));
+    }
+    let mut c = connect(conn)?;
+    config::require_bridge(&c)?;
+    let (fields, end) = config::fetch(&mut c).map_err(config::fetch_error)?;
+    let current = config::record_of(&fields);
+    if let Some(changes) = assignments {
+        config::check_locally(&current, &changes)?;
+        confirm_one_way(yes, &current, &changes)?;
+        return config::apply(&mut c, &changes);
+    }
+    if let Some(wanted) = loaded {
+        let changes = config::diff(&current, &wanted);
+        config::check_locally(&current, &changes)?;
+        println!(
+            "{}: {} fields, {} differ from the bridge's",
+            load.map(|p| p.display().to_string()).unwrap_or_default(),
+            wanted.len(),
+            changes.len()
+        );
+        for (id, p) in &changes {
+            let mut l = tinybms_firmware::text::Line::new();
+            tinybms_firmware::config::value::write(id.field(), &p.as_value(), true, &mut l);
+            let now = fields
+                .iter()
+                .find(|f| f.line["name"] == id.name())
+                .and_then(|f| f.line["value"].as_str())
+                .unwrap_or("?");
+            println!("  {:<24} {now} -> {}", id.name(), l.as_str());
+        }
+        // Secrets are never in a file: say which the bridge now lacks, and how.
+        let missing: Vec<&String> = secrets_in_file
+            .iter()
+            .filter(|name| {
+                fields
+                    .iter()
+                    .any(|f| f.line["name"] == name.as_str() && f.line["value"] == "unset")
+            })
+            .collect();
+        let say_missing = || {
+            if !missing.is_empty() {
+                let names: Vec<&str> = missing.iter().map(|s| s.as_str()).collect();
+                println!(
+                    "not restored: {} (secrets are never saved in a file). Set {} again: {}",
+                    names.join(", "),
+                    if names.len() == 1 { "it" } else { "them" },
+                    secrets_hint(&names)
+                );
+            }
+        };
+        if dry_run || changes.is_empty() {
+            if dry_run {
+                println!("dry run: nothing changed");
+            }
+            say_missing();
+            return Ok(());
+        }
+        confirm_one_way(yes, &current, &changes)?;
+        config::apply(&mut c, &changes)?;
+        say_missing();
+        return Ok(());
+    }
+    if reset {
+        return config::reset(&mut c);
+    }
+    if let Some(id) = explain {
+        let f = fields
+            .iter()
+            .find(|f| f.line["name"] == id.name())
+            .ok_or_else(|| ToolError::failed(format!("the bridge has no field `{}`", id.name())))?;
+        print!("{}", config::render_one(f));
+        return Ok(());
+    }
+    print!("{}", config::render(&fields, &end));
+    if let Some(path) = save {
+        let header = format!(
+            "saved by tinybms {} from {} at {}",
+            env!("CARGO_PKG_VERSION"),
+            c.port,
+            monitor::utc_now()
+        );
+        std::fs::write(path, config::file_text(&fields, &header))
+            .map_err(|e| ToolError::failed(format!("cannot write `{}`: {e}", path.display())))?;
+        let secrets = fields.iter().filter(|f| f.line["secret"] == true).count();
+        println!(
+            "saved {} fields to {} ({secrets} secrets left out)",
+            fields.len() - secrets,
+            path.display()
+        );
+    }
+    Ok(())
+}
+/// The commands that set the secrets `names` again.
+pub fn secrets_hint(names: &[&str]) -> String {
+    let mut out = Vec::new();
+    if names.contains(&"wifi_key") {
+        out.push("`tinybms wifi PORT --ssid NAME` (asks for the passphrase)");
+    }
+    if names.contains(&"mqtt_password") {
+        out.push("`tinybms mqtt PORT --host HOST --user USER` (asks for the password)");
+    }
+    if out.is_empty() {
+        out.push("`tinybms config PORT NAME=VALUE`");
+    }
+    out.join(" and ")
+}
+/// A change that nothing over the host link can undo (`read_only=on`: from
+/// then on the bridge refuses every change, this one's undoing included) is
+/// made only when confirmed (or `--yes`), like `reset`.
+pub fn confirm_one_way(
+    yes: bool,
+    current: &tinybms_firmware::config::Config,
+    changes: &[(
+        tinybms_firmware::config::FieldId,
+        tinybms_firmware::config::value::Parsed,
+    )],
+) -> ToolResult<()> {
+    use tinybms_firmware::config::value::Parsed;
+    use tinybms_firmware::config::FieldId;
+    let locks = !current.read_only
+        && changes
+            .iter()
+            .any(|(id, p)| *id == FieldId::ReadOnly && *p == Parsed::Bool(true));
+    if !locks || yes {
+        return Ok(());
+    }
+    let question = "read_only=on is one-way: from then on the bridge refuses every change \
+                    over USB, turning it off included; only the BOOT button held 5 s while the \
+                    bridge runs (or erasing the flash) lifts it. Turn it on";
+    if confirm(question)? {
+        Ok(())
+    } else {
+        Err(ToolError::failed("not confirmed: nothing changed"))
+    }
+}

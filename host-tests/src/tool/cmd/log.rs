@@ -1,0 +1,12 @@
+//! `tinybms log`: The bridge's log lines as they come.
+
+use std::time::Duration;
+
+use crate::tool::cli::Conn;
+use crate::tool::{connect, monitor, ToolResult};
+
+/// Runs `tinybms log`.
+pub fn run(conn: Conn, duration: Option<Duration>) -> ToolResult<()> {
+    let mut c = connect(&conn)?;
+    monitor::log(&mut c, duration)
+}

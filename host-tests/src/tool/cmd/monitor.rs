@@ -1,0 +1,61 @@
+//! `tinybms monitor`: The live view, plain text or JSON Lines, and the CSV/JSON Lines log.
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use crate::tool::cli::{Conn, FormatArg};
+use crate::tool::monitor::{self, LogFormat, MonitorOptions, View};
+use crate::tool::{connect, ToolError, ToolResult};
+
+/// Runs `tinybms monitor`.
+#[allow(clippy::too_many_arguments)]
+pub fn run(
+    conn: Conn,
+    json: bool,
+    plain: bool,
+    log: Option<PathBuf>,
+    every: Duration,
+    format: Option<FormatArg>,
+    period: Duration,
+    count: Option<u64>,
+    duration: Option<Duration>,
+) -> ToolResult<()> {
+    let log = match log {
+        None => None,
+        Some(path) => {
+            let f = match format {
+                Some(FormatArg::Csv) => LogFormat::Csv,
+                Some(FormatArg::Jsonl) => LogFormat::JsonLines,
+                None => {
+                    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("csv");
+                    LogFormat::from_name(ext).ok_or_else(|| {
+                        ToolError::usage(format!(
+                            "log format of `{}`: csv or jsonl (--format, or the file's extension)",
+                            path.display()
+                        ))
+                    })?
+                }
+            };
+            Some((path.to_string_lossy().into_owned(), f))
+        }
+    };
+    let view = if json {
+        View::Json
+    } else if plain || !std::io::stdout().is_terminal() {
+        View::Plain
+    } else {
+        View::Live
+    };
+    let o = MonitorOptions {
+        view,
+        log,
+        every,
+        count,
+        duration,
+        period_ms: period.as_millis().clamp(100, 60_000) as u32,
+        ready_timeout: conn.timeout,
+    };
+    let mut c = connect(&conn)?;
+    monitor::run(&mut c, &o)
+}

@@ -1,0 +1,115 @@
+//! `tinybms record`: a capture file of the UART traffic, for bug reports.
+
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use serde_json::json;
+
+use crate::capture::{parse_hex, CaptureWriter};
+use crate::tool::cli::Conn;
+use crate::tool::client::{self, Client};
+use crate::tool::transport::Mode;
+use crate::tool::transport::SerialLines;
+use crate::tool::{choice, direct, interrupted, monitor, open_and_probe, ToolError, ToolResult};
+
+pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
+    let path = file.display().to_string();
+    let f = std::fs::File::create(file)
+        .map_err(|e| ToolError::failed(format!("cannot create `{path}`: {e}")))?;
+    let header = format!(
+        "recorded by tinybms {} from {} at {}",
+        env!("CARGO_PKG_VERSION"),
+        conn.port,
+        monitor::utc_now()
+    );
+    let writer = CaptureWriter::new(Box::new(std::io::BufWriter::new(f)), &header)
+        .map_err(|e| ToolError::failed(format!("writing `{path}`: {e}")))?;
+    let port = conn.port.clone();
+    let (serial, mode, probe) = open_and_probe(&port, choice(conn))?;
+    let (mut tx, mut rx) = (0usize, 0usize);
+    match (mode, probe) {
+        (Mode::Direct, _) => {
+            let _ = serial.clear(serialport::ClearBuffer::Input);
+            let mut c = direct::start(serial, port.clone(), Some(writer))?;
+            let _ = c.stream(0);
+            let end = Instant::now() + duration;
+            while Instant::now() < end && !interrupted() {
+                let left = end.saturating_duration_since(Instant::now());
+                let _ = c.next_pushed(left.min(Duration::from_millis(200)))?;
+            }
+            let (t, r) = direct::stop(&mut c)?;
+            tx = t as usize;
+            rx = r as usize;
+        }
+        (Mode::Bridge, Some((hello, split))) => {
+            let lines = SerialLines::new(serial, split);
+            let mut c = Client::new(Box::new(lines), Mode::Bridge, hello, port.clone());
+            let mut writer = writer;
+            c.stream(0)?;
+            let req = c.send(json!({"cmd": "capture", "on": true}))?;
+            c.recv_for(req, Instant::now() + client::GET_TIMEOUT, "capture")?;
+            let end = Instant::now() + duration;
+            let werr = |e: std::io::Error| ToolError::failed(format!("writing `{path}`: {e}"));
+            // Ctrl-C ends the recording early; capture goes off all the same.
+            while Instant::now() < end && !interrupted() {
+                let left = end.saturating_duration_since(Instant::now());
+                let Some(v) = c.next_pushed(left.min(Duration::from_millis(200)))? else {
+                    continue;
+                };
+                if v["type"] != "raw" {
+                    continue;
+                }
+                let bytes = parse_hex(v["hex"].as_str().unwrap_or(""))
+                    .map_err(|e| ToolError::failed(format!("a raw line the bridge sent: {e}")))?;
+                if v["dir"] == "tx" {
+                    writer.tx(&bytes).map_err(werr)?;
+                    tx += bytes.len();
+                } else {
+                    writer.rx(&bytes).map_err(werr)?;
+                    rx += bytes.len();
+                }
+            }
+            let req = c.send(json!({"cmd": "capture", "on": false}))?;
+            // Raw lines still queued before the answer are part of the capture.
+            loop {
+                let Some(v) = c.recv(Duration::from_secs(5))? else {
+                    break;
+                };
+                if v["req"] == json!(req) {
+                    break;
+                }
+                if v["type"] == "raw" {
+                    if let Ok(bytes) = parse_hex(v["hex"].as_str().unwrap_or("")) {
+                        if v["dir"] == "tx" {
+                            writer.tx(&bytes).map_err(werr)?;
+                        } else {
+                            writer.rx(&bytes).map_err(werr)?;
+                        }
+                    }
+                }
+            }
+            if let Some(dropped) = c
+                .get_one("link")
+                .ok()
+                .and_then(|l| l["dropped_lines"].as_u64())
+            {
+                if dropped > 0 {
+                    let _ = writer.comment(&format!(
+                        "the bridge dropped {dropped} output lines since it started (raw lines may be missing)"
+                    ));
+                }
+            }
+            writer.flush().map_err(werr)?;
+        }
+        (Mode::Bridge, None) => return Err(ToolError::failed("internal: bridge without hello")),
+    }
+    println!(
+        "recorded {:.1} s to {path}: {tx} bytes sent, {rx} received ({})",
+        duration.as_secs_f64(),
+        match mode {
+            Mode::Bridge => "through the bridge's capture",
+            Mode::Direct => "direct",
+        }
+    );
+    Ok(())
+}
