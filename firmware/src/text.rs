@@ -377,6 +377,13 @@ pub fn inverter(r: &InverterReport, out: &mut Line) {
                 .uint(u64::from(*n))
                 .push(": give each bridge its own pack_node (this one sends no summary until it restarts)");
         }
+        InverterReport::SummaryRefused(n, e) => {
+            out.push("CAN: a summary of node ")
+                .uint(u64::from(*n))
+                .push(" refused (")
+                .push(e.reason())
+                .push("): it counts nowhere");
+        }
     }
 }
 

@@ -66,7 +66,34 @@ fn arb_conditions() -> impl Strategy<Value = Conditions> {
 }
 
 prop_compose! {
+    /// A summary a TinyBMS can report: every field within its range, a pack
+    /// voltage its cells can make.
     fn arb_summary()(
+        v_frac in 0.0f64..=1.0, current_da in -10_000i16..=10_000, soc_cpct in 0u16..=10_000,
+        soh_pct in 0u8..=100, cells in (0u16..=5000, 0u16..=5000),
+        temps in (-550i16..=1500, -550i16..=1500), age_ds in any::<u8>(),
+        capacity_dah in 0u16..=6550,
+        l in (0u16..=800, 0u16..=7500, 0u16..=7500, 0u16..=800),
+        conditions in arb_conditions(),
+        flags in any::<[bool; 3]>(),
+    ) -> Summary {
+        let (lo, hi) = (cells.0.min(cells.1), cells.0.max(cells.1));
+        let (lo_mv, hi_mv) = (4.0 * f64::from(lo), 16.0 * f64::from(hi));
+        let voltage_cv = ((lo_mv + v_frac * (hi_mv - lo_mv)) / 10.0).floor().min(8000.0) as u16;
+        Summary {
+            voltage_cv, current_da, soc_cpct, soh_pct,
+            min_cell_mv: lo, max_cell_mv: hi,
+            min_temp_dc: temps.0.min(temps.1), max_temp_dc: temps.0.max(temps.1),
+            age_ds, capacity_dah,
+            limits: Limits { cvl_dv: l.0, ccl_da: l.1, dcl_da: l.2, discharge_dv: l.3 },
+            conditions, fault: flags[0], charge_blocked: flags[1], speaking: flags[2],
+        }
+    }
+}
+
+prop_compose! {
+    /// Any summary of the wire format's values, possible or not.
+    fn arb_any_summary()(
         voltage_cv in any::<u16>(), current_da in any::<i16>(), soc_cpct in 0u16..=10_000,
         soh_pct in 0u8..=100, cells in (any::<u16>(), any::<u16>()),
         temps in (any::<i16>(), any::<i16>()), age_ds in any::<u8>(),
@@ -197,6 +224,20 @@ proptest! {
         prop_assert!(f.iter().all(|f| f.len == 8));
         prop_assert_eq!(feed(&mut p, 7, &f), Received::Complete(node));
         prop_assert_eq!(p.alive(7, node), Some(&s));
+    }
+
+    /// Issue 24: a summary no TinyBMS can send is refused, whatever field is
+    /// impossible; a possible one is taken.
+    #[test]
+    fn an_impossible_summary_is_refused(s in arb_any_summary(), node in 1u8..=8) {
+        let mut p = Packs::new(if node == 1 { 2 } else { 1 });
+        let got = feed(&mut p, 7, &s.frames(node, 3).unwrap());
+        if s.plausible() {
+            prop_assert_eq!(got, Received::Complete(node));
+        } else {
+            prop_assert_eq!(got, Received::Refused(node, SummaryError::Range));
+            prop_assert_eq!(p.alive(7, node), None);
+        }
     }
 
     /// Frames of two summaries interleaved in any order, some dropped: what is
@@ -993,4 +1034,61 @@ mod what_review_found {
         );
         assert!(p.alive(PARTIAL_MAX_US + 1, 3).is_none());
     }
+}
+
+/// Issue 24: the ghost of the report (a node nobody uses, limits of 6553.5 A,
+/// a current of ±3276.7 A) is refused, reported once, and never raises the
+/// battery's limits.
+#[test]
+fn a_ghost_node_with_impossible_values_is_refused_and_reported() {
+    use tinybms_firmware::inverter::{Inverter, InverterConfig, InverterReport};
+    let ghost = Summary {
+        current_da: i16::MAX,
+        limits: Limits {
+            cvl_dv: 552,
+            ccl_da: u16::MAX,
+            dcl_da: u16::MAX,
+            discharge_dv: 480,
+        },
+        ..summary()
+    };
+    assert!(!ghost.plausible());
+    assert!(summary().plausible());
+    let mut p = Packs::new(1);
+    assert_eq!(
+        feed(&mut p, 0, &ghost.frames(7, 1).unwrap()),
+        Received::Refused(7, SummaryError::Range)
+    );
+    assert_eq!(p.alive(0, 7), None);
+    // Through the inverter output: one report, however often it comes.
+    let mut inv = Inverter::new(
+        InverterConfig {
+            node: 1,
+            ..InverterConfig::default()
+        },
+        0,
+    );
+    for k in 0..5u64 {
+        for f in ghost.frames(7, (k % 16) as u8).unwrap() {
+            inv.on_received(k * S, f.id, f.bytes());
+        }
+    }
+    let mut reports = Vec::new();
+    while let Some(r) = inv.next_report() {
+        reports.push(r);
+    }
+    let refused: Vec<_> = reports
+        .iter()
+        .filter(|r| matches!(r, InverterReport::SummaryRefused(7, SummaryError::Range)))
+        .collect();
+    assert_eq!(refused.len(), 1, "{reports:?}");
+    let mut l = tinybms_firmware::text::Line::new();
+    tinybms_firmware::text::inverter(refused[0], &mut l);
+    assert_eq!(
+        l.as_str(),
+        "CAN: a summary of node 7 refused (a value no TinyBMS can report): it counts nowhere"
+    );
+    assert!(inv
+        .battery_view(5 * S)
+        .is_none_or(|v| v.packs.iter().all(|p| p.node != 7)));
 }

@@ -166,6 +166,9 @@ pub enum InverterReport {
     BatteryLost,
     /// Another bridge sends summaries with this bridge's node number.
     DuplicateNode(u8),
+    /// A summary of this node was refused (once until one of it is taken
+    /// again); it counts nowhere.
+    SummaryRefused(u8, packs::SummaryError),
 }
 
 impl InverterReport {
@@ -179,7 +182,9 @@ impl InverterReport {
             | Self::BatteryLimits(_)
             | Self::Speaker(_)
             | Self::Packs { .. } => crate::Level::Info,
-            Self::BatteryLost | Self::DuplicateNode(_) => crate::Level::Warn,
+            Self::BatteryLost | Self::DuplicateNode(_) | Self::SummaryRefused(..) => {
+                crate::Level::Warn
+            }
             Self::InverterLost
             | Self::Stale { .. }
             | Self::StaleHoldEnded
@@ -241,6 +246,8 @@ pub struct Inverter {
     /// Sunny Island needs when the battery is lost).
     sent_battery: Option<Limits>,
     duplicate_reported: bool,
+    /// Nodes whose refused summary was reported (bit `node - 1`).
+    refused_reported: u8,
     seq: u8,
     own_summary: Option<Summary>,
     /// The last 0x351 handed out, and when.
@@ -290,6 +297,7 @@ impl Inverter {
             battery_lost: false,
             sent_battery: None,
             duplicate_reported: false,
+            refused_reported: 0,
             seq: 0,
             own_summary: None,
             told: None,
@@ -490,12 +498,25 @@ impl Inverter {
         if !self.config.enabled {
             return; // output off: the bus is none of our business
         }
-        if let Received::DuplicateNode = self.packs.on_frame(now, id, data) {
-            if !self.duplicate_reported {
-                self.duplicate_reported = true;
-                let n = self.packs.node();
-                self.report(InverterReport::DuplicateNode(n));
+        match self.packs.on_frame(now, id, data) {
+            Received::DuplicateNode => {
+                if !self.duplicate_reported {
+                    self.duplicate_reported = true;
+                    let n = self.packs.node();
+                    self.report(InverterReport::DuplicateNode(n));
+                }
             }
+            Received::Refused(node, e) => {
+                let bit = 1u8 << (node.saturating_sub(1) & 7);
+                if self.refused_reported & bit == 0 {
+                    self.refused_reported |= bit;
+                    self.report(InverterReport::SummaryRefused(node, e));
+                }
+            }
+            Received::Complete(node) => {
+                self.refused_reported &= !(1u8 << (node.saturating_sub(1) & 7));
+            }
+            _ => {}
         }
         if id == frames::ID_GX_KEEPALIVE || id == frames::ID_GX_KEEPALIVE_2 {
             self.inverter_seen_at = Some(now);

@@ -62,7 +62,41 @@ pub enum SummaryError {
     Order,
     /// A condition field holds 3 (only 0, 1, 2 exist) or a reserved bit is set.
     Reserved,
+    /// A value no TinyBMS can report (see [`Summary::from_frames`]): a
+    /// current or limit past the largest cutoff, a cell past 5 V, a pack
+    /// voltage its cells cannot make, a capacity past register 306's range.
+    Range,
 }
+
+impl SummaryError {
+    /// In words.
+    pub const fn reason(self) -> &'static str {
+        match self {
+            Self::Length => "not 8 data bytes",
+            Self::Soc => "SOC or SOH above 100 %",
+            Self::Order => "lowest cell or temperature above the highest",
+            Self::Reserved => "a reserved bit or condition value",
+            Self::Range => "a value no TinyBMS can report",
+        }
+    }
+}
+
+/// The largest current a TinyBMS's limits can name, 0.1 A: its largest
+/// charge and discharge over-current cutoff (registers 317/318, 750 A with
+/// the largest external sensor).
+pub const LIMIT_MAX_DA: u16 = 7500;
+/// The largest current a summary may report, 0.1 A: a third above the largest
+/// cutoff (a peak before the cutoff acts).
+pub const CURRENT_MAX_DA: i16 = 10_000;
+/// The highest cell voltage a summary may report, mV (Rev D's highest
+/// over-voltage cutoff is 4.5 V).
+pub const CELL_MAX_MV: u16 = 5000;
+/// Cells in series a TinyBMS manages (register 307: 4-16).
+pub const CELLS: (u32, u32) = (4, 16);
+/// The highest capacity register 306 holds (655.00 Ah), 0.1 Ah.
+pub const CAPACITY_MAX_DAH: u16 = 6550;
+/// Temperatures a summary may report, 0.1 °C.
+pub const TEMP_RANGE_DC: (i16, i16) = (-550, 1500);
 
 /// The 10 conditions carried (all of [`Conditions`] but `link_lost`), 2 bits each.
 fn conditions_bits(c: &Conditions) -> u32 {
@@ -234,7 +268,32 @@ impl Summary {
         if s.min_cell_mv > s.max_cell_mv || s.min_temp_dc > s.max_temp_dc {
             return Err(SummaryError::Order);
         }
+        if !s.plausible() {
+            return Err(SummaryError::Range);
+        }
         Ok(s)
+    }
+
+    /// Every field within what a TinyBMS can report (the constants above),
+    /// and a pack voltage that 4-16 cells between the lowest and the highest
+    /// can make (±1 V for the measurements' own errors).
+    pub fn plausible(&self) -> bool {
+        let l = &self.limits;
+        let pack_mv = u32::from(self.voltage_cv) * 10;
+        let lo_mv = CELLS.0 * u32::from(self.min_cell_mv);
+        let hi_mv = CELLS.1 * u32::from(self.max_cell_mv);
+        let cells_max_dv = (CELLS.1 * u32::from(CELL_MAX_MV) / 100) as u16;
+        self.current_da.unsigned_abs() <= CURRENT_MAX_DA.unsigned_abs()
+            && l.ccl_da <= LIMIT_MAX_DA
+            && l.dcl_da <= LIMIT_MAX_DA
+            && l.cvl_dv <= cells_max_dv
+            && l.discharge_dv <= cells_max_dv
+            && self.max_cell_mv <= CELL_MAX_MV
+            && pack_mv + 1000 >= lo_mv
+            && pack_mv <= hi_mv + 1000
+            && self.capacity_dah <= CAPACITY_MAX_DAH
+            && self.min_temp_dc >= TEMP_RANGE_DC.0
+            && self.max_temp_dc <= TEMP_RANGE_DC.1
     }
 
     /// This bridge's own summary: its pack's state (taken `age_us` ago), its
