@@ -97,10 +97,10 @@ impl Packs {
         if self.node == 0 {
             return Received::NotSummary;
         }
-        if node == self.node {
-            self.duplicates = self.duplicates.saturating_add(1);
-            return Received::DuplicateNode;
-        }
+        // Frames on this bridge's own identifiers: assembled like the others,
+        // and only a whole, valid summary says another bridge has this number
+        // (one stray frame neither silences this bridge nor counts as heard).
+        let own = node == self.node;
         let i = usize::from(node - 1);
         let Ok(d) = <[u8; 8]>::try_from(data) else {
             self.refused = self.refused.saturating_add(1);
@@ -109,8 +109,10 @@ impl Packs {
             }
             return Received::Refused(node, SummaryError::Length);
         };
-        if let Some(t) = self.frame_at.get_mut(i) {
-            *t = Some(now);
+        if !own {
+            if let Some(t) = self.frame_at.get_mut(i) {
+                *t = Some(now);
+            }
         }
         let seq = d[7] & 0x0F;
         let Some(slot) = self.partial.get_mut(i) else {
@@ -144,6 +146,10 @@ impl Packs {
         }
         *slot = None;
         match Summary::from_frames(&p.data) {
+            Ok(_) if own => {
+                self.duplicates = self.duplicates.saturating_add(1);
+                Received::DuplicateNode
+            }
             Ok(summary) => {
                 if let Some(h) = self.heard.get_mut(i) {
                     *h = Some(Heard { summary, at: now });
