@@ -195,3 +195,33 @@ fn every_scenario_with_a_sunny_island_and_with_two_and_eight_packs() {
         }
     }
 }
+
+/// Issue 24, item 4: a cold start never tells a healthy battery CCL 0 /
+/// DCL 0 (a DCL of 0 switches a Multi off): the first limits go out at once
+/// from the packs heard, without the hold a cut would start.
+#[test]
+fn a_cold_start_never_tells_a_healthy_battery_zero() {
+    let mut l = MultiLoop::new(
+        InverterConfig::default(),
+        &[60.0, 61.0, 62.0, 63.0],
+        &[0.0003; 4],
+        &[0.02; 4],
+        0.0,
+        5,
+    );
+    l.run_until(60 * S);
+    let limits: Vec<_> = l
+        .sent_limits
+        .iter()
+        .filter(|(t, _, _)| *t <= 60 * S)
+        .collect();
+    assert!(!limits.is_empty(), "the battery's limits go out");
+    let zero: Vec<_> = limits
+        .iter()
+        .filter(|(_, _, x)| x.ccl_da == 0 && x.dcl_da == 0)
+        .collect();
+    assert!(zero.is_empty(), "0/0 at {:?}", zero.first());
+    let first = limits[0];
+    assert!(first.0 <= 5 * S, "first limits at {} µs", first.0);
+    assert!(first.2.dcl_da > 0 && first.2.ccl_da > 0, "{first:?}");
+}

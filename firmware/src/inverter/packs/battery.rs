@@ -256,7 +256,13 @@ impl BatteryLimits {
     /// The inverter was without the battery's limits (this bridge's bus-off,
     /// the battery lost): both limits start from 0 and come back after the
     /// hold. (A takeover keeps the state: every node steps the battery.)
+    /// Before any limits were computed there is nothing to cut: the first
+    /// ones still apply at once (a cold start never tells a healthy battery
+    /// CCL 0 / DCL 0).
     pub fn cut(&mut self, now: Instant) {
+        if self.last.is_none() {
+            return;
+        }
         for r in [&mut self.ccl, &mut self.dcl] {
             *r = Ramp::new();
             let _ = r.step(now, 0, 0, &ChargeConfig::default());
