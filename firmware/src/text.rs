@@ -436,7 +436,8 @@ pub fn config_note(
             out.push("configuration store cannot be read (")
                 .push(e.reason())
                 .push("): running with the defaults");
-            if let Some(site) = config.site() {
+            // Only an image with a store has a site (and links its words).
+            if let (true, Some(site)) = (cfg!(feature = "store"), config.site()) {
                 out.push("; ");
                 store_site(&site, out);
             }
@@ -469,7 +470,8 @@ pub fn config_note(
         }
         Note::SaveFailed(e) => {
             out.push("config save failed: ").push(e.reason());
-            if let Some(site) = config.site() {
+            // Only an image with a store has a site (and links its words).
+            if let (true, Some(site)) = (cfg!(feature = "store"), config.site()) {
                 out.push("; ");
                 store_site(&site, out);
             }

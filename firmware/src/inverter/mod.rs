@@ -499,12 +499,10 @@ impl Inverter {
             return; // output off: the bus is none of our business
         }
         match self.packs.on_frame(now, id, data) {
-            Received::DuplicateNode => {
-                if !self.duplicate_reported {
-                    self.duplicate_reported = true;
-                    let n = self.packs.node();
-                    self.report(InverterReport::DuplicateNode(n));
-                }
+            Received::DuplicateNode if !self.duplicate_reported => {
+                self.duplicate_reported = true;
+                let n = self.packs.node();
+                self.report(InverterReport::DuplicateNode(n));
             }
             Received::Refused(node, e) => {
                 let bit = 1u8 << (node.saturating_sub(1) & 7);

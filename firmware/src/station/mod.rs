@@ -493,11 +493,12 @@ impl Station {
             // none of their words).
             Logged::Inverter(r) if cfg!(feature = "can") => text::inverter(r, out),
             Logged::Inverter(_) => {}
-            Logged::HostMissed(n) => {
+            Logged::HostMissed(n) if cfg!(feature = "host-link") => {
                 out.push("host link: ")
                     .uint(u64::from(*n))
                     .push(" lines dropped while no host read the port");
             }
+            Logged::HostMissed(_) => {}
         }
     }
 
