@@ -13,9 +13,22 @@
 //! V = (I + Σ E_k/R_k) / Σ 1/R_k. A pack whose BMS has opened its switch takes
 //! nothing.
 //!
+//! Packs differ the way real ones do ([`PackSpec`]: capacity, cutoffs, cable,
+//! cell resistance, SOC), and each simulated BMS does what a real one does at
+//! its own cutoffs: past its charge or discharge over-current cutoff (318,
+//! 317), or with a cell past its over- or under-voltage cutoff (315, 316), it
+//! opens its switch — the others then take its current — and closes it again
+//! [`TRIP_RECOVERY_US`] later. Every trip is a failure of the run
+//! ([`problems`]).
+//!
+//! The bus can misbehave ([`BusFaults`]): frames lost, doubled or late at a
+//! bridge's receiver, reordered within a tick, a receiver deaf for seconds,
+//! and a ghost node sending summaries no TinyBMS can report.
+//!
 //! The figures are the ground truth of the simulated packs, not what the
 //! bridges reported: every pack's highest cell and highest charge and
-//! discharge current against its own BMS's cutoffs (315, 318, 317).
+//! discharge current against its own BMS's cutoffs (315, 318, 317), its trips,
+//! and the charge it took and gave.
 
 use std::io::Write;
 
@@ -28,9 +41,118 @@ use tinybms_firmware::inverter::frames::{self, CanFrame};
 use tinybms_firmware::inverter::{Inverter, InverterConfig, InverterReport};
 use tinybms_firmware::station::{Logged, Setup, Station};
 
+use protocol_core::events::EventId;
+use tinybms_firmware::inverter::packs::Summary;
+
 use crate::closed_loop::{candump_line, frame_bits, InverterModel, STEP_US};
 use crate::harness::Harness;
+use crate::sim::rng::Rng;
 use crate::sim::{PackProfile, SimBms, SimConfig};
+
+/// A BMS that opened its switch at one of its cutoffs closes it again this
+/// long after (a real TinyBMS recovers once the cause is gone), µs.
+pub const TRIP_RECOVERY_US: u64 = 60_000_000;
+
+/// One pack of a run: what differs between real packs in parallel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PackSpec {
+    /// Capacity (306), Ah.
+    pub capacity_ah: f64,
+    /// Charge over-current cutoff (318), A.
+    pub charge_cutoff_a: u16,
+    /// Discharge over-current cutoff (317), A.
+    pub discharge_cutoff_a: u16,
+    /// Switch, fuse and cables to the common bus, Ω.
+    pub cable_ohm: f64,
+    /// Internal resistance of each cell, Ω.
+    pub cell_ohm: f64,
+    /// State of charge at the start, %.
+    pub soc_pct: f64,
+}
+
+impl PackSpec {
+    /// `n` packs alike but not equal (the six first scenarios): 280 Ah and
+    /// the simulator's cutoffs, cell resistance and cable differing by up to
+    /// ±20 %, SOC from `soc(k)`.
+    pub fn alike(n: usize, soc: impl Fn(usize) -> f64) -> Vec<Self> {
+        (0..n)
+            .map(|k| Self {
+                capacity_ah: 280.0,
+                charge_cutoff_a: 0,
+                discharge_cutoff_a: 0,
+                cell_ohm: 0.0003 * (0.8 + 0.4 * (k as f64 / n as f64)),
+                cable_ohm: 0.020 * (1.2 - 0.4 * (k as f64 / n as f64)),
+                soc_pct: soc(k),
+            })
+            .collect()
+    }
+
+    /// `n` uneven packs (issue 24's figures): pack 1 a 100 Ah pack on a
+    /// 3 mΩ cable with 30 A charge / 40 A discharge cutoffs; the others 200 to
+    /// 280 Ah on 30 to 40 mΩ cables with 50 to 60 A cutoffs.
+    pub fn uneven(n: usize, soc_pct: f64) -> Vec<Self> {
+        (0..n)
+            .map(|k| {
+                if k == 0 {
+                    Self {
+                        capacity_ah: 100.0,
+                        charge_cutoff_a: 30,
+                        discharge_cutoff_a: 40,
+                        cable_ohm: 0.003,
+                        cell_ohm: 0.0003,
+                        soc_pct,
+                    }
+                } else {
+                    let x = (k - 1) as f64 / (n.max(3) - 2) as f64;
+                    Self {
+                        capacity_ah: 200.0 + 80.0 * x,
+                        charge_cutoff_a: 50 + (10.0 * x) as u16,
+                        discharge_cutoff_a: 50 + (10.0 * x) as u16,
+                        cable_ohm: 0.030 + 0.010 * x,
+                        cell_ohm: 0.0003,
+                        soc_pct,
+                    }
+                }
+            })
+            .collect()
+    }
+}
+
+/// How the bus misbehaves. Losses apply at each bridge's receiver on its
+/// own (an overrun FIFO, a controller that missed a frame); the inverter
+/// hears every frame.
+#[derive(Debug, Clone, Default)]
+pub struct BusFaults {
+    /// Chance that a receiver misses a frame.
+    pub drop: f64,
+    /// Chance that a receiver gets a frame twice (a retransmission).
+    pub duplicate: f64,
+    /// Chance that a frame reaches a receiver only one tick (100 ms) late.
+    pub delay: f64,
+    /// The frames of one tick reach each receiver in a shuffled order.
+    pub reorder: bool,
+    /// Receivers deaf for a while: (node, from µs, until µs).
+    pub deaf: Vec<(u8, u64, u64)>,
+    /// A node nobody uses (its number) sending, every second, node 1's
+    /// summary with a current of 3276.7 A and limits of 6553.5 A.
+    pub ghost: Option<u8>,
+}
+
+impl BusFaults {
+    /// A bus that loses `drop` of the frames at every receiver, doubles 2 %,
+    /// delays 5 %, reorders within a tick, leaves node 3 deaf for 10 s at
+    /// 30 min, and carries a ghost node 7.
+    pub fn lossy(drop: f64) -> Self {
+        Self {
+            drop,
+            duplicate: 0.02,
+            delay: 0.05,
+            reorder: true,
+            deaf: vec![(3, 1_800_000_000, 1_810_000_000)],
+            ghost: Some(7),
+        }
+    }
+}
 
 /// What one pack went through.
 #[derive(Debug, Clone, Default)]
@@ -49,6 +171,16 @@ pub struct PackFigures {
     pub discharge_cutoff_a: f64,
     /// When its own charge control went to float.
     pub float_at_us: Option<u64>,
+    /// Its under-voltage cutoff (316), mV.
+    pub uv_cutoff_mv: u16,
+    /// Lowest cell, mV (truth).
+    pub lowest_cell_mv: u16,
+    /// Times its BMS opened its switch at one of its cutoffs: (µs, why).
+    pub trips: Vec<(u64, EventId)>,
+    /// Charge it took, Ah (truth).
+    pub charged_ah: f64,
+    /// Charge it gave, Ah (truth).
+    pub discharged_ah: f64,
 }
 
 impl PackFigures {
@@ -76,6 +208,10 @@ pub struct PackNode {
     pub current_a: f64,
     /// What it went through.
     pub figures: PackFigures,
+    /// Its BMS tripped: it closes its switch again at this time.
+    pub recover_at: Option<u64>,
+    /// Frames late for this bridge's receiver (they arrive next tick).
+    late: Vec<CanFrame>,
 }
 
 impl PackNode {
@@ -117,6 +253,19 @@ pub struct BatteryFigures {
     pub timeline: Vec<(u64, u8, u32, u8, Limits)>,
     /// Reports of every node's inverter output, with the node.
     pub reports: Vec<(u64, u8, InverterReport)>,
+    /// 0x351 frames with CCL 0 and DCL 0.
+    pub zero_limits_frames: u64,
+    /// Frames a receiver missed, got twice or got late (the bus's faults).
+    pub lost_frames: u64,
+}
+
+impl BatteryFigures {
+    /// Charge the battery took and gave, Ah (truth, all packs).
+    pub fn energy_ah(nodes: &[PackNode]) -> (f64, f64) {
+        nodes.iter().fold((0.0, 0.0), |(c, d), p| {
+            (c + p.figures.charged_ah, d + p.figures.discharged_ah)
+        })
+    }
 }
 
 impl BatteryFigures {
@@ -143,25 +292,42 @@ pub struct MultiLoop {
     pub can_log: Option<Box<dyn Write>>,
     /// Every limits frame the inverter obeyed: (time, node, limits).
     pub sent_limits: Vec<(u64, u8, Limits)>,
+    /// How the bus misbehaves.
+    pub bus: BusFaults,
+    rng: Rng,
+    ghost_seq: u8,
     now: u64,
     last_limits: Option<(u64, u8)>,
     second_speakers: (u64, u16),
 }
 
 /// Scenario names of the multi-pack loop (`sim --packs N --scenario NAME`).
-pub const SCENARIOS: [&str; 6] = [
+/// The first six with packs alike; the others with [`PackSpec::uneven`]
+/// packs, pack 1 the small one on the short cable (the one that takes the
+/// most when another leaves).
+pub const SCENARIOS: [&str; 16] = [
     "full-charge",
     "joined",
     "pack-fault",
     "uart-lost",
     "primary-lost",
     "bus-off",
+    "uneven-charge",
+    "uneven-discharge",
+    "fault-charge",
+    "fault-discharge",
+    "bridge-lost-charge",
+    "bridge-lost-discharge",
+    "stale-charge",
+    "stale-discharge",
+    "cold-start",
+    "lossy-bus",
 ];
 
 impl MultiLoop {
-    /// `n` packs (16S LiFePO4, 100 Ah, 30 A charge and 60 A discharge cutoff)
-    /// with SOCs `soc`, cell resistances `r_cell_ohm` and cables `cable_ohm`,
-    /// bridges with node numbers 1..=n, and a charger of `charger_max_a`.
+    /// `n` packs (16S LiFePO4 with the simulator's settings) with SOCs
+    /// `soc`, cell resistances `r_cell_ohm` and cables `cable_ohm`, bridges
+    /// with node numbers 1..=n, and a charger of `charger_max_a`.
     pub fn new(
         inverter: InverterConfig,
         soc: &[f64],
@@ -170,22 +336,58 @@ impl MultiLoop {
         charger_max_a: f64,
         seed: u64,
     ) -> Self {
-        let n = soc.len().min(8);
-        let nodes = (0..n)
-            .map(|k| {
+        let specs: Vec<PackSpec> = soc
+            .iter()
+            .enumerate()
+            .map(|(k, s)| PackSpec {
+                capacity_ah: 0.0,
+                charge_cutoff_a: 0,
+                discharge_cutoff_a: 0,
+                cable_ohm: cable_ohm.get(k).copied().unwrap_or(0.005),
+                cell_ohm: r_cell_ohm.get(k).copied().unwrap_or(0.0003),
+                soc_pct: *s,
+            })
+            .collect();
+        Self::with_packs(inverter, &specs, charger_max_a, seed)
+    }
+
+    /// One pack per spec (at most 8; a capacity or cutoff of 0 keeps the
+    /// simulator's own setting), bridges with node numbers 1..=n, and a
+    /// charger of `charger_max_a`.
+    pub fn with_packs(
+        inverter: InverterConfig,
+        specs: &[PackSpec],
+        charger_max_a: f64,
+        seed: u64,
+    ) -> Self {
+        let n = specs.len().min(8);
+        let nodes = specs
+            .iter()
+            .take(n)
+            .enumerate()
+            .map(|(k, spec)| {
                 let mut sim = SimBms::new(
                     PackProfile::LiFePO4_16S,
                     SimConfig::default(),
                     seed + k as u64,
                 );
-                sim.set_external_current(Some(0.0));
-                sim.set_soc_percent(soc[k]);
-                if let Some(r) = r_cell_ohm.get(k) {
-                    sim.set_cell_resistance_ohm(*r);
+                if spec.capacity_ah > 0.0 {
+                    sim.set_register(306, (spec.capacity_ah * 100.0).round() as u16);
                 }
+                if spec.discharge_cutoff_a > 0 {
+                    sim.set_register(317, spec.discharge_cutoff_a);
+                }
+                if spec.charge_cutoff_a > 0 {
+                    sim.set_register(318, spec.charge_cutoff_a);
+                }
+                sim.set_external_current(Some(0.0));
+                sim.set_soc_percent(spec.soc_pct);
+                sim.set_cell_resistance_ohm(spec.cell_ohm);
                 let regs = sim.registers();
                 let figures = PackFigures {
                     ov_cutoff_mv: regs[315],
+                    uv_cutoff_mv: regs[316],
+                    lowest_cell_mv: u16::MAX,
                     charge_cutoff_a: f64::from(regs[318]),
                     discharge_cutoff_a: f64::from(regs[317]),
                     ..PackFigures::default()
@@ -209,10 +411,12 @@ impl MultiLoop {
                 PackNode {
                     node,
                     h,
-                    cable_ohm: cable_ohm.get(k).copied().unwrap_or(0.005),
+                    cable_ohm: spec.cable_ohm,
                     bridge_on: true,
                     current_a: 0.0,
                     figures,
+                    recover_at: None,
+                    late: Vec::new(),
                 }
             })
             .collect::<Vec<_>>();
@@ -224,6 +428,9 @@ impl MultiLoop {
             bus_v: 0.0,
             can_log: None,
             sent_limits: Vec::new(),
+            bus: BusFaults::default(),
+            rng: Rng::new(seed ^ 0x6275_7321),
+            ghost_seq: 0,
             now: 0,
             last_limits: None,
             second_speakers: (0, 0),
@@ -275,16 +482,47 @@ impl MultiLoop {
             let total = self.model.step(t, self.bus_v);
             let (v, currents) = self.split(total);
             self.bus_v = v;
+            let dt_h = (t - self.now) as f64 / 3.6e9;
             for (p, i) in self.nodes.iter_mut().zip(currents) {
                 p.current_a = i;
                 p.h.sim.set_external_current(Some(i));
                 let f = &mut p.figures;
                 f.highest_charge_a = f.highest_charge_a.max(i);
                 f.highest_discharge_a = f.highest_discharge_a.max(-i);
+                f.charged_ah += i.max(0.0) * dt_h;
+                f.discharged_ah += (-i).max(0.0) * dt_h;
                 let first = usize::from(PackProfile::LiFePO4_16S.first_cell_register());
                 let regs = p.h.sim.registers();
+                let (mut lo, mut hi) = (u16::MAX, 0u16);
                 for r in regs.iter().skip(first).take(16) {
-                    f.highest_cell_mv = f.highest_cell_mv.max(cell_mv(*r));
+                    lo = lo.min(cell_mv(*r));
+                    hi = hi.max(cell_mv(*r));
+                }
+                f.highest_cell_mv = f.highest_cell_mv.max(hi);
+                f.lowest_cell_mv = f.lowest_cell_mv.min(lo);
+                // The BMS at its own cutoffs, as a real one: it opens its
+                // switch (no current from the next step on), and closes it
+                // again a while later.
+                if p.h.sim.fault().is_none() {
+                    let why = if i > f.charge_cutoff_a {
+                        Some(EventId::ChargingOverCurrentCutoff)
+                    } else if -i > f.discharge_cutoff_a {
+                        Some(EventId::DischargingOverCurrentCutoff)
+                    } else if hi >= f.ov_cutoff_mv {
+                        Some(EventId::OverVoltageCutoff)
+                    } else if lo <= f.uv_cutoff_mv {
+                        Some(EventId::UnderVoltageCutoff)
+                    } else {
+                        None
+                    };
+                    if let Some(why) = why {
+                        p.h.sim.inject_fault_event(why);
+                        f.trips.push((t, why));
+                        p.recover_at = Some(t + TRIP_RECOVERY_US);
+                    }
+                } else if p.recover_at.is_some_and(|at| t >= at) {
+                    p.recover_at = None;
+                    p.h.sim.clear_fault();
                 }
                 if f.float_at_us.is_none()
                     && p.h
@@ -326,18 +564,59 @@ impl MultiLoop {
                 on_bus.push((at, f.id, k, f));
             }
         }
+        self.ghost(now, &mut on_bus);
         on_bus.sort_by_key(|(at, id, k, _)| (*at, *id, *k));
+        // What each receiver gets this tick: the frames late from the last
+        // tick, then this tick's, each maybe lost, doubled or late, maybe
+        // shuffled.
+        for (k, p) in self.nodes.iter_mut().enumerate() {
+            let listening = p.bridge_on && p.h.can.bus_off_until.is_none_or(|u| now >= u);
+            let deaf = self
+                .bus
+                .deaf
+                .iter()
+                .any(|(n, from, until)| *n == p.node && (*from..*until).contains(&now));
+            let mut inbox = std::mem::take(&mut p.late);
+            for (_, _, from, f) in &on_bus {
+                if *from == k {
+                    continue;
+                }
+                let b = &self.bus;
+                if b.drop > 0.0 && self.rng.chance(b.drop) {
+                    self.figures.lost_frames += 1;
+                } else if b.delay > 0.0 && self.rng.chance(b.delay) {
+                    self.figures.lost_frames += 1;
+                    p.late.push(*f);
+                } else {
+                    inbox.push(*f);
+                    if b.duplicate > 0.0 && self.rng.chance(b.duplicate) {
+                        self.figures.lost_frames += 1;
+                        inbox.push(*f);
+                    }
+                }
+            }
+            if self.bus.reorder {
+                for i in (1..inbox.len()).rev() {
+                    let j = self.rng.below(i as u64 + 1) as usize;
+                    inbox.swap(i, j);
+                }
+            }
+            if listening && !deaf {
+                for f in &inbox {
+                    p.h.station.can_received(now, f.id, f.bytes());
+                }
+            } else {
+                p.late.clear();
+            }
+        }
         for (at, _, from, f) in &on_bus {
             self.figures.frames += 1;
             self.figures.bits += frame_bits(f.len);
             if tinybms_firmware::inverter::packs::from_id(f.id).is_some() {
                 self.figures.summary_frames += 1;
             }
-            for (k, p) in self.nodes.iter_mut().enumerate() {
-                let listening = p.bridge_on && p.h.can.bus_off_until.is_none_or(|u| now >= u);
-                if k != *from && listening {
-                    p.h.station.can_received(now, f.id, f.bytes());
-                }
+            if *from >= self.nodes.len() {
+                continue; // the ghost
             }
             let node = self.nodes[*from].node;
             if f.id == frames::ID_LIMITS {
@@ -364,6 +643,41 @@ impl MultiLoop {
         }
     }
 
+    /// The ghost's frames for this tick (once a second): node 1's last
+    /// summary as the ghost's, with impossible current and limits.
+    fn ghost(&mut self, now: u64, on_bus: &mut Vec<(u64, u16, usize, CanFrame)>) {
+        let Some(ghost) = self.bus.ghost else {
+            return;
+        };
+        if !now.is_multiple_of(1_000_000) {
+            return;
+        }
+        let base = self
+            .nodes
+            .first()
+            .and_then(|p| p.h.station.inverter())
+            .and_then(|i| i.own_summary());
+        let Some(base) = base else {
+            return;
+        };
+        let lie = Summary {
+            current_da: i16::MAX,
+            limits: Limits {
+                ccl_da: u16::MAX,
+                dcl_da: u16::MAX,
+                ..base.limits
+            },
+            speaking: false,
+            ..base
+        };
+        self.ghost_seq = (self.ghost_seq + 1) & 0x0F;
+        if let Some(fs) = lie.frames(ghost, self.ghost_seq) {
+            for f in fs {
+                on_bus.push((now, f.id, self.nodes.len(), f));
+            }
+        }
+    }
+
     fn limits_heard(&mut self, now: u64, node: u8, f: &CanFrame) {
         let d = f.data;
         let limits = Limits {
@@ -372,6 +686,9 @@ impl MultiLoop {
             dcl_da: u16::from_le_bytes([d[4], d[5]]),
             discharge_dv: u16::from_le_bytes([d[6], d[7]]),
         };
+        if limits.ccl_da == 0 && limits.dcl_da == 0 {
+            self.figures.zero_limits_frames += 1;
+        }
         self.sent_limits.push((now, node, limits));
         self.figures.highest_ccl_da = self.figures.highest_ccl_da.max(limits.ccl_da);
         if let Some(slot) = self.figures.limits_frames.get_mut(usize::from(node)) {
@@ -420,84 +737,130 @@ pub fn run_scenario(
     name: &str,
     n: usize,
     inverter: InverterConfig,
+    on_start: impl FnMut(&mut MultiLoop),
+) -> Option<(MultiLoop, u64)> {
+    run_scenario_at(name, n, inverter, None, on_start)
+}
+
+/// [`run_scenario`] with the moment of its event (the fault, the lost
+/// bridge, the stale link) at `event_us` instead of the scenario's own.
+pub fn run_scenario_at(
+    name: &str,
+    n: usize,
+    inverter: InverterConfig,
+    event_us: Option<u64>,
     mut on_start: impl FnMut(&mut MultiLoop),
 ) -> Option<(MultiLoop, u64)> {
     const S: u64 = 1_000_000;
     const MIN: u64 = 60 * S;
     const H: u64 = 3600 * S;
     let n = n.clamp(2, 8);
-    // Packs alike but not equal: resistance and cable differ by up to ±20 %,
-    // SOC by a few percent, one cell of each pack a little ahead.
-    let r_cell: Vec<f64> = (0..n)
-        .map(|k| 0.0003 * (0.8 + 0.4 * (k as f64 / n as f64)))
-        .collect();
-    // Switch, fuse and cables of a pack to the common bus: 20 mΩ ± 20 %.
-    let cable: Vec<f64> = (0..n)
-        .map(|k| 0.020 * (1.2 - 0.4 * (k as f64 / n as f64)))
-        .collect();
-    let (soc, charger, end): (Vec<f64>, f64, u64) = match name {
-        "full-charge" => (
-            (0..n).map(|k| 60.0 + 2.0 * k as f64).collect(),
-            200.0,
-            4 * H,
-        ),
+    let alike = |soc: &dyn Fn(usize) -> f64| PackSpec::alike(n, soc);
+    // (packs, charger, load, end, the event's default moment)
+    let (specs, load, end, at): (Vec<PackSpec>, f64, u64, u64) = match name {
+        "full-charge" => (alike(&|k| 60.0 + 2.0 * k as f64), 0.0, 4 * H, 0),
         "joined" => (
-            (0..n)
-                .map(|k| if k == n - 1 { 20.0 } else { 80.0 })
-                .collect(),
-            200.0,
+            alike(&|k| if k == n - 1 { 20.0 } else { 80.0 }),
+            0.0,
             3 * H,
+            0,
         ),
-        "pack-fault" | "uart-lost" | "primary-lost" | "bus-off" => {
-            ((0..n).map(|k| 50.0 + k as f64).collect(), 200.0, 20 * MIN)
+        "pack-fault" => (alike(&|k| 50.0 + k as f64), 1000.0, 20 * MIN, 5 * MIN),
+        "uart-lost" | "primary-lost" | "bus-off" => {
+            (alike(&|k| 50.0 + k as f64), 0.0, 20 * MIN, 5 * MIN)
         }
+        "uneven-charge" | "lossy-bus" => (PackSpec::uneven(n, 30.0), 0.0, 5 * H, 0),
+        "fault-charge" | "bridge-lost-charge" | "stale-charge" => {
+            (PackSpec::uneven(n, 30.0), 0.0, 150 * MIN, 40 * MIN)
+        }
+        "uneven-discharge" => (PackSpec::uneven(n, 95.0), 1000.0, 5 * H, 0),
+        "fault-discharge" | "bridge-lost-discharge" | "stale-discharge" => {
+            (PackSpec::uneven(n, 95.0), 1000.0, 90 * MIN, 20 * MIN)
+        }
+        "cold-start" => (PackSpec::uneven(n, 60.0), 0.0, 2 * MIN, 0),
         _ => return None,
     };
-    let mut l = MultiLoop::new(inverter, &soc, &r_cell, &cable, charger, 1);
+    let at = event_us.unwrap_or(at);
+    let mut l = MultiLoop::with_packs(inverter, &specs, 200.0, 1);
+    l.model.load_a = load;
+    if name == "cold-start" {
+        // At rest: a charger that is there but has nothing to do.
+        l.model.charger_max_a = 0.0;
+    }
+    if name == "lossy-bus" {
+        l.bus = BusFaults::lossy(0.15);
+    }
     for (k, p) in l.nodes.iter_mut().enumerate() {
         p.h.sim.set_cell_offset_mv(k % 16, 5.0 + k as f64);
     }
     on_start(&mut l);
     match name {
-        "full-charge" | "joined" => l.run_until(end),
         "pack-fault" => {
             // Full load: the loads draw what the battery allows, then pack 2's
             // BMS faults and opens its switch.
-            l.model.load_a = 1000.0;
-            l.run_until(5 * MIN);
+            l.run_until(at);
             if let Some(p) = l.nodes.get_mut(1) {
-                p.h.sim.inject_fault_event(
-                    protocol_core::events::EventId::DischargingOverCurrentCutoff,
-                );
+                p.h.sim
+                    .inject_fault_event(EventId::DischargingOverCurrentCutoff);
             }
-            l.run_until(12 * MIN);
+            l.run_until(at + 7 * MIN);
             if let Some(p) = l.nodes.get_mut(1) {
                 p.h.sim.clear_fault();
             }
-            l.run_until(end);
+        }
+        "fault-charge" | "fault-discharge" => {
+            // A big pack's BMS faults (its switch opens) and recovers 7 min
+            // later; discharging, a second one faults 2 min after the first.
+            let id = if load > 0.0 {
+                EventId::DischargingOverCurrentCutoff
+            } else {
+                EventId::ChargingOverCurrentCutoff
+            };
+            l.run_until(at);
+            if let Some(p) = l.nodes.get_mut(1) {
+                p.h.sim.inject_fault_event(id);
+            }
+            if load > 0.0 {
+                l.run_until(at + 2 * MIN);
+                if let Some(p) = l.nodes.get_mut(2) {
+                    p.h.sim.inject_fault_event(id);
+                }
+            }
+            l.run_until(at + 7 * MIN);
+            for p in l.nodes.iter_mut().skip(1).take(2) {
+                p.h.sim.clear_fault();
+            }
         }
         "uart-lost" => {
-            l.run_until(5 * MIN);
+            l.run_until(at);
             if let Some(p) = l.nodes.get_mut(1) {
-                p.h.sim.set_silent_until(10 * MIN);
+                p.h.sim.set_silent_until(at + 5 * MIN);
             }
-            l.run_until(end);
         }
-        "primary-lost" => {
-            l.run_until(5 * MIN);
+        "stale-charge" | "stale-discharge" => {
+            // The strongest pack's BMS link goes quiet for 30 min: its bridge
+            // still sends its summary (stale), the pack still conducts.
+            l.run_until(at);
+            if let Some(p) = l.nodes.get_mut(0) {
+                p.h.sim.set_silent_until(at + 30 * MIN);
+            }
+        }
+        "primary-lost" | "bridge-lost-charge" | "bridge-lost-discharge" => {
+            // Node 1's bridge is lost for good (in the uneven scenarios: the
+            // strongest pack's); its pack stays on the bus.
+            l.run_until(at);
             l.nodes[0].bridge_on = false;
-            l.run_until(end);
         }
         "bus-off" => {
-            l.run_until(5 * MIN);
+            l.run_until(at);
             // The speaker goes bus-off, later another node.
             l.bus_off(1, 20 * S);
-            l.run_until(10 * MIN);
+            l.run_until(at + 5 * MIN);
             l.bus_off(2, 20 * S);
-            l.run_until(end);
         }
-        _ => return None,
+        _ => {}
     }
+    l.run_until(end);
     Some((l, end))
 }
 
@@ -527,6 +890,20 @@ pub fn problems(l: &MultiLoop, ceiling_margin_mv: u16) -> Vec<String> {
                 p.node, f.highest_discharge_a, f.discharge_cutoff_a
             ));
         }
+        if f.lowest_cell_mv <= f.uv_cutoff_mv {
+            out.push(format!(
+                "pack {}: a cell at {} mV, at or below its cutoff {} mV",
+                p.node, f.lowest_cell_mv, f.uv_cutoff_mv
+            ));
+        }
+        if let Some((at, why)) = f.trips.first() {
+            out.push(format!(
+                "pack {}: its BMS opened its switch {} times, first at {:.1} s ({why:?})",
+                p.node,
+                f.trips.len(),
+                *at as f64 / 1e6
+            ));
+        }
     }
     let b = &l.figures;
     if b.two_speaker_seconds > 0 {
@@ -543,6 +920,12 @@ pub fn problems(l: &MultiLoop, ceiling_margin_mv: u16) -> Vec<String> {
     }
     if l.sent_limits.is_empty() {
         out.push("no 0x351 was sent".into());
+    }
+    if b.zero_limits_frames > 0 {
+        out.push(format!(
+            "{} frames 0x351 said CCL 0 and DCL 0 (a DCL of 0 switches a Multi off)",
+            b.zero_limits_frames
+        ));
     }
     if b.longest_without_limits_us > 2_500_000 {
         out.push(format!(
@@ -580,17 +963,39 @@ pub fn table(name: &str, l: &MultiLoop, end_us: u64) -> String {
             .collect::<Vec<_>>()
             .join(", "),
     );
+    let (charged, discharged) = BatteryFigures::energy_ah(&l.nodes);
+    let worst = l
+        .nodes
+        .iter()
+        .map(|p| {
+            let f = &p.figures;
+            (f.highest_charge_a / f.charge_cutoff_a)
+                .max(f.highest_discharge_a / f.discharge_cutoff_a)
+        })
+        .fold(0.0f64, f64::max);
     let _ = writeln!(
         s,
-        "  pack  highest cell / cutoff   charge / cutoff   discharge / cutoff   float"
+        "  charged {charged:.1} Ah, discharged {discharged:.1} Ah, worst pack at {:.0} % \
+         of its own cutoff, {} trips, {} frames lost, doubled or late at a receiver",
+        worst * 100.0,
+        l.nodes.iter().map(|p| p.figures.trips.len()).sum::<usize>(),
+        b.lost_frames,
+    );
+    let _ = writeln!(
+        s,
+        "  pack    Ah  cells low..high / cutoffs   charge / cutoff   discharge / cutoff   float"
     );
     for p in &l.nodes {
         let f = &p.figures;
         let _ = writeln!(
             s,
-            "  {:>4}  {:>7} / {:>4} mV   {:>6.1} / {:>3} A   {:>9.1} / {:>3} A   {}",
+            "  {:>4}  {:>4.0}  {:>4}..{:>4} / {:>4}..{:>4} mV   {:>6.1} / {:>3} A   \
+             {:>9.1} / {:>3} A   {}",
             p.node,
+            f64::from(p.h.sim.register(306)) / 100.0,
+            f.lowest_cell_mv,
             f.highest_cell_mv,
+            f.uv_cutoff_mv,
             f.ov_cutoff_mv,
             f.highest_charge_a,
             f.charge_cutoff_a,

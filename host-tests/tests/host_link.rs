@@ -1396,16 +1396,19 @@ fn a_bridge_with_a_node_number_streams_the_battery_and_its_packs() {
             summary: me,
             alive: true,
             heard_ago_us: 0,
+            closed_limits: None,
         },
         Member {
             summary: s,
             alive: true,
             heard_ago_us: 0,
+            closed_limits: None,
         },
         Member {
             summary: lost,
             alive: false,
             heard_ago_us: 0,
+            closed_limits: None,
         },
     ];
     let battery = aggregate(

@@ -509,6 +509,7 @@ mod the_battery_of_packs_in_parallel {
                 summary: s,
                 alive: true,
                 heard_ago_us: 0,
+                closed_limits: None,
             },
             Member {
                 summary: Summary {
@@ -517,6 +518,7 @@ mod the_battery_of_packs_in_parallel {
                 },
                 alive: true,
                 heard_ago_us: 0,
+                closed_limits: None,
             },
         ];
         let b = aggregate(

@@ -11,7 +11,11 @@
     clippy::indexing_slicing
 )]
 
-use host_tests::multi_pack::{problems, run_scenario, table, MultiLoop, SCENARIOS};
+use host_tests::multi_pack::{
+    problems, run_scenario, run_scenario_at, table, BatteryFigures, BusFaults, MultiLoop, PackSpec,
+    SCENARIOS,
+};
+use protocol_core::events::EventId;
 use tinybms_firmware::inverter::control::ChargeConfig;
 use tinybms_firmware::inverter::{InverterConfig, InverterReport, Protocol};
 
@@ -107,10 +111,12 @@ fn a_low_pack_joined_to_three_full_ones_takes_the_most_and_stays_within_its_cuto
 #[test]
 fn a_pack_that_faults_at_full_load_leaves_at_once_and_comes_back_after_the_hold() {
     let (l, _) = run("pack-fault", 4, Protocol::Victron);
-    // Full load before the fault: the battery's DCL is what three packs can
-    // carry; the loads draw it.
+    // Full load before the fault: the battery's DCL is more than two packs'
+    // current (58.8 A usable each) and less than three — the reserve for one
+    // pack opening, with the learnt shares and their margins; the loads draw
+    // it.
     let before = dcl_at(&l, 5 * MIN - S);
-    assert!(before >= 1500, "{before}");
+    assert!((1200..3 * 588).contains(&before), "{before}");
     assert_eq!(battery_at(&l, 5 * MIN - S), (packs_ah(&l, 4), 4));
     // Within 3 s of the fault the pack is out of the sums and the limit fell.
     assert_eq!(battery_at(&l, 5 * MIN + 3 * S), (packs_ah(&l, 3), 3));
@@ -224,4 +230,229 @@ fn a_cold_start_never_tells_a_healthy_battery_zero() {
     let first = limits[0];
     assert!(first.0 <= 5 * S, "first limits at {} µs", first.0);
     assert!(first.2.dcl_da > 0 && first.2.ccl_da > 0, "{first:?}");
+}
+
+/// Issue 24: packs that differ the way real ones do (a 100 Ah pack on a
+/// short cable beside 200–280 Ah packs on long ones), a fault, a second
+/// fault, a lost bridge, a stale BMS link on the strongest pack, a cold start,
+/// a lossy bus: no pack past its own cutoffs, no BMS trip, one speaker, never
+/// 0x351 missing 2.5 s, never "offline". Before this issue the fault, the lost
+/// bridge and the stale link pushed the small pack to 109–223 % of its cutoff
+/// with its BMS tripping again and again.
+#[test]
+fn uneven_packs_stay_within_their_own_cutoffs_whatever_happens() {
+    for name in [
+        "uneven-charge",
+        "uneven-discharge",
+        "fault-charge",
+        "fault-discharge",
+        "bridge-lost-charge",
+        "bridge-lost-discharge",
+        "stale-charge",
+        "stale-discharge",
+        "cold-start",
+    ] {
+        let (l, _) = run(name, 4, Protocol::Victron);
+        let (charged, discharged) = BatteryFigures::energy_ah(&l.nodes);
+        assert!(
+            charged + discharged > 0.0 || name == "cold-start",
+            "{name}: nothing moved"
+        );
+    }
+}
+
+/// A fault at many moments of a charge and of a discharge (the second
+/// discharge fault 2 min after the first), with three and four packs.
+#[test]
+fn a_fault_at_any_moment_keeps_the_others_within_their_cutoffs() {
+    for n in [3, 4] {
+        for at_min in [20, 40, 60, 80, 100, 120] {
+            let at = Some(at_min * MIN);
+            let (l, end) =
+                run_scenario_at("fault-charge", n, InverterConfig::default(), at, |_| {}).unwrap();
+            let p = problems(&l, ChargeConfig::default().ov_margin_mv);
+            assert!(
+                p.is_empty(),
+                "{n} packs, fault at {at_min} min: {p:#?}\n{}",
+                table("fault-charge", &l, end)
+            );
+        }
+        for at_min in [5, 10, 20, 30, 45] {
+            let at = Some(at_min * MIN);
+            let (l, end) =
+                run_scenario_at("fault-discharge", n, InverterConfig::default(), at, |_| {})
+                    .unwrap();
+            let p = problems(&l, ChargeConfig::default().ov_margin_mv);
+            assert!(
+                p.is_empty(),
+                "{n} packs, faults at {at_min} min: {p:#?}\n{}",
+                table("fault-discharge", &l, end)
+            );
+        }
+    }
+}
+
+/// A pack whose bridge is lost still conducts: it stays in the sums (counted
+/// as unknown) with its last limits, and the battery is kept where it stays
+/// within them; the owner sees it as lost.
+#[test]
+fn a_pack_without_data_stays_in_the_safety_sums() {
+    let (l, _) = run("bridge-lost-charge", 4, Protocol::Victron);
+    let speaker = l
+        .nodes
+        .iter()
+        .find(|p| p.bridge_on && p.inverter().speaking())
+        .unwrap();
+    let (battery, _) = speaker.inverter().battery().unwrap();
+    assert_eq!(
+        (battery.online, battery.offline, battery.unknown),
+        (3, 1, 1)
+    );
+    let view = speaker.inverter().battery_view(l.now()).unwrap();
+    let lost = view.packs.iter().find(|p| p.node == 1).unwrap();
+    assert_eq!(lost.part.name(), "lost");
+    // The lost pack kept charging (its switch is closed), within its cutoff.
+    let f = &l.nodes[0].figures;
+    assert!(f.charged_ah > 5.0, "{}", f.charged_ah);
+    assert!(f.highest_charge_a <= f.charge_cutoff_a);
+}
+
+/// A bus that loses 15 % of the frames at every receiver, doubles 2 %, delays
+/// 5 %, reorders within a tick, leaves one receiver deaf for 10 s and carries
+/// a ghost node: still one speaker, and it still charges — at least 75 % of
+/// the charge a clean bus moves in the same time (before: 36 %).
+#[test]
+fn a_lossy_bus_still_charges() {
+    let (clean, _) = run("uneven-charge", 4, Protocol::Victron);
+    let (lossy, _) = run("lossy-bus", 4, Protocol::Victron);
+    let (c, _) = BatteryFigures::energy_ah(&clean.nodes);
+    let (x, _) = BatteryFigures::energy_ah(&lossy.nodes);
+    println!(
+        "clean bus {c:.1} Ah, lossy bus {x:.1} Ah ({:.0} %)",
+        x / c * 100.0
+    );
+    assert!(x >= 0.75 * c, "lossy {x:.1} Ah against clean {c:.1} Ah");
+    assert!(lossy.figures.lost_frames > 100_000);
+    let refused = lossy
+        .figures
+        .reports
+        .iter()
+        .filter(|(_, _, r)| matches!(r, InverterReport::SummaryRefused(7, _)))
+        .count();
+    assert!(refused >= 1, "the ghost is refused and reported");
+}
+
+/// Adversarial: random packs (capacity, cutoffs, cable, cell resistance,
+/// SOC), a random load and charger changing every few minutes, a random pack
+/// faulting at a random moment, sometimes a lost bridge, sometimes a lossy
+/// bus. Checked against the simulated truth: no pack past its own cutoffs and
+/// no trip.
+#[test]
+fn random_packs_and_events_never_push_a_pack_past_its_own_cutoffs() {
+    for case in 0..10u64 {
+        let (l, log) = random_case(case, 1);
+        let p = problems(&l, ChargeConfig::default().ov_margin_mv);
+        assert!(
+            p.is_empty(),
+            "case {case}: {log}\n{p:#?}\n{}",
+            table("random", &l, l.now())
+        );
+    }
+}
+
+/// The check above can fail: with every BMS telling its bridge current
+/// cutoffs (317, 318) of twice what it trips at (so the bridges believe
+/// there is room that is not there), the same cases push packs past their
+/// cutoffs and the loop says so.
+#[test]
+fn the_truth_check_fails_when_the_bridges_are_misled() {
+    let failing = (0..10u64)
+        .filter(|case| {
+            let (l, _) = random_case(*case, 2);
+            problems(&l, ChargeConfig::default().ov_margin_mv)
+                .iter()
+                .any(|p| p.contains("past its cutoff") || p.contains("opened its switch"))
+        })
+        .count();
+    assert!(
+        failing >= 5,
+        "only {failing} of 10 misled cases were caught"
+    );
+}
+
+/// One random case of [`random_packs_and_events_never_push_a_pack_past_its_own_cutoffs`].
+fn random_case(case: u64, told_cutoffs: u16) -> (MultiLoop, String) {
+    let mut x = case.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    let mut next = move || {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        (x >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let n = 2 + (next() * 4.0) as usize;
+    let soc = 20.0 + next() * 60.0;
+    let specs: Vec<PackSpec> = (0..n)
+        .map(|_| PackSpec {
+            capacity_ah: 50.0 + next() * 250.0,
+            charge_cutoff_a: 20 + (next() * 60.0) as u16,
+            discharge_cutoff_a: 30 + (next() * 70.0) as u16,
+            cable_ohm: 0.002 + next() * 0.045,
+            cell_ohm: 0.0002 + next() * 0.0008,
+            soc_pct: soc + next() * 10.0,
+        })
+        .collect();
+    let mut l = MultiLoop::with_packs(InverterConfig::default(), &specs, 200.0, case + 1);
+    for p in &mut l.nodes {
+        // What the bridge reads; the truth checks keep the real cutoffs.
+        for r in [317, 318] {
+            let v = p.h.sim.register(r);
+            p.h.sim.set_register(r, v * told_cutoffs);
+        }
+    }
+    if next() < 0.3 {
+        l.bus = BusFaults::lossy(0.1);
+    }
+    let fault_at = (3.0 + next() * 25.0) as u64 * MIN;
+    let faulted = (next() * n as f64) as usize % n;
+    let lost = (next() < 0.3).then(|| (next() * n as f64) as usize % n);
+    let mut log = format!(
+        "{n} packs {specs:?}, fault of pack {} at {} min, bridge lost {lost:?}",
+        faulted + 1,
+        fault_at / MIN
+    );
+    let mut t = 0;
+    while t < 40 * MIN {
+        // A new load and charger every 1 to 5 minutes: steps and ramps of
+        // the total, charge and discharge.
+        let discharge = next() < 0.5;
+        l.model.load_a = if discharge { 5.0 + next() * 300.0 } else { 0.0 };
+        l.model.charger_max_a = 10.0 + next() * 250.0;
+        let _ = std::fmt::Write::write_fmt(
+            &mut log,
+            format_args!(
+                ", {} min: load {:.0} A charger {:.0} A",
+                t / MIN,
+                l.model.load_a,
+                l.model.charger_max_a
+            ),
+        );
+        let until = (t + (1.0 + next() * 4.0) as u64 * MIN).min(40 * MIN);
+        while t < until {
+            t = (t + 10 * S).min(until);
+            l.run_until(t);
+            if t >= fault_at && t < fault_at + 10 * S {
+                l.nodes[faulted]
+                    .h
+                    .sim
+                    .inject_fault_event(EventId::ChargingOverCurrentCutoff);
+                if let Some(k) = lost {
+                    l.nodes[k].bridge_on = false;
+                }
+            }
+            if t >= fault_at + 5 * MIN && t < fault_at + 5 * MIN + 10 * S {
+                l.nodes[faulted].h.sim.clear_fault();
+            }
+        }
+    }
+    (l, log)
 }

@@ -11,9 +11,9 @@
 use proptest::prelude::*;
 use tinybms_firmware::inverter::control::{ChargeConfig, Conditions, Limits, PackState};
 use tinybms_firmware::inverter::packs::{
-    aggregate, from_id, summary_id, Battery, BatteryLimits, Election, Member, Packs, Received,
-    Summary, SummaryError, LISTEN_US, PACK_LOST_US, PARTIAL_MAX_US, SPEAKER_LOST_US,
-    SUMMARY_BASE_ID, SUMMARY_LAST_ID,
+    aggregate, aggregate_with, from_id, share_with_margin, summary_id, Battery, BatteryLimits,
+    Election, Member, Packs, Received, Shares, Summary, SummaryError, DEAF_GUARD_US, LISTEN_US,
+    PACK_LOST_US, PARTIAL_MAX_US, SHARE_WINDOW, SPEAKER_LOST_US, SUMMARY_BASE_ID, SUMMARY_LAST_ID,
 };
 
 const S: u64 = 1_000_000;
@@ -408,6 +408,7 @@ fn member(s: Summary) -> Member {
         summary: s,
         alive: true,
         heard_ago_us: 0,
+        closed_limits: None,
     }
 }
 
@@ -500,10 +501,10 @@ fn a_pack_past_its_limit_cuts_the_battery_at_once() {
     // a takes it all: 98 A × (140 − 30) / 110 = 98 A.
     assert_eq!(bat.limits.ccl_da, 980);
     // Four packs, one of them past its limit: 200 A + 4 × (98 − 110) = 152 A
-    // by headroom; without one of the others a would carry 110/170 of the
-    // total: 98 A × 170 / 110 = 151.4 A.
+    // by headroom; should one of the others go, all of its 30 A may go to a:
+    // 200 − 30 + (98 − 110) = 158 A.
     let bat = aggregate(&[member(a), member(b), member(b), member(b)], STALE).unwrap();
-    assert_eq!(bat.limits.ccl_da, 1514);
+    assert_eq!(bat.limits.ccl_da, 1520);
     // Never above the sum of the packs' limits, never below 0.
     let idle = aggregate(
         &[member(Summary {
@@ -615,9 +616,9 @@ fn uneven_packs_in_parallel_are_never_pushed_past_their_own_limits() {
         }
         // Should any one pack open its switch at this total, the others stay
         // within their limits (its current shared out by physics) — and the
-        // battery is not starved: one of them would be within 10 % of its
-        // limit, or is now (the rule estimates the share-out from the present
-        // shares, which errs on the safe side when packs also exchange current).
+        // battery is not starved: one of them would be within 35 % of its
+        // limit, or is now (nothing is learnt of the shares here: the bound
+        // that needs no knowledge gives a pack all of a leaving pack's current).
         let currents = model.split(total);
         let mut edge = currents
             .iter()
@@ -644,7 +645,7 @@ fn uneven_packs_in_parallel_are_never_pushed_past_their_own_limits() {
                 edge = edge.min((l - i) / l);
             }
         }
-        assert!(edge < 0.1, "CCL {last_ccl} A, currents {currents:?}");
+        assert!(edge < 0.35, "CCL {last_ccl} A, currents {currents:?}");
     }
 }
 
@@ -941,6 +942,7 @@ mod what_review_found {
             summary: s,
             alive: true,
             heard_ago_us: ago,
+            closed_limits: None,
         };
         assert!(
             m(S).takes_part(tinybms_firmware::freshness::Freshness::new(5 * S)),
@@ -1097,4 +1099,229 @@ fn a_ghost_node_with_impossible_values_is_refused_and_reported() {
     assert!(inv
         .battery_view(5 * S)
         .is_none_or(|v| v.packs.iter().all(|p| p.node != 7)));
+}
+
+/// Currents of packs in parallel at a total, with the true shares of a change.
+fn shares_of(model: &Parallel) -> Vec<f64> {
+    let g: Vec<f64> = model.r_ohm.iter().map(|r| 1.0 / r).collect();
+    let gs: f64 = g.iter().sum();
+    g.iter().map(|g| g / gs).collect()
+}
+
+fn sample(model: &Parallel, total_a: f64) -> Vec<(u8, i16)> {
+    model
+        .split(total_a)
+        .iter()
+        .enumerate()
+        .map(|(k, i)| (k as u8 + 1, (i * 10.0).round() as i16))
+        .collect()
+}
+
+/// Issue 24, item 1: the share of a change each pack takes is learnt from
+/// how its current moves with the total — here a ramp with the packs'
+/// open-circuit voltages apart, so a pack's share of the current now is not
+/// its share of a change.
+#[test]
+fn the_shares_of_a_change_are_learnt_from_a_ramp() {
+    let model = Parallel {
+        ocv_v: vec![53.4, 52.9, 52.8],
+        r_ohm: vec![0.008, 0.035, 0.045],
+    };
+    let truth = shares_of(&model);
+    let mut sh = Shares::new();
+    for t in 0..u64::from(SHARE_WINDOW) {
+        assert!(sh.of(1).is_none(), "nothing before a whole window");
+        sh.update(&sample(&model, 20.0 + 2.0 * t as f64), false);
+    }
+    for (k, a) in truth.iter().enumerate() {
+        let got = f64::from(sh.of(k as u8 + 1).unwrap());
+        assert!((got - a).abs() < 0.02, "pack {}: {got} against {a}", k + 1);
+    }
+    // Present shares (current over total) are far from it: the full pack
+    // takes less now than its share of a change.
+    let now = model.split(20.0 + 2.0 * 31.0);
+    assert!(now[0] / now.iter().sum::<f64>() < truth[0] - 0.1, "{now:?}");
+    // Kept through a long stretch at one current, and through a time when a
+    // pack had no data; learning starts again when the packs change.
+    for _ in 0..100 {
+        sh.update(&sample(&model, 80.0), false);
+    }
+    sh.update(&[], true);
+    assert!(sh.of(1).is_some());
+    sh.update(&sample(&model, 80.0)[..2], false);
+    assert!(sh.of(1).is_none());
+}
+
+/// A single step, or one sample in which some bridges had reported a change
+/// and others not yet, or values no pack can have teach nothing.
+#[test]
+fn a_step_a_skewed_sample_or_nonsense_teaches_nothing() {
+    let model = Parallel {
+        ocv_v: vec![52.8, 52.8, 52.8],
+        r_ohm: vec![0.008, 0.035, 0.045],
+    };
+    // A step from 0 to 40 A, the first bridge one sample ahead of the others.
+    let mut sh = Shares::new();
+    let before = sample(&model, 0.0);
+    let after = sample(&model, 40.0);
+    let skewed = vec![after[0], before[1], before[2]];
+    sh.update(&before, false);
+    sh.update(&skewed, false);
+    for _ in 0..3 * SHARE_WINDOW {
+        sh.update(&after, false);
+        assert!(sh.of(1).is_none());
+    }
+    // Currents that do not follow the total (each wanders on its own).
+    let mut sh = Shares::new();
+    for t in 0..3 * i16::try_from(SHARE_WINDOW).unwrap() {
+        let w = (t * 37 % 23) * 10;
+        sh.update(&[(1, w), (2, 300 - w * 2), (3, t * 5)], false);
+        assert!(sh.of(1).is_none(), "at {t}");
+    }
+}
+
+/// The learnt rule against packs in parallel: random voltages, resistances
+/// and limits; the charger delivers what the sun gives within the battery's
+/// CCL, at once; the shares learnt from how the currents move. No pack past its limit now, nor when any one pack opens.
+/// With the shares underestimated (half the truth, no margin) the same check
+/// finds packs past their limits: it can fail.
+static LEARNT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
+#[test]
+fn learnt_shares_keep_every_pack_within_its_limit_and_the_check_can_fail() {
+    let run = |ocv: &[f64], r: &[f64], ccl: &[f64], lie: Option<f64>| -> Option<String> {
+        let model = Parallel {
+            ocv_v: ocv.to_vec(),
+            r_ohm: r.to_vec(),
+        };
+        let truth = shares_of(&model);
+        let mut ramp = BatteryLimits::new();
+        let mut sh = Shares::new();
+        let c = ChargeConfig::default();
+        let mut total = 0.0f64;
+        for t in 0..400u64 {
+            let currents = model.split(total);
+            let members: Vec<Member> = currents
+                .iter()
+                .zip(ccl)
+                .map(|(i, l)| member(pack_summary(*i, *l)))
+                .collect();
+            sh.update(&sample(&model, total), false);
+            if sh.of(1).is_some() {
+                LEARNT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+            let shares: Vec<Option<f32>> = (0..ocv.len())
+                .map(|k| match lie {
+                    // Underestimated and turned back through the margin so
+                    // that the rule uses half the true share.
+                    Some(f) => Some(((truth[k] * f) as f32 - 0.05) / 1.25),
+                    None => sh.of(k as u8 + 1),
+                })
+                .collect();
+            let bat = aggregate_with(&members, STALE, &shares).unwrap();
+            let lim = ramp.step(t * S, &bat, 0b1111, &c);
+            // What the charger would deliver (the sun moving, loads coming
+            // and going), within the battery's CCL.
+            let demand = 100.0 + 95.0 * (t as f64 * std::f64::consts::TAU / 150.0).sin();
+            total = (f64::from(lim.ccl_da) / 10.0).min(demand);
+            let without = |v: &[f64], j: usize| -> Vec<f64> {
+                v.iter()
+                    .enumerate()
+                    .filter(|(k, _)| *k != j)
+                    .map(|(_, x)| *x)
+                    .collect()
+            };
+            for (k, (i, l)) in model.split(total).iter().zip(ccl).enumerate() {
+                if *i > l + 0.3 {
+                    return Some(format!("at {t} s pack {k}: {i:.1} A against {l} A"));
+                }
+            }
+            for j in 0..ocv.len() {
+                let rest = Parallel {
+                    ocv_v: without(ocv, j),
+                    r_ohm: without(r, j),
+                };
+                for (i, l) in rest.split(total).iter().zip(&without(ccl, j)) {
+                    if *i > l + 0.6 {
+                        return Some(format!("at {t} s without pack {j}: {i:.1} A against {l} A"));
+                    }
+                }
+            }
+        }
+        None
+    };
+    let mut runner = proptest::test_runner::TestRunner::new(ProptestConfig::with_cases(48));
+    let packs = (2usize..=4).prop_flat_map(|n| {
+        (
+            proptest::collection::vec(52.6f64..53.2, n),
+            proptest::collection::vec(0.004f64..0.05, n),
+            proptest::collection::vec(20.0f64..90.0, n),
+        )
+    });
+    runner
+        .run(&packs, |(ocv, r, ccl)| {
+            let failure = run(&ocv, &r, &ccl, None);
+            prop_assert!(failure.is_none(), "{failure:?} {ocv:?} {r:?} {ccl:?}");
+            Ok(())
+        })
+        .unwrap();
+    let learnt = LEARNT.load(std::sync::atomic::Ordering::Relaxed);
+    assert!(
+        learnt > 48 * 100,
+        "the shares were learnt in {learnt} steps only"
+    );
+    // Sabotage: half the true shares.
+    let caught = run(
+        &[52.8, 52.8, 52.8],
+        &[0.008, 0.035, 0.045],
+        &[30.0, 50.0, 60.0],
+        Some(0.5),
+    );
+    assert!(caught.is_some(), "half the shares went unnoticed");
+    let _ = share_with_margin(0.25);
+}
+
+/// Issue 24, lossy bus: a node that hears two or more others and then none
+/// at all waits before it takes over (its own receiver is the likelier
+/// cause); one that hears the speaker's inverter frames never takes over.
+#[test]
+fn a_deaf_receiver_or_lost_summaries_never_make_a_second_speaker() {
+    let frames = |p: &mut Packs, node: u8, t: u64, speaking: bool| {
+        let s = Summary {
+            speaking,
+            ..summary()
+        };
+        for f in s.frames(node, (t / S % 16) as u8).unwrap() {
+            p.on_frame(t, f.id, f.bytes());
+        }
+    };
+    // Node 3 hears nodes 1 (speaking) and 2, then nothing at all.
+    let mut p = Packs::new(3);
+    let mut e = Election::new(0);
+    for t in 0..10 {
+        frames(&mut p, 1, t * S, true);
+        frames(&mut p, 2, t * S, false);
+        assert!(!e.update(t * S, &p, true));
+    }
+    for t in 10..(10 + DEAF_GUARD_US / S) {
+        assert!(!e.update(t * S, &p, true), "spoke while deaf at {t} s");
+    }
+    assert!(
+        e.update(12 * S + DEAF_GUARD_US, &p, true),
+        "takes over after the guard"
+    );
+    // Node 2 loses every summary of the speaker but hears its 0x351.
+    let mut p = Packs::new(2);
+    let mut e = Election::new(0);
+    for t in 0..5 {
+        frames(&mut p, 1, t * S, true);
+        assert!(!e.update(t * S, &p, true));
+    }
+    for t in 5..60 {
+        let limits = tinybms_firmware::inverter::frames::ID_LIMITS;
+        p.on_frame(t * S, limits, &[0; 8]);
+        assert!(!e.update(t * S, &p, true), "took over at {t} s");
+    }
+    // And when the speaker is really gone (one other node): at once.
+    assert!(e.update(60 * S + SPEAKER_LOST_US + 1, &p, true));
 }

@@ -35,7 +35,7 @@ use self::control::{ChargeConfig, ChargeControl, Conditions, Limits, PackSetting
 use self::frames::CanFrame;
 use self::packs::{
     Battery, BatteryLimits, BatteryView, Election, Member, PackPart, PackView, Packs, Received,
-    Summary,
+    Shares, Summary,
 };
 use crate::Instant;
 
@@ -238,6 +238,7 @@ pub struct Inverter {
     packs: Packs,
     election: Election,
     battery_limits: BatteryLimits,
+    shares: Shares,
     battery: Option<(Battery, Limits)>,
     logged_battery: Option<Limits>,
     logged_packs: Option<(u8, u8)>,
@@ -250,6 +251,7 @@ pub struct Inverter {
     refused_reported: u8,
     seq: u8,
     own_summary: Option<Summary>,
+    own_closed: Option<(u16, u16)>,
     /// The last 0x351 handed out, and when.
     told: Option<(Limits, Instant)>,
 }
@@ -291,6 +293,7 @@ impl Inverter {
             }),
             election: Election::new(now),
             battery_limits: BatteryLimits::new(),
+            shares: Shares::new(),
             battery: None,
             logged_battery: None,
             logged_packs: None,
@@ -300,6 +303,7 @@ impl Inverter {
             refused_reported: 0,
             seq: 0,
             own_summary: None,
+            own_closed: None,
             told: None,
         }
     }
@@ -746,6 +750,16 @@ impl Inverter {
         );
     }
 
+    /// What this bridge has learnt of how the battery's current splits.
+    pub fn shares(&self) -> &Shares {
+        &self.shares
+    }
+
+    /// This bridge's own summary as it last sent it (with a node number).
+    pub fn own_summary(&self) -> Option<Summary> {
+        self.own_summary
+    }
+
     /// With a node number: this pack's limits and summary, the battery of all
     /// packs heard, and — when this bridge is the speaker — the inverter
     /// frames for the battery.
@@ -801,9 +815,14 @@ impl Inverter {
         // Every pack once (this one first), and the nodes taking part as bits.
         let mut members: heapless::Vec<Member, { packs::MAX_NODES as usize }> =
             heapless::Vec::new();
+        let mut nodes: heapless::Vec<u8, { packs::MAX_NODES as usize }> = heapless::Vec::new();
         let mut mask = 0u16;
         let mut add = |n: u8, m: Member| {
-            if m.takes_part(freshness) {
+            let _ = nodes.push(n);
+            // The packs in the battery's sums: a pack without fresh data that
+            // may still conduct stays (no hold restarts when a lossy bus
+            // makes packs come and go); one known open leaves.
+            if m.in_sums(freshness) {
                 mask |= 1 << (n.saturating_sub(1) & 15);
             }
             let _ = members.push(m);
@@ -822,12 +841,35 @@ impl Inverter {
             }
             self.seq = (self.seq + 1) & 0x0F;
             self.own_summary = Some(summary);
-            add(node, Member::now(summary));
+            if !summary.fault {
+                self.own_closed = Some((summary.limits.ccl_da, summary.limits.dcl_da));
+            }
+            add(
+                node,
+                Member {
+                    closed_limits: self.own_closed,
+                    ..Member::now(summary)
+                },
+            );
         }
         for (n, m) in self.packs.known(now) {
             add(n, m);
         }
-        let battery = packs::aggregate(&members, freshness);
+        // What is learnt of how the current splits (see `packs::shares`).
+        let mut part: heapless::Vec<(u8, i16), { packs::MAX_NODES as usize }> =
+            heapless::Vec::new();
+        for (n, m) in nodes.iter().zip(&members) {
+            if m.takes_part(freshness) {
+                let _ = part.push((*n, m.summary.current_da));
+            }
+        }
+        let unknown = members.iter().any(|m| m.unknown(freshness));
+        self.shares.update(&part, unknown);
+        let mut shares = [None; packs::MAX_NODES as usize];
+        for (s, n) in shares.iter_mut().zip(&nodes) {
+            *s = self.shares.of(*n);
+        }
+        let battery = packs::aggregate_with(&members, freshness, &shares);
         let counts = battery.map_or((0, members.len() as u8), |b| (b.online, b.offline));
         if self.logged_packs != Some(counts) {
             self.logged_packs = Some(counts);

@@ -85,10 +85,15 @@ pack and an inverter/charger that obeys the frames):
                      the field names of `replay`
   --stale-policy P   stop (default) or hold:DURATION (CCL 0, keep discharging)
   --packs N          N packs in parallel (2-8), one bridge each with node numbers
-                     1..N on one CAN bus, current split by physics; --scenario
-                     full-charge, joined, pack-fault, uart-lost, primary-lost,
-                     bus-off or all; prints each pack's highest cell and current
-                     against its own cutoffs (--can-log: the whole bus)
+                     1..N on one CAN bus, current split by physics, each BMS
+                     tripping at its own cutoffs; --scenario full-charge,
+                     joined, pack-fault, uart-lost, primary-lost, bus-off
+                     (packs alike), uneven-charge, uneven-discharge,
+                     fault-charge, fault-discharge, bridge-lost-charge,
+                     bridge-lost-discharge, stale-charge, stale-discharge,
+                     cold-start, lossy-bus (uneven packs) or all; prints each
+                     pack's cells and currents against its own cutoffs, the
+                     charge moved and the trips (--can-log: the whole bus)
 
 exit status: 0 when every published value was sent by the BMS and no write was
 reported successful that the BMS did not hold; 1 otherwise; 2 on a usage error";

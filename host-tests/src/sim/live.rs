@@ -280,6 +280,9 @@ impl Live {
     /// One step of `STEP_US`. Events the BMS logs are pushed to `events`.
     pub(crate) fn step(&mut self, p: &Params, events: &mut Vec<EventId>) {
         let dt = STEP_US as f64 / 1e6;
+        // The knee follows the pack's own capacity (register 306 as it is
+        // now), not the capacity it was created with.
+        self.capacity_ah = p.capacity_ah;
         self.lifetime_s = self.lifetime_s.wrapping_add(1);
         self.phase_left_s = self.phase_left_s.saturating_sub(1);
 
@@ -551,6 +554,30 @@ mod tests {
             live.step(&p, &mut events);
         }
         assert!(live.current.abs() < IDLE_BAND_A, "{}", live.current);
+    }
+
+    #[test]
+    fn the_knee_follows_the_capacity_the_pack_has_now() {
+        // Both packs created with 280 Ah; one is then set to 100 Ah. The same
+        // 20 A past full lifts the small one's knee 2.8 times as fast.
+        let knee_after = |capacity_ah: f64| {
+            let p = Params {
+                capacity_ah,
+                ..params()
+            };
+            let mut live = Live::new(PackProfile::LiFePO4_16S, Rng::new(5), 280.0, 1000);
+            live.set_soc(100.0);
+            live.forced_current = Some(20.0);
+            let v0 = live.open_circuit_v();
+            let mut events = Vec::new();
+            for _ in 0..100 {
+                live.step(&p, &mut events);
+            }
+            live.open_circuit_v() - v0
+        };
+        let (small, big) = (knee_after(100.0), knee_after(280.0));
+        assert!(big > 0.0, "{big}");
+        assert!((small / big - 2.8).abs() < 0.1, "{small} V against {big} V");
     }
 
     #[test]

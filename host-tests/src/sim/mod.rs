@@ -146,7 +146,7 @@ mod ascii;
 mod config;
 mod live;
 mod profile;
-mod rng;
+pub(crate) mod rng;
 mod settings;
 mod stats;
 

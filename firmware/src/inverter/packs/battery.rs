@@ -1,14 +1,11 @@
 //! The battery the packs add up to: who takes part, the sums, the reserve
 //! for one pack dropping out, and the limits' hold and ramp.
 
+use super::shares::share_with_margin;
 use super::summary::{Summary, MAX_NODES};
 use crate::freshness::Freshness;
 use crate::inverter::control::{ChargeConfig, Conditions, Limits, PackState, Ramp};
 use crate::Instant;
-
-/// Below this total current (0.1 A) the shares of the packs are not known well
-/// enough for the rule that one pack may drop out.
-pub const REDUNDANCY_MIN_DA: i32 = 20;
 
 /// The battery the packs add up to.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -25,6 +22,9 @@ pub struct Battery {
     pub online: u8,
     /// Packs known but not taking part (lost, stale, faulted).
     pub offline: u8,
+    /// Of those, the packs without fresh data whose switch is not known to be
+    /// open: they may still conduct, so the limits stay safe for them.
+    pub unknown: u8,
     /// Packs taking part with CCL 0.
     pub blocking_charge: u8,
     /// Packs taking part with DCL 0.
@@ -40,6 +40,9 @@ pub struct Member {
     pub alive: bool,
     /// How long ago the summary came (this bridge's own: 0), µs.
     pub heard_ago_us: Instant,
+    /// CCL and DCL of its last summary without a fault, 0.1 A: what it may
+    /// take when its BMS closes its switch again.
+    pub closed_limits: Option<(u16, u16)>,
 }
 
 impl Member {
@@ -49,6 +52,7 @@ impl Member {
             summary,
             alive: true,
             heard_ago_us: 0,
+            closed_limits: None,
         }
     }
 
@@ -66,6 +70,25 @@ impl Member {
         let fresh = freshness.young(self.data_age_us());
         self.alive && fresh && !self.summary.fault
     }
+
+    /// Known to be out of the current: alive with fresh data that says its
+    /// BMS has a fault (its switch is open).
+    pub fn known_open(&self, freshness: Freshness) -> bool {
+        self.alive && freshness.young(self.data_age_us()) && self.summary.fault
+    }
+
+    /// May still conduct without telling what it does: no fresh data (its
+    /// bridge lost, or its BMS link stale) and not known to be open. Such a
+    /// pack stays in the safety sums with its last limits until it is back
+    /// or known open.
+    pub fn unknown(&self, freshness: Freshness) -> bool {
+        !self.takes_part(freshness) && !self.known_open(freshness)
+    }
+
+    /// Counts in the battery's limits: taking part, or [`Member::unknown`].
+    pub fn in_sums(&self, freshness: Freshness) -> bool {
+        !self.known_open(freshness)
+    }
 }
 
 /// What the battery may ask of a pack whose own limit is `limit_da`: 2 % (at
@@ -76,18 +99,27 @@ pub fn usable(limit_da: u16) -> i32 {
 }
 
 /// The battery of `members` (each pack once, this bridge's own included);
-/// `None` when no pack takes part.
+/// `None` when no pack takes part. Nothing known of how the current splits:
+/// see [`aggregate_with`].
 pub fn aggregate(members: &[Member], freshness: Freshness) -> Option<Battery> {
+    aggregate_with(members, freshness, &[])
+}
+
+/// The battery of `members` with `shares[i]`, the learnt share of a change
+/// of the total of `members[i]` ([`super::Shares`]; `None`: not known).
+pub fn aggregate_with(
+    members: &[Member],
+    freshness: Freshness,
+    shares: &[Option<f32>],
+) -> Option<Battery> {
     let part = || members.iter().filter(|m| m.takes_part(freshness));
     let n = part().count();
     if n == 0 {
         return None;
     }
-    let n_i = n as i32;
     let mut cvl = u16::MAX;
     let mut discharge = 0u16;
-    let (mut i_sum, mut ccl_sum, mut dcl_sum) = (0i32, 0i32, 0i32);
-    let (mut ch_room, mut dis_room) = (i32::MAX, i32::MAX);
+    let mut i_sum = 0i32;
     let (mut cap, mut soc_w, mut soh_w, mut v_sum) = (0u64, 0u64, 0u64, 0u64);
     let (mut min_cell, mut max_cell) = (u16::MAX, 0u16);
     let (mut min_t, mut max_t) = (i16::MAX, i16::MIN);
@@ -97,17 +129,7 @@ pub fn aggregate(members: &[Member], freshness: Freshness) -> Option<Battery> {
         let s = &m.summary;
         cvl = cvl.min(s.limits.cvl_dv);
         discharge = discharge.max(s.limits.discharge_dv);
-        let i = i32::from(s.current_da);
-        let (ccl, dcl) = (usable(s.limits.ccl_da), usable(s.limits.dcl_da));
-        i_sum += i;
-        ccl_sum += ccl;
-        dcl_sum += dcl;
-        let room = |r: i32| if r >= 0 { r } else { r.saturating_mul(n_i) };
-        // Headroom in each direction from the pack's current in that
-        // direction (a pack going the other way counts as 0: it has at least
-        // its whole limit).
-        ch_room = ch_room.min(room(ccl - i.max(0)));
-        dis_room = dis_room.min(room(dcl - (-i).max(0)));
+        i_sum += i32::from(s.current_da);
         let c = u64::from(s.capacity_dah);
         cap += c;
         soc_w += c * u64::from(s.soc_cpct);
@@ -131,44 +153,10 @@ pub fn aggregate(members: &[Member], freshness: Freshness) -> Option<Battery> {
         cond[8] = cond[8].max(1);
     }
     let clamp_da = |x: i32| x.clamp(0, i32::from(u16::MAX)) as u16;
-    // From the battery's present current in that direction; while it goes
-    // the other way (or rests), from 0: the smallest pack's headroom, never a
-    // 0 computed from a current that is not there (a DCL of 0 while charging
-    // would switch a Victron inverter off).
-    let ccl = i_sum.max(0).saturating_add(ch_room).min(ccl_sum);
-    let dcl = (-i_sum).max(0).saturating_add(dis_room).min(dcl_sum);
-    // One pack may open its switch at any moment: the others then share its
-    // current until the inverter hears the new limits. Keep the total low
-    // enough that they stay within their own limits then.
-    let spare = |sign: i32, limit: fn(&Summary) -> u16| -> i32 {
-        let share = |m: &Member| (sign * i32::from(m.summary.current_da)).max(0);
-        let total: i32 = part().map(share).sum();
-        if n < 2 || total < REDUNDANCY_MIN_DA {
-            return i32::MAX; // no current to share out (yet): the ramp rules
-        }
-        let mut most = i32::MAX;
-        for (k, mk) in part().enumerate() {
-            let own = share(mk);
-            if own == 0 {
-                continue;
-            }
-            let largest_other = part()
-                .enumerate()
-                .filter(|(j, _)| *j != k)
-                .map(|(_, m)| share(m))
-                .max()
-                .unwrap_or(0);
-            // Pack k carries own/total of the battery's current; without
-            // pack j, own/(total − d_j). So the total may be at most
-            // limit_k × (total − d_j) / own.
-            let t = i64::from(usable(limit(&mk.summary))) * i64::from(total - largest_other)
-                / i64::from(own);
-            most = most.min(t.clamp(0, i64::from(i32::MAX)) as i32);
-        }
-        most
-    };
-    let ccl = clamp_da(ccl.min(spare(1, |s| s.limits.ccl_da)));
-    let dcl = clamp_da(dcl.min(spare(-1, |s| s.limits.dcl_da)));
+    let ccl = clamp_da(limit_of(members, freshness, shares, 1, |s| s.limits.ccl_da));
+    let dcl = clamp_da(limit_of(members, freshness, shares, -1, |s| {
+        s.limits.dcl_da
+    }));
     let (soc, soh) = match (soc_w.checked_div(cap), soh_w.checked_div(cap)) {
         (Some(soc), Some(soh)) => (soc, soh),
         _ => {
@@ -220,9 +208,114 @@ pub fn aggregate(members: &[Member], freshness: Freshness) -> Option<Battery> {
         capacity_dah: cap as u32,
         online: n as u8,
         offline,
+        unknown: members
+            .iter()
+            .filter(|m| m.unknown(freshness))
+            .count()
+            .min(usize::from(u8::MAX)) as u8,
         blocking_charge: block_c,
         blocking_discharge: block_d,
     })
+}
+
+/// The battery's limit in one direction before its hold and ramp, 0.1 A:
+/// `sign` +1 for charge (each pack's CCL), −1 for discharge (its DCL).
+/// Currents below are in that direction; T is the packs' total that the
+/// bridges measure, I_k and L_k a pack's current and usable limit, α_k its
+/// share of a change of the total.
+///
+/// * Now: T' ≤ T + (L_k − I_k)/α_k for every pack, so that no pack passes
+///   its own limit at the new total T'.
+/// * One pack j opens: its current and any change move to the others by
+///   conductance, α_k/(1 − α_j) to pack k: T' ≤ T − I_j + (L_k − I_k)·(1 − α_j)/α_k.
+/// * A pack that may conduct without data (u) takes at most what the
+///   inverter delivers beyond the packs that report, with the largest of
+///   those open too: T' ≤ T − max I_j + L_u.
+/// * A pack whose switch is open may close it at any moment and take up to
+///   all of the total before the bridges hear it: T' ≤ its last limit with
+///   the switch closed.
+/// * Never above the sum of the limits.
+///
+/// With the shares learnt, α with its margins ([`super::share_with_margin`]).
+/// Without (or while a pack has no data), the bound that needs no knowledge,
+/// α = 1, counted from 0 while the battery goes the other way or rests — so
+/// a limit is never 0 for a current that is not there (a DCL of 0 while
+/// charging would switch a Victron inverter off); a pack already past its
+/// own limit counts its excess `n` times (its share of a cut is about 1/n).
+fn limit_of(
+    members: &[Member],
+    freshness: Freshness,
+    shares: &[Option<f32>],
+    sign: i32,
+    limit: fn(&Summary) -> u16,
+) -> i32 {
+    let part = || {
+        members
+            .iter()
+            .enumerate()
+            .filter(|(_, m)| m.takes_part(freshness))
+    };
+    let unknown = || members.iter().filter(|m| m.unknown(freshness));
+    let n = part().count() as i32;
+    let x = |m: &Member| sign * i32::from(m.summary.current_da);
+    let l = |m: &Member| usable(limit(&m.summary));
+    let total: i32 = part().map(|(_, m)| x(m)).sum();
+    let pos = |v: i32| v.max(0);
+    let alpha = |i: usize| shares.get(i).copied().flatten();
+    let learnt = n >= 2 && unknown().next().is_none() && part().all(|(i, _)| alpha(i).is_some());
+    let mut most: i32 = part()
+        .map(|(_, m)| l(m))
+        .chain(unknown().map(l))
+        .fold(0i32, i32::saturating_add);
+    let over = |t: f32| t.clamp(i32::MIN as f32, i32::MAX as f32) as i32;
+    for (k, mk) in part() {
+        let room = l(mk) - x(mk);
+        match alpha(k) {
+            Some(ak) if learnt => {
+                most = most.min(total.saturating_add(over(room as f32 / share_with_margin(ak))));
+                for (j, mj) in part().filter(|(j, _)| *j != k) {
+                    let aj = alpha(j).unwrap_or(1.0);
+                    let akj = if aj < 0.95 {
+                        share_with_margin(ak / (1.0 - aj))
+                    } else {
+                        1.0
+                    };
+                    let t = (total - x(mj)).saturating_add(over(room as f32 / akj));
+                    most = most.min(t);
+                }
+            }
+            _ => {
+                let room = l(mk) - pos(x(mk));
+                let now = if room >= 0 {
+                    room
+                } else {
+                    room.saturating_mul(n)
+                };
+                most = most.min(pos(total).saturating_add(now));
+                if n >= 2 {
+                    let largest_other = part()
+                        .filter(|(j, _)| *j != k)
+                        .map(|(_, m)| pos(x(m)))
+                        .max()
+                        .unwrap_or(0);
+                    most = most.min((pos(total) - largest_other).saturating_add(room));
+                }
+            }
+        }
+    }
+    let largest = part().map(|(_, m)| pos(x(m))).max().unwrap_or(0);
+    for mu in unknown() {
+        most = most.min((pos(total) - largest).saturating_add(l(mu)));
+    }
+    // A pack whose BMS opened its switch closes it again by itself (a
+    // TinyBMS recovers from a cutoff) and takes its share of the total at
+    // once, before any bridge hears it: at most all of it.
+    for mo in members.iter().filter(|m| m.known_open(freshness)) {
+        if let Some((ccl, dcl)) = mo.closed_limits {
+            most = most.min(usable(if sign > 0 { ccl } else { dcl }));
+        }
+    }
+    most.max(0)
 }
 
 /// The battery's limits after the single pack's hold and ramp: they fall at

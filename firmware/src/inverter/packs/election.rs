@@ -11,6 +11,13 @@ pub const SPEAKER_LOST_US: Instant = 1_500_000;
 /// After a start or a bus-off recovery, a node listens this long before it may
 /// speak, µs.
 pub const LISTEN_US: Instant = 3 * crate::SECOND;
+/// A node that heard two or more other nodes and now hears none at all
+/// (the whole bus fell silent at once) more likely has a deaf receiver of
+/// its own (an overrun, a stalled driver) than lost every other bridge at
+/// the same moment: it waits this long after the last frame it heard before
+/// it takes over, µs. A real takeover after one bridge is lost is not
+/// delayed: the others are still heard.
+pub const DEAF_GUARD_US: Instant = 20 * crate::SECOND;
 
 /// Who speaks to the inverter (see the module documentation).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -58,7 +65,16 @@ impl Election {
             !(1..me).any(speaks)
         } else {
             let listened = now.saturating_sub(self.listening_since) >= LISTEN_US;
-            listened && !(1..=MAX_NODES).any(speaks) && !(1..me).any(|n| heard(n).is_some())
+            let deaf = packs.others_heard_within(now, SPEAKER_LOST_US) == 0
+                && packs.others_heard_within(now, DEAF_GUARD_US) >= 2;
+            // Somebody's inverter frames heard: a speaker is there, even if
+            // its summaries were lost (a bus that loses frames).
+            let spoken = packs.limits_heard_within(now, SPEAKER_LOST_US);
+            listened
+                && !deaf
+                && !spoken
+                && !(1..=MAX_NODES).any(speaks)
+                && !(1..me).any(|n| heard(n).is_some())
         };
         self.speaking
     }

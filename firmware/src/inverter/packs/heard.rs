@@ -29,6 +29,8 @@ pub struct Heard {
     pub summary: Summary,
     /// When its last frame arrived.
     pub at: Instant,
+    /// CCL and DCL of its last summary without a fault, 0.1 A.
+    pub closed: Option<(u16, u16)>,
 }
 
 /// What a received frame was.
@@ -59,6 +61,7 @@ pub struct Packs {
     frame_at: [Option<Instant>; MAX_NODES as usize],
     refused: u32,
     duplicates: u32,
+    limits_at: Option<Instant>,
 }
 
 impl Packs {
@@ -71,6 +74,7 @@ impl Packs {
             frame_at: [None; MAX_NODES as usize],
             refused: 0,
             duplicates: 0,
+            limits_at: None,
         }
     }
 
@@ -91,6 +95,14 @@ impl Packs {
 
     /// A frame from the bus.
     pub fn on_frame(&mut self, now: Instant, id: u16, data: &[u8]) -> Received {
+        {
+            use crate::inverter::frames::{ID_ALARMS, ID_LIMITS, ID_MEASUREMENTS, ID_SOC};
+            if [ID_LIMITS, ID_SOC, ID_MEASUREMENTS, ID_ALARMS].contains(&id) && self.node != 0 {
+                // A frame only a speaker sends, from another bridge:
+                // somebody speaks.
+                self.limits_at = Some(now);
+            }
+        }
         let Some((node, k)) = from_id(id) else {
             return Received::NotSummary;
         };
@@ -152,7 +164,17 @@ impl Packs {
             }
             Ok(summary) => {
                 if let Some(h) = self.heard.get_mut(i) {
-                    *h = Some(Heard { summary, at: now });
+                    let before = h.as_ref().and_then(|h| h.closed);
+                    let closed = if summary.fault {
+                        before
+                    } else {
+                        Some((summary.limits.ccl_da, summary.limits.dcl_da))
+                    };
+                    *h = Some(Heard {
+                        summary,
+                        at: now,
+                        closed,
+                    });
                 }
                 Received::Complete(node)
             }
@@ -178,20 +200,48 @@ impl Packs {
     }
 
     /// Every node ever heard (1..=8) as a [`Member`] of the battery: its
-    /// summary, whether it is alive, and how long ago it came.
+    /// last summary, whether it is alive (any frame of it heard within
+    /// [`PACK_LOST_US`]: on a bus that loses frames a bridge still sending is
+    /// there, its last whole summary counting as long as its data is fresh),
+    /// and how long ago that summary came.
     pub fn known(&self, now: Instant) -> impl Iterator<Item = (u8, Member)> + '_ {
         self.heard.iter().enumerate().filter_map(move |(i, h)| {
             let h = h.as_ref()?;
             let ago = now.saturating_sub(h.at);
+            let frame_ago = self
+                .frame_at
+                .get(i)
+                .copied()
+                .flatten()
+                .map_or(ago, |t| now.saturating_sub(t).min(ago));
             Some((
                 i as u8 + 1,
                 Member {
                     summary: h.summary,
-                    alive: ago <= PACK_LOST_US,
+                    alive: frame_ago <= PACK_LOST_US,
                     heard_ago_us: ago,
+                    closed_limits: h.closed,
                 },
             ))
         })
+    }
+
+    /// Another bridge's inverter frame (0x351, 0x355, 0x356, 0x35A: only a
+    /// speaker sends them) was heard within `us`: a speaker is there,
+    /// whichever node it is.
+    pub fn limits_heard_within(&self, now: Instant, us: Instant) -> bool {
+        self.limits_at.is_some_and(|t| now.saturating_sub(t) <= us)
+    }
+
+    /// How many other nodes were heard (any frame) within `us`.
+    pub fn others_heard_within(&self, now: Instant, us: Instant) -> usize {
+        self.frame_at
+            .iter()
+            .enumerate()
+            .filter(|(i, t)| {
+                *i + 1 != usize::from(self.node) && t.is_some_and(|t| now.saturating_sub(t) <= us)
+            })
+            .count()
     }
 
     /// For the election: whether node `node` was heard (any frame) within

@@ -11,35 +11,29 @@
 //! lost or late frame never mixes two summaries. Every field is checked on
 //! receipt (see [`SummaryError`]); a summary that fails is dropped whole.
 //!
-//! **The battery** ([`aggregate`]) is made of the packs that *take part*: a
-//! summary heard within [`PACK_LOST_US`], data younger than the stale age, no
-//! fault. A pack that stops taking part leaves the sums at once.
+//! **The battery** ([`aggregate_with`]) is made of the packs that *take
+//! part*: a frame heard within [`PACK_LOST_US`], data younger than the stale
+//! age, no fault. A pack without fresh data whose switch is not known to be
+//! open ([`Member::unknown`]: its bridge lost, its BMS link stale) may still
+//! conduct: it stays in the limits' sums with its last limits until it is
+//! back or known open.
 //!
 //! * CVL: the lowest CVL of the packs taking part; discharge voltage the highest.
-//! * CCL: packs in parallel share the current by their voltages and
-//!   resistances, not evenly, and a pack may even take current from the others.
-//!   When the total changes by ΔI, a pack's share changes by α·ΔI with
-//!   0 ≤ α ≤ 1 (its conductance over the sum of all). So the battery's CCL is
-//!   the present total plus the *smallest* headroom of any pack
-//!   (`CCL_k − I_k`): whichever way the extra current splits, no pack gets more
-//!   than its headroom. A pack already past its own CCL turns the headroom
-//!   negative, scaled by the number of packs (its share of a cut is about
-//!   1/N). Never above the sum of the packs' CCLs; never below 0. While the
-//!   battery discharges (or rests), the CCL starts from 0 current: the
-//!   smallest headroom, so a limit is never 0 for a current that is not there.
-//!   DCL the same way with discharge currents. Each pack's limit counts 2 %
-//!   (at least 0.5 A) less ([`usable`]): its current was measured a moment ago.
-//! * **One pack may open its switch at any moment** (a fault, a cutoff): until
-//!   the inverter hears new limits, the others carry its current. So the total
-//!   is also kept where, without any one pack, each other pack's share
-//!   (measured: its current over the total) would stay within its own limit:
-//!   `total ≤ limit_k × (total − I_j) / I_k` for every pair. Four equal packs
-//!   are asked for at most three packs' current; two, for one pack's — the
-//!   price of never tripping the others in a cascade.
+//! * CCL and DCL: packs in parallel are voltages behind resistances; when the
+//!   total changes by ΔT, pack k's current changes by α_k·ΔT (its
+//!   conductance over all: its *share of a change*), whatever it carries now.
+//!   [`Shares`] learns α from how each pack's current moves with the total;
+//!   until it knows, α = 1 (any pack may take all of a change). The battery's
+//!   limit keeps every pack within its own limit now, should any one pack
+//!   open its switch, for a pack without data, and for a pack whose switch is
+//!   open and may close again (see `battery::limit_of`). Each pack's limit
+//!   counts 2 % (at least 0.5 A) less ([`usable`]): its current was measured
+//!   a moment ago.
 //! * Those limits then go through the single pack's hold and ramp
 //!   ([`super::control`]): they fall at once; they rise at most
-//!   `ramp_da_per_s`; when a pack leaves or comes (back), a rise waits
-//!   `hold_us` first. They start once the bridge has listened for
+//!   `ramp_da_per_s`; when a pack leaves the sums or comes (back) into them,
+//!   a rise waits `hold_us` first (a pack that comes and goes without data
+//!   never left them). They start once the bridge has listened for
 //!   [`LISTEN_US`] (it knows every pack then).
 //! * SOC and SOH weighted by capacity; capacity, current summed; voltage the
 //!   mean; cell and temperature extremes across the packs; alarms and warnings
@@ -60,10 +54,12 @@
 //! and stays quiet (no handover, no gap). A bridge speaks only while it sends
 //! its own summary (it has BMS data, and no other bridge has its number), so
 //! the others always hear the speaker; "heard" counts any frame of a node, so
-//! one refused or incomplete summary does not start a takeover. Two speakers
-//! exist only while one of them hears nothing of the bus, and at most for one
-//! period after a speaker's summaries went missing for 1.5 s; as soon as they
-//! hear each other, the higher one stops.
+//! one refused or incomplete summary does not start a takeover, and a bridge
+//! that hears any speaker's inverter frames does not take over either. A
+//! bridge that heard two or more others and then hears nobody at all waits
+//! [`DEAF_GUARD_US`] (its own receiver is the likelier cause). Two speakers
+//! exist only while one of them hears nothing of the bus for longer; as soon
+//! as they hear each other, the higher one stops.
 //!
 //! Every bridge with a node number computes the battery every second, speaker
 //! or not, so a new speaker takes over with the hold and ramp state of the
@@ -72,9 +68,11 @@
 mod battery;
 mod election;
 mod heard;
+mod shares;
 mod summary;
 
 pub use self::battery::*;
 pub use self::election::*;
 pub use self::heard::*;
+pub use self::shares::*;
 pub use self::summary::*;
