@@ -49,6 +49,9 @@ bridge=$(( $(get phase5) - $(get phase6) ))
 printf '  %-52s %7s  (%s snapshots, %s calls; the replay'"'"'s own work, %s per snapshot, measured apart and subtracted)\n' \
     "whole Bridge on the recorded 40 s trace, per snapshot" "$(( (bridge + snaps / 2) / snaps ))" "$snaps" \
     "$(( $(get polls) + $(get rx_calls) ))" "$(per 6 "$snaps")"
+printf '  %-52s %7s  (soft float; once a second, with a node number)\n' \
+    "the packs' shares, one battery step with 8 packs" "$(per 8 "$(get share_updates)")"
+[ "$(get shares_learnt)" = 1 ] || { echo "run.sh: the shares' benchmark learnt nothing (it measured the wrong path)" >&2; exit 1; }
 echo "  sizes (bytes): Bridge $(get bridge_bytes), Response $(get response_bytes), Frame $(get frame_bytes), link Completion $(get completion_bytes), Action $(get action_bytes), Step $(get step_bytes)"
 echo "  replay mismatches: $mism"
 [ "$mism" = 0 ] || { echo "run.sh: the replay diverged from the recorded trace" >&2; exit 1; }

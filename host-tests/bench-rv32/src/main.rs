@@ -15,7 +15,11 @@
 //!    host made, every answer compared (as `Bridge::step` +
 //!    `Bridge::transmit_bytes`, what `poll` wraps);
 //! 6. `walk`     the same walk over the records and the same comparisons
-//!    without the bridge (the replay's own cost, subtracted by the runner).
+//!    without the bridge (the replay's own cost, subtracted by the runner);
+//! 7. (a full window of the packs' shares, not counted);
+//! 8. `shares`   one battery step of `inverter::packs::Shares` with eight packs
+//!    on a ramp (every step fits the window and both halves), `SHARE_REPS`
+//!    times.
 #![no_std]
 #![no_main]
 
@@ -34,6 +38,9 @@ static TRACE: &[u8] = include_bytes!("../trace.bin");
 
 /// Repetitions of the single-reply phases.
 const REPS: u32 = 200;
+
+/// Battery steps measured for the packs' shares.
+const SHARE_REPS: u32 = 64;
 
 /// Phase boundary: the runner splits the instruction count at each call.
 #[no_mangle]
@@ -460,6 +467,28 @@ pub extern "C" fn _start() -> ! {
     bench_mark(6);
     let walk = replay(&mut stand_in, black_box(records));
     bench_mark(7);
+    // The packs' shares (inverter::packs::Shares), one battery step of
+    // eight packs on a ramp, so that every step fits the whole window and
+    // both halves: a full window first (outside the measured phase).
+    let mut shares = tinybms_firmware::inverter::packs::Shares::new();
+    let mut sample = [(0u8, 0i16); 8];
+    let fill = |t: u32, s: &mut [(u8, i16); 8]| {
+        for (k, x) in (0u8..).zip(s.iter_mut()) {
+            *x = (k + 1, (i32::from(k + 1) * t as i32 + 50) as i16);
+        }
+    };
+    for t in 0..32 {
+        fill(t, &mut sample);
+        shares.update(black_box(&sample), false);
+    }
+    bench_mark(8);
+    for t in 32..32 + SHARE_REPS {
+        fill(t, &mut sample);
+        shares.update(black_box(&sample), false);
+    }
+    bench_mark(9);
+    put("share_updates", u64::from(SHARE_REPS));
+    put("shares_learnt", u64::from(shares.of(8).is_some()));
     let (polls, rx_calls) = records.iter().flatten().fold((0, 0), |(p, x), r| match r {
         Record::Step { .. } => (p + 1, x),
         Record::Rx { .. } => (p, x + 1),
