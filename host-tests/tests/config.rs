@@ -169,6 +169,15 @@ fn numbers_parse_exactly_in_related_units() {
     );
     assert_eq!(parse("stream_period", "off").unwrap(), Parsed::Number(0));
     assert_eq!(parse("stale_hold", "2 min").unwrap(), Parsed::Number(120));
+    // Issue 26, item 13: durations as the help writes them, and the related
+    // units docs/configuration.md promises.
+    assert_eq!(parse("stale_hold", "2m").unwrap(), Parsed::Number(120));
+    assert_eq!(parse("stream_period", "1m").unwrap(), Parsed::Number(60_000));
+    assert_eq!(
+        parse("charge_current_cap", "50000mA").unwrap(),
+        Parsed::Number(500)
+    );
+    assert!(parse("charge_current_cap", "50050mA").is_err(), "0.05 A: finer than the field");
     assert_eq!(
         parse("temperature_margin", "5 °C").unwrap(),
         Parsed::Number(5)

@@ -270,6 +270,65 @@ fn log_prints_the_bridges_log_lines() {
     assert!(o.stdout.contains("  info  pack "), "{o}");
 }
 
+/// Issue 26, item 6: `record --duration 30s` stopped by Ctrl-C after a few
+/// seconds says how long it recorded, on the screen and in the file meant for
+/// bug reports — never the 30 s asked.
+#[test]
+fn a_recording_stopped_early_says_how_long_it_recorded() {
+    let sim = Sim::start(&["--bridge-pty"]);
+    let file = std::env::temp_dir().join(format!("early-{}.tbms", std::process::id()));
+    let mut child = Command::new(tinybms_bin())
+        .args([
+            "record",
+            &sim.path,
+            file.to_str().unwrap(),
+            "--duration",
+            "30s",
+        ])
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut out = child.stdout.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = out.read_to_string(&mut s);
+        s
+    });
+    std::thread::sleep(Duration::from_secs(6));
+    // SAFETY: kill(2) on our own child's pid.
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let start = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        assert!(
+            start.elapsed() < Duration::from_secs(30),
+            "no exit after Ctrl-C"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let shown = reader.join().unwrap();
+    let secs: f64 = shown
+        .split("recorded ")
+        .nth(1)
+        .and_then(|r| r.split(' ').next())
+        .and_then(|x| x.parse().ok())
+        .unwrap_or_else(|| panic!("{shown}"));
+    assert!(secs > 0.5 && secs < 12.0, "{shown}");
+    assert!(
+        shown.contains("stopped by Ctrl-C (30.0 s asked)"),
+        "{shown}"
+    );
+    let text = std::fs::read_to_string(&file).unwrap();
+    assert!(
+        text.contains(&format!(
+            "recorded {secs:.1} s of the 30.0 s asked (stopped by Ctrl-C)"
+        )),
+        "{text}"
+    );
+    let _ = std::fs::remove_file(&file);
+}
+
 /// Ctrl-C in `monitor --period 200ms` gives the bridge its own period back (it
 /// kept streaming every 200 ms); the exit status says it was interrupted.
 #[test]
@@ -344,4 +403,39 @@ fn cargo_tinybms_works_inside_firmware() {
     );
     assert!(alias.contains("--target host-tuple"), "{alias}");
     assert!(root.join("firmware/../host-tests/Cargo.toml").exists());
+}
+
+/// Issue 26, item 10: `cargo tinybms` at the repository's root is a release
+/// build (a debug one printed nothing for minutes), as in `firmware/`; the
+/// README's first commands work without the tool on PATH.
+#[test]
+fn cargo_tinybms_at_the_root_is_a_release_build_and_the_readme_uses_it() {
+    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
+    let config = std::fs::read_to_string(format!("{root}/.cargo/config.toml")).unwrap();
+    for alias in ["tinybms", "sim"] {
+        let line = config
+            .lines()
+            .find(|l| l.starts_with(&format!("{alias} = ")))
+            .unwrap_or_else(|| panic!("no `{alias}` alias"));
+        assert!(line.contains("--release"), "{line}");
+    }
+    let readme = std::fs::read_to_string(format!("{root}/README.md")).unwrap();
+    let bare: Vec<&str> = readme
+        .lines()
+        .filter(|l| l.starts_with("tinybms "))
+        .collect();
+    assert!(
+        bare.is_empty(),
+        "commands that need the tool on PATH: {bare:?}"
+    );
+}
+
+/// Issue 26, item 12: a port where nothing answers is not declared a USB-UART
+/// adapter wired to the BMS: an unflashed (or starting) bridge is named first.
+#[test]
+fn a_port_where_nothing_answers_names_an_unflashed_bridge() {
+    let o = tinybms(&["config", "/dev/ptmx"]);
+    assert_ne!(o.code, 0, "{o}");
+    assert!(o.stderr.contains("not running this firmware yet"), "{o}");
+    assert!(!o.stderr.contains("is a USB-UART adapter wired"), "{o}");
 }

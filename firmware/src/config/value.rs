@@ -193,13 +193,18 @@ fn check_text(rule: TextRule, s: &str) -> Result<(), FieldError> {
 /// Units a number may be written in, as (unit, unit it converts to, decimal
 /// exponent: the value in the second unit is the value in the first × 10^exp,
 /// or for minutes and hours, × factor).
+/// Durations take `m` for minutes too (`5m`, as the help writes them).
 const CONVERSIONS: &[(&str, &str, i32, i64)] = &[
     ("v", "mV", 3, 1),
+    ("mv", "V", -3, 1),
+    ("ma", "A", -3, 1),
     ("ms", "s", -3, 1),
     ("min", "s", 0, 60),
+    ("m", "s", 0, 60),
     ("h", "s", 0, 3600),
     ("s", "ms", 3, 1),
     ("min", "ms", 3, 60),
+    ("m", "ms", 3, 60),
     ("c", "°C", 0, 1),
 ];
 

@@ -220,11 +220,19 @@ impl Client {
                 n("crc_errors")
             ))
         } else if replies == 0 {
+            let unflashed = match self.mode {
+                Mode::Direct => {
+                    "No bridge answered a hello either: if this port is an ESP32 board, it is \
+                     not running this firmware yet (flash it: docs/flashing.md) or is still \
+                     starting. If it is a USB-UART adapter wired to the BMS, check: "
+                }
+                Mode::Bridge => "Check the bridge's wiring to the BMS: ",
+            };
             ToolError::connect(format!(
-                "nothing answers on {who} ({} requests sent, no byte back). Check: TX and RX \
-                 crossed (adapter TX -> BMS RX, adapter RX <- BMS TX), a common ground \
-                 (GND <-> BMS UART ground), 3.3 V logic levels, the BMS powered. A sleeping \
-                 BMS is woken automatically (the first request is sent twice).",
+                "nothing answers on {who} ({} requests sent, no byte back). {unflashed}TX and \
+                 RX crossed (TX -> BMS RX, RX <- BMS TX), a common ground (GND <-> BMS UART \
+                 ground), 3.3 V logic levels, the BMS powered. A sleeping BMS is woken \
+                 automatically (the first request is sent twice).",
                 n("requests")
             ))
         } else {

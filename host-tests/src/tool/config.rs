@@ -54,8 +54,10 @@ pub fn require_bridge(c: &Client) -> ToolResult<()> {
     match c.mode {
         Mode::Bridge => Ok(()),
         Mode::Direct => Err(ToolError::usage(format!(
-            "`{}` is a USB-UART adapter wired to the BMS (direct mode): the configuration is \
-             the ESP32 bridge's own, kept in its flash. Give the bridge's port (`tinybms ports`)",
+            "no bridge answered on `{}` (no hello): an ESP32 board not running this firmware \
+             yet (flash it: docs/flashing.md), one still starting, or a USB-UART adapter \
+             wired to the BMS (direct mode). The configuration is the ESP32 bridge's own, kept \
+             in its flash: give the bridge's port (`tinybms ports`)",
             c.port
         ))),
     }

@@ -27,6 +27,10 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
     let port = conn.port.clone();
     let (serial, mode, probe) = open_and_probe(&port, choice(conn))?;
     let (mut tx, mut rx) = (0usize, 0usize);
+    let started = Instant::now();
+    // What was recorded, not what was asked: Ctrl-C ends it early.
+    let recorded = |started: Instant| started.elapsed().min(duration);
+    let mut took = Duration::ZERO;
     match (mode, probe) {
         (Mode::Direct, _) => {
             let _ = serial.clear(serialport::ClearBuffer::Input);
@@ -37,6 +41,7 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
                 let left = end.saturating_duration_since(Instant::now());
                 let _ = c.next_pushed(left.min(Duration::from_millis(200)))?;
             }
+            took = recorded(started);
             let (t, r) = direct::stop(&mut c)?;
             tx = t as usize;
             rx = r as usize;
@@ -69,6 +74,7 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
                     rx += bytes.len();
                 }
             }
+            took = recorded(started);
             let req = c.send(json!({"cmd": "capture", "on": false}))?;
             // Raw lines still queued before the answer are part of the capture.
             loop {
@@ -99,13 +105,31 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
                     ));
                 }
             }
+            let _ = writer.comment(&format!(
+                "recorded {:.1} s of the {:.1} s asked{}",
+                took.as_secs_f64(),
+                duration.as_secs_f64(),
+                if interrupted() {
+                    " (stopped by Ctrl-C)"
+                } else {
+                    ""
+                }
+            ));
             writer.flush().map_err(werr)?;
         }
         (Mode::Bridge, None) => return Err(ToolError::failed("internal: bridge without hello")),
     }
+    let early = if interrupted() {
+        format!(
+            ", stopped by Ctrl-C ({:.1} s asked)",
+            duration.as_secs_f64()
+        )
+    } else {
+        String::new()
+    };
     println!(
-        "recorded {:.1} s to {path}: {tx} bytes sent, {rx} received ({})",
-        duration.as_secs_f64(),
+        "recorded {:.1} s to {path}: {tx} bytes sent, {rx} received ({}){early}",
+        took.as_secs_f64(),
         match mode {
             Mode::Bridge => "through the bridge's capture",
             Mode::Direct => "direct",
