@@ -49,6 +49,7 @@ pub mod bridge;
 pub mod config;
 pub mod freshness;
 pub mod host_link;
+pub mod identity;
 pub mod inverter;
 pub mod line;
 pub mod mqtt;

@@ -18,6 +18,7 @@ use embassy_futures::block_on;
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::config::store::{Loaded, Source};
 use tinybms_firmware::config::Config;
+use tinybms_firmware::identity::{Features, Identity};
 use tinybms_firmware::inverter::frames::{self, CanFrame};
 use tinybms_firmware::inverter::{Inverter, InverterConfig, InverterReport};
 use tinybms_firmware::station::{Logged, Setup, Station};
@@ -204,9 +205,14 @@ impl ClosedLoop {
     ) -> Self {
         let setup = Setup {
             timing: Timing::default(),
-            chip: "sim",
-            host_link,
-            can: true,
+            identity: Identity::desktop(
+                "sim",
+                Features {
+                    can: true,
+                    host_link,
+                    ..Features::default()
+                },
+            ),
             inverter: Some(inverter),
         };
         let loaded = Loaded {
@@ -256,9 +262,14 @@ impl ClosedLoop {
         let loaded = block_on(crate::flash::store(flash.clone()).load());
         let setup = Setup {
             timing: Timing::default(),
-            chip: "sim",
-            host_link: true,
-            can: true,
+            identity: Identity::desktop(
+                "sim",
+                Features {
+                    can: true,
+                    host_link: true,
+                    ..Features::default()
+                },
+            ),
             inverter: None,
         };
         let station = Station::new(setup, loaded, 0);

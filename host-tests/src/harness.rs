@@ -17,6 +17,7 @@ use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
 use tinybms_firmware::bridge::report::WriteOutcome;
 use tinybms_firmware::config::store::{Loaded, Saved, Source, StoreError};
 use tinybms_firmware::config::Config;
+use tinybms_firmware::identity::{Features, Identity};
 use tinybms_firmware::inverter::frames::CanFrame;
 use tinybms_firmware::inverter::TxResult;
 use tinybms_firmware::station::{Action, Logged, Setup, Station};
@@ -246,9 +247,14 @@ impl Harness {
     pub fn with_config(sim: SimBms, config: Timing) -> Self {
         let setup = Setup {
             timing: config,
-            chip: "sim",
-            host_link: false,
-            can: false,
+            identity: Identity::desktop(
+                "sim",
+                Features {
+                    can: false,
+                    host_link: false,
+                    ..Features::default()
+                },
+            ),
             inverter: None,
         };
         let loaded = Loaded {

@@ -13,6 +13,7 @@ use tinybms_firmware::config::state::ConfigState;
 use tinybms_firmware::config::store::{Loaded, Source};
 use tinybms_firmware::config::Config;
 use tinybms_firmware::host_link::{HostLink, HostLinkConfig, OUT_LINE_MAX};
+use tinybms_firmware::identity::{Features, Identity};
 use tinybms_firmware::station::{Setup, Station};
 use tinybms_firmware::{Bridge, MS, SECOND};
 
@@ -65,9 +66,14 @@ impl Rig {
         let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 1);
         let setup = Setup {
             timing: tinybms_firmware::bms::timing::Timing::default(),
-            chip: config.chip,
-            host_link: true,
-            can: false,
+            identity: Identity::desktop(
+                config.chip,
+                Features {
+                    can: false,
+                    host_link: true,
+                    ..Features::default()
+                },
+            ),
             inverter: None,
         };
         let loaded = Loaded {

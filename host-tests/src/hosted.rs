@@ -17,6 +17,7 @@ use embassy_futures::block_on;
 use protocol_core::settings::SettingId;
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::config::state::Note;
+use tinybms_firmware::identity::{Features, Identity};
 use tinybms_firmware::station::{Logged, Setup, Station};
 
 use crate::flash::SimFlash;
@@ -59,14 +60,32 @@ impl<P: BytePort> Hosted<P> {
     /// (the defaults when it holds none; `chip` names the host link's chip).
     /// The host link has not seen a connection yet: call [`Hosted::connected`].
     pub fn new(port: P, bridge: Timing, flash: SimFlash, chip: &'static str) -> Self {
+        Self::with_wifi(port, bridge, flash, chip, true)
+    }
+
+    /// [`Hosted::new`] standing for an image with or without Wi-Fi (what its
+    /// `hello` says is built in).
+    pub fn with_wifi(
+        port: P,
+        bridge: Timing,
+        flash: SimFlash,
+        chip: &'static str,
+        wifi: bool,
+    ) -> Self {
         let clock = crate::realtime::Clock::start();
         let mut store = crate::flash::store(flash);
         let loaded = block_on(store.load());
         let setup = Setup {
             timing: bridge,
-            chip,
-            host_link: true,
-            can: false,
+            identity: Identity::desktop(
+                chip,
+                Features {
+                    host_link: true,
+                    store: true,
+                    wifi,
+                    can: false,
+                },
+            ),
             inverter: None,
         };
         let station = Station::new(setup, loaded, clock.now());
@@ -294,6 +313,8 @@ pub struct BridgePtyOptions {
     pub log: bool,
     /// (from, for): the whole bridge stops then, as a hung chip (`--freeze`).
     pub freeze: Option<(Duration, Duration)>,
+    /// Stand for an image without Wi-Fi (`--no-wifi`: its `hello` says so).
+    pub no_wifi: bool,
 }
 
 /// `sim --bridge-pty`: the bridge and host link against `sim` in real time,
@@ -309,7 +330,7 @@ pub fn serve_bridge_pty(
         Some(path) => SimFlash::File(crate::flash::FileFlash::open(path)?),
         None => SimFlash::Ram(crate::flash::RamFlash::new()),
     };
-    let mut h = Hosted::new(SimPort::new(sim), o.bridge, flash, "sim");
+    let mut h = Hosted::with_wifi(SimPort::new(sim), o.bridge, flash, "sim", !o.no_wifi);
     h.change_config(&o.config).map_err(io::Error::other)?;
     h.boot_button = o
         .boot_button

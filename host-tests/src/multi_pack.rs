@@ -36,6 +36,7 @@ use protocol_core::views::cell_mv;
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::config::store::{Loaded, Source};
 use tinybms_firmware::config::Config;
+use tinybms_firmware::identity::{Features, Identity};
 use tinybms_firmware::inverter::control::{Limits, Phase};
 use tinybms_firmware::inverter::frames::{self, CanFrame};
 use tinybms_firmware::inverter::{Inverter, InverterConfig, InverterReport};
@@ -395,9 +396,14 @@ impl MultiLoop {
                 let node = k as u8 + 1;
                 let setup = Setup {
                     timing: Timing::default(),
-                    chip: "sim",
-                    host_link: false,
-                    can: true,
+                    identity: Identity::desktop(
+                        "sim",
+                        Features {
+                            can: true,
+                            host_link: false,
+                            ..Features::default()
+                        },
+                    ),
                     inverter: Some(InverterConfig { node, ..inverter }),
                 };
                 let loaded = Loaded {

@@ -22,6 +22,7 @@ use std::time::Duration;
 use protocol_core::settings::{Setting, SettingId};
 use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
 use tinybms_firmware::config::store::{Loaded, Source, Store, StoreError};
+use tinybms_firmware::identity::{Features, Identity};
 use tinybms_firmware::inverter::frames::CanFrame;
 use tinybms_firmware::inverter::TxResult;
 use tinybms_firmware::station::{Action, Logged, Setup, Station};
@@ -214,9 +215,14 @@ pub struct Driver<P: BytePort> {
 pub fn bridge_station(config: Timing, now: Instant) -> Station {
     let setup = Setup {
         timing: config,
-        chip: "host",
-        host_link: false,
-        can: false,
+        identity: Identity::desktop(
+            "host",
+            Features {
+                can: false,
+                host_link: false,
+                ..Features::default()
+            },
+        ),
         inverter: None,
     };
     let loaded = Loaded {

@@ -172,12 +172,18 @@ fn numbers_parse_exactly_in_related_units() {
     // Issue 26, item 13: durations as the help writes them, and the related
     // units docs/configuration.md promises.
     assert_eq!(parse("stale_hold", "2m").unwrap(), Parsed::Number(120));
-    assert_eq!(parse("stream_period", "1m").unwrap(), Parsed::Number(60_000));
+    assert_eq!(
+        parse("stream_period", "1m").unwrap(),
+        Parsed::Number(60_000)
+    );
     assert_eq!(
         parse("charge_current_cap", "50000mA").unwrap(),
         Parsed::Number(500)
     );
-    assert!(parse("charge_current_cap", "50050mA").is_err(), "0.05 A: finer than the field");
+    assert!(
+        parse("charge_current_cap", "50050mA").is_err(),
+        "0.05 A: finer than the field"
+    );
     assert_eq!(
         parse("temperature_margin", "5 °C").unwrap(),
         Parsed::Number(5)
@@ -304,7 +310,10 @@ fn the_record_drives_the_inverter_and_the_host_link() {
     assert_eq!(c.inverter().node, 2);
     c.read_only = true;
     c.stream_period_ms = 0;
-    let h = c.host_link("sim");
+    let h = c.host_link(&tinybms_firmware::identity::Identity::desktop(
+        "sim",
+        Default::default(),
+    ));
     assert!(h.read_only);
     assert_eq!(h.stream_period_ms, 0);
 }

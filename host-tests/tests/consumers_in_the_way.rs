@@ -52,9 +52,14 @@ fn run(c: Consumers, faults: f64, seed: u64, duration_us: u64) -> Run {
     );
     let setup = Setup {
         timing: Timing::default(),
-        chip: "sim",
-        host_link: true,
-        can: true,
+        identity: tinybms_firmware::identity::Identity::desktop(
+            "sim",
+            tinybms_firmware::identity::Features {
+                can: true,
+                host_link: true,
+                ..Default::default()
+            },
+        ),
         inverter: None,
     };
     let loaded = Loaded {

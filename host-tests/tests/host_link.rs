@@ -351,7 +351,10 @@ fn hello_on_connect_and_on_request() {
     let h = only(&r.drain()).clone();
     assert_eq!(
         h,
-        json!({"type":"hello","protocol":1,"firmware":env!("CARGO_PKG_VERSION"),"chip":"sim","read_only":false,"stream_period_ms":1000,"dropped_lines":0})
+        json!({"type":"hello","protocol":1,"firmware":env!("CARGO_PKG_VERSION"),
+            "build":tinybms_firmware::identity::BUILD,"chip":"sim","board":"simulated",
+            "features":["host-link"],"record_version":2,
+            "read_only":false,"stream_period_ms":1000,"dropped_lines":0})
     );
     r.line(r#"{"cmd":"hello","req":77}"#);
     assert_eq!(only(&r.drain())["req"], 77);

@@ -343,3 +343,48 @@ fn one_way_changes_ask_and_a_cap_of_zero_is_refused() {
     let show = tinybms(&["config", &sim.path, "read_only"]);
     assert!(show.stdout.contains("value    on"), "{show}");
 }
+
+/// Issue 26, items 5 and 8: the bridge says who it is — firmware, build,
+/// chip, board, what is built in, the record's version — in `hello` and in
+/// `tinybms version`; on an image without Wi-Fi, `tinybms wifi` and
+/// `tinybms mqtt` say so (before asking for a secret) instead of promising a
+/// network after the next restart.
+#[test]
+fn the_bridge_says_who_it_is_and_an_image_without_wifi_says_so() {
+    let flash = tmp("config-flash-identity.bin");
+    let _ = std::fs::remove_file(&flash);
+    let sim = bridge(&flash, &["--no-wifi"]);
+    let v = tinybms(&["version", &sim.path]);
+    assert_eq!(v.code, 0, "{v}");
+    assert!(v.stdout.contains("the bridge (its own firmware):"), "{v}");
+    assert!(v.stdout.contains(env!("CARGO_PKG_VERSION")), "{v}");
+    assert!(v.stdout.contains("board"), "{v}");
+    assert!(v.stdout.contains("features        host-link, store"), "{v}");
+    assert!(v.stdout.contains("record_version  2"), "{v}");
+    let j = tinybms(&["version", &sim.path, "--json"]);
+    let line: serde_json::Value = serde_json::from_str(j.stdout.trim()).unwrap();
+    assert_eq!(line["bridge"]["chip"], "sim", "{j}");
+    assert_eq!(
+        line["bridge"]["features"],
+        serde_json::json!(["host-link", "store"])
+    );
+    let wifi = tinybms_with_input(
+        &["wifi", &sim.path, "--ssid", "Home Net"],
+        "correct horse battery\n",
+    );
+    assert_eq!(wifi.code, 2, "{wifi}");
+    assert!(
+        wifi.stderr
+            .contains("this bridge's image has no Wi-Fi (built in: host-link, store)"),
+        "{wifi}"
+    );
+    assert!(
+        !wifi.stdout.contains("Passphrase"),
+        "asked for a passphrase: {wifi}"
+    );
+    let mqtt = tinybms_with_input(&["mqtt", &sim.path, "--host", "broker.lan"], "");
+    assert_eq!(mqtt.code, 2, "{mqtt}");
+    assert!(mqtt.stderr.contains("has no Wi-Fi"), "{mqtt}");
+    let show = tinybms(&["config", &sim.path, "wifi_ssid"]);
+    assert!(!show.stdout.contains("Home Net"), "stored anyway: {show}");
+}

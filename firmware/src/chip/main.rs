@@ -156,9 +156,16 @@ async fn main(spawner: Spawner) {
     let station = STATION.init(Station::new(
         Setup {
             timing: Timing::default(),
-            chip: BOARD.chip.name(),
-            host_link: cfg!(feature = "host-link"),
-            can: cfg!(feature = "can"),
+            identity: tinybms_firmware::identity::Identity {
+                chip: BOARD.chip.name(),
+                board: BOARD.name,
+                features: tinybms_firmware::identity::Features {
+                    can: cfg!(feature = "can"),
+                    host_link: cfg!(feature = "host-link"),
+                    wifi: cfg!(feature = "wifi"),
+                    store: cfg!(feature = "store"),
+                },
+            },
             inverter: None,
         },
         loaded,

@@ -15,6 +15,10 @@ pub struct HostLinkConfig {
     pub firmware: &'static str,
     /// Chip name for `hello` (`esp32c3`, `esp32c6`, `sim`).
     pub chip: &'static str,
+    /// Board name for `hello`.
+    pub board: &'static str,
+    /// What the image has built in, for `hello`.
+    pub features: crate::identity::Features,
     /// The freshness rule's limit, ms (in every `telemetry` line).
     pub stale_after_ms: u64,
 }
@@ -26,6 +30,8 @@ impl Default for HostLinkConfig {
             stream_period_ms: DEFAULT_STREAM_PERIOD_MS,
             firmware: env!("CARGO_PKG_VERSION"),
             chip: "unknown",
+            board: "unknown",
+            features: crate::identity::Features::default(),
             stale_after_ms: crate::freshness::DEFAULT_STALE_AFTER_US / crate::MS,
         }
     }

@@ -741,12 +741,14 @@ impl Config {
     }
 
     /// The host link's settings, with this firmware's version and the chip's name.
-    pub fn host_link(&self, chip: &'static str) -> HostLinkConfig {
+    pub fn host_link(&self, who: &crate::identity::Identity) -> HostLinkConfig {
         HostLinkConfig {
             read_only: self.read_only,
             stream_period_ms: self.stream_period_ms,
-            firmware: env!("CARGO_PKG_VERSION"),
-            chip,
+            firmware: crate::identity::FIRMWARE,
+            chip: who.chip,
+            board: who.board,
+            features: who.features,
             stale_after_ms: u64::from(self.stale_after_s) * 1000,
         }
     }

@@ -251,7 +251,11 @@ struct HelloLine<'a> {
     req: Option<u32>,
     protocol: u32,
     firmware: &'a str,
+    build: &'a str,
     chip: &'a str,
+    board: &'a str,
+    features: &'a [&'static str],
+    record_version: u8,
     read_only: bool,
     stream_period_ms: u32,
     dropped_lines: u32,
@@ -279,6 +283,10 @@ pub struct HelloFields<'a> {
     pub firmware: &'a str,
     /// The chip's name.
     pub chip: &'a str,
+    /// The board's name.
+    pub board: &'a str,
+    /// What the image has built in.
+    pub features: crate::identity::Features,
     /// Read-only.
     pub read_only: bool,
     /// The stream period, ms.
@@ -298,7 +306,11 @@ pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<us
             req,
             protocol: super::PROTOCOL_VERSION,
             firmware: f.firmware,
+            build: crate::identity::BUILD,
             chip: f.chip,
+            board: f.board,
+            features: &f.features.names(),
+            record_version: crate::config::VERSION,
             read_only: f.read_only,
             stream_period_ms: f.stream_period_ms,
             dropped_lines: f.dropped_lines,

@@ -991,6 +991,8 @@ impl State {
                 &encode::HelloFields {
                     firmware: self.config.firmware,
                     chip: self.config.chip,
+                    board: self.config.board,
+                    features: self.config.features,
                     read_only: self.config.read_only,
                     stream_period_ms: self.stream_period_ms,
                     dropped_lines: self.stats.dropped_lines,

@@ -79,13 +79,11 @@ pub const MQTT_EVENTS: usize = 8;
 pub struct Setup {
     /// The bridge's timing.
     pub timing: Timing,
-    /// The chip's name for the host link's `hello` (`esp32c3`, `sim`, ...).
-    pub chip: &'static str,
-    /// A host link is built in (a port to a computer).
-    pub host_link: bool,
-    /// A CAN controller is built in (without one the inverter output is off,
-    /// whatever the record says).
-    pub can: bool,
+    /// Who the bridge is (chip, board, what is built in: a host link — a
+    /// port to a computer —, a CAN controller — without one the inverter
+    /// output is off, whatever the record says —, Wi-Fi, the store), for the
+    /// host link's `hello`.
+    pub identity: crate::identity::Identity,
     /// The inverter output's settings instead of the record's (for desktop
     /// runs of settings the record cannot hold: its periods and timeouts);
     /// `None` on the chip. A later change of the running configuration
@@ -182,7 +180,7 @@ impl Station {
     /// A station at `now` with the record it loaded.
     pub fn new(setup: Setup, loaded: Loaded, now: Instant) -> Self {
         #[cfg(feature = "can")]
-        let inverter = setup.can.then(|| {
+        let inverter = setup.identity.features.can.then(|| {
             let c = setup.inverter.unwrap_or_else(|| loaded.config.inverter());
             Inverter::new(c, now)
         });
@@ -190,8 +188,10 @@ impl Station {
         let inverter = None;
         #[cfg(feature = "host-link")]
         let host = setup
+            .identity
+            .features
             .host_link
-            .then(|| HostLink::new(loaded.config.host_link(setup.chip), now));
+            .then(|| HostLink::new(loaded.config.host_link(&setup.identity), now));
         #[cfg(not(feature = "host-link"))]
         let host = None;
         Self {
@@ -199,7 +199,7 @@ impl Station {
             config: ConfigState::new(loaded.config, loaded.source),
             host,
             inverter,
-            chip: setup.chip,
+            chip: setup.identity.chip,
             can: Can::Idle(now),
             hold: Hold::new(),
             transmit_pending: false,

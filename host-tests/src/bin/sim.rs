@@ -61,6 +61,8 @@ path, e.g. /dev/pts/7; runs until stopped, or for --duration if given):
                      as the chip does; without it the record lives in RAM
   --config NAME=VALUE (--bridge-pty) change the configuration record at start,
                      as `tinybms config PORT NAME=VALUE` would (stored; repeatable)
+  --no-wifi          (--bridge-pty) stand for an image without Wi-Fi (the
+                     default ready-made images): its hello says so
   --read-only        (--bridge-pty) the same as --config read_only=on
   --stream-period D  (--bridge-pty) the same as --config stream_period=D
   --boot-button D    (--bridge-pty) hold the BOOT button down from D on, for 6 s
@@ -125,6 +127,7 @@ struct Options {
     duration_given: bool,
     pty: bool,
     bridge_pty: bool,
+    no_wifi: bool,
     config: Vec<(String, String)>,
     flash: Option<String>,
     boot_button_us: Option<u64>,
@@ -159,6 +162,7 @@ fn parse_args() -> Result<Parsed, String> {
         duration_given: false,
         pty: false,
         bridge_pty: false,
+        no_wifi: false,
         config: Vec::new(),
         flash: None,
         boot_button_us: None,
@@ -176,6 +180,7 @@ fn parse_args() -> Result<Parsed, String> {
             }
             "--pty" => o.pty = true,
             "--bridge-pty" => o.bridge_pty = true,
+            "--no-wifi" => o.no_wifi = true,
             "--read-only" => o.config.push(("read_only".into(), "on".into())),
             "--stream-period" => {
                 let d = parse_duration(&value("--stream-period")?)? / 1000;
@@ -691,6 +696,7 @@ fn run_realtime(o: &Options) -> ExitCode {
                     )
                 }),
                 pty: o.bridge_pty,
+                no_wifi: o.no_wifi,
                 mqtt: o.mqtt.clone(),
                 profile: o.profile.clone(),
                 bridge: Timing {

@@ -63,6 +63,28 @@ pub fn require_bridge(c: &Client) -> ToolResult<()> {
     }
 }
 
+/// Refuses a bridge whose image has no Wi-Fi (its `hello` lists what is
+/// built in; an older firmware that does not say is taken at its word).
+pub fn require_wifi(c: &Client, command: &str) -> ToolResult<()> {
+    let Some(features) = c.hello["features"].as_array() else {
+        return Ok(());
+    };
+    if features.iter().any(|f| f == "wifi") {
+        return Ok(());
+    }
+    let built: Vec<&str> = features.iter().filter_map(|f| f.as_str()).collect();
+    Err(ToolError::usage(format!(
+        "this bridge's image has no Wi-Fi (built in: {}): `tinybms {command}` would be \
+         stored and never used. Flash an image with Wi-Fi (`tinybms-BOARD-wifi.bin`, or \
+         `cargo build --release --features wifi`; docs/flashing.md), then run it again",
+        if built.is_empty() {
+            "nothing listed".to_string()
+        } else {
+            built.join(", ")
+        }
+    )))
+}
+
 /// The bridge's configuration: every field, and the `config_end` line.
 pub fn fetch(c: &mut Client) -> ToolResult<(Vec<Shown>, Value)> {
     let req = c.send(json!({"cmd": "get", "what": "config"}))?;

@@ -170,7 +170,7 @@ fn run(cli: Cli) -> ToolResult<()> {
         } => cmd::set::run(conn, assignments, raw, dry_run, yes),
         Command::Events { conn, json } => cmd::events::run(conn, json),
         Command::Stats { conn, json } => cmd::show::show_one(&conn, "statistics", json),
-        Command::Version { conn, json } => cmd::show::show_one(&conn, "version", json),
+        Command::Version { conn, json } => cmd::show::version(&conn, json),
         Command::Reset { conn, yes } => cmd::clear::clear_or_reset(&conn, yes, "reset"),
         Command::ClearEvents { conn, yes } => cmd::clear::clear_or_reset(&conn, yes, "events"),
         Command::ClearStats { conn, yes } => cmd::clear::clear_or_reset(&conn, yes, "statistics"),

@@ -30,7 +30,7 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
     let started = Instant::now();
     // What was recorded, not what was asked: Ctrl-C ends it early.
     let recorded = |started: Instant| started.elapsed().min(duration);
-    let mut took = Duration::ZERO;
+    let took: Duration;
     match (mode, probe) {
         (Mode::Direct, _) => {
             let _ = serial.clear(serialport::ClearBuffer::Input);

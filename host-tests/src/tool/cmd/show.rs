@@ -19,6 +19,60 @@ pub fn show_one(conn: &Conn, what: &str, json: bool) -> ToolResult<()> {
     }
     Ok(())
 }
+/// `tinybms version`: the BMS's version and, through a bridge, the bridge's
+/// own (from its `hello`: firmware, build, chip, board, what is built in,
+/// the configuration record's version).
+pub fn version(conn: &Conn, json: bool) -> ToolResult<()> {
+    let mut c = connect_ready(conn)?;
+    let mut v = c.get_one("version")?;
+    let bridge = (c.mode == crate::tool::transport::Mode::Bridge).then(|| {
+        let h = &c.hello;
+        let mut b = serde_json::Map::new();
+        for k in [
+            "firmware",
+            "build",
+            "chip",
+            "board",
+            "features",
+            "record_version",
+        ] {
+            if !h[k].is_null() {
+                b.insert(k.to_string(), h[k].clone());
+            }
+        }
+        b
+    });
+    if let Some(m) = v.as_object_mut() {
+        m.shift_remove("req");
+    }
+    if json {
+        if let (Some(m), Some(b)) = (v.as_object_mut(), bridge) {
+            m.insert("bridge".into(), Value::Object(b));
+        }
+        println!("{v}");
+        return Ok(());
+    }
+    if let Some(b) = bridge {
+        println!("the bridge (its own firmware):");
+        let w = b.keys().map(String::len).max().unwrap_or(0);
+        for (k, x) in &b {
+            let text = match x {
+                Value::String(s) => s.clone(),
+                Value::Array(a) => a
+                    .iter()
+                    .filter_map(|f| f.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                other => other.to_string(),
+            };
+            println!("  {k:<w$}  {text}");
+        }
+        println!("the BMS:");
+    }
+    print_fields(&v);
+    Ok(())
+}
+
 pub fn print_fields(v: &Value) {
     if let Some(m) = v.as_object() {
         let w = m.keys().map(String::len).max().unwrap_or(0);
