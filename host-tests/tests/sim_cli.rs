@@ -66,6 +66,10 @@ fn usage_errors_exit_2() {
         &["--seeds", "5..1"][..],
         &["--live-period", "0"][..],
         &["--bogus"][..],
+        // Issue 26, item 13: several packs are not run on a pty (it used to
+        // run one bridge without a word).
+        &["--bridge-pty", "--packs", "2"][..],
+        &["--pty", "--packs", "2"][..],
     ] {
         let (code, _, err) = sim(args);
         assert_eq!(code, 2, "{args:?}");

@@ -388,3 +388,41 @@ fn the_bridge_says_who_it_is_and_an_image_without_wifi_says_so() {
     let show = tinybms(&["config", &sim.path, "wifi_ssid"]);
     assert!(!show.stdout.contains("Home Net"), "stored anyway: {show}");
 }
+
+/// Issue 26, item 13: `config PORT NAME=VALUE --dry-run` checks by the
+/// firmware's rules and changes nothing; arguments in the wrong order are
+/// named as such; a `--period` the bridge cannot stream is said, not clamped
+/// in silence.
+#[test]
+fn dry_run_swapped_arguments_and_a_clamped_period_are_said() {
+    let flash = tmp("config-flash-dry.bin");
+    let _ = std::fs::remove_file(&flash);
+    let sim = bridge(&flash, &[]);
+    let dry = tinybms(&["config", &sim.path, "charge_current_cap=50A", "--dry-run"]);
+    assert_eq!(dry.code, 0, "{dry}");
+    assert!(dry.stdout.contains("charge_current_cap"), "{dry}");
+    assert!(dry.stdout.contains("-> 50"), "{dry}");
+    assert!(
+        dry.stdout.contains("dry run: checked, nothing changed"),
+        "{dry}"
+    );
+    let after = tinybms(&["config", &sim.path, "charge_current_cap"]);
+    assert!(
+        !after.stdout.contains("= 50"),
+        "changed by a dry run: {after}"
+    );
+    let bad = tinybms(&["config", &sim.path, "charge_current_cap=0", "--dry-run"]);
+    assert_eq!(bad.code, 2, "a typed 0 is refused in a dry run too: {bad}");
+    let swapped = tinybms(&["config", "charge_current_cap=5A", &sim.path]);
+    assert_eq!(swapped.code, 2, "{swapped}");
+    assert!(swapped.stderr.contains("the port comes first"), "{swapped}");
+    let m = tinybms(&[
+        "monitor", &sim.path, "--json", "--count", "1", "--period", "50ms",
+    ]);
+    assert_eq!(m.code, 0, "{m}");
+    assert!(
+        m.stderr
+            .contains("--period 50ms: the bridge streams every 100 ms to 60 s; using 100 ms"),
+        "{m}"
+    );
+}

@@ -331,6 +331,13 @@ fn parse_args() -> Result<Parsed, String> {
     if o.pty && o.bridge_pty {
         return Err("--pty and --bridge-pty exclude each other".into());
     }
+    if o.packs.is_some() && (o.pty || o.bridge_pty || o.mqtt.is_some()) {
+        return Err(
+            "--packs runs several packs in virtual time (with --scenario); it does not go \
+             with --pty, --bridge-pty or --mqtt, which run one bridge in real time"
+                .into(),
+        );
+    }
     if o.pty && o.mqtt.is_some() {
         return Err("--mqtt goes with --bridge-pty or alone, not with --pty".into());
     }

@@ -230,8 +230,8 @@ pub enum Command {
         /// Show what FILE changes, then change it.
         #[arg(long, value_name = "FILE", conflicts_with_all = ["reset", "args"])]
         load: Option<PathBuf>,
-        /// With --load: show the changes only.
-        #[arg(long, requires = "load")]
+        /// With --load or NAME=VALUE: check and show the changes only.
+        #[arg(long)]
         dry_run: bool,
         /// Every field back to its default.
         #[arg(long, conflicts_with = "args")]

@@ -15,6 +15,20 @@ pub fn run_config(
     reset: bool,
     yes: bool,
 ) -> ToolResult<()> {
+    // Arguments in the wrong order: the port comes first.
+    let looks_like_port = |a: &str| {
+        a.starts_with("/dev/")
+            || a.starts_with("\\\\.\\")
+            || (a.len() > 3
+                && a[..3].eq_ignore_ascii_case("com")
+                && a[3..].bytes().all(|b| b.is_ascii_digit()))
+    };
+    if conn.port.contains('=') || args.iter().any(|a| looks_like_port(a)) {
+        return Err(ToolError::usage(format!(
+            "the port comes first: tinybms config PORT NAME=VALUE... (`{}` is not a port)",
+            conn.port
+        )));
+    }
     // Everything that can be checked without the bridge is checked first.
     let assignments = if args.iter().any(|x| x.contains('=')) {
         let mut out = Vec::new();
@@ -38,8 +52,8 @@ pub fn run_config(
             "tinybms config PORT NAME (one field), or NAME=VALUE... to change fields",
         ));
     }
-    if dry_run && load.is_none() {
-        return Err(ToolError::usage("--dry-run goes with --load"));
+    if dry_run && load.is_none() && assignments.is_none() {
+        return Err(ToolError::usage("--dry-run goes with --load or NAME=VALUE"));
     }
     let explain = match (&assignments, args.first()) {
         (None, Some(name)) => Some(config::field_named(name)?),
@@ -76,6 +90,22 @@ pub fn run_config(
     let current = config::record_of(&fields);
     if let Some(changes) = assignments {
         config::check_locally(&current, &changes)?;
+        if dry_run {
+            // Checked by the firmware's rules (each field, and the fields
+            // against each other): what would be written.
+            for (id, p) in &changes {
+                let mut l = tinybms_firmware::text::Line::new();
+                tinybms_firmware::config::value::write(id.field(), &p.as_value(), true, &mut l);
+                let now = fields
+                    .iter()
+                    .find(|f| f.line["name"] == id.name())
+                    .and_then(|f| f.line["value"].as_str())
+                    .unwrap_or("?");
+                println!("  {:<24} {now} -> {}", id.name(), l.as_str());
+            }
+            println!("dry run: checked, nothing changed");
+            return Ok(());
+        }
         confirm_one_way(yes, &current, &changes)?;
         return config::apply(&mut c, &changes);
     }

@@ -53,9 +53,22 @@ pub fn run(
         every,
         count,
         duration,
-        period_ms: period.as_millis().clamp(100, 60_000) as u32,
+        period_ms: stream_period_ms(period),
         ready_timeout: conn.timeout,
     };
     let mut c = connect(&conn)?;
     monitor::run(&mut c, &o)
+}
+
+/// `--period` as the bridge can stream it (100 ms to 60 s), said when it is
+/// not what was asked.
+fn stream_period_ms(period: Duration) -> u32 {
+    let asked = period.as_millis();
+    let ms = asked.clamp(100, 60_000) as u32;
+    if u128::from(ms) != asked {
+        eprintln!(
+            "tinybms: --period {asked}ms: the bridge streams every 100 ms to 60 s; using {ms} ms"
+        );
+    }
+    ms
 }
