@@ -11,9 +11,9 @@
 use proptest::prelude::*;
 use tinybms_firmware::inverter::control::{ChargeConfig, Conditions, Limits, PackState};
 use tinybms_firmware::inverter::packs::{
-    aggregate, aggregate_with, from_id, share_with_margin, summary_id, Battery, BatteryLimits,
-    Election, Member, Packs, Received, Shares, Summary, SummaryError, DEAF_GUARD_US, LISTEN_US,
-    PACK_LOST_US, PARTIAL_MAX_US, SHARE_WINDOW, SPEAKER_LOST_US, SUMMARY_BASE_ID, SUMMARY_LAST_ID,
+    aggregate, aggregate_with, from_id, summary_id, Battery, BatteryLimits, Election, Member,
+    Packs, Received, Shares, Summary, SummaryError, DEAF_GUARD_US, LISTEN_US, PACK_LOST_US,
+    PARTIAL_MAX_US, SHARE_WINDOW, SPEAKER_LOST_US, SUMMARY_BASE_ID, SUMMARY_LAST_ID,
 };
 
 const S: u64 = 1_000_000;
@@ -538,7 +538,24 @@ struct Parallel {
     r_ohm: Vec<f64>,
 }
 
+/// `v` without its element `j`.
+fn without(v: &[f64], j: usize) -> Vec<f64> {
+    v.iter()
+        .enumerate()
+        .filter(|(k, _)| *k != j)
+        .map(|(_, x)| *x)
+        .collect()
+}
+
 impl Parallel {
+    /// The same packs without pack `j` (its switch open).
+    fn without(&self, j: usize) -> Self {
+        Self {
+            ocv_v: without(&self.ocv_v, j),
+            r_ohm: without(&self.r_ohm, j),
+        }
+    }
+
     fn split(&self, total_a: f64) -> Vec<f64> {
         let g: Vec<f64> = self.r_ohm.iter().map(|r| 1.0 / r).collect();
         let gs: f64 = g.iter().sum();
@@ -625,19 +642,8 @@ fn uneven_packs_in_parallel_are_never_pushed_past_their_own_limits() {
             .zip(&ccl)
             .map(|(i, l)| (l - i) / l)
             .fold(f64::MAX, f64::min);
-        let without = |v: &[f64], j: usize| -> Vec<f64> {
-            v.iter()
-                .enumerate()
-                .filter(|(k, _)| *k != j)
-                .map(|(_, x)| *x)
-                .collect()
-        };
         for j in 0..ocv.len() {
-            let rest = Parallel {
-                ocv_v: without(&ocv, j),
-                r_ohm: without(&r, j),
-            };
-            for (i, l) in rest.split(total).iter().zip(&without(&ccl, j)) {
+            for (i, l) in model.without(j).split(total).iter().zip(&without(&ccl, j)) {
                 assert!(
                     *i <= l + 0.5,
                     "without pack {j}: {i:.2} A against {l} A (CCL {last_ccl} A)"
@@ -1224,24 +1230,13 @@ fn learnt_shares_keep_every_pack_within_its_limit_and_the_check_can_fail() {
             // and going), within the battery's CCL.
             let demand = 100.0 + 95.0 * (t as f64 * std::f64::consts::TAU / 150.0).sin();
             total = (f64::from(lim.ccl_da) / 10.0).min(demand);
-            let without = |v: &[f64], j: usize| -> Vec<f64> {
-                v.iter()
-                    .enumerate()
-                    .filter(|(k, _)| *k != j)
-                    .map(|(_, x)| *x)
-                    .collect()
-            };
             for (k, (i, l)) in model.split(total).iter().zip(ccl).enumerate() {
                 if *i > l + 0.3 {
                     return Some(format!("at {t} s pack {k}: {i:.1} A against {l} A"));
                 }
             }
             for j in 0..ocv.len() {
-                let rest = Parallel {
-                    ocv_v: without(ocv, j),
-                    r_ohm: without(r, j),
-                };
-                for (i, l) in rest.split(total).iter().zip(&without(ccl, j)) {
+                for (i, l) in model.without(j).split(total).iter().zip(&without(ccl, j)) {
                     if *i > l + 0.6 {
                         return Some(format!("at {t} s without pack {j}: {i:.1} A against {l} A"));
                     }
@@ -1282,18 +1277,7 @@ fn learnt_shares_keep_every_pack_within_its_limit_and_the_check_can_fail() {
             };
             prop_assume!(calm(&model, &ccl));
             for j in 0..ocv.len() {
-                let drop_j = |v: &[f64]| -> Vec<f64> {
-                    v.iter()
-                        .enumerate()
-                        .filter(|(k, _)| *k != j)
-                        .map(|(_, x)| *x)
-                        .collect()
-                };
-                let rest = Parallel {
-                    ocv_v: drop_j(&ocv),
-                    r_ohm: drop_j(&r),
-                };
-                prop_assume!(calm(&rest, &drop_j(&ccl)));
+                prop_assume!(calm(&model.without(j), &without(&ccl, j)));
             }
             let failure = run(&ocv, &r, &ccl, None);
             prop_assert!(failure.is_none(), "{failure:?} {ocv:?} {r:?} {ccl:?}");
@@ -1313,7 +1297,6 @@ fn learnt_shares_keep_every_pack_within_its_limit_and_the_check_can_fail() {
         Some(0.5),
     );
     assert!(caught.is_some(), "half the shares went unnoticed");
-    let _ = share_with_margin(0.25);
 }
 
 /// Issue 24, lossy bus: a node that hears two or more others and then none

@@ -277,37 +277,16 @@ fn log_prints_the_bridges_log_lines() {
 fn a_recording_stopped_early_says_how_long_it_recorded() {
     let sim = Sim::start(&["--bridge-pty"]);
     let file = std::env::temp_dir().join(format!("early-{}.tbms", std::process::id()));
-    let mut child = Command::new(tinybms_bin())
-        .args([
+    let (_, shown) = ctrl_c_after(
+        &[
             "record",
             &sim.path,
             file.to_str().unwrap(),
             "--duration",
             "30s",
-        ])
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut out = child.stdout.take().unwrap();
-    let reader = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = out.read_to_string(&mut s);
-        s
-    });
-    std::thread::sleep(Duration::from_secs(6));
-    // SAFETY: kill(2) on our own child's pid.
-    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
-    let start = Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        assert!(
-            start.elapsed() < Duration::from_secs(30),
-            "no exit after Ctrl-C"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let shown = reader.join().unwrap();
+        ],
+        Duration::from_secs(6),
+    );
     let secs: f64 = shown
         .split("recorded ")
         .nth(1)
@@ -334,35 +313,11 @@ fn a_recording_stopped_early_says_how_long_it_recorded() {
 #[test]
 fn ctrl_c_gives_the_bridge_its_stream_period_back() {
     let sim = Sim::start(&["--bridge-pty", "--stream-period", "2s"]);
-    let mut child = Command::new(tinybms_bin())
-        .args(["monitor", &sim.path, "--period", "200ms", "--plain"])
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut out = child.stdout.take().unwrap();
-    let reader = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = out.read_to_string(&mut s);
-        s
-    });
     // Until it shows data (bounded), then SIGINT.
-    std::thread::sleep(Duration::from_secs(6));
-    // SAFETY: kill(2) on our own child's pid.
-    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
-    let start = Instant::now();
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        assert!(
-            start.elapsed() < Duration::from_secs(30),
-            "no exit after Ctrl-C"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    let shown = reader.join().unwrap();
+    let (status, shown) = ctrl_c_after(
+        &["monitor", &sim.path, "--period", "200ms", "--plain"],
+        Duration::from_secs(6),
+    );
     assert!(shown.contains("Data age"), "{shown}");
     assert_eq!(status.code(), Some(130), "{shown}");
     // Now listen to the pty without saying hello (a new session would reset
@@ -438,4 +393,37 @@ fn a_port_where_nothing_answers_names_an_unflashed_bridge() {
     assert_ne!(o.code, 0, "{o}");
     assert!(o.stderr.contains("not running this firmware yet"), "{o}");
     assert!(!o.stderr.contains("is a USB-UART adapter wired"), "{o}");
+}
+
+/// Runs `tinybms args`, sends it SIGINT (Ctrl-C) after `after`, and waits
+/// (bounded) for it to exit: its exit status and what it printed.
+fn ctrl_c_after(args: &[&str], after: Duration) -> (std::process::ExitStatus, String) {
+    let mut child = Command::new(tinybms_bin())
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut out = child.stdout.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = out.read_to_string(&mut s);
+        s
+    });
+    std::thread::sleep(after);
+    // SAFETY: kill(2) on our own child's pid.
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let start = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(30),
+            "no exit after Ctrl-C"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    (status, reader.join().unwrap())
 }

@@ -93,16 +93,7 @@ pub fn run_config(
         if dry_run {
             // Checked by the firmware's rules (each field, and the fields
             // against each other): what would be written.
-            for (id, p) in &changes {
-                let mut l = tinybms_firmware::text::Line::new();
-                tinybms_firmware::config::value::write(id.field(), &p.as_value(), true, &mut l);
-                let now = fields
-                    .iter()
-                    .find(|f| f.line["name"] == id.name())
-                    .and_then(|f| f.line["value"].as_str())
-                    .unwrap_or("?");
-                println!("  {:<24} {now} -> {}", id.name(), l.as_str());
-            }
+            print_changes(&fields, &changes);
             println!("dry run: checked, nothing changed");
             return Ok(());
         }
@@ -118,16 +109,7 @@ pub fn run_config(
             wanted.len(),
             changes.len()
         );
-        for (id, p) in &changes {
-            let mut l = tinybms_firmware::text::Line::new();
-            tinybms_firmware::config::value::write(id.field(), &p.as_value(), true, &mut l);
-            let now = fields
-                .iter()
-                .find(|f| f.line["name"] == id.name())
-                .and_then(|f| f.line["value"].as_str())
-                .unwrap_or("?");
-            println!("  {:<24} {now} -> {}", id.name(), l.as_str());
-        }
+        print_changes(&fields, &changes);
         // Secrets are never in a file: say which the bridge now lacks, and how.
         let missing: Vec<&String> = secrets_in_file
             .iter()
@@ -231,5 +213,25 @@ pub fn confirm_one_way(
         Ok(())
     } else {
         Err(ToolError::failed("not confirmed: nothing changed"))
+    }
+}
+
+/// Each change as `name  now -> new`, the new value in the firmware's words.
+fn print_changes(
+    fields: &[config::Shown],
+    changes: &[(
+        tinybms_firmware::config::FieldId,
+        tinybms_firmware::config::value::Parsed,
+    )],
+) {
+    for (id, p) in changes {
+        let mut l = tinybms_firmware::text::Line::new();
+        tinybms_firmware::config::value::write(id.field(), &p.as_value(), true, &mut l);
+        let now = fields
+            .iter()
+            .find(|f| f.line["name"] == id.name())
+            .and_then(|f| f.line["value"].as_str())
+            .unwrap_or("?");
+        println!("  {:<24} {now} -> {}", id.name(), l.as_str());
     }
 }

@@ -29,7 +29,7 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
     let (mut tx, mut rx) = (0usize, 0usize);
     let started = Instant::now();
     // What was recorded, not what was asked: Ctrl-C ends it early.
-    let recorded = |started: Instant| started.elapsed().min(duration);
+    let recorded = || started.elapsed().min(duration);
     let took: Duration;
     match (mode, probe) {
         (Mode::Direct, _) => {
@@ -41,7 +41,7 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
                 let left = end.saturating_duration_since(Instant::now());
                 let _ = c.next_pushed(left.min(Duration::from_millis(200)))?;
             }
-            took = recorded(started);
+            took = recorded();
             let (t, r) = direct::stop(&mut c)?;
             tx = t as usize;
             rx = r as usize;
@@ -74,7 +74,7 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
                     rx += bytes.len();
                 }
             }
-            took = recorded(started);
+            took = recorded();
             let req = c.send(json!({"cmd": "capture", "on": false}))?;
             // Raw lines still queued before the answer are part of the capture.
             loop {
