@@ -47,6 +47,7 @@ pub mod bms;
 pub mod boards;
 pub mod bridge;
 pub mod config;
+pub mod energy;
 pub mod freshness;
 pub mod host_link;
 pub mod identity;

@@ -41,6 +41,8 @@ pub trait HostSide {
 /// The station (bridge, host link, inverter output, configuration) on a byte
 /// port.
 pub struct Hosted<P: BytePort> {
+    /// What the station was built with (a restart builds it again).
+    pub setup: Setup,
     /// The station on its port.
     pub driver: Driver<P>,
     /// The BOOT button: held from this time (µs) for this long, if ever
@@ -75,6 +77,9 @@ impl<P: BytePort> Hosted<P> {
         let clock = crate::realtime::Clock::start();
         let mut store = crate::flash::store(flash);
         let loaded = block_on(store.load());
+        // The CAN output is built in, as in the ready-made images; a bus
+        // with a simulated inverter is attached by `sim` (else nothing
+        // acknowledges a frame, as on a chip whose CAN is not wired).
         let setup = Setup {
             timing: bridge,
             identity: Identity::desktop(
@@ -83,7 +88,7 @@ impl<P: BytePort> Hosted<P> {
                     host_link: true,
                     store: true,
                     wifi,
-                    can: false,
+                    can: true,
                 },
             ),
             inverter: None,
@@ -92,6 +97,7 @@ impl<P: BytePort> Hosted<P> {
         let mut driver = Driver::with_station(port, station, clock);
         driver.store = Some(store);
         Self {
+            setup,
             driver,
             boot_button: None,
             mqtt: None,
@@ -100,6 +106,18 @@ impl<P: BytePort> Hosted<P> {
             input: Vec::new(),
             next_sample: 0,
         }
+    }
+
+    /// A restart of the chip: the station built again from what its store
+    /// holds (the port, the CAN bus and the clock stay). Call
+    /// [`Hosted::connected`] after it when a host is there.
+    pub fn restart(&mut self) {
+        let loaded = match self.driver.store.as_mut() {
+            Some(store) => block_on(store.load()),
+            None => return,
+        };
+        let now = self.driver.clock().now();
+        self.driver.station = Station::new(self.setup, loaded, now);
     }
 
     /// The station.
@@ -315,6 +333,8 @@ pub struct BridgePtyOptions {
     pub freeze: Option<(Duration, Duration)>,
     /// Stand for an image without Wi-Fi (`--no-wifi`: its `hello` says so).
     pub no_wifi: bool,
+    /// Write what the bridge sends on CAN here, as a candump log (`--can-log`).
+    pub can_log: Option<std::path::PathBuf>,
 }
 
 /// `sim --bridge-pty`: the bridge and host link against `sim` in real time,
@@ -330,8 +350,22 @@ pub fn serve_bridge_pty(
         Some(path) => SimFlash::File(crate::flash::FileFlash::open(path)?),
         None => SimFlash::Ram(crate::flash::RamFlash::new()),
     };
+    let client_id = sim_client_id(&sim);
     let mut h = Hosted::with_wifi(SimPort::new(sim), o.bridge, flash, "sim", !o.no_wifi);
     h.change_config(&o.config).map_err(io::Error::other)?;
+    // Start-up options are what the bridge boots with: the changes stored,
+    // then a restart, so those that apply at the next restart (the MQTT
+    // topics, discovery, the inverter protocol) apply now.
+    if !o.config.is_empty() {
+        h.restart();
+    }
+    let can_log = match &o.can_log {
+        Some(path) => {
+            Some(Box::new(io::BufWriter::new(std::fs::File::create(path)?)) as Box<dyn Write + Send>)
+        }
+        None => None,
+    };
+    h.driver.can = Some(Box::new(crate::sim_can::SimInverterBus::new(can_log)));
     h.boot_button = o
         .boot_button
         .map(|(from, long)| (from.as_micros() as u64, long.as_micros() as u64));
@@ -341,8 +375,7 @@ pub fn serve_bridge_pty(
     let clock = h.driver.clock();
     if let Some((host, port)) = &o.mqtt {
         let record = h.station().config().running().clone();
-        let mut target =
-            tinybms_firmware::mqtt::session::Target::from_config(&record, "tinybms-sim");
+        let mut target = tinybms_firmware::mqtt::session::Target::from_config(&record, &client_id);
         target.host.clear();
         target
             .host
@@ -352,7 +385,10 @@ pub fn serve_bridge_pty(
         let shared = crate::mqtt::Shared::default();
         crate::mqtt::spawn(
             target,
-            tinybms_firmware::mqtt::Settings::from_config(&record),
+            (
+                tinybms_firmware::mqtt::Settings::from_config(&record),
+                h.setup.identity,
+            ),
             shared.clone(),
             clock,
             crate::mqtt::TcpNet::default(),
@@ -384,6 +420,21 @@ pub fn serve_bridge_pty(
         }
     }
     Ok(())
+}
+
+/// The MQTT client id of a simulated bridge: `tinybms-sim-` and the last six
+/// hex digits of its BMS's serial (the Home Assistant device's name), so two
+/// simulated bridges of different seeds never take each other's session.
+pub fn sim_client_id(sim: &SimBms) -> String {
+    let r = sim.registers();
+    // The serial's bytes as the version block reads them (504-509, low byte
+    // first): the last three are the high byte of 508 and both of 509.
+    let tail = [
+        r[508].to_le_bytes()[1],
+        r[509].to_le_bytes()[0],
+        r[509].to_le_bytes()[1],
+    ];
+    format!("tinybms-sim-{:02X}{:02X}{:02X}", tail[0], tail[1], tail[2])
 }
 
 /// No host on the host link (`sim --mqtt` without `--bridge-pty`).

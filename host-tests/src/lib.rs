@@ -12,6 +12,7 @@ pub mod hosted;
 pub mod mqtt;
 pub mod mqtt_e2e;
 pub mod multi_pack;
+pub mod packs_mqtt;
 pub mod profile;
 #[cfg(unix)]
 pub mod pty;
@@ -21,6 +22,7 @@ pub mod pty;
 pub mod realtime;
 pub mod replay;
 pub mod sim;
+pub mod sim_can;
 pub mod tool;
 pub mod trace;
 pub mod truth;

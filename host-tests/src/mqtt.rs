@@ -20,6 +20,7 @@ use std::time::Duration;
 use async_io::{Async, Timer};
 use embedded_io_adapters::futures_03::FromFutures;
 use protocol_core::events::Event;
+use tinybms_firmware::identity::Identity;
 use tinybms_firmware::mqtt::publisher::{Publisher, View};
 use tinybms_firmware::mqtt::session::{self, Clock, Feed, NetError, Network, Note, Target};
 use tinybms_firmware::mqtt::Settings;
@@ -271,17 +272,17 @@ pub fn note_text(n: &Note) -> String {
     }
 }
 
-/// Starts the session on a thread of its own, over `net`. `log`: print its
-/// notes to stderr.
+/// Starts the session on a thread of its own, over `net`, publishing with
+/// `settings` for the bridge `bridge`. `log`: print its notes to stderr.
 pub fn spawn<N: Network + Send + 'static>(
     target: Target,
-    settings: Settings,
+    (settings, bridge): (Settings, Identity),
     shared: Shared,
     clock: realtime::Clock,
     net: N,
     log: bool,
 ) -> Notes {
-    spawn_with(target, settings, shared, clock, log, move || {
+    spawn_with(target, (settings, bridge), shared, clock, log, move || {
         (net, Box::pin(std::future::pending()))
     })
 }
@@ -294,7 +295,7 @@ pub type Beside = std::pin::Pin<Box<dyn std::future::Future<Output = ()>>>;
 /// session stops when it does).
 pub fn spawn_with<N: Network + 'static>(
     target: Target,
-    settings: Settings,
+    (settings, bridge): (Settings, Identity),
     shared: Shared,
     clock: realtime::Clock,
     log: bool,
@@ -305,7 +306,7 @@ pub fn spawn_with<N: Network + 'static>(
     let _ = std::thread::Builder::new()
         .name("mqtt".into())
         .spawn(move || {
-            let mut publisher = Publisher::new(settings, env!("CARGO_PKG_VERSION"));
+            let mut publisher = Publisher::new(settings, &bridge);
             let mut feed = SharedFeed::new(shared);
             let (mut net, beside) = make();
             let clock = HostClock(clock);

@@ -49,6 +49,13 @@ fn view<'a>(snap: &'a LiveSnapshot, age_s: u64) -> View<'a> {
         link: (100, 99),
         battery: None,
         freshness: tinybms_firmware::freshness::Freshness::new(5 * SECOND),
+        energy_mwh: (12_345, 6_789),
+        capacity_cah: Some(28_000),
+        inverter: Some(tinybms_firmware::station::InverterStatus {
+            protocol: "victron",
+            can: tinybms_firmware::inverter::CanState::Running,
+            heard: true,
+        }),
     }
 }
 
@@ -90,7 +97,8 @@ fn units_for(class: &str) -> &'static [&'static str] {
         "battery" => &["%"],
         "temperature" => &["°C", "°F", "K"],
         "duration" => &["d", "h", "min", "s", "ms"],
-        "enum" => &[],
+        "energy" => &["Wh", "kWh", "MWh"],
+        "enum" | "connectivity" => &[],
         other => panic!("device class {other} not in the test's table"),
     }
 }
@@ -104,7 +112,7 @@ fn is_id(s: &str) -> bool {
 #[test]
 fn discovery_configs_are_what_home_assistant_accepts() {
     let (snap, _) = inputs();
-    let mut p = Publisher::new(settings(), "test");
+    let mut p = Publisher::new(settings(), &bridge());
     p.connected(0, id());
     let v = view(&snap, 0);
     let out = drain(&mut p, 0, &v);
@@ -120,7 +128,10 @@ fn discovery_configs_are_what_home_assistant_accepts() {
         let parts: Vec<&str> = topic.split('/').collect();
         assert_eq!(parts.len(), 5, "{topic}");
         assert_eq!(parts[0], "homeassistant");
-        assert!(["sensor", "binary_sensor"].contains(&parts[1]), "{topic}");
+        assert!(
+            ["sensor", "binary_sensor", "event"].contains(&parts[1]),
+            "{topic}"
+        );
         assert!(is_id(parts[2]) && is_id(parts[3]), "{topic}");
         assert_eq!(parts[4], "config");
         let c = json(payload);
@@ -133,7 +144,12 @@ fn discovery_configs_are_what_home_assistant_accepts() {
         assert_eq!(c["device"]["serial_number"], id().serial_hex().as_str());
         assert_eq!(c["device"]["manufacturer"], "Energus");
         assert!(c["device"]["sw_version"].as_str().is_some());
-        assert!(c["state_topic"].as_str().unwrap().ends_with("/state"));
+        let leaf = if parts[1] == "event" {
+            "/event"
+        } else {
+            "/state"
+        };
+        assert!(c["state_topic"].as_str().unwrap().ends_with(leaf));
         assert_eq!(
             c["availability"][0]["topic"],
             format!("tinybms/{}/availability", id().serial_hex())
@@ -155,7 +171,12 @@ fn discovery_configs_are_what_home_assistant_accepts() {
                 .iter()
                 .map(|o| o.as_str().unwrap())
                 .collect();
-            assert_eq!(opts, STATUS_OPTIONS);
+            let want = if uid.ends_with("_status") {
+                STATUS_OPTIONS
+            } else {
+                discovery::CAN_STATES
+            };
+            assert_eq!(opts, want, "{uid}");
             assert!(c.get("state_class").is_none());
         }
         assert!(
@@ -174,7 +195,7 @@ fn discovery_configs_are_what_home_assistant_accepts() {
 #[test]
 fn every_template_reads_a_member_the_state_has() {
     let (snap, _) = inputs();
-    let mut p = Publisher::new(settings(), "test");
+    let mut p = Publisher::new(settings(), &bridge());
     p.connected(0, id());
     let v = view(&snap, 1);
     let out = drain(&mut p, 0, &v);
@@ -186,6 +207,7 @@ fn every_template_reads_a_member_the_state_has() {
     for e in ENTITIES
         .iter()
         .copied()
+        .filter(|e| e.component != Component::Event)
         .chain((1..=16).map(discovery::cell))
     {
         let member = e.read.member();
@@ -199,14 +221,35 @@ fn every_template_reads_a_member_the_state_has() {
             Read::Cell(i) => assert!(s[member][usize::from(i)].is_number(), "cell {i}"),
             Read::Nullable(_) => {}
             Read::NonZero(_) => assert!(s[member].is_number()),
+            Read::Flag(_) => assert!(s[member].is_boolean(), "{}: {member}", e.object),
+            Read::Event => unreachable!("the event entity reads the event topic"),
         }
         if e.component == Component::BinarySensor {
-            assert!(matches!(e.read, Read::NonZero(_)));
+            assert!(matches!(e.read, Read::NonZero(_) | Read::Flag(_)));
         }
     }
     // The state's own members: the host link's telemetry names and the extras.
     assert_eq!(s["type"], "telemetry");
-    assert!(STATUS_OPTIONS.contains(&s["status"].as_str().unwrap()));
+    assert!(STATUS_OPTIONS.contains(&s["status_name"].as_str().unwrap()));
+    assert_eq!(s["status"], snap.status.key().unwrap_or("other"));
+    assert_eq!(s["energy_charged_kwh"], 0.012345);
+    assert_eq!(s["energy_discharged_kwh"], 0.006789);
+    // 280 Ah at the snapshot's SOC.
+    let soc = s["soc_percent"].as_f64().unwrap();
+    let left = s["remaining_capacity_ah"].as_f64().unwrap();
+    assert!(
+        (left - 280.0 * soc / 100.0).abs() < 0.01,
+        "{left} at {soc} %"
+    );
+    assert_eq!(s["can_state"], "running");
+    assert_eq!(s["inverter_heard"], true);
+    assert_eq!(s["uptime_s"], 0);
+    let firmware = format!(
+        "{} ({}) on simulated",
+        tinybms_firmware::identity::FIRMWARE,
+        tinybms_firmware::identity::BUILD
+    );
+    assert_eq!(s["bridge_firmware"], firmware.as_str());
     let power = s["pack_power_w"].as_f64().unwrap();
     let expect = s["pack_voltage_v"].as_f64().unwrap() * s["pack_current_a"].as_f64().unwrap();
     assert!((power - expect).abs() < 0.1, "{power} vs {expect}");
@@ -219,7 +262,7 @@ fn every_template_reads_a_member_the_state_has() {
 fn a_sensor_that_is_not_connected_is_unavailable_not_zero() {
     let (mut snap, _) = inputs();
     snap.external2_dc = None;
-    let mut p = Publisher::new(settings(), "test");
+    let mut p = Publisher::new(settings(), &bridge());
     p.connected(0, id());
     let out = drain(&mut p, 0, &view(&snap, 0));
     let cfg = out
@@ -245,7 +288,7 @@ fn a_sensor_that_is_not_connected_is_unavailable_not_zero() {
 #[test]
 fn the_schedule() {
     let (snap, _) = inputs();
-    let mut p = Publisher::new(settings(), "test");
+    let mut p = Publisher::new(settings(), &bridge());
     // Nothing before a connection.
     assert!(drain(&mut p, 0, &view(&snap, 0)).is_empty());
     p.connected(0, id());
@@ -328,7 +371,7 @@ fn discovery_off_removes_the_configs() {
     let (snap, _) = inputs();
     let mut s = settings();
     s.discovery = false;
-    let mut p = Publisher::new(s, "test");
+    let mut p = Publisher::new(s, &bridge());
     p.connected(0, id());
     let out = drain(&mut p, 0, &view(&snap, 0));
     let removals: Vec<_> = out.iter().filter(|m| m.2 == Kind::Removal).collect();
@@ -345,7 +388,7 @@ fn discovery_off_removes_the_configs() {
 fn a_smaller_pack_removes_the_cells_it_does_not_have() {
     let (mut snap, _) = inputs();
     snap.cell_count = 14;
-    let mut p = Publisher::new(settings(), "test");
+    let mut p = Publisher::new(settings(), &bridge());
     p.connected(0, id());
     let out = drain(&mut p, 0, &view(&snap, 0));
     let cells: Vec<&str> = out
@@ -377,7 +420,7 @@ proptest! {
     ) {
         let (snap, _) = inputs();
         let mut s = settings();
-        let mut p = Publisher::new(s.clone(), "test");
+        let mut p = Publisher::new(s.clone(), &bridge());
         let mut now = 0u64;
         let mut age = 0u64;
         let mut online = true;
@@ -390,7 +433,7 @@ proptest! {
                 3 => p.on_event(Event { timestamp_s: u32::from(x), id: EventId::from_raw(x) }),
                 4 => age = u64::from(x % 12),
                 5 => online = !online,
-                6 => { s.discovery = !s.discovery; p = Publisher::new(s.clone(), "test"); }
+                6 => { s.discovery = !s.discovery; p = Publisher::new(s.clone(), &bridge()); }
                 _ => {}
             }
             let mut v = view(&snap, age);
@@ -417,13 +460,16 @@ fn guide_row(e: &discovery::Entity) -> std::string::String {
         Read::Nullable(m) => format!("`{m}` (unavailable while null)"),
         Read::Cell(i) => format!("`cell_voltages_v[{i}]`"),
         Read::NonZero(m) => format!("`{m}` > 0"),
+        Read::Flag(m) => format!("`{m}` (unavailable while null)"),
+        Read::Event => "the event topic: each event's `severity`".to_string(),
     };
     format!(
-        "| `{}` | {} | {} | {} | {} | {}{} |",
+        "| `{}` | {} | {} | {} | {} | {} | {}{} |",
         e.object,
         e.name,
         e.component.name(),
         e.device_class.unwrap_or("—"),
+        e.state_class.unwrap_or("—"),
         e.unit.unwrap_or("—"),
         read,
         if e.category.is_some() {
@@ -457,7 +503,9 @@ fn the_home_assistant_guide_lists_every_entity_as_the_firmware_announces_it() {
         .lines()
         .filter(|l| {
             l.starts_with("| `")
-                && (l.contains(" | sensor | ") || l.contains(" | binary_sensor | "))
+                && (l.contains(" | sensor | ")
+                    || l.contains(" | binary_sensor | ")
+                    || l.contains(" | event | "))
         })
         .count();
     assert_eq!(
@@ -555,7 +603,7 @@ mod the_battery_of_packs_in_parallel {
     fn the_speaker_announces_one_battery_device_and_publishes_its_state() {
         let (snap, _) = inputs();
         let b = battery_view(true, true);
-        let mut p = Publisher::new(settings(), "test");
+        let mut p = Publisher::new(settings(), &bridge());
         p.connected(0, id());
         let out = drain(&mut p, 0, &with(&snap, &b));
         let configs: Vec<_> = out
@@ -630,7 +678,7 @@ mod the_battery_of_packs_in_parallel {
     fn a_bridge_that_does_not_speak_publishes_no_battery() {
         let (snap, _) = inputs();
         let b = battery_view(false, true);
-        let mut p = Publisher::new(settings(), "test");
+        let mut p = Publisher::new(settings(), &bridge());
         p.connected(0, id());
         for t in [0, 5, 10] {
             let out = drain(&mut p, t * SECOND, &with(&snap, &b));
@@ -661,7 +709,7 @@ mod the_battery_of_packs_in_parallel {
         let b = battery_view(true, true);
         let mut s = settings();
         s.discovery = false;
-        let mut p = Publisher::new(s, "test");
+        let mut p = Publisher::new(s, &bridge());
         p.connected(0, id());
         let out = drain(&mut p, 0, &with(&snap, &b));
         let removed: Vec<_> = out.iter().filter(|m| m.2 == Kind::BatteryRemoval).collect();
@@ -675,4 +723,66 @@ mod the_battery_of_packs_in_parallel {
         assert!(out.iter().all(|m| m.2 != Kind::BatteryRemoval));
         assert_eq!(out.iter().filter(|m| m.2 == Kind::BatteryState).count(), 1);
     }
+}
+
+/// The bridge the publisher speaks for.
+fn bridge() -> tinybms_firmware::identity::Identity {
+    tinybms_firmware::identity::Identity::desktop("test", Default::default())
+}
+
+/// No value older than the owner is told: every entity of the pack but the
+/// event expires after the documented time, at every publish period the
+/// configuration allows, and the keep-alive lets the broker notice a silent
+/// connection (1.5 keep-alives) no later than that.
+#[test]
+fn every_entity_expires_and_a_silent_connection_is_noticed_as_soon() {
+    let (snap, _) = inputs();
+    for period_s in [1u16, 2, 5, 7, 10, 20, 29, 30, 60, 600, 3600] {
+        let config = Config {
+            publish_period_s: period_s,
+            ..Config::default()
+        };
+        let s = Settings::from_config(&config);
+        let expire = s.expire_after_s();
+        assert_eq!(
+            expire,
+            (3 * u64::from(period_s)).max(15),
+            "period {period_s} s"
+        );
+        let keep_alive = u64::from(s.keep_alive_s());
+        // The will: 1.5 keep-alives after a ping half a keep-alive after the
+        // last state, and a broker that looks every 5 s.
+        assert!(
+            2 * keep_alive + 5 <= expire,
+            "period {period_s} s: keep-alive {keep_alive} s"
+        );
+        assert!((5..=60).contains(&keep_alive));
+        let mut p = Publisher::new(s.clone(), &bridge());
+        p.connected(0, id());
+        let out = drain(&mut p, 0, &view(&snap, 0));
+        let configs: Vec<_> = out.iter().filter(|m| m.2 == Kind::Discovery).collect();
+        assert_eq!(configs.len(), discovery::count(16));
+        for (topic, payload, _, _) in configs {
+            let c = json(payload);
+            if topic.contains("/event/") {
+                assert!(c.get("expire_after").is_none(), "{topic}");
+                assert_eq!(c["event_types"][0], "fault");
+            } else {
+                assert_eq!(c["expire_after"], expire, "{topic}");
+            }
+        }
+    }
+    // The default: 15 s, a keep-alive of 5 s.
+    let s = settings();
+    assert_eq!((s.expire_after_s(), s.keep_alive_s()), (15, 5));
+}
+
+#[test]
+fn balancing_cells_are_named_one_based() {
+    use tinybms_firmware::host_link::encode::balancing_cells;
+    assert_eq!(balancing_cells(0, 16), "none");
+    assert_eq!(balancing_cells(0b1000_0000_0000_0101, 16), "1, 3, 16");
+    // Bits beyond the pack's cells are not cells.
+    assert_eq!(balancing_cells(0b1000_0000_0000_0100, 8), "3");
+    assert_eq!(balancing_cells(u16::MAX, 16).len(), 53);
 }

@@ -457,7 +457,7 @@ fn run_beside_the_session() -> (LoopOutput, SessionOutput) {
     target.host.clear();
     target.host.push_str("broker.test").unwrap();
     target.port = 1883;
-    let mut publisher = Publisher::new(Settings::from_config(&config), "test");
+    let mut publisher = Publisher::new(Settings::from_config(&config), &bridge());
     let notes = RefCell::new(Vec::new());
     let mut note = |n: Note| notes.borrow_mut().push(n);
     let mut longest_poll = Duration::ZERO;
@@ -588,4 +588,9 @@ fn a_misbehaving_broker_changes_nothing_the_bridge_or_the_inverter_output_does()
     assert!(alone.limits == beside.limits, "the limits differ");
     assert!(alone.published == beside.published, "the snapshots differ");
     assert!(alone == beside);
+}
+
+/// The bridge the publisher speaks for.
+fn bridge() -> tinybms_firmware::identity::Identity {
+    tinybms_firmware::identity::Identity::desktop("test", Default::default())
 }

@@ -359,14 +359,17 @@ fn the_bridge_says_who_it_is_and_an_image_without_wifi_says_so() {
     assert!(v.stdout.contains("the bridge (its own firmware):"), "{v}");
     assert!(v.stdout.contains(env!("CARGO_PKG_VERSION")), "{v}");
     assert!(v.stdout.contains("board"), "{v}");
-    assert!(v.stdout.contains("features        host-link, store"), "{v}");
+    assert!(
+        v.stdout.contains("features        can, host-link, store"),
+        "{v}"
+    );
     assert!(v.stdout.contains("record_version  2"), "{v}");
     let j = tinybms(&["version", &sim.path, "--json"]);
     let line: serde_json::Value = serde_json::from_str(j.stdout.trim()).unwrap();
     assert_eq!(line["bridge"]["chip"], "sim", "{j}");
     assert_eq!(
         line["bridge"]["features"],
-        serde_json::json!(["host-link", "store"])
+        serde_json::json!(["can", "host-link", "store"])
     );
     let wifi = tinybms_with_input(
         &["wifi", &sim.path, "--ssid", "Home Net"],
@@ -375,7 +378,7 @@ fn the_bridge_says_who_it_is_and_an_image_without_wifi_says_so() {
     assert_eq!(wifi.code, 2, "{wifi}");
     assert!(
         wifi.stderr
-            .contains("this bridge's image has no Wi-Fi (built in: host-link, store)"),
+            .contains("this bridge's image has no Wi-Fi (built in: can, host-link, store)"),
         "{wifi}"
     );
     assert!(

@@ -114,6 +114,17 @@ const WDT_TIMEOUT: esp_hal::time::Duration = esp_hal::time::Duration::from_secs(
 /// docs): esp-rtos's highest.
 const MAIN_PRIORITY: usize = 31;
 
+/// Who this image is (the host link's `hello`, Home Assistant's diagnostics).
+const IDENTITY: tinybms_firmware::identity::Identity = tinybms_firmware::identity::Identity {
+    chip: BOARD.chip.name(),
+    board: BOARD.name,
+    features: tinybms_firmware::identity::Features {
+        can: cfg!(feature = "can"),
+        host_link: cfg!(feature = "host-link"),
+        wifi: cfg!(feature = "wifi"),
+        store: cfg!(feature = "store"),
+    },
+};
 #[esp_rtos::main]
 async fn main(spawner: Spawner) {
     // Watchdog coverage at boot:
@@ -156,16 +167,7 @@ async fn main(spawner: Spawner) {
     let station = STATION.init(Station::new(
         Setup {
             timing: Timing::default(),
-            identity: tinybms_firmware::identity::Identity {
-                chip: BOARD.chip.name(),
-                board: BOARD.name,
-                features: tinybms_firmware::identity::Features {
-                    can: cfg!(feature = "can"),
-                    host_link: cfg!(feature = "host-link"),
-                    wifi: cfg!(feature = "wifi"),
-                    store: cfg!(feature = "store"),
-                },
-            },
+            identity: IDENTITY,
             inverter: None,
         },
         loaded,
@@ -183,7 +185,7 @@ async fn main(spawner: Spawner) {
     #[cfg(feature = "host-link")]
     button::start(spawner);
     #[cfg(feature = "wifi")]
-    wifi::start(spawner, p.WIFI, running);
+    wifi::start(spawner, p.WIFI, running, IDENTITY);
     station::start(spawner, p.UART1, wdt, station, store);
 }
 

@@ -86,7 +86,12 @@ fn reason_text(r: DisconnectReason) -> &'static str {
 }
 
 /// Starts Wi-Fi and MQTT when the record names a network and a broker.
-pub fn start(spawner: Spawner, wifi: WIFI<'static>, config: &Config) {
+pub fn start(
+    spawner: Spawner,
+    wifi: WIFI<'static>,
+    config: &Config,
+    bridge: tinybms_firmware::identity::Identity,
+) {
     if config.wifi_ssid.is_empty() || config.mqtt_host.is_empty() {
         say(
             Level::Info,
@@ -167,7 +172,7 @@ pub fn start(spawner: Spawner, wifi: WIFI<'static>, config: &Config) {
     let settings = Settings::from_config(config);
     spawn(spawner, wifi_task(controller));
     spawn(spawner, net_task(runner));
-    spawn(spawner, mqtt_task(stack, target, settings));
+    spawn(spawner, mqtt_task(stack, target, settings, bridge));
     spawn(spawner, heap_task());
 }
 
@@ -316,7 +321,12 @@ impl Feed for ChipFeed {
 }
 
 #[embassy_executor::task]
-async fn mqtt_task(stack: Stack<'static>, target: Target, settings: Settings) {
+async fn mqtt_task(
+    stack: Stack<'static>,
+    target: Target,
+    settings: Settings,
+    bridge: tinybms_firmware::identity::Identity,
+) {
     let Some(published) = wires::PUBLISHED.receiver() else {
         warn!("the published watch has no free receiver slot: no MQTT output");
         return;
@@ -342,7 +352,7 @@ async fn mqtt_task(stack: Stack<'static>, target: Target, settings: Settings) {
         published,
         latest: Published::default(),
     };
-    let mut publisher = Publisher::new(settings, env!("CARGO_PKG_VERSION"));
+    let mut publisher = Publisher::new(settings, &bridge);
     let mut note = |n: Note| {
         let mut ms_text = Line::new();
         match n {

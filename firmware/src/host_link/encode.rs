@@ -392,20 +392,52 @@ struct TelemetryFull<'a> {
     ccl_a: Option<Option<Dec>>,
     #[serde(skip_serializing_if = "Option::is_none")]
     dcl_a: Option<Option<Dec>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    status_name: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    balancing_cells: Option<&'a str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    remaining_capacity_ah: Option<Option<Dec>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    energy_charged_kwh: Option<Option<Dec>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    energy_discharged_kwh: Option<Option<Dec>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    uptime_s: Option<u64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    bridge_firmware: Option<&'a str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    can_state: Option<Option<&'static str>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    inverter_heard: Option<Option<bool>>,
 }
 
 /// What the MQTT state says besides the host link's telemetry fields.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct StateExtras {
-    /// The status's key, or `other` for a value no table knows (Home
-    /// Assistant's enum sensor needs a fixed list).
+pub struct StateExtras<'a> {
+    /// The status's key, or `other` for a value no table knows.
     pub status: &'static str,
+    /// The status's name (Rev D's), or `Other` (Home Assistant's enum sensor
+    /// needs a fixed list: [`crate::mqtt::discovery::STATUS_OPTIONS`]).
+    pub status_name: &'static str,
     /// Data age, ms.
     pub age_ms: u64,
     /// Requests answered, percent, 0.1 % steps (None: nothing asked yet).
     pub link_quality_permille: Option<u32>,
     /// The limits the inverter is sent: CVL 0.1 V, CCL 0.1 A, DCL 0.1 A.
     pub limits: Option<(u16, u16, u16)>,
+    /// What is left in the pack, 0.01 Ah: the SOC of the capacity (306).
+    pub remaining_cah: Option<u32>,
+    /// Energy into and out of the pack since the bridge started, mWh.
+    pub energy_mwh: (u64, u64),
+    /// The bridge's uptime, s.
+    pub uptime_s: u64,
+    /// The bridge's firmware, build and board.
+    pub bridge_firmware: &'a str,
+    /// The CAN output's state, when built in.
+    pub can_state: Option<&'static str>,
+    /// The inverter is heard, when the CAN output is built in.
+    pub inverter_heard: Option<bool>,
 }
 
 /// What a `telemetry` line says besides the snapshot.
@@ -451,6 +483,7 @@ pub fn telemetry(
     };
     let f32v = |x: f32| rounded(f64::from(x), FLOAT_DECIMALS);
     let ext = |t: Option<i16>| t.and_then(|t| fixed(i64::from(t), 1));
+    let balancing = balancing_cells(s.real_balancing_bits, s.cell_count);
     line(
         &TelemetryFull {
             ty: "telemetry",
@@ -492,9 +525,41 @@ pub fn telemetry(
             cvl_v: extras.map(|e| e.limits.and_then(|l| fixed(i64::from(l.0), 1))),
             ccl_a: extras.map(|e| e.limits.and_then(|l| fixed(i64::from(l.1), 1))),
             dcl_a: extras.map(|e| e.limits.and_then(|l| fixed(i64::from(l.2), 1))),
+            status_name: extras.map(|e| e.status_name),
+            balancing_cells: extras.map(|_| balancing.as_str()),
+            remaining_capacity_ah: extras
+                .map(|e| e.remaining_cah.and_then(|c| fixed(i64::from(c), 2))),
+            energy_charged_kwh: extras.map(|e| fixed(e.energy_mwh.0.min(1 << 50) as i64, 6)),
+            energy_discharged_kwh: extras.map(|e| fixed(e.energy_mwh.1.min(1 << 50) as i64, 6)),
+            uptime_s: extras.map(|e| e.uptime_s),
+            bridge_firmware: extras.map(|e| e.bridge_firmware),
+            can_state: extras.map(|e| e.can_state),
+            inverter_heard: extras.map(|e| e.inverter_heard),
         },
         out,
     )
+}
+
+/// The cells balancing now (bit 0 of the real balancing bits is cell 1), as
+/// `3, 7`, or `none`.
+pub fn balancing_cells(bits: u16, cells: u16) -> String<64> {
+    let mut out = String::new();
+    for c in 0..cells.min(16) {
+        if bits & (1 << c) != 0 {
+            if !out.is_empty() {
+                let _ = out.push_str(", ");
+            }
+            let n = c + 1;
+            if n >= 10 {
+                let _ = out.push('1');
+            }
+            let _ = out.push(char::from(b'0' + (n % 10) as u8));
+        }
+    }
+    if out.is_empty() {
+        let _ = out.push_str("none");
+    }
+    out
 }
 
 /// The MQTT state: a `telemetry` line's object with the [`StateExtras`], without

@@ -112,6 +112,35 @@ pub enum TxResult {
     Failed,
 }
 
+/// The CAN output as an owner sees it (Home Assistant's diagnostics).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum CanState {
+    /// The output is off in the configuration.
+    Off,
+    /// Nothing sent yet (no data, or not every pack heard).
+    Waiting,
+    /// Frames go out and are acknowledged.
+    Running,
+    /// Frames go out and nobody acknowledges them (no other node, wiring).
+    NoAck,
+    /// The controller is off the bus until its recovery.
+    BusOff,
+}
+
+impl CanState {
+    /// As the MQTT state writes it.
+    pub const fn key(self) -> &'static str {
+        match self {
+            Self::Off => "off",
+            Self::Waiting => "waiting",
+            Self::Running => "running",
+            Self::NoAck => "no_ack",
+            Self::BusOff => "bus_off",
+        }
+    }
+}
+
 /// What the inverter output tells the log.
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -527,6 +556,26 @@ impl Inverter {
                 self.report(InverterReport::InverterSeen);
             }
         }
+    }
+
+    /// The CAN output's state now.
+    pub fn can_state(&self) -> CanState {
+        if !self.config.enabled {
+            CanState::Off
+        } else if self.bus_off.is_some() {
+            CanState::BusOff
+        } else if self.no_ack_reported {
+            CanState::NoAck
+        } else if self.frames_sent > 0 {
+            CanState::Running
+        } else {
+            CanState::Waiting
+        }
+    }
+
+    /// The inverter's keep-alive is heard (within its timeout).
+    pub fn inverter_heard(&self) -> bool {
+        self.inverter_seen
     }
 
     /// Result of the last [`InverterAction::Send`].

@@ -16,6 +16,16 @@ pub enum Protocol {
     SmaSunnyIsland,
 }
 
+impl Protocol {
+    /// As the configuration writes it (`inverter_protocol`).
+    pub const fn key(self) -> &'static str {
+        match self {
+            Self::Victron => "victron",
+            Self::SmaSunnyIsland => "sma",
+        }
+    }
+}
+
 /// What the frames of one period are made of.
 pub struct Period<'a> {
     /// The battery's state.

@@ -7,18 +7,14 @@
 //! its device is named by the topic prefix every bridge of the battery shares:
 //! `tinybms_battery_<topic_prefix>` (`/` as `_`), state on
 //! `<topic_prefix>/battery/state` — the host link's `battery` line as JSON.
-//! Its entities expire ([`EXPIRE_AFTER_PERIODS`] publish periods without a
-//! state make them unavailable): a speaker that falls silent leaves no stale
-//! value behind, whichever bridge it was, and needs no will of its own.
+//! Its entities expire as the pack's do ([`Settings::expire_after_s`]): a
+//! speaker that falls silent leaves no stale value behind, whichever bridge it
+//! was, and needs no will of its own.
 
 use heapless::String;
 
-use super::discovery::{presence_template, value_template, Component, Entity, Read};
+use super::discovery::{self, Component, Device, Entity, Read, Topics};
 use super::{topic, Settings, TOPIC_MAX};
-
-/// The battery's entities expire after this many publish periods without a
-/// state.
-pub const EXPIRE_AFTER_PERIODS: u64 = 3;
 
 const fn sensor(
     object: &'static str,
@@ -38,6 +34,7 @@ const fn sensor(
         read: Read::Nullable(member),
         precision: Some(precision),
         category: None,
+        options: None,
     }
 }
 
@@ -79,6 +76,7 @@ pub const ENTITIES: &[Entity] = &[
         read: Read::Member("packs_online"),
         precision: Some(0),
         category: None,
+        options: None,
     },
     Entity {
         object: "packs_offline",
@@ -90,6 +88,7 @@ pub const ENTITIES: &[Entity] = &[
         read: Read::Member("packs_offline"),
         precision: Some(0),
         category: None,
+        options: None,
     },
     sensor(
         "min_cell_voltage",
@@ -173,48 +172,6 @@ pub fn config_topic(out: &mut String<TOPIC_MAX>, s: &Settings, e: &Entity) -> bo
     )
 }
 
-#[derive(serde::Serialize)]
-struct Device<'a> {
-    identifiers: [&'a str; 1],
-    name: &'static str,
-    manufacturer: &'static str,
-    model: &'static str,
-    sw_version: &'a str,
-}
-
-#[derive(serde::Serialize)]
-struct Origin<'a> {
-    name: &'static str,
-    sw_version: &'a str,
-}
-
-#[derive(serde::Serialize)]
-struct Availability<'a> {
-    topic: &'a str,
-    value_template: &'a str,
-}
-
-#[derive(serde::Serialize)]
-struct Config<'a> {
-    name: &'static str,
-    unique_id: &'a str,
-    state_topic: &'a str,
-    value_template: &'a str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    device_class: Option<&'static str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    state_class: Option<&'static str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    unit_of_measurement: Option<&'static str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    suggested_display_precision: Option<u8>,
-    expire_after: u64,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    availability: Option<[Availability<'a>; 1]>,
-    device: Device<'a>,
-    origin: Origin<'a>,
-}
-
 /// Writes the discovery config of the battery's entity `e` into `out`; its
 /// length (`None` when it does not fit).
 pub fn config(out: &mut [u8], s: &Settings, bridge_version: &str, e: &Entity) -> Option<usize> {
@@ -227,40 +184,24 @@ pub fn config(out: &mut [u8], s: &Settings, bridge_version: &str, e: &Entity) ->
     if !state_topic(&mut state, s) {
         return None;
     }
-    let template = value_template(e.read);
-    // A value that is null (no pack takes part) makes the entity unavailable.
-    let presence = match e.read {
-        Read::Nullable(m) => Some(presence_template(m)),
-        _ => None,
-    };
-    let period_s = s.publish_period_us / crate::SECOND;
-    let c = Config {
-        name: e.name,
-        unique_id: &unique,
-        state_topic: &state,
-        value_template: &template,
-        device_class: e.device_class,
-        state_class: e.state_class,
-        unit_of_measurement: e.unit,
-        suggested_display_precision: e.precision,
-        expire_after: (period_s * EXPIRE_AFTER_PERIODS).max(EXPIRE_AFTER_PERIODS),
-        availability: presence.as_deref().map(|t| {
-            [Availability {
-                topic: &state,
-                value_template: t,
-            }]
-        }),
-        device: Device {
+    discovery::write(
+        out,
+        e,
+        &unique,
+        &Topics {
+            state: &state,
+            availability: None,
+        },
+        s.expire_after_s(),
+        Device {
             identifiers: [&id],
             name: "TinyBMS battery",
             manufacturer: super::MANUFACTURER,
             model: "TinyBMS packs in parallel",
+            hw_version: None,
             sw_version: bridge_version,
+            serial_number: None,
         },
-        origin: Origin {
-            name: "tinybms-esp32",
-            sw_version: bridge_version,
-        },
-    };
-    serde_json_core::to_slice(&c, out).ok()
+        bridge_version,
+    )
 }

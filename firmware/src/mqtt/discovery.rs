@@ -1,13 +1,16 @@
 //! The entities of the battery in Home Assistant, as data, and their discovery
 //! configs (Home Assistant's MQTT discovery: a retained JSON config per entity
-//! under `<discovery_prefix>/<component>/<node_id>/<object_id>/config`).
+//! under `<discovery_prefix>/<component>/<node_id>/<object_id>/config`). One
+//! writer, [`write`], for the pack's device and the battery's
+//! ([`super::battery`]).
 //!
 //! Every entity reads one member of the state JSON (the host link's telemetry
-//! fields plus `status`, `pack_power_w`, `cell_spread_v`, `data_age_s`,
-//! `link_quality_percent`, `cvl_v`, `ccl_a`, `dcl_a`). A value that can be
-//! absent — an external sensor that is not connected, the limits of a bridge
-//! without CAN output — makes its entity *unavailable* (an availability
-//! template on the state topic), never 0.
+//! fields plus the members [`crate::host_link::encode::StateExtras`] adds), or
+//! the event topic. A value that can be absent — an external sensor that is not
+//! connected, the limits of a bridge without CAN output — makes its entity
+//! *unavailable* (an availability template on the state topic), never 0. Every
+//! entity but the event expires ([`Settings::expire_after_s`]): a bridge that
+//! stops publishing leaves no value shown as live.
 
 use heapless::String;
 use serde::ser::{Serialize, SerializeSeq, Serializer};
@@ -21,6 +24,8 @@ pub enum Component {
     Sensor,
     /// `binary_sensor`.
     BinarySensor,
+    /// `event`: the BMS's events, from the event topic.
+    Event,
 }
 
 impl Component {
@@ -29,6 +34,7 @@ impl Component {
         match self {
             Self::Sensor => "sensor",
             Self::BinarySensor => "binary_sensor",
+            Self::Event => "event",
         }
     }
 }
@@ -44,14 +50,20 @@ pub enum Read {
     Cell(u8),
     /// `ON` when `value_json.<member>` is above 0, else `OFF` (a binary sensor).
     NonZero(&'static str),
+    /// `ON` when `value_json.<member>` is true, else `OFF`; unavailable while
+    /// it is null (a binary sensor).
+    Flag(&'static str),
+    /// An event line on the event topic: its `severity` is the event type.
+    Event,
 }
 
 impl Read {
     /// The state member it reads.
     pub const fn member(self) -> &'static str {
         match self {
-            Self::Member(m) | Self::Nullable(m) | Self::NonZero(m) => m,
+            Self::Member(m) | Self::Nullable(m) | Self::NonZero(m) | Self::Flag(m) => m,
             Self::Cell(_) => "cell_voltages_v",
+            Self::Event => "severity",
         }
     }
 }
@@ -77,19 +89,29 @@ pub struct Entity {
     pub precision: Option<u8>,
     /// `entity_category` (`diagnostic`), if any.
     pub category: Option<&'static str>,
+    /// The values an `enum` sensor takes, or an event's types.
+    pub options: Option<&'static [&'static str]>,
 }
 
-/// The values `status` takes (the BMS's online status keys, and `other` for a
-/// value no table knows).
+/// The values the status entity takes: Rev D's names of the online status
+/// (register 50), and `Other` for a value no table knows. The state's `status`
+/// member keeps the keys (`fully_charged`) for automations.
 pub const STATUS_OPTIONS: &[&str] = &[
-    "charging",
-    "fully_charged",
-    "discharging",
-    "regeneration",
-    "idle",
-    "fault",
-    "other",
+    "Charging",
+    "Fully Charged",
+    "Discharging",
+    "Regeneration",
+    "Idle",
+    "Fault",
+    "Other",
 ];
+
+/// The values the CAN output's entity takes ([`crate::inverter::CanState`]).
+pub const CAN_STATES: &[&str] = &["off", "waiting", "running", "no_ack", "bus_off"];
+
+/// The event types of the event entity: the events' severities (the event's
+/// name, id and time are its attributes).
+pub const EVENT_TYPES: &[&str] = &["fault", "warning", "info", "unknown"];
 
 const fn sensor(
     object: &'static str,
@@ -109,6 +131,29 @@ const fn sensor(
         read,
         precision: Some(precision),
         category: None,
+        options: None,
+    }
+}
+
+/// A sensor without unit or state class (text, enum, duration since).
+const fn plain(
+    object: &'static str,
+    name: &'static str,
+    device_class: Option<&'static str>,
+    read: Read,
+    options: Option<&'static [&'static str]>,
+) -> Entity {
+    Entity {
+        object,
+        name,
+        component: Component::Sensor,
+        device_class,
+        state_class: None,
+        unit: None,
+        read,
+        precision: None,
+        category: None,
+        options,
     }
 }
 
@@ -209,17 +254,13 @@ pub const ENTITIES: &[Entity] = &[
         Read::Nullable("external_temperature_2_c"),
         1,
     ),
-    Entity {
-        object: "status",
-        name: "Status",
-        component: Component::Sensor,
-        device_class: Some("enum"),
-        state_class: None,
-        unit: None,
-        read: Read::Member("status"),
-        precision: None,
-        category: None,
-    },
+    plain(
+        "status",
+        "Status",
+        Some("enum"),
+        Read::Member("status_name"),
+        Some(STATUS_OPTIONS),
+    ),
     Entity {
         object: "balancing",
         name: "Balancing",
@@ -230,7 +271,37 @@ pub const ENTITIES: &[Entity] = &[
         read: Read::NonZero("real_balancing_bits"),
         precision: None,
         category: None,
+        options: None,
     },
+    plain(
+        "balancing_cells",
+        "Balancing cells",
+        None,
+        Read::Member("balancing_cells"),
+        None,
+    ),
+    sensor(
+        "remaining_capacity",
+        "Remaining capacity",
+        None,
+        Some("Ah"),
+        Read::Nullable("remaining_capacity_ah"),
+        1,
+    ),
+    sensor(
+        "time_left",
+        "Time left",
+        Some("duration"),
+        Some("s"),
+        Read::Member("estimated_time_left_s"),
+        0,
+    ),
+    energy("energy_charged", "Energy charged", "energy_charged_kwh"),
+    energy(
+        "energy_discharged",
+        "Energy discharged",
+        "energy_discharged_kwh",
+    ),
     sensor(
         "charge_voltage_limit",
         "Charge voltage limit",
@@ -271,7 +342,72 @@ pub const ENTITIES: &[Entity] = &[
         Read::Nullable("link_quality_percent"),
         1,
     )),
+    diagnostic(Entity {
+        unit: Some("s"),
+        ..plain(
+            "uptime",
+            "Bridge uptime",
+            Some("duration"),
+            Read::Member("uptime_s"),
+            None,
+        )
+    }),
+    diagnostic(plain(
+        "bridge_firmware",
+        "Bridge firmware",
+        None,
+        Read::Member("bridge_firmware"),
+        None,
+    )),
+    diagnostic(plain(
+        "can_output",
+        "CAN output",
+        Some("enum"),
+        Read::Nullable("can_state"),
+        Some(CAN_STATES),
+    )),
+    diagnostic(Entity {
+        object: "inverter_heard",
+        name: "Inverter heard",
+        component: Component::BinarySensor,
+        device_class: Some("connectivity"),
+        state_class: None,
+        unit: None,
+        read: Read::Flag("inverter_heard"),
+        precision: None,
+        category: None,
+        options: None,
+    }),
+    Entity {
+        object: "events",
+        name: "BMS event",
+        component: Component::Event,
+        device_class: None,
+        state_class: None,
+        unit: None,
+        read: Read::Event,
+        precision: None,
+        category: None,
+        options: Some(EVENT_TYPES),
+    },
 ];
+
+/// An energy counter for Home Assistant's Energy dashboard (kWh,
+/// `total_increasing`).
+const fn energy(object: &'static str, name: &'static str, member: &'static str) -> Entity {
+    Entity {
+        object,
+        name,
+        component: Component::Sensor,
+        device_class: Some("energy"),
+        state_class: Some("total_increasing"),
+        unit: Some("kWh"),
+        read: Read::Member(member),
+        precision: Some(3),
+        category: None,
+        options: None,
+    }
+}
 
 /// Most cells (Rev D: 16).
 pub const MAX_CELLS: u8 = 16;
@@ -340,15 +476,25 @@ pub struct DeviceInfo<'a> {
     pub bridge_version: &'a str,
 }
 
+/// A device block: the pack's (a BMS, with its serial) or the battery's.
 #[derive(serde::Serialize)]
-struct Device<'a> {
-    identifiers: [&'a str; 1],
-    name: &'a str,
-    manufacturer: &'static str,
-    model: &'static str,
-    hw_version: &'a str,
-    sw_version: &'a str,
-    serial_number: &'a str,
+pub struct Device<'a> {
+    /// One identifier.
+    pub identifiers: [&'a str; 1],
+    /// The device's name.
+    pub name: &'a str,
+    /// Its maker.
+    pub manufacturer: &'static str,
+    /// Its model.
+    pub model: &'static str,
+    /// Hardware version, if known.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub hw_version: Option<&'a str>,
+    /// Software version.
+    pub sw_version: &'a str,
+    /// Serial number, if any.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub serial_number: Option<&'a str>,
 }
 
 #[derive(serde::Serialize)]
@@ -357,6 +503,7 @@ struct Origin<'a> {
     sw_version: &'a str,
 }
 
+/// One availability condition.
 #[derive(serde::Serialize)]
 struct Availability<'a> {
     topic: &'a str,
@@ -364,12 +511,12 @@ struct Availability<'a> {
     value_template: Option<&'a str>,
 }
 
-struct Options;
+struct Strs(&'static [&'static str]);
 
-impl Serialize for Options {
+impl Serialize for Strs {
     fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        let mut seq = s.serialize_seq(Some(STATUS_OPTIONS.len()))?;
-        for o in STATUS_OPTIONS {
+        let mut seq = s.serialize_seq(Some(self.0.len()))?;
+        for o in self.0 {
             seq.serialize_element(o)?;
         }
         seq.end()
@@ -393,15 +540,22 @@ struct Config<'a> {
     #[serde(skip_serializing_if = "Option::is_none")]
     entity_category: Option<&'static str>,
     #[serde(skip_serializing_if = "Option::is_none")]
-    options: Option<Options>,
+    options: Option<Strs>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    event_types: Option<Strs>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    expire_after: Option<u64>,
+    #[serde(skip_serializing_if = "<[Availability<'_>]>::is_empty")]
     availability: &'a [Availability<'a>],
-    availability_mode: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    availability_mode: Option<&'static str>,
     device: Device<'a>,
     origin: Origin<'a>,
 }
 
-/// The template reading `r` from the state JSON.
-pub fn value_template(r: Read) -> String<96> {
+/// The template reading `r` from the state JSON (or, for the event entity,
+/// turning an event line into Home Assistant's event payload).
+pub fn value_template(r: Read) -> String<192> {
     let mut t = String::new();
     let mut push = |s: &str| {
         let _ = t.push_str(s);
@@ -427,6 +581,15 @@ pub fn value_template(r: Read) -> String<96> {
             push(m);
             push(" > 0 else 'OFF' }}");
         }
+        Read::Flag(m) => {
+            push("{{ 'ON' if value_json.");
+            push(m);
+            push(" else 'OFF' }}");
+        }
+        Read::Event => push(
+            "{{ {'event_type': value_json.severity, 'name': value_json.name, \
+             'id': value_json.id, 'timestamp_s': value_json.timestamp_s} | to_json }}",
+        ),
     }
     t
 }
@@ -440,8 +603,73 @@ pub(crate) fn presence_template(m: &str) -> String<112> {
     t
 }
 
-/// Writes the discovery config of `e` into `out`; its length (`None` when it
-/// does not fit).
+/// Where an entity's config points.
+pub struct Topics<'a> {
+    /// Its state (the state topic, or the event topic for the event entity).
+    pub state: &'a str,
+    /// The device's availability topic, if it has one (the battery has none:
+    /// its speaker may change, its entities expire instead).
+    pub availability: Option<&'a str>,
+}
+
+/// Writes the discovery config of `e` into `out`: the one writer of every
+/// config, the pack's and the battery's; its length (`None` when it does not
+/// fit). `expire_after_s`: when a value expires (the event entity has none).
+pub fn write(
+    out: &mut [u8],
+    e: &Entity,
+    unique_id: &str,
+    topics: &Topics<'_>,
+    expire_after_s: u64,
+    device: Device<'_>,
+    origin_version: &str,
+) -> Option<usize> {
+    let template = value_template(e.read);
+    // A member that can be null makes the entity unavailable while it is.
+    let presence = match e.read {
+        Read::Nullable(m) | Read::Flag(m) => Some(presence_template(m)),
+        _ => None,
+    };
+    let mut conditions: heapless::Vec<Availability<'_>, 2> = heapless::Vec::new();
+    if let Some(a) = topics.availability {
+        let _ = conditions.push(Availability {
+            topic: a,
+            value_template: None,
+        });
+    }
+    if let Some(p) = presence.as_deref() {
+        let _ = conditions.push(Availability {
+            topic: topics.state,
+            value_template: Some(p),
+        });
+    }
+    let event = e.component == Component::Event;
+    let c = Config {
+        name: e.name,
+        unique_id,
+        state_topic: topics.state,
+        value_template: &template,
+        device_class: e.device_class,
+        state_class: e.state_class,
+        unit_of_measurement: e.unit,
+        suggested_display_precision: e.precision,
+        entity_category: e.category,
+        options: e.options.filter(|_| !event).map(Strs),
+        event_types: e.options.filter(|_| event).map(Strs),
+        expire_after: (!event).then_some(expire_after_s),
+        availability: &conditions,
+        availability_mode: (conditions.len() > 1).then_some("all"),
+        device,
+        origin: Origin {
+            name: "tinybms-esp32",
+            sw_version: origin_version,
+        },
+    };
+    serde_json_core::to_slice(&c, out).ok()
+}
+
+/// Writes the discovery config of the pack's entity `e` into `out`; its
+/// length (`None` when it does not fit).
 pub fn config(out: &mut [u8], s: &Settings, info: &DeviceInfo<'_>, e: &Entity) -> Option<usize> {
     let id = info.id;
     let device_id = id.device_id();
@@ -451,28 +679,14 @@ pub fn config(out: &mut [u8], s: &Settings, info: &DeviceInfo<'_>, e: &Entity) -
     unique.push_str(e.object).ok()?;
     let mut state = String::<TOPIC_MAX>::new();
     let mut avail = String::<TOPIC_MAX>::new();
-    if !device_topic(&mut state, s, id, "state") || !device_topic(&mut avail, s, id, "availability")
-    {
+    let leaf = if e.component == Component::Event {
+        "event"
+    } else {
+        "state"
+    };
+    if !device_topic(&mut state, s, id, leaf) || !device_topic(&mut avail, s, id, "availability") {
         return None;
     }
-    let template = value_template(e.read);
-    let presence = match e.read {
-        Read::Nullable(m) => Some(presence_template(m)),
-        _ => None,
-    };
-    let availability = [
-        Availability {
-            topic: &avail,
-            value_template: None,
-        },
-        Availability {
-            topic: &state,
-            value_template: presence.as_deref(),
-        },
-    ];
-    let availability = availability
-        .get(..if presence.is_some() { 2 } else { 1 })
-        .unwrap_or(&[]);
     let serial = id.serial_hex();
     let mut name: String<40> = String::new();
     name.push_str("TinyBMS ").ok()?;
@@ -487,34 +701,26 @@ pub fn config(out: &mut [u8], s: &Settings, info: &DeviceInfo<'_>, e: &Entity) -
     let _ = sw.push_str(" (");
     push_u32(&mut sw, u32::from(id.firmware.1));
     let _ = sw.push(')');
-    let c = Config {
-        name: e.name,
-        unique_id: &unique,
-        state_topic: &state,
-        value_template: &template,
-        device_class: e.device_class,
-        state_class: e.state_class,
-        unit_of_measurement: e.unit,
-        suggested_display_precision: e.precision,
-        entity_category: e.category,
-        options: (e.device_class == Some("enum")).then_some(Options),
-        availability,
-        availability_mode: "all",
-        device: Device {
+    write(
+        out,
+        e,
+        &unique,
+        &Topics {
+            state: &state,
+            availability: Some(&avail),
+        },
+        s.expire_after_s(),
+        Device {
             identifiers: [&device_id],
             name: &name,
             manufacturer: super::MANUFACTURER,
             model: "TinyBMS s516",
-            hw_version: &hw,
+            hw_version: Some(&hw),
             sw_version: &sw,
-            serial_number: &serial,
+            serial_number: Some(&serial),
         },
-        origin: Origin {
-            name: "tinybms-esp32",
-            sw_version: info.bridge_version,
-        },
-    };
-    serde_json_core::to_slice(&c, out).ok()
+        info.bridge_version,
+    )
 }
 
 fn push_u32<const N: usize>(s: &mut String<N>, v: u32) {

@@ -53,8 +53,8 @@ use crate::Instant;
 pub const TOPIC_MAX: usize = 128;
 
 /// Longest payload the publisher writes, bytes (a discovery config is about
-/// 700, the state with 16 cells about 900).
-pub const PAYLOAD_MAX: usize = 1280;
+/// 800, the state with 16 cells about 1,200).
+pub const PAYLOAD_MAX: usize = 1536;
 
 /// Device manufacturer in Home Assistant.
 pub const MANUFACTURER: &str = "Energus";
@@ -72,7 +72,47 @@ pub struct Settings {
     pub publish_period_us: Instant,
 }
 
+/// Entities expire after this many publish periods without a state (Home
+/// Assistant's `expire_after`): a bridge that hangs, or loses its network
+/// without closing the connection, leaves no value shown as live.
+pub const EXPIRE_AFTER_PERIODS: u64 = 3;
+
+/// ... and never sooner than this, s: a state may come a few seconds late
+/// over Wi-Fi, and that is not a silent bridge.
+pub const EXPIRE_MIN_S: u64 = 15;
+
+/// Longest MQTT keep-alive, s.
+pub const KEEP_ALIVE_MAX_S: u64 = 60;
+
+/// Shortest MQTT keep-alive, s.
+pub const KEEP_ALIVE_MIN_S: u64 = 5;
+
+/// How late a broker may notice a keep-alive that ran out, s (mosquitto
+/// checks its clients' keep-alives every 5 s).
+pub const BROKER_CHECK_S: u64 = 5;
+
 impl Settings {
+    /// When the entities expire: [`EXPIRE_AFTER_PERIODS`] publish periods,
+    /// at least [`EXPIRE_MIN_S`], s (15 s at the default period of 5 s).
+    pub fn expire_after_s(&self) -> u64 {
+        (self.publish_period_us / crate::SECOND)
+            .saturating_mul(EXPIRE_AFTER_PERIODS)
+            .max(EXPIRE_MIN_S)
+    }
+
+    /// The MQTT keep-alive, s. The broker gives up on a silent connection
+    /// 1.5 keep-alives after the last packet it got and publishes the will
+    /// (`offline`); mosquitto looks every few seconds ([`BROKER_CHECK_S`]);
+    /// and that last packet can be a ping half a keep-alive after the last
+    /// state. So `2 × keep-alive + BROKER_CHECK_S` must not pass
+    /// [`Settings::expire_after_s`]: 5 s by default, within
+    /// [`KEEP_ALIVE_MIN_S`]..=[`KEEP_ALIVE_MAX_S`]. The event entity, which
+    /// cannot expire, turns unavailable with the will within the same bound.
+    pub fn keep_alive_s(&self) -> u16 {
+        (self.expire_after_s().saturating_sub(BROKER_CHECK_S) / 2)
+            .clamp(KEEP_ALIVE_MIN_S, KEEP_ALIVE_MAX_S) as u16
+    }
+
     /// From the configuration record.
     pub fn from_config(c: &Config) -> Self {
         Self {

@@ -20,7 +20,7 @@ use super::discovery::{self, DeviceInfo, MAX_CELLS};
 use super::{device_topic, Identity, Settings, TOPIC_MAX};
 use crate::freshness::Freshness;
 use crate::host_link::encode::{self, StateExtras, TelemetryHead};
-use crate::station::Published;
+use crate::station::{InverterStatus, Published};
 use crate::Instant;
 
 /// Events waiting to be published; beyond, the oldest are dropped (counted).
@@ -51,6 +51,12 @@ pub struct View<'a> {
     pub battery: Option<&'a crate::inverter::packs::BatteryView>,
     /// The freshness rule the station runs with.
     pub freshness: Freshness,
+    /// Energy into and out of the pack since start-up, mWh.
+    pub energy_mwh: (u64, u64),
+    /// The pack's capacity (306, 0.01 Ah), once read.
+    pub capacity_cah: Option<u16>,
+    /// The inverter output, when built in.
+    pub inverter: Option<InverterStatus>,
 }
 
 impl<'a> View<'a> {
@@ -67,6 +73,9 @@ impl<'a> View<'a> {
             link: p.link,
             battery: p.battery.as_ref(),
             freshness: p.freshness,
+            energy_mwh: p.energy_mwh,
+            capacity_cah: p.capacity_cah,
+            inverter: p.inverter,
         }
     }
 
@@ -127,6 +136,8 @@ pub struct PublisherStats {
 pub struct Publisher {
     settings: Settings,
     bridge_version: &'static str,
+    /// `<version> (<build>) on <board>`: the bridge's firmware entity.
+    bridge_text: String<96>,
     connected: bool,
     /// The identity announced on this connection.
     announced: Option<Identity>,
@@ -153,11 +164,22 @@ pub struct Publisher {
 }
 
 impl Publisher {
-    /// A publisher, not connected.
-    pub fn new(settings: Settings, bridge_version: &'static str) -> Self {
+    /// A publisher, not connected, for the bridge `bridge`.
+    pub fn new(settings: Settings, bridge: &crate::identity::Identity) -> Self {
+        let mut bridge_text = String::new();
+        for part in [
+            crate::identity::FIRMWARE,
+            " (",
+            crate::identity::BUILD,
+            ") on ",
+            bridge.board,
+        ] {
+            let _ = bridge_text.push_str(part);
+        }
         Self {
             settings,
-            bridge_version,
+            bridge_version: crate::identity::FIRMWARE,
+            bridge_text,
             connected: false,
             announced: None,
             announced_cells: 0,
@@ -477,11 +499,26 @@ impl Publisher {
         }
         self.prev_link = Some(view.link);
         let snapshot = view.snapshot?;
+        let status_name = match snapshot.status {
+            protocol_core::events::OnlineStatus::Unknown(_) => "Other",
+            s => s.name(),
+        };
+        // What is left: the SOC (1e-6 %) of the capacity (0.01 Ah).
+        let remaining_cah = view.capacity_cah.map(|c| {
+            (u64::from(c) * u64::from(snapshot.soc_raw.min(100_000_000)) / 100_000_000) as u32
+        });
         let extras = StateExtras {
             status: snapshot.status.key().unwrap_or("other"),
+            status_name,
             age_ms: view.age_us.unwrap_or(0) / crate::MS,
             link_quality_permille: self.quality_permille,
             limits: view.limits,
+            remaining_cah,
+            energy_mwh: view.energy_mwh,
+            uptime_s: now / crate::SECOND,
+            bridge_firmware: &self.bridge_text,
+            can_state: view.inverter.map(|i| i.can.key()),
+            inverter_heard: view.inverter.map(|i| i.heard),
         };
         let head = TelemetryHead {
             req: None,

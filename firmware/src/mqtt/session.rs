@@ -28,7 +28,7 @@ use rust_mqtt::client::options::{
 };
 use rust_mqtt::client::Client;
 use rust_mqtt::config::{KeepAlive, SessionExpiryInterval};
-use rust_mqtt::types::{MqttBinary, MqttString, TopicFilter, TopicName};
+use rust_mqtt::types::{MqttBinary, MqttString, ReasonCode, TopicFilter, TopicName};
 use rust_mqtt::Bytes;
 
 use super::publisher::{Publisher, View};
@@ -44,14 +44,16 @@ pub const ANSWER_TIMEOUT_US: Instant = 10 * SECOND;
 pub const WRITE_TIMEOUT_US: Instant = 10 * SECOND;
 /// Longest the rest of a packet may take once its header came.
 pub const BODY_TIMEOUT_US: Instant = 5 * SECOND;
-/// MQTT keep-alive, s: a PINGREQ goes out after half of it without traffic,
-/// and a connection whose PINGRESP does not come within the other half is
-/// dropped.
-pub const KEEP_ALIVE_S: u16 = 60;
 /// First reconnect delay; it doubles up to [`BACKOFF_MAX_US`].
 pub const BACKOFF_MIN_US: Instant = SECOND;
 /// Longest reconnect delay.
 pub const BACKOFF_MAX_US: Instant = 60 * SECOND;
+/// A connection the broker drops sooner than this after it came up counts as
+/// dropped at once.
+pub const QUICK_DROP_US: Instant = 10 * SECOND;
+/// Connections dropped at once in a row that mean another client uses the
+/// client id.
+pub const QUICK_DROPS: u8 = 3;
 /// Longest the session waits for new telemetry before it looks again (so a
 /// BMS link that goes quiet turns the availability `offline` on time).
 pub const IDLE_WAKE_US: Instant = SECOND;
@@ -131,6 +133,12 @@ pub enum Failure {
     Connection,
     /// The BMS is another one: reconnecting with its identity.
     NewBms,
+    /// Another client uses the same client id: the broker ended the session
+    /// saying so (MQTT 5 reason 0x8E), or dropped the connection within
+    /// [`QUICK_DROP_US`] of its start [`QUICK_DROPS`] times in a row (what
+    /// mosquitto does). Two bridges with one host name, or a try-out beside
+    /// a bridge.
+    TakenOver,
 }
 
 impl Failure {
@@ -145,6 +153,9 @@ impl Failure {
             Self::Protocol => "the broker broke the protocol",
             Self::Connection => "the connection broke",
             Self::NewBms => "another BMS: reconnecting",
+            Self::TakenOver => {
+                "another client uses this client id; give each bridge its own hostname"
+            }
         }
     }
 }
@@ -207,6 +218,7 @@ pub async fn run<N: Network, C: Clock, F: Feed>(
 ) -> ! {
     let mut backoff = BACKOFF_MIN_US;
     let mut waiting_noted = false;
+    let mut quick_drops: u8 = 0;
     loop {
         // One device per BMS: nothing to announce before its serial is known.
         let identity = loop {
@@ -221,8 +233,19 @@ pub async fn run<N: Network, C: Clock, F: Feed>(
             let _ = timeout(clock, IDLE_WAKE_US, feed.changed()).await;
         };
         waiting_noted = false;
-        let result = connection(net, clock, feed, target, publisher, identity, note).await;
+        let mut result = connection(net, clock, feed, target, publisher, identity, note).await;
         publisher.disconnected();
+        // The broker closing a connection again and again right after it
+        // came up: another client with this id takes it over each time.
+        match result {
+            Ok((Failure::Connection, up_for)) if up_for < QUICK_DROP_US => {
+                quick_drops = quick_drops.saturating_add(1);
+                if quick_drops >= QUICK_DROPS {
+                    result = Ok((Failure::TakenOver, up_for));
+                }
+            }
+            _ => quick_drops = 0,
+        }
         // A connection that held a while starts the backoff afresh.
         if matches!(result, Ok((_, up_for)) if up_for >= BACKOFF_MAX_US) {
             backoff = BACKOFF_MIN_US;
@@ -274,7 +297,11 @@ async fn connection<N: Network, C: Clock, F: Feed>(
     let (Some(will_topic), Some(will_msg)) = (will_topic, will_msg) else {
         return Err(Failure::Protocol);
     };
-    let keep_alive = NonZero::new(KEEP_ALIVE_S).map_or(KeepAlive::Infinite, KeepAlive::Seconds);
+    // The keep-alive follows the publish period (`Settings::keep_alive_s`):
+    // a PINGREQ goes out after half of it without traffic, and a connection
+    // whose PINGRESP does not come within the other half is dropped.
+    let keep_alive =
+        NonZero::new(settings.keep_alive_s()).map_or(KeepAlive::Infinite, KeepAlive::Seconds);
     let mut options = ConnectOptions::new()
         .clean_start()
         .keep_alive(keep_alive)
@@ -353,7 +380,7 @@ async fn serve<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock, 
     }
     let mut topic = String::<TOPIC_MAX>::new();
     let mut payload = alloc::vec![0u8; PAYLOAD_MAX];
-    let half = Instant::from(KEEP_ALIVE_S) * SECOND / 2;
+    let half = Instant::from(publisher.settings().keep_alive_s()) * SECOND / 2;
     let mut last_traffic = clock.now();
     let mut ping_sent: Option<Instant> = None;
     loop {
@@ -423,6 +450,10 @@ async fn serve<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock, 
         let event = match timeout(clock, BODY_TIMEOUT_US, client.poll_body(header)).await {
             None => return Failure::Timeout,
             Some(Err(rust_mqtt::client::MqttError::Network(_))) => return Failure::Connection,
+            Some(Err(rust_mqtt::client::MqttError::Disconnect {
+                reason: ReasonCode::SessionTakenOver,
+                ..
+            })) => return Failure::TakenOver,
             Some(Err(rust_mqtt::client::MqttError::Disconnect { .. })) => {
                 return Failure::Connection
             }

@@ -49,6 +49,7 @@ use crate::config::state::{ConfigState, Note, Outcomes};
 use crate::config::store::{Loaded, Saved, StoreError};
 use crate::config::value::Parsed;
 use crate::config::{Config, FieldId};
+use crate::energy::Energy;
 use crate::freshness::Freshness;
 #[cfg(feature = "host-link")]
 use crate::host_link::HostLink;
@@ -61,7 +62,7 @@ use crate::inverter::{InverterAction, InverterReport, TxResult};
 use crate::text::{self, Line};
 use crate::Instant;
 
-pub use self::published::Published;
+pub use self::published::{InverterStatus, Published};
 
 mod parts;
 mod published;
@@ -174,6 +175,8 @@ pub struct Station {
     /// the log still has to say (once the host is back).
     host_missed: u32,
     missed_to_log: u32,
+    /// Energy in and out, counted over the snapshots.
+    energy: Energy,
 }
 
 impl Station {
@@ -213,6 +216,7 @@ impl Station {
             events_dropped: 0,
             host_missed: 0,
             missed_to_log: 0,
+            energy: Energy::new(),
         }
     }
 
@@ -455,6 +459,13 @@ impl Station {
                 .map(|l| (l.cvl_dv, l.ccl_da, l.dcl_da)),
             freshness: self.freshness(),
             battery: self.battery.clone(),
+            energy_mwh: (self.energy.charged_mwh(), self.energy.discharged_mwh()),
+            capacity_cah: t.settings.as_ref().and_then(|b| b.get(306)),
+            inverter: self.inverter.as_ref().map(|i| InverterStatus {
+                protocol: i.config().protocol.key(),
+                can: i.can_state(),
+                heard: i.inverter_heard(),
+            }),
         }
     }
 
@@ -627,6 +638,9 @@ impl Station {
         self.fed_seq = t.snapshot_seq;
         self.generation = self.generation.wrapping_add(1);
         if let (Some(s), Some(at)) = (&t.snapshot, t.snapshot_at) {
+            let valid = t.live.flagged.is_none();
+            self.energy
+                .on_snapshot(at, s.pack_voltage_v, s.pack_current_a, valid);
             let settings = t.settings.as_ref().and_then(PackSettings::from_registers);
             if let Some(i) = self.inverter.as_mut() {
                 i.on_snapshot(at, s, settings, t.version.as_ref());

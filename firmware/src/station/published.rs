@@ -6,6 +6,7 @@ use protocol_core::views::{LiveSnapshot, VersionInfo};
 
 use crate::freshness::{DataState, Freshness};
 use crate::inverter::packs::BatteryView;
+use crate::inverter::CanState;
 use crate::Instant;
 
 /// The published picture. See the module documentation.
@@ -32,6 +33,24 @@ pub struct Published {
     pub freshness: Freshness,
     /// Several packs: the battery as this bridge sees it.
     pub battery: Option<BatteryView>,
+    /// Energy into and out of the pack since start-up, mWh
+    /// ([`crate::energy`]).
+    pub energy_mwh: (u64, u64),
+    /// The pack's capacity (register 306, 0.01 Ah), once the settings are read.
+    pub capacity_cah: Option<u16>,
+    /// The inverter output, when built in.
+    pub inverter: Option<InverterStatus>,
+}
+
+/// The inverter output as the MQTT diagnostics show it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct InverterStatus {
+    /// `victron` or `sma`.
+    pub protocol: &'static str,
+    /// The CAN output's state.
+    pub can: CanState,
+    /// The inverter's keep-alive is heard.
+    pub heard: bool,
 }
 
 impl Published {

@@ -101,7 +101,10 @@ mod linux {
             let device = TunTapDevice::new("tap0").map_err(|e| format!("tap0: {e}"))?;
             let notes = hm::spawn_with(
                 target,
-                Settings::from_config(&mqtt_e2e::config()),
+                (
+                    Settings::from_config(&mqtt_e2e::config()),
+                    tinybms_firmware::identity::Identity::desktop("tap", Default::default()),
+                ),
                 b.shared.clone(),
                 clock,
                 true,

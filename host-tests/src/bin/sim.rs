@@ -74,7 +74,14 @@ path, e.g. /dev/pts/7; runs until stopped, or for --duration if given):
                      availability, events) to the broker at HOST:PORT over an
                      ordinary TCP socket; with or without --bridge-pty (the
                      record's topic_prefix, mqtt_user, ... apply: --config);
+                     client id tinybms-sim-XXXXXX after the BMS's serial (give
+                     two try-outs on one broker different --seed values);
                      watch it with `mosquitto_sub -h HOST -p PORT -v -t '#'`
+  --can-log FILE     (--bridge-pty, --mqtt) what the inverter output sends on
+                     its virtual CAN bus, in candump log format; the bus has a
+                     simulated inverter that acknowledges and sends the GX
+                     keep-alive, so the limits, the CAN state and `inverter
+                     heard` show as on a wired chip
 
 inverter output (charge control over CAN, in a closed loop with a simulated
 pack and an inverter/charger that obeys the frames):
@@ -95,7 +102,10 @@ pack and an inverter/charger that obeys the frames):
                      bridge-lost-discharge, stale-charge, stale-discharge,
                      cold-start, lossy-bus (uneven packs) or all; prints each
                      pack's cells and currents against its own cutoffs, the
-                     charge moved and the trips (--can-log: the whole bus)
+                     charge moved and the trips (--can-log: the whole bus);
+                     with --mqtt instead: the packs charging in real time,
+                     each bridge publishing its pack (own serial and client
+                     id) and the speaker the battery's device
 
 exit status: 0 when every published value was sent by the BMS and no write was
 reported successful that the BMS did not hold; 1 otherwise; 2 on a usage error";
@@ -331,10 +341,17 @@ fn parse_args() -> Result<Parsed, String> {
     if o.pty && o.bridge_pty {
         return Err("--pty and --bridge-pty exclude each other".into());
     }
-    if o.packs.is_some() && (o.pty || o.bridge_pty || o.mqtt.is_some()) {
+    if o.packs.is_some() && (o.pty || o.bridge_pty) {
         return Err(
-            "--packs runs several packs in virtual time (with --scenario); it does not go \
-             with --pty, --bridge-pty or --mqtt, which run one bridge in real time"
+            "--packs runs several packs in virtual time (with --scenario), or in real time \
+             with --mqtt; it does not go with --pty or --bridge-pty, which run one bridge"
+                .into(),
+        );
+    }
+    if o.packs.is_some() && o.mqtt.is_some() && o.scenario.is_some() {
+        return Err(
+            "--packs with --mqtt runs the packs charging in real time; --scenario goes \
+             without --mqtt (virtual time)"
                 .into(),
         );
     }
@@ -585,6 +602,9 @@ fn main() -> ExitCode {
             return ExitCode::from(2);
         }
     };
+    if let (Some(n), Some(broker)) = (o.packs, o.mqtt.as_ref()) {
+        return run_packs_mqtt(&o, n, broker);
+    }
     if o.pty || o.bridge_pty || o.mqtt.is_some() {
         return run_realtime(&o);
     }
@@ -704,6 +724,7 @@ fn run_realtime(o: &Options) -> ExitCode {
                 }),
                 pty: o.bridge_pty,
                 no_wifi: o.no_wifi,
+                can_log: o.can_log.as_ref().map(std::path::PathBuf::from),
                 mqtt: o.mqtt.clone(),
                 profile: o.profile.clone(),
                 bridge: Timing {
@@ -723,6 +744,42 @@ fn run_realtime(o: &Options) -> ExitCode {
         }
     };
     match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("sim: {e}");
+            ExitCode::from(2)
+        }
+    }
+}
+
+/// `--packs N --mqtt HOST:PORT`: the packs in real time, each bridge
+/// publishing (logic in `host_tests::packs_mqtt`).
+fn run_packs_mqtt(o: &Options, n: usize, (host, port): &(String, u16)) -> ExitCode {
+    use host_tests::packs_mqtt::{record, PacksOnMqtt};
+    let record = match record(&o.config) {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("sim: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    let config = InverterConfig {
+        protocol: o.inverter.unwrap_or(Protocol::Victron),
+        ..record.inverter()
+    };
+    let mut packs = match PacksOnMqtt::start(n, config, (host, *port), &record, o.seeds.0, !o.quiet)
+    {
+        Ok(p) => p,
+        Err(e) => {
+            eprintln!("sim: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    let duration = o
+        .duration_given
+        .then(|| std::time::Duration::from_micros(o.duration_us));
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    match packs.run(duration, &stop) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("sim: {e}");
