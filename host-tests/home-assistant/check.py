@@ -405,6 +405,11 @@ def compare_values(ha, entities, serial, pack_rows, last_state):
     return compared
 
 
+def entities_of(ha, serial, obj):
+    """The entity id of a pack's object."""
+    return ha.entities()[f"tinybms_{serial}_{obj}"]["entity_id"]
+
+
 def may_be_unavailable(entity_id):
     """Entities unavailable by design while their value is absent: an
     external temperature sensor a pack may not have (the simulated packs of
@@ -580,7 +585,9 @@ def main():
         print("ok: the Energy dashboard and the recorder accept the entities")
 
         # 6. Two bridges on one broker: two devices, neither disturbed.
-        b = sim("b", "--seed", "2")
+        # The second bridge's BMS cuts off for over-temperature 12 s in, and
+        # recovers 8 s later: its event and status must show in Home Assistant.
+        b = sim("b", "--seed", "2", "--bms-fault", "12s+8s")
         serials = wait_for("two bridges publishing", lambda: (lambda s: s if len(s) == 2 else None)(serial_of(watch)), 30)
         other = [s for s in serials if s != serial][0]
         check_entities(ha, watch, other, pack_rows, figures)
@@ -588,17 +595,30 @@ def main():
             "both devices available", lambda: all_available() and all_available(other), 60, 0.5
         )
         flaps = {}
-        for _ in range(40):
+        event_id = entities_of(ha, other, "events")
+        status_id = entities_of(ha, other, "status")
+        fault_events, statuses = [], set()
+        for _ in range(50):
             s = ha.states()
             for ser in (serial, other):
                 for k, v in ours(s, ser).items():
                     if v["state"] == "unavailable" and not may_be_unavailable(k):
                         flaps[k] = flaps.get(k, 0) + 1
+            ev = s.get(event_id, {}).get("attributes", {})
+            if ev.get("event_type") == "fault":
+                fault_events.append(ev)
+            statuses.add(s.get(status_id, {}).get("state"))
             time.sleep(0.5)
         check(not flaps, f"unavailable readings with two bridges: {flaps}")
+        check(fault_events, f"no fault event in Home Assistant (statuses seen: {statuses})")
+        ev = fault_events[0]
+        check("Temperature" in ev.get("name", ""), f"the fault event: {ev}")
+        check(isinstance(ev.get("id"), int) and isinstance(ev.get("timestamp_s"), int), f"{ev}")
+        check("Fault" in statuses, f"the status never showed Fault: {statuses}")
+        print(f"ok: the BMS's fault reached Home Assistant: event {ev['name']!r}, status Fault")
         for s in (a, b):
             check("connection lost" not in s.text(), f"a bridge lost its connection:\n{s.text()}")
-        print(f"ok: two bridges, two devices ({serial[-6:]}, {other[-6:]}), 20 s without a flap")
+        print(f"ok: two bridges, two devices ({serial[-6:]}, {other[-6:]}), 25 s without a flap")
         b.stop()
 
         # 7. Discovery off: the entities and the device are removed.

@@ -335,6 +335,9 @@ pub struct BridgePtyOptions {
     pub no_wifi: bool,
     /// Write what the bridge sends on CAN here, as a candump log (`--can-log`).
     pub can_log: Option<std::path::PathBuf>,
+    /// (at, for): the simulated BMS cuts off for over-temperature then, and
+    /// recovers after (`--bms-fault`).
+    pub bms_fault: Option<(Duration, Duration)>,
 }
 
 /// `sim --bridge-pty`: the bridge and host link against `sim` in real time,
@@ -407,7 +410,20 @@ pub fn serve_bridge_pty(
     let end = duration.map(|d| d.as_micros() as u64);
     h.log = o.log;
     let mut freeze = o.freeze;
+    let mut fault = o
+        .bms_fault
+        .map(|(at, long)| (at.as_micros() as u64, (at + long).as_micros() as u64, false));
     while !stop.load(Ordering::Relaxed) && end.is_none_or(|e| clock.now() < e) {
+        if let Some((at, until, on)) = fault.as_mut() {
+            let sim = &mut h.driver.port.sim;
+            if !*on && clock.now() >= *at {
+                *on = true;
+                sim.inject_fault_event(protocol_core::events::EventId::OverTemperatureCutoff);
+            } else if *on && clock.now() >= *until {
+                sim.clear_fault();
+                fault = None;
+            }
+        }
         if let Some((at, long)) = freeze {
             if clock.now() >= at.as_micros() as u64 {
                 std::thread::sleep(long);

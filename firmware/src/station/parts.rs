@@ -127,6 +127,12 @@ impl NoOutput {
     pub fn limits_sent(&self, _: Instant) -> Option<crate::inverter::control::Limits> {
         match *self {}
     }
+    pub fn can_state(&self) -> crate::inverter::CanState {
+        match *self {}
+    }
+    pub fn inverter_heard(&self) -> bool {
+        match *self {}
+    }
     pub fn next_report(&mut self) -> Option<crate::inverter::InverterReport> {
         match *self {}
     }

@@ -67,6 +67,9 @@ path, e.g. /dev/pts/7; runs until stopped, or for --duration if given):
   --stream-period D  (--bridge-pty) the same as --config stream_period=D
   --boot-button D    (--bridge-pty) hold the BOOT button down from D on, for 6 s
                      (lifts read-only, as on the chip)
+  --bms-fault AT+FOR (--bridge-pty, --mqtt) the simulated BMS cuts off for
+                     over-temperature at AT (its event logged, status Fault,
+                     switches open) and recovers FOR later (e.g. 20s+15s)
   --freeze AT+FOR    from AT on, for FOR (e.g. 5s+20s): with --pty the simulated
                      BMS falls silent; with --bridge-pty the whole bridge stops
                      (no byte on its pty, as a hung chip)
@@ -142,6 +145,7 @@ struct Options {
     flash: Option<String>,
     boot_button_us: Option<u64>,
     freeze: Option<(u64, u64)>,
+    bms_fault: Option<(u64, u64)>,
     mqtt: Option<(String, u16)>,
     packs: Option<usize>,
 }
@@ -177,6 +181,7 @@ fn parse_args() -> Result<Parsed, String> {
         flash: None,
         boot_button_us: None,
         freeze: None,
+        bms_fault: None,
         mqtt: None,
         packs: None,
     };
@@ -219,6 +224,13 @@ fn parse_args() -> Result<Parsed, String> {
                 o.mqtt = Some((host.to_string(), port));
             }
             "--boot-button" => o.boot_button_us = Some(parse_duration(&value("--boot-button")?)?),
+            "--bms-fault" => {
+                let v = value("--bms-fault")?;
+                let (at, long) = v
+                    .split_once('+')
+                    .ok_or_else(|| format!("--bms-fault {v}: want AT+FOR, e.g. 20s+15s"))?;
+                o.bms_fault = Some((parse_duration(at)?, parse_duration(long)?));
+            }
             "--freeze" => {
                 let v = value("--freeze")?;
                 let (at, long) = v
@@ -360,6 +372,10 @@ fn parse_args() -> Result<Parsed, String> {
     }
     if o.freeze.is_some() && !o.pty && !o.bridge_pty {
         return Err("--freeze goes with --pty or --bridge-pty".into());
+    }
+    if o.bms_fault.is_some() && (o.pty || o.packs.is_some() || (!o.bridge_pty && o.mqtt.is_none()))
+    {
+        return Err("--bms-fault goes with --bridge-pty or --mqtt (one bridge)".into());
     }
     if !o.bridge_pty
         && o.mqtt.is_none()
@@ -734,6 +750,12 @@ fn run_realtime(o: &Options) -> ExitCode {
                 },
                 log: !o.quiet,
                 freeze: o.freeze.map(|(a, f)| {
+                    (
+                        std::time::Duration::from_micros(a),
+                        std::time::Duration::from_micros(f),
+                    )
+                }),
+                bms_fault: o.bms_fault.map(|(a, f)| {
                     (
                         std::time::Duration::from_micros(a),
                         std::time::Duration::from_micros(f),

@@ -1,0 +1,204 @@
+//! `sim --mqtt` as an owner tries Home Assistant without hardware (issue 29,
+//! item 2; issue 26, item 14): against Debian's `mosquitto` on loopback, the
+//! simulated bridge publishes what a wired chip would — the limits its
+//! inverter output sends, its CAN state, the inverter heard —, its
+//! `--config` options apply from the start, every simulated bridge has its own
+//! serial and client id, and `--packs N --mqtt` publishes every pack and the
+//! battery's device. (The real Home Assistant reads all of it in
+//! `host-tests/home-assistant/check.py`, run by `.ci/run`.)
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+
+use std::process::{Child, Command, Stdio};
+use std::time::Instant;
+
+use host_tests::mqtt_e2e::{Broker, Msg, Sub};
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// A `sim` process, killed on drop.
+struct SimProc(Child);
+
+impl SimProc {
+    fn start(args: &[&str]) -> SimProc {
+        SimProc(
+            Command::new(env!("CARGO_BIN_EXE_sim"))
+                .args(args)
+                .args(["--duration", "60s", "--quiet"])
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .spawn()
+                .unwrap(),
+        )
+    }
+}
+
+impl Drop for SimProc {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn json(m: &Msg) -> serde_json::Value {
+    serde_json::from_str(&m.payload).unwrap_or_else(|e| panic!("{e}: {}", m.payload))
+}
+
+fn state_topics(msgs: &[Msg], prefix: &str) -> Vec<String> {
+    let mut t: Vec<String> = msgs
+        .iter()
+        .filter(|m| m.topic.starts_with(prefix) && m.topic.ends_with("/state"))
+        .map(|m| m.topic.clone())
+        .collect();
+    t.sort();
+    t.dedup();
+    t
+}
+
+#[test]
+fn the_try_out_publishes_what_a_wired_bridge_would_with_its_own_options() {
+    let port = free_port();
+    let broker = Broker::start("127.0.0.1", port).unwrap();
+    let sub = Sub::start(&broker).unwrap();
+    let mqtt = format!("127.0.0.1:{port}");
+    let from = Instant::now();
+    let _a = SimProc::start(&[
+        "--mqtt",
+        &mqtt,
+        "--config",
+        "topic_prefix=trial",
+        "--config",
+        "publish_period=7",
+    ]);
+    // The state under the prefix given, with what the inverter output sends.
+    let msgs = sub
+        .wait(from, "a state with limits under trial/", |m| {
+            m.iter().any(|m| {
+                m.topic.starts_with("trial/")
+                    && m.topic.ends_with("/state")
+                    && json(m)["cvl_v"].is_number()
+            })
+        })
+        .unwrap();
+    let state = msgs
+        .iter()
+        .rev()
+        .find(|m| m.topic.starts_with("trial/") && m.topic.ends_with("/state"))
+        .map(json)
+        .unwrap();
+    assert!(state["ccl_a"].as_f64().unwrap() > 0.0, "{state}");
+    assert!(state["dcl_a"].as_f64().unwrap() > 0.0, "{state}");
+    assert_eq!(state["can_state"], "running", "{state}");
+    assert_eq!(state["inverter_heard"], true, "{state}");
+    // The configs say where the state is and when it expires: 3 x 7 s.
+    let configs = sub
+        .wait(from, "the configs", |m| {
+            m.iter().any(|m| m.topic.ends_with("/pack_voltage/config"))
+        })
+        .unwrap();
+    let cfg = configs
+        .iter()
+        .find(|m| m.topic.ends_with("/pack_voltage/config"))
+        .map(json)
+        .unwrap();
+    assert!(
+        cfg["state_topic"].as_str().unwrap().starts_with("trial/"),
+        "{cfg}"
+    );
+    assert_eq!(cfg["expire_after"], 21, "{cfg}");
+    // A second try-out of another seed: its own device, and neither throws
+    // the other off (client ids after the serials).
+    let from2 = Instant::now();
+    let _b = SimProc::start(&["--mqtt", &mqtt, "--seed", "2"]);
+    sub.wait(from2, "the second bridge's state", |m| {
+        state_topics(m, "tinybms/").len() == 1
+    })
+    .unwrap();
+    std::thread::sleep(std::time::Duration::from_secs(8));
+    let since = sub.wait(from2, "", |_| true).unwrap();
+    let trial = since
+        .iter()
+        .filter(|m| m.topic.starts_with("trial/") && m.topic.ends_with("/state"))
+        .count();
+    assert!(trial >= 1, "the first bridge stopped publishing");
+    // Offline after having been online (a bridge starts `offline` until its
+    // first data).
+    let mut online = std::collections::HashSet::new();
+    let mut dropped = Vec::new();
+    for m in since.iter().filter(|m| m.topic.ends_with("/availability")) {
+        match m.payload.as_str() {
+            "online" => {
+                online.insert(m.topic.clone());
+            }
+            _ if online.contains(&m.topic) => dropped.push(m.topic.clone()),
+            _ => {}
+        }
+    }
+    assert!(dropped.is_empty(), "offline beside the other: {dropped:?}");
+    let serial = |t: &str| t.split('/').nth(1).unwrap_or("").to_string();
+    let a = state_topics(&since, "trial/");
+    let b = state_topics(&since, "tinybms/");
+    assert_ne!(serial(&a[0]), serial(&b[0]), "two seeds, one serial");
+    drop(broker);
+}
+
+#[test]
+fn packs_on_mqtt_publish_every_pack_and_the_battery() {
+    let port = free_port();
+    let broker = Broker::start("127.0.0.1", port).unwrap();
+    let sub = Sub::start(&broker).unwrap();
+    let mqtt = format!("127.0.0.1:{port}");
+    let from = Instant::now();
+    let _p = SimProc::start(&["--packs", "3", "--mqtt", &mqtt]);
+    let msgs = sub
+        .wait(from, "three packs and the battery", |m| {
+            state_topics(m, "tinybms/").len() == 4
+                && m.iter()
+                    .any(|m| m.topic == "tinybms/battery/state" && json(m)["packs_online"] == 3)
+        })
+        .unwrap();
+    let battery = msgs
+        .iter()
+        .rev()
+        .find(|m| m.topic == "tinybms/battery/state")
+        .map(json)
+        .unwrap();
+    assert!(battery["cvl_v"].is_number(), "{battery}");
+    // The battery's device: every one of its configs, under one device id.
+    let mut configs: Vec<&str> = msgs
+        .iter()
+        .filter(|m| m.topic.contains("/tinybms_battery_tinybms/") && !m.payload.is_empty())
+        .map(|m| m.topic.as_str())
+        .collect();
+    configs.sort();
+    configs.dedup();
+    assert_eq!(
+        configs.len(),
+        tinybms_firmware::mqtt::battery::ENTITIES.len(),
+        "{configs:?}"
+    );
+    drop(broker);
+}
+
+#[test]
+fn packs_on_mqtt_refuse_a_scenario() {
+    let out = Command::new(env!("CARGO_BIN_EXE_sim"))
+        .args([
+            "--packs",
+            "2",
+            "--mqtt",
+            "127.0.0.1:1",
+            "--scenario",
+            "full-charge",
+        ])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--scenario goes without --mqtt"), "{err}");
+}
