@@ -858,6 +858,13 @@ fn longest_telemetry_line_fits() {
         stale_after_ms: Some(60_000),
         online: true,
         ready: true,
+        // The longest inverter member.
+        inverter: Some(encode::InverterState {
+            protocol: "victron",
+            can: "waiting",
+            heard: false,
+            limits: Some((u16::MAX, u16::MAX, u16::MAX)),
+        }),
     };
     let n = encode::telemetry(
         &mut buf,
@@ -868,7 +875,9 @@ fn longest_telemetry_line_fits() {
     )
     .unwrap();
     // A margin of a fifth of the buffer (the freshness limit, 25 bytes, took
-    // the line from 764 to 789 bytes: past the three quarters it kept before).
+    // the line from 764 to 789 bytes: past the three quarters it kept before;
+    // the inverter member, 107 bytes, to 896, and the buffer from 1024 to
+    // 1280 bytes).
     assert!(n < OUT_LINE_MAX * 4 / 5, "{n}");
     check_line(&buf[..n]);
 }
@@ -1178,7 +1187,7 @@ proptest! {
         let replay = register_values(&regs);
         let block = RegisterBlock { start: 0, values: regs.values().copied().collect() };
         let s = protocol_core::views::LiveSnapshot::from_registers(&block).unwrap();
-        let head = encode::TelemetryHead { req: None, seq: 1, age_ms: Some(0), stale_after_ms: None, online: true, ready: true };
+        let head = encode::TelemetryHead { req: None, seq: 1, age_ms: Some(0), stale_after_ms: None, online: true, ready: true, inverter: None };
         let mut out = [0u8; OUT_LINE_MAX];
         let n = encode::telemetry(&mut out, head, Some(&s), None, None).unwrap();
         let line: Value = serde_json::from_str(&check_line(&out[..n])).unwrap();

@@ -427,3 +427,50 @@ fn ctrl_c_after(args: &[&str], after: Duration) -> (std::process::ExitStatus, St
     };
     (status, reader.join().unwrap())
 }
+
+/// Issue 26, item 7: what the inverter is told is visible for one pack —
+/// `sim --bridge-pty` runs the firmware's inverter output on a virtual CAN
+/// bus with a simulated inverter, every `telemetry` line carries it, and
+/// `monitor` shows it in text, JSON and CSV. (Before: nothing showed the
+/// limits for one pack, and the try-out ran no inverter output.)
+#[test]
+fn the_monitor_shows_what_the_inverter_is_told() {
+    let sim = Sim::start(&["--bridge-pty"]);
+    let text = tinybms(&["monitor", &sim.path, "--count", "3", "--plain"]);
+    assert_eq!(text.code, 0, "{text}");
+    assert!(
+        text.stdout
+            .contains("Inverter victron: CAN running, inverter heard   CVL 56.8 V"),
+        "{text}"
+    );
+    let json = tinybms(&["monitor", &sim.path, "--count", "2", "--json"]);
+    assert_eq!(json.code, 0, "{json}");
+    let last: serde_json::Value =
+        serde_json::from_str(json.stdout.lines().last().unwrap()).unwrap();
+    let inv = &last["inverter"];
+    assert_eq!(inv["protocol"], "victron", "{last}");
+    assert_eq!(inv["can"], "running", "{last}");
+    assert_eq!(inv["heard"], true, "{last}");
+    assert!(inv["ccl_a"].as_f64().unwrap() > 0.0, "{last}");
+    let csv = tmp("monitor-inverter.csv");
+    let _ = std::fs::remove_file(&csv);
+    let o = tinybms(&[
+        "monitor",
+        &sim.path,
+        "--count",
+        "2",
+        "--plain",
+        "--log",
+        csv.to_str().unwrap(),
+        "--every",
+        "200ms",
+    ]);
+    assert_eq!(o.code, 0, "{o}");
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let row: Vec<&str> = lines.last().unwrap().split(',').collect();
+    let at = |name: &str| row[header.iter().position(|h| *h == name).unwrap()];
+    assert_eq!(at("cvl_v"), "56.8", "{text}");
+    assert_eq!(at("can_state"), "running", "{text}");
+}

@@ -339,6 +339,8 @@ struct TelemetryLine {
     stale_after_ms: Option<u64>,
     online: bool,
     ready: bool,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    inverter: Option<InverterMember>,
 }
 
 /// A `telemetry` line with the live fields, in replay's names and units.
@@ -374,6 +376,8 @@ struct TelemetryFull<'a> {
     speed_kmh: Option<Dec>,
     distance_left_km: u16,
     flagged: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    inverter: Option<InverterMember>,
     // The MQTT state's members beyond the host link's (none on the host link).
     // Absent (outer None) on the host link; present, maybe null, in the state.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -456,6 +460,49 @@ pub struct TelemetryHead {
     pub online: bool,
     /// Settings and limits read.
     pub ready: bool,
+    /// The inverter output (host link only; `None` without CAN output and in
+    /// the MQTT state, which has members of its own).
+    pub inverter: Option<InverterState>,
+}
+
+/// The inverter output as a `telemetry` line's `inverter` member says it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct InverterState {
+    /// `victron` or `sma`.
+    pub protocol: &'static str,
+    /// [`crate::inverter::CanState::key`].
+    pub can: &'static str,
+    /// The inverter's keep-alive is heard.
+    pub heard: bool,
+    /// What it is told now: CVL 0.1 V, CCL 0.1 A, DCL 0.1 A (`None`: nothing
+    /// sent, e.g. no fresh data).
+    pub limits: Option<(u16, u16, u16)>,
+}
+
+#[derive(serde::Serialize)]
+struct InverterMember {
+    protocol: &'static str,
+    can: &'static str,
+    heard: bool,
+    cvl_v: Option<Dec>,
+    ccl_a: Option<Dec>,
+    dcl_a: Option<Dec>,
+}
+
+impl InverterMember {
+    fn of(s: &InverterState) -> Self {
+        let l = |f: fn(&(u16, u16, u16)) -> u16| {
+            s.limits.as_ref().and_then(|x| fixed(i64::from(f(x)), 1))
+        };
+        Self {
+            protocol: s.protocol,
+            can: s.can,
+            heard: s.heard,
+            cvl_v: l(|x| x.0),
+            ccl_a: l(|x| x.1),
+            dcl_a: l(|x| x.2),
+        }
+    }
 }
 
 /// Writes a `telemetry` line: the head, and the snapshot's fields when there is
@@ -477,6 +524,7 @@ pub fn telemetry(
                 stale_after_ms: head.stale_after_ms,
                 online: head.online,
                 ready: head.ready,
+                inverter: head.inverter.as_ref().map(InverterMember::of),
             },
             out,
         );
@@ -514,6 +562,7 @@ pub fn telemetry(
             speed_kmh: f32v(s.speed_kmh),
             distance_left_km: s.distance_left_km,
             flagged,
+            inverter: head.inverter.as_ref().map(InverterMember::of),
             status: extras.map(|e| e.status),
             pack_power_w: extras
                 .map(|_| rounded(f64::from(s.pack_voltage_v) * f64::from(s.pack_current_a), 1)),

@@ -52,10 +52,10 @@ use line::{LineAssembler, Piece};
 pub const PROTOCOL_VERSION: u32 = 1;
 
 /// Buffer size [`HostLink::next_line`] needs: the longest line it writes (a
-/// `telemetry` line with 16 cells and every value at its widest is about 700
-/// bytes), `\n` included. A line that does not fit a smaller buffer is dropped
-/// and counted.
-pub const OUT_LINE_MAX: usize = 1024;
+/// `telemetry` line with 16 cells, the inverter member and every value at its
+/// widest is about 900 bytes), `\n` included. A line that does not fit a
+/// smaller buffer is dropped and counted.
+pub const OUT_LINE_MAX: usize = 1280;
 
 /// Lines (or listings) waiting for the host: answers, outcomes and events.
 pub const QUEUE: usize = 32;
@@ -252,6 +252,8 @@ struct State {
     /// line, then one per pack).
     battery: Option<crate::inverter::packs::BatteryView>,
     battery_lines: usize,
+    /// The inverter output now (each telemetry line says it), when built in.
+    inverter: Option<encode::InverterState>,
     capture: bool,
     queue: Deque<Out, QUEUE>,
     raw: Deque<(Dir, Vec<u8, RAW_CHUNK>), RAW_QUEUE>,
@@ -302,6 +304,7 @@ impl HostLink {
                 stream_due: false,
                 battery: None,
                 battery_lines: 0,
+                inverter: None,
                 capture: false,
                 queue: Deque::new(),
                 raw: Deque::new(),
@@ -436,6 +439,13 @@ impl HostLink {
         self.s.battery = view;
     }
 
+    /// The inverter output now: what it tells the inverter, the CAN state,
+    /// whether the inverter is heard (`None`: no CAN output built in). Every
+    /// `telemetry` line carries it.
+    pub fn on_inverter(&mut self, state: Option<encode::InverterState>) {
+        self.s.inverter = state;
+    }
+
     /// Bytes sent to the BMS (for capture).
     pub fn on_uart_tx(&mut self, bytes: &[u8]) {
         self.s.capture_bytes(Dir::Tx, bytes);
@@ -491,7 +501,7 @@ impl HostLink {
             } else if self.s.stream_due {
                 self.s.stream_due = false;
                 self.s.battery_lines = self.s.battery.as_ref().map_or(0, |v| 1 + v.packs.len());
-                telemetry(now, bridge, None, self.s.config.stale_after_ms, out)
+                telemetry(now, bridge, None, &self.s, out)
             } else if self.s.battery_lines > 0 {
                 let v = self.s.battery.as_ref();
                 let total = v.map_or(0, |v| 1 + v.packs.len());
@@ -528,7 +538,7 @@ fn telemetry(
     now: Instant,
     bridge: &Bridge,
     req: Option<u32>,
-    stale_after_ms: u64,
+    s: &State,
     out: &mut [u8],
 ) -> Option<usize> {
     let t = bridge.telemetry();
@@ -536,9 +546,10 @@ fn telemetry(
         req,
         seq: t.snapshot_seq,
         age_ms: t.snapshot_age_us(now).map(|a| a / crate::MS),
-        stale_after_ms: Some(stale_after_ms),
+        stale_after_ms: Some(s.config.stale_after_ms),
         online: t.online,
         ready: t.ready,
+        inverter: s.inverter,
     };
     encode::telemetry(
         out,
@@ -999,7 +1010,7 @@ impl State {
                     store: config.site(),
                 },
             ),
-            Out::Telemetry(req) => telemetry(now, bridge, *req, self.config.stale_after_ms, out),
+            Out::Telemetry(req) => telemetry(now, bridge, *req, self, out),
             Out::Error {
                 req,
                 code,

@@ -527,6 +527,7 @@ impl Publisher {
             stale_after_ms: None,
             online: view.online,
             ready: true,
+            inverter: None,
         };
         let n = encode::state(payload, head, Some(snapshot), view.flagged, Some(&extras));
         let Some(n) = n else {

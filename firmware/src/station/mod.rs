@@ -52,6 +52,7 @@ use crate::config::{Config, FieldId};
 use crate::energy::Energy;
 use crate::freshness::Freshness;
 #[cfg(feature = "host-link")]
+use crate::host_link::encode::InverterState;
 use crate::host_link::HostLink;
 use crate::inverter::control::{Limits, PackSettings};
 use crate::inverter::frames::CanFrame;
@@ -340,7 +341,14 @@ impl Station {
     /// [`crate::host_link::OUT_LINE_MAX`] bytes); call only when the port can
     /// take a whole line.
     pub fn next_host_line(&mut self, now: Instant, out: &mut [u8]) -> Option<usize> {
+        let inverter = self.inverter.as_ref().map(|i| InverterState {
+            protocol: i.config().protocol.key(),
+            can: i.can_state().key(),
+            heard: i.inverter_heard(),
+            limits: i.limits_sent(now).map(|l| (l.cvl_dv, l.ccl_da, l.dcl_da)),
+        });
         let h = self.host.as_mut()?;
+        h.on_inverter(inverter);
         h.next_line(now, &self.bridge, &self.config, out)
     }
 

@@ -87,6 +87,9 @@ impl NoHost {
     pub fn on_battery(&mut self, _: Option<crate::inverter::packs::BatteryView>) {
         match *self {}
     }
+    pub fn on_inverter(&mut self, _: Option<crate::host_link::encode::InverterState>) {
+        match *self {}
+    }
 }
 
 /// No inverter output: a type without values.

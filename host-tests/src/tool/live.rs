@@ -20,8 +20,8 @@ use serde_json::Value;
 
 use super::client::Client;
 use super::picture::{
-    cells_of, freshness, freshness_text, link_quality, min_max, Freshness, Logger, MonitorOptions,
-    REDRAW,
+    cells_of, freshness, freshness_text, inverter_text, link_quality, min_max, Freshness, Logger,
+    MonitorOptions, REDRAW,
 };
 use super::{interrupted, interrupted_error, ToolResult};
 
@@ -115,9 +115,14 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         .fg(Color::White)
         .bg(Color::Red)
         .add_modifier(Modifier::BOLD);
+    let inverter_row = u16::from(
+        s.telemetry
+            .as_ref()
+            .is_some_and(|(t, _)| t.get("inverter").is_some_and(Value::is_object)),
+    );
     let [top, pack, cells_area, spark_area, foot, battery_area, log_area] = Layout::vertical([
         Constraint::Length(1),
-        Constraint::Length(3),
+        Constraint::Length(3 + inverter_row),
         Constraint::Min(4),
         Constraint::Length(6),
         Constraint::Length(2),
@@ -209,6 +214,14 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
             )),
         ]),
     ];
+    let mut lines = lines;
+    if let Some(inv) = inverter_text(t) {
+        let trouble = inv.contains("NO ACK") || inv.contains("BUS OFF");
+        lines.push(Line::styled(
+            inv,
+            if trouble { alarm } else { Style::new() },
+        ));
+    }
     f.render_widget(
         Paragraph::new(lines).block(Block::new().borders(Borders::TOP)),
         pack,

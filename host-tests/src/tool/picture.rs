@@ -288,6 +288,9 @@ pub fn render_text(t: &Value, link: Option<&Value>, header: &str, f: Freshness) 
             line(l);
         }
     }
+    if let Some(inv) = inverter_text(t) {
+        line(inv);
+    }
     let flagged = match t["flagged"].as_str() {
         Some(fl) => format!("   flagged: {fl}"),
         None => String::new(),
@@ -297,6 +300,40 @@ pub fn render_text(t: &Value, link: Option<&Value>, header: &str, f: Freshness) 
         line(format!("Link {q}"));
     }
     s
+}
+
+/// What the inverter output does, from a `telemetry` line's `inverter`
+/// member: `Inverter victron: CAN running, inverter heard   CVL 56.8 V  CCL
+/// 60.0 A  DCL 60.0 A`. `None` for a bridge without CAN output.
+pub fn inverter_text(t: &Value) -> Option<String> {
+    let inv = t.get("inverter").filter(|v| v.is_object())?;
+    let can = match inv["can"].as_str().unwrap_or("-") {
+        "running" => "running".to_string(),
+        "waiting" => "waiting (nothing sent yet)".to_string(),
+        "no_ack" => "NO ACK (nobody acknowledges: wiring, termination, bit rate?)".to_string(),
+        "bus_off" => "BUS OFF (recovering)".to_string(),
+        "off" => "off (can_output=off)".to_string(),
+        other => other.to_string(),
+    };
+    let heard = if inv["heard"] == true {
+        "inverter heard"
+    } else {
+        "inverter not heard"
+    };
+    let told = match (
+        inv["cvl_v"].as_f64(),
+        inv["ccl_a"].as_f64(),
+        inv["dcl_a"].as_f64(),
+    ) {
+        (Some(v), Some(c), Some(d)) => {
+            format!("CVL {v:.1} V  CCL {c:.1} A  DCL {d:.1} A")
+        }
+        _ => "no limits sent".to_string(),
+    };
+    Some(format!(
+        "Inverter {}: CAN {can}, {heard}   {told}",
+        inv["protocol"].as_str().unwrap_or("-")
+    ))
 }
 
 /// Packs in parallel: one line of text for a `battery` or `pack` line of a
@@ -357,7 +394,8 @@ pub fn csv_header(cells: usize) -> String {
     let mut h = String::from(
         "time,seq,age_ms,online,pack_voltage_v,pack_current_a,soc_percent,soh_percent,\
          min_cell_voltage_v,max_cell_voltage_v,internal_temperature_c,external_temperature_1_c,\
-         external_temperature_2_c,online_status,real_balancing_bits,flagged",
+         external_temperature_2_c,online_status,real_balancing_bits,flagged,\
+         cvl_v,ccl_a,dcl_a,can_state",
     );
     for k in 1..=cells {
         h.push_str(&format!(",cell_{k}_v"));
@@ -392,6 +430,16 @@ pub fn csv_row(time: &str, t: &Value, cells: usize) -> String {
     ] {
         row.push(',');
         row.push_str(&field(k));
+    }
+    // What the inverter is told (empty without CAN output or limits).
+    let inv = t.get("inverter").cloned().unwrap_or(Value::Null);
+    for k in ["cvl_v", "ccl_a", "dcl_a", "can"] {
+        row.push(',');
+        row.push_str(&match &inv[k] {
+            Value::Null => String::new(),
+            Value::String(s) => s.clone(),
+            other => other.to_string(),
+        });
     }
     let list = t["cell_voltages_v"].as_array().cloned().unwrap_or_default();
     for k in 0..cells {
