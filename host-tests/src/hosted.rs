@@ -50,6 +50,10 @@ pub struct Hosted<P: BytePort> {
     pub boot_button: Option<(u64, u64)>,
     /// The MQTT output's feed, when it runs (`sim --mqtt`).
     pub mqtt: Option<crate::mqtt::Shared>,
+    /// The MQTT session's notes, when it runs: their latest state goes to
+    /// the station (`hello`), as the chip's MQTT task hands it on.
+    pub mqtt_notes: Option<crate::mqtt::Notes>,
+    mqtt_noted: usize,
     /// Print every log line to stderr, as the device logs it.
     pub log: bool,
     line: Vec<u8>,
@@ -101,6 +105,8 @@ impl<P: BytePort> Hosted<P> {
             driver,
             boot_button: None,
             mqtt: None,
+            mqtt_notes: None,
+            mqtt_noted: 0,
             log: false,
             line: vec![0; LINE_BUF],
             input: Vec::new(),
@@ -160,6 +166,15 @@ impl<P: BytePort> Hosted<P> {
         }
         if let Some(m) = &self.mqtt {
             m.update(&mut self.driver.station, now);
+        }
+        if let Some(notes) = &self.mqtt_notes {
+            let notes = notes.lock().unwrap_or_else(|e| e.into_inner());
+            if notes.len() > self.mqtt_noted {
+                self.mqtt_noted = notes.len();
+                if let Some(n) = notes.last() {
+                    self.driver.station.mqtt_state(n.state());
+                }
+            }
         }
         while side.can_take() {
             match self.driver.station.next_host_line(now, &mut self.line) {
@@ -386,7 +401,7 @@ pub fn serve_bridge_pty(
             .map_err(|_| io::Error::other("--mqtt: the host name is longer than 64 bytes"))?;
         target.port = *port;
         let shared = crate::mqtt::Shared::default();
-        crate::mqtt::spawn(
+        h.mqtt_notes = Some(crate::mqtt::spawn(
             target,
             (
                 tinybms_firmware::mqtt::Settings::from_config(&record),
@@ -396,7 +411,7 @@ pub fn serve_bridge_pty(
             clock,
             crate::mqtt::TcpNet::default(),
             o.log,
-        );
+        ));
         h.mqtt = Some(shared);
     }
     let pty = if o.pty {

@@ -13,6 +13,8 @@ use std::time::Instant;
 
 use host_tests::mqtt_e2e::{Broker, Msg, Sub};
 
+mod common;
+
 fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()
@@ -201,4 +203,36 @@ fn packs_on_mqtt_refuse_a_scenario() {
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("--scenario goes without --mqtt"), "{err}");
+}
+
+/// Two bridges with one client id (here two try-outs of one seed): each
+/// says so in `hello`, and `tinybms version` puts it in words, instead of
+/// both flapping in silence.
+#[test]
+fn a_taken_client_id_is_in_hello_and_tinybms_version() {
+    let port = free_port();
+    let _broker = Broker::start("127.0.0.1", port).unwrap();
+    let mqtt = format!("127.0.0.1:{port}");
+    let a = common::Sim::start(&["--bridge-pty", "--mqtt", &mqtt, "--quiet"]);
+    let _b = common::Sim::start(&["--bridge-pty", "--mqtt", &mqtt, "--quiet"]);
+    let end = Instant::now() + std::time::Duration::from_secs(60);
+    let mut last = None;
+    while Instant::now() < end {
+        let v = common::tinybms(&["version", &a.path, "--json"]);
+        if v.code == 0 {
+            let line: serde_json::Value = serde_json::from_str(v.stdout.trim()).unwrap();
+            if line["bridge"]["mqtt"] == "client_id_taken" {
+                let text = common::tinybms(&["version", &a.path]);
+                assert!(
+                    text.stdout
+                        .contains("another client uses this bridge's client id"),
+                    "{text}"
+                );
+                return;
+            }
+            last = Some(line);
+        }
+        std::thread::sleep(std::time::Duration::from_secs(1));
+    }
+    panic!("never said: {last:?}");
 }

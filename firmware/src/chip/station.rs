@@ -265,6 +265,10 @@ impl Pumps {
             while let Ok((level, line)) = wires::FOREIGN_LOG.try_receive() {
                 station.foreign_log(level, line.as_str());
             }
+            #[cfg(feature = "wifi")]
+            if let Some(state) = wires::MQTT_STATE.try_take() {
+                station.mqtt_state(state);
+            }
         }
         #[cfg(not(any(feature = "host-link", feature = "can")))]
         let _ = station;

@@ -354,6 +354,8 @@ async fn mqtt_task(
     };
     let mut publisher = Publisher::new(settings, &bridge);
     let mut note = |n: Note| {
+        wires::MQTT_STATE.signal(n.state());
+        wires::wake();
         let mut ms_text = Line::new();
         match n {
             Note::Connected => {

@@ -102,6 +102,10 @@ mod mqtt {
     /// New BMS events for the MQTT output; when full, the station keeps them
     /// (and drops its oldest, counted) until there is room.
     pub static MQTT_EVENTS: Channel<Raw, Event, 8> = Channel::new();
+    /// Where the MQTT connection stands (the MQTT task → the station task,
+    /// for `hello`; latest wins).
+    pub static MQTT_STATE: embassy_sync::signal::Signal<Raw, tinybms_firmware::mqtt::MqttState> =
+        embassy_sync::signal::Signal::new();
 }
 
 /// Lines for the host the writer dropped on the wire since the station last

@@ -261,6 +261,8 @@ struct HelloLine<'a> {
     dropped_lines: u32,
     #[serde(skip_serializing_if = "Option::is_none")]
     store: Option<StoreLine>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    mqtt: Option<&'static str>,
 }
 
 /// Where the configuration store lives (in `hello`).
@@ -296,6 +298,9 @@ pub struct HelloFields<'a> {
     pub dropped_lines: u32,
     /// Where the configuration store lives, when the shell said.
     pub store: Option<crate::config::store::StoreSite>,
+    /// Where the MQTT connection stands, once its session said (images with
+    /// Wi-Fi).
+    pub mqtt: Option<crate::mqtt::MqttState>,
 }
 
 /// Writes a `hello` line.
@@ -321,6 +326,7 @@ pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<us
                 needs_bytes: crate::config::store::STORE_MIN_BYTES,
                 problem: s.problem().map(|p| p.reason()),
             }),
+            mqtt: f.mqtt.map(crate::mqtt::MqttState::key),
         },
         out,
     )

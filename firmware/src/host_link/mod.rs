@@ -254,6 +254,8 @@ struct State {
     battery_lines: usize,
     /// The inverter output now (each telemetry line says it), when built in.
     inverter: Option<encode::InverterState>,
+    /// Where the MQTT connection stands (`hello`), once the session said.
+    mqtt: Option<crate::mqtt::MqttState>,
     capture: bool,
     queue: Deque<Out, QUEUE>,
     raw: Deque<(Dir, Vec<u8, RAW_CHUNK>), RAW_QUEUE>,
@@ -305,6 +307,7 @@ impl HostLink {
                 battery: None,
                 battery_lines: 0,
                 inverter: None,
+                mqtt: None,
                 capture: false,
                 queue: Deque::new(),
                 raw: Deque::new(),
@@ -444,6 +447,11 @@ impl HostLink {
     /// `telemetry` line carries it.
     pub fn on_inverter(&mut self, state: Option<encode::InverterState>) {
         self.s.inverter = state;
+    }
+
+    /// Where the MQTT connection stands now (`hello` says it).
+    pub fn on_mqtt(&mut self, state: crate::mqtt::MqttState) {
+        self.s.mqtt = Some(state);
     }
 
     /// Bytes sent to the BMS (for capture).
@@ -1008,6 +1016,7 @@ impl State {
                     stream_period_ms: self.stream_period_ms,
                     dropped_lines: self.stats.dropped_lines,
                     store: config.site(),
+                    mqtt: self.mqtt,
                 },
             ),
             Out::Telemetry(req) => telemetry(now, bridge, *req, self, out),

@@ -59,6 +59,49 @@ pub const PAYLOAD_MAX: usize = 1536;
 /// Device manufacturer in Home Assistant.
 pub const MANUFACTURER: &str = "Energus";
 
+/// Where the MQTT connection stands, as `hello` says it (the session's latest
+/// note: [`session::Note::state`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum MqttState {
+    /// Nothing is announced before the BMS's serial number is known.
+    WaitingForBms,
+    /// Connected to the broker.
+    Connected,
+    /// The connection was lost; reconnecting.
+    Reconnecting,
+    /// Connecting fails (the log line says why).
+    CannotConnect,
+    /// Another client uses this client id: the broker drops one for the other.
+    ClientIdTaken,
+}
+
+impl MqttState {
+    /// As `hello` writes it.
+    pub const fn key(self) -> &'static str {
+        match self {
+            Self::WaitingForBms => "waiting_for_bms",
+            Self::Connected => "connected",
+            Self::Reconnecting => "reconnecting",
+            Self::CannotConnect => "cannot_connect",
+            Self::ClientIdTaken => "client_id_taken",
+        }
+    }
+
+    /// From its key (`None` for another text: a newer bridge).
+    pub fn from_key(k: &str) -> Option<Self> {
+        [
+            Self::WaitingForBms,
+            Self::Connected,
+            Self::Reconnecting,
+            Self::CannotConnect,
+            Self::ClientIdTaken,
+        ]
+        .into_iter()
+        .find(|s| s.key() == k)
+    }
+}
+
 /// What the publisher is configured with (the record's network fields).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Settings {

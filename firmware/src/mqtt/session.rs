@@ -117,6 +117,22 @@ pub enum Note {
     WaitingForBms,
 }
 
+impl Note {
+    /// Where the connection stands after this note (`hello` says it).
+    pub const fn state(&self) -> super::MqttState {
+        use super::MqttState as S;
+        match self {
+            Self::Connected => S::Connected,
+            Self::WaitingForBms => S::WaitingForBms,
+            Self::Disconnected(Failure::TakenOver, _) | Self::Failed(Failure::TakenOver, _) => {
+                S::ClientIdTaken
+            }
+            Self::Disconnected(..) => S::Reconnecting,
+            Self::Failed(..) => S::CannotConnect,
+        }
+    }
+}
+
 /// Why a connection attempt or a connection ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]

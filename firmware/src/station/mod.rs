@@ -51,8 +51,8 @@ use crate::config::value::Parsed;
 use crate::config::{Config, FieldId};
 use crate::energy::Energy;
 use crate::freshness::Freshness;
-#[cfg(feature = "host-link")]
 use crate::host_link::encode::InverterState;
+#[cfg(feature = "host-link")]
 use crate::host_link::HostLink;
 use crate::inverter::control::{Limits, PackSettings};
 use crate::inverter::frames::CanFrame;
@@ -350,6 +350,13 @@ impl Station {
         let h = self.host.as_mut()?;
         h.on_inverter(inverter);
         h.next_line(now, &self.bridge, &self.config, out)
+    }
+
+    /// The MQTT session's latest state (images with Wi-Fi): `hello` says it.
+    pub fn mqtt_state(&mut self, state: crate::mqtt::MqttState) {
+        if let Some(h) = self.host.as_mut() {
+            h.on_mqtt(state);
+        }
     }
 
     /// Lines are waiting for the host.

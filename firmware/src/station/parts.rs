@@ -90,6 +90,9 @@ impl NoHost {
     pub fn on_inverter(&mut self, _: Option<crate::host_link::encode::InverterState>) {
         match *self {}
     }
+    pub fn on_mqtt(&mut self, _: crate::mqtt::MqttState) {
+        match *self {}
+    }
 }
 
 /// No inverter output: a type without values.

@@ -19,9 +19,26 @@ pub fn show_one(conn: &Conn, what: &str, json: bool) -> ToolResult<()> {
     }
     Ok(())
 }
+
+/// The MQTT state of `hello` in words.
+fn mqtt_text(key: &str) -> String {
+    use tinybms_firmware::mqtt::MqttState as S;
+    match S::from_key(key) {
+        Some(S::Connected) => "connected to the broker".into(),
+        Some(S::WaitingForBms) => "waiting for the BMS's serial number".into(),
+        Some(S::Reconnecting) => "connection lost, reconnecting (`tinybms log` says why)".into(),
+        Some(S::CannotConnect) => "cannot connect (`tinybms log` says why)".into(),
+        Some(S::ClientIdTaken) => "another client uses this bridge's client id: the broker \
+             drops one for the other; give each bridge its own hostname \
+             (`tinybms config PORT hostname=…`)"
+            .into(),
+        None => key.to_string(),
+    }
+}
+
 /// `tinybms version`: the BMS's version and, through a bridge, the bridge's
 /// own (from its `hello`: firmware, build, chip, board, what is built in,
-/// the configuration record's version).
+/// the configuration record's version, where its MQTT connection stands).
 pub fn version(conn: &Conn, json: bool) -> ToolResult<()> {
     let mut c = connect_ready(conn)?;
     let mut v = c.get_one("version")?;
@@ -35,6 +52,7 @@ pub fn version(conn: &Conn, json: bool) -> ToolResult<()> {
             "board",
             "features",
             "record_version",
+            "mqtt",
         ] {
             if !h[k].is_null() {
                 b.insert(k.to_string(), h[k].clone());
@@ -57,6 +75,7 @@ pub fn version(conn: &Conn, json: bool) -> ToolResult<()> {
         let w = b.keys().map(String::len).max().unwrap_or(0);
         for (k, x) in &b {
             let text = match x {
+                Value::String(s) if k == "mqtt" => mqtt_text(s),
                 Value::String(s) => s.clone(),
                 Value::Array(a) => a
                     .iter()
