@@ -254,10 +254,12 @@ pub enum Command {
     Mqtt {
         #[command(flatten)]
         conn: Conn,
-        /// Host name or IPv4 address.
+        /// The broker's IPv4 address (or a name DNS resolves: an mDNS name
+        /// such as homeassistant.local is likely not found by the bridge).
         #[arg(long, value_name = "HOST")]
         host: String,
-        /// TCP port.
+        /// The broker's TCP port (PORT, the first argument, is the serial
+        /// port of the bridge).
         #[arg(
             long = "port",
             id = "tcp_port",

@@ -93,18 +93,45 @@ fn num(t: &Value, k: &str, decimals: usize, unit: &str) -> String {
 }
 
 /// Sparkline values: `x` scaled into 0..=100 over the window's min..max.
-fn scaled(xs: &[f64]) -> Vec<u64> {
+fn scaled(xs: &[f64], resolution: f64) -> Vec<u64> {
     let lo = xs.iter().copied().fold(f64::INFINITY, f64::min);
     let hi = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    let span = (hi - lo).max(1e-9);
+    // A range below what the title can show (52.90..52.90 V) is flat: bars
+    // of different heights would show a change nobody can read.
+    if hi - lo < resolution {
+        return vec![50; xs.len()];
+    }
+    let span = hi - lo;
     xs.iter()
         .map(|x| (1.0 + 99.0 * (x - lo) / span).round() as u64)
         .collect()
 }
 
+/// The smallest window the live view fills without dropping anything (16
+/// cells in two columns, the charts, the footer).
+pub const MIN_SIZE: (u16, u16) = (64, 24);
+
+/// The cell bars span at least this much, V: a healthy pack's few mV of
+/// spread must not look like a cell falling out.
+pub const CELL_SCALE_MIN_V: f64 = 0.050;
+
 /// Draws the view of `s` at `now`.
 pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
     let area = f.area();
+    if area.width < MIN_SIZE.0 || area.height < MIN_SIZE.1 {
+        f.render_widget(
+            Paragraph::new(vec![
+                Line::raw(format!(
+                    "window too small: {}x{}, the live view needs {}x{}",
+                    area.width, area.height, MIN_SIZE.0, MIN_SIZE.1
+                )),
+                Line::raw("make it larger, or use `tinybms monitor PORT --plain`"),
+                Line::raw("q quits"),
+            ]),
+            area,
+        );
+        return;
+    }
     let fresh = freshness(
         s.telemetry.as_ref().map(|(t, _)| t),
         s.telemetry
@@ -246,7 +273,8 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         (is, &amps, "Current", "A"),
     ] {
         let w = area.width.saturating_sub(2) as usize;
-        let data = scaled(xs);
+        // The title shows two decimals.
+        let data = scaled(xs, 0.005);
         let data = &data[data.len().saturating_sub(w)..];
         f.render_widget(
             Sparkline::default()
@@ -298,14 +326,18 @@ fn draw_cells(f: &mut Frame, t: &Value, area: Rect) {
         return;
     };
     let (lo, hi) = (cells[lo_i], cells[hi_i]);
+    // The bars start below the lowest cell (so it still shows) and span at
+    // least CELL_SCALE_MIN_V: a few mV of spread look like a few mV.
+    let floor = hi - ((hi - lo) * 1.25).max(CELL_SCALE_MIN_V);
     let title = format!(
-        "Cells ({})  lowest #{} {:.4} V  highest #{} {:.4} V  spread {:.1} mV  (* balancing)",
+        "Cells ({})  lowest #{} {:.4} V  highest #{} {:.4} V  spread {:.1} mV  bars from {:.3} V  * balancing",
         cells.len(),
         lo_i + 1,
         lo,
         hi_i + 1,
         hi,
-        (hi - lo) * 1000.0
+        (hi - lo) * 1000.0,
+        floor,
     );
     let block = Block::new().borders(Borders::TOP).title(title);
     let inner = block.inner(area);
@@ -316,10 +348,20 @@ fn draw_cells(f: &mut Frame, t: &Value, area: Rect) {
         2
     };
     let per_col = cells.len().div_ceil(columns);
+    if per_col > inner.height as usize {
+        // Never a cell left out in silence.
+        f.render_widget(
+            Paragraph::new(format!(
+                "window too low for {} cells: {} more rows, or `--plain`",
+                cells.len(),
+                per_col - inner.height as usize
+            )),
+            inner,
+        );
+        return;
+    }
     let col_w = (inner.width as usize / columns).max(20);
     let bar_w = col_w.saturating_sub(18).max(1);
-    // The bars start a little below the lowest cell so it still shows.
-    let floor = lo - ((hi - lo).max(0.002) * 0.25);
     let mut lines: Vec<Line> = Vec::new();
     for row in 0..per_col {
         let mut spans = Vec::new();
@@ -526,6 +568,69 @@ mod tests {
             "packs_offline":2}),
         );
         assert_eq!(s.battery.len(), 1);
+    }
+
+    fn screen_of(s: &LiveState, now: Instant, w: u16, h: u16) -> String {
+        let mut term = Terminal::new(TestBackend::new(w, h)).unwrap();
+        term.draw(|f| draw(f, s, now)).unwrap();
+        let buf = term.backend().buffer().clone();
+        let mut out = String::new();
+        for y in 0..buf.area.height {
+            for x in 0..buf.area.width {
+                out.push_str(buf[(x, y)].symbol());
+            }
+            out.push('\n');
+        }
+        out
+    }
+
+    fn sixteen_cells() -> Value {
+        let mut t = telemetry(true);
+        let cells: Vec<f64> = (0..16).map(|k| 3.305 + f64::from(k % 8) * 0.001).collect();
+        t["cell_voltages_v"] = json!(cells);
+        t["cell_count"] = json!(16);
+        t
+    }
+
+    /// Issue 26, item 11: a 60x20 terminal dropped cells 8 and 16 and cut
+    /// text in silence; a window too small now says so, and at the smallest
+    /// size every cell is there.
+    #[test]
+    fn a_small_window_says_so_and_the_smallest_shows_every_cell() {
+        let t0 = Instant::now();
+        let mut s = LiveState::default();
+        s.update(sixteen_cells(), t0);
+        let text = screen_of(&s, t0, 60, 20);
+        assert!(text.contains("window too small: 60x20"), "{text}");
+        let text = screen_of(&s, t0, MIN_SIZE.0, MIN_SIZE.1);
+        for k in 1..=16 {
+            assert!(text.contains(&format!("{k:>2} 3.3")), "cell {k}: {text}");
+        }
+    }
+
+    /// Issue 26, item 11: bars over a 7 mV spread looked alarming, and a
+    /// chart titled 52.90..52.90 V drew bars of different heights.
+    #[test]
+    fn cell_bars_span_at_least_50_mv_and_a_flat_chart_is_flat() {
+        let t0 = Instant::now();
+        let mut s = LiveState::default();
+        s.update(sixteen_cells(), t0);
+        let text = screen(&s, t0);
+        // 3.305..3.312 V: the scale is 50 mV down from the highest cell.
+        assert!(text.contains("bars from 3.262 V"), "{text}");
+        // The lowest cell's bar is most of the highest's, not a sliver.
+        let bar = |cell: &str| {
+            text.lines()
+                .find(|l| l.contains(cell))
+                .map_or(0, |l| l.matches('█').count())
+        };
+        let (lo, hi) = (bar(" 1 3.3050 V"), bar(" 8 3.3120 V"));
+        assert!(
+            hi > 0 && lo * 100 >= hi * 80,
+            "lowest {lo}, highest {hi}: {text}"
+        );
+        assert_eq!(scaled(&[52.901, 52.904, 52.902], 0.005), vec![50, 50, 50]);
+        assert_eq!(scaled(&[52.90, 53.00], 0.005), vec![1, 100]);
     }
 
     #[test]
