@@ -269,6 +269,7 @@ pub fn note_text(n: &Note) -> String {
             format!("MQTT: cannot connect ({}), next try in {ms} ms", f.reason())
         }
         Note::WaitingForBms => "MQTT: waiting for the BMS's serial number".into(),
+        Note::Held => "MQTT: the connection holds".into(),
     }
 }
 

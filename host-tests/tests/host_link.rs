@@ -360,6 +360,32 @@ fn hello_on_connect_and_on_request() {
     assert_eq!(only(&r.drain())["req"], 77);
 }
 
+/// Issue 29: a client id another client takes is in `hello` — and stays
+/// there while the two fight (each new connection is dropped again at once),
+/// until a connection holds.
+#[test]
+fn hello_says_where_mqtt_stands_and_a_taken_id_stays_until_a_connection_holds() {
+    use tinybms_firmware::mqtt::MqttState as S;
+    let mut r = Rig::new(config(false, 1000));
+    let mut hello = |r: &mut Rig| {
+        r.line(r#"{"cmd":"hello"}"#);
+        only(&r.drain()).get("mqtt").cloned()
+    };
+    // Nothing said yet (an image without Wi-Fi says nothing at all).
+    assert_eq!(hello(&mut r), None);
+    r.h.station.mqtt_state(S::Connected);
+    assert_eq!(hello(&mut r), Some(json!("connected")));
+    r.h.station.mqtt_state(S::ClientIdTaken);
+    assert_eq!(hello(&mut r), Some(json!("client_id_taken")));
+    // Reconnected, and dropped again a moment later: still taken.
+    r.h.station.mqtt_state(S::Connected);
+    assert_eq!(hello(&mut r), Some(json!("client_id_taken")));
+    r.h.station.mqtt_state(S::Held);
+    assert_eq!(hello(&mut r), Some(json!("connected")));
+    r.h.station.mqtt_state(S::Reconnecting);
+    assert_eq!(hello(&mut r), Some(json!("reconnecting")));
+}
+
 #[test]
 fn hello_names_the_store_and_the_lines_a_host_missed() {
     use tinybms_firmware::config::store::StoreSite;

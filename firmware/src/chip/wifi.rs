@@ -389,6 +389,8 @@ async fn mqtt_task(
                 );
             }
             Note::WaitingForBms => say(Level::Info, &["MQTT: waiting for the BMS's serial number"]),
+            // For `hello` only.
+            Note::Held => {}
         }
     };
     session::run(

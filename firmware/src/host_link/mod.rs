@@ -451,7 +451,12 @@ impl HostLink {
 
     /// Where the MQTT connection stands now (`hello` says it).
     pub fn on_mqtt(&mut self, state: crate::mqtt::MqttState) {
-        self.s.mqtt = Some(state);
+        use crate::mqtt::MqttState as S;
+        // While two clients fight over one id, each new connection is
+        // dropped again at once: only one that held ends the finding.
+        if !(self.s.mqtt == Some(S::ClientIdTaken) && state == S::Connected) {
+            self.s.mqtt = Some(state);
+        }
     }
 
     /// Bytes sent to the BMS (for capture).

@@ -68,6 +68,9 @@ pub enum MqttState {
     WaitingForBms,
     /// Connected to the broker.
     Connected,
+    /// Connected, and the connection has held (10 s): this ends a
+    /// [`MqttState::ClientIdTaken`], a new connection alone does not.
+    Held,
     /// The connection was lost; reconnecting.
     Reconnecting,
     /// Connecting fails (the log line says why).
@@ -81,7 +84,7 @@ impl MqttState {
     pub const fn key(self) -> &'static str {
         match self {
             Self::WaitingForBms => "waiting_for_bms",
-            Self::Connected => "connected",
+            Self::Connected | Self::Held => "connected",
             Self::Reconnecting => "reconnecting",
             Self::CannotConnect => "cannot_connect",
             Self::ClientIdTaken => "client_id_taken",
@@ -92,7 +95,7 @@ impl MqttState {
     pub fn from_key(k: &str) -> Option<Self> {
         [
             Self::WaitingForBms,
-            Self::Connected,
+            Self::Held,
             Self::Reconnecting,
             Self::CannotConnect,
             Self::ClientIdTaken,

@@ -109,6 +109,9 @@ pub trait Feed {
 pub enum Note {
     /// Connected to the broker (CONNACK), announcing this BMS.
     Connected,
+    /// The connection has held [`QUICK_DROP_US`]: not one the broker drops at
+    /// once (no client with the same id took it over).
+    Held,
     /// The connection ended: why, and the delay before the next attempt, ms.
     Disconnected(Failure, u32),
     /// An attempt failed: why, and the delay before the next one, ms.
@@ -123,6 +126,7 @@ impl Note {
         use super::MqttState as S;
         match self {
             Self::Connected => S::Connected,
+            Self::Held => S::Held,
             Self::WaitingForBms => S::WaitingForBms,
             Self::Disconnected(Failure::TakenOver, _) | Self::Failed(Failure::TakenOver, _) => {
                 S::ClientIdTaken
@@ -150,10 +154,12 @@ pub enum Failure {
     /// The BMS is another one: reconnecting with its identity.
     NewBms,
     /// Another client uses the same client id: the broker ended the session
-    /// saying so (MQTT 5 reason 0x8E), or dropped the connection within
-    /// [`QUICK_DROP_US`] of its start [`QUICK_DROPS`] times in a row (what
-    /// mosquitto does). Two bridges with one host name, or a try-out beside
-    /// a bridge.
+    /// saying so (MQTT 5 reason 0x8E), or closed connections that had come up
+    /// within [`QUICK_DROP_US`] [`QUICK_DROPS`] times in a row (what this
+    /// session sees of mosquitto 2.0.11 when another client takes its id).
+    /// Two bridges with one host name, or a try-out beside a bridge; a link
+    /// that drops every connection at once looks the same, so the words
+    /// say "probably".
     TakenOver,
 }
 
@@ -348,7 +354,16 @@ async fn connection<N: Network, C: Clock, F: Feed>(
     let up_at = clock.now();
     note(Note::Connected);
     publisher.connected(up_at, identity);
-    let end = serve(&mut client, clock, feed, publisher, identity, &status).await;
+    let end = serve(
+        &mut client,
+        clock,
+        feed,
+        publisher,
+        (identity, up_at),
+        &status,
+        note,
+    )
+    .await;
     let up_for = clock.now().saturating_sub(up_at);
     // A polite end where the connection still carries it (the broker then
     // drops the will: publish `offline` ourselves first).
@@ -373,8 +388,9 @@ async fn serve<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock, 
     clock: &C,
     feed: &mut F,
     publisher: &mut Publisher,
-    identity: Identity,
+    (identity, up_at): (Identity, Instant),
     status_topic: &str,
+    note: &mut dyn FnMut(Note),
 ) -> Failure {
     // Home Assistant's status: the one subscription.
     let Some(filter) = MqttString::from_str(status_topic)
@@ -396,10 +412,19 @@ async fn serve<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock, 
     }
     let mut topic = String::<TOPIC_MAX>::new();
     let mut payload = alloc::vec![0u8; PAYLOAD_MAX];
-    let half = Instant::from(publisher.settings().keep_alive_s()) * SECOND / 2;
-    let mut last_traffic = clock.now();
+    // The keep-alive counts what this client sends: a PINGREQ after half of
+    // it without a packet out, and a PINGRESP may take a whole keep-alive.
+    let keep_alive = Instant::from(publisher.settings().keep_alive_s()) * SECOND;
+    let half = keep_alive / 2;
+    let mut last_sent = clock.now();
     let mut ping_sent: Option<Instant> = None;
+    let mut held = false;
     loop {
+        // The connection held: quick drops are over (`hello` says connected).
+        if !held && clock.now().saturating_sub(up_at) >= QUICK_DROP_US {
+            held = true;
+            note(Note::Held);
+        }
         // Everything the publisher has now.
         while let Some(e) = feed.next_event() {
             publisher.on_event(e);
@@ -429,29 +454,37 @@ async fn serve<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock, 
             {
                 None => return Failure::Timeout,
                 Some(Err(_)) => return Failure::Connection,
-                Some(Ok(_)) => last_traffic = clock.now(),
+                Some(Ok(_)) => last_sent = clock.now(),
             }
         }
         // Keep-alive.
         let now = clock.now();
         if let Some(sent) = ping_sent {
-            if now.saturating_sub(sent) >= half {
+            if now.saturating_sub(sent) >= keep_alive {
                 return Failure::Timeout;
             }
-        } else if now.saturating_sub(last_traffic) >= half {
+        } else if now.saturating_sub(last_sent) >= half {
             match timeout(clock, WRITE_TIMEOUT_US, client.ping()).await {
                 None => return Failure::Timeout,
                 Some(Err(_)) => return Failure::Connection,
-                Some(Ok(())) => ping_sent = Some(clock.now()),
+                Some(Ok(())) => {
+                    last_sent = clock.now();
+                    ping_sent = Some(last_sent);
+                }
             }
         }
         // Wait: a packet from the broker, new telemetry, or the next due time.
         let wake = publisher
             .next_due()
             .min(now.saturating_add(IDLE_WAKE_US))
-            .min(ping_sent.map_or(last_traffic.saturating_add(half), |s| {
-                s.saturating_add(half)
-            }));
+            .min(ping_sent.map_or(last_sent.saturating_add(half), |s| {
+                s.saturating_add(keep_alive)
+            }))
+            .min(if held {
+                Instant::MAX
+            } else {
+                up_at.saturating_add(QUICK_DROP_US)
+            });
         let header = match select3(
             client.poll_header(),
             feed.changed(),
@@ -476,7 +509,6 @@ async fn serve<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock, 
             Some(Err(_)) => return Failure::Protocol,
             Some(Ok(e)) => e,
         };
-        last_traffic = clock.now();
         match event {
             Event::Pingresp => ping_sent = None,
             Event::Publish(p) => {

@@ -24,7 +24,7 @@ pub fn show_one(conn: &Conn, what: &str, json: bool) -> ToolResult<()> {
 fn mqtt_text(key: &str) -> String {
     use tinybms_firmware::mqtt::MqttState as S;
     match S::from_key(key) {
-        Some(S::Connected) => "connected to the broker".into(),
+        Some(S::Connected | S::Held) => "connected to the broker".into(),
         Some(S::WaitingForBms) => "waiting for the BMS's serial number".into(),
         Some(S::Reconnecting) => "connection lost, reconnecting (`tinybms log` says why)".into(),
         Some(S::CannotConnect) => "cannot connect (`tinybms log` says why)".into(),
