@@ -367,7 +367,7 @@ fn hello_on_connect_and_on_request() {
 fn hello_says_where_mqtt_stands_and_a_taken_id_stays_until_a_connection_holds() {
     use tinybms_firmware::mqtt::MqttState as S;
     let mut r = Rig::new(config(false, 1000));
-    let mut hello = |r: &mut Rig| {
+    let hello = |r: &mut Rig| {
         r.line(r#"{"cmd":"hello"}"#);
         only(&r.drain()).get("mqtt").cloned()
     };
