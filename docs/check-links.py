@@ -14,7 +14,12 @@ a `target/` directory, not under `.git`), and checks each inline link
   must be a line anchor such as `#L10` or `#L10-L20`).
 
 Links to `http://`, `https://`, `mailto:` (and any other `scheme:`) are not
-checked, nor links inside fenced code blocks or inline code.
+checked, nor links inside fenced code blocks or inline code. One kind of link
+leaves the tree on purpose: the repository's own releases on GitHub,
+`../../releases/latest` from the root README (`../../../releases/…` from
+docs/): GitHub shows a Markdown file under `/OWNER/REPO/blob/BRANCH/`, so as
+many `../` as the file's depth plus two reach `/OWNER/REPO/`. Any other
+number of `../` before `releases` is an error.
 
 Usage: python3 docs/check-links.py [REPO_ROOT]   (default: the parent of docs/)
 Exit status: 0 when every link resolves, 1 when one does not (each is listed as
@@ -26,7 +31,7 @@ import re
 import sys
 from urllib.parse import unquote
 
-SKIP_DIRS = {".git", "target"}
+SKIP_DIRS = {".git", "target", "node_modules", "dist"}
 FENCE = re.compile(r"^ {0,3}(`{3,}|~{3,})")
 HEADING = re.compile(r"^ {0,3}(#{1,6})[ \t]+(.*?)[ \t]*#*[ \t]*$")
 SETEXT = re.compile(r"^ {0,3}(=+|-+)[ \t]*$")
@@ -128,6 +133,14 @@ def check_link(source, target, root, cache):
         return None  # http(s), mailto, ...: not checked
     path_part, _, anchor = target.partition("#")
     path_part = unquote(path_part)
+    m = re.match(r"^((?:\.\./)+)releases(/[A-Za-z0-9._/-]*)?$", path_part)
+    if m:
+        depth = len(os.path.relpath(os.path.dirname(source), root).split(os.sep))
+        depth = 0 if os.path.dirname(os.path.abspath(source)) == os.path.abspath(root) else depth
+        ups = m.group(1).count("../")
+        if ups == depth + 2 and not anchor:
+            return None  # the repository's releases on GitHub
+        return f"the repository's releases are {'../' * (depth + 2)}releases from here"
     if path_part == "":
         dest = source
     elif path_part.startswith("/"):

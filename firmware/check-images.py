@@ -12,11 +12,20 @@ For every tinybms-<board>[-suffix].bin (merged) and its -app.bin:
     0x6000 bytes — the partition the configuration store uses — and the factory
     app at 0x10000;
   * the app fits its partition;
-  * the -app.bin is byte for byte the app inside the merged image;
-  * SHA256SUMS lists every image with its right checksum.
+  * the -app.bin is byte for byte the app inside the merged image, and the
+    -boot.bin its first 0x9000 bytes (bootloader and partition table, ending
+    where the nvs partition starts);
+  * SHA256SUMS lists every image with its right checksum;
+  * every manifest-<board>[-suffix].json (ESP Web Tools, the browser
+    installer) names the firmware as the firmware names itself (PRODUCT in
+    src/improv/mod.rs), the chip family of the board's chip, and exactly two
+    parts: the -boot.bin at 0 and the -app.bin at the factory partition's
+    offset, both files present here — so the installer writes what these
+    checks checked and never the nvs partition (the stored configuration).
 Exit status 0 when all hold; 1 otherwise (each problem printed).
 """
 import hashlib
+import json
 import os
 import re
 import struct
@@ -70,10 +79,56 @@ def image_info(chip, data, what, problems):
     return text
 
 
+def product_name():
+    """The name the firmware gives the installer (Improv's device info)."""
+    src = os.path.join(os.path.dirname(os.path.abspath(__file__)), "src", "improv", "mod.rs")
+    m = re.search(r'^pub const PRODUCT: &str = "(.*)";$', open(src).read(), re.M)
+    return m.group(1) if m else None
+
+
+def check_manifest(dirname, merged_name, chip, app_offset, problems):
+    """The ESP Web Tools manifest of one merged image."""
+    stem = merged_name[len("tinybms-"):-len(".bin")]
+    path = os.path.join(dirname, f"manifest-{stem}.json")
+    what = os.path.basename(path)
+    if not os.path.exists(path):
+        problems.append(f"{merged_name}: {what} missing")
+        return
+    try:
+        m = json.load(open(path))
+    except ValueError as e:
+        problems.append(f"{what}: not JSON: {e}")
+        return
+    if m.get("name") != product_name():
+        problems.append(f"{what}: name {m.get('name')!r}, the firmware says {product_name()!r}")
+    if not m.get("version"):
+        problems.append(f"{what}: no version")
+    if m.get("new_install_prompt_erase") is not False:
+        problems.append(f"{what}: a first install must erase (new_install_prompt_erase false)")
+    family = {"esp32c3": "ESP32-C3", "esp32c6": "ESP32-C6"}[chip]
+    builds = m.get("builds") or []
+    if len(builds) != 1 or builds[0].get("chipFamily") != family:
+        problems.append(f"{what}: want one build for {family}: {builds}")
+        return
+    parts = builds[0].get("parts") or []
+    want = [(f"tinybms-{stem}-boot.bin", 0), (f"tinybms-{stem}-app.bin", app_offset)]
+    got = [(p.get("path"), p.get("offset")) for p in parts]
+    if got != want:
+        problems.append(f"{what}: parts {got}, want {want}")
+    for p, _ in got:
+        if p and not os.path.exists(os.path.join(dirname, p)):
+            problems.append(f"{what}: {p} is not here")
+    boot = os.path.join(dirname, f"tinybms-{stem}-boot.bin")
+    if os.path.exists(boot) and os.path.getsize(boot) > NVS[0]:
+        problems.append(f"{what}: the part at 0 reaches into the nvs partition")
+    if not [x for x in problems if x.startswith(what)]:
+        print(f"{what}: {family}, boot at 0x0 + app at {app_offset:#x}, nvs untouched: ok")
+
+
 def check(dirname):
     problems = []
     names = sorted(n for n in os.listdir(dirname) if n.endswith(".bin"))
-    merged = [n for n in names if not n.endswith("-app.bin")]
+    merged = [n for n in names if not n.endswith("-app.bin") and not n.endswith("-boot.bin")]
     if not merged:
         return [f"{dirname}: no images"]
     sums = {}
@@ -119,6 +174,12 @@ def check(dirname):
             problems.append(f"{n}: {os.path.basename(app_path)} missing")
         elif open(app_path, "rb").read() != app:
             problems.append(f"{os.path.basename(app_path)}: differs from the app in {n}")
+        boot_path = os.path.join(dirname, n[:-len(".bin")] + "-boot.bin")
+        if not os.path.exists(boot_path):
+            problems.append(f"{n}: {os.path.basename(boot_path)} missing")
+        elif open(boot_path, "rb").read() != image[:NVS[0]]:
+            problems.append(f"{os.path.basename(boot_path)}: not the first 0x9000 bytes of {n}")
+        check_manifest(dirname, n, chip, factory[0][2] if factory else FACTORY, problems)
         size = re.search(r"Image size: (\d+)", info)
         print(f"{n}: {chip}, bootloader + partition table (nvs 0x9000+0x6000, factory 0x10000) "
               f"+ app of {size.group(1) if size else '?'} bytes: ok"

@@ -15,7 +15,15 @@
 #                             configuration: it covers the nvs partition)
 #   tinybms-<board>-app.bin   the app alone, written at 0x10000: an update that
 #                             keeps the configuration
+#   tinybms-<board>-boot.bin  the merged image's first 0x9000 bytes (bootloader
+#                             and partition table, up to the nvs partition)
+#   manifest-<board>.json     the ESP Web Tools manifest of the browser
+#                             installer: boot.bin at 0x0 and app.bin at
+#                             0x10000, so an update leaves the nvs partition
+#                             (the stored configuration) alone
 # and SHA256SUMS over all of them. check-images.py checks their layout.
+# TINYBMS_VERSION (the release tag without its `v`; else the package's
+# version) is the version the images report and the manifests carry.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")"
 
@@ -23,6 +31,13 @@ out=${1:-target/images}
 mkdir -p "$out"
 espflash=${ESPFLASH:-espflash}
 command -v "$espflash" >/dev/null || { echo "make-images: espflash not found (cargo install espflash --locked)" >&2; exit 2; }
+
+version=${TINYBMS_VERSION:-$(sed -n 's/^version = "\(.*\)"$/\1/p' Cargo.toml | head -n 1)}
+export TINYBMS_VERSION=$version
+# The name the firmware gives the installer (Improv's device info): the
+# manifests must carry the same, so an installed bridge is recognised.
+product=$(sed -n 's/^pub const PRODUCT: &str = "\(.*\)";$/\1/p' src/improv/mod.rs)
+[[ -n $product ]] || { echo "make-images: no PRODUCT in src/improv/mod.rs" >&2; exit 2; }
 
 boards=$(sed -n 's/^board-\([a-z0-9-]*\) = \["\(esp32c[36]\)"\]$/\1:\2/p' Cargo.toml)
 [[ -n $boards ]] || { echo "make-images: no board features in Cargo.toml" >&2; exit 2; }
@@ -51,7 +66,31 @@ for entry in $boards; do
     name="tinybms-$board${IMAGE_SUFFIX:-}"
     "$espflash" save-image --chip "$chip" --merge --skip-padding "$elf" "$out/$name.bin" >/dev/null
     "$espflash" save-image --chip "$chip" "$elf" "$out/$name-app.bin" >/dev/null
+    head -c $((0x9000)) "$out/$name.bin" > "$out/$name-boot.bin"
     cp "$elf" "$out/$name.elf"
+    case $chip in
+        esp32c3) family=ESP32-C3 ;;
+        esp32c6) family=ESP32-C6 ;;
+    esac
+    cat > "$out/manifest-$board${IMAGE_SUFFIX:-}.json" <<MANIFEST
+{
+  "name": "$product",
+  "version": "$version",
+  "board": "$board",
+  "wifi": $([[ ,${IMAGE_FEATURES:-}, == *,wifi,* ]] && echo true || echo false),
+  "new_install_prompt_erase": false,
+  "new_install_improv_wait_time": 15,
+  "builds": [
+    {
+      "chipFamily": "$family",
+      "parts": [
+        { "path": "$name-boot.bin", "offset": 0 },
+        { "path": "$name-app.bin", "offset": 65536 }
+      ]
+    }
+  ]
+}
+MANIFEST
 done
 
 (cd "$out" && sha256sum -- *.bin > SHA256SUMS)

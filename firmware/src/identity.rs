@@ -2,8 +2,13 @@
 //! runs on, what is built into the image, and the version of the
 //! configuration record it writes. In the host link's `hello` and the log.
 
-/// This firmware's version (the package's).
-pub const FIRMWARE: &str = env!("CARGO_PKG_VERSION");
+/// This firmware's version: `TINYBMS_VERSION` when it was built (a release
+/// sets it to its tag without the `v`, the ready-made images and their
+/// installer manifests carry the same), else the package's.
+pub const FIRMWARE: &str = match option_env!("TINYBMS_VERSION") {
+    Some(v) => v,
+    None => env!("CARGO_PKG_VERSION"),
+};
 
 /// What it was built from: `TINYBMS_BUILD` when it was built (the ready-made
 /// images and releases set it to the commit or tag), else `dev`.

@@ -16,6 +16,7 @@
 //! | the bridge | [`bridge`] | the coordinator on top of the link: poll schedule, sync, telemetry, the write/verify machine, [`Report`]s |
 //! | consumers | [`inverter`] | charge control and the inverter CAN protocols (Victron, SMA Sunny Island) |
 //! | | [`host_link`] | JSON Lines to a computer over USB |
+//! | | [`improv`] | Improv Wi-Fi on the same port: the browser installer's network set-up |
 //! | | [`mqtt`] | the battery in Home Assistant: discovery, state, availability (publish only) |
 //! | this installation | [`config`] | the bridge's own configuration: the record, its checks, its store in flash |
 //! | | [`boards`] | the supported boards' pins and log paths, checked at compile time |
@@ -51,6 +52,7 @@ pub mod energy;
 pub mod freshness;
 pub mod host_link;
 pub mod identity;
+pub mod improv;
 pub mod inverter;
 pub mod line;
 pub mod mqtt;

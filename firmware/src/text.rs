@@ -516,3 +516,63 @@ impl core::fmt::Display for Report {
         f.write_str(line.as_str())
     }
 }
+
+/// The level an Improv note is logged at.
+pub fn improv_level(n: &crate::improv::Note) -> crate::Level {
+    use crate::improv::Note;
+    match n {
+        Note::Joining(_) | Note::Joined(..) => crate::Level::Info,
+        _ => crate::Level::Warn,
+    }
+}
+
+/// An IPv4 address, dotted.
+pub fn ipv4(ip: [u8; 4], out: &mut Line) {
+    for (i, b) in ip.iter().enumerate() {
+        if i > 0 {
+            out.push(".");
+        }
+        out.uint(u64::from(*b));
+    }
+}
+
+/// What Improv Wi-Fi did (never a passphrase or a key).
+pub fn improv_note(n: &crate::improv::Note, out: &mut Line) {
+    use crate::improv::Note;
+    out.push("Improv Wi-Fi: ");
+    match n {
+        Note::BadPacket(e) => {
+            out.push("a packet refused (").push(e.text()).push(")");
+        }
+        Note::Unsupported(c) => {
+            out.push("command ")
+                .hex(u32::from(*c))
+                .push(" refused: not one this image does");
+        }
+        Note::Joining(ssid) => {
+            out.push("joining ")
+                .push(ssid)
+                .push(" (the key is derived here)");
+        }
+        Note::Joined(ssid, ip) => {
+            out.push("joined ").push(ssid).push(", IP ");
+            ipv4(*ip, out);
+            out.push("; network stored");
+        }
+        Note::Failed(ssid, f) => {
+            out.push("cannot join ")
+                .push(ssid)
+                .push(": ")
+                .push(f.text())
+                .push("; the stored network is unchanged");
+        }
+        Note::Refused(why) => {
+            out.push("settings refused: ").push(why);
+        }
+        Note::TimedOut(ssid) => {
+            out.push("cannot join ")
+                .push(ssid)
+                .push(": no answer within 30 s; the stored network is unchanged");
+        }
+    }
+}

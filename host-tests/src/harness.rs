@@ -437,6 +437,21 @@ impl Harness {
                     }
                     continue;
                 }
+                Action::Wifi(req) => {
+                    // No radio in virtual time: a join fails, a scan finds nothing.
+                    match req {
+                        tinybms_firmware::improv::WifiRequest::Join { .. } => {
+                            self.station.wifi_joined(
+                                self.now,
+                                Err(tinybms_firmware::improv::JoinFailure::Other),
+                            )
+                        }
+                        tinybms_firmware::improv::WifiRequest::Scan => {
+                            self.station.wifi_scanned(self.now, &[])
+                        }
+                    }
+                    continue;
+                }
                 Action::CanRecover => {
                     let ok = self.can.bus_off_until.is_none_or(|u| self.now >= u);
                     if ok {

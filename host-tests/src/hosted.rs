@@ -56,6 +56,8 @@ pub struct Hosted<P: BytePort> {
     mqtt_noted: usize,
     /// Print every log line to stderr, as the device logs it.
     pub log: bool,
+    /// The bridge's name on the network (Improv's device name).
+    pub network_name: Option<String>,
     line: Vec<u8>,
     input: Vec<u8>,
     next_sample: u64,
@@ -108,6 +110,7 @@ impl<P: BytePort> Hosted<P> {
             mqtt_notes: None,
             mqtt_noted: 0,
             log: false,
+            network_name: None,
             line: vec![0; LINE_BUF],
             input: Vec::new(),
             next_sample: 0,
@@ -124,6 +127,21 @@ impl<P: BytePort> Hosted<P> {
         };
         let now = self.driver.clock().now();
         self.driver.station = Station::new(self.setup, loaded, now);
+        self.boot_wifi();
+    }
+
+    /// The Wi-Fi side at a start: the stored network joined in the
+    /// background (as the chip's Wi-Fi task does), the name the installer
+    /// shows.
+    pub fn boot_wifi(&mut self) {
+        let now = self.driver.clock().now();
+        if let Some(name) = self.network_name.clone() {
+            self.driver.station.set_network_name(&name);
+        }
+        let record = self.driver.station.config().running().clone();
+        if let Some(w) = self.driver.wifi.as_mut() {
+            w.boot(now, &record);
+        }
     }
 
     /// The station.
@@ -350,6 +368,12 @@ pub struct BridgePtyOptions {
     pub no_wifi: bool,
     /// Write what the bridge sends on CAN here, as a candump log (`--can-log`).
     pub can_log: Option<std::path::PathBuf>,
+    /// (at, for): the simulated BMS answers nothing then, while the bridge
+    /// runs (`--bms-silent`: a cut UART wire).
+    pub bms_silent: Option<(Duration, Duration)>,
+    /// The Wi-Fi networks in range of the simulated radio (`--wifi-network`;
+    /// none: every join is "not found").
+    pub wifi_networks: Vec<crate::sim_wifi::SimNetwork>,
     /// (at, for): the simulated BMS cuts off for over-temperature then, and
     /// recovers after (`--bms-fault`).
     pub bms_fault: Option<(Duration, Duration)>,
@@ -384,6 +408,11 @@ pub fn serve_bridge_pty(
         None => None,
     };
     h.driver.can = Some(Box::new(crate::sim_can::SimInverterBus::new(can_log)));
+    if !o.no_wifi {
+        h.driver.wifi = Some(crate::sim_wifi::SimWifi::new(o.wifi_networks.clone()));
+    }
+    h.network_name = Some(client_id.clone());
+    h.boot_wifi();
     h.boot_button = o
         .boot_button
         .map(|(from, long)| (from.as_micros() as u64, long.as_micros() as u64));
@@ -425,6 +454,7 @@ pub fn serve_bridge_pty(
     let end = duration.map(|d| d.as_micros() as u64);
     h.log = o.log;
     let mut freeze = o.freeze;
+    let mut silent = o.bms_silent;
     let mut fault = o
         .bms_fault
         .map(|(at, long)| (at.as_micros() as u64, (at + long).as_micros() as u64, false));
@@ -437,6 +467,14 @@ pub fn serve_bridge_pty(
             } else if *on && clock.now() >= *until {
                 sim.clear_fault();
                 fault = None;
+            }
+        }
+        if let Some((at, long)) = silent {
+            if clock.now() >= at.as_micros() as u64 {
+                let sim = &mut h.driver.port.sim;
+                let until = clock.now() + long.as_micros() as u64;
+                sim.set_silent_until(until);
+                silent = None;
             }
         }
         if let Some((at, long)) = freeze {

@@ -23,6 +23,7 @@ pub mod realtime;
 pub mod replay;
 pub mod sim;
 pub mod sim_can;
+pub mod sim_wifi;
 pub mod tool;
 pub mod trace;
 pub mod truth;

@@ -200,6 +200,9 @@ pub struct Driver<P: BytePort> {
     pub store: Option<Store<SimFlash>>,
     /// The CAN bus (`None`: nothing acknowledges a frame).
     pub can: Option<Box<dyn CanSide>>,
+    /// The Wi-Fi side (`None`: every join fails, as on a chip whose radio
+    /// did not start).
+    pub wifi: Option<crate::sim_wifi::SimWifi>,
     clock: Clock,
     capture: Option<CaptureWriter>,
     rx: Vec<u8>,
@@ -247,6 +250,7 @@ impl<P: BytePort> Driver<P> {
             station,
             store: None,
             can: None,
+            wifi: None,
             clock,
             capture: None,
             rx: vec![0; 512],
@@ -282,9 +286,23 @@ impl<P: BytePort> Driver<P> {
                 self.station.can_received(self.clock.now(), id, &data);
             }
         }
+        if let Some(w) = self.wifi.as_mut() {
+            w.deliver(self.clock.now(), &mut self.station);
+        }
         loop {
             let now = self.clock.now();
             match self.station.poll(now) {
+                Action::Wifi(req) => match self.wifi.as_mut() {
+                    Some(w) => w.request(now, req),
+                    None => match req {
+                        tinybms_firmware::improv::WifiRequest::Join { .. } => self
+                            .station
+                            .wifi_joined(now, Err(tinybms_firmware::improv::JoinFailure::Other)),
+                        tinybms_firmware::improv::WifiRequest::Scan => {
+                            self.station.wifi_scanned(now, &[])
+                        }
+                    },
+                },
                 Action::Log(item) => {
                     let mut line = Line::new();
                     self.station.log_text(&item, &mut line);
@@ -319,6 +337,9 @@ impl<P: BytePort> Driver<P> {
                 }
                 Action::WaitUntil(t) => {
                     self.deadline = t;
+                    if let Some(due) = self.wifi.as_ref().and_then(|w| w.next_due()) {
+                        self.deadline = self.deadline.min(due);
+                    }
                     break;
                 }
             }

@@ -71,6 +71,7 @@ fn assemble(chunks: &[&[u8]]) -> Vec<Option<Vec<u8>>> {
             match p {
                 Some(Piece::Line(l)) => out.push(Some(l.to_vec())),
                 Some(Piece::TooLong) => out.push(None),
+                Some(Piece::Improv(p)) => out.push(Some([&b"<improv>"[..], p].concat())),
                 None => {}
             }
             rest = &rest[n..];

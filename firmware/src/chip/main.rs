@@ -145,7 +145,7 @@ async fn main(spawner: Spawner) {
 
     info!(
         "tinybms-firmware {=str} on {=str} ({=str}), logs over {=str}",
-        env!("CARGO_PKG_VERSION"),
+        tinybms_firmware::identity::FIRMWARE,
         BOARD.name,
         BOARD.chip.name(),
         match LOG_PATH {
@@ -185,7 +185,13 @@ async fn main(spawner: Spawner) {
     #[cfg(feature = "host-link")]
     button::start(spawner);
     #[cfg(feature = "wifi")]
-    wifi::start(spawner, p.WIFI, running, IDENTITY);
+    let name = wifi::start(spawner, p.WIFI, running, IDENTITY);
+    #[cfg(not(feature = "wifi"))]
+    let name: Option<heapless::String<32>> =
+        (!running.hostname.is_empty()).then(|| running.hostname.clone());
+    if let Some(name) = name {
+        station.set_network_name(&name);
+    }
     station::start(spawner, p.UART1, wdt, station, store);
 }
 

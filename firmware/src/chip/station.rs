@@ -168,6 +168,26 @@ async fn station_task(
             }
             #[cfg(not(feature = "can"))]
             Action::Can(_) | Action::CanRecover => {}
+            #[cfg(feature = "wifi")]
+            Action::Wifi(req) => {
+                if let Err(embassy_sync::channel::TrySendError::Full(req)) =
+                    wires::WIFI_REQUEST.try_send(req)
+                {
+                    // One at a time: the station asks again only after a
+                    // result, so this is a Wi-Fi task that is not there.
+                    match req {
+                        tinybms_firmware::improv::WifiRequest::Join { .. } => station.wifi_joined(
+                            now_us(),
+                            Err(tinybms_firmware::improv::JoinFailure::Other),
+                        ),
+                        tinybms_firmware::improv::WifiRequest::Scan => {
+                            station.wifi_scanned(now_us(), &[])
+                        }
+                    }
+                }
+            }
+            #[cfg(not(feature = "wifi"))]
+            Action::Wifi(_) => {}
             Action::WaitUntil(t) => {
                 let deadline = Instant::from_micros(t).min(Instant::now() + MAX_WAIT);
                 // `read_async`, `Pipe::read` and `Signal::wait` are
@@ -268,6 +288,14 @@ impl Pumps {
             #[cfg(feature = "wifi")]
             if let Some(state) = wires::MQTT_STATE.try_take() {
                 station.mqtt_state(state);
+            }
+            #[cfg(feature = "wifi")]
+            while let Ok(done) = wires::WIFI_DONE.try_receive() {
+                match done {
+                    wires::WifiDone::Joined(r) => station.wifi_joined(now_us(), r),
+                    wires::WifiDone::Scanned(list) => station.wifi_scanned(now_us(), &list),
+                    wires::WifiDone::Link(l) => station.wifi_link(l),
+                }
             }
         }
         #[cfg(not(any(feature = "host-link", feature = "can")))]

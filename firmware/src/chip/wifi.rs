@@ -6,16 +6,20 @@
 //! a bad broker only costs their own reconnects.
 //!
 //! * `wifi_task` — station mode with the record's SSID and 64-hex pre-shared
-//!   key (the ESP Wi-Fi driver takes 64 hex digits as the PSK itself, so the chip
-//!   never runs PBKDF2: see docs), reconnect with backoff, one log line per link
-//!   up/down.
+//!   key (the ESP Wi-Fi driver takes 64 hex digits as the PSK itself), reconnect
+//!   with backoff, one log line per link up/down; and what the station asks for
+//!   Improv Wi-Fi (the browser installer, over the host port): a scan, or a join
+//!   of a new network — kept only once it has an address, else the stored one
+//!   is joined again. The key of an Improv passphrase is derived by the station
+//!   (the library), not here. Link changes and results go to the station
+//!   ([`wires::WIFI_DONE`]).
 //! * `net_task` — embassy-net (DHCP with the bridge's host name).
 //! * `mqtt_task` — the library's MQTT session (`tinybms_firmware::mqtt`), the
 //!   code the host tests run against mosquitto.
 
 use defmt::{info, warn};
 use embassy_executor::Spawner;
-use embassy_futures::select::select;
+use embassy_futures::select::{select, Either};
 use embassy_net::tcp::client::{TcpClient, TcpClientState};
 use embassy_net::{DhcpConfig, Runner, Stack, StackResources};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
@@ -23,15 +27,17 @@ use embassy_sync::watch::Receiver;
 use embassy_time::{Duration, Instant, Timer};
 use esp_hal::peripherals::WIFI;
 use esp_hal::rng::Rng;
+use esp_radio::wifi::scan::ScanConfig;
 use esp_radio::wifi::sta::StationConfig;
 use esp_radio::wifi::{
-    AuthenticationMethodConfig, Config as WifiConfig, ConnectionError, ControllerConfig,
-    DisconnectReason, Interface, Password, Ssid, WifiController,
+    AuthenticationMethod, AuthenticationMethodConfig, Config as WifiConfig, ConnectionError,
+    ControllerConfig, DisconnectReason, Interface, Password, Ssid, WifiController,
 };
 use heapless::String;
 use protocol_core::events::Event;
 use static_cell::StaticCell;
 use tinybms_firmware::config::Config;
+use tinybms_firmware::improv::{JoinFailure, Network, WifiLink, WifiRequest, SCAN_MAX};
 use tinybms_firmware::mqtt::net::StackNet;
 use tinybms_firmware::mqtt::publisher::{Publisher, View};
 use tinybms_firmware::mqtt::session::{self, Clock, Feed, Note, Target};
@@ -85,77 +91,73 @@ fn reason_text(r: DisconnectReason) -> &'static str {
     }
 }
 
-/// Starts Wi-Fi and MQTT when the record names a network and a broker.
+/// The station config for `ssid` with `key` (64 hex digits; empty: open), or
+/// `None` when the driver would not take them.
+fn station_config(ssid: &str, key: &str) -> Option<StationConfig> {
+    let ssid = Ssid::try_from(ssid).ok()?;
+    let auth = if key.is_empty() {
+        AuthenticationMethodConfig::Open
+    } else {
+        AuthenticationMethodConfig::WpaWpa2Personal(Password::try_from(key).ok()?)
+    };
+    Some(
+        StationConfig::default()
+            .with_ssid(ssid)
+            .with_authentication(auth),
+    )
+}
+
+/// Starts the radio, the IP stack and the Wi-Fi task (which joins the
+/// record's network, and any network Improv Wi-Fi gives it over the host
+/// port), and MQTT when the record names a broker. Returns the bridge's
+/// name on the network (Improv shows it).
 pub fn start(
     spawner: Spawner,
     wifi: WIFI<'static>,
     config: &Config,
     bridge: tinybms_firmware::identity::Identity,
-) {
-    if config.wifi_ssid.is_empty() || config.mqtt_host.is_empty() {
-        say(
-            Level::Info,
-            &[
-                "Wi-Fi off: ",
-                if config.wifi_ssid.is_empty() {
-                    "no wifi_ssid (tinybms wifi PORT --ssid NAME)"
-                } else {
-                    "no mqtt_host (tinybms mqtt PORT --host HOST)"
-                },
-            ],
-        );
-        return;
-    }
+) -> Option<String<32>> {
     esp_alloc::heap_allocator!(#[esp_hal::ram(reclaimed)] size: HEAP_RECLAIMED);
     esp_alloc::heap_allocator!(size: HEAP_MORE);
 
-    let Ok(ssid) = Ssid::try_from(config.wifi_ssid.as_str()) else {
-        say(Level::Warn, &["Wi-Fi off: the SSID is not valid"]);
-        return;
-    };
-    let auth = if config.wifi_key.is_empty() {
-        AuthenticationMethodConfig::Open
+    let stored = if config.wifi_ssid.is_empty() {
+        say(
+            Level::Info,
+            &["Wi-Fi: no network yet (the browser installer, or tinybms wifi PORT --ssid NAME)"],
+        );
+        None
     } else {
-        match Password::try_from(config.wifi_key.as_str()) {
-            Ok(p) => AuthenticationMethodConfig::WpaWpa2Personal(p),
-            Err(_) => {
-                say(Level::Warn, &["Wi-Fi off: the key is not valid"]);
-                return;
-            }
+        let c = station_config(config.wifi_ssid.as_str(), config.wifi_key.as_str());
+        if c.is_none() {
+            say(
+                Level::Warn,
+                &["Wi-Fi: the stored network or key is not valid"],
+            );
         }
+        c
     };
-    let station = StationConfig::default()
-        .with_ssid(ssid)
-        .with_authentication(auth);
     let iface = Interface::station();
     let mac = iface.mac_address();
-    let controller = match WifiController::new(
-        wifi,
-        ControllerConfig::default().with_initial_config(WifiConfig::Station(station)),
-    ) {
+    let controller = match WifiController::new(wifi, ControllerConfig::default()) {
         Ok(c) => c,
         Err(e) => {
             warn!("Wi-Fi off: the radio did not start: {}", e);
             say(Level::Warn, &["Wi-Fi off: the radio did not start"]);
-            return;
+            return None;
         }
     };
     let hostname = hostname(config, mac);
-    let mut port = Line::new();
-    port.uint(config.mqtt_port.into());
-    say(
-        Level::Info,
-        &[
-            "Wi-Fi: joining ",
-            config.wifi_ssid.as_str(),
-            " as ",
-            hostname.as_str(),
-            "; MQTT to ",
-            config.mqtt_host.as_str(),
-            ":",
-            port.as_str(),
-        ],
-    );
+    if stored.is_some() {
+        say(
+            Level::Info,
+            &[
+                "Wi-Fi: joining ",
+                config.wifi_ssid.as_str(),
+                " as ",
+                hostname.as_str(),
+            ],
+        );
+    }
     let mut dhcp = DhcpConfig::default();
     dhcp.hostname = Some(hostname.clone());
     // The true RNG is on once the controller runs.
@@ -168,12 +170,26 @@ pub fn start(
         RESOURCES.init(StackResources::new()),
         seed,
     );
-    let target = Target::from_config(config, &hostname);
-    let settings = Settings::from_config(config);
-    spawn(spawner, wifi_task(controller));
+    spawn(spawner, wifi_task(controller, stack, stored));
     spawn(spawner, net_task(runner));
-    spawn(spawner, mqtt_task(stack, target, settings, bridge));
+    if config.mqtt_host.is_empty() {
+        say(
+            Level::Info,
+            &["MQTT off: no mqtt_host (tinybms mqtt PORT --host HOST)"],
+        );
+    } else {
+        let mut port = Line::new();
+        port.uint(config.mqtt_port.into());
+        say(
+            Level::Info,
+            &["MQTT to ", config.mqtt_host.as_str(), ":", port.as_str()],
+        );
+        let target = Target::from_config(config, &hostname);
+        let settings = Settings::from_config(config);
+        spawn(spawner, mqtt_task(stack, target, settings, bridge));
+    }
     spawn(spawner, heap_task());
+    Some(hostname)
 }
 
 /// `hostname`, or `tinybms-` and the last three bytes of the MAC address.
@@ -212,60 +228,222 @@ async fn heap_task() {
     }
 }
 
-#[embassy_executor::task]
-async fn wifi_task(mut controller: WifiController<'static>) {
-    let mut backoff = WIFI_BACKOFF_MIN;
-    loop {
-        match controller.connect_async().await {
-            Ok(info) => {
-                let mut channel = Line::new();
-                channel.uint(info.channel.into());
-                say(
-                    Level::Info,
-                    &[
-                        "Wi-Fi up: ",
-                        info.ssid.as_str(),
-                        ", channel ",
-                        channel.as_str(),
-                    ],
-                );
-                let up = Instant::now();
-                match controller.wait_for_disconnect_async().await {
-                    Ok(d) => {
-                        warn!("Wi-Fi down: {}", d.reason);
-                        say(Level::Warn, &["Wi-Fi down: ", reason_text(d.reason)]);
-                    }
-                    Err(e) => {
-                        warn!("Wi-Fi down: {}", e);
-                        say(Level::Warn, &["Wi-Fi down"]);
-                    }
-                }
-                if up.elapsed() > WIFI_BACKOFF_MAX {
-                    backoff = WIFI_BACKOFF_MIN;
+/// Hands the station what the Wi-Fi side did.
+fn tell(done: wires::WifiDone) {
+    // The station takes them at every pass; two fit (a result and a link).
+    let _ = wires::WIFI_DONE.try_send(done);
+    wires::wake();
+}
+
+/// What a failed connect means for the owner.
+fn failure(e: &ConnectionError) -> JoinFailure {
+    use DisconnectReason as R;
+    match e {
+        ConnectionError::Failed(d) => match d.reason {
+            R::NoAccessPointFound | R::NoAccessPointFoundInRssiThreshold | R::BeaconTimeout => {
+                JoinFailure::NotFound
+            }
+            R::AuthenticationFailed
+            | R::FourWayHandshakeTimeout
+            | R::HandshakeTimeout
+            | R::MicFailure
+            | R::AuthenticationExpired => JoinFailure::KeyRefused,
+            _ => JoinFailure::Other,
+        },
+        _ => JoinFailure::Other,
+    }
+}
+
+/// Longest wait for an address once joined.
+const DHCP_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// Joins the network the controller is configured for and waits for an
+/// address (DHCP).
+async fn join(
+    controller: &mut WifiController<'static>,
+    stack: Stack<'static>,
+) -> Result<[u8; 4], JoinFailure> {
+    match controller.connect_async().await {
+        Ok(info) => {
+            let mut channel = Line::new();
+            channel.uint(info.channel.into());
+            say(
+                Level::Info,
+                &[
+                    "Wi-Fi up: ",
+                    info.ssid.as_str(),
+                    ", channel ",
+                    channel.as_str(),
+                ],
+            );
+        }
+        Err(e) => {
+            warn!("Wi-Fi: cannot join ({})", e);
+            return Err(failure(&e));
+        }
+    }
+    match embassy_time::with_timeout(DHCP_TIMEOUT, stack.wait_config_up()).await {
+        Ok(()) => Ok(stack
+            .config_v4()
+            .map_or([0; 4], |c| c.address.address().octets())),
+        Err(_) => Err(JoinFailure::NoAddress),
+    }
+}
+
+/// Does what the station asked: a scan, or a join of a new network (kept
+/// only when it works; the station stores it then). Returns whether the
+/// station is joined afterwards (`connected`: before).
+async fn serve(
+    req: WifiRequest,
+    controller: &mut WifiController<'static>,
+    stack: Stack<'static>,
+    current: &mut Option<StationConfig>,
+    connected: bool,
+) -> bool {
+    match req {
+        WifiRequest::Scan => {
+            let config = ScanConfig::default().with_max(SCAN_MAX);
+            let found = embassy_time::with_timeout(SCAN_TIME, controller.scan_async(&config)).await;
+            let mut list = heapless::Vec::new();
+            if let Ok(Ok(aps)) = found {
+                for ap in aps {
+                    let Ok(ssid) = String::try_from(ap.ssid.as_str()) else {
+                        continue;
+                    };
+                    let secured =
+                        !matches!(ap.auth_method, None | Some(AuthenticationMethod::None));
+                    let _ = list.push(Network {
+                        ssid,
+                        rssi: ap.signal_strength,
+                        secured,
+                    });
                 }
             }
-            Err(e) => {
-                warn!("Wi-Fi: cannot join ({})", e);
-                let why = match e {
-                    ConnectionError::Failed(d) => reason_text(d.reason),
-                    _ => "the driver refused (see the RTT log)",
-                };
+            tell(wires::WifiDone::Scanned(list));
+            connected
+        }
+        WifiRequest::Join { ssid, psk } => {
+            let Some(wanted) = station_config(ssid.as_str(), psk.as_str()) else {
+                tell(wires::WifiDone::Joined(Err(JoinFailure::Other)));
+                return connected;
+            };
+            // Returns at once when neither connected nor connecting.
+            let _ = controller.disconnect_async().await;
+            tell(wires::WifiDone::Link(WifiLink::Down));
+            let result = match controller.set_config(&WifiConfig::Station(wanted.clone())) {
+                Ok(()) => embassy_time::with_timeout(JOIN_TIME, join(controller, stack))
+                    .await
+                    .unwrap_or(Err(JoinFailure::NotFound)),
+                Err(_) => Err(JoinFailure::Other),
+            };
+            match result {
+                Ok(ip) => {
+                    *current = Some(wanted);
+                    tell(wires::WifiDone::Joined(Ok(ip)));
+                    true
+                }
+                Err(f) => {
+                    let _ = controller.disconnect_async().await;
+                    tell(wires::WifiDone::Joined(Err(f)));
+                    false
+                }
+            }
+        }
+    }
+}
+
+/// The longest a join asked for by Improv may take here (the station's own
+/// limit, [`tinybms_firmware::improv::JOIN_TIMEOUT`], is longer).
+const JOIN_TIME: Duration = Duration::from_secs(25);
+/// The longest a scan may take.
+const SCAN_TIME: Duration = Duration::from_secs(10);
+
+#[embassy_executor::task]
+async fn wifi_task(
+    mut controller: WifiController<'static>,
+    stack: Stack<'static>,
+    mut current: Option<StationConfig>,
+) {
+    let mut backoff = WIFI_BACKOFF_MIN;
+    let mut connected = false;
+    loop {
+        if connected {
+            let up = Instant::now();
+            match select(
+                controller.wait_for_disconnect_async(),
+                wires::WIFI_REQUEST.receive(),
+            )
+            .await
+            {
+                Either::First(d) => {
+                    match d {
+                        Ok(d) => {
+                            warn!("Wi-Fi down: {}", d.reason);
+                            say(Level::Warn, &["Wi-Fi down: ", reason_text(d.reason)]);
+                        }
+                        Err(e) => {
+                            warn!("Wi-Fi down: {}", e);
+                            say(Level::Warn, &["Wi-Fi down"]);
+                        }
+                    }
+                    tell(wires::WifiDone::Link(WifiLink::Down));
+                    connected = false;
+                    if up.elapsed() > WIFI_BACKOFF_MAX {
+                        backoff = WIFI_BACKOFF_MIN;
+                    }
+                }
+                Either::Second(req) => {
+                    connected = serve(req, &mut controller, stack, &mut current, true).await;
+                }
+            }
+            continue;
+        }
+        let Some(config) = current.clone() else {
+            tell(wires::WifiDone::Link(WifiLink::Off));
+            let req = wires::WIFI_REQUEST.receive().await;
+            connected = serve(req, &mut controller, stack, &mut current, false).await;
+            continue;
+        };
+        tell(wires::WifiDone::Link(WifiLink::Down));
+        if controller.set_config(&WifiConfig::Station(config)).is_err() {
+            say(
+                Level::Warn,
+                &["Wi-Fi: the driver refused the stored network"],
+            );
+            current = None;
+            continue;
+        }
+        match select(join(&mut controller, stack), wires::WIFI_REQUEST.receive()).await {
+            Either::First(Ok(ip)) => {
+                connected = true;
+                tell(wires::WifiDone::Link(WifiLink::Up(ip)));
+            }
+            Either::First(Err(f)) => {
                 let mut secs = Line::new();
                 secs.uint(backoff.as_secs());
                 say(
                     Level::Warn,
                     &[
                         "Wi-Fi: cannot join (",
-                        why,
+                        f.text(),
                         "), next try in ",
                         secs.as_str(),
                         " s",
                     ],
                 );
+                if let Either::Second(req) =
+                    select(Timer::after(backoff), wires::WIFI_REQUEST.receive()).await
+                {
+                    connected = serve(req, &mut controller, stack, &mut current, false).await;
+                }
+                backoff = (backoff * 2).min(WIFI_BACKOFF_MAX);
+            }
+            Either::Second(req) => {
+                // A join under way is cancelled (the request is newer).
+                let _ = controller.disconnect_async().await;
+                connected = serve(req, &mut controller, stack, &mut current, false).await;
             }
         }
-        Timer::after(backoff).await;
-        backoff = (backoff * 2).min(WIFI_BACKOFF_MAX);
     }
 }
 

@@ -106,6 +106,32 @@ mod mqtt {
     /// for `hello`; latest wins).
     pub static MQTT_STATE: embassy_sync::signal::Signal<Raw, tinybms_firmware::mqtt::MqttState> =
         embassy_sync::signal::Signal::new();
+
+    /// What the station asks of the Wi-Fi task (Improv Wi-Fi: a join, a
+    /// scan); one at a time.
+    pub static WIFI_REQUEST: Channel<Raw, tinybms_firmware::improv::WifiRequest, 1> =
+        Channel::new();
+
+    /// What the Wi-Fi task did. (A scan's list travels whole, once: the
+    /// channel's few slots are the only copies.)
+    #[allow(clippy::large_enum_variant)]
+    pub enum WifiDone {
+        /// The asked join ended.
+        Joined(Result<[u8; 4], tinybms_firmware::improv::JoinFailure>),
+        /// The asked scan ended.
+        Scanned(
+            heapless::Vec<
+                tinybms_firmware::improv::Network,
+                { tinybms_firmware::improv::SCAN_MAX },
+            >,
+        ),
+        /// The link changed.
+        Link(tinybms_firmware::improv::WifiLink),
+    }
+
+    /// The Wi-Fi task → the station task; when full, a link change is lost
+    /// (the next one says it again).
+    pub static WIFI_DONE: Channel<Raw, WifiDone, 4> = Channel::new();
 }
 
 /// Lines for the host the writer dropped on the wire since the station last

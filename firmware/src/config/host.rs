@@ -28,7 +28,7 @@ impl Default for HostLinkConfig {
         Self {
             read_only: false,
             stream_period_ms: DEFAULT_STREAM_PERIOD_MS,
-            firmware: env!("CARGO_PKG_VERSION"),
+            firmware: crate::identity::FIRMWARE,
             chip: "unknown",
             board: "unknown",
             features: crate::identity::Features::default(),

@@ -285,6 +285,36 @@ impl ConfigState {
         out
     }
 
+    /// The Wi-Fi side joined this network with this key (Improv Wi-Fi): the
+    /// bridge runs with them now, and they are stored. Not read-only-checked:
+    /// the owner typed them at the device, as with the BOOT button. False
+    /// when the record would not take them (nothing changes then).
+    pub fn joined_network(&mut self, ssid: &str, key: &str) -> bool {
+        let mut next = self.stored.clone();
+        if next
+            .set(FieldId::WifiSsid, super::Value::Text(ssid))
+            .is_err()
+            || next.set(FieldId::WifiKey, super::Value::Text(key)).is_err()
+            || next.validate().is_err()
+        {
+            return false;
+        }
+        for id in [FieldId::WifiSsid, FieldId::WifiKey] {
+            if next.get(id) != self.stored.get(id) {
+                self.note(Note::Changed(id, Applies::Now));
+            }
+        }
+        let _ = self
+            .running
+            .set(FieldId::WifiSsid, super::Value::Text(ssid));
+        let _ = self.running.set(FieldId::WifiKey, super::Value::Text(key));
+        if next != self.stored {
+            self.stored = next;
+            self.save = Some(SAVE_ATTEMPTS);
+        }
+        true
+    }
+
     /// The BOOT button was held: read-only is lifted, now and in flash.
     pub fn unlock(&mut self) {
         self.note(Note::Unlocked);

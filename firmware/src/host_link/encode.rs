@@ -263,6 +263,15 @@ struct HelloLine<'a> {
     store: Option<StoreLine>,
     #[serde(skip_serializing_if = "Option::is_none")]
     mqtt: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    wifi: Option<WifiLine<'a>>,
+}
+
+/// The Wi-Fi link (in `hello`, images with Wi-Fi).
+#[derive(serde::Serialize)]
+struct WifiLine<'a> {
+    state: &'static str,
+    ip: Option<&'a str>,
 }
 
 /// Where the configuration store lives (in `hello`).
@@ -301,10 +310,16 @@ pub struct HelloFields<'a> {
     /// Where the MQTT connection stands, once its session said (images with
     /// Wi-Fi).
     pub mqtt: Option<crate::mqtt::MqttState>,
+    /// The Wi-Fi link (images with Wi-Fi).
+    pub wifi: Option<crate::improv::WifiLink>,
 }
 
 /// Writes a `hello` line.
 pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<usize> {
+    let mut ip = crate::line::Line::new();
+    if let Some(crate::improv::WifiLink::Up(a)) = f.wifi {
+        crate::text::ipv4(a, &mut ip);
+    }
     line(
         &HelloLine {
             ty: "hello",
@@ -327,6 +342,10 @@ pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<us
                 problem: s.problem().map(|p| p.reason()),
             }),
             mqtt: f.mqtt.map(crate::mqtt::MqttState::key),
+            wifi: f.wifi.map(|w| WifiLine {
+                state: w.key(),
+                ip: (!ip.as_str().is_empty()).then_some(ip.as_str()),
+            }),
         },
         out,
     )

@@ -44,6 +44,7 @@ use crate::config::state::{ConfigState, Outcome};
 use crate::config::store::{Saved, StoreError};
 use crate::config::value::{self, FieldError, Parsed};
 use crate::config::{Config, FieldId, PackSettings, TEXT_MAX};
+use crate::improv::Improv;
 use crate::Instant;
 use command::{ClearWhat, HostCommand, SetValues, What};
 use line::{LineAssembler, Piece};
@@ -238,8 +239,18 @@ pub const PENDING_CONFIG: usize = 4;
 #[derive(Debug, Clone)]
 pub struct HostLink {
     lines: LineAssembler,
+    /// When the last byte from the host came (a half-received Improv packet
+    /// older than [`IMPROV_GAP`] is dropped).
+    last_rx: Instant,
+    /// Improv Wi-Fi on the same port (the browser installer).
+    improv: Improv,
     s: State,
 }
+
+/// Longest pause inside an Improv packet, µs: a host sends one in a single
+/// write, so after this pause its start is dropped (and said) instead of
+/// swallowing the lines that follow as its bytes.
+pub const IMPROV_GAP: Instant = 500 * crate::MS;
 
 #[derive(Debug, Clone)]
 struct State {
@@ -256,6 +267,8 @@ struct State {
     inverter: Option<encode::InverterState>,
     /// Where the MQTT connection stands (`hello`), once the session said.
     mqtt: Option<crate::mqtt::MqttState>,
+    /// The Wi-Fi link (`hello`, images with Wi-Fi).
+    wifi: crate::improv::WifiLink,
     capture: bool,
     queue: Deque<Out, QUEUE>,
     raw: Deque<(Dir, Vec<u8, RAW_CHUNK>), RAW_QUEUE>,
@@ -299,6 +312,12 @@ impl HostLink {
         let period = configured_period(&config);
         let mut link = Self {
             lines: LineAssembler::new(),
+            last_rx: now,
+            improv: Improv::new(&crate::identity::Identity {
+                chip: config.chip,
+                board: config.board,
+                features: config.features,
+            }),
             s: State {
                 config,
                 stream_period_ms: 0,
@@ -308,6 +327,7 @@ impl HostLink {
                 battery_lines: 0,
                 inverter: None,
                 mqtt: None,
+                wifi: crate::improv::WifiLink::Off,
                 capture: false,
                 queue: Deque::new(),
                 raw: Deque::new(),
@@ -332,6 +352,22 @@ impl HostLink {
         }
     }
 
+    /// Improv Wi-Fi on this port.
+    pub fn improv(&self) -> &Improv {
+        &self.improv
+    }
+
+    /// Improv Wi-Fi on this port, to hand it what the Wi-Fi side did.
+    pub fn improv_mut(&mut self) -> &mut Improv {
+        &mut self.improv
+    }
+
+    /// The Wi-Fi link changed (Improv answers by it, `hello` says it).
+    pub fn wifi_link(&mut self, link: crate::improv::WifiLink) {
+        self.improv.wifi_link(link);
+        self.s.wifi = link;
+    }
+
     /// Counters.
     pub fn stats(&self) -> HostLinkStats {
         self.s.stats
@@ -354,7 +390,8 @@ impl HostLink {
 
     /// True when lines are waiting for [`HostLink::next_line`].
     pub fn has_output(&self) -> bool {
-        !self.s.queue.is_empty()
+        self.improv.has_output()
+            || !self.s.queue.is_empty()
             || self.s.stream_due
             || !self.s.raw.is_empty()
             || !self.s.logs.is_empty()
@@ -387,10 +424,18 @@ impl HostLink {
         bridge: &mut Bridge,
         config: &mut ConfigState,
     ) {
+        if self.lines.is_improv()
+            && now.saturating_sub(self.last_rx) > IMPROV_GAP
+            && self.lines.drop_partial()
+        {
+            self.improv.on_packet(now, b"IMPROV");
+        }
+        self.last_rx = now;
         let mut rest = bytes;
         while !rest.is_empty() {
             let (used, piece) = self.lines.push(rest);
             match piece {
+                Some(Piece::Improv(p)) => self.improv.on_packet(now, p),
                 Some(Piece::Line(l)) => {
                     if l.iter().all(u8::is_ascii_whitespace) {
                         // Blank lines (keep-alives) are ignored.
@@ -506,6 +551,11 @@ impl HostLink {
         config: &ConfigState,
         out: &mut [u8],
     ) -> Option<usize> {
+        if let Some(p) = self.improv.next_packet(self.s.config.firmware) {
+            let dst = out.get_mut(..p.len())?;
+            dst.copy_from_slice(&p);
+            return Some(p.len());
+        }
         loop {
             let written = if !self.s.queue.is_empty() {
                 self.s.encode_front(now, bridge, config, out)
@@ -1022,6 +1072,7 @@ impl State {
                     dropped_lines: self.stats.dropped_lines,
                     store: config.site(),
                     mqtt: self.mqtt,
+                    wifi: self.config.features.wifi.then_some(self.wifi),
                 },
             ),
             Out::Telemetry(req) => telemetry(now, bridge, *req, self, out),

@@ -54,6 +54,7 @@ use crate::freshness::Freshness;
 use crate::host_link::encode::InverterState;
 #[cfg(feature = "host-link")]
 use crate::host_link::HostLink;
+use crate::improv::{JoinFailure, Network, WifiLink, WifiRequest};
 use crate::inverter::control::{Limits, PackSettings};
 use crate::inverter::frames::CanFrame;
 use crate::inverter::packs::BatteryView;
@@ -105,6 +106,8 @@ pub enum Logged {
     /// A host came back after this many of its lines were dropped (nobody
     /// read the port).
     HostMissed(u32),
+    /// Improv Wi-Fi (the browser installer's network set-up).
+    Improv(crate::improv::Note),
 }
 
 impl Logged {
@@ -115,6 +118,7 @@ impl Logged {
             Self::Config(n) => text::config_level(n),
             Self::Inverter(r) => r.level(),
             Self::HostMissed(_) => Level::Warn,
+            Self::Improv(n) => text::improv_level(n),
         }
     }
 }
@@ -135,6 +139,9 @@ pub enum Action {
     /// Save [`Station::record`] now and report with [`Station::saved`];
     /// send nothing to the BMS before.
     Save,
+    /// Ask the Wi-Fi side this (Improv Wi-Fi); report with
+    /// [`Station::wifi_joined`] or [`Station::wifi_scanned`].
+    Wifi(WifiRequest),
     /// Nothing before this time, unless an input arrives.
     WaitUntil(Instant),
 }
@@ -381,6 +388,39 @@ impl Station {
         }
     }
 
+    // ---- Wi-Fi (images with Wi-Fi; Improv on the host port) ----
+
+    /// The bridge's name on the network (its host name), for the installer.
+    pub fn set_network_name(&mut self, name: &str) {
+        if let Some(h) = self.host.as_mut() {
+            h.improv_mut().set_name(name);
+        }
+    }
+
+    /// The Wi-Fi link changed: joined (its address), lost, or off.
+    pub fn wifi_link(&mut self, link: WifiLink) {
+        if let Some(h) = self.host.as_mut() {
+            h.wifi_link(link);
+        }
+    }
+
+    /// The join of the last [`Action::Wifi`] ended.
+    pub fn wifi_joined(&mut self, now: Instant, result: Result<[u8; 4], JoinFailure>) {
+        if let Some(h) = self.host.as_mut() {
+            h.improv_mut().joined(now, result);
+            if let Ok(ip) = result {
+                h.wifi_link(WifiLink::Up(ip));
+            }
+        }
+    }
+
+    /// The scan of the last [`Action::Wifi`] ended.
+    pub fn wifi_scanned(&mut self, now: Instant, networks: &[Network]) {
+        if let Some(h) = self.host.as_mut() {
+            h.improv_mut().scanned(now, networks);
+        }
+    }
+
     // ---- the CAN bus ----
 
     /// A frame from the bus.
@@ -525,6 +565,8 @@ impl Station {
                     .push(" lines dropped while no host read the port");
             }
             Logged::HostMissed(_) => {}
+            Logged::Improv(n) if cfg!(feature = "host-link") => text::improv_note(n, out),
+            Logged::Improv(_) => {}
         }
     }
 
@@ -546,6 +588,9 @@ impl Station {
         // and before the next request (the poll is held until `saved`).
         if self.config.save_due() && self.bridge.quiet(now) {
             return Action::Save;
+        }
+        if let Some(req) = self.improv(now) {
+            return Action::Wifi(req);
         }
         let mut wake = Instant::MAX;
         if let (Can::Idle(_), Some(inverter)) = (self.can, self.inverter.as_mut()) {
@@ -582,6 +627,7 @@ impl Station {
                 }
                 if let Some(h) = self.host.as_mut() {
                     wake = wake.min(h.poll(now, &self.bridge));
+                    wake = wake.min(h.improv().wake(now));
                 }
                 if self.node() != 0 {
                     wake = wake.min(self.next_view);
@@ -589,6 +635,19 @@ impl Station {
                 Action::WaitUntil(t.min(wake))
             }
         }
+    }
+
+    /// Improv Wi-Fi's work: a step of a key derivation, a request for the
+    /// Wi-Fi side, a network joined into the record.
+    fn improv(&mut self, now: Instant) -> Option<WifiRequest> {
+        let h = self.host.as_mut()?;
+        let req = h.improv_mut().poll(now);
+        if let Some((ssid, key)) = h.improv_mut().take_joined() {
+            if self.config.joined_network(&ssid, &key) {
+                self.apply_running(now);
+            }
+        }
+        req
     }
 
     fn transmit(&mut self) -> Action {
@@ -624,6 +683,8 @@ impl Station {
             Logged::Inverter(r)
         } else if self.missed_to_log > 0 {
             Logged::HostMissed(core::mem::take(&mut self.missed_to_log))
+        } else if let Some(n) = self.host.as_mut().and_then(|h| h.improv_mut().next_note()) {
+            Logged::Improv(n)
         } else {
             return None;
         };

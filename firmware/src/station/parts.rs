@@ -93,6 +93,15 @@ impl NoHost {
     pub fn on_mqtt(&mut self, _: crate::mqtt::MqttState) {
         match *self {}
     }
+    pub fn improv(&self) -> &crate::improv::Improv {
+        match *self {}
+    }
+    pub fn improv_mut(&mut self) -> &mut crate::improv::Improv {
+        match *self {}
+    }
+    pub fn wifi_link(&mut self, _: crate::improv::WifiLink) {
+        match *self {}
+    }
 }
 
 /// No inverter output: a type without values.

@@ -63,6 +63,10 @@ path, e.g. /dev/pts/7; runs until stopped, or for --duration if given):
                      as `tinybms config PORT NAME=VALUE` would (stored; repeatable)
   --no-wifi          (--bridge-pty) stand for an image without Wi-Fi (the
                      default ready-made images): its hello says so
+  --wifi-network NAME[:PASSPHRASE[:RSSI]] (--bridge-pty) a network the
+                     simulated radio finds (repeatable): Improv Wi-Fi (the
+                     browser installer) scans it and joins it only with its
+                     passphrase; without any, every join finds no network
   --read-only        (--bridge-pty) the same as --config read_only=on
   --stream-period D  (--bridge-pty) the same as --config stream_period=D
   --boot-button D    (--bridge-pty) hold the BOOT button down from D on, for 6 s
@@ -70,6 +74,9 @@ path, e.g. /dev/pts/7; runs until stopped, or for --duration if given):
   --bms-fault AT+FOR (--bridge-pty, --mqtt) the simulated BMS cuts off for
                      over-temperature at AT (its event logged, status Fault,
                      switches open) and recovers FOR later (e.g. 20s+15s)
+  --bms-silent AT+FOR (--bridge-pty) the simulated BMS answers nothing from AT
+                     on, for FOR (e.g. 10s+30s: a cut UART wire); the bridge
+                     runs on and reports it offline
   --freeze AT+FOR    from AT on, for FOR (e.g. 5s+20s): with --pty the simulated
                      BMS falls silent; with --bridge-pty the whole bridge stops
                      (no byte on its pty, as a hung chip)
@@ -141,10 +148,12 @@ struct Options {
     pty: bool,
     bridge_pty: bool,
     no_wifi: bool,
+    wifi_networks: Vec<host_tests::sim_wifi::SimNetwork>,
     config: Vec<(String, String)>,
     flash: Option<String>,
     boot_button_us: Option<u64>,
     freeze: Option<(u64, u64)>,
+    bms_silent: Option<(u64, u64)>,
     bms_fault: Option<(u64, u64)>,
     mqtt: Option<(String, u16)>,
     packs: Option<usize>,
@@ -177,10 +186,12 @@ fn parse_args() -> Result<Parsed, String> {
         pty: false,
         bridge_pty: false,
         no_wifi: false,
+        wifi_networks: Vec::new(),
         config: Vec::new(),
         flash: None,
         boot_button_us: None,
         freeze: None,
+        bms_silent: None,
         bms_fault: None,
         mqtt: None,
         packs: None,
@@ -196,6 +207,11 @@ fn parse_args() -> Result<Parsed, String> {
             "--pty" => o.pty = true,
             "--bridge-pty" => o.bridge_pty = true,
             "--no-wifi" => o.no_wifi = true,
+            "--wifi-network" => o
+                .wifi_networks
+                .push(host_tests::sim_wifi::SimNetwork::parse(&value(
+                    "--wifi-network",
+                )?)?),
             "--read-only" => o.config.push(("read_only".into(), "on".into())),
             "--stream-period" => {
                 let d = parse_duration(&value("--stream-period")?)? / 1000;
@@ -230,6 +246,13 @@ fn parse_args() -> Result<Parsed, String> {
                     .split_once('+')
                     .ok_or_else(|| format!("--bms-fault {v}: want AT+FOR, e.g. 20s+15s"))?;
                 o.bms_fault = Some((parse_duration(at)?, parse_duration(long)?));
+            }
+            "--bms-silent" => {
+                let v = value("--bms-silent")?;
+                let (at, long) = v
+                    .split_once('+')
+                    .ok_or_else(|| format!("--bms-silent {v}: want AT+FOR, e.g. 10s+30s"))?;
+                o.bms_silent = Some((parse_duration(at)?, parse_duration(long)?));
             }
             "--freeze" => {
                 let v = value("--freeze")?;
@@ -740,6 +763,13 @@ fn run_realtime(o: &Options) -> ExitCode {
                 }),
                 pty: o.bridge_pty,
                 no_wifi: o.no_wifi,
+                wifi_networks: o.wifi_networks.clone(),
+                bms_silent: o.bms_silent.map(|(a, f)| {
+                    (
+                        std::time::Duration::from_micros(a),
+                        std::time::Duration::from_micros(f),
+                    )
+                }),
                 can_log: o.can_log.as_ref().map(std::path::PathBuf::from),
                 mqtt: o.mqtt.clone(),
                 profile: o.profile.clone(),

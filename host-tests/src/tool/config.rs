@@ -25,13 +25,14 @@ use std::time::{Duration, Instant};
 
 use serde_json::{json, Map, Value};
 use tinybms_firmware::config::value::{self, Parsed};
-use tinybms_firmware::config::{Config, FieldId, Kind, FIELDS};
+use tinybms_firmware::config::{Config, FieldId, Kind};
 use tinybms_firmware::host_link::line::LINE_MAX;
 use tinybms_firmware::text::Line;
+use tinybms_rules::config::wire_text;
 
 use super::client::{protocol_error, Client};
 use super::transport::Mode;
-use super::{suggest, ToolError, ToolResult};
+use super::{ToolError, ToolResult};
 
 /// How long the save to flash may take (a sector erase is at most ~0.5 s).
 pub const SAVE_TIMEOUT: Duration = Duration::from_secs(10);
@@ -200,92 +201,35 @@ fn with_unit(v: &str, unit: &str) -> String {
     }
 }
 
-/// The field named `name`, or an error with a suggestion.
+/// The field named `name`, or an error with a suggestion
+/// ([`tinybms_rules::config::field_named`], shared with the browser console).
 pub fn field_named(name: &str) -> ToolResult<FieldId> {
-    FieldId::from_name(name).ok_or_else(|| {
-        let names: Vec<&str> = FIELDS.iter().map(|f| f.name).collect();
-        ToolError::usage(format!(
-            "no configuration field `{name}`{} (`tinybms config PORT` lists them)",
-            suggest(name, &names)
-                .map(|s| format!("; did you mean `{s}`?"))
-                .unwrap_or_default()
-        ))
-    })
+    tinybms_rules::config::field_named(name).map_err(ToolError::usage)
 }
 
 /// Checks one `NAME=VALUE` as the bridge would: the field exists and the text
 /// is a value of it. Returns the name and the text to send.
 pub fn check_assignment(name: &str, text: &str) -> ToolResult<(FieldId, Parsed)> {
-    let id = field_named(name)?;
-    let f = id.field();
-    value::parse(f, text).map(|p| (id, p)).map_err(|e| {
-        let mut range = Line::new();
-        value::write_range(f, &mut range);
-        ToolError::usage(format!(
-            "{name} = {text}: {} (it takes {}{})",
-            e.detail,
-            range.as_str(),
-            if f.unit.is_empty() {
-                String::new()
-            } else {
-                format!("; the unit may be given: `{name}=… {}`", f.unit)
-            }
-        ))
-    })
+    tinybms_rules::config::check_assignment(name, text).map_err(ToolError::usage)
 }
 
 /// `NAME=VALUE` split.
 pub fn split_assignment(arg: &str) -> ToolResult<(String, String)> {
-    arg.split_once('=')
-        .map(|(n, v)| (n.trim().to_string(), v.trim().to_string()))
-        .ok_or_else(|| ToolError::usage(format!("`{arg}`: want NAME=VALUE")))
+    tinybms_rules::config::split_assignment(arg).map_err(ToolError::usage)
 }
 
 /// The record the bridge holds, rebuilt from its `config` lines (secrets that
 /// are set get a placeholder, so the rules between fields can be checked).
 pub fn record_of(fields: &[Shown]) -> Config {
-    let mut c = Config::default();
-    for s in fields {
-        let Some(id) = FieldId::from_name(s.s("name")) else {
-            continue;
-        };
-        let f = id.field();
-        let text = match f.kind {
-            Kind::Secret { hex64: true, .. } if s.s("value") == "set" => "0".repeat(64),
-            Kind::Secret { .. } if s.s("value") == "set" => "set".into(),
-            Kind::Secret { .. } => String::new(),
-            _ => s.s("value").to_string(),
-        };
-        if let Ok(p) = value::parse(f, &text) {
-            let _ = c.set(id, p.as_value());
-        }
-    }
-    c
+    let lines: Vec<Value> = fields.iter().map(|f| f.line.clone()).collect();
+    tinybms_rules::config::record_of(&lines)
 }
 
 /// Checks `changes` against the bridge's record locally (every rule between
 /// fields), so that a change that cannot be accepted is refused before
 /// anything is sent.
 pub fn check_locally(current: &Config, changes: &[(FieldId, Parsed)]) -> ToolResult<()> {
-    let mut next = current.clone();
-    for (id, p) in changes {
-        next.set(*id, p.as_value())
-            .map_err(|e| ToolError::usage(format!("{}: {}", id.name(), e.detail)))?;
-    }
-    next.validate()
-        .map_err(|e| ToolError::usage(format!("{}: {}", e.field.name(), e.detail)))
-}
-
-/// The text a change sends for a field (its text form; a secret as given).
-fn wire_text(id: FieldId, p: &Parsed) -> String {
-    let mut l = Line::new();
-    match p {
-        Parsed::Text(t) => t.to_string(),
-        _ => {
-            value::write(id.field(), &p.as_value(), true, &mut l);
-            l.as_str().to_string()
-        }
-    }
+    tinybms_rules::config::check_locally(current, changes).map_err(ToolError::usage)
 }
 
 /// Sends `changes` (split into `set_config` lines that fit the protocol's

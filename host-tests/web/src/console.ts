@@ -1,0 +1,475 @@
+// The console: the bridge (or a TinyBMS behind the bridge) from a browser,
+// over Web Serial, speaking the host link as the desktop tool does. Every
+// value an owner types is checked by the firmware's own rules compiled to
+// WebAssembly (./wasm.ts), with the tool's messages; the bridge checks again.
+
+import { errorOf, HostLink, Line } from "./link";
+import { loadRules, rules } from "./wasm";
+
+const $ = <T extends HTMLElement = HTMLElement>(id: string) => document.getElementById(id) as T;
+
+function text(id: string, value: string): void {
+  $(id).textContent = value;
+}
+
+function fixed(v: unknown, decimals: number, unit: string): string {
+  return typeof v === "number" && Number.isFinite(v) ? `${v.toFixed(decimals)} ${unit}` : "–";
+}
+
+function words(key: unknown): string {
+  return typeof key === "string" ? key.replace(/_/g, " ") : "–";
+}
+
+/** One line in a list, newest first, at most `keep`. */
+function prepend(list: HTMLElement, content: string, cls = "", keep = 200): void {
+  const li = document.createElement("li");
+  li.textContent = content;
+  if (cls) li.className = cls;
+  list.prepend(li);
+  while (list.children.length > keep) list.lastElementChild?.remove();
+}
+
+/** Messages under a form: each its own line. */
+function say(id: string, lines: string[], cls: string): void {
+  const box = $(id);
+  box.replaceChildren(
+    ...lines.map((m) => {
+      const p = document.createElement("pre");
+      p.className = cls;
+      p.textContent = m;
+      return p;
+    }),
+  );
+}
+
+interface Session {
+  link: HostLink;
+  hello: Line;
+  telemetry?: Line;
+  receivedAt: number;
+  config: Line[];
+  settings: Line[];
+}
+
+let session: Session | undefined;
+let timer: number | undefined;
+
+// ------------------------------------------------------------------ live
+
+function showTelemetry(t: Line): void {
+  text("pack-voltage", fixed(t.pack_voltage_v, 2, "V"));
+  text("pack-current", fixed(t.pack_current_a, 2, "A"));
+  const power =
+    typeof t.pack_voltage_v === "number" && typeof t.pack_current_a === "number"
+      ? t.pack_voltage_v * t.pack_current_a
+      : undefined;
+  text("pack-power", fixed(power, 0, "W"));
+  text("soc", fixed(t.soc_percent, 1, "%"));
+  text("soh", fixed(t.soh_percent, 0, "%"));
+  text("status", words(t.online_status));
+  text("cell-min", fixed(t.min_cell_voltage_v, 3, "V"));
+  text("cell-max", fixed(t.max_cell_voltage_v, 3, "V"));
+  const delta =
+    typeof t.max_cell_voltage_v === "number" && typeof t.min_cell_voltage_v === "number"
+      ? (t.max_cell_voltage_v - t.min_cell_voltage_v) * 1000
+      : undefined;
+  text("cell-delta", fixed(delta, 0, "mV"));
+  const temp = (v: unknown) => (v === null ? "not connected" : fixed(v, 1, "°C"));
+  text("temp-internal", temp(t.internal_temperature_c));
+  text("temp-ext1", temp(t.external_temperature_1_c));
+  text("temp-ext2", temp(t.external_temperature_2_c));
+  showCells(t);
+  const inv = t.inverter;
+  text(
+    "inverter",
+    inv
+      ? `${inv.protocol}, CAN ${words(inv.can)}, inverter ${inv.heard ? "heard" : "not heard"}; ` +
+          `CVL ${fixed(inv.cvl_v, 1, "V")}, CCL ${fixed(inv.ccl_a, 1, "A")}, DCL ${fixed(inv.dcl_a, 1, "A")}`
+      : "this image has no inverter output",
+  );
+}
+
+function showCells(t: Line): void {
+  const cells: number[] = Array.isArray(t.cell_voltages_v) ? t.cell_voltages_v : [];
+  const box = $("cells");
+  if (!cells.length) {
+    box.replaceChildren();
+    return;
+  }
+  const lo = Math.min(...cells);
+  const hi = Math.max(...cells);
+  // At least 50 mV of span, as the desktop monitor draws them: a healthy
+  // pack's few millivolts do not look alarming.
+  const floor = Math.min(lo, hi - 0.05);
+  const span = Math.max(hi - floor, 0.05);
+  text("cells-scale", `bars from ${floor.toFixed(3)} V to ${(floor + span).toFixed(3)} V`);
+  const balancing = Number(t.real_balancing_bits ?? 0);
+  const rows = cells.map((v, i) => {
+    const row = document.createElement("div");
+    row.className = "cell";
+    row.dataset.index = String(i + 1);
+    if (v === lo) row.classList.add("lowest");
+    if (v === hi) row.classList.add("highest");
+    const name = document.createElement("span");
+    name.textContent = `${i + 1}${balancing & (1 << i) ? "*" : ""}`;
+    const bar = document.createElement("span");
+    bar.className = "bar";
+    bar.style.width = `${Math.max(2, ((v - floor) / span) * 100)}%`;
+    const value = document.createElement("span");
+    value.className = "cell-value";
+    value.textContent = `${v.toFixed(3)} V`;
+    row.append(name, bar, value);
+    return row;
+  });
+  box.replaceChildren(...rows);
+}
+
+/** The freshness pill, by the firmware's rule, every quarter second. */
+function tick(): void {
+  if (!session) return;
+  const f = rules<{ state: string; text: string }>("freshness", {
+    telemetry: session.telemetry ?? null,
+    received_ago_ms: performance.now() - session.receivedAt,
+  });
+  const pill = $("state");
+  const label: Record<string, string> = { fresh: "LIVE", offline: "OFFLINE", no_data: "NO DATA" };
+  pill.textContent = label[f.state] ?? f.state.toUpperCase();
+  pill.className = `pill ${f.state}`;
+  text("age", f.text);
+}
+
+// ----------------------------------------------------------- configuration
+
+function showConfig(lines: Line[]): void {
+  const body = $("config").querySelector("tbody")!;
+  const fields = lines.filter((l) => l.type === "config");
+  body.replaceChildren(
+    ...fields.map((f) => {
+      const tr = document.createElement("tr");
+      tr.dataset.field = f.name;
+      const cell = (content: string, cls = "") => {
+        const td = document.createElement("td");
+        td.textContent = content;
+        if (cls) td.className = cls;
+        return td;
+      };
+      const value = f.secret ? f.value : `${f.value}${f.unit && /^-?\d/.test(f.value) ? " " + f.unit : ""}`;
+      const input = document.createElement("input");
+      input.name = f.name;
+      input.type = f.secret ? "password" : "text";
+      input.placeholder = f.secret ? "unchanged" : "";
+      input.autocomplete = "off";
+      const edit = document.createElement("td");
+      edit.append(input);
+      tr.append(
+        cell(f.name, "name"),
+        cell(value + (f.restart_pending ? " (restart pending)" : ""), "current"),
+        edit,
+        cell(f.range ?? ""),
+        cell(f.applies === "now" ? "at once" : "at the next restart"),
+      );
+      tr.title = f.help ?? "";
+      return tr;
+    }),
+  );
+}
+
+async function fetchConfig(s: Session): Promise<void> {
+  const lines = await s.link.request({ cmd: "get", what: "config" }, (l) => l.type === "config_end");
+  const err = errorOf(lines);
+  if (err) throw new Error(err);
+  s.config = lines.filter((l) => l.type === "config");
+  showConfig(s.config);
+  $("config-section").hidden = false;
+}
+
+async function applyConfig(): Promise<void> {
+  const s = session;
+  if (!s) return;
+  const changes: string[] = [];
+  for (const input of $("config").querySelectorAll<HTMLInputElement>("input")) {
+    if (input.value.trim() !== "") changes.push(`${input.name}=${input.value.trim()}`);
+  }
+  if (!changes.length) {
+    say("config-messages", ["nothing to change: type a new value first"], "error");
+    return;
+  }
+  const check = rules<{ ok: boolean; messages: string[]; wire: Record<string, string> }>("check_config", {
+    changes,
+    current: s.config,
+  });
+  if (!check.ok) {
+    say("config-messages", check.messages, "error");
+    return;
+  }
+  // The one-way change asks first, as `tinybms config` does.
+  if (check.wire.read_only === "on") {
+    const yes = window.confirm(
+      "read_only=on makes the bridge refuse every write, its configuration too. The only ways " +
+        "back: hold the board's BOOT button for 5 seconds while it runs, or erase its " +
+        "configuration. Make the bridge read-only?",
+    );
+    if (!yes) {
+      say("config-messages", ["nothing changed"], "ok");
+      return;
+    }
+  }
+  const lines = await s.link.request(
+    { cmd: "set_config", fields: check.wire },
+    (l) => l.type === "config_done",
+    15000,
+  );
+  const err = errorOf(lines);
+  const out: string[] = [];
+  let failed = Boolean(err);
+  if (err) out.push(err.startsWith("read_only") ? "the bridge is read-only: it refuses every write, its configuration too (hold BOOT for 5 s to allow changes)" : err);
+  for (const l of lines.filter((l) => l.type === "config_outcome")) {
+    switch (l.outcome) {
+      case "applied":
+        out.push(`${l.name} = ${l.value}: applied`);
+        break;
+      case "at_restart":
+        out.push(`${l.name} = ${l.value}: stored, applies at the next restart`);
+        break;
+      case "unchanged":
+        out.push(`${l.name} = ${l.value}: unchanged`);
+        break;
+      case "not_applied":
+        out.push(`${l.name}: not applied (another field was refused)`);
+        break;
+      default:
+        failed = true;
+        out.push(`${l.name}: refused, ${l.error} (${l.detail ?? ""})${l.range ? "; it takes " + l.range : ""}`);
+    }
+  }
+  const done = lines.find((l) => l.type === "config_done");
+  if (done && done.saved === false) {
+    failed = true;
+    out.push(`NOT saved to flash: ${done.detail ?? "?"} (the change holds until the bridge restarts)`);
+  } else if (done && !failed) {
+    out.push("saved to the bridge's flash");
+  }
+  say("config-messages", out, failed ? "error" : "ok");
+  for (const input of $("config").querySelectorAll<HTMLInputElement>("input")) input.value = "";
+  await fetchConfig(s);
+}
+
+// ---------------------------------------------------------------- settings
+
+function showSettings(lines: Line[]): void {
+  const body = $("settings").querySelector("tbody")!;
+  body.replaceChildren(
+    ...lines.map((l) => {
+      const tr = document.createElement("tr");
+      tr.dataset.setting = l.name;
+      const td = (c: string, cls = "") => {
+        const e = document.createElement("td");
+        e.textContent = c;
+        if (cls) e.className = cls;
+        return e;
+      };
+      const input = document.createElement("input");
+      input.name = l.name;
+      input.autocomplete = "off";
+      const edit = document.createElement("td");
+      edit.append(input);
+      const unit = l.unit ? ` ${l.unit}` : "";
+      const bms =
+        l.bms_min !== null && l.bms_min !== undefined ? `; this BMS ${l.bms_min}..${l.bms_max}${unit}` : "";
+      tr.append(
+        td(l.name, "name"),
+        td(`${l.value ?? l.raw}${unit}`, "current"),
+        edit,
+        td(l.min !== undefined && l.min !== null ? `Rev D ${l.min}..${l.max}${unit}${bms}` : ""),
+      );
+      return tr;
+    }),
+  );
+  $("settings-apply").hidden = lines.length === 0;
+}
+
+async function readSettings(quiet = false): Promise<void> {
+  const s = session;
+  if (!s) return;
+  const lines = await s.link.request({ cmd: "get", what: "settings" }, (l) => l.type === "settings_end", 10000);
+  const err = errorOf(lines);
+  if (err) {
+    say("settings-messages", [err.startsWith("not_ready") ? "the bridge has not read the BMS's settings yet: try again in a few seconds" : err], "error");
+    return;
+  }
+  s.settings = lines.filter((l) => l.type === "setting");
+  showSettings(s.settings);
+  if (!quiet) say("settings-messages", [`${s.settings.length} settings read`], "ok");
+}
+
+async function applySettings(): Promise<void> {
+  const s = session;
+  if (!s) return;
+  const changes: string[] = [];
+  for (const input of $("settings").querySelectorAll<HTMLInputElement>("input")) {
+    if (input.value.trim() !== "") changes.push(`${input.name}=${input.value.trim()}`);
+  }
+  const check = rules<{ ok: boolean; messages: string[]; values: Record<string, number> }>("check_settings", {
+    changes,
+    current: s.settings,
+  });
+  if (!check.ok) {
+    say("settings-messages", check.messages, "error");
+    return;
+  }
+  const names = Object.keys(check.values);
+  const seen = new Set<string>();
+  const lines = await s.link.request(
+    { cmd: "set", raw: check.values },
+    (l) => {
+      if (l.type === "outcome" && l.outcome !== "unconfirmed") seen.add(l.name);
+      return names.every((n) => seen.has(n));
+    },
+    20000,
+  );
+  const err = errorOf(lines);
+  const out: string[] = err ? [err] : [];
+  let failed = Boolean(err);
+  for (const l of lines.filter((l) => l.type === "outcome")) {
+    const ok = l.outcome === "verified" || l.outcome === "unchanged";
+    failed ||= !ok;
+    out.push(`${l.name} = ${l.value}: ${l.outcome}${l.detail ? ` (${l.detail})` : ""}`);
+  }
+  say("settings-messages", out, failed ? "error" : "ok");
+  for (const input of $("settings").querySelectorAll<HTMLInputElement>("input")) input.value = "";
+  await readSettings(true);
+}
+
+// ------------------------------------------------------------------ session
+
+function onLine(s: Session, l: Line): void {
+  switch (l.type) {
+    case "telemetry":
+      s.telemetry = l;
+      s.receivedAt = performance.now();
+      showTelemetry(l);
+      break;
+    case "link": {
+      const q = rules<{ text: string | null }>("link_quality", l);
+      text("link-quality", q.text ?? "–");
+      break;
+    }
+    case "event":
+      prepend(
+        $("events"),
+        `${l.timestamp_s} s  ${l.name} (${l.severity})${l.history ? "" : " — new"}`,
+        l.severity,
+      );
+      break;
+    case "log":
+      prepend($("log"), l.text, l.level);
+      break;
+    case "hello":
+      s.hello = l;
+      showIdentity(l);
+      break;
+  }
+}
+
+function showIdentity(h: Line): void {
+  const parts = [
+    `firmware ${h.firmware} (${h.build})`,
+    `${h.board} (${h.chip})`,
+    `built in: ${(h.features ?? []).join(", ") || "nothing listed"}`,
+  ];
+  if (h.wifi) parts.push(`Wi-Fi ${words(h.wifi.state)}${h.wifi.ip ? " " + h.wifi.ip : ""}`);
+  if (h.mqtt) parts.push(`MQTT ${words(h.mqtt)}`);
+  if (h.read_only) parts.push("read-only");
+  text("identity", parts.join(" · "));
+}
+
+async function connect(): Promise<void> {
+  const error = $("connect-error");
+  error.hidden = true;
+  let port: SerialPort;
+  try {
+    port = await navigator.serial!.requestPort();
+  } catch {
+    return; // no port chosen
+  }
+  const link = new HostLink(port);
+  try {
+    await link.open();
+  } catch (e) {
+    error.textContent = `cannot open the port: ${(e as Error).message} (another program using it? close it, or the desktop tool)`;
+    error.hidden = false;
+    return;
+  }
+  let hello: Line;
+  try {
+    hello = (await link.request({ cmd: "hello" }, (l) => l.type === "hello", 4000))[0];
+  } catch {
+    await link.close();
+    error.textContent =
+      "no bridge answered on this port (no hello): an ESP32 board not running this firmware yet " +
+      "(install it from the Install page), one still starting, or a USB-UART adapter wired to the BMS.";
+    error.hidden = false;
+    return;
+  }
+  const about = rules<{ protocol: number }>("about");
+  if (hello.protocol !== about.protocol) {
+    error.textContent = `this bridge speaks host-link protocol ${hello.protocol}; this console speaks ${about.protocol}: update the one that is older`;
+    error.hidden = false;
+  }
+  const s: Session = { link, hello, receivedAt: performance.now(), config: [], settings: [] };
+  session = s;
+  link.onLine = (l) => onLine(s, l);
+  link.onClose = (why) => {
+    if (session === s) {
+      session = undefined;
+      disconnected(why);
+    }
+  };
+  showIdentity(hello);
+  for (const id of ["live", "events-section", "log-section", "settings-section"]) $(id).hidden = false;
+  $("connect").hidden = true;
+  $("disconnect").hidden = false;
+  timer = window.setInterval(tick, 250);
+  tick();
+  try {
+    await fetchConfig(s);
+  } catch (e) {
+    say("config-messages", [`the configuration: ${(e as Error).message}`], "error");
+  }
+  await link.request({ cmd: "get", what: "link" }, (l) => l.type === "link").catch(() => []);
+  await link.request({ cmd: "get", what: "events" }, (l) => l.type === "events_end", 8000).catch(() => []);
+}
+
+function disconnected(why: string): void {
+  if (timer !== undefined) window.clearInterval(timer);
+  timer = undefined;
+  const pill = $("state");
+  pill.textContent = "NOT CONNECTED";
+  pill.className = "pill none";
+  text("age", why);
+  $("connect").hidden = false;
+  $("disconnect").hidden = true;
+}
+
+async function disconnect(): Promise<void> {
+  const s = session;
+  session = undefined;
+  if (s) await s.link.close();
+  disconnected("disconnected");
+}
+
+async function main(): Promise<void> {
+  if (!navigator.serial) {
+    $("no-serial").hidden = false;
+    $<HTMLButtonElement>("connect").disabled = true;
+  }
+  await loadRules();
+  $("connect").addEventListener("click", () => void connect());
+  $("disconnect").addEventListener("click", () => void disconnect());
+  $("config-apply").addEventListener("click", () => void applyConfig().catch((e) => say("config-messages", [String(e.message ?? e)], "error")));
+  $("settings-read").addEventListener("click", () => void readSettings(false).catch((e) => say("settings-messages", [String(e.message ?? e)], "error")));
+  $("settings-apply").addEventListener("click", () => void applySettings().catch((e) => say("settings-messages", [String(e.message ?? e)], "error")));
+  document.body.dataset.ready = "true";
+}
+
+void main();

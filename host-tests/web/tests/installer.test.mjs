@@ -1,0 +1,176 @@
+// The installer page in Chromium: every board of the firmware's table, the
+// manifests firmware/make-images.sh wrote (checked by check-images.py as
+// served), and ESP Web Tools' Improv Wi-Fi against the firmware's own
+// station (`sim --bridge-pty`, simulated networks).
+import assert from "node:assert/strict";
+import { spawnSync } from "node:child_process";
+import { readFileSync, statSync } from "node:fs";
+import { join } from "node:path";
+import { after, before, test } from "node:test";
+
+import { bridge, browser, dist, pageFor, root, serveSite, shotPath, until } from "./harness.mjs";
+
+let site;
+let chromium;
+let index;
+
+before(async () => {
+  site = await serveSite();
+  chromium = await browser();
+  index = JSON.parse(readFileSync(join(dist, "firmware/index.json"), "utf8"));
+});
+
+after(async () => {
+  await chromium?.close();
+  await site?.close();
+});
+
+/** Board names of firmware/src/boards.rs, read from the table itself. */
+function firmwareBoards() {
+  const src = readFileSync(join(root, "firmware/src/boards.rs"), "utf8");
+  return [...src.matchAll(/^\s*name: "([^"]+)",\s*\n\s*feature: "board-([a-z0-9-]+)"/gm)].map((m) => ({
+    name: m[1],
+    board: m[2],
+  }));
+}
+
+test("every board is offered, and every manifest names the files make-images.sh made, at the offsets check-images.py checks", async () => {
+  assert.ok(index.length > 0, "no images in the site: run firmware/make-images.sh before node build.mjs");
+  // The served folder passes the same checks as the images themselves.
+  const check = spawnSync("python3", [join(root, "firmware/check-images.py"), join(dist, "firmware")], {
+    encoding: "utf8",
+    timeout: 300000,
+  });
+  assert.equal(check.status, 0, check.stdout + check.stderr);
+  const images = join(root, "firmware/target/images");
+  const context = await chromium.newContext({ viewport: { width: 1100, height: 1400 } });
+  const page = await context.newPage();
+  const errors = [];
+  page.on("pageerror", (e) => errors.push(e.message));
+  try {
+    await page.goto(site.url);
+    await page.waitForSelector("body[data-ready=true]", { timeout: 15000 });
+    const boards = firmwareBoards();
+    assert.ok(boards.length >= 7, JSON.stringify(boards));
+    for (const b of boards) {
+      const radio = page.locator(`input[name=board][value="${b.board}"]`);
+      assert.equal(await radio.count(), 1, b.board);
+      assert.equal(await radio.isEnabled(), true, `${b.board} has images`);
+    }
+    for (const entry of index) {
+      // The manifest as the browser fetches it.
+      const m = await page.evaluate(async (p) => (await fetch(`firmware/${p}`)).json(), entry.manifest);
+      assert.equal(m.name, "TinyBMS bridge");
+      const parts = m.builds[0].parts;
+      assert.deepEqual(
+        parts.map((p) => p.offset),
+        [0, 0x10000],
+        entry.manifest,
+      );
+      for (const p of parts) {
+        const size = await page.evaluate(async (f) => (await (await fetch(`firmware/${f}`)).arrayBuffer()).byteLength, p.path);
+        assert.equal(size, statSync(join(images, p.path)).size, p.path);
+      }
+    }
+    // Choosing a board points the install button at its manifest.
+    await page.check('input[name=board][value="c3-supermini"]');
+    await page.check("#wifi");
+    assert.equal(await page.getAttribute("#install", "manifest"), "firmware/manifest-c3-supermini-wifi.json");
+    await page.uncheck("#wifi");
+    assert.equal(await page.getAttribute("#install", "manifest"), "firmware/manifest-c3-supermini.json");
+    assert.match(await page.textContent("#chosen"), /ESP32-C3 SuperMini \(ESP32-C3\), without Wi-Fi/);
+    await page.screenshot({ path: shotPath("installer.png"), fullPage: true });
+    assert.deepEqual(errors, []);
+  } finally {
+    await context.close();
+  }
+});
+
+/** ESP Web Tools' dialog for the chosen board, connected to the bridge. */
+async function openDialog(page) {
+  await page.goto(site.url);
+  await page.waitForSelector("body[data-ready=true]", { timeout: 15000 });
+  await page.check('input[name=board][value="c3-supermini"]');
+  await page.check("#wifi");
+  await page.click("#install-button");
+  await until("Improv answered", async () => (await page.getByText("Connected to").count()) > 0, 20000);
+}
+
+test("Improv Wi-Fi through ESP Web Tools: a wrong passphrase is refused, the right one joins, the passphrase never comes back", async () => {
+  const b = await bridge(["--wifi-network", "HomeNet:correct-horse-9:-48", "--wifi-network", "Cafe::-70"]);
+  const { page, context, errors } = await pageFor(chromium, b, { width: 900, height: 900 });
+  try {
+    await openDialog(page);
+    // Who the bridge said it is.
+    const text = await page.locator("ewt-install-dialog").innerText();
+    assert.match(text, /TinyBMS bridge/);
+    await page.getByText("Connect to Wi-Fi").click();
+    // The scan: the networks in range, in the dialog's list.
+    await until("networks", async () => (await page.locator("ew-select-option", { hasText: "HomeNet" }).count()) > 0, 20000);
+    assert.ok((await page.locator("ew-select-option", { hasText: "Cafe" }).count()) > 0);
+    const provision = async (ssid, pass) => {
+      await page.locator("ew-filled-text-field[name=ssid] input").fill(ssid);
+      await page.locator("ew-filled-text-field[name=password] input").fill(pass);
+      await page.locator("ew-text-button", { hasText: "Connect" }).last().click();
+    };
+    await provision("HomeNet", "wrong-horse-1");
+    await until("refused", async () => (await page.getByText("Unable to connect").count()) > 0, 40000);
+    await page.screenshot({ path: shotPath("improv-refused.png") });
+    await provision("HomeNet", "correct-horse-9");
+    await until("joined", async () => (await page.getByText("Device connected to the network!").count()) > 0, 40000);
+    await page.screenshot({ path: shotPath("improv-joined.png") });
+    const bytes = Buffer.from(await page.evaluate(() => window.__fakeSerial.received)).toString("latin1");
+    assert.match(bytes, /Improv Wi-Fi: joined HomeNet, IP 192\.0\.2\.10; network stored/);
+    assert.match(bytes, /Improv Wi-Fi: cannot join HomeNet: the passphrase was not accepted/);
+    assert.ok(!bytes.includes("correct-horse-9") && !bytes.includes("wrong-horse-1"), "a passphrase came back");
+    assert.deepEqual(errors, []);
+  } finally {
+    await context.close();
+    await b.stop();
+  }
+});
+
+test("a malformed Improv packet is refused and the port goes on as a host link", async () => {
+  const b = await bridge();
+  const { page, context } = await pageFor(chromium, b);
+  try {
+    await page.goto(site.url);
+    await page.waitForSelector("body[data-ready=true]", { timeout: 15000 });
+    const answer = await page.evaluate(async () => {
+      const port = await navigator.serial.requestPort();
+      await port.open({ baudRate: 115200 });
+      const w = port.writable.getWriter();
+      // "Request current state" with a checksum off by one, then a hello.
+      const bad = [..."IMPROV"].map((c) => c.charCodeAt(0)).concat([1, 3, 2, 2, 0]);
+      bad.push((bad.reduce((a, b) => a + b, 0) + 1) & 0xff, 10);
+      await w.write(new Uint8Array(bad));
+      await w.write(new TextEncoder().encode('{"cmd":"hello"}\n'));
+      const r = port.readable.getReader();
+      let got = [];
+      const end = Date.now() + 8000;
+      while (Date.now() < end) {
+        const { value } = await Promise.race([
+          r.read(),
+          new Promise((res) => setTimeout(() => res({ value: undefined }), 500)),
+        ]);
+        if (value) got = got.concat([...value]);
+        const text = String.fromCharCode(...got);
+        if (text.includes('"type":"hello"') && text.includes("IMPROV")) break;
+      }
+      r.releaseLock();
+      w.releaseLock();
+      await port.close();
+      return got;
+    });
+    const text = Buffer.from(answer).toString("latin1");
+    const at = text.indexOf("IMPROV");
+    assert.ok(at >= 0, text);
+    const packet = Buffer.from(answer.slice(at, at + 11));
+    assert.equal(packet[7], 0x02, "an error state packet");
+    assert.equal(packet[9], 0x01, "invalid RPC packet");
+    assert.match(text, /"type":"hello"/);
+  } finally {
+    await context.close();
+    await b.stop();
+  }
+});
