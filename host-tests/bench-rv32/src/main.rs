@@ -487,6 +487,28 @@ pub extern "C" fn _start() -> ! {
         shares.update(black_box(&sample), false);
     }
     bench_mark(9);
+    // Improv Wi-Fi: the WPA2 key of a passphrase, derived a step at a time
+    // (improv::psk; 64 rounds of PBKDF2-HMAC-SHA1 per station poll).
+    let mut psk_steps = 0u64;
+    let key = match tinybms_firmware::improv::psk::PskDerivation::start(
+        black_box(b"IEEE"),
+        black_box(b"password"),
+    ) {
+        Ok(tinybms_firmware::improv::psk::Start::Derive(mut d)) => loop {
+            psk_steps += 1;
+            if let Some(k) = d.step() {
+                break k;
+            }
+        },
+        _ => tinybms_firmware::improv::psk::PskHex::new(),
+    };
+    bench_mark(10);
+    put("psk_steps", psk_steps);
+    // IEEE 802.11i-2004, H.4: a wrong key means the wrong thing was measured.
+    put(
+        "psk_ok",
+        u64::from(key.as_str() == "f42c6fc52df0ebef9ebb4b90b38a5f902e83fe1b135a70e23aed762e9710a12e"),
+    );
     put("share_updates", u64::from(SHARE_REPS));
     put("shares_learnt", u64::from(shares.of(8).is_some()));
     let (polls, rx_calls) = records.iter().flatten().fold((0, 0), |(p, x), r| match r {

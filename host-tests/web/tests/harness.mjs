@@ -30,8 +30,11 @@ const types = {
   ".map": "application/json",
 };
 
-/** The site (dist/) on 127.0.0.1; `{url, close}`. */
-export async function serveSite() {
+/**
+ * The site (dist/) on 127.0.0.1; `{url, close}`. `manifestVersion` serves the
+ * manifests with that version instead (a newer release than the board runs).
+ */
+export async function serveSite({ manifestVersion } = {}) {
   if (!existsSync(join(dist, "index.html"))) throw new Error(`${dist}: run node build.mjs first`);
   const server = createServer((req, res) => {
     const path = normalize(decodeURIComponent(new URL(req.url, "http://x").pathname)).replace(/^[/\\]+/, "");
@@ -41,6 +44,12 @@ export async function serveSite() {
       return;
     }
     res.writeHead(200, { "content-type": types[extname(file)] ?? "application/octet-stream" });
+    if (manifestVersion && /manifest-[^/]*\.json$/.test(file)) {
+      const m = JSON.parse(readFileSync(file, "utf8"));
+      m.version = manifestVersion;
+      res.end(JSON.stringify(m));
+      return;
+    }
     createReadStream(file).pipe(res);
   });
   await new Promise((r) => server.listen(0, "127.0.0.1", r));
@@ -142,13 +151,17 @@ export async function browser() {
 
 const fake = readFileSync(join(here, "fake-serial.js"), "utf8");
 
-/** A page whose `navigator.serial` reaches `b` (a `bridge()`). */
-export async function pageFor(browserInstance, b, size = { width: 1200, height: 900 }) {
+/**
+ * A page whose `navigator.serial` is a board running the bridge `b` (a
+ * `bridge()`), or, with `mode: "rom"`, a board in its ROM download mode that
+ * boots `b` once flashed (fake-serial.js).
+ */
+export async function pageFor(browserInstance, b, size = { width: 1200, height: 900 }, { mode = "firmware" } = {}) {
   const context = await browserInstance.newContext({ viewport: size });
   const page = await context.newPage();
   const errors = [];
   page.on("pageerror", (e) => errors.push(e.message));
-  await page.addInitScript(`window.__fakeSerial = ${JSON.stringify({ url: b.url, path: b.pty })};\n${fake}`);
+  await page.addInitScript(`window.__fakeSerial = ${JSON.stringify({ url: b.url, path: b.pty, mode })};\n${fake}`);
   return { page, context, errors };
 }
 

@@ -102,14 +102,16 @@ test("Improv Wi-Fi through ESP Web Tools: a wrong passphrase is refused, the rig
   try {
     await openDialog(page);
     // Who the bridge said it is.
-    const text = await page.locator("ewt-install-dialog").innerText();
-    assert.match(text, /TinyBMS bridge/);
-    await page.getByText("Connect to Wi-Fi").click();
+    assert.ok((await page.getByText(/TinyBMS bridge/).count()) > 0, "the bridge said who it is");
+    await page.getByText("Connect to Wi-Fi", { exact: true }).click();
     // The scan: the networks in range, in the dialog's list.
     await until("networks", async () => (await page.locator("ew-select-option", { hasText: "HomeNet" }).count()) > 0, 20000);
     assert.ok((await page.locator("ew-select-option", { hasText: "Cafe" }).count()) > 0);
     const provision = async (ssid, pass) => {
-      await page.locator("ew-filled-text-field[name=ssid] input").fill(ssid);
+      // The strongest network is chosen in the list; else the name is typed.
+      const typed = page.locator("ew-filled-text-field[name=ssid] input");
+      if (await typed.count()) await typed.fill(ssid);
+      else assert.equal(await page.locator("ew-filled-select").evaluate((e) => e.value), ssid);
       await page.locator("ew-filled-text-field[name=password] input").fill(pass);
       await page.locator("ew-text-button", { hasText: "Connect" }).last().click();
     };
@@ -117,7 +119,7 @@ test("Improv Wi-Fi through ESP Web Tools: a wrong passphrase is refused, the rig
     await until("refused", async () => (await page.getByText("Unable to connect").count()) > 0, 40000);
     await page.screenshot({ path: shotPath("improv-refused.png") });
     await provision("HomeNet", "correct-horse-9");
-    await until("joined", async () => (await page.getByText("Device connected to the network!").count()) > 0, 40000);
+    await until("joined", async () => (await page.locator('ewt-page-message[label="Device connected to the network!"]').count()) > 0, 40000);
     await page.screenshot({ path: shotPath("improv-joined.png") });
     const bytes = Buffer.from(await page.evaluate(() => window.__fakeSerial.received)).toString("latin1");
     assert.match(bytes, /Improv Wi-Fi: joined HomeNet, IP 192\.0\.2\.10; network stored/);
@@ -172,5 +174,109 @@ test("a malformed Improv packet is refused and the port goes on as a host link",
   } finally {
     await context.close();
     await b.stop();
+  }
+});
+
+/** What the board's flash holds, from `offset`, `length` bytes. */
+async function flashAt(page, offset, length) {
+  return Buffer.from(
+    await page.evaluate(([o, n]) => [...window.__fakeSerial.rom.flash.subarray(o, o + n)], [offset, length]),
+  );
+}
+
+/** The configuration the bridge kept: the nvs partition, marked. */
+async function markNvs(page) {
+  await page.evaluate(() => {
+    const f = new Uint8Array(4 * 1024 * 1024).fill(0xff);
+    f.fill(0xa5, 0x9000, 0xf000);
+    window.__fakeSerial.rom.flash = f;
+  });
+}
+
+function part(name) {
+  return readFileSync(join(dist, "firmware", name));
+}
+
+test("a first install: ESP Web Tools erases the board, writes each part where the manifest says, and the bridge it boots answers Improv", async () => {
+  const b = await bridge(["--wifi-network", "HomeNet:correct-horse-9:-48"]);
+  const { page, context, errors } = await pageFor(chromium, b, { width: 900, height: 900 }, { mode: "rom" });
+  try {
+    await page.goto(site.url);
+    await page.waitForSelector("body[data-ready=true]", { timeout: 15000 });
+    await markNvs(page);
+    await page.check('input[name=board][value="c3-supermini"]');
+    await page.check("#wifi");
+    await page.click("#install-button");
+    // A board in download mode does not answer Improv: a new install.
+    await until("new install", async () => (await page.getByText("Install TinyBMS bridge").count()) > 0, 30000);
+    await page.getByText("Install TinyBMS bridge").click();
+    await until("confirm", async () => (await page.getByText("All data on the device will be erased").count()) > 0);
+    await page.locator("ew-text-button", { hasText: "Install" }).last().click();
+    await until("installed", async () => (await page.locator('ewt-page-message[label="Installation complete!"]').count()) > 0, 180000, 500);
+    const rom = await page.evaluate(() => ({
+      erased: window.__fakeSerial.rom.erased,
+      stub: window.__fakeSerial.rom.stub,
+      writes: window.__fakeSerial.rom.writes,
+      resets: window.__fakeSerial.rom.resets,
+    }));
+    assert.equal(rom.stub, true, "esptool-js ran its flasher stub");
+    assert.equal(rom.erased, true, "a first install erases");
+    const boot = part("tinybms-c3-supermini-wifi-boot.bin");
+    const app = part("tinybms-c3-supermini-wifi-app.bin");
+    assert.deepEqual(
+      rom.writes.map((w) => w.offset),
+      [0, 0x10000],
+    );
+    assert.ok((await flashAt(page, 0, boot.length)).equals(boot), "the bootloader and partition table at 0x0");
+    assert.ok((await flashAt(page, 0x10000, app.length)).equals(app), "the firmware at 0x10000");
+    assert.ok((await flashAt(page, 0x9000, 0x6000)).every((x) => x === 0xff), "the old configuration is gone");
+    // The board resets into the firmware it was given; the installer finds it
+    // over Improv and asks for the network.
+    assert.deepEqual(rom.resets.at(-1), "firmware");
+    await page.getByText("Next").click();
+    await until("the Wi-Fi form", async () => (await page.getByText("Connect your device to the network").count()) > 0, 30000);
+    await page.screenshot({ path: shotPath("install-done.png") });
+    assert.deepEqual(errors, []);
+  } finally {
+    await context.close();
+    await b.stop();
+  }
+});
+
+test("an update writes the new firmware and leaves the stored configuration alone", async () => {
+  const newer = await serveSite({ manifestVersion: "9.9.9" });
+  const b = await bridge();
+  const { page, context, errors } = await pageFor(chromium, b, { width: 900, height: 900 });
+  try {
+    await page.goto(newer.url);
+    await page.waitForSelector("body[data-ready=true]", { timeout: 15000 });
+    await markNvs(page);
+    await page.check('input[name=board][value="c3-supermini"]');
+    await page.uncheck("#wifi");
+    await page.click("#install-button");
+    await until("recognised", async () => (await page.getByText("Update TinyBMS bridge").count()) > 0, 30000);
+    await page.screenshot({ path: shotPath("install-update.png") });
+    await page.getByText("Update TinyBMS bridge").click();
+    await until("confirm", async () => (await page.getByText("update to").count()) > 0);
+    assert.equal(await page.getByText("All data on the device will be erased").count(), 0);
+    await page.locator("ew-text-button", { hasText: "Install" }).last().click();
+    await until("updated", async () => (await page.locator('ewt-page-message[label="Installation complete!"]').count()) > 0, 180000, 500);
+    const rom = await page.evaluate(() => ({
+      erased: window.__fakeSerial.rom.erased,
+      writes: window.__fakeSerial.rom.writes,
+      resets: window.__fakeSerial.rom.resets,
+    }));
+    assert.equal(rom.erased, false, "an update erases nothing");
+    assert.deepEqual(rom.resets.slice(0, 1), ["rom"], "esptool-js reset the board into its download mode");
+    const boot = part("tinybms-c3-supermini-boot.bin");
+    const app = part("tinybms-c3-supermini-app.bin");
+    assert.ok((await flashAt(page, 0, boot.length)).equals(boot));
+    assert.ok((await flashAt(page, 0x10000, app.length)).equals(app));
+    assert.ok((await flashAt(page, 0x9000, 0x6000)).every((x) => x === 0xa5), "the configuration is kept");
+    assert.deepEqual(errors, []);
+  } finally {
+    await context.close();
+    await b.stop();
+    await newer.close();
   }
 });
