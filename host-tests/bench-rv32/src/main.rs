@@ -488,7 +488,7 @@ pub extern "C" fn _start() -> ! {
     }
     bench_mark(9);
     // Improv Wi-Fi: the WPA2 key of a passphrase, derived a step at a time
-    // (improv::psk; 64 rounds of PBKDF2-HMAC-SHA1 per station poll).
+    // (improv::psk; 16 rounds of PBKDF2-HMAC-SHA1 per station poll).
     let mut psk_steps = 0u64;
     let key = match tinybms_firmware::improv::psk::PskDerivation::start(
         black_box(b"IEEE"),
