@@ -17,6 +17,7 @@ use embassy_futures::block_on;
 use protocol_core::settings::SettingId;
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::config::state::Note;
+use tinybms_firmware::config::Config;
 use tinybms_firmware::identity::{Features, Identity};
 use tinybms_firmware::station::{Logged, Setup, Station};
 
@@ -78,9 +79,28 @@ impl<P: BytePort> Hosted<P> {
         chip: &'static str,
         wifi: bool,
     ) -> Self {
+        Self::build(port, bridge, flash, chip, wifi, None)
+    }
+
+    /// The tool's direct mode: a station that runs with `record`, chosen by
+    /// the tool itself (streaming off), in RAM. No bridge of its own is
+    /// configured, so its log says nothing about a configuration (it said
+    /// "config saved to flash" as if the owner had changed one).
+    pub fn direct(port: P, bridge: Timing, record: Config, chip: &'static str) -> Self {
+        let flash = SimFlash::Ram(crate::flash::RamFlash::new());
+        Self::build(port, bridge, flash, chip, true, Some(record))
+    }
+
+    fn build(
+        port: P,
+        bridge: Timing,
+        flash: SimFlash,
+        chip: &'static str,
+        wifi: bool,
+        record: Option<Config>,
+    ) -> Self {
         let clock = crate::realtime::Clock::start();
         let mut store = crate::flash::store(flash);
-        let loaded = block_on(store.load());
         // The CAN output is built in, as in the ready-made images; a bus
         // with a simulated inverter is attached by `sim` (else nothing
         // acknowledges a frame, as on a chip whose CAN is not wired).
@@ -97,7 +117,10 @@ impl<P: BytePort> Hosted<P> {
             ),
             inverter: None,
         };
-        let station = Station::new(setup, loaded, clock.now());
+        let station = match record {
+            Some(config) => Station::with_record(setup, config, clock.now()),
+            None => Station::new(setup, block_on(store.load()), clock.now()),
+        };
         let mut driver = Driver::with_station(port, station, clock);
         driver.store = Some(store);
         Self {

@@ -183,9 +183,23 @@ pub struct Station {
 impl Station {
     /// A station at `now` with the record it loaded.
     pub fn new(setup: Setup, loaded: Loaded, now: Instant) -> Self {
+        Self::with_config(setup, ConfigState::new(loaded.config, loaded.source), now)
+    }
+
+    /// A station at `now` that runs with a record its runner chose itself
+    /// (the desktop tool's direct mode, which has no bridge of its own to
+    /// configure): its log says nothing about a configuration
+    /// ([`ConfigState::fixed`]).
+    pub fn with_record(setup: Setup, config: Config, now: Instant) -> Self {
+        Self::with_config(setup, ConfigState::fixed(config), now)
+    }
+
+    fn with_config(setup: Setup, config: ConfigState, now: Instant) -> Self {
         #[cfg(feature = "can")]
         let inverter = setup.identity.features.can.then(|| {
-            let c = setup.inverter.unwrap_or_else(|| loaded.config.inverter());
+            let c = setup
+                .inverter
+                .unwrap_or_else(|| config.running().inverter());
             Inverter::new(c, now)
         });
         #[cfg(not(feature = "can"))]
@@ -195,12 +209,12 @@ impl Station {
             .identity
             .features
             .host_link
-            .then(|| HostLink::new(loaded.config.host_link(&setup.identity), now));
+            .then(|| HostLink::new(config.running().host_link(&setup.identity), now));
         #[cfg(not(feature = "host-link"))]
         let host = None;
         Self {
             bridge: Bridge::new(setup.timing, now),
-            config: ConfigState::new(loaded.config, loaded.source),
+            config,
             host,
             inverter,
             chip: setup.identity.chip,
