@@ -143,7 +143,29 @@ fn discovery_configs_are_what_home_assistant_accepts() {
         assert_eq!(c["device"]["identifiers"][0], id().device_id().as_str());
         assert_eq!(c["device"]["serial_number"], id().serial_hex().as_str());
         assert_eq!(c["device"]["manufacturer"], "Energus");
-        assert!(c["device"]["sw_version"].as_str().is_some());
+        // The BMS's versions, and the bridge that publishes it (issue 26,
+        // item 8: its firmware, build, board and chip were in no device info).
+        let (fw, build) = (
+            tinybms_firmware::identity::FIRMWARE,
+            tinybms_firmware::identity::BUILD,
+        );
+        let bms = id();
+        assert_eq!(
+            c["device"]["sw_version"],
+            format!(
+                "BMS {} ({}), bridge: tinybms-esp32 {fw} (build {build})",
+                bms.firmware.0, bms.firmware.1
+            )
+        );
+        assert_eq!(
+            c["device"]["hw_version"],
+            format!(
+                "BMS {}.{}, bridge: simulated (test)",
+                bms.hardware.0, bms.hardware.1
+            )
+        );
+        assert_eq!(c["origin"]["name"], "tinybms-esp32");
+        assert_eq!(c["origin"]["sw_version"], format!("{fw} (build {build})"));
         let leaf = if parts[1] == "event" {
             "/event"
         } else {
@@ -629,6 +651,14 @@ mod the_battery_of_packs_in_parallel {
             let uid = c["unique_id"].as_str().unwrap();
             assert!(is_id(uid) && ids.insert(uid.to_string()), "{uid}");
             assert_eq!(c["device"]["identifiers"][0], "tinybms_battery_tinybms");
+            // The battery is the bridges' own device: the bridge's versions.
+            let fw = tinybms_firmware::identity::FIRMWARE;
+            let build = tinybms_firmware::identity::BUILD;
+            assert_eq!(
+                c["device"]["sw_version"],
+                format!("bridge: tinybms-esp32 {fw} (build {build})")
+            );
+            assert_eq!(c["device"]["hw_version"], "bridge: simulated (test)");
             assert_eq!(c["state_topic"], "tinybms/battery/state");
             // Unavailable when the speaker falls silent, whichever it was.
             assert_eq!(c["expire_after"], 15, "3 publish periods of 5 s");

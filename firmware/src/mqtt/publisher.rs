@@ -135,7 +135,8 @@ pub struct PublisherStats {
 #[derive(Debug, Clone)]
 pub struct Publisher {
     settings: Settings,
-    bridge_version: &'static str,
+    /// The bridge that publishes (the device blocks name it).
+    bridge: crate::identity::Identity,
     /// `<version> (<build>) on <board>`: the bridge's firmware entity.
     bridge_text: String<96>,
     connected: bool,
@@ -178,7 +179,7 @@ impl Publisher {
         }
         Self {
             settings,
-            bridge_version: crate::identity::FIRMWARE,
+            bridge: *bridge,
             bridge_text,
             connected: false,
             announced: None,
@@ -375,7 +376,7 @@ impl Publisher {
             if !battery::config_topic(topic, s, e) {
                 return None;
             }
-            return match battery::config(payload, s, self.bridge_version, e) {
+            return match battery::config(payload, s, &self.bridge, e) {
                 Some(len) => Some(self.count(Message {
                     kind: Kind::BatteryDiscovery,
                     retain: true,
@@ -450,7 +451,7 @@ impl Publisher {
             }
             let info = DeviceInfo {
                 id,
-                bridge_version: self.bridge_version,
+                bridge: &self.bridge,
             };
             return match discovery::config(payload, s, &info, &e) {
                 Some(len) => Some(self.count(Message {
