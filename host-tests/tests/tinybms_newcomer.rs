@@ -592,3 +592,54 @@ fn the_canplayer_step_sets_up_vcan0_first() {
         at = i;
     }
 }
+
+/// Issue 26, item 8: the boot lines — the image and its board, the CAN
+/// output, the host link's wire, the UART to the BMS — went to the chip's
+/// defmt log only, and `tinybms log` keeps the latest 4 lines: it started at
+/// "BMS hardware …". Now the host link keeps them from boot and gives them
+/// to every host after its hello, however late it connects.
+#[test]
+fn log_shows_the_boot_lines_to_a_host_that_connects_late() {
+    let sim = Sim::start(&["--bridge-pty"]);
+    // Long enough for many more than four log lines.
+    std::thread::sleep(Duration::from_secs(4));
+    let o = tinybms(&["log", &sim.path, "--duration", "2s"]);
+    assert_eq!(o.code, 0, "{o}");
+    let lines: Vec<&str> = o.stdout.lines().collect();
+    for (i, start) in [
+        "tinybms-firmware ",
+        "CAN to the inverter: Victron, 500 kbit/s",
+        "host link on ",
+        "UART1 115200 8N1 to the BMS",
+        "settings profile empty: nothing written",
+    ]
+    .iter()
+    .enumerate()
+    {
+        let l = lines.get(i).unwrap_or(&"");
+        assert!(l.starts_with("at boot     "), "{l}\n{o}");
+        assert!(l.contains(&format!("  info  {start}")), "{start}\n{o}");
+    }
+    assert!(o.stdout.contains("on simulated (sim)"), "{o}");
+}
+
+/// Issue 26, item 8: `hello` says where the bridge's configuration store
+/// lives (flash size, `nvs` partition); `tinybms version` left it out.
+#[test]
+fn version_names_where_the_bridge_keeps_its_configuration() {
+    let sim = Sim::start(&["--bridge-pty"]);
+    let o = tinybms(&["version", &sim.path]);
+    assert_eq!(o.code, 0, "{o}");
+    let store = o
+        .stdout
+        .lines()
+        .find(|l| l.trim_start().starts_with("store "))
+        .unwrap_or_else(|| panic!("{o}"));
+    assert!(
+        store.ends_with("flash 4096 KiB, nvs partition at 0x9000, 24 KiB (the store needs 8 KiB)"),
+        "{store}"
+    );
+    let o = tinybms(&["version", &sim.path, "--json"]);
+    let v: serde_json::Value = serde_json::from_str(o.stdout.trim()).unwrap();
+    assert_eq!(v["bridge"]["store"]["partition_offset"], 0x9000, "{o}");
+}

@@ -813,10 +813,22 @@ struct LogLine<'a> {
     ty: &'static str,
     level: &'static str,
     text: &'a str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    boot: Option<bool>,
 }
 
 /// A `log` line: one of the bridge's own log lines, as its log has it.
 pub fn log(out: &mut [u8], level: crate::Level, text: &str) -> Option<usize> {
+    log_line(out, level, text, false)
+}
+
+/// A `log` line of one of the lines the bridge wrote at boot, replayed after
+/// a `hello` (`"boot":true`).
+pub fn boot_log(out: &mut [u8], level: crate::Level, text: &str) -> Option<usize> {
+    log_line(out, level, text, true)
+}
+
+fn log_line(out: &mut [u8], level: crate::Level, text: &str, boot: bool) -> Option<usize> {
     line(
         &LogLine {
             ty: "log",
@@ -825,6 +837,7 @@ pub fn log(out: &mut [u8], level: crate::Level, text: &str) -> Option<usize> {
                 crate::Level::Warn => "warn",
             },
             text,
+            boot: boot.then_some(true),
         },
         out,
     )

@@ -155,7 +155,7 @@ pub struct Station {
     config: ConfigState,
     host: Option<parts::Host>,
     inverter: Option<parts::Output>,
-    chip: &'static str,
+    identity: crate::identity::Identity,
     can: Can,
     hold: Hold,
     /// [`Bridge::step`] said "transmit": the logs go first.
@@ -217,7 +217,7 @@ impl Station {
             config,
             host,
             inverter,
-            chip: setup.identity.chip,
+            identity: setup.identity,
             can: Can::Idle(now),
             hold: Hold::new(),
             transmit_pending: false,
@@ -276,7 +276,20 @@ impl Station {
 
     /// The chip's name the host link gives.
     pub fn chip(&self) -> &'static str {
-        self.chip
+        self.identity.chip
+    }
+
+    /// A line the shell writes once at boot (the board, its pins, the log
+    /// path, the CAN output, the host link's wire, the UART, the profile):
+    /// its words and level, for the shell's own log; the host link keeps it
+    /// and gives it to every host after its `hello`.
+    pub fn boot_line(&mut self, line: &text::Boot) -> (Level, Line) {
+        let mut out = Line::new();
+        text::boot(line, &self.identity, &mut out);
+        if let Some(h) = self.host.as_mut() {
+            h.boot_line(line.level(), out.as_str());
+        }
+        (line.level(), out)
     }
 
     /// Changes the configuration as a host's `set_config` would (not

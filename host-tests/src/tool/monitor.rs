@@ -192,11 +192,18 @@ pub fn log(client: &mut Client, duration: Option<Duration>) -> ToolResult<()> {
             Err(e) => break Err(e),
             Ok(Some(v)) if v["type"] == "log" => {
                 let mut out = stdout.lock();
+                // A line the bridge wrote at boot, kept for every host: no
+                // time of ours.
+                let when = if v["boot"] == true {
+                    "at boot".to_string()
+                } else {
+                    utc_now()[11..23].to_string()
+                };
                 let said = say(
                     &mut out,
                     format_args!(
-                        "{}  {:<4}  {}",
-                        &utc_now()[11..23],
+                        "{:<12}  {:<4}  {}",
+                        when,
                         v["level"].as_str().unwrap_or("?"),
                         v["text"].as_str().unwrap_or("")
                     ),

@@ -177,9 +177,44 @@ fn mqtt_text(key: &str) -> String {
     }
 }
 
+/// Where the bridge's configuration store lives (`hello`'s `store`), in
+/// words: `flash 4096 KiB, nvs partition at 0x9000, 24 KiB (the store needs
+/// 8 KiB)`, and why it cannot hold the store when it cannot.
+fn store_text(v: &Value) -> String {
+    let kib = |b: u64| {
+        if b.is_multiple_of(1024) {
+            format!("{} KiB", b / 1024)
+        } else {
+            format!("{b} bytes")
+        }
+    };
+    let mut out = match v["flash_kib"].as_u64() {
+        Some(0) => "flash size not reported".to_string(),
+        Some(k) => format!("flash {k} KiB"),
+        None => "flash ?".to_string(),
+    };
+    match (
+        v["partition_offset"].as_u64(),
+        v["partition_bytes"].as_u64(),
+    ) {
+        (Some(at), Some(len)) => {
+            out.push_str(&format!(", nvs partition at {at:#x}, {}", kib(len)));
+        }
+        _ => out.push_str(", no nvs partition"),
+    }
+    if let Some(n) = v["needs_bytes"].as_u64() {
+        out.push_str(&format!(" (the store needs {})", kib(n)));
+    }
+    if let Some(p) = v["problem"].as_str() {
+        out.push_str(&format!(": {p}; the configuration lives in RAM only"));
+    }
+    out
+}
+
 /// `tinybms version`: the BMS's version and, through a bridge, the bridge's
 /// own (from its `hello`: firmware, build, chip, board, what is built in,
-/// the configuration record's version, where its MQTT connection stands).
+/// the configuration record's version, where its store lives, where its MQTT
+/// connection stands).
 pub fn version(conn: &Conn, json: bool) -> ToolResult<()> {
     let mut c = connect_ready(conn)?;
     let mut v = c.get_one("version")?;
@@ -193,6 +228,7 @@ pub fn version(conn: &Conn, json: bool) -> ToolResult<()> {
             "board",
             "features",
             "record_version",
+            "store",
             "mqtt",
         ] {
             if !h[k].is_null() {
@@ -217,6 +253,7 @@ pub fn version(conn: &Conn, json: bool) -> ToolResult<()> {
         for (k, x) in &b {
             let text = match x {
                 Value::String(s) if k == "mqtt" => mqtt_text(s),
+                Value::Object(_) if k == "store" => store_text(x),
                 Value::String(s) => s.clone(),
                 Value::Array(a) => a
                     .iter()
