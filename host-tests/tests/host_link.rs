@@ -353,7 +353,7 @@ fn hello_on_connect_and_on_request() {
         h,
         json!({"type":"hello","protocol":1,"firmware":env!("CARGO_PKG_VERSION"),
             "build":tinybms_firmware::identity::BUILD,"chip":"sim","board":"simulated",
-            "features":["host-link"],"record_version":2,
+            "features":["host-link"],"record_version":tinybms_firmware::config::VERSION,
             "read_only":false,"stream_period_ms":1000,"dropped_lines":0})
     );
     r.line(r#"{"cmd":"hello","req":77}"#);

@@ -816,3 +816,37 @@ fn balancing_cells_are_named_one_based() {
     assert_eq!(balancing_cells(0b1000_0000_0000_0100, 8), "3");
     assert_eq!(balancing_cells(u16::MAX, 16).len(), 53);
 }
+
+/// Issue 26, "a friendly pack name": `pack_name` names the pack's device in
+/// Home Assistant (its entities are shown as `<name> Pack voltage`, …); with
+/// two packs `TinyBMS 76D4E3` and `TinyBMS 1A2B3C` were all an owner had.
+/// Empty (the default) keeps `TinyBMS` and the serial's last six digits.
+#[test]
+fn the_pack_name_names_the_device() {
+    let (snap, _) = inputs();
+    let v = view(&snap, 0);
+    let name_of = |config: &Config| {
+        let mut p = Publisher::new(Settings::from_config(config), &bridge());
+        p.connected(0, id());
+        let out = drain(&mut p, 0, &v);
+        let names: std::collections::BTreeSet<std::string::String> = out
+            .iter()
+            .filter(|m| m.2 == Kind::Discovery)
+            .map(|m| json(&m.1)["device"]["name"].as_str().unwrap().to_string())
+            .collect();
+        assert_eq!(names.len(), 1, "{names:?}");
+        names.into_iter().next().unwrap()
+    };
+    let serial = id().serial_hex();
+    assert_eq!(
+        name_of(&Config::default()),
+        format!("TinyBMS {}", &serial[serial.len() - 6..])
+    );
+    let mut c = Config::default();
+    c.set(
+        tinybms_firmware::config::FieldId::PackName,
+        tinybms_firmware::config::Value::Text("Garage \"east\" pack"),
+    )
+    .unwrap();
+    assert_eq!(name_of(&c), "Garage \"east\" pack");
+}

@@ -372,7 +372,13 @@ fn the_bridge_says_who_it_is_and_an_image_without_wifi_says_so() {
         v.stdout.contains("features        can, host-link, store"),
         "{v}"
     );
-    assert!(v.stdout.contains("record_version  2"), "{v}");
+    assert!(
+        v.stdout.contains(&format!(
+            "record_version  {}",
+            tinybms_firmware::config::VERSION
+        )),
+        "{v}"
+    );
     let j = tinybms(&["version", &sim.path, "--json"]);
     let line: serde_json::Value = serde_json::from_str(j.stdout.trim()).unwrap();
     assert_eq!(line["bridge"]["chip"], "sim", "{j}");

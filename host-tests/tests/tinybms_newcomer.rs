@@ -643,3 +643,19 @@ fn version_names_where_the_bridge_keeps_its_configuration() {
     let v: serde_json::Value = serde_json::from_str(o.stdout.trim()).unwrap();
     assert_eq!(v["bridge"]["store"]["partition_offset"], 0x9000, "{o}");
 }
+
+/// Issue 26, "a friendly pack name": with `pack_name` set, `monitor`'s
+/// header names the pack (with two packs the port was all it said).
+#[test]
+fn the_monitor_names_the_pack_when_it_has_a_name() {
+    let sim = Sim::start(&["--bridge-pty", "--config", "pack_name=Garage east"]);
+    let o = tinybms(&["monitor", &sim.path, "--plain", "--count", "1"]);
+    assert_eq!(o.code, 0, "{o}");
+    let first = o.stdout.lines().next().unwrap_or("");
+    assert!(first.contains("“Garage east”"), "{first}\n{o}");
+    // Without a name, no name.
+    let sim = Sim::start(&["--bridge-pty"]);
+    let o = tinybms(&["monitor", &sim.path, "--plain", "--count", "1"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(!o.stdout.lines().next().unwrap_or("").contains('“'), "{o}");
+}

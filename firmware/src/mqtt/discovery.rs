@@ -742,10 +742,15 @@ pub fn config(out: &mut [u8], s: &Settings, info: &DeviceInfo<'_>, e: &Entity) -
         return None;
     }
     let serial = id.serial_hex();
+    // The owner's name for the pack, else TinyBMS and the serial's end.
     let mut name: String<40> = String::new();
-    name.push_str("TinyBMS ").ok()?;
-    name.push_str(serial.get(serial.len().saturating_sub(6)..).unwrap_or(""))
-        .ok()?;
+    if s.pack_name.is_empty() {
+        name.push_str("TinyBMS ").ok()?;
+        name.push_str(serial.get(serial.len().saturating_sub(6)..).unwrap_or(""))
+            .ok()?;
+    } else {
+        name.push_str(&s.pack_name).ok()?;
+    }
     let mut bms_hw: String<8> = String::new();
     push_u32(&mut bms_hw, u32::from(id.hardware.0));
     let _ = bms_hw.push('.');
