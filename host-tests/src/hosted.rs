@@ -239,6 +239,11 @@ impl<P: BytePort> Hosted<P> {
             }
         }
         if let Some(m) = &self.mqtt {
+            // The Wi-Fi task's reading, as on a chip (this bridge's MQTT runs
+            // over the desktop's network: a simulated signal).
+            self.driver
+                .station
+                .wifi_rssi(Some(crate::mqtt::simulated_rssi(now, 0)));
             m.update(&mut self.driver.station, now);
         }
         if let Some(notes) = &self.mqtt_notes {

@@ -56,6 +56,7 @@ fn view<'a>(snap: &'a LiveSnapshot, age_s: u64) -> View<'a> {
             can: tinybms_firmware::inverter::CanState::Running,
             heard: true,
         }),
+        wifi_rssi_dbm: Some(-61),
     }
 }
 
@@ -98,6 +99,7 @@ fn units_for(class: &str) -> &'static [&'static str] {
         "temperature" => &["°C", "°F", "K"],
         "duration" => &["d", "h", "min", "s", "ms"],
         "energy" => &["Wh", "kWh", "MWh"],
+        "signal_strength" => &["dB", "dBm"],
         "enum" | "connectivity" => &[],
         other => panic!("device class {other} not in the test's table"),
     }
@@ -849,4 +851,65 @@ fn the_pack_name_names_the_device() {
     )
     .unwrap();
     assert_eq!(name_of(&c), "Garage \"east\" pack");
+}
+
+/// Issue 26, the bridge's diagnostics: the Wi-Fi signal (RSSI, dBm) as a
+/// diagnostic entity Home Assistant knows (`signal_strength`); the state
+/// carries it as `wifi_rssi_dbm`, null while unknown (the entity is then
+/// unavailable, never a made-up 0 dBm).
+#[test]
+fn the_wifi_signal_is_a_diagnostic_and_null_when_unknown() {
+    let e = ENTITIES
+        .iter()
+        .find(|e| e.object == "wifi_signal")
+        .expect("a Wi-Fi signal entity");
+    assert_eq!(e.component, Component::Sensor);
+    assert_eq!(e.device_class, Some("signal_strength"));
+    assert_eq!(e.unit, Some("dBm"));
+    assert_eq!(e.state_class, Some("measurement"));
+    assert_eq!(e.category, Some("diagnostic"));
+    assert_eq!(e.read, Read::Nullable("wifi_rssi_dbm"));
+    let (snap, _) = inputs();
+    let state_of = |v: &View<'_>| {
+        let mut p = Publisher::new(settings(), &bridge());
+        p.connected(0, id());
+        let out = drain(&mut p, 0, v);
+        json(&out.iter().find(|m| m.2 == Kind::State).unwrap().1)
+    };
+    assert_eq!(state_of(&view(&snap, 0))["wifi_rssi_dbm"], -61);
+    let unknown = View {
+        wifi_rssi_dbm: None,
+        ..view(&snap, 0)
+    };
+    let s = state_of(&unknown);
+    assert!(s.get("wifi_rssi_dbm").is_some_and(|v| v.is_null()), "{s}");
+}
+
+/// The station hands the Wi-Fi task's reading to what MQTT publishes (as the
+/// chip's Wi-Fi task does through `wires::WIFI_RSSI`), and a change is a new
+/// generation (published at once).
+#[test]
+fn the_station_publishes_the_wifi_signal_it_is_given() {
+    use tinybms_firmware::config::store::{Loaded, Source};
+    use tinybms_firmware::station::{Setup, Station};
+    let setup = Setup {
+        timing: tinybms_firmware::bms::timing::Timing::default(),
+        identity: bridge(),
+        inverter: None,
+    };
+    let loaded = Loaded {
+        config: Config::default(),
+        source: Source::Empty,
+    };
+    let mut st = Station::new(setup, loaded, 0);
+    assert_eq!(st.published(0).wifi_rssi_dbm, None);
+    let g = st.generation();
+    st.wifi_rssi(Some(-67));
+    assert_eq!(st.published(0).wifi_rssi_dbm, Some(-67));
+    assert_ne!(st.generation(), g);
+    let g = st.generation();
+    st.wifi_rssi(Some(-67));
+    assert_eq!(st.generation(), g, "the same reading changes nothing");
+    st.wifi_rssi(None);
+    assert_eq!(st.published(0).wifi_rssi_dbm, None);
 }

@@ -97,6 +97,9 @@ fn the_try_out_publishes_what_a_wired_bridge_would_with_its_own_options() {
     assert!(state["dcl_a"].as_f64().unwrap() > 0.0, "{state}");
     assert_eq!(state["can_state"], "running", "{state}");
     assert_eq!(state["inverter_heard"], true, "{state}");
+    // A simulated Wi-Fi signal, as a chip's would be: a plausible RSSI.
+    let rssi = state["wifi_rssi_dbm"].as_i64().unwrap_or(0);
+    assert!((-90..=-30).contains(&rssi), "{state}");
     // The configs say where the state is and when it expires: 3 x 7 s.
     let configs = sub
         .wait(from, "the configs", |m| {

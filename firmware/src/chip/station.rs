@@ -274,6 +274,10 @@ impl Pumps {
             if let Some(state) = wires::MQTT_STATE.try_take() {
                 station.mqtt_state(state);
             }
+            #[cfg(feature = "wifi")]
+            if let Some(rssi) = wires::WIFI_RSSI.try_take() {
+                station.wifi_rssi(rssi);
+            }
         }
         #[cfg(not(any(feature = "host-link", feature = "can")))]
         let _ = station;

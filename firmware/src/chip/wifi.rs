@@ -15,7 +15,7 @@
 
 use defmt::{info, warn};
 use embassy_executor::Spawner;
-use embassy_futures::select::select;
+use embassy_futures::select::{select, Either};
 use embassy_net::tcp::client::{TcpClient, TcpClientState};
 use embassy_net::{DhcpConfig, Runner, Stack, StackResources};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
@@ -49,6 +49,9 @@ const HEAP_MORE: usize = 36 * 1024;
 
 /// TCP buffers of the MQTT connection, bytes each way.
 const TCP_BUFFER: usize = 2048;
+
+/// How often the access point's signal (RSSI) is read while joined.
+const RSSI_PERIOD: Duration = Duration::from_secs(10);
 
 /// Wi-Fi reconnect delays: the first, and the longest (doubling between).
 const WIFI_BACKOFF_MIN: Duration = Duration::from_secs(1);
@@ -230,7 +233,25 @@ async fn wifi_task(mut controller: WifiController<'static>) {
                     ],
                 );
                 let up = Instant::now();
-                match controller.wait_for_disconnect_async().await {
+                // The signal now and every RSSI_PERIOD until the link drops.
+                // `wait_for_disconnect_async` returns at once when the station
+                // is no longer connected, so a disconnect between two waits
+                // is not missed.
+                let down = loop {
+                    hand_rssi(&controller);
+                    match select(
+                        controller.wait_for_disconnect_async(),
+                        Timer::after(RSSI_PERIOD),
+                    )
+                    .await
+                    {
+                        Either::First(d) => break d,
+                        Either::Second(()) => {}
+                    }
+                };
+                wires::WIFI_RSSI.signal(None);
+                wires::wake();
+                match down {
                     Ok(d) => {
                         warn!("Wi-Fi down: {}", d.reason);
                         say(Level::Warn, &["Wi-Fi down: ", reason_text(d.reason)]);
@@ -267,6 +288,19 @@ async fn wifi_task(mut controller: WifiController<'static>) {
         Timer::after(backoff).await;
         backoff = (backoff * 2).min(WIFI_BACKOFF_MAX);
     }
+}
+
+/// The access point's signal, from its last beacon, to the station (what
+/// MQTT publishes as the Wi-Fi signal diagnostic); `None` when the driver
+/// cannot say.
+fn hand_rssi(controller: &WifiController<'static>) {
+    let rssi = controller
+        .rssi()
+        .ok()
+        .and_then(|r| i8::try_from(r).ok())
+        .filter(|r| *r < 0);
+    wires::WIFI_RSSI.signal(rssi);
+    wires::wake();
 }
 
 #[embassy_executor::task]

@@ -106,6 +106,11 @@ mod mqtt {
     /// for `hello`; latest wins).
     pub static MQTT_STATE: embassy_sync::signal::Signal<Raw, tinybms_firmware::mqtt::MqttState> =
         embassy_sync::signal::Signal::new();
+    /// The access point's signal, dBm, while joined (`None`: not joined or
+    /// not read): the Wi-Fi task → the station task, for what MQTT
+    /// publishes; latest wins.
+    pub static WIFI_RSSI: embassy_sync::signal::Signal<Raw, Option<i8>> =
+        embassy_sync::signal::Signal::new();
 }
 
 /// Lines for the host the writer dropped on the wire since the station last

@@ -420,6 +420,8 @@ struct TelemetryFull<'a> {
     can_state: Option<Option<&'static str>>,
     #[serde(skip_serializing_if = "Option::is_none")]
     inverter_heard: Option<Option<bool>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    wifi_rssi_dbm: Option<Option<i8>>,
 }
 
 /// What the MQTT state says besides the host link's telemetry fields.
@@ -448,6 +450,8 @@ pub struct StateExtras<'a> {
     pub can_state: Option<&'static str>,
     /// The inverter is heard, when the CAN output is built in.
     pub inverter_heard: Option<bool>,
+    /// The Wi-Fi signal, dBm (`None`: unknown, published as null).
+    pub wifi_rssi_dbm: Option<i8>,
 }
 
 /// What a `telemetry` line says besides the snapshot.
@@ -590,6 +594,7 @@ pub fn telemetry(
             bridge_firmware: extras.map(|e| e.bridge_firmware),
             can_state: extras.map(|e| e.can_state),
             inverter_heard: extras.map(|e| e.inverter_heard),
+            wifi_rssi_dbm: extras.map(|e| e.wifi_rssi_dbm),
         },
         out,
     )

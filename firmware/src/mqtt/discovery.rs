@@ -378,6 +378,14 @@ pub const ENTITIES: &[Entity] = &[
         category: None,
         options: None,
     }),
+    diagnostic(sensor(
+        "wifi_signal",
+        "Wi-Fi signal",
+        Some("signal_strength"),
+        Some("dBm"),
+        Read::Nullable("wifi_rssi_dbm"),
+        0,
+    )),
     Entity {
         object: "events",
         name: "BMS event",

@@ -57,6 +57,8 @@ pub struct View<'a> {
     pub capacity_cah: Option<u16>,
     /// The inverter output, when built in.
     pub inverter: Option<InverterStatus>,
+    /// The Wi-Fi signal, dBm (`None`: unknown).
+    pub wifi_rssi_dbm: Option<i8>,
 }
 
 impl<'a> View<'a> {
@@ -76,6 +78,7 @@ impl<'a> View<'a> {
             energy_mwh: p.energy_mwh,
             capacity_cah: p.capacity_cah,
             inverter: p.inverter,
+            wifi_rssi_dbm: p.wifi_rssi_dbm,
         }
     }
 
@@ -520,6 +523,7 @@ impl Publisher {
             bridge_firmware: &self.bridge_text,
             can_state: view.inverter.map(|i| i.can.key()),
             inverter_heard: view.inverter.map(|i| i.heard),
+            wifi_rssi_dbm: view.wifi_rssi_dbm,
         };
         let head = TelemetryHead {
             req: None,

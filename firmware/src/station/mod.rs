@@ -178,6 +178,8 @@ pub struct Station {
     missed_to_log: u32,
     /// Energy in and out, counted over the snapshots.
     energy: Energy,
+    /// The Wi-Fi signal, dBm, as the Wi-Fi task last read it.
+    wifi_rssi: Option<i8>,
 }
 
 impl Station {
@@ -232,6 +234,7 @@ impl Station {
             host_missed: 0,
             missed_to_log: 0,
             energy: Energy::new(),
+            wifi_rssi: None,
         }
     }
 
@@ -386,6 +389,15 @@ impl Station {
         }
     }
 
+    /// The Wi-Fi signal of the access point, dBm, as the Wi-Fi task read it
+    /// (`None`: not joined, or not read): MQTT publishes it as a diagnostic.
+    pub fn wifi_rssi(&mut self, dbm: Option<i8>) {
+        if dbm != self.wifi_rssi {
+            self.wifi_rssi = dbm;
+            self.generation = self.generation.wrapping_add(1);
+        }
+    }
+
     /// Lines are waiting for the host.
     pub fn host_has_output(&self) -> bool {
         self.host.as_ref().is_some_and(parts::Host::has_output)
@@ -508,6 +520,7 @@ impl Station {
                 can: i.can_state(),
                 heard: i.inverter_heard(),
             }),
+            wifi_rssi_dbm: self.wifi_rssi,
         }
     }
 
