@@ -24,8 +24,19 @@
 # and SHA256SUMS over all of them. check-images.py checks their layout.
 # TINYBMS_VERSION (the release tag without its `v`; else the package's
 # version) is the version the images report and the manifests carry.
+# Every image names what it was built from (`hello`'s `build`, `tinybms version`,
+# its first log line, Home Assistant's device info): TINYBMS_BUILD if set (a
+# release's name), else `git describe --always --dirty --tags`, else `unknown`
+# (a copy outside git) — never the `dev` of a local build.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")"
+
+if [[ -z ${TINYBMS_BUILD:-} ]]; then
+    TINYBMS_BUILD=$(git describe --always --dirty --tags 2>/dev/null) || TINYBMS_BUILD=unknown
+    [[ -n $TINYBMS_BUILD ]] || TINYBMS_BUILD=unknown
+fi
+export TINYBMS_BUILD
+echo "== build $TINYBMS_BUILD"
 
 out=${1:-target/images}
 mkdir -p "$out"

@@ -508,6 +508,171 @@ pub fn store_site(site: &crate::config::store::StoreSite, out: &mut Line) {
     }
 }
 
+/// A line the chip shell writes once at boot: the first lines of the
+/// first-flash check-list (docs/boards.md). The host link keeps them from boot
+/// and gives them to every host after its `hello`
+/// ([`crate::station::Station::boot_line`]), so `tinybms log PORT` shows them
+/// however late it connects.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Boot {
+    /// The image: its firmware and build, the board and chip it runs on,
+    /// where its defmt log goes (`None`: a bridge run on the desktop).
+    Image {
+        /// The defmt log path.
+        log: Option<crate::boards::LogPath>,
+    },
+    /// The CAN output is switched off in the configuration.
+    CanOff,
+    /// The CAN output runs.
+    Can {
+        /// Its protocol.
+        protocol: crate::inverter::protocol::Protocol,
+        /// (TX, RX) GPIOs; `None`: a simulated bus.
+        pins: Option<(u8, u8)>,
+        /// The pack node among packs in parallel (0: this pack alone).
+        node: u8,
+    },
+    /// The host link: its wire (`None`: a desktop port), its start-up mode.
+    HostLink {
+        /// The wire.
+        wire: Option<crate::boards::HostWire>,
+        /// Host writes off.
+        read_only: bool,
+        /// Telemetry period, ms (0: off).
+        stream_period_ms: u32,
+    },
+    /// The UART to the BMS.
+    Uart {
+        /// Baud rate.
+        baud: u32,
+        /// (TX, RX) GPIOs and the RX FIFO threshold; `None`: a simulated BMS.
+        pins: Option<(u8, u8, u16)>,
+    },
+    /// The start-up profile (`firmware/profile.txt`): its settings, and
+    /// whether they fit the bridge's command queue (else none is written).
+    Profile {
+        /// Settings in it.
+        settings: usize,
+        /// Queued for writing.
+        queued: bool,
+    },
+}
+
+impl Boot {
+    /// The level it is logged at.
+    pub const fn level(&self) -> crate::Level {
+        match self {
+            Self::Profile { queued: false, .. } => crate::Level::Warn,
+            _ => crate::Level::Info,
+        }
+    }
+}
+
+/// Writes a boot line of the bridge `id` into `out` (appended).
+pub fn boot(b: &Boot, id: &crate::identity::Identity, out: &mut Line) {
+    use crate::boards::LogPath;
+    use crate::inverter::protocol::Protocol;
+    match *b {
+        Boot::Image { log } => {
+            out.push("tinybms-firmware ")
+                .push(crate::identity::FIRMWARE)
+                .push(" (build ")
+                .push(crate::identity::BUILD)
+                .push(") on ")
+                .push(id.board)
+                .push(" (")
+                .push(id.chip)
+                .push("), logs over ")
+                .push(match log {
+                    Some(LogPath::Rtt) => "RTT",
+                    Some(LogPath::Uart0) => "UART0",
+                    None => "the host link",
+                });
+        }
+        Boot::CanOff => {
+            out.push("CAN to the inverter off (can_output = off)");
+        }
+        Boot::Can {
+            protocol,
+            pins,
+            node,
+        } => {
+            out.push("CAN to the inverter: ")
+                .push(match protocol {
+                    Protocol::Victron => "Victron",
+                    Protocol::SmaSunnyIsland => "SMA Sunny Island",
+                })
+                .push(", 500 kbit/s, ");
+            match pins {
+                Some((tx, rx)) => {
+                    out.push("TX=GPIO")
+                        .uint(u64::from(tx))
+                        .push(" RX=GPIO")
+                        .uint(u64::from(rx));
+                }
+                None => {
+                    out.push("a simulated bus");
+                }
+            }
+            if node != 0 {
+                out.push("; pack node ")
+                    .uint(u64::from(node))
+                    .push(" of packs in parallel (summaries on 0x6A0-0x6BF; node 1 speaks first)");
+            }
+        }
+        Boot::HostLink {
+            wire,
+            read_only,
+            stream_period_ms,
+        } => {
+            out.push("host link on ")
+                .push(match wire {
+                    Some(w) => w.name(),
+                    None => "a desktop port",
+                })
+                .push(": ")
+                .push(if read_only { "read-only" } else { "read-write" });
+            if stream_period_ms == 0 {
+                out.push(", telemetry only when asked");
+            } else {
+                out.push(", telemetry every ")
+                    .uint(u64::from(stream_period_ms))
+                    .push(" ms");
+            }
+        }
+        Boot::Uart { baud, pins } => {
+            out.push("UART1 ")
+                .uint(u64::from(baud))
+                .push(" 8N1 to the BMS: ");
+            match pins {
+                Some((tx, rx, threshold)) => {
+                    out.push("TX=GPIO")
+                        .uint(u64::from(tx))
+                        .push(" RX=GPIO")
+                        .uint(u64::from(rx))
+                        .push(" (rx fifo threshold ")
+                        .uint(u64::from(threshold))
+                        .push(")");
+                }
+                None => {
+                    out.push("a simulated TinyBMS");
+                }
+            }
+        }
+        Boot::Profile { settings: 0, .. } => {
+            out.push("settings profile empty: nothing written");
+        }
+        Boot::Profile { settings, queued } => {
+            out.push("settings profile: ")
+                .uint(settings as u64)
+                .push(" settings");
+            if !queued {
+                out.push(", too many for the command queue: none written");
+            }
+        }
+    }
+}
+
 /// The same words as the chip's log ([`report`]).
 impl core::fmt::Display for Report {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {

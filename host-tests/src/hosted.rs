@@ -17,6 +17,7 @@ use embassy_futures::block_on;
 use protocol_core::settings::SettingId;
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::config::state::Note;
+use tinybms_firmware::config::Config;
 use tinybms_firmware::identity::{Features, Identity};
 use tinybms_firmware::station::{Logged, Setup, Station};
 
@@ -24,6 +25,15 @@ use crate::flash::SimFlash;
 use crate::pty::Pty;
 use crate::realtime::{BytePort, Driver, Happened, SimPort, MAX_SLICE};
 use crate::sim::SimBms;
+
+/// Where a simulated bridge's store lives: a 4 MiB chip with the default
+/// partition table's `nvs` partition (what the simulated flash stands for:
+/// [`crate::flash::PARTITION_BYTES`]); `hello` and `tinybms version` say it.
+pub const SIM_STORE_SITE: tinybms_firmware::config::store::StoreSite =
+    tinybms_firmware::config::store::StoreSite {
+        flash_bytes: 4 * 1024 * 1024,
+        partition: Some((0x9000, crate::flash::PARTITION_BYTES)),
+    };
 
 /// Longest line the host link produces that this loop can carry.
 pub const LINE_BUF: usize = 4096;
@@ -80,9 +90,28 @@ impl<P: BytePort> Hosted<P> {
         chip: &'static str,
         wifi: bool,
     ) -> Self {
+        Self::build(port, bridge, flash, chip, wifi, None)
+    }
+
+    /// The tool's direct mode: a station that runs with `record`, chosen by
+    /// the tool itself (streaming off), in RAM. No bridge of its own is
+    /// configured, so its log says nothing about a configuration (it said
+    /// "config saved to flash" as if the owner had changed one).
+    pub fn direct(port: P, bridge: Timing, record: Config, chip: &'static str) -> Self {
+        let flash = SimFlash::Ram(crate::flash::RamFlash::new());
+        Self::build(port, bridge, flash, chip, true, Some(record))
+    }
+
+    fn build(
+        port: P,
+        bridge: Timing,
+        flash: SimFlash,
+        chip: &'static str,
+        wifi: bool,
+        record: Option<Config>,
+    ) -> Self {
         let clock = crate::realtime::Clock::start();
         let mut store = crate::flash::store(flash);
-        let loaded = block_on(store.load());
         // The CAN output is built in, as in the ready-made images; a bus
         // with a simulated inverter is attached by `sim` (else nothing
         // acknowledges a frame, as on a chip whose CAN is not wired).
@@ -99,10 +128,14 @@ impl<P: BytePort> Hosted<P> {
             ),
             inverter: None,
         };
-        let station = Station::new(setup, loaded, clock.now());
+        let direct = record.is_some();
+        let station = match record {
+            Some(config) => Station::with_record(setup, config, clock.now()),
+            None => Station::new(setup, block_on(store.load()), clock.now()),
+        };
         let mut driver = Driver::with_station(port, station, clock);
         driver.store = Some(store);
-        Self {
+        let mut h = Self {
             setup,
             driver,
             boot_button: None,
@@ -114,6 +147,46 @@ impl<P: BytePort> Hosted<P> {
             line: vec![0; LINE_BUF],
             input: Vec::new(),
             next_sample: 0,
+        };
+        // The tool's own bridge of direct mode is no device: it has no boot
+        // and no flash.
+        if !direct {
+            h.boot_lines();
+        }
+        h
+    }
+
+    /// The lines the chip shell writes at boot, as a simulated bridge has
+    /// them (a simulated board, CAN bus and BMS): the host link keeps them
+    /// for every host, as on the chip.
+    fn boot_lines(&mut self) {
+        use tinybms_firmware::text::Boot;
+        self.driver.station.set_store_site(SIM_STORE_SITE);
+        let running = self.driver.station.config().running();
+        let inverter = running.inverter();
+        let mut lines = vec![Boot::Image { log: None }];
+        if self.setup.identity.features.can {
+            lines.push(if inverter.enabled {
+                Boot::Can {
+                    protocol: inverter.protocol,
+                    pins: None,
+                    node: inverter.node,
+                }
+            } else {
+                Boot::CanOff
+            });
+        }
+        lines.push(Boot::HostLink {
+            wire: None,
+            read_only: running.read_only,
+            stream_period_ms: running.stream_period_ms,
+        });
+        lines.push(Boot::Uart {
+            baud: 115_200,
+            pins: None,
+        });
+        for l in &lines {
+            self.driver.station.boot_line(l);
         }
     }
 
@@ -127,6 +200,7 @@ impl<P: BytePort> Hosted<P> {
         };
         let now = self.driver.clock().now();
         self.driver.station = Station::new(self.setup, loaded, now);
+        self.boot_lines();
         self.boot_wifi();
     }
 
@@ -183,6 +257,11 @@ impl<P: BytePort> Hosted<P> {
             }
         }
         if let Some(m) = &self.mqtt {
+            // The Wi-Fi task's reading, as on a chip (this bridge's MQTT runs
+            // over the desktop's network: a simulated signal).
+            self.driver
+                .station
+                .wifi_rssi(Some(crate::mqtt::simulated_rssi(now, 0)));
             m.update(&mut self.driver.station, now);
         }
         if let Some(notes) = &self.mqtt_notes {
@@ -419,6 +498,11 @@ pub fn serve_bridge_pty(
     h.station()
         .submit_profile(&o.profile)
         .map_err(|_| io::Error::other("the profile does not fit the bridge's command queue"))?;
+    h.station()
+        .boot_line(&tinybms_firmware::text::Boot::Profile {
+            settings: o.profile.len(),
+            queued: true,
+        });
     let clock = h.driver.clock();
     if let Some((host, port)) = &o.mqtt {
         let record = h.station().config().running().clone();

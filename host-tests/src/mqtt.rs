@@ -78,6 +78,15 @@ impl Shared {
     }
 }
 
+/// A simulated bridge's Wi-Fi signal at `now` (µs), dBm: what a chip's
+/// Wi-Fi task would read from its access point, a few metres away — around
+/// -58 dBm, a step every 10 s (`salt` shifts the pattern: one per pack).
+pub fn simulated_rssi(now: Instant, salt: usize) -> i8 {
+    const STEPS: [i8; 8] = [0, -1, -3, -2, 1, -1, 0, -4];
+    let k = (now / (10 * tinybms_firmware::SECOND)) as usize + salt;
+    -58 + STEPS[k % STEPS.len()]
+}
+
 /// The session's [`Feed`] over a [`Shared`].
 pub struct SharedFeed {
     shared: Shared,

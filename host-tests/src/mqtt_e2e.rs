@@ -58,21 +58,60 @@ pub struct Broker {
     pub ip: String,
     /// Its port.
     pub port: u16,
+    /// The login it needs (`None`: anonymous clients are welcome).
+    pub login: Option<(String, String)>,
     conf: std::path::PathBuf,
+    passwords: Option<std::path::PathBuf>,
 }
 
 impl Broker {
     /// Starts it and waits until it accepts connections.
     pub fn start(ip: &str, port: u16) -> Result<Broker, String> {
-        let conf = std::env::temp_dir().join(format!(
-            "tinybms-mosquitto-{}-{port}.conf",
-            std::process::id()
-        ));
-        std::fs::write(
-            &conf,
-            format!("listener {port} {ip}\nallow_anonymous true\npersistence false\n"),
-        )
-        .map_err(|e| format!("mosquitto config: {e}"))?;
+        Self::start_with(ip, port, None)
+    }
+
+    /// Starts one that takes only `user` with `password` (a password file
+    /// made by `mosquitto_passwd`, `allow_anonymous false`: Home Assistant's
+    /// Mosquitto add-on's way).
+    pub fn start_with_login(
+        ip: &str,
+        port: u16,
+        user: &str,
+        password: &str,
+    ) -> Result<Broker, String> {
+        Self::start_with(ip, port, Some((user.to_string(), password.to_string())))
+    }
+
+    fn start_with(ip: &str, port: u16, login: Option<(String, String)>) -> Result<Broker, String> {
+        let base =
+            std::env::temp_dir().join(format!("tinybms-mosquitto-{}-{port}", std::process::id()));
+        let conf = base.with_extension("conf");
+        let mut text = format!("listener {port} {ip}\npersistence false\n");
+        let passwords = match &login {
+            None => {
+                text.push_str("allow_anonymous true\n");
+                None
+            }
+            Some((user, password)) => {
+                let file = base.with_extension("passwd");
+                let _ = std::fs::remove_file(&file);
+                let ok = Command::new("mosquitto_passwd")
+                    .args(["-c", "-b", &file.to_string_lossy(), user, password])
+                    .stdout(Stdio::null())
+                    .stderr(Stdio::null())
+                    .status()
+                    .map_err(|e| format!("mosquitto_passwd: {e}"))?;
+                if !ok.success() {
+                    return Err(format!("mosquitto_passwd: {ok}"));
+                }
+                text.push_str(&format!(
+                    "allow_anonymous false\npassword_file {}\n",
+                    file.display()
+                ));
+                Some(file)
+            }
+        };
+        std::fs::write(&conf, text).map_err(|e| format!("mosquitto config: {e}"))?;
         let child = Command::new("mosquitto")
             .args(["-c", &conf.to_string_lossy()])
             .stdout(Stdio::null())
@@ -83,7 +122,9 @@ impl Broker {
             child,
             ip: ip.to_string(),
             port,
+            login,
             conf,
+            passwords,
         };
         let end = Instant::now() + WAIT;
         while std::net::TcpStream::connect((ip, port)).is_err() {
@@ -101,6 +142,9 @@ impl Drop for Broker {
         let _ = self.child.kill();
         let _ = self.child.wait();
         let _ = std::fs::remove_file(&self.conf);
+        if let Some(p) = &self.passwords {
+            let _ = std::fs::remove_file(p);
+        }
     }
 }
 
@@ -125,18 +169,23 @@ pub struct Sub {
 
 impl Sub {
     /// Subscribes to everything on the broker.
+    /// (With the broker's login, when it needs one.)
     pub fn start(b: &Broker) -> Result<Sub, String> {
-        let mut child = Command::new("mosquitto_sub")
-            .args([
-                "-h",
-                &b.ip,
-                "-p",
-                &b.port.to_string(),
-                "-t",
-                "#",
-                "-F",
-                "%r\t%t\t%p",
-            ])
+        let mut cmd = Command::new("mosquitto_sub");
+        cmd.args([
+            "-h",
+            &b.ip,
+            "-p",
+            &b.port.to_string(),
+            "-t",
+            "#",
+            "-F",
+            "%r\t%t\t%p",
+        ]);
+        if let Some((user, password)) = &b.login {
+            cmd.args(["-u", user, "-P", password]);
+        }
+        let mut child = cmd
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
             .spawn()

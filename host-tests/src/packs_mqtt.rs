@@ -111,7 +111,9 @@ impl PacksOnMqtt {
         while !stop.load(Ordering::Relaxed) && end.is_none_or(|e| self.clock.now() < e) {
             let now = self.clock.now();
             self.packs.run_until(now);
-            for (p, s) in self.packs.nodes.iter_mut().zip(&self.shared) {
+            for (k, (p, s)) in self.packs.nodes.iter_mut().zip(&self.shared).enumerate() {
+                p.h.station
+                    .wifi_rssi(Some(crate::mqtt::simulated_rssi(now, k)));
                 s.update(&mut p.h.station, now);
             }
             std::thread::sleep(PACE);

@@ -337,6 +337,7 @@ fn full_record() -> Config {
     c.discovery_prefix.clear();
     c.discovery_prefix.push_str(&"d".repeat(32)).unwrap();
     c.pack_node = 3;
+    c.pack_name.push_str(&"n".repeat(24)).unwrap();
     c
 }
 
@@ -355,13 +356,19 @@ fn the_codec_round_trips_and_the_longest_record_fits() {
 
 /// A record of version 1 (before `pack_node`): as a v1 firmware wrote it.
 fn v1_record(c: &Config) -> Vec<u8> {
-    let v2 = encoded(c);
-    let mut out = vec![b'T', b'C', 1, 0];
-    let mut rest = &v2[4..];
+    record_of_version(c, 1)
+}
+
+/// A record of an older `version`: as that firmware wrote it (the fields
+/// of that version only).
+fn record_of_version(c: &Config, version: u8) -> Vec<u8> {
+    let now = encoded(c);
+    let mut out = vec![b'T', b'C', version, 0];
+    let mut rest = &now[4..];
     let mut n = 0u8;
     while let [tag, len, tail @ ..] = rest {
         let (value, after) = tail.split_at(usize::from(*len));
-        if codec::introduced(*tag) == 1 {
+        if codec::introduced(*tag) <= version {
             out.extend_from_slice(&[*tag, *len]);
             out.extend_from_slice(value);
             n += 1;
@@ -376,9 +383,10 @@ fn v1_record(c: &Config) -> Vec<u8> {
 fn a_version_1_record_keeps_the_owners_configuration_and_pack_node_defaults() {
     let mut c = full_record();
     c.pack_node = 0;
+    c.pack_name.clear();
     let v1 = v1_record(&c);
     assert_eq!(v1[2], 1);
-    assert_eq!(usize::from(v1[3]), FIELDS.len() - 1);
+    assert_eq!(usize::from(v1[3]), FIELDS.len() - 2);
     assert_eq!(codec::decode(&v1).unwrap(), c);
     // A field a version-1 record cannot hold is refused in one.
     let mut with_node = v1.clone();
@@ -396,6 +404,55 @@ fn a_version_1_record_keeps_the_owners_configuration_and_pack_node_defaults() {
     let mut zero = encoded(&Config::default());
     zero[2] = 0;
     assert_eq!(codec::decode(&zero), Err(DecodeError::Version(0)));
+}
+
+/// Issue 26, "a friendly pack name": `pack_name` came with layout version
+/// 3. A version-2 record (what the bridge stored before) keeps the owner's
+/// configuration with no name; a version-3 record must hold it; a version-2
+/// record cannot.
+#[test]
+fn a_version_2_record_keeps_the_owners_configuration_and_no_pack_name() {
+    let mut c = full_record();
+    c.pack_name.clear();
+    let v2 = record_of_version(&c, 2);
+    assert_eq!(usize::from(v2[3]), FIELDS.len() - 1);
+    assert_eq!(codec::decode(&v2).unwrap(), c);
+    let tag = field("pack_name").field().tag;
+    assert_eq!(codec::introduced(tag), 3);
+    let mut named = v2.clone();
+    named[3] += 1;
+    named.extend_from_slice(&[tag, 6]);
+    named.extend_from_slice(b"Garage");
+    assert_eq!(codec::decode(&named), Err(DecodeError::UnknownTag(tag)));
+    named[2] = 3;
+    let mut want = c.clone();
+    want.pack_name.push_str("Garage").unwrap();
+    assert_eq!(codec::decode(&named).unwrap(), want);
+    let mut short = v2;
+    short[2] = 3;
+    assert_eq!(
+        codec::decode(&short),
+        Err(DecodeError::Missing(FieldId::PackName))
+    );
+}
+
+/// `pack_name`: printable text, at most 24 bytes, empty by default.
+#[test]
+fn the_pack_name_is_short_printable_text() {
+    let f = field("pack_name").field();
+    assert_eq!(
+        f.kind,
+        Kind::Text {
+            max: 24,
+            rule: tinybms_firmware::config::TextRule::Printable
+        }
+    );
+    assert_eq!(Config::default().pack_name.as_str(), "");
+    let mut c = Config::default();
+    assert!(c.set(f.id, Value::Text("Garage — pack 2")).is_ok());
+    assert!(c.set(f.id, Value::Text(&"x".repeat(25))).is_err());
+    assert!(c.set(f.id, Value::Text("tab\there")).is_err());
+    assert_eq!(c.pack_name.as_str(), "Garage — pack 2");
 }
 
 #[test]

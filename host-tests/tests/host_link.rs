@@ -354,7 +354,7 @@ fn hello_on_connect_and_on_request() {
         h,
         json!({"type":"hello","protocol":1,"firmware":env!("CARGO_PKG_VERSION"),
             "build":tinybms_firmware::identity::BUILD,"chip":"sim","board":"simulated",
-            "features":["host-link"],"record_version":2,
+            "features":["host-link"],"record_version":tinybms_firmware::config::VERSION,
             "read_only":false,"stream_period_ms":1000,"dropped_lines":0})
     );
     r.line(r#"{"cmd":"hello","req":77}"#);
@@ -1524,4 +1524,170 @@ fn a_bridge_with_a_node_number_streams_the_battery_and_its_packs() {
     let out = r.run_reading(2 * SECOND);
     assert!(of_type(&out, "battery").is_empty() && of_type(&out, "pack").is_empty());
     assert!(!of_type(&out, "telemetry").is_empty());
+}
+
+// ---------------------------------------------------------------- boot lines
+
+/// The chip's boot lines, as its shell hands them in.
+fn chip_boot_lines() -> Vec<tinybms_firmware::text::Boot> {
+    use tinybms_firmware::boards::{HostWire, LogPath};
+    use tinybms_firmware::inverter::protocol::Protocol;
+    use tinybms_firmware::text::Boot;
+    vec![
+        Boot::Image {
+            log: Some(LogPath::Rtt),
+        },
+        Boot::Can {
+            protocol: Protocol::Victron,
+            pins: Some((4, 5)),
+            node: 0,
+        },
+        Boot::HostLink {
+            wire: Some(HostWire::UsbSerialJtag),
+            read_only: false,
+            stream_period_ms: 1000,
+        },
+        Boot::Uart {
+            baud: 115_200,
+            pins: Some((7, 6, 64)),
+        },
+        Boot::Profile {
+            settings: 0,
+            queued: true,
+        },
+    ]
+}
+
+/// Issue 26, item 8: the boot lines (image, board, pins, log path, CAN, the
+/// host link's wire) reached only defmt, and the host link keeps the latest
+/// 4 log lines: a host that came later never saw them. The host link keeps
+/// them from boot and sends them right after every `hello` (the connection's
+/// and a `hello` command's), marked `boot`, and never in the log stream.
+#[test]
+fn a_host_that_connects_late_gets_the_boot_lines_right_after_hello() {
+    use tinybms_firmware::identity::{BUILD, FIRMWARE};
+    let mut r = Rig::new(config(false, 0));
+    for b in chip_boot_lines() {
+        let (level, _) = r.h.station.boot_line(&b);
+        assert_eq!(level, tinybms_firmware::Level::Info);
+    }
+    // Ten seconds of reports nobody reads: many more than four log lines.
+    r.run(10 * SECOND);
+    let now = r.h.now;
+    r.h.station.host_connected(now);
+    let want = [
+        format!("tinybms-firmware {FIRMWARE} (build {BUILD}) on simulated (sim), logs over RTT"),
+        "CAN to the inverter: Victron, 500 kbit/s, TX=GPIO4 RX=GPIO5".to_string(),
+        "host link on USB-Serial-JTAG: read-write, telemetry every 1000 ms".to_string(),
+        "UART1 115200 8N1 to the BMS: TX=GPIO7 RX=GPIO6 (rx fifo threshold 64)".to_string(),
+        "settings profile empty: nothing written".to_string(),
+    ];
+    let check = |out: &[Value]| {
+        assert_eq!(out[0]["type"], "hello", "{out:#?}");
+        for (k, w) in want.iter().enumerate() {
+            let l = &out[k + 1];
+            assert_eq!(l["type"], "log", "{out:#?}");
+            assert_eq!(l["boot"], true, "{l}");
+            assert_eq!(l["level"], "info", "{l}");
+            assert_eq!(l["text"], w.as_str(), "{l}");
+        }
+        // Then the latest log lines of the running bridge, not marked.
+        let after: Vec<&Value> = out[want.len() + 1..]
+            .iter()
+            .filter(|l| l["type"] == "log")
+            .collect();
+        assert!(!after.is_empty(), "{out:#?}");
+        assert!(after.iter().all(|l| l.get("boot").is_none()), "{out:#?}");
+    };
+    check(&r.drain_all());
+    // A `hello` command starts a session too: the boot lines again.
+    r.run(3 * SECOND);
+    r.line(r#"{"cmd":"hello","req":4}"#);
+    let out = r.drain_all();
+    let hello = out.iter().position(|l| l["type"] == "hello").unwrap();
+    check(&out[hello..]);
+    // Between sessions they are not sent again.
+    let more = r.run_reading(3 * SECOND);
+    assert!(more.iter().all(|l| l.get("boot").is_none()), "{more:#?}");
+}
+
+/// The longest boot lines an image can write all fit what the host link
+/// keeps (the longest board name, the CAN output of a pack node with SMA,
+/// the host link on UART0, a profile too long for the queue).
+#[test]
+fn the_longest_boot_lines_all_fit() {
+    use tinybms_firmware::boards::{HostWire, LogPath, BOARDS};
+    use tinybms_firmware::config::store::{Loaded, Source};
+    use tinybms_firmware::identity::{Features, Identity};
+    use tinybms_firmware::inverter::protocol::Protocol;
+    use tinybms_firmware::station::{Setup, Station};
+    use tinybms_firmware::text::Boot;
+    let board = BOARDS
+        .iter()
+        .map(|b| b.name)
+        .max_by_key(|n| n.len())
+        .unwrap();
+    let setup = Setup {
+        timing: tinybms_firmware::bms::timing::Timing::default(),
+        identity: Identity {
+            chip: "esp32c6",
+            board,
+            features: Features {
+                can: true,
+                host_link: true,
+                wifi: true,
+                store: true,
+            },
+        },
+        inverter: None,
+    };
+    let loaded = Loaded {
+        config: tinybms_firmware::config::Config::default(),
+        source: Source::Empty,
+    };
+    let mut station = Station::new(setup, loaded, 0);
+    let lines = [
+        Boot::Image {
+            log: Some(LogPath::Uart0),
+        },
+        Boot::CanOff,
+        Boot::Can {
+            protocol: Protocol::SmaSunnyIsland,
+            pins: Some((21, 22)),
+            node: 8,
+        },
+        Boot::HostLink {
+            wire: Some(HostWire::Uart0),
+            read_only: true,
+            stream_period_ms: 60_000,
+        },
+        Boot::Uart {
+            baud: 115_200,
+            pins: Some((23, 22, 64)),
+        },
+        Boot::Profile {
+            settings: 99,
+            queued: false,
+        },
+    ];
+    for b in &lines {
+        station.boot_line(b);
+    }
+    station.host_connected(0);
+    let mut out = Vec::new();
+    let mut buf = [0u8; OUT_LINE_MAX];
+    while let Some(n) = station.next_host_line(0, &mut buf) {
+        out.push(serde_json::from_slice::<Value>(&buf[..n]).unwrap());
+    }
+    let boot: Vec<&Value> = out.iter().filter(|l| l["boot"] == true).collect();
+    assert!(
+        boot[0]["text"].as_str().unwrap().contains(board),
+        "{out:#?}"
+    );
+    assert_eq!(boot.len(), lines.len(), "{out:#?}");
+    assert_eq!(boot[5]["level"], "warn");
+    assert!(boot[5]["text"]
+        .as_str()
+        .unwrap()
+        .contains("too many for the command queue"));
 }

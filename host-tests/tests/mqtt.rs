@@ -56,6 +56,7 @@ fn view<'a>(snap: &'a LiveSnapshot, age_s: u64) -> View<'a> {
             can: tinybms_firmware::inverter::CanState::Running,
             heard: true,
         }),
+        wifi_rssi_dbm: Some(-61),
     }
 }
 
@@ -98,6 +99,7 @@ fn units_for(class: &str) -> &'static [&'static str] {
         "temperature" => &["°C", "°F", "K"],
         "duration" => &["d", "h", "min", "s", "ms"],
         "energy" => &["Wh", "kWh", "MWh"],
+        "signal_strength" => &["dB", "dBm"],
         "enum" | "connectivity" => &[],
         other => panic!("device class {other} not in the test's table"),
     }
@@ -143,7 +145,29 @@ fn discovery_configs_are_what_home_assistant_accepts() {
         assert_eq!(c["device"]["identifiers"][0], id().device_id().as_str());
         assert_eq!(c["device"]["serial_number"], id().serial_hex().as_str());
         assert_eq!(c["device"]["manufacturer"], "Energus");
-        assert!(c["device"]["sw_version"].as_str().is_some());
+        // The BMS's versions, and the bridge that publishes it (issue 26,
+        // item 8: its firmware, build, board and chip were in no device info).
+        let (fw, build) = (
+            tinybms_firmware::identity::FIRMWARE,
+            tinybms_firmware::identity::BUILD,
+        );
+        let bms = id();
+        assert_eq!(
+            c["device"]["sw_version"],
+            format!(
+                "BMS {} ({}), bridge: tinybms-esp32 {fw} (build {build})",
+                bms.firmware.0, bms.firmware.1
+            )
+        );
+        assert_eq!(
+            c["device"]["hw_version"],
+            format!(
+                "BMS {}.{}, bridge: simulated (test)",
+                bms.hardware.0, bms.hardware.1
+            )
+        );
+        assert_eq!(c["origin"]["name"], "tinybms-esp32");
+        assert_eq!(c["origin"]["sw_version"], format!("{fw} (build {build})"));
         let leaf = if parts[1] == "event" {
             "/event"
         } else {
@@ -629,6 +653,14 @@ mod the_battery_of_packs_in_parallel {
             let uid = c["unique_id"].as_str().unwrap();
             assert!(is_id(uid) && ids.insert(uid.to_string()), "{uid}");
             assert_eq!(c["device"]["identifiers"][0], "tinybms_battery_tinybms");
+            // The battery is the bridges' own device: the bridge's versions.
+            let fw = tinybms_firmware::identity::FIRMWARE;
+            let build = tinybms_firmware::identity::BUILD;
+            assert_eq!(
+                c["device"]["sw_version"],
+                format!("bridge: tinybms-esp32 {fw} (build {build})")
+            );
+            assert_eq!(c["device"]["hw_version"], "bridge: simulated (test)");
             assert_eq!(c["state_topic"], "tinybms/battery/state");
             // Unavailable when the speaker falls silent, whichever it was.
             assert_eq!(c["expire_after"], 15, "3 publish periods of 5 s");
@@ -785,4 +817,99 @@ fn balancing_cells_are_named_one_based() {
     // Bits beyond the pack's cells are not cells.
     assert_eq!(balancing_cells(0b1000_0000_0000_0100, 8), "3");
     assert_eq!(balancing_cells(u16::MAX, 16).len(), 53);
+}
+
+/// Issue 26, "a friendly pack name": `pack_name` names the pack's device in
+/// Home Assistant (its entities are shown as `<name> Pack voltage`, …); with
+/// two packs `TinyBMS 76D4E3` and `TinyBMS 1A2B3C` were all an owner had.
+/// Empty (the default) keeps `TinyBMS` and the serial's last six digits.
+#[test]
+fn the_pack_name_names_the_device() {
+    let (snap, _) = inputs();
+    let v = view(&snap, 0);
+    let name_of = |config: &Config| {
+        let mut p = Publisher::new(Settings::from_config(config), &bridge());
+        p.connected(0, id());
+        let out = drain(&mut p, 0, &v);
+        let names: std::collections::BTreeSet<std::string::String> = out
+            .iter()
+            .filter(|m| m.2 == Kind::Discovery)
+            .map(|m| json(&m.1)["device"]["name"].as_str().unwrap().to_string())
+            .collect();
+        assert_eq!(names.len(), 1, "{names:?}");
+        names.into_iter().next().unwrap()
+    };
+    let serial = id().serial_hex();
+    assert_eq!(
+        name_of(&Config::default()),
+        format!("TinyBMS {}", &serial[serial.len() - 6..])
+    );
+    let mut c = Config::default();
+    c.set(
+        tinybms_firmware::config::FieldId::PackName,
+        tinybms_firmware::config::Value::Text("Garage \"east\" pack"),
+    )
+    .unwrap();
+    assert_eq!(name_of(&c), "Garage \"east\" pack");
+}
+
+/// Issue 26, the bridge's diagnostics: the Wi-Fi signal (RSSI, dBm) as a
+/// diagnostic entity Home Assistant knows (`signal_strength`); the state
+/// carries it as `wifi_rssi_dbm`, null while unknown (the entity is then
+/// unavailable, never a made-up 0 dBm).
+#[test]
+fn the_wifi_signal_is_a_diagnostic_and_null_when_unknown() {
+    let e = ENTITIES
+        .iter()
+        .find(|e| e.object == "wifi_signal")
+        .expect("a Wi-Fi signal entity");
+    assert_eq!(e.component, Component::Sensor);
+    assert_eq!(e.device_class, Some("signal_strength"));
+    assert_eq!(e.unit, Some("dBm"));
+    assert_eq!(e.state_class, Some("measurement"));
+    assert_eq!(e.category, Some("diagnostic"));
+    assert_eq!(e.read, Read::Nullable("wifi_rssi_dbm"));
+    let (snap, _) = inputs();
+    let state_of = |v: &View<'_>| {
+        let mut p = Publisher::new(settings(), &bridge());
+        p.connected(0, id());
+        let out = drain(&mut p, 0, v);
+        json(&out.iter().find(|m| m.2 == Kind::State).unwrap().1)
+    };
+    assert_eq!(state_of(&view(&snap, 0))["wifi_rssi_dbm"], -61);
+    let unknown = View {
+        wifi_rssi_dbm: None,
+        ..view(&snap, 0)
+    };
+    let s = state_of(&unknown);
+    assert!(s.get("wifi_rssi_dbm").is_some_and(|v| v.is_null()), "{s}");
+}
+
+/// The station hands the Wi-Fi task's reading to what MQTT publishes (as the
+/// chip's Wi-Fi task does through `wires::WIFI_RSSI`), and a change is a new
+/// generation (published at once).
+#[test]
+fn the_station_publishes_the_wifi_signal_it_is_given() {
+    use tinybms_firmware::config::store::{Loaded, Source};
+    use tinybms_firmware::station::{Setup, Station};
+    let setup = Setup {
+        timing: tinybms_firmware::bms::timing::Timing::default(),
+        identity: bridge(),
+        inverter: None,
+    };
+    let loaded = Loaded {
+        config: Config::default(),
+        source: Source::Empty,
+    };
+    let mut st = Station::new(setup, loaded, 0);
+    assert_eq!(st.published(0).wifi_rssi_dbm, None);
+    let g = st.generation();
+    st.wifi_rssi(Some(-67));
+    assert_eq!(st.published(0).wifi_rssi_dbm, Some(-67));
+    assert_ne!(st.generation(), g);
+    let g = st.generation();
+    st.wifi_rssi(Some(-67));
+    assert_eq!(st.generation(), g, "the same reading changes nothing");
+    st.wifi_rssi(None);
+    assert_eq!(st.published(0).wifi_rssi_dbm, None);
 }

@@ -340,7 +340,7 @@ fn direct_events_stats_version() {
     assert!(o.stdout.lines().count() >= 1, "{o}");
     let o = tinybms(&["stats", &sim.path, "--mode", "direct"]);
     assert_eq!(o.code, 0, "{o}");
-    assert!(o.stdout.contains("charging_count"), "{o}");
+    assert!(o.stdout.contains("full charges"), "{o}");
     // Refused without confirmation, done with it.
     let o = tinybms_with_input(&["clear-events", &sim.path, "--mode", "direct"], "no\n");
     assert_eq!(o.code, 1, "{o}");

@@ -474,3 +474,188 @@ fn the_monitor_shows_what_the_inverter_is_told() {
     assert_eq!(at("cvl_v"), "56.8", "{text}");
     assert_eq!(at("can_state"), "running", "{text}");
 }
+
+/// Issue 26, item 16: in direct mode the tool's own bridge runs with a record
+/// the tool chose (streaming off); `tinybms log` printed "config: stream_period
+/// = off" and "config saved to flash" as if the owner had changed something.
+#[test]
+fn direct_mode_log_says_nothing_of_a_configuration_it_set_itself() {
+    let sim = Sim::start(&["--pty"]);
+    let o = tinybms(&["log", &sim.path, "--duration", "3s"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("BMS hardware"), "{o}");
+    for l in o.stdout.lines() {
+        assert!(!l.contains("config"), "{l}\n{o}");
+    }
+}
+
+/// Issue 26, item 16: `config --save FILE` printed the whole table before
+/// saying it saved; in the file, the comments after the values did not line
+/// up (names of different lengths shifted them).
+#[test]
+fn config_save_prints_no_table_and_its_comments_line_up() {
+    let sim = Sim::start(&["--bridge-pty"]);
+    let file = tmp("bridge-config.txt");
+    let o = tinybms(&["config", &sim.path, "--save", file.to_str().unwrap()]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("saved "), "{o}");
+    assert!(!o.stdout.contains("inverter_protocol"), "the table: {o}");
+    assert_eq!(o.stdout.lines().count(), 1, "{o}");
+    let text = std::fs::read_to_string(&file).unwrap();
+    let columns: Vec<(usize, &str)> = text
+        .lines()
+        .filter(|l| !l.starts_with('#') && l.contains('='))
+        // In characters: `°C` is two bytes, one column.
+        .map(|l| (l[..l.find(" # ").unwrap_or(0)].chars().count(), l))
+        .collect();
+    assert!(columns.len() > 20, "{text}");
+    let first = columns[0].0;
+    for (c, l) in &columns {
+        assert_eq!(*c, first, "`{l}`\n{text}");
+        assert_eq!(l.find(" = "), columns[0].1.find(" = "), "`{l}`\n{text}");
+    }
+}
+
+/// Issue 26, item 16: the `settings` header started at column 0 while its
+/// rows are indented under their group: every column was off by two.
+#[test]
+fn the_settings_header_lines_up_with_its_rows() {
+    let sim = Sim::start(&["--pty"]);
+    let o = tinybms(&["settings", &sim.path]);
+    assert_eq!(o.code, 0, "{o}");
+    let header = o
+        .stdout
+        .lines()
+        .find(|l| l.contains("Rev D range"))
+        .unwrap();
+    let row = o
+        .stdout
+        .lines()
+        .find(|l| l.contains("fully_charged_voltage"))
+        .unwrap();
+    assert_eq!(
+        header.find("name"),
+        row.find("fully_charged_voltage"),
+        "{header}\n{row}"
+    );
+    assert_eq!(header.find("value"), row.find("3.65 V"), "{header}\n{row}");
+    // `raw` is right-aligned over the raw values.
+    assert_eq!(
+        header.find("raw").map(|i| i + 3),
+        row.find("3650").map(|i| i + 4),
+        "{header}\n{row}"
+    );
+}
+
+/// Issue 26, item 16: `stats` printed the JSON keys (`over_heat_count`,
+/// `stats_cleared_at_s  1877000`) — a BMS timestamp shown as if a counter.
+/// Now words with units, and when the statistics were cleared as a time ago.
+#[test]
+fn stats_are_in_words_and_the_clearing_is_a_time_ago() {
+    let sim = Sim::start(&["--pty"]);
+    let o = tinybms(&["stats", &sim.path]);
+    assert_eq!(o.code, 0, "{o}");
+    for raw in ["_count", "stats_cleared_at_s", "_a ", "_c ", "_km"] {
+        assert!(!o.stdout.contains(raw), "{raw}: {o}");
+    }
+    assert!(o.stdout.contains(" A\n"), "{o}");
+    assert!(o.stdout.contains(" °C\n"), "{o}");
+    let cleared = o
+        .stdout
+        .lines()
+        .find(|l| l.starts_with("statistics cleared"))
+        .unwrap_or_else(|| panic!("{o}"));
+    // The simulated BMS cleared them 2,000,000 s before its clock at start:
+    // 23 days.
+    assert!(cleared.contains(" ago (BMS time "), "{cleared}");
+    assert!(cleared.contains("23 d "), "{cleared}");
+    // --json keeps the keys.
+    let o = tinybms(&["stats", &sim.path, "--json"]);
+    assert!(o.stdout.contains("\"stats_cleared_at_s\":"), "{o}");
+}
+
+/// Issue 26, item 16: docs/inverters.md replays a CAN log on `vcan0`, which
+/// does not exist until it is made: the set-up lines come first.
+#[test]
+fn the_canplayer_step_sets_up_vcan0_first() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let doc = std::fs::read_to_string(root.join("docs/inverters.md")).unwrap();
+    let player = doc.find("canplayer").expect("the canplayer step");
+    let mut at = 0;
+    for line in [
+        "sudo modprobe vcan",
+        "sudo ip link add dev vcan0 type vcan",
+        "sudo ip link set up vcan0",
+    ] {
+        let i = doc.find(line).unwrap_or_else(|| panic!("{line}"));
+        assert!(i > at && i < player, "{line} before canplayer");
+        at = i;
+    }
+}
+
+/// Issue 26, item 8: the boot lines — the image and its board, the CAN
+/// output, the host link's wire, the UART to the BMS — went to the chip's
+/// defmt log only, and `tinybms log` keeps the latest 4 lines: it started at
+/// "BMS hardware …". Now the host link keeps them from boot and gives them
+/// to every host after its hello, however late it connects.
+#[test]
+fn log_shows_the_boot_lines_to_a_host_that_connects_late() {
+    let sim = Sim::start(&["--bridge-pty"]);
+    // Long enough for many more than four log lines.
+    std::thread::sleep(Duration::from_secs(4));
+    let o = tinybms(&["log", &sim.path, "--duration", "2s"]);
+    assert_eq!(o.code, 0, "{o}");
+    let lines: Vec<&str> = o.stdout.lines().collect();
+    for (i, start) in [
+        "tinybms-firmware ",
+        "CAN to the inverter: Victron, 500 kbit/s",
+        "host link on ",
+        "UART1 115200 8N1 to the BMS",
+        "settings profile empty: nothing written",
+    ]
+    .iter()
+    .enumerate()
+    {
+        let l = lines.get(i).unwrap_or(&"");
+        assert!(l.starts_with("at boot     "), "{l}\n{o}");
+        assert!(l.contains(&format!("  info  {start}")), "{start}\n{o}");
+    }
+    assert!(o.stdout.contains("on simulated (sim)"), "{o}");
+}
+
+/// Issue 26, item 8: `hello` says where the bridge's configuration store
+/// lives (flash size, `nvs` partition); `tinybms version` left it out.
+#[test]
+fn version_names_where_the_bridge_keeps_its_configuration() {
+    let sim = Sim::start(&["--bridge-pty"]);
+    let o = tinybms(&["version", &sim.path]);
+    assert_eq!(o.code, 0, "{o}");
+    let store = o
+        .stdout
+        .lines()
+        .find(|l| l.trim_start().starts_with("store "))
+        .unwrap_or_else(|| panic!("{o}"));
+    assert!(
+        store.ends_with("flash 4096 KiB, nvs partition at 0x9000, 24 KiB (the store needs 8 KiB)"),
+        "{store}"
+    );
+    let o = tinybms(&["version", &sim.path, "--json"]);
+    let v: serde_json::Value = serde_json::from_str(o.stdout.trim()).unwrap();
+    assert_eq!(v["bridge"]["store"]["partition_offset"], 0x9000, "{o}");
+}
+
+/// Issue 26, "a friendly pack name": with `pack_name` set, `monitor`'s
+/// header names the pack (with two packs the port was all it said).
+#[test]
+fn the_monitor_names_the_pack_when_it_has_a_name() {
+    let sim = Sim::start(&["--bridge-pty", "--config", "pack_name=Garage east"]);
+    let o = tinybms(&["monitor", &sim.path, "--plain", "--count", "1"]);
+    assert_eq!(o.code, 0, "{o}");
+    let first = o.stdout.lines().next().unwrap_or("");
+    assert!(first.contains("“Garage east”"), "{first}\n{o}");
+    // Without a name, no name.
+    let sim = Sim::start(&["--bridge-pty"]);
+    let o = tinybms(&["monitor", &sim.path, "--plain", "--count", "1"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(!o.stdout.lines().next().unwrap_or("").contains('“'), "{o}");
+}

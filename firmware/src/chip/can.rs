@@ -11,7 +11,6 @@
 //! the task bounds it with [`CAN_TX_TIMEOUT`] anyway, so a bus nobody
 //! acknowledges costs the station nothing: it never waits on this task.
 
-use defmt::info;
 use embassy_executor::Spawner;
 use embassy_futures::select::{select, Either};
 use embassy_time::{with_timeout, Duration, Instant, Timer};
@@ -22,7 +21,8 @@ use esp_hal::twai::{
 };
 use esp_hal::Async;
 use tinybms_firmware::inverter::frames::CanFrame;
-use tinybms_firmware::inverter::{InverterConfig, Protocol};
+use tinybms_firmware::inverter::InverterConfig;
+use tinybms_firmware::text::Boot;
 
 use crate::wires::{self, CanCommand, CanDone};
 use crate::{spawn, BOARD};
@@ -38,11 +38,11 @@ const CAN_RECOVERY_POLL: Duration = Duration::from_millis(10);
 
 /// TWAI (CAN) to the inverter, on the board's CAN pins, 500 kbit/s, unless
 /// the configuration has the output off (then the pins stay untouched and
-/// the station's output, off too, never hands out a frame).
-pub fn start(spawner: Spawner, twai0: TWAI0<'static>, config: &InverterConfig) {
+/// the station's output, off too, never hands out a frame). Returns its boot
+/// line.
+pub fn start(spawner: Spawner, twai0: TWAI0<'static>, config: &InverterConfig) -> Boot {
     if !config.enabled {
-        info!("CAN to the inverter off (can_output = off)");
-        return;
+        return Boot::CanOff;
     }
     // SAFETY: as for the UART pins: used nowhere else, checked distinct and
     // not flash/USB/UART0/strapping pins by the board table.
@@ -50,22 +50,12 @@ pub fn start(spawner: Spawner, twai0: TWAI0<'static>, config: &InverterConfig) {
     let twai = TwaiConfiguration::new(twai0, can_rx, can_tx, CAN_BAUDRATE, TwaiMode::Normal)
         .into_async()
         .start();
-    info!(
-        "CAN to the inverter: {=str}, 500 kbit/s, TX=GPIO{=u8} RX=GPIO{=u8}",
-        match config.protocol {
-            Protocol::Victron => "Victron",
-            Protocol::SmaSunnyIsland => "SMA Sunny Island",
-        },
-        BOARD.can_tx,
-        BOARD.can_rx,
-    );
-    if config.node != 0 {
-        info!(
-            "CAN: pack node {=u8} of packs in parallel (summaries on 0x6A0-0x6BF; node 1 speaks first)",
-            config.node
-        );
-    }
     spawn(spawner, can_task(twai));
+    Boot::Can {
+        protocol: config.protocol,
+        pins: Some((BOARD.can_tx, BOARD.can_rx)),
+        node: config.node,
+    }
 }
 
 /// Tells the station, and wakes it.

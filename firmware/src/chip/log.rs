@@ -5,7 +5,7 @@
 
 use defmt::{info, warn};
 use tinybms_firmware::station::{Logged, Station};
-use tinybms_firmware::text::Line;
+use tinybms_firmware::text::{Boot, Line};
 use tinybms_firmware::Level;
 
 fn print(level: Level, line: &Line) {
@@ -20,6 +20,13 @@ pub fn logged(station: &Station, item: &Logged) {
     let mut out = Line::new();
     station.log_text(item, &mut out);
     print(item.level(), &out);
+}
+
+/// A line of the boot (image, CAN, host link, UART, profile): logged, and
+/// kept by the host link for every host after its `hello`.
+pub fn boot(station: &mut Station, line: &Boot) {
+    let (level, out) = station.boot_line(line);
+    print(level, &out);
 }
 
 /// A line of another task: logged, and handed to the host link.

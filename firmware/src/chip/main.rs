@@ -58,7 +58,6 @@ mod usb;
 mod wifi;
 mod wires;
 
-use defmt::info;
 #[cfg(feature = "log-rtt")]
 use defmt_rtt as _; // defmt global logger: RTT
 use embassy_executor::{SpawnError, SpawnToken, Spawner};
@@ -70,6 +69,7 @@ use esp_println as _; // defmt global logger: UART0, espflash's defmt framing
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::boards::{self, Board, Chip, LogPath};
 use tinybms_firmware::station::{Setup, Station};
+use tinybms_firmware::text::Boot;
 
 // ESP-IDF 2nd-stage bootloader requires an application descriptor in the image.
 esp_bootloader_esp_idf::esp_app_desc!();
@@ -143,17 +143,6 @@ async fn main(spawner: Spawner) {
     wdt.set_timeout(MwdtStage::Stage0, WDT_TIMEOUT);
     wdt.enable();
 
-    info!(
-        "tinybms-firmware {=str} on {=str} ({=str}), logs over {=str}",
-        tinybms_firmware::identity::FIRMWARE,
-        BOARD.name,
-        BOARD.chip.name(),
-        match LOG_PATH {
-            LogPath::Rtt => "RTT",
-            LogPath::Uart0 => "UART0",
-        }
-    );
-
     // esp-rtos: TIMG0 timer0 as time base + FROM_CPU_INTR0 software interrupt.
     esp_rtos::start(timg0.timer0, p.FROM_CPU_INTR0);
     esp_rtos::CurrentThreadHandle::get().set_priority(MAIN_PRIORITY);
@@ -177,11 +166,19 @@ async fn main(spawner: Spawner) {
     station.set_store_site(site);
     #[cfg(not(feature = "store"))]
     let _ = site;
+    // The boot lines go to defmt and stay in the host link for every host
+    // (`tinybms log PORT` shows them however late it connects).
+    log::boot(
+        station,
+        &Boot::Image {
+            log: Some(LOG_PATH),
+        },
+    );
     let running = station.config().running();
 
     #[cfg(feature = "can")]
-    can::start(spawner, p.TWAI0, &running.inverter());
-    usb::start(spawner, p.USB_DEVICE, p.UART0, running);
+    let can = can::start(spawner, p.TWAI0, &running.inverter());
+    let host = usb::start(spawner, p.USB_DEVICE, p.UART0, running);
     #[cfg(feature = "host-link")]
     button::start(spawner);
     #[cfg(feature = "wifi")]
@@ -189,6 +186,11 @@ async fn main(spawner: Spawner) {
     #[cfg(not(feature = "wifi"))]
     let name: Option<heapless::String<32>> =
         (!running.hostname.is_empty()).then(|| running.hostname.clone());
+    #[cfg(feature = "can")]
+    log::boot(station, &can);
+    if let Some(host) = host {
+        log::boot(station, &host);
+    }
     if let Some(name) = name {
         station.set_network_name(&name);
     }

@@ -6,7 +6,7 @@
 //! wake time, a byte from the BMS, a byte from the host or anything a pump
 //! queued.
 
-use defmt::{info, warn};
+use defmt::warn;
 use embassy_executor::Spawner;
 use embassy_futures::select::{select4, Either4};
 use embassy_time::{Duration, Instant, Timer};
@@ -17,6 +17,7 @@ use esp_hal::uart::{Config as UartConfig, RxConfig, RxError, Uart, UartRx, UartT
 use esp_hal::Async;
 use tinybms_firmware::bms::profile;
 use tinybms_firmware::station::{Action, Station};
+use tinybms_firmware::text::Boot;
 
 use crate::{log, now_us, spawn, store, wires, BOARD};
 
@@ -61,10 +62,15 @@ pub fn start(
         .with_rx(rx_pin)
         .into_async();
     let (rx, tx) = uart.split();
-    info!(
-        "UART1 {=u32} 8N1 to the BMS: TX=GPIO{=u8} RX=GPIO{=u8} (rx fifo threshold {=u16})",
-        BMS_BAUDRATE, BOARD.bms_tx, BOARD.bms_rx, RX_FIFO_FULL_THRESHOLD,
+    log::boot(
+        station,
+        &Boot::Uart {
+            baud: BMS_BAUDRATE,
+            pins: Some((BOARD.bms_tx, BOARD.bms_rx, RX_FIFO_FULL_THRESHOLD)),
+        },
     );
+    // Before the task's first poll: the profile's boot line is kept too.
+    submit_profile(station);
     spawn(spawner, station_task(rx, tx, wdt, station, store));
 }
 
@@ -109,7 +115,6 @@ async fn station_task(
     station: &'static mut Station,
     mut store: Option<store::ChipStore>,
 ) {
-    submit_profile(station);
     let mut rx_errors = RxErrors {
         count: 0,
         last: None,
@@ -297,6 +302,10 @@ impl Pumps {
                     wires::WifiDone::Link(l) => station.wifi_link(l),
                 }
             }
+            #[cfg(feature = "wifi")]
+            if let Some(rssi) = wires::WIFI_RSSI.try_take() {
+                station.wifi_rssi(rssi);
+            }
         }
         #[cfg(not(any(feature = "host-link", feature = "can")))]
         let _ = station;
@@ -363,12 +372,13 @@ const STARTUP_PROFILE: profile::Profile<{ profile::MAX_PROFILE_ENTRIES }> =
 
 /// Queues the start-up profile: every assignment.
 fn submit_profile(station: &mut Station) {
-    if STARTUP_PROFILE.is_empty() {
-        info!("settings profile empty: nothing written");
-    } else {
-        info!("settings profile: {=usize} settings", STARTUP_PROFILE.len());
-        if station.submit_profile(STARTUP_PROFILE.as_slice()).is_err() {
-            warn!("settings profile too long for the command queue");
-        }
-    }
+    let queued =
+        STARTUP_PROFILE.is_empty() || station.submit_profile(STARTUP_PROFILE.as_slice()).is_ok();
+    log::boot(
+        station,
+        &Boot::Profile {
+            settings: STARTUP_PROFILE.len(),
+            queued,
+        },
+    );
 }

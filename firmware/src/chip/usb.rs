@@ -33,7 +33,6 @@ pub use on::*;
 
 #[cfg(feature = "host-link")]
 mod on {
-    use defmt::info;
     use embassy_executor::Spawner;
     use embassy_time::{with_deadline, with_timeout, Duration, Instant, Timer};
     use esp_hal::gpio::AnyPin;
@@ -44,6 +43,7 @@ mod on {
     use tinybms_firmware::boards::{Chip, HostWire};
     use tinybms_firmware::config::Config;
     use tinybms_firmware::host_link::writer::{LineWriter, Start};
+    use tinybms_firmware::text::Boot;
 
     use crate::{now_us, spawn, wires, BOARD};
 
@@ -60,17 +60,7 @@ mod on {
         usb: USB_DEVICE<'static>,
         uart0: UART0<'static>,
         config: &Config,
-    ) {
-        info!(
-            "host link on {=str}: {=str}, telemetry every {=u32} ms",
-            BOARD.host.name(),
-            if config.read_only {
-                "read-only"
-            } else {
-                "read-write"
-            },
-            config.stream_period_ms
-        );
+    ) -> Option<Boot> {
         match BOARD.host {
             HostWire::UsbSerialJtag => {
                 let (usb_rx, usb_tx) = UsbSerialJtag::new(usb).into_async().split();
@@ -101,6 +91,11 @@ mod on {
                 }
             }
         }
+        Some(Boot::HostLink {
+            wire: Some(BOARD.host),
+            read_only: config.read_only,
+            stream_period_ms: config.stream_period_ms,
+        })
     }
 
     /// Bytes the writers take from the pipe at once.
@@ -296,6 +291,13 @@ mod off {
     use esp_hal::peripherals::{UART0, USB_DEVICE};
     use tinybms_firmware::config::Config;
 
-    /// Nothing to start.
-    pub fn start(_: Spawner, _: USB_DEVICE<'static>, _: UART0<'static>, _: &Config) {}
+    /// Nothing to start, no boot line.
+    pub fn start(
+        _: Spawner,
+        _: USB_DEVICE<'static>,
+        _: UART0<'static>,
+        _: &Config,
+    ) -> Option<tinybms_firmware::text::Boot> {
+        None
+    }
 }

@@ -19,7 +19,7 @@
 
 use defmt::{info, warn};
 use embassy_executor::Spawner;
-use embassy_futures::select::{select, Either};
+use embassy_futures::select::{select, select3, Either, Either3};
 use embassy_net::tcp::client::{TcpClient, TcpClientState};
 use embassy_net::{DhcpConfig, Runner, Stack, StackResources};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
@@ -55,6 +55,9 @@ const HEAP_MORE: usize = 36 * 1024;
 
 /// TCP buffers of the MQTT connection, bytes each way.
 const TCP_BUFFER: usize = 2048;
+
+/// How often the access point's signal (RSSI) is read while joined.
+const RSSI_PERIOD: Duration = Duration::from_secs(10);
 
 /// Wi-Fi reconnect delays: the first, and the longest (doubling between).
 const WIFI_BACKOFF_MIN: Duration = Duration::from_secs(1);
@@ -366,16 +369,23 @@ async fn wifi_task(
 ) {
     let mut backoff = WIFI_BACKOFF_MIN;
     let mut connected = false;
+    // When the link came up (the backoff starts over after a long one).
+    let mut up = Instant::now();
     loop {
         if connected {
-            let up = Instant::now();
-            match select(
+            // The signal now and every RSSI_PERIOD until the link drops.
+            // `wait_for_disconnect_async` returns at once when the station is
+            // no longer connected, so a disconnect between two waits is not
+            // missed.
+            hand_rssi(&controller);
+            match select3(
                 controller.wait_for_disconnect_async(),
                 wires::WIFI_REQUEST.receive(),
+                Timer::after(RSSI_PERIOD),
             )
             .await
             {
-                Either::First(d) => {
+                Either3::First(d) => {
                     match d {
                         Ok(d) => {
                             warn!("Wi-Fi down: {}", d.reason);
@@ -386,15 +396,18 @@ async fn wifi_task(
                             say(Level::Warn, &["Wi-Fi down"]);
                         }
                     }
+                    wires::WIFI_RSSI.signal(None);
                     tell(wires::WifiDone::Link(WifiLink::Down));
                     connected = false;
                     if up.elapsed() > WIFI_BACKOFF_MAX {
                         backoff = WIFI_BACKOFF_MIN;
                     }
                 }
-                Either::Second(req) => {
+                Either3::Second(req) => {
                     connected = serve(req, &mut controller, stack, &mut current, true).await;
+                    up = Instant::now();
                 }
+                Either3::Third(()) => {}
             }
             continue;
         }
@@ -402,6 +415,7 @@ async fn wifi_task(
             tell(wires::WifiDone::Link(WifiLink::Off));
             let req = wires::WIFI_REQUEST.receive().await;
             connected = serve(req, &mut controller, stack, &mut current, false).await;
+            up = Instant::now();
             continue;
         };
         tell(wires::WifiDone::Link(WifiLink::Down));
@@ -416,6 +430,7 @@ async fn wifi_task(
         match select(join(&mut controller, stack), wires::WIFI_REQUEST.receive()).await {
             Either::First(Ok(ip)) => {
                 connected = true;
+                up = Instant::now();
                 tell(wires::WifiDone::Link(WifiLink::Up(ip)));
             }
             Either::First(Err(f)) => {
@@ -435,6 +450,7 @@ async fn wifi_task(
                     select(Timer::after(backoff), wires::WIFI_REQUEST.receive()).await
                 {
                     connected = serve(req, &mut controller, stack, &mut current, false).await;
+                    up = Instant::now();
                 }
                 backoff = (backoff * 2).min(WIFI_BACKOFF_MAX);
             }
@@ -442,9 +458,23 @@ async fn wifi_task(
                 // A join under way is cancelled (the request is newer).
                 let _ = controller.disconnect_async().await;
                 connected = serve(req, &mut controller, stack, &mut current, false).await;
+                up = Instant::now();
             }
         }
     }
+}
+
+/// The access point's signal, from its last beacon, to the station (what
+/// MQTT publishes as the Wi-Fi signal diagnostic); `None` when the driver
+/// cannot say.
+fn hand_rssi(controller: &WifiController<'static>) {
+    let rssi = controller
+        .rssi()
+        .ok()
+        .and_then(|r| i8::try_from(r).ok())
+        .filter(|r| *r < 0);
+    wires::WIFI_RSSI.signal(rssi);
+    wires::wake();
 }
 
 #[embassy_executor::task]

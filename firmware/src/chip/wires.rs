@@ -132,6 +132,12 @@ mod mqtt {
     /// The Wi-Fi task → the station task; when full, a link change is lost
     /// (the next one says it again).
     pub static WIFI_DONE: Channel<Raw, WifiDone, 4> = Channel::new();
+
+    /// The access point's signal, dBm, while joined (`None`: not joined or
+    /// not read): the Wi-Fi task → the station task, for what MQTT
+    /// publishes; latest wins.
+    pub static WIFI_RSSI: embassy_sync::signal::Signal<Raw, Option<i8>> =
+        embassy_sync::signal::Signal::new();
 }
 
 /// Lines for the host the writer dropped on the wire since the station last

@@ -2,7 +2,7 @@
 //!
 //! ```text
 //! 0   2   'T' 'C'           magic
-//! 2   1   VERSION           layout version (super::VERSION; 1 is read too)
+//! 2   1   VERSION           layout version (super::VERSION; 1 and 2 are read too)
 //! 3   1   N                 fields that follow
 //! 4   ..  N × (tag, len, value)
 //!           tag   1         the field's stable number (Field::tag)
@@ -15,7 +15,7 @@
 //! given once, every length right for its kind, every value within its field's
 //! range, every field of the version present, nothing after the last, and the
 //! rules between fields ([`Config::validate`]). A record of an older version
-//! (1) holds the fields of that version only; those added since
+//! (1, 2) holds the fields of that version only; those added since
 //! ([`introduced`]) take their defaults, so an update keeps the owner's
 //! configuration. Any of these failing is a
 //! [`DecodeError`] and the bridge runs with the defaults. (`sequential-storage`
@@ -28,14 +28,15 @@ use super::{Config, FieldId, Kind, FIELDS, VERSION};
 /// The record's first two bytes.
 pub const MAGIC: [u8; 2] = *b"TC";
 
-/// Longest encoded record, bytes (every text field at its longest: 560).
+/// Longest encoded record, bytes (every text field at its longest: 586).
 pub const RECORD_MAX: usize = 640;
 
 /// The layout version that added the field stored under `tag` (version 2:
-/// `pack_node`).
+/// `pack_node`; version 3: `pack_name`).
 pub const fn introduced(tag: u8) -> u8 {
     match tag {
         6 => 2,
+        71 => 3,
         _ => 1,
     }
 }

@@ -46,7 +46,7 @@ pub use value::{FieldError, Value};
 /// version is read with the fields added since at their defaults
 /// ([`codec::introduced`]); one of a newer version is not read: the bridge
 /// runs with the defaults and says so.
-pub const VERSION: u8 = 2;
+pub const VERSION: u8 = 3;
 
 /// When a change of a field takes effect.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -302,6 +302,8 @@ fields! {
         "Home Assistant's discovery prefix.";
     PublishPeriod = 70, "publish_period", "s", Network, Restart, num(1, 3600, 0),
         "How often the state is published (and at once on a status change).";
+    PackName = 71, "pack_name", "", Network, Restart, text(24, TextRule::Printable),
+        "The pack's name: its device in Home Assistant and `tinybms monitor`'s header; empty = TinyBMS and the end of the BMS's serial.";
 }
 
 impl FieldId {
@@ -425,6 +427,8 @@ pub struct Config {
     pub discovery_prefix: String<32>,
     /// `publish_period`, s.
     pub publish_period_s: u16,
+    /// `pack_name` (empty: none).
+    pub pack_name: String<24>,
 }
 
 /// `s` as a heapless string (a default's text always fits its field).
@@ -481,6 +485,7 @@ impl Default for Config {
             discovery: true,
             discovery_prefix: fixed_text("homeassistant"),
             publish_period_s: 5,
+            pack_name: String::new(),
         }
     }
 }
@@ -553,6 +558,7 @@ impl Config {
             Discovery => Value::Bool(self.discovery),
             DiscoveryPrefix => Value::Text(&self.discovery_prefix),
             PublishPeriod => n(self.publish_period_s.into()),
+            PackName => Value::Text(&self.pack_name),
         }
     }
 
@@ -625,6 +631,7 @@ impl Config {
             (DiscoveryPrefix, Value::Text(s)) => {
                 text(s, &mut |s| set_text(&mut self.discovery_prefix, s))?
             }
+            (PackName, Value::Text(s)) => text(s, &mut |s| set_text(&mut self.pack_name, s))?,
             _ => return Err(FieldError::WRONG_KIND),
         }
         Ok(())

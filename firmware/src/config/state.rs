@@ -113,6 +113,16 @@ impl ConfigState {
         }
     }
 
+    /// Starts with a record the program that runs the bridge chose itself
+    /// (the desktop tool's direct mode: no bridge of its own, nothing
+    /// stored): the log says nothing about a configuration, since the owner
+    /// set none.
+    pub fn fixed(config: Config) -> Self {
+        let mut s = Self::new(config, Source::Empty);
+        s.notes.clear();
+        s
+    }
+
     /// Where the store lives (the chip's flash, its partition): the log and
     /// `hello` name it.
     pub fn set_site(&mut self, site: StoreSite) {

@@ -439,6 +439,8 @@ struct TelemetryFull<'a> {
     can_state: Option<Option<&'static str>>,
     #[serde(skip_serializing_if = "Option::is_none")]
     inverter_heard: Option<Option<bool>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    wifi_rssi_dbm: Option<Option<i8>>,
 }
 
 /// What the MQTT state says besides the host link's telemetry fields.
@@ -467,6 +469,8 @@ pub struct StateExtras<'a> {
     pub can_state: Option<&'static str>,
     /// The inverter is heard, when the CAN output is built in.
     pub inverter_heard: Option<bool>,
+    /// The Wi-Fi signal, dBm (`None`: unknown, published as null).
+    pub wifi_rssi_dbm: Option<i8>,
 }
 
 /// What a `telemetry` line says besides the snapshot.
@@ -609,6 +613,7 @@ pub fn telemetry(
             bridge_firmware: extras.map(|e| e.bridge_firmware),
             can_state: extras.map(|e| e.can_state),
             inverter_heard: extras.map(|e| e.inverter_heard),
+            wifi_rssi_dbm: extras.map(|e| e.wifi_rssi_dbm),
         },
         out,
     )
@@ -832,10 +837,22 @@ struct LogLine<'a> {
     ty: &'static str,
     level: &'static str,
     text: &'a str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    boot: Option<bool>,
 }
 
 /// A `log` line: one of the bridge's own log lines, as its log has it.
 pub fn log(out: &mut [u8], level: crate::Level, text: &str) -> Option<usize> {
+    log_line(out, level, text, false)
+}
+
+/// A `log` line of one of the lines the bridge wrote at boot, replayed after
+/// a `hello` (`"boot":true`).
+pub fn boot_log(out: &mut [u8], level: crate::Level, text: &str) -> Option<usize> {
+    log_line(out, level, text, true)
+}
+
+fn log_line(out: &mut [u8], level: crate::Level, text: &str, boot: bool) -> Option<usize> {
     line(
         &LogLine {
             ty: "log",
@@ -844,6 +861,7 @@ pub fn log(out: &mut [u8], level: crate::Level, text: &str) -> Option<usize> {
                 crate::Level::Warn => "warn",
             },
             text,
+            boot: boot.then_some(true),
         },
         out,
     )

@@ -88,6 +88,12 @@ pub const SUBJECT_MAX: usize = 32;
 /// oldest is dropped and counted (a host that connects sees the latest).
 pub const LOG_QUEUE: usize = 4;
 
+/// Bytes of the boot lines the host link keeps from boot (the chip shell's
+/// first lines: image, CAN, host link, UART, profile — about 400 bytes), for
+/// every host after its `hello`. A line that no longer fits is dropped and
+/// counted in `dropped_lines`.
+pub const BOOT_TEXT: usize = 768;
+
 pub use crate::config::{HostLinkConfig, DEFAULT_STREAM_PERIOD_MS};
 
 /// Error codes of `error` lines (PROTOCOL.md).
@@ -273,6 +279,11 @@ struct State {
     queue: Deque<Out, QUEUE>,
     raw: Deque<(Dir, Vec<u8, RAW_CHUNK>), RAW_QUEUE>,
     logs: Deque<(crate::Level, String<{ crate::text::LINE_MAX }>), LOG_QUEUE>,
+    /// The boot lines, each as its level (`I`, `W`) and text, ended by `\n`.
+    boot: String<BOOT_TEXT>,
+    /// Where the boot lines' replay after a `hello` stands (a byte offset
+    /// into `boot`), while it runs.
+    boot_replay: Option<usize>,
     writes: Vec<(Option<u32>, Setting), PENDING_WRITES>,
     follow_ups: Vec<(Option<u32>, Setting), PENDING_WRITES>,
     resets: Deque<Option<u32>, PENDING_OTHERS>,
@@ -332,6 +343,8 @@ impl HostLink {
                 queue: Deque::new(),
                 raw: Deque::new(),
                 logs: Deque::new(),
+                boot: String::new(),
+                boot_replay: None,
                 writes: Vec::new(),
                 follow_ups: Vec::new(),
                 resets: Deque::new(),
@@ -392,6 +405,7 @@ impl HostLink {
     pub fn has_output(&self) -> bool {
         self.improv.has_output()
             || !self.s.queue.is_empty()
+            || self.s.boot_replay.is_some()
             || self.s.stream_due
             || !self.s.raw.is_empty()
             || !self.s.logs.is_empty()
@@ -412,6 +426,27 @@ impl HostLink {
             self.s.stats.dropped_lines = self.s.stats.dropped_lines.wrapping_add(1);
         }
         let _ = self.s.logs.push_back((level, t));
+    }
+
+    /// A line the bridge wrote at boot (the words of
+    /// [`crate::text::Boot`]): kept from boot and sent to every host right
+    /// after its `hello` as a `log` line with `"boot":true` (the latest
+    /// [`LOG_QUEUE`] log lines alone would have lost it by then). A newline
+    /// in it ends it.
+    pub fn boot_line(&mut self, level: crate::Level, text: &str) {
+        let text = text.split('\n').next().unwrap_or("");
+        let mark = match level {
+            crate::Level::Info => 'I',
+            crate::Level::Warn => 'W',
+        };
+        let b = &mut self.s.boot;
+        if b.len() + text.len() + 2 > BOOT_TEXT {
+            self.s.stats.dropped_lines = self.s.stats.dropped_lines.wrapping_add(1);
+            return;
+        }
+        let _ = b.push(mark);
+        let _ = b.push_str(text);
+        let _ = b.push('\n');
     }
 
     /// Bytes from the host at `now`, in any chunks. Complete lines are parsed and
@@ -557,7 +592,21 @@ impl HostLink {
             return Some(p.len());
         }
         loop {
-            let written = if !self.s.queue.is_empty() {
+            let written = if let Some(at) = self.s.boot_replay {
+                // The boot lines, right after the `hello`.
+                let rest = self.s.boot.get(at..).unwrap_or("");
+                let Some((line, _)) = rest.split_once('\n') else {
+                    self.s.boot_replay = None;
+                    continue;
+                };
+                self.s.boot_replay = Some(at + line.len() + 1);
+                let level = if line.starts_with('W') {
+                    crate::Level::Warn
+                } else {
+                    crate::Level::Info
+                };
+                encode::boot_log(out, level, line.get(1..).unwrap_or(""))
+            } else if !self.s.queue.is_empty() {
                 self.s.encode_front(now, bridge, config, out)
             } else if let Some((level, text)) = self.s.logs.pop_front() {
                 encode::log(out, level, &text)
@@ -1059,22 +1108,26 @@ impl State {
                 }
                 encode::end(out, "events_end", *req, *sent)
             }
-            Out::Hello(req) => encode::hello(
-                out,
-                *req,
-                &encode::HelloFields {
-                    firmware: self.config.firmware,
-                    chip: self.config.chip,
-                    board: self.config.board,
-                    features: self.config.features,
-                    read_only: self.config.read_only,
-                    stream_period_ms: self.stream_period_ms,
-                    dropped_lines: self.stats.dropped_lines,
-                    store: config.site(),
-                    mqtt: self.mqtt,
-                    wifi: self.config.features.wifi.then_some(self.wifi),
-                },
-            ),
+            Out::Hello(req) => {
+                // The boot lines follow it.
+                self.boot_replay = (!self.boot.is_empty()).then_some(0);
+                encode::hello(
+                    out,
+                    *req,
+                    &encode::HelloFields {
+                        firmware: self.config.firmware,
+                        chip: self.config.chip,
+                        board: self.config.board,
+                        features: self.config.features,
+                        read_only: self.config.read_only,
+                        stream_period_ms: self.stream_period_ms,
+                        dropped_lines: self.stats.dropped_lines,
+                        store: config.site(),
+                        mqtt: self.mqtt,
+                        wifi: self.config.features.wifi.then_some(self.wifi),
+                    },
+                )
+            }
             Out::Telemetry(req) => telemetry(now, bridge, *req, self, out),
             Out::Error {
                 req,

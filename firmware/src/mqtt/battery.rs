@@ -174,7 +174,12 @@ pub fn config_topic(out: &mut String<TOPIC_MAX>, s: &Settings, e: &Entity) -> bo
 
 /// Writes the discovery config of the battery's entity `e` into `out`; its
 /// length (`None` when it does not fit).
-pub fn config(out: &mut [u8], s: &Settings, bridge_version: &str, e: &Entity) -> Option<usize> {
+pub fn config(
+    out: &mut [u8],
+    s: &Settings,
+    bridge: &crate::identity::Identity,
+    e: &Entity,
+) -> Option<usize> {
     let id = device_id(s);
     let mut unique: String<72> = String::new();
     unique.push_str(&id).ok()?;
@@ -184,6 +189,8 @@ pub fn config(out: &mut [u8], s: &Settings, bridge_version: &str, e: &Entity) ->
     if !state_topic(&mut state, s) {
         return None;
     }
+    // The battery is the bridges' own device: its versions are the bridge's.
+    let (sw, hw) = discovery::bridge_versions(bridge, "", "");
     discovery::write(
         out,
         e,
@@ -198,10 +205,10 @@ pub fn config(out: &mut [u8], s: &Settings, bridge_version: &str, e: &Entity) ->
             name: "TinyBMS battery",
             manufacturer: super::MANUFACTURER,
             model: "TinyBMS packs in parallel",
-            hw_version: None,
-            sw_version: bridge_version,
+            hw_version: Some(&hw),
+            sw_version: &sw,
             serial_number: None,
         },
-        bridge_version,
+        &discovery::bridge_version(),
     )
 }

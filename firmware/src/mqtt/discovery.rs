@@ -378,6 +378,14 @@ pub const ENTITIES: &[Entity] = &[
         category: None,
         options: None,
     }),
+    diagnostic(sensor(
+        "wifi_signal",
+        "Wi-Fi signal",
+        Some("signal_strength"),
+        Some("dBm"),
+        Read::Nullable("wifi_rssi_dbm"),
+        0,
+    )),
     Entity {
         object: "events",
         name: "BMS event",
@@ -472,8 +480,61 @@ pub fn config_topic(out: &mut String<TOPIC_MAX>, s: &Settings, id: &Identity, e:
 pub struct DeviceInfo<'a> {
     /// The BMS.
     pub id: &'a Identity,
-    /// This firmware's version.
-    pub bridge_version: &'a str,
+    /// The bridge that publishes it (its board and chip; its firmware and
+    /// build are [`crate::identity::FIRMWARE`] and [`crate::identity::BUILD`]).
+    pub bridge: &'a crate::identity::Identity,
+}
+
+/// The name of the bridge's firmware in Home Assistant (the `origin` of
+/// every discovery config, and the device's versions).
+pub const ORIGIN: &str = "tinybms-esp32";
+
+/// Appends `parts` to `s`, as much as fits (a character is never cut).
+pub(crate) fn push_all<const N: usize>(s: &mut String<N>, parts: &[&str]) {
+    for p in parts {
+        for c in p.chars() {
+            if s.push(c).is_err() {
+                return;
+            }
+        }
+    }
+}
+
+/// The bridge's firmware and build: `0.1.0 (build v0.1.0-3-gabc1234)`.
+pub fn bridge_version() -> String<72> {
+    let mut s = String::new();
+    push_all(
+        &mut s,
+        &[
+            crate::identity::FIRMWARE,
+            " (build ",
+            crate::identity::BUILD,
+            ")",
+        ],
+    );
+    s
+}
+
+/// What a device's versions say of the bridge that publishes it: its
+/// software (`bridge: tinybms-esp32 0.1.0 (build …)`) and its hardware
+/// (`bridge: ESP32-C3 SuperMini (esp32c3)`), after `bms_sw` / `bms_hw`, the
+/// BMS's own, when there is one.
+pub fn bridge_versions(
+    bridge: &crate::identity::Identity,
+    bms_sw: &str,
+    bms_hw: &str,
+) -> (String<128>, String<96>) {
+    let mut sw = String::new();
+    let mut hw = String::new();
+    if !bms_sw.is_empty() {
+        push_all(&mut sw, &["BMS ", bms_sw, ", "]);
+    }
+    if !bms_hw.is_empty() {
+        push_all(&mut hw, &["BMS ", bms_hw, ", "]);
+    }
+    push_all(&mut sw, &["bridge: ", ORIGIN, " ", &bridge_version()]);
+    push_all(&mut hw, &["bridge: ", bridge.board, " (", bridge.chip, ")"]);
+    (sw, hw)
 }
 
 /// A device block: the pack's (a BMS, with its serial) or the battery's.
@@ -624,6 +685,7 @@ pub fn write(
     device: Device<'_>,
     origin_version: &str,
 ) -> Option<usize> {
+    // `origin_version`: the bridge's firmware and build ([`bridge_version`]).
     let template = value_template(e.read);
     // A member that can be null makes the entity unavailable while it is.
     let presence = match e.read {
@@ -661,7 +723,7 @@ pub fn write(
         availability_mode: (conditions.len() > 1).then_some("all"),
         device,
         origin: Origin {
-            name: "tinybms-esp32",
+            name: ORIGIN,
             sw_version: origin_version,
         },
     };
@@ -688,19 +750,26 @@ pub fn config(out: &mut [u8], s: &Settings, info: &DeviceInfo<'_>, e: &Entity) -
         return None;
     }
     let serial = id.serial_hex();
+    // The owner's name for the pack, else TinyBMS and the serial's end.
     let mut name: String<40> = String::new();
-    name.push_str("TinyBMS ").ok()?;
-    name.push_str(serial.get(serial.len().saturating_sub(6)..).unwrap_or(""))
-        .ok()?;
-    let mut hw: String<8> = String::new();
-    push_u32(&mut hw, u32::from(id.hardware.0));
-    let _ = hw.push('.');
-    push_u32(&mut hw, u32::from(id.hardware.1));
-    let mut sw: String<24> = String::new();
-    push_u32(&mut sw, u32::from(id.firmware.0));
-    let _ = sw.push_str(" (");
-    push_u32(&mut sw, u32::from(id.firmware.1));
-    let _ = sw.push(')');
+    if s.pack_name.is_empty() {
+        name.push_str("TinyBMS ").ok()?;
+        name.push_str(serial.get(serial.len().saturating_sub(6)..).unwrap_or(""))
+            .ok()?;
+    } else {
+        name.push_str(&s.pack_name).ok()?;
+    }
+    let mut bms_hw: String<8> = String::new();
+    push_u32(&mut bms_hw, u32::from(id.hardware.0));
+    let _ = bms_hw.push('.');
+    push_u32(&mut bms_hw, u32::from(id.hardware.1));
+    let mut bms_sw: String<24> = String::new();
+    push_u32(&mut bms_sw, u32::from(id.firmware.0));
+    let _ = bms_sw.push_str(" (");
+    push_u32(&mut bms_sw, u32::from(id.firmware.1));
+    let _ = bms_sw.push(')');
+    // The device is the BMS; its versions name the bridge too.
+    let (sw, hw) = bridge_versions(info.bridge, &bms_sw, &bms_hw);
     write(
         out,
         e,
@@ -719,7 +788,7 @@ pub fn config(out: &mut [u8], s: &Settings, info: &DeviceInfo<'_>, e: &Entity) -
             sw_version: &sw,
             serial_number: Some(&serial),
         },
-        info.bridge_version,
+        &bridge_version(),
     )
 }
 

@@ -116,6 +116,9 @@ pub struct Settings {
     pub discovery_prefix: String<32>,
     /// State period, µs.
     pub publish_period_us: Instant,
+    /// The pack's device name (`pack_name`; empty: `TinyBMS` and the end of
+    /// the serial).
+    pub pack_name: String<24>,
 }
 
 /// Entities expire after this many publish periods without a state (Home
@@ -166,6 +169,7 @@ impl Settings {
             discovery: c.discovery,
             discovery_prefix: c.discovery_prefix.clone(),
             publish_period_us: Instant::from(c.publish_period_s) * crate::SECOND,
+            pack_name: c.pack_name.clone(),
         }
     }
 }

@@ -57,6 +57,8 @@ pub struct View<'a> {
     pub capacity_cah: Option<u16>,
     /// The inverter output, when built in.
     pub inverter: Option<InverterStatus>,
+    /// The Wi-Fi signal, dBm (`None`: unknown).
+    pub wifi_rssi_dbm: Option<i8>,
 }
 
 impl<'a> View<'a> {
@@ -76,6 +78,7 @@ impl<'a> View<'a> {
             energy_mwh: p.energy_mwh,
             capacity_cah: p.capacity_cah,
             inverter: p.inverter,
+            wifi_rssi_dbm: p.wifi_rssi_dbm,
         }
     }
 
@@ -135,7 +138,8 @@ pub struct PublisherStats {
 #[derive(Debug, Clone)]
 pub struct Publisher {
     settings: Settings,
-    bridge_version: &'static str,
+    /// The bridge that publishes (the device blocks name it).
+    bridge: crate::identity::Identity,
     /// `<version> (<build>) on <board>`: the bridge's firmware entity.
     bridge_text: String<96>,
     connected: bool,
@@ -178,7 +182,7 @@ impl Publisher {
         }
         Self {
             settings,
-            bridge_version: crate::identity::FIRMWARE,
+            bridge: *bridge,
             bridge_text,
             connected: false,
             announced: None,
@@ -375,7 +379,7 @@ impl Publisher {
             if !battery::config_topic(topic, s, e) {
                 return None;
             }
-            return match battery::config(payload, s, self.bridge_version, e) {
+            return match battery::config(payload, s, &self.bridge, e) {
                 Some(len) => Some(self.count(Message {
                     kind: Kind::BatteryDiscovery,
                     retain: true,
@@ -450,7 +454,7 @@ impl Publisher {
             }
             let info = DeviceInfo {
                 id,
-                bridge_version: self.bridge_version,
+                bridge: &self.bridge,
             };
             return match discovery::config(payload, s, &info, &e) {
                 Some(len) => Some(self.count(Message {
@@ -519,6 +523,7 @@ impl Publisher {
             bridge_firmware: &self.bridge_text,
             can_state: view.inverter.map(|i| i.can.key()),
             inverter_heard: view.inverter.map(|i| i.heard),
+            wifi_rssi_dbm: view.wifi_rssi_dbm,
         };
         let head = TelemetryHead {
             req: None,

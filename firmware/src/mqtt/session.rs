@@ -145,7 +145,12 @@ pub enum Failure {
     Net(NetError),
     /// The broker did not answer in time.
     Timeout,
-    /// The broker refused the connection (bad credentials, not authorised, …).
+    /// The broker refused the login: its CONNACK says "bad user name or
+    /// password" (0x86) or "not authorized" (0x87, what mosquitto answers to
+    /// a wrong password, and to no login where it needs one).
+    Login,
+    /// The broker refused the connection for another reason (banned, a
+    /// client id it does not take, busy, …).
     Refused,
     /// The broker sent something that is not MQTT, or broke the protocol.
     Protocol,
@@ -171,7 +176,10 @@ impl Failure {
             Self::Net(NetError::Connect) => "the broker refuses the TCP connection",
             Self::Net(NetError::NoNetwork) => "no network",
             Self::Timeout => "the broker does not answer",
-            Self::Refused => "the broker refused the login",
+            Self::Login => {
+                "the broker refused the login: wrong or missing mqtt_user / mqtt_password"
+            }
+            Self::Refused => "the broker refused the connection",
             Self::Protocol => "the broker broke the protocol",
             Self::Connection => "the connection broke",
             Self::NewBms => "another BMS: reconnecting",
@@ -346,7 +354,13 @@ async fn connection<N: Network, C: Clock, F: Feed>(
     .await
     {
         None => return Err(Failure::Timeout),
-        Some(Err(rust_mqtt::client::MqttError::Disconnect { .. })) => return Err(Failure::Refused),
+        Some(Err(rust_mqtt::client::MqttError::Disconnect { reason, .. })) => {
+            use rust_mqtt::types::ReasonCode;
+            return Err(match reason {
+                ReasonCode::BadUserNameOrPassword | ReasonCode::NotAuthorized => Failure::Login,
+                _ => Failure::Refused,
+            });
+        }
         Some(Err(rust_mqtt::client::MqttError::Network(_))) => return Err(Failure::Connection),
         Some(Err(_)) => return Err(Failure::Protocol),
         Some(Ok(_)) => {}

@@ -162,7 +162,7 @@ pub struct Station {
     config: ConfigState,
     host: Option<parts::Host>,
     inverter: Option<parts::Output>,
-    chip: &'static str,
+    identity: crate::identity::Identity,
     can: Can,
     hold: Hold,
     /// [`Bridge::step`] said "transmit": the logs go first.
@@ -185,14 +185,30 @@ pub struct Station {
     missed_to_log: u32,
     /// Energy in and out, counted over the snapshots.
     energy: Energy,
+    /// The Wi-Fi signal, dBm, as the Wi-Fi task last read it.
+    wifi_rssi: Option<i8>,
 }
 
 impl Station {
     /// A station at `now` with the record it loaded.
     pub fn new(setup: Setup, loaded: Loaded, now: Instant) -> Self {
+        Self::with_config(setup, ConfigState::new(loaded.config, loaded.source), now)
+    }
+
+    /// A station at `now` that runs with a record its runner chose itself
+    /// (the desktop tool's direct mode, which has no bridge of its own to
+    /// configure): its log says nothing about a configuration
+    /// ([`ConfigState::fixed`]).
+    pub fn with_record(setup: Setup, config: Config, now: Instant) -> Self {
+        Self::with_config(setup, ConfigState::fixed(config), now)
+    }
+
+    fn with_config(setup: Setup, config: ConfigState, now: Instant) -> Self {
         #[cfg(feature = "can")]
         let inverter = setup.identity.features.can.then(|| {
-            let c = setup.inverter.unwrap_or_else(|| loaded.config.inverter());
+            let c = setup
+                .inverter
+                .unwrap_or_else(|| config.running().inverter());
             Inverter::new(c, now)
         });
         #[cfg(not(feature = "can"))]
@@ -202,15 +218,15 @@ impl Station {
             .identity
             .features
             .host_link
-            .then(|| HostLink::new(loaded.config.host_link(&setup.identity), now));
+            .then(|| HostLink::new(config.running().host_link(&setup.identity), now));
         #[cfg(not(feature = "host-link"))]
         let host = None;
         Self {
             bridge: Bridge::new(setup.timing, now),
-            config: ConfigState::new(loaded.config, loaded.source),
+            config,
             host,
             inverter,
-            chip: setup.identity.chip,
+            identity: setup.identity,
             can: Can::Idle(now),
             hold: Hold::new(),
             transmit_pending: false,
@@ -225,6 +241,7 @@ impl Station {
             host_missed: 0,
             missed_to_log: 0,
             energy: Energy::new(),
+            wifi_rssi: None,
         }
     }
 
@@ -269,7 +286,20 @@ impl Station {
 
     /// The chip's name the host link gives.
     pub fn chip(&self) -> &'static str {
-        self.chip
+        self.identity.chip
+    }
+
+    /// A line the shell writes once at boot (the board, its pins, the log
+    /// path, the CAN output, the host link's wire, the UART, the profile):
+    /// its words and level, for the shell's own log; the host link keeps it
+    /// and gives it to every host after its `hello`.
+    pub fn boot_line(&mut self, line: &text::Boot) -> (Level, Line) {
+        let mut out = Line::new();
+        text::boot(line, &self.identity, &mut out);
+        if let Some(h) = self.host.as_mut() {
+            h.boot_line(line.level(), out.as_str());
+        }
+        (line.level(), out)
     }
 
     /// Changes the configuration as a host's `set_config` would (not
@@ -363,6 +393,15 @@ impl Station {
     pub fn mqtt_state(&mut self, state: crate::mqtt::MqttState) {
         if let Some(h) = self.host.as_mut() {
             h.on_mqtt(state);
+        }
+    }
+
+    /// The Wi-Fi signal of the access point, dBm, as the Wi-Fi task read it
+    /// (`None`: not joined, or not read): MQTT publishes it as a diagnostic.
+    pub fn wifi_rssi(&mut self, dbm: Option<i8>) {
+        if dbm != self.wifi_rssi {
+            self.wifi_rssi = dbm;
+            self.generation = self.generation.wrapping_add(1);
         }
     }
 
@@ -521,6 +560,7 @@ impl Station {
                 can: i.can_state(),
                 heard: i.inverter_heard(),
             }),
+            wifi_rssi_dbm: self.wifi_rssi,
         }
     }
 

@@ -60,6 +60,9 @@ impl NoHost {
     pub fn log(&mut self, _: crate::Level, _: &str) {
         match *self {}
     }
+    pub fn boot_line(&mut self, _: crate::Level, _: &str) {
+        match *self {}
+    }
     pub fn capturing(&self) -> bool {
         match *self {}
     }

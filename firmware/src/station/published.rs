@@ -40,6 +40,9 @@ pub struct Published {
     pub capacity_cah: Option<u16>,
     /// The inverter output, when built in.
     pub inverter: Option<InverterStatus>,
+    /// The Wi-Fi signal of the access point, dBm, while joined (the chip's
+    /// Wi-Fi task reads it; `None`: unknown).
+    pub wifi_rssi_dbm: Option<i8>,
 }
 
 /// The inverter output as the MQTT diagnostics show it.

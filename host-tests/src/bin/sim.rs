@@ -32,7 +32,11 @@ const USAGE: &str =
   --profile FILE     settings profile to apply at start (lines `name = value`)
   --set NAME=VALUE   one setting to apply (repeatable), e.g. over_voltage_cutoff=3650
   --pack P           simulated pack (default lifepo4-16s)
-  --seed N           seed of the simulator (default 1)
+  --seed N           seed of the simulator: the BMS's serial number and the
+                     noise of its values (default 1; with --bridge-pty or
+                     --mqtt one drawn from the clock and the process id,
+                     printed as `seed N: pass --seed N to repeat`, so every
+                     simulated bridge has its own serial and MQTT client id)
   --seeds A..B       run seeds A to B (inclusive) one after the other, summed up
   --asleep           the BMS starts asleep
   --snapshot-every D log period of the snapshot line (default 10s; 0 = every one)
@@ -84,8 +88,10 @@ path, e.g. /dev/pts/7; runs until stopped, or for --duration if given):
                      availability, events) to the broker at HOST:PORT over an
                      ordinary TCP socket; with or without --bridge-pty (the
                      record's topic_prefix, mqtt_user, ... apply: --config);
-                     client id tinybms-sim-XXXXXX after the BMS's serial (give
-                     two try-outs on one broker different --seed values);
+                     client id tinybms-sim-XXXXXX after the BMS's serial
+                     (each try-out draws its own seed unless --seed is given);
+                     a broker that needs a login: --config mqtt_user=U
+                     --config mqtt_password=P;
                      watch it with `mosquitto_sub -h HOST -p PORT -v -t '#'`
   --can-log FILE     (--bridge-pty, --mqtt) what the inverter output sends on
                      its virtual CAN bus, in candump log format; the bus has a
@@ -157,6 +163,8 @@ struct Options {
     bms_fault: Option<(u64, u64)>,
     mqtt: Option<(String, u16)>,
     packs: Option<usize>,
+    /// `--seed` or `--seeds` given.
+    seed_given: bool,
 }
 
 enum Parsed {
@@ -195,6 +203,7 @@ fn parse_args() -> Result<Parsed, String> {
         bms_fault: None,
         mqtt: None,
         packs: None,
+        seed_given: false,
     };
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
@@ -288,6 +297,7 @@ fn parse_args() -> Result<Parsed, String> {
                     .parse()
                     .map_err(|_| "bad --seed".to_string())?;
                 o.seeds = (n, n);
+                o.seed_given = true;
             }
             "--seeds" => {
                 let v = value("--seeds")?;
@@ -300,6 +310,7 @@ fn parse_args() -> Result<Parsed, String> {
                     return Err(format!("bad --seeds `{v}`: B < A"));
                 }
                 o.seeds = (a, b);
+                o.seed_given = true;
             }
             "--asleep" => o.asleep = true,
             "--snapshot-every" => {
@@ -409,7 +420,29 @@ fn parse_args() -> Result<Parsed, String> {
                 .into(),
         );
     }
+    // Every simulated bridge its own BMS (serial, MQTT client id, Home
+    // Assistant device): without --seed, the real-time bridges draw theirs.
+    if !o.seed_given && (o.bridge_pty || o.mqtt.is_some()) {
+        let seed = os_seed();
+        o.seeds = (seed, seed);
+        eprintln!("sim: seed {seed}: pass --seed {seed} to repeat");
+    }
     Ok(Parsed::Run(Box::new(o)))
+}
+
+/// A seed from the clock and the process id (splitmix64 of both): two
+/// try-outs started together differ by their pids. At most nine digits, to be
+/// typed back as `--seed`.
+fn os_seed() -> u64 {
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64);
+    let mut z = nanos ^ (u64::from(std::process::id()) << 32) ^ 0x9E37_79B9_7F4A_7C15;
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^= z >> 31;
+    // Seed 1 is every test's and the docs' default: never drawn.
+    2 + z % 999_999_998
 }
 
 /// Harmless settings the `--write-every` cycle changes, with two values each.

@@ -395,6 +395,8 @@ pub fn file_text(fields: &[Shown], header: &str) -> String {
          `tinybms config` prints.\n# `tinybms config PORT --load FILE` writes it back. Secrets \
          are never saved here.\n"
     );
+    // (name, value, comment) per field; secrets by name only.
+    let mut rows: Vec<(&str, Option<(String, String)>)> = Vec::new();
     for f in fields {
         let name = f.s("name");
         let Some(id) = FieldId::from_name(name) else {
@@ -402,19 +404,44 @@ pub fn file_text(fields: &[Shown], header: &str) -> String {
         };
         let field = id.field();
         if field.is_secret() {
-            let _ = writeln!(out, "# {name}: {} (secrets are not saved)", f.s("value"));
+            rows.push((name, None));
             continue;
         }
         let value = match field.kind {
             Kind::Text { .. } => json!(f.s("value")).to_string(),
             _ => with_unit(f.s("value"), f.s("unit")),
         };
-        let _ = writeln!(
-            out,
-            "{name} = {value:<24} # {}; default {}",
+        let comment = format!(
+            "{}; default {}",
             f.s("range"),
             with_unit(f.s("default"), f.s("unit"))
         );
+        rows.push((name, Some((value, comment))));
+    }
+    // One width for the names and one for the values: the comments line up.
+    let name_w = rows
+        .iter()
+        .map(|(n, _)| n.chars().count())
+        .max()
+        .unwrap_or(0);
+    let value_w = rows
+        .iter()
+        .filter_map(|(_, v)| v.as_ref().map(|(v, _)| v.chars().count()))
+        .max()
+        .unwrap_or(0);
+    for (name, row) in rows {
+        match row {
+            None => {
+                let value = fields
+                    .iter()
+                    .find(|f| f.s("name") == name)
+                    .map_or("", |f| f.s("value"));
+                let _ = writeln!(out, "# {name}: {value} (secrets are not saved)");
+            }
+            Some((value, comment)) => {
+                let _ = writeln!(out, "{name:<name_w$} = {value:<value_w$} # {comment}");
+            }
+        }
     }
     out
 }

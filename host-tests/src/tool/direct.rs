@@ -8,9 +8,9 @@ use std::sync::{mpsc, Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use crate::flash::{RamFlash, SimFlash};
 use serde_json::Value;
 use tinybms_firmware::bms::timing::Timing;
+use tinybms_firmware::config::Config;
 
 use super::client::Client;
 use super::transport::{Lines, Mode};
@@ -87,15 +87,12 @@ pub fn start(
         .name("bridge".into())
         .spawn(move || -> Result<(), String> {
             // No bridge of its own to configure: the record is the defaults
-            // with streaming off, in RAM.
-            let mut h = Hosted::new(
-                serial,
-                Timing::default(),
-                SimFlash::Ram(RamFlash::new()),
-                "host (tinybms direct)",
-            );
-            h.change_config(&[("stream_period".into(), "off".into())])
-                .map_err(|e| format!("direct mode: {e}"))?;
+            // with streaming off, chosen here (so the log says nothing of it).
+            let record = Config {
+                stream_period_ms: 0,
+                ..Config::default()
+            };
+            let mut h = Hosted::direct(serial, Timing::default(), record, "host (tinybms direct)");
             if let Some(c) = capture {
                 h.driver.record(c);
             }

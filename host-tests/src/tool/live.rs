@@ -391,11 +391,12 @@ fn draw_cells(f: &mut Frame, t: &Value, area: Rect) {
 pub(super) fn run(
     client: &mut Client,
     o: &MonitorOptions,
+    title: &str,
     logger: &mut Option<Logger>,
     end: Option<Instant>,
 ) -> ToolResult<()> {
     let mut s = LiveState {
-        header: format!("{} — {}", client.port, client.mode.describe()),
+        header: title.to_string(),
         ..LiveState::default()
     };
     let mut terminal = ratatui::init();

@@ -40,6 +40,8 @@ pub fn run(client: &mut Client, o: &MonitorOptions) -> ToolResult<()> {
     };
     let start = Instant::now();
     let end = o.duration.map(|d| start + d);
+    let name = pack_name(client);
+    let title = title(client, name.as_deref());
     client.stream(o.period_ms)?;
     // A first picture at once, without waiting for the first push; a BMS that
     // does not answer is explained here rather than shown as an empty screen.
@@ -47,8 +49,8 @@ pub fn run(client: &mut Client, o: &MonitorOptions) -> ToolResult<()> {
         Ok(first) => {
             client.pushed.push_front(first);
             match o.view {
-                View::Live => super::live::run(client, o, &mut logger, end),
-                _ => watch(client, o, &mut logger, end),
+                View::Live => super::live::run(client, o, &title, &mut logger, end),
+                _ => watch(client, o, &title, &mut logger, end),
             }
         }
         Err(e) => Err(e),
@@ -59,6 +61,30 @@ pub fn run(client: &mut Client, o: &MonitorOptions) -> ToolResult<()> {
         let _ = client.stream(p as u32);
     }
     result
+}
+
+/// The bridge's `pack_name`, when it has one set (a bridge whose firmware
+/// has no such field, or direct mode: none).
+fn pack_name(client: &mut Client) -> Option<String> {
+    if client.mode != super::transport::Mode::Bridge {
+        return None;
+    }
+    let (fields, _) = super::config::fetch(client).ok()?;
+    fields
+        .iter()
+        .find(|f| f.line["name"] == "pack_name")
+        .and_then(|f| f.line["value"].as_str())
+        .filter(|n| !n.is_empty())
+        .map(str::to_string)
+}
+
+/// What the monitor's first line says after its name: the pack's name when
+/// it has one, the port, how it is reached.
+fn title(client: &Client, name: Option<&str>) -> String {
+    match name {
+        Some(n) => format!("“{n}” — {} — {}", client.port, client.mode.describe()),
+        None => format!("{} — {}", client.port, client.mode.describe()),
+    }
 }
 
 /// Writes one line and flushes it; false when the reader is gone (a closed
@@ -73,11 +99,12 @@ fn say(out: &mut impl Write, line: std::fmt::Arguments<'_>) -> bool {
 fn watch(
     client: &mut Client,
     o: &MonitorOptions,
+    title: &str,
     logger: &mut Option<Logger>,
     end: Option<Instant>,
 ) -> ToolResult<()> {
     let stdout = std::io::stdout();
-    let header = format!("monitor — {} — {}", client.port, client.mode.describe());
+    let header = format!("monitor — {title}");
     let mut link: Option<Value> = None;
     let mut next_link = Instant::now();
     let mut updates = 0u64;
@@ -192,11 +219,18 @@ pub fn log(client: &mut Client, duration: Option<Duration>) -> ToolResult<()> {
             Err(e) => break Err(e),
             Ok(Some(v)) if v["type"] == "log" => {
                 let mut out = stdout.lock();
+                // A line the bridge wrote at boot, kept for every host: no
+                // time of ours.
+                let when = if v["boot"] == true {
+                    "at boot".to_string()
+                } else {
+                    utc_now()[11..23].to_string()
+                };
                 let said = say(
                     &mut out,
                     format_args!(
-                        "{}  {:<4}  {}",
-                        &utc_now()[11..23],
+                        "{:<12}  {:<4}  {}",
+                        when,
                         v["level"].as_str().unwrap_or("?"),
                         v["text"].as_str().unwrap_or("")
                     ),

@@ -173,7 +173,9 @@ pub fn render_groups(lines: &[Value]) -> String {
     let all: Vec<Value> = groups.iter().flat_map(|(_, r)| r.iter().cloned()).collect();
     let table = render_table(&all);
     let mut rows = table.lines();
+    // Indented like the rows under their group headings.
     let header = rows.next().unwrap_or("");
+    out.push_str("  ");
     out.push_str(header);
     out.push('\n');
     for (g, r) in &groups {

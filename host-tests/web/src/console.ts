@@ -3,7 +3,7 @@
 // value an owner types is checked by the firmware's own rules compiled to
 // WebAssembly (./wasm.ts), with the tool's messages; the bridge checks again.
 
-import { errorOf, HostLink, Line } from "./link";
+import { DirectLink, errorOf, HostLink, Line, Link } from "./link";
 import { loadRules, rules } from "./wasm";
 
 const $ = <T extends HTMLElement = HTMLElement>(id: string) => document.getElementById(id) as T;
@@ -43,7 +43,9 @@ function say(id: string, lines: string[], cls: string): void {
 }
 
 interface Session {
-  link: HostLink;
+  link: Link;
+  /** A TinyBMS behind a USB-UART adapter, the station running in the page. */
+  direct: boolean;
   hello: Line;
   telemetry?: Line;
   receivedAt: number;
@@ -53,6 +55,25 @@ interface Session {
 
 let session: Session | undefined;
 let timer: number | undefined;
+/** The newest lines from the bridge (or the station in the page). */
+const recent: Line[] = [];
+(window as unknown as { tinybms: unknown }).tinybms = { recent };
+
+/** Waits until `check` holds (polled), at most `ms`. */
+function until(check: () => boolean, ms: number): Promise<void> {
+  return new Promise((resolve, reject) => {
+    const end = performance.now() + ms;
+    const t = window.setInterval(() => {
+      if (check()) {
+        window.clearInterval(t);
+        resolve();
+      } else if (performance.now() > end) {
+        window.clearInterval(t);
+        reject(new Error("timed out"));
+      }
+    }, 100);
+  });
+}
 
 // ------------------------------------------------------------------ live
 
@@ -369,9 +390,20 @@ function onLine(s: Session, l: Line): void {
       showIdentity(l);
       break;
   }
+  // The newest lines, for the browser's developer tools.
+  recent.push(l);
+  if (recent.length > 100) recent.shift();
 }
 
-function showIdentity(h: Line): void {
+function showIdentity(h: Line, direct = session?.direct ?? false): void {
+  if (direct) {
+    text(
+      "identity",
+      "direct: a TinyBMS behind a USB-UART adapter, read by the bridge's own firmware running in this page " +
+        `(firmware ${h.firmware}); no bridge configuration, no inverter output`,
+    );
+    return;
+  }
   const parts = [
     `firmware ${h.firmware} (${h.build})`,
     `${h.board} (${h.chip})`,
@@ -392,7 +424,7 @@ async function connect(): Promise<void> {
   } catch {
     return; // no port chosen
   }
-  const link = new HostLink(port);
+  const link: Link = new HostLink(port);
   try {
     await link.open();
   } catch (e) {
@@ -400,14 +432,33 @@ async function connect(): Promise<void> {
     error.hidden = false;
     return;
   }
-  let hello: Line;
+  let hello: Line | undefined;
+  let direct = false;
+  let active: Link = link;
   try {
-    hello = (await link.request({ cmd: "hello" }, (l) => l.type === "hello", 4000))[0];
+    hello = (await link.request({ cmd: "hello" }, (l) => l.type === "hello", 3000))[0];
   } catch {
+    // No bridge: perhaps a TinyBMS behind a USB-UART adapter. The firmware's
+    // station runs in the page then (direct mode), if the BMS answers it.
     await link.close();
+    const d = new DirectLink(port, rules);
+    const seen: Line[] = [];
+    d.onLine = (l) => seen.push(l);
+    try {
+      await d.open();
+      await until(() => seen.some((l) => l.type === "telemetry" && l.online === true), 8000);
+      hello = seen.find((l) => l.type === "hello");
+      direct = true;
+      active = d;
+    } catch {
+      await d.close();
+    }
+  }
+  if (!hello) {
     error.textContent =
-      "no bridge answered on this port (no hello): an ESP32 board not running this firmware yet " +
-      "(install it from the Install page), one still starting, or a USB-UART adapter wired to the BMS.";
+      "nothing answered on this port: neither a bridge (no hello) nor a TinyBMS. An ESP32 board not " +
+      "running this firmware yet (install it from the Install page), one still starting, or a " +
+      "USB-UART adapter whose wires to the BMS are crossed or loose (TX to RX, RX to TX, GND).";
     error.hidden = false;
     return;
   }
@@ -416,28 +467,30 @@ async function connect(): Promise<void> {
     error.textContent = `this bridge speaks host-link protocol ${hello.protocol}; this console speaks ${about.protocol}: update the one that is older`;
     error.hidden = false;
   }
-  const s: Session = { link, hello, receivedAt: performance.now(), config: [], settings: [] };
+  const s: Session = { link: active, direct, hello, receivedAt: performance.now(), config: [], settings: [] };
   session = s;
-  link.onLine = (l) => onLine(s, l);
-  link.onClose = (why) => {
+  active.onLine = (l) => onLine(s, l);
+  active.onClose = (why) => {
     if (session === s) {
       session = undefined;
       disconnected(why);
     }
   };
-  showIdentity(hello);
+  showIdentity(hello, direct);
   for (const id of ["live", "events-section", "log-section", "settings-section"]) $(id).hidden = false;
   $("connect").hidden = true;
   $("disconnect").hidden = false;
   timer = window.setInterval(tick, 250);
   tick();
-  try {
-    await fetchConfig(s);
-  } catch (e) {
-    say("config-messages", [`the configuration: ${(e as Error).message}`], "error");
+  if (!direct) {
+    try {
+      await fetchConfig(s);
+    } catch (e) {
+      say("config-messages", [`the configuration: ${(e as Error).message}`], "error");
+    }
   }
-  await link.request({ cmd: "get", what: "link" }, (l) => l.type === "link").catch(() => []);
-  await link.request({ cmd: "get", what: "events" }, (l) => l.type === "events_end", 8000).catch(() => []);
+  await active.request({ cmd: "get", what: "link" }, (l) => l.type === "link").catch(() => []);
+  await active.request({ cmd: "get", what: "events" }, (l) => l.type === "events_end", 8000).catch(() => []);
 }
 
 function disconnected(why: string): void {

@@ -8,7 +8,7 @@ import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { after, before, test } from "node:test";
 
-import { bridge, browser, pageFor, receivedLines, repoint, serveSite, shotPath, tinybms, until } from "./harness.mjs";
+import { adapter, bridge, browser, pageFor, receivedLines, repoint, serveSite, shotPath, tinybms, until } from "./harness.mjs";
 
 let site;
 let chromium;
@@ -202,5 +202,47 @@ test("a BMS that falls silent is OFFLINE within 10 s; a bridge that freezes is N
   } finally {
     await p2.context.close();
     await f.stop();
+  }
+});
+
+test("a TinyBMS behind a USB-UART adapter: the firmware's station runs in the page (direct mode)", async () => {
+  const a = await adapter();
+  const { page, context, errors } = await pageFor(chromium, a);
+  try {
+    await connect(page);
+    assert.match(await page.textContent("#identity"), /^direct: a TinyBMS behind a USB-UART adapter/);
+    // The values on screen are the station's telemetry, made in the page from
+    // the BMS's own replies.
+    await until("cells", async () => (await page.$$("#cells .cell")).length === 16);
+    await until(
+      "values equal to the station's telemetry",
+      async () => {
+        const t = await page.evaluate(() => window.tinybms.recent.filter((l) => l.type === "telemetry").at(-1));
+        const [v, cells] = await Promise.all([
+          page.textContent("#pack-voltage"),
+          page.$$eval("#cells .cell-value", (e) => e.map((x) => x.textContent)),
+        ]);
+        const again = await page.evaluate(() => window.tinybms.recent.filter((l) => l.type === "telemetry").at(-1));
+        if (again.seq !== t.seq) return false;
+        assert.equal(v, fix(t.pack_voltage_v, 2, "V"));
+        assert.deepEqual(cells, t.cell_voltages_v.map((c) => fix(c, 3, "V")));
+        return true;
+      },
+      10000,
+      50,
+    );
+    // What went over the wire is the TinyBMS protocol, not the host link.
+    const raw = Buffer.from(await page.evaluate(() => window.__fakeSerial.received));
+    assert.ok(raw.includes(0xaa), "replies of the BMS (0xAA)");
+    assert.ok(!raw.toString("latin1").includes('"type":"hello"'), "no bridge on the wire");
+    // The BMS's settings, through the station in the page.
+    assert.equal(await page.isHidden("#config-section"), true, "no bridge configuration in direct mode");
+    await page.click("#settings-read");
+    await until("settings", async () => (await page.$$("#settings tbody tr")).length > 20, 30000);
+    await page.screenshot({ path: shotPath("console-direct.png") });
+    assert.deepEqual(errors, []);
+  } finally {
+    await context.close();
+    await a.stop();
   }
 });

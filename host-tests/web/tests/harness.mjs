@@ -97,7 +97,19 @@ function stop(child) {
  * `{pty, url, stop}`.
  */
 export async function bridge(args = []) {
-  const sim = await started(join(bin, "sim"), ["--bridge-pty", "--duration", "20m", ...args], "sim");
+  return simOnWs(["--bridge-pty", ...args]);
+}
+
+/**
+ * `sim --pty`: a simulated TinyBMS as behind a USB-UART adapter (no bridge),
+ * and `serial-ws` for its pty: `{pty, url, stop}`.
+ */
+export async function adapter(args = []) {
+  return simOnWs(["--pty", ...args]);
+}
+
+async function simOnWs(args) {
+  const sim = await started(join(bin, "sim"), ["--duration", "20m", ...args], "sim");
   const pty = sim.first;
   const startedAt = Date.now();
   const ws = await started(join(bin, "serial-ws"), ["--allow", pty, "--max-time", "20m"], "serial-ws");

@@ -153,7 +153,6 @@ pub fn run_config(
         print!("{}", config::render_one(f));
         return Ok(());
     }
-    print!("{}", config::render(&fields, &end));
     if let Some(path) = save {
         let header = format!(
             "saved by tinybms {} from {} at {}",
@@ -169,7 +168,9 @@ pub fn run_config(
             fields.len() - secrets,
             path.display()
         );
+        return Ok(());
     }
+    print!("{}", config::render(&fields, &end));
     Ok(())
 }
 /// The commands that set the secrets `names` again.

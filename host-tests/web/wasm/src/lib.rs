@@ -19,6 +19,15 @@
 //! | `check_settings` | `{changes: ["NAME=VALUE"…], current: [setting lines], raw}` | `{ok, messages, values: {name: raw}}` |
 //! | `freshness` | `{telemetry: line or null, received_ago_ms}` | `{state, age_s, text}` |
 //! | `link_quality` | a `link` line | `{text}` |
+//! | `direct_start` | `{now_ms}` | `{}`: the firmware's station starts in the page (direct mode) |
+//! | `direct_step` | `{now_ms, rx: [bytes from the BMS], host: "command lines"}` | `{tx: [bytes for the BMS], lines: [host-link lines], wake_ms}` |
+//!
+//! **Direct mode**: with a TinyBMS behind a plain USB-UART adapter there is no
+//! bridge on the port, so the page runs one — the firmware's own
+//! [`Station`](tinybms_firmware::station::Station), as `tinybms` does in its
+//! direct mode: the page hands it what the BMS sent and the console's command
+//! lines, writes what it transmits to the port, and reads its host-link lines
+//! as it would a bridge's.
 
 use serde_json::{json, Value};
 use tinybms_firmware::boards::BOARDS;
@@ -48,6 +57,8 @@ pub fn call(name: &str, arg: &str) -> String {
         "check_settings" => check_settings(&arg),
         "freshness" => freshness(&arg),
         "link_quality" => link_quality(&arg),
+        "direct_start" => direct::start(&arg),
+        "direct_step" => direct::step(&arg),
         other => json!({ "error": format!("no function `{other}`") }),
     };
     out.to_string()
@@ -175,6 +186,107 @@ fn freshness(arg: &Value) -> Value {
 /// The link quality of a `link` line, in the monitor's words.
 fn link_quality(arg: &Value) -> Value {
     json!({ "text": tinybms_rules::view::link_quality(arg) })
+}
+
+/// The firmware's station in the page (direct mode).
+mod direct {
+    use std::cell::RefCell;
+
+    use serde_json::{json, Value};
+    use tinybms_firmware::bms::timing::Timing;
+    use tinybms_firmware::config::store::StoreError;
+    use tinybms_firmware::config::Config;
+    use tinybms_firmware::identity::{Features, Identity};
+    use tinybms_firmware::improv::{JoinFailure, WifiRequest};
+    use tinybms_firmware::inverter::TxResult;
+    use tinybms_firmware::station::{Action, Setup, Station};
+
+    thread_local! {
+        static STATION: RefCell<Option<Station>> = const { RefCell::new(None) };
+    }
+
+    /// Most actions one step carries out (a bound, never reached: the
+    /// station waits after a transmit).
+    const MAX_ACTIONS: usize = 256;
+
+    fn us(arg: &Value) -> u64 {
+        (arg["now_ms"].as_f64().unwrap_or(0.0).max(0.0) * 1000.0) as u64
+    }
+
+    /// A new station at `now_ms`: the bridge and its host link, nothing else
+    /// (no inverter output, no store, no Wi-Fi: the page is the host).
+    pub fn start(arg: &Value) -> Value {
+        let now = us(arg);
+        let setup = Setup {
+            timing: Timing::default(),
+            identity: Identity {
+                chip: "browser",
+                board: "the console's direct mode",
+                features: Features {
+                    host_link: true,
+                    ..Features::default()
+                },
+            },
+            inverter: None,
+        };
+        let mut station = Station::with_record(setup, Config::default(), now);
+        station.host_connected(now);
+        STATION.with(|s| *s.borrow_mut() = Some(station));
+        json!({})
+    }
+
+    /// One round: what the BMS sent and the host's lines in; what to send to
+    /// the BMS, the host-link lines, and when to come back out.
+    pub fn step(arg: &Value) -> Value {
+        let now = us(arg);
+        let rx: Vec<u8> = arg["rx"]
+            .as_array()
+            .map(|a| {
+                a.iter()
+                    .filter_map(|b| b.as_u64().and_then(|b| u8::try_from(b).ok()))
+                    .collect()
+            })
+            .unwrap_or_default();
+        let host = arg["host"].as_str().unwrap_or("");
+        STATION.with(|cell| {
+            let mut guard = cell.borrow_mut();
+            let Some(station) = guard.as_mut() else {
+                return json!({ "error": "direct_start first" });
+            };
+            if !rx.is_empty() {
+                station.handle_rx(now, &rx);
+            }
+            if !host.is_empty() {
+                station.host_rx(now, host.as_bytes());
+            }
+            let mut tx: Vec<u8> = Vec::new();
+            let mut wake = now + 100_000;
+            for _ in 0..MAX_ACTIONS {
+                match station.poll(now) {
+                    Action::Log(_) => {}
+                    Action::Transmit => tx.extend_from_slice(station.transmit_bytes()),
+                    Action::Save => station.saved(Err(StoreError::Partition)),
+                    Action::Can(_) => station.can_sent(now, TxResult::Failed),
+                    Action::CanRecover => station.can_recovered(now, false),
+                    Action::Wifi(WifiRequest::Join { .. }) => {
+                        station.wifi_joined(now, Err(JoinFailure::Other))
+                    }
+                    Action::Wifi(WifiRequest::Scan) => station.wifi_scanned(now, &[]),
+                    Action::WaitUntil(t) => {
+                        wake = t;
+                        break;
+                    }
+                }
+            }
+            let mut lines = Vec::new();
+            let mut buf = vec![0u8; tinybms_firmware::host_link::OUT_LINE_MAX];
+            while let Some(n) = station.next_host_line(now, &mut buf) {
+                let text = String::from_utf8_lossy(buf.get(..n).unwrap_or(&[]));
+                lines.push(Value::String(text.trim_end().to_string()));
+            }
+            json!({ "tx": tx, "lines": lines, "wake_ms": wake as f64 / 1000.0 })
+        })
+    }
 }
 
 /// The exports of the `.wasm` (see the module documentation).
