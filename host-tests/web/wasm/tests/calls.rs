@@ -123,3 +123,66 @@ fn anything_else_is_an_error_never_a_panic() {
     assert_eq!(about["product"], "TinyBMS bridge");
     assert_eq!(ask("boards", json!(null)).as_array().unwrap().len(), 7);
 }
+
+#[test]
+fn direct_mode_runs_the_station_against_a_bms() {
+    use host_tests::sim::{PackProfile, SimBms, SimConfig};
+    let mut bms = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 3);
+    assert_eq!(ask("direct_start", json!({"now_ms": 0.0})), json!({}));
+    let mut now_ms = 0.0f64;
+    let mut rx: Vec<u8> = Vec::new();
+    let mut lines: Vec<Value> = Vec::new();
+    let mut host = String::new();
+    // 20 s of the page's loop: bytes from the BMS in, bytes to it out.
+    while now_ms < 20_000.0 {
+        if now_ms >= 15_000.0 && !lines.iter().any(|l| l["req"] == 5) && host.is_empty() {
+            // Synced by now: the console asks as it would a bridge.
+            host = "{\"cmd\":\"get\",\"what\":\"version\",\"req\":5}\n".into();
+        }
+        let r = ask(
+            "direct_step",
+            json!({"now_ms": now_ms, "rx": rx, "host": std::mem::take(&mut host)}),
+        );
+        rx.clear();
+        let now_us = (now_ms * 1000.0) as u64;
+        let tx: Vec<u8> = r["tx"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|b| b.as_u64().unwrap() as u8)
+            .collect();
+        if !tx.is_empty() {
+            bms.host_send(now_us, &tx);
+        }
+        for l in r["lines"].as_array().unwrap() {
+            lines.push(serde_json::from_str(l.as_str().unwrap()).unwrap());
+        }
+        let wake = r["wake_ms"].as_f64().unwrap();
+        now_ms = (now_ms + 5.0).min(wake.max(now_ms + 1.0));
+        bms.take_output((now_ms * 1000.0) as u64, &mut rx);
+    }
+    assert_eq!(
+        lines[0]["type"], "hello",
+        "the page's station greets the page"
+    );
+    let t = lines
+        .iter()
+        .rev()
+        .find(|l| l["type"] == "telemetry")
+        .expect("telemetry");
+    assert_eq!(t["online"], true, "{t}");
+    assert_eq!(t["cell_voltages_v"].as_array().unwrap().len(), 16);
+    let v = lines
+        .iter()
+        .find(|l| l["type"] == "version")
+        .expect("the version answer");
+    assert_eq!(v["req"], 5);
+    assert!(v["serial_number"].is_string(), "{v}");
+}
+
+#[test]
+fn a_step_before_a_start_is_refused() {
+    // Each test runs on a thread of its own: no station here yet.
+    let r = ask("direct_step", json!({"now_ms": 1}));
+    assert_eq!(r["error"], "direct_start first");
+}
