@@ -197,6 +197,21 @@ pub fn report(r: &Report, out: &mut Line) {
                             .push(" is ")
                             .int(i64::from(*other));
                     }
+                    if let protocol_core::settings::SettingError::OutsideChemistry {
+                        chemistry,
+                        min,
+                        max,
+                        ..
+                    } = e
+                    {
+                        out.push(": ")
+                            .push(chemistry.name())
+                            .push(" takes ")
+                            .int(i64::from(*min))
+                            .push("..")
+                            .int(i64::from(*max))
+                            .push(" mV; force to write it anyway");
+                    }
                     out.push(")");
                 }
                 WriteOutcome::Mismatch { read_back } => {

@@ -174,7 +174,10 @@ fn main() {
             });
             let _ = h
                 .bridge_mut()
-                .submit(tinybms_firmware::Command::ApplySettings(items));
+                .submit(tinybms_firmware::Command::ApplySettings(
+                    items,
+                    protocol_core::settings::ChemistryCheck::Inferred,
+                ));
             k += 1;
         }
         let s = h.soak.clone().unwrap_or_default();

@@ -1691,3 +1691,69 @@ fn the_longest_boot_lines_all_fit() {
         .unwrap()
         .contains("too many for the command queue"));
 }
+
+// ---------------------------------------------------------------- chemistry
+
+/// Issue 26, item 2: the bridge checks cell voltages against the pack's
+/// chemistry before it writes — the one the BMS's own cutoffs name
+/// (LiFePO4 here: 3.65 V), or the one the host gives (`chemistry`); `force`
+/// passes that check, never the relations between settings.
+#[test]
+fn the_bridge_checks_cell_voltages_against_the_chemistry() {
+    let mut r = ready();
+    let set = |r: &mut Rig, line: &str| {
+        r.line(line);
+        r.run(10 * SECOND);
+        r.drain()
+    };
+    // 4.25 V / 4.2 V: consistent with each other, plainly wrong for LiFePO4.
+    let out = set(
+        &mut r,
+        r#"{"cmd":"set","req":1,"values":{"over_voltage_cutoff":4.25,"fully_charged_voltage":4.2}}"#,
+    );
+    let o = of_type(&out, "outcome");
+    assert_eq!(o.len(), 2, "{out:#?}");
+    for x in &o {
+        assert_eq!(x["outcome"], "rejected", "{x}");
+        assert_eq!(x["detail"], "outside_chemistry_range", "{x}");
+        assert_eq!(x["chemistry"], "lifepo4", "{x}");
+    }
+    assert_eq!(r.h.sim.register(315), 3650, "nothing written");
+    // The host says the pack is Li-ion: checked against that, written.
+    let out = set(
+        &mut r,
+        r#"{"cmd":"set","req":2,"chemistry":"li-ion","values":{"over_voltage_cutoff":4.25,"fully_charged_voltage":4.2}}"#,
+    );
+    let o = of_type(&out, "outcome");
+    assert!(o.iter().all(|x| x["outcome"] == "verified"), "{out:#?}");
+    assert_eq!(r.h.sim.register(315), 4250);
+    // Now the BMS's cutoff names Li-ion: 3.65 V is what is plainly wrong.
+    let out = set(
+        &mut r,
+        r#"{"cmd":"set","req":3,"raw":{"fully_charged_voltage":3650}}"#,
+    );
+    assert_eq!(
+        of_type(&out, "outcome")[0]["chemistry"],
+        "li-ion",
+        "{out:#?}"
+    );
+    // Forced: the chemistry is not checked ...
+    let out = set(
+        &mut r,
+        r#"{"cmd":"set","req":4,"force":true,"values":{"fully_charged_voltage":3.65,"over_voltage_cutoff":3.65}}"#,
+    );
+    let o = of_type(&out, "outcome");
+    assert!(o.iter().all(|x| x["outcome"] == "verified"), "{out:#?}");
+    // ... the relations are: an over-voltage cutoff below the under-voltage one.
+    let out = set(
+        &mut r,
+        r#"{"cmd":"set","req":5,"force":true,"values":{"over_voltage_cutoff":2.4}}"#,
+    );
+    let o = of_type(&out, "outcome");
+    assert_eq!(o[0]["outcome"], "rejected", "{out:#?}");
+    assert_eq!(o[0]["detail"], "contradicts_another_setting", "{out:#?}");
+    // An unknown chemistry is an error, nothing queued.
+    r.line(r#"{"cmd":"set","req":6,"chemistry":"lead-acid","values":{"over_voltage_cutoff":3.6}}"#);
+    let e = only(&r.drain()).clone();
+    assert_eq!(e["error"], "invalid_value", "{e}");
+}

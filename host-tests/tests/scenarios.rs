@@ -43,6 +43,7 @@ fn group(items: &[(SettingId, i32)]) -> Command {
             .iter()
             .map(|&(id, value)| Setting { id, value })
             .collect(),
+        protocol_core::settings::ChemistryCheck::Inferred,
     )
 }
 

@@ -659,3 +659,57 @@ fn the_monitor_names_the_pack_when_it_has_a_name() {
     assert_eq!(o.code, 0, "{o}");
     assert!(!o.stdout.lines().next().unwrap_or("").contains('“'), "{o}");
 }
+
+/// Issue 26, item 2: `fully_charged_voltage=4.2V` (with the cutoff above it)
+/// on a LiFePO4 pack passed `--dry-run` and was written. The tool checks cell
+/// voltages against the pack's chemistry — inferred from the cutoff the BMS
+/// holds, said on stdout — and so does the bridge; `--chemistry` names
+/// another, `--force` passes only that check, never a relation.
+#[test]
+fn set_checks_cell_voltages_against_the_chemistry() {
+    let sim = Sim::start(&["--bridge-pty"]);
+    let both = ["over_voltage_cutoff=4.25V", "fully_charged_voltage=4.2V"];
+    let with = |extra: &[&str]| {
+        let mut a = vec!["set", sim.path.as_str()];
+        a.extend_from_slice(&both);
+        a.extend_from_slice(extra);
+        tinybms(&a)
+    };
+    let o = with(&["--dry-run"]);
+    assert_eq!(o.code, 1, "{o}");
+    assert!(
+        o.stdout.contains(
+            "chemistry: LiFePO4 (taken from the over voltage cutoff the BMS holds, 3.65 V)"
+        ),
+        "{o}"
+    );
+    assert!(
+        o.stderr
+            .contains("fully_charged_voltage = 4.2 V: plainly wrong for a LiFePO4 pack"),
+        "{o}"
+    );
+    // Another chemistry said: checked against it.
+    let o = with(&["--dry-run", "--chemistry", "li-ion"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(
+        o.stdout
+            .contains("chemistry: Li-ion (NMC/NCA) (as --chemistry says)"),
+        "{o}"
+    );
+    let o = with(&["--dry-run", "--chemistry", "lto"]);
+    assert_eq!(o.code, 1, "{o}");
+    // Forced: written and verified by the bridge.
+    let o = with(&["--force", "--yes"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("2 settings verified"), "{o}");
+    // Never a relation: an over-voltage cutoff under the under-voltage one.
+    let o = tinybms(&[
+        "set",
+        &sim.path,
+        "over_voltage_cutoff=2.4V",
+        "--force",
+        "--dry-run",
+    ]);
+    assert_eq!(o.code, 1, "{o}");
+    assert!(o.stderr.contains("must stay below"), "{o}");
+}

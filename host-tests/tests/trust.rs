@@ -502,7 +502,7 @@ fn an_empty_log_at_start_up_is_history_once_and_later_faults_warn() {
 fn group(id: SettingId, value: i32) -> Command {
     let mut items = heapless::Vec::new();
     items.push(Setting { id, value }).unwrap();
-    Command::ApplySettings(items)
+    Command::ApplySettings(items, protocol_core::settings::ChemistryCheck::Inferred)
 }
 
 fn outcomes(h: &Harness) -> Vec<(bool, WriteOutcome)> {

@@ -261,6 +261,22 @@ pub enum SettingError {
         /// Setting.
         id: SettingId,
     },
+    /// A per-cell voltage plainly wrong for the pack's cell chemistry (4.2 V
+    /// on a LiFePO4 pack): see [`Chemistry::range`]. Unlike a broken
+    /// [`Relation`], an expert may pass this one (another chemistry than the
+    /// one inferred): [`ChemistryCheck::Off`].
+    OutsideChemistry {
+        /// Setting.
+        id: SettingId,
+        /// Value asked for.
+        value: i32,
+        /// The chemistry it was checked against.
+        chemistry: Chemistry,
+        /// Lowest plausible value for it, raw.
+        min: i32,
+        /// Highest plausible value for it, raw.
+        max: i32,
+    },
     /// The value would break a relation with another setting (the value the
     /// BMS holds, or the one written with it): see [`RELATIONS`].
     Contradicts {
@@ -354,6 +370,162 @@ pub fn check_relations(
     Ok(())
 }
 
+/// A lithium cell chemistry: which per-cell voltages make sense for a pack
+/// of it. The TinyBMS has no register that says the chemistry (Rev D §3.4
+/// has none: the BMS only holds voltages), so it is inferred from the
+/// voltages the BMS holds ([`Chemistry::infer`]) or given by the owner.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Chemistry {
+    /// Lithium iron phosphate (3.2 V nominal, 3.65 V full).
+    LiFePO4,
+    /// Lithium-ion NMC / NCA (3.6-3.7 V nominal, 4.2 V full; 4.35 V for HV
+    /// cells).
+    LiIon,
+    /// Lithium titanate (2.3-2.4 V nominal, 2.7-2.85 V full).
+    Lto,
+}
+
+/// The per-cell window (raw, mV) of each voltage setting for LiFePO4,
+/// Li-ion and LTO, in that order: outside it the setting is plainly wrong for
+/// that chemistry. Generous on purpose (the cell makers' limits and a
+/// margin): it catches a value meant for another chemistry, not a tuning.
+/// The over-voltage and fully-charged windows of the three do not overlap,
+/// so either names one chemistry.
+pub const CHEMISTRY_RANGES: &[(SettingId, [(i32, i32); 3])] = &[
+    (
+        SettingId::OverVoltageCutoff,
+        [(3400, 3800), (4000, 4350), (2600, 2950)],
+    ),
+    (
+        SettingId::FullyChargedVoltage,
+        [(3300, 3700), (3900, 4300), (2500, 2900)],
+    ),
+    (
+        SettingId::EarlyBalancingThreshold,
+        [(3200, 3700), (3600, 4300), (2300, 2900)],
+    ),
+    (
+        SettingId::UnderVoltageCutoff,
+        [(2000, 3000), (2500, 3400), (1500, 2300)],
+    ),
+    (
+        SettingId::FullyDischargedVoltage,
+        [(2500, 3200), (2800, 3500), (1700, 2400)],
+    ),
+];
+
+impl Chemistry {
+    /// Every chemistry, in the order of [`CHEMISTRY_RANGES`]' windows.
+    pub const ALL: [Chemistry; 3] = [Chemistry::LiFePO4, Chemistry::LiIon, Chemistry::Lto];
+
+    /// As a command line or the host link names it: `lifepo4`, `li-ion`, `lto`.
+    pub const fn key(self) -> &'static str {
+        match self {
+            Self::LiFePO4 => "lifepo4",
+            Self::LiIon => "li-ion",
+            Self::Lto => "lto",
+        }
+    }
+
+    /// In words.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::LiFePO4 => "LiFePO4",
+            Self::LiIon => "Li-ion (NMC/NCA)",
+            Self::Lto => "LTO",
+        }
+    }
+
+    /// From its key or a usual name (`lfp`, `nmc`, `nca`, `liion`; ASCII
+    /// case ignored).
+    pub fn from_key(s: &str) -> Option<Self> {
+        let is = |k: &str| s.eq_ignore_ascii_case(k);
+        if is("lifepo4") || is("lfp") {
+            Some(Self::LiFePO4)
+        } else if is("li-ion") || is("liion") || is("nmc") || is("nca") {
+            Some(Self::LiIon)
+        } else if is("lto") {
+            Some(Self::Lto)
+        } else {
+            None
+        }
+    }
+
+    const fn index(self) -> usize {
+        match self {
+            Self::LiFePO4 => 0,
+            Self::LiIon => 1,
+            Self::Lto => 2,
+        }
+    }
+
+    /// The plausible window of `id` for this chemistry (raw, mV per cell);
+    /// `None` for a setting that is not a cell voltage.
+    pub fn range(self, id: SettingId) -> Option<(i32, i32)> {
+        CHEMISTRY_RANGES
+            .iter()
+            .find(|(s, _)| *s == id)
+            .and_then(|(_, w)| w.get(self.index()).copied())
+    }
+
+    /// The chemistry the BMS's own voltages name (`value_of`: what it holds):
+    /// its over-voltage cutoff, else its fully-charged voltage, in one
+    /// chemistry's window. `None` when neither is known or neither fits one.
+    pub fn infer(value_of: impl Fn(SettingId) -> Option<i32>) -> Option<(Self, SettingId, i32)> {
+        for id in [SettingId::OverVoltageCutoff, SettingId::FullyChargedVoltage] {
+            let Some(v) = value_of(id) else { continue };
+            for c in Self::ALL {
+                if let Some((lo, hi)) = c.range(id) {
+                    if (lo..=hi).contains(&v) {
+                        return Some((c, id, v));
+                    }
+                }
+            }
+        }
+        None
+    }
+}
+
+/// Which chemistry a write is checked against.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum ChemistryCheck {
+    /// The one the BMS's own voltages name ([`Chemistry::infer`]); none (no
+    /// check) when they name none.
+    Inferred,
+    /// This one (the owner said).
+    Given(Chemistry),
+    /// None: the owner forces the values (never the [`RELATIONS`]).
+    Off,
+}
+
+impl ChemistryCheck {
+    /// The chemistry to check against, the BMS holding `value_of`.
+    pub fn chemistry(self, value_of: impl Fn(SettingId) -> Option<i32>) -> Option<Chemistry> {
+        match self {
+            Self::Inferred => Chemistry::infer(value_of).map(|(c, _, _)| c),
+            Self::Given(c) => Some(c),
+            Self::Off => None,
+        }
+    }
+}
+
+/// Checks `s` against `chemistry`'s window ([`Chemistry::range`]); a
+/// setting that is not a cell voltage always passes.
+pub fn check_chemistry(s: &Setting, chemistry: Chemistry) -> Result<(), SettingError> {
+    match chemistry.range(s.id) {
+        Some((min, max)) if s.value < min || s.value > max => Err(SettingError::OutsideChemistry {
+            id: s.id,
+            value: s.value,
+            chemistry,
+            min,
+            max,
+        }),
+        _ => Ok(()),
+    }
+}
+
 impl SettingError {
     /// Short snake_case reason.
     pub const fn reason(&self) -> &'static str {
@@ -363,6 +535,7 @@ impl SettingError {
             Self::OutsideBmsLimits { .. } => "outside_bms_limits",
             Self::CurrentValueUnknown { .. } => "current_value_unknown",
             Self::Contradicts { .. } => "contradicts_another_setting",
+            Self::OutsideChemistry { .. } => "outside_chemistry_range",
         }
     }
 }
@@ -605,6 +778,70 @@ mod tests {
             ov.validate_with(Some((1000, 6000))),
             Err(SettingError::OutOfRange { .. })
         ));
+    }
+
+    /// Issue 26, item 2: a per-cell voltage of another chemistry (4.2 V on a
+    /// LiFePO4 pack) passed Rev D's range and every relation.
+    #[test]
+    fn cell_voltages_are_checked_against_the_chemistry() {
+        let held =
+            |ov: i32| move |id: SettingId| (id == SettingId::OverVoltageCutoff).then_some(ov);
+        let infer = |ov| Chemistry::infer(held(ov)).map(|(c, _, _)| c);
+        assert_eq!(infer(3650), Some(Chemistry::LiFePO4));
+        assert_eq!(infer(4200), Some(Chemistry::LiIon));
+        assert_eq!(infer(2800), Some(Chemistry::Lto));
+        // Between the windows, or unknown: no chemistry, no check.
+        assert_eq!(infer(3900), None);
+        assert_eq!(Chemistry::infer(|_| None), None);
+        // The fully-charged voltage when the cutoff says nothing.
+        let fc = |id: SettingId| match id {
+            SettingId::OverVoltageCutoff => Some(3900),
+            SettingId::FullyChargedVoltage => Some(4150),
+            _ => None,
+        };
+        assert_eq!(
+            Chemistry::infer(fc),
+            Some((Chemistry::LiIon, SettingId::FullyChargedVoltage, 4150))
+        );
+        let s = |id, value| Setting { id, value };
+        let lfp = Chemistry::LiFePO4;
+        assert_eq!(
+            check_chemistry(&s(SettingId::FullyChargedVoltage, 4200), lfp),
+            Err(SettingError::OutsideChemistry {
+                id: SettingId::FullyChargedVoltage,
+                value: 4200,
+                chemistry: lfp,
+                min: 3300,
+                max: 3700
+            })
+        );
+        assert_eq!(
+            check_chemistry(&s(SettingId::FullyChargedVoltage, 3650), lfp),
+            Ok(())
+        );
+        assert!(check_chemistry(&s(SettingId::UnderVoltageCutoff, 3200), Chemistry::Lto).is_err());
+        // Not a cell voltage: never the chemistry's business.
+        assert_eq!(
+            check_chemistry(&s(SettingId::ChargerStartupDelay, 9999), lfp),
+            Ok(())
+        );
+        // Every window inside Rev D's range; the keys round-trip.
+        for (id, windows) in CHEMISTRY_RANGES {
+            let (lo, hi) = id.register().unwrap().range.unwrap();
+            for (a, b) in windows {
+                assert!(lo <= *a && a < b && *b <= hi, "{id:?}");
+            }
+        }
+        for c in Chemistry::ALL {
+            assert_eq!(Chemistry::from_key(c.key()), Some(c));
+        }
+        assert_eq!(Chemistry::from_key("LFP"), Some(lfp));
+        assert_eq!(Chemistry::from_key("lead"), None);
+        assert_eq!(ChemistryCheck::Off.chemistry(held(3650)), None);
+        assert_eq!(
+            ChemistryCheck::Given(Chemistry::Lto).chemistry(held(3650)),
+            Some(Chemistry::Lto)
+        );
     }
 
     #[test]

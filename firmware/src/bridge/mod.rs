@@ -133,8 +133,12 @@ pub enum Step {
 #[derive(Debug, Clone, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Command {
-    /// Write and verify these settings, one by one.
-    ApplySettings(Vec<Setting, { timing::MAX_SETTINGS_GROUP }>),
+    /// Write and verify these settings, one by one, each checked against the
+    /// pack's cell chemistry as said (the relations between settings always).
+    ApplySettings(
+        Vec<Setting, { timing::MAX_SETTINGS_GROUP }>,
+        protocol_core::settings::ChemistryCheck,
+    ),
     /// Restart the BMS (0x02 option 0x05).
     ResetBms,
     /// Clear the event log (0x02 option 0x01).
@@ -202,7 +206,10 @@ impl Bridge {
             for &(id, value) in chunk {
                 let _fits = items.push(Setting { id, value }); // chunk <= capacity
             }
-            self.submit(Command::ApplySettings(items))?;
+            self.submit(Command::ApplySettings(
+                items,
+                protocol_core::settings::ChemistryCheck::Inferred,
+            ))?;
         }
         Ok(())
     }

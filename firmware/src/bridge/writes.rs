@@ -460,20 +460,28 @@ fn start_job(cmd: Command, telemetry: &Telemetry, out: &mut Reports) -> Option<J
         Command::ResetBms => Some(Job::Reset(ResetStep::Before)),
         Command::ClearEvents => Some(Job::Clear(ResetOption::ClearEvents)),
         Command::ClearStatistics => Some(Job::Clear(ResetOption::ClearStatistics)),
-        Command::ApplySettings(settings) => {
+        Command::ApplySettings(settings, chemistry) => {
             let mut items = Vec::new();
             // Each setting against the others: those of this group first,
             // else what the BMS holds.
+            let held = |id: SettingId| telemetry.settings.as_ref().and_then(|b| id.read(b));
             let value_of = |id: SettingId| {
                 settings
                     .iter()
                     .find(|x| x.id == id)
                     .map(|x| x.value)
-                    .or_else(|| telemetry.settings.as_ref().and_then(|b| id.read(b)))
+                    .or_else(|| held(id))
             };
+            // The pack's chemistry: as the host said, else what the BMS's own
+            // voltages name (never the values being written).
+            let chemistry = chemistry.chemistry(held);
             for s in settings.iter().copied() {
                 let checked = check_setting(&s, telemetry)
-                    .and_then(|()| protocol_core::settings::check_relations(&s, value_of));
+                    .and_then(|()| protocol_core::settings::check_relations(&s, value_of))
+                    .and_then(|()| match chemistry {
+                        Some(c) => protocol_core::settings::check_chemistry(&s, c),
+                        None => Ok(()),
+                    });
                 match checked {
                     Ok(()) => {
                         let _fits = items.push(s); // same capacity

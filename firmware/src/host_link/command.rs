@@ -68,8 +68,9 @@ pub enum HostCommand<'a> {
     Hello,
     /// `get`.
     Get(What),
-    /// `set`.
-    Set(SetValues<'a>),
+    /// `set`, and the chemistry its values are checked against (`force`:
+    /// none; `chemistry`: that one; else the one the BMS's voltages name).
+    Set(SetValues<'a>, protocol_core::settings::ChemistryCheck),
     /// `reset`.
     Reset,
     /// `clear`.
@@ -120,6 +121,8 @@ struct Fields<'a> {
     period_ms: Option<u32>,
     on: Option<bool>,
     fields: Option<Vec<(&'a str, EscapedStr<'a>), MAX_SET_CONFIG>>,
+    force: Option<bool>,
+    chemistry: Option<&'a str>,
     /// The first member no command has.
     unknown: Option<&'a str>,
     /// A member given twice.
@@ -197,6 +200,16 @@ impl<'de, 'f> Visitor<'de> for Top<'f, 'de> {
                     f.current = "on";
                     let v = map.next_value()?;
                     put(&mut f.on, v, "on", &mut f.duplicate);
+                }
+                "force" => {
+                    f.current = "force";
+                    let v = map.next_value()?;
+                    put(&mut f.force, v, "force", &mut f.duplicate);
+                }
+                "chemistry" => {
+                    f.current = "chemistry";
+                    let v = map.next_value()?;
+                    put(&mut f.chemistry, v, "chemistry", &mut f.duplicate);
                 }
                 "fields" => {
                     f.current = "fields";
@@ -396,7 +409,7 @@ pub fn parse(line: &[u8]) -> Result<Parsed<'_>, CommandError<'_>> {
         "hello" | "reset" | "reset_config" => &[],
         "set_config" => &["fields"],
         "get" | "clear" => &["what"],
-        "set" => &["values", "raw"],
+        "set" => &["values", "raw", "force", "chemistry"],
         "stream" => &["period_ms"],
         "capture" => &["on"],
         _ => return Err(err(req, ErrorCode::UnknownCommand, "unknown command", cmd)),
@@ -411,6 +424,8 @@ pub fn parse(line: &[u8]) -> Result<Parsed<'_>, CommandError<'_>> {
         ("period_ms", f.period_ms.is_some()),
         ("on", f.on.is_some()),
         ("fields", f.fields.is_some()),
+        ("force", f.force.is_some()),
+        ("chemistry", f.chemistry.is_some()),
     ];
     for (name, present) in given {
         if present && !takes.contains(&name) {
@@ -508,7 +523,18 @@ pub fn parse(line: &[u8]) -> Result<Parsed<'_>, CommandError<'_>> {
             if let Some(&(name, _)) = v.iter().find(|(_, x)| x.is_nan()) {
                 return Err(err(req, ErrorCode::InvalidValue, "not a number", name));
             }
-            HostCommand::Set(values)
+            use protocol_core::settings::{Chemistry, ChemistryCheck};
+            let check = match (f.force, f.chemistry) {
+                (Some(true), _) => ChemistryCheck::Off,
+                (_, Some(c)) => ChemistryCheck::Given(Chemistry::from_key(c).ok_or(err(
+                    req,
+                    ErrorCode::InvalidValue,
+                    "chemistry: lifepo4, li-ion or lto",
+                    c,
+                ))?),
+                _ => ChemistryCheck::Inferred,
+            };
+            HostCommand::Set(values, check)
         }
         "stream" => {
             let p = f.period_ms.ok_or(err(

@@ -8,7 +8,7 @@
 
 use heapless::String;
 use protocol_core::events::{Event, EventId, OnlineStatus, ResetReason, WakeupReason};
-use protocol_core::settings::{Setting, SettingId};
+use protocol_core::settings::{Setting, SettingError, SettingId};
 use protocol_core::views::{CurrentSensor, LiveSnapshot, Statistics, VersionInfo};
 use serde::ser::{Serialize, SerializeSeq, Serializer};
 
@@ -973,6 +973,9 @@ struct OutcomeLine {
     read_back: Option<u16>,
     #[serde(skip_serializing_if = "Option::is_none")]
     nack_code: Option<u8>,
+    /// A value outside the chemistry's window: the chemistry (`lifepo4`, …).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    chemistry: Option<&'static str>,
     #[serde(skip_serializing_if = "core::ops::Not::not")]
     follow_up: bool,
 }
@@ -1005,6 +1008,12 @@ pub fn outcome(
             detail,
             read_back,
             nack_code,
+            chemistry: match outcome {
+                WriteOutcome::Rejected(SettingError::OutsideChemistry { chemistry, .. }) => {
+                    Some(chemistry.key())
+                }
+                _ => None,
+            },
             follow_up,
         },
         out,

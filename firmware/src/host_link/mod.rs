@@ -759,7 +759,7 @@ impl State {
         self.apply_config(now, config.running());
         let writes = matches!(
             parsed.command,
-            HostCommand::Set(_)
+            HostCommand::Set(..)
                 | HostCommand::Reset
                 | HostCommand::Clear(_)
                 | HostCommand::SetConfig(_)
@@ -774,7 +774,7 @@ impl State {
                 self.push(Out::Hello(req));
             }
             HostCommand::Get(what) => self.get(req, what, bridge),
-            HostCommand::Set(values) => self.set(req, &values, bridge),
+            HostCommand::Set(values, check) => self.set(req, &values, check, bridge),
             HostCommand::Reset => {
                 if self.resets.is_full() {
                     return self.error(req, ErrorCode::Busy, "resets pending", "");
@@ -949,7 +949,13 @@ impl State {
         }
     }
 
-    fn set(&mut self, req: Option<u32>, values: &SetValues<'_>, bridge: &mut Bridge) {
+    fn set(
+        &mut self,
+        req: Option<u32>,
+        values: &SetValues<'_>,
+        chemistry: protocol_core::settings::ChemistryCheck,
+        bridge: &mut Bridge,
+    ) {
         let t = bridge.telemetry();
         if !t.ready || t.settings.is_none() {
             return self.error(
@@ -1001,7 +1007,7 @@ impl State {
             return self.error(req, ErrorCode::Busy, "writes pending", "");
         }
         if bridge
-            .submit(Command::ApplySettings(items.clone()))
+            .submit(Command::ApplySettings(items.clone(), chemistry))
             .is_err()
         {
             return self.error(req, ErrorCode::Busy, "command queue full", "");

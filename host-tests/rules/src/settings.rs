@@ -59,6 +59,66 @@ pub fn physical(id: SettingId, raw: i64) -> String {
     }
 }
 
+/// The chemistry the cell voltages are checked against, and why.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Chem {
+    /// Which.
+    pub chemistry: protocol_core::settings::Chemistry,
+    /// Where it comes from, in words.
+    pub why: String,
+}
+
+/// The chemistry `set`/`apply` check against (the bridge infers the same
+/// from the same values): the one given, else the one the BMS's own
+/// over-voltage cutoff (else fully-charged voltage) names; none when forced
+/// or when they name none. With it, the sentence the owner is told when
+/// `items` holds a cell voltage (`chemistry: LiFePO4 (taken from …)`).
+pub fn chemistry_of(
+    current: &[Value],
+    items: &[(SettingId, i32)],
+    check: protocol_core::settings::ChemistryCheck,
+) -> (Option<Chem>, Option<String>) {
+    use protocol_core::settings::{Chemistry, ChemistryCheck};
+    let held = |id: SettingId| {
+        let n = snake_name(id);
+        current
+            .iter()
+            .find(|l| l["type"] == "setting" && l["name"] == n.as_str())
+            .and_then(|l| l["raw"].as_i64())
+            .and_then(|v| i32::try_from(v).ok())
+    };
+    let voltages = items
+        .iter()
+        .any(|(id, _)| Chemistry::LiFePO4.range(*id).is_some());
+    let chem = match check {
+        ChemistryCheck::Off => {
+            return (
+                None,
+                voltages.then(|| "chemistry: not checked (--force)".to_string()),
+            );
+        }
+        ChemistryCheck::Given(c) => Some(Chem {
+            chemistry: c,
+            why: "as --chemistry says".into(),
+        }),
+        ChemistryCheck::Inferred => Chemistry::infer(held).map(|(c, id, v)| Chem {
+            chemistry: c,
+            why: format!(
+                "taken from the {} the BMS holds, {}",
+                snake_name(id).replace('_', " "),
+                physical(id, i64::from(v))
+            ),
+        }),
+    };
+    let said = voltages.then(|| match &chem {
+        Some(c) => format!("chemistry: {} ({})", c.chemistry.name(), c.why),
+        None => "chemistry: unknown (the BMS's cutoffs name none): cell voltages checked \
+                 against each other only; --chemistry lifepo4|li-ion|lto to check them"
+            .to_string(),
+    });
+    (chem, said)
+}
+
 /// Checks every (setting, raw value) as the bridge will before it writes
 /// anything: Rev D's range and enumeration, and the BMS's own min/max as the
 /// bridge reported them in `current` (its `setting` lines). `bare`: settings
@@ -69,6 +129,7 @@ pub fn check_all(
     current: &[Value],
     items: &[(SettingId, i32)],
     bare: Option<&[SettingId]>,
+    chemistry: Option<&Chem>,
 ) -> Result<(), String> {
     use protocol_core::settings::Setting;
     let mut problems = Vec::new();
@@ -126,6 +187,30 @@ pub fn check_all(
                 },
                 snake_name(other_id),
                 physical(other_id, i64::from(other))
+            ));
+            continue;
+        }
+        // Last, the chemistry's window (what `--force` passes; never the
+        // relations above).
+        let verdict = verdict.and_then(|()| match chemistry {
+            Some(c) => {
+                protocol_core::settings::check_chemistry(&Setting { id, value: raw }, c.chemistry)
+            }
+            None => Ok(()),
+        });
+        if let (
+            Err(protocol_core::settings::SettingError::OutsideChemistry { min, max, .. }),
+            Some(c),
+        ) = (&verdict, chemistry)
+        {
+            problems.push(format!(
+                "{name} = {}: plainly wrong for a {} pack ({}..{} per cell; {}); \
+                 --chemistry CHEM if the pack is another, --force to write it anyway",
+                physical(id, i64::from(raw)),
+                c.chemistry.name(),
+                physical(id, i64::from(*min)),
+                physical(id, i64::from(*max)),
+                c.why
             ));
             continue;
         }

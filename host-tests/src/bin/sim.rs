@@ -526,7 +526,10 @@ fn run_seed(o: &Options, seed: u64, t: &mut Totals) -> Result<(), String> {
                 let mut items = heapless::Vec::new();
                 let _ = items.push(Setting { id, value });
                 // A full queue just skips this change.
-                let _ = h.bridge_mut().submit(Command::ApplySettings(items));
+                let _ = h.bridge_mut().submit(Command::ApplySettings(
+                    items,
+                    protocol_core::settings::ChemistryCheck::Inferred,
+                ));
                 k += 1;
                 next_write = Some(t + every);
             }

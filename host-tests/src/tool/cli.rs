@@ -137,6 +137,8 @@ pub enum Command {
         /// Do not ask for confirmation.
         #[arg(long, short)]
         yes: bool,
+        #[command(flatten)]
+        chemistry: ChemistryArgs,
     },
     /// Write and verify settings: NAME=VALUE, VALUE in the unit `settings`
     /// prints (3.65 or 3.65V or 3650mV), or an enumeration value's name.
@@ -155,6 +157,8 @@ pub enum Command {
         /// Do not ask for confirmation.
         #[arg(long, short)]
         yes: bool,
+        #[command(flatten)]
+        chemistry: ChemistryArgs,
     },
     /// The BMS's event log, oldest first, with the wall-clock time.
     Events {
@@ -301,6 +305,39 @@ impl Command {
             | Command::Mqtt { conn, .. } => Some(conn),
         }
     }
+}
+
+/// The cell chemistry the cell voltages of `set` / `apply` are checked
+/// against. The TinyBMS does not say its chemistry: by default it is inferred
+/// from the over-voltage cutoff (else the fully-charged voltage) the BMS holds.
+#[derive(Debug, Clone, Copy, clap::Args)]
+pub struct ChemistryArgs {
+    /// The pack's cell chemistry: lifepo4, li-ion (NMC/NCA) or lto (default:
+    /// inferred from the cutoffs the BMS holds).
+    #[arg(long, value_parser = chemistry, value_name = "CHEM")]
+    pub chemistry: Option<protocol_core::settings::Chemistry>,
+    /// Write cell voltages outside the chemistry's plausible window anyway
+    /// (an expert's other chemistry). The relations between settings (under-
+    /// below over-voltage cutoff, …) are checked all the same.
+    #[arg(long, conflicts_with = "chemistry")]
+    pub force: bool,
+}
+
+impl ChemistryArgs {
+    /// What the bridge checks the values against.
+    pub fn check(self) -> protocol_core::settings::ChemistryCheck {
+        use protocol_core::settings::ChemistryCheck;
+        match (self.force, self.chemistry) {
+            (true, _) => ChemistryCheck::Off,
+            (false, Some(c)) => ChemistryCheck::Given(c),
+            (false, None) => ChemistryCheck::Inferred,
+        }
+    }
+}
+
+fn chemistry(s: &str) -> Result<protocol_core::settings::Chemistry, String> {
+    protocol_core::settings::Chemistry::from_key(s)
+        .ok_or_else(|| format!("`{s}`: lifepo4, li-ion or lto"))
 }
 
 #[cfg(test)]

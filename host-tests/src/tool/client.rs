@@ -253,6 +253,7 @@ impl Client {
         &mut self,
         settings: &[(String, f64)],
         raw: bool,
+        chemistry: protocol_core::settings::ChemistryCheck,
         follow_up_wait: Duration,
         mut on_outcome: impl FnMut(&Value),
     ) -> ToolResult<Vec<Value>> {
@@ -262,7 +263,15 @@ impl Client {
             map.insert(name.clone(), num);
         }
         let key = if raw { "raw" } else { "values" };
-        let req = self.send(json!({"cmd": "set", key: Value::Object(map)}))?;
+        let mut cmd = json!({"cmd": "set", key: Value::Object(map)});
+        match chemistry {
+            protocol_core::settings::ChemistryCheck::Inferred => {}
+            protocol_core::settings::ChemistryCheck::Given(c) => {
+                cmd["chemistry"] = json!(c.key());
+            }
+            protocol_core::settings::ChemistryCheck::Off => cmd["force"] = json!(true),
+        }
+        let req = self.send(cmd)?;
         // A write reads, writes, waits 200 ms, reads back; a reboot-causing
         // setting waits for the BMS to come back. Generous.
         let per = Duration::from_secs(20);

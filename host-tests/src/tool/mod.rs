@@ -160,14 +160,16 @@ fn run(cli: Cli) -> ToolResult<()> {
             file,
             dry_run,
             yes,
-        } => cmd::apply::run(conn, file, dry_run, yes),
+            chemistry,
+        } => cmd::apply::run(conn, file, dry_run, yes, chemistry.check()),
         Command::Set {
             conn,
             assignments,
             raw,
             dry_run,
             yes,
-        } => cmd::set::run(conn, assignments, raw, dry_run, yes),
+            chemistry,
+        } => cmd::set::run(conn, assignments, raw, dry_run, yes, chemistry.check()),
         Command::Events { conn, json } => cmd::events::run(conn, json),
         Command::Stats { conn, json } => cmd::show::show_one(&conn, "statistics", json),
         Command::Version { conn, json } => cmd::show::version(&conn, json),
@@ -276,14 +278,18 @@ fn confirm(question: &str) -> ToolResult<bool> {
 
 /// Writes settings (raw values) in groups of 8 (the protocol's limit),
 /// printing each outcome; fails when any did not end verified or unchanged.
-fn write_settings(c: &mut Client, items: &[(SettingId, i32)]) -> ToolResult<()> {
+fn write_settings(
+    c: &mut Client,
+    items: &[(SettingId, i32)],
+    chemistry: protocol_core::settings::ChemistryCheck,
+) -> ToolResult<()> {
     let (mut bad, mut verified, mut unchanged) = (0, 0, 0);
     for group in items.chunks(8) {
         let named: Vec<(String, f64)> = group
             .iter()
             .map(|(id, v)| (snake_name(*id), f64::from(*v)))
             .collect();
-        let outcomes = c.set(&named, true, Duration::from_secs(15), |v| {
+        let outcomes = c.set(&named, true, chemistry, Duration::from_secs(15), |v| {
             let follow = if v["follow_up"] == true {
                 " (follow-up)"
             } else {

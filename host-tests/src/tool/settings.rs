@@ -8,7 +8,22 @@ use serde_json::Value;
 use crate::profile::{find_setting, snake_name};
 
 pub use crate::words::short;
-pub use tinybms_rules::settings::{check_all, parse_set_arg, physical};
+pub use tinybms_rules::settings::{check_all, parse_set_arg, physical, Chem};
+
+/// The chemistry `set`/`apply` check against
+/// ([`tinybms_rules::settings::chemistry_of`]), said on stdout when a cell
+/// voltage is written.
+pub fn chemistry_of(
+    current: &[Value],
+    items: &[(SettingId, i32)],
+    check: protocol_core::settings::ChemistryCheck,
+) -> Option<Chem> {
+    let (chem, said) = tinybms_rules::settings::chemistry_of(current, items, check);
+    if let Some(line) = said {
+        println!("{line}");
+    }
+    chem
+}
 
 fn range(min: &Value, max: &Value, unit: &str) -> String {
     match (min.as_f64(), max.as_f64()) {

@@ -330,12 +330,19 @@ async function applySettings(): Promise<void> {
   for (const input of $("settings").querySelectorAll<HTMLInputElement>("input")) {
     if (input.value.trim() !== "") changes.push(`${input.name}=${input.value.trim()}`);
   }
-  const check = rules<{ ok: boolean; messages: string[]; values: Record<string, number> }>("check_settings", {
+  const check = rules<{
+    ok: boolean;
+    messages: string[];
+    values: Record<string, number>;
+    chemistry: string | null;
+  }>("check_settings", {
     changes,
     current: s.settings,
   });
+  // As `tinybms set` says it: which chemistry the cell voltages are held to.
+  const said = check.chemistry ? [check.chemistry] : [];
   if (!check.ok) {
-    say("settings-messages", check.messages, "error");
+    say("settings-messages", [...said, ...check.messages], "error");
     return;
   }
   const names = Object.keys(check.values);
@@ -349,7 +356,7 @@ async function applySettings(): Promise<void> {
     20000,
   );
   const err = errorOf(lines);
-  const out: string[] = err ? [err] : [];
+  const out: string[] = [...said, ...(err ? [err] : [])];
   let failed = Boolean(err);
   for (const l of lines.filter((l) => l.type === "outcome")) {
     const ok = l.outcome === "verified" || l.outcome === "unchanged";

@@ -131,14 +131,37 @@ test("a value the firmware refuses is refused before anything is sent, with the 
     await page.fill('#settings tr[data-setting="over_voltage_cutoff"] input', "2.4V");
     await page.click("#settings-apply");
     const said2 = await until("refused", async () => {
-      const t = (await page.textContent("#settings-messages")).trim();
+      const t = (await page.innerText("#settings-messages")).trim();
       return /refused/.test(t) ? t : false;
     });
     for (const line of said2.split("\n").map((l) => l.trim()).filter(Boolean)) {
       assert.ok(tool2.out.includes(line), `console: ${line}\ntool: ${tool2.out}`);
     }
-    // A good change is written and read back (the refused one taken back).
+    // A value plainly wrong for the pack's chemistry (4.2 V on LiFePO4): the
+    // tool's words again, the chemistry said first.
     await page.fill('#settings tr[data-setting="over_voltage_cutoff"] input', "");
+    const tool3 = await tinybms([
+      "set",
+      other.pty,
+      "over_voltage_cutoff=4.25V",
+      "fully_charged_voltage=4.2V",
+      "--dry-run",
+    ]);
+    assert.notEqual(tool3.code, 0, tool3.out);
+    await page.fill('#settings tr[data-setting="over_voltage_cutoff"] input', "4.25V");
+    await page.fill('#settings tr[data-setting="fully_charged_voltage"] input', "4.2V");
+    await page.click("#settings-apply");
+    const said3 = await until("refused for the chemistry", async () => {
+      const t = (await page.innerText("#settings-messages")).trim();
+      return /plainly wrong for a LiFePO4 pack/.test(t) ? t : false;
+    });
+    for (const line of said3.split("\n").map((l) => l.trim()).filter(Boolean)) {
+      assert.ok(tool3.out.includes(line), `console: ${line}\ntool: ${tool3.out}`);
+    }
+    assert.match(said3, /^chemistry: LiFePO4/);
+    // A good change is written and read back (the refused ones taken back).
+    await page.fill('#settings tr[data-setting="over_voltage_cutoff"] input', "");
+    await page.fill('#settings tr[data-setting="fully_charged_voltage"] input', "");
     await page.fill('#settings tr[data-setting="charger_startup_delay"] input', "25");
     await page.click("#settings-apply");
     let seen = "";

@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use protocol_core::settings::SettingId;
+use protocol_core::settings::{ChemistryCheck, SettingId};
 
 use crate::profile::parse_profile;
 use crate::tool::cli::Conn;
@@ -11,13 +11,20 @@ use crate::tool::{
 };
 
 /// Runs `tinybms apply`.
-pub fn run(conn: Conn, file: PathBuf, dry_run: bool, yes: bool) -> ToolResult<()> {
+pub fn run(
+    conn: Conn,
+    file: PathBuf,
+    dry_run: bool,
+    yes: bool,
+    chemistry: ChemistryCheck,
+) -> ToolResult<()> {
     let text = read_profile(&file, &conn.port)?;
     let wanted =
         parse_profile(&text).map_err(|e| ToolError::usage(format!("{}: {e}", file.display())))?;
     let mut c = connect_ready(&conn)?;
     let current = c.get("settings")?;
-    settings::check_all(&current, &wanted, None).map_err(ToolError::failed)?;
+    let chem = settings::chemistry_of(&current, &wanted, chemistry);
+    settings::check_all(&current, &wanted, None, chem.as_ref()).map_err(ToolError::failed)?;
     let changes = settings::diff(&current, &wanted);
     let unchanged = wanted.len().saturating_sub(changes.len());
     println!("{}: {} settings", file.display(), wanted.len());
@@ -31,5 +38,5 @@ pub fn run(conn: Conn, file: PathBuf, dry_run: bool, yes: bool) -> ToolResult<()
     }
     let items: Vec<(SettingId, i32)> = changes.iter().map(|ch| (ch.id, ch.to as i32)).collect();
     confirm_restart(yes, &items)?;
-    write_settings(&mut c, &items)
+    write_settings(&mut c, &items, chemistry)
 }

@@ -1,6 +1,6 @@
 //! `tinybms set`: Settings given on the command line, each verified.
 
-use protocol_core::settings::SettingId;
+use protocol_core::settings::{ChemistryCheck, SettingId};
 
 use crate::profile::snake_name;
 use crate::tool::cli::Conn;
@@ -15,6 +15,7 @@ pub fn run(
     raw: bool,
     dry_run: bool,
     yes: bool,
+    chemistry: ChemistryCheck,
 ) -> ToolResult<()> {
     let mut items: Vec<(SettingId, i32)> = Vec::new();
     let mut bare: Vec<SettingId> = Vec::new();
@@ -34,7 +35,8 @@ pub fn run(
     }
     let mut c = connect_ready(&conn)?;
     let current = c.get("settings")?;
-    settings::check_all(&current, &items, Some(&bare)).map_err(ToolError::failed)?;
+    let chem = settings::chemistry_of(&current, &items, chemistry);
+    settings::check_all(&current, &items, Some(&bare), chem.as_ref()).map_err(ToolError::failed)?;
     if dry_run {
         let changes = settings::diff(&current, &items);
         print!(
@@ -45,5 +47,5 @@ pub fn run(
         return Ok(());
     }
     confirm_restart(yes, &items)?;
-    write_settings(&mut c, &items)
+    write_settings(&mut c, &items, chemistry)
 }

@@ -16,7 +16,7 @@
 //! | `boards` | — | the board table: name, feature, chip, pins and their labels, host wire |
 //! | `fields` | — | every configuration field: name, unit, group, applies, help, range, default |
 //! | `check_config` | `{changes: ["NAME=VALUE"…], current: [config lines]}` | `{ok, messages, wire: {name: text}}` |
-//! | `check_settings` | `{changes: ["NAME=VALUE"…], current: [setting lines], raw}` | `{ok, messages, values: {name: raw}}` |
+//! | `check_settings` | `{changes: ["NAME=VALUE"…], current: [setting lines], raw}` | `{ok, messages, values: {name: raw}, chemistry}` |
 //! | `freshness` | `{telemetry: line or null, received_ago_ms}` | `{state, age_s, text}` |
 //! | `link_quality` | a `link` line | `{text}` |
 //! | `direct_start` | `{now_ms}` | `{}`: the firmware's station starts in the page (direct mode) |
@@ -155,8 +155,17 @@ fn check_settings(arg: &Value) -> Value {
     if messages.is_empty() && items.is_empty() {
         messages.push("nothing to change: give NAME=VALUE".to_string());
     }
+    // The chemistry the tool checks against by default: the one the BMS's
+    // own cutoffs name.
+    let (chem, said) = tinybms_rules::settings::chemistry_of(
+        &current,
+        &items,
+        protocol_core::settings::ChemistryCheck::Inferred,
+    );
     if messages.is_empty() {
-        if let Err(m) = tinybms_rules::settings::check_all(&current, &items, Some(&bare)) {
+        if let Err(m) =
+            tinybms_rules::settings::check_all(&current, &items, Some(&bare), chem.as_ref())
+        {
             messages.push(m);
         }
     }
@@ -164,7 +173,7 @@ fn check_settings(arg: &Value) -> Value {
         .iter()
         .map(|(id, v)| (tinybms_rules::settings::snake_name(*id), Value::from(*v)))
         .collect();
-    json!({ "ok": messages.is_empty(), "messages": messages, "values": values })
+    json!({ "ok": messages.is_empty(), "messages": messages, "values": values, "chemistry": said })
 }
 
 /// The firmware's one freshness rule on the newest telemetry line (`null`:
