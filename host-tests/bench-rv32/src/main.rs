@@ -507,7 +507,9 @@ pub extern "C" fn _start() -> ! {
     // IEEE 802.11i-2004, H.4: a wrong key means the wrong thing was measured.
     put(
         "psk_ok",
-        u64::from(key.as_str() == "f42c6fc52df0ebef9ebb4b90b38a5f902e83fe1b135a70e23aed762e9710a12e"),
+        u64::from(
+            key.as_str() == "f42c6fc52df0ebef9ebb4b90b38a5f902e83fe1b135a70e23aed762e9710a12e",
+        ),
     );
     put("share_updates", u64::from(SHARE_REPS));
     put("shares_learnt", u64::from(shares.of(8).is_some()));
