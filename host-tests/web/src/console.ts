@@ -159,6 +159,14 @@ function tick(): void {
   text("age", f.text);
 }
 
+/** A table cell with this text. */
+function cell(content: string, cls = ""): HTMLTableCellElement {
+  const td = document.createElement("td");
+  td.textContent = content;
+  if (cls) td.className = cls;
+  return td;
+}
+
 // ----------------------------------------------------------- configuration
 
 function showConfig(lines: Line[]): void {
@@ -168,12 +176,6 @@ function showConfig(lines: Line[]): void {
     ...fields.map((f) => {
       const tr = document.createElement("tr");
       tr.dataset.field = f.name;
-      const cell = (content: string, cls = "") => {
-        const td = document.createElement("td");
-        td.textContent = content;
-        if (cls) td.className = cls;
-        return td;
-      };
       const value = f.secret ? f.value : `${f.value}${f.unit && /^-?\d/.test(f.value) ? " " + f.unit : ""}`;
       const input = document.createElement("input");
       input.name = f.name;
@@ -283,12 +285,7 @@ function showSettings(lines: Line[]): void {
     ...lines.map((l) => {
       const tr = document.createElement("tr");
       tr.dataset.setting = l.name;
-      const td = (c: string, cls = "") => {
-        const e = document.createElement("td");
-        e.textContent = c;
-        if (cls) e.className = cls;
-        return e;
-      };
+      const td = cell;
       const input = document.createElement("input");
       input.name = l.name;
       input.autocomplete = "off";

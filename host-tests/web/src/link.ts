@@ -16,6 +16,8 @@ type Waiter = {
 
 /** What both kinds of link share: lines in, commands out, answers by `req`. */
 export abstract class Link {
+  protected reader?: ReadableStreamDefaultReader<Uint8Array>;
+  protected writer?: WritableStreamDefaultWriter<Uint8Array>;
   protected nextReq = 1;
   protected waiters: Waiter[] = [];
   protected closed = false;
@@ -24,12 +26,37 @@ export abstract class Link {
   /** The port went away (unplugged, closed). */
   onClose: (why: string) => void = () => {};
 
+  constructor(protected port: SerialPort) {}
+
   /** Opens the port and starts reading. */
   abstract open(): Promise<void>;
-  /** Closes the port. */
-  abstract close(): Promise<void>;
   /** Writes one command line (with its newline). */
   protected abstract write(line: string): Promise<void>;
+
+  /** The port at 115200 Bd (the host link's, and the TinyBMS's 8N1), its reader and writer. */
+  protected async openPort(): Promise<void> {
+    await this.port.open({ baudRate: 115200, bufferSize: 8192 });
+    if (!this.port.readable || !this.port.writable) throw new Error("the port is not readable and writable");
+    this.reader = this.port.readable.getReader();
+    this.writer = this.port.writable.getWriter();
+  }
+
+  /** Closes the port (a bridge starts a clean session at the next hello). */
+  async close(): Promise<void> {
+    this.closed = true;
+    try {
+      await this.reader?.cancel();
+    } catch {
+      /* already gone */
+    }
+    this.reader?.releaseLock();
+    this.writer?.releaseLock();
+    try {
+      await this.port.close();
+    } catch {
+      /* already closed */
+    }
+  }
 
   /** The port ended: every waiting request fails. */
   protected ended(why: string): void {
@@ -103,19 +130,9 @@ export abstract class Link {
 
 /** A bridge on the port: its host link. */
 export class HostLink extends Link {
-  private reader?: ReadableStreamDefaultReader<Uint8Array>;
-  private writer?: WritableStreamDefaultWriter<Uint8Array>;
-
-  constructor(private port: SerialPort) {
-    super();
-  }
-
   /** Opens the port at the host link's 115200 Bd and starts reading. */
   async open(): Promise<void> {
-    await this.port.open({ baudRate: 115200, bufferSize: 8192 });
-    if (!this.port.readable || !this.port.writable) throw new Error("the port is not readable and writable");
-    this.reader = this.port.readable.getReader();
-    this.writer = this.port.writable.getWriter();
+    await this.openPort();
     void this.readLoop();
   }
 
@@ -147,23 +164,6 @@ export class HostLink extends Link {
     if (!this.writer) throw new Error("not connected");
     await this.writer.write(new TextEncoder().encode(line));
   }
-
-  /** Closes the port (the bridge starts a clean session at the next hello). */
-  async close(): Promise<void> {
-    this.closed = true;
-    try {
-      await this.reader?.cancel();
-    } catch {
-      /* already gone */
-    }
-    this.reader?.releaseLock();
-    this.writer?.releaseLock();
-    try {
-      await this.port.close();
-    } catch {
-      /* already closed */
-    }
-  }
 }
 
 /** The error of an answer, if it is one: `code: detail`. */
@@ -179,26 +179,21 @@ export function errorOf(lines: Line[]): string | undefined {
  * transmits goes to the port, and its host-link lines are read as a bridge's.
  */
 export class DirectLink extends Link {
-  private reader?: ReadableStreamDefaultReader<Uint8Array>;
-  private writer?: WritableStreamDefaultWriter<Uint8Array>;
   private rx: number[] = [];
   private host = "";
   private timer?: number;
   private busy = false;
 
   constructor(
-    private port: SerialPort,
+    port: SerialPort,
     private rules: <T>(name: string, arg: unknown) => T,
   ) {
-    super();
+    super(port);
   }
 
   async open(): Promise<void> {
     // The TinyBMS's UART: 115200 8N1 (Rev D).
-    await this.port.open({ baudRate: 115200, bufferSize: 8192 });
-    if (!this.port.readable || !this.port.writable) throw new Error("the port is not readable and writable");
-    this.reader = this.port.readable.getReader();
-    this.writer = this.port.writable.getWriter();
+    await this.openPort();
     this.rules("direct_start", { now_ms: performance.now() });
     void this.readLoop();
     this.soon(0);
@@ -256,19 +251,7 @@ export class DirectLink extends Link {
   }
 
   async close(): Promise<void> {
-    this.closed = true;
     if (this.timer !== undefined) clearTimeout(this.timer);
-    try {
-      await this.reader?.cancel();
-    } catch {
-      /* already gone */
-    }
-    this.reader?.releaseLock();
-    this.writer?.releaseLock();
-    try {
-      await this.port.close();
-    } catch {
-      /* already closed */
-    }
+    await super.close();
   }
 }
