@@ -438,18 +438,8 @@ impl Harness {
                     continue;
                 }
                 Action::Wifi(req) => {
-                    // No radio in virtual time: a join fails, a scan finds nothing.
-                    match req {
-                        tinybms_firmware::improv::WifiRequest::Join { .. } => {
-                            self.station.wifi_joined(
-                                self.now,
-                                Err(tinybms_firmware::improv::JoinFailure::Other),
-                            )
-                        }
-                        tinybms_firmware::improv::WifiRequest::Scan => {
-                            self.station.wifi_scanned(self.now, &[])
-                        }
-                    }
+                    // No radio in virtual time.
+                    self.station.wifi_unavailable(self.now, &req);
                     continue;
                 }
                 Action::CanRecover => {

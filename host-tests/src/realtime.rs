@@ -294,14 +294,7 @@ impl<P: BytePort> Driver<P> {
             match self.station.poll(now) {
                 Action::Wifi(req) => match self.wifi.as_mut() {
                     Some(w) => w.request(now, req),
-                    None => match req {
-                        tinybms_firmware::improv::WifiRequest::Join { .. } => self
-                            .station
-                            .wifi_joined(now, Err(tinybms_firmware::improv::JoinFailure::Other)),
-                        tinybms_firmware::improv::WifiRequest::Scan => {
-                            self.station.wifi_scanned(now, &[])
-                        }
-                    },
+                    None => self.station.wifi_unavailable(now, &req),
                 },
                 Action::Log(item) => {
                     let mut line = Line::new();

@@ -174,12 +174,7 @@ impl SimWifi {
                 continue;
             }
             match self.pending.remove(i).1 {
-                Done::Joined(r) => {
-                    station.wifi_joined(now, r);
-                    if let Ok(ip) = r {
-                        station.wifi_link(WifiLink::Up(ip));
-                    }
-                }
+                Done::Joined(r) => station.wifi_joined(now, r),
                 Done::Scanned(list) => station.wifi_scanned(now, &list),
                 Done::Link(l) => station.wifi_link(l),
             }

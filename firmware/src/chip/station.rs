@@ -180,15 +180,7 @@ async fn station_task(
                 {
                     // One at a time: the station asks again only after a
                     // result, so this is a Wi-Fi task that is not there.
-                    match req {
-                        tinybms_firmware::improv::WifiRequest::Join { .. } => station.wifi_joined(
-                            now_us(),
-                            Err(tinybms_firmware::improv::JoinFailure::Other),
-                        ),
-                        tinybms_firmware::improv::WifiRequest::Scan => {
-                            station.wifi_scanned(now_us(), &[])
-                        }
-                    }
+                    station.wifi_unavailable(now_us(), &req);
                 }
             }
             #[cfg(not(feature = "wifi"))]

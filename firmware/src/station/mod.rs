@@ -453,6 +453,16 @@ impl Station {
         }
     }
 
+    /// The Wi-Fi side cannot carry out `req` (no radio, or it is not
+    /// there): a join fails, a scan finds nothing — the answer every shell
+    /// without a Wi-Fi task gives.
+    pub fn wifi_unavailable(&mut self, now: Instant, req: &WifiRequest) {
+        match req {
+            WifiRequest::Join { .. } => self.wifi_joined(now, Err(JoinFailure::Other)),
+            WifiRequest::Scan => self.wifi_scanned(now, &[]),
+        }
+    }
+
     /// The scan of the last [`Action::Wifi`] ended.
     pub fn wifi_scanned(&mut self, now: Instant, networks: &[Network]) {
         if let Some(h) = self.host.as_mut() {

@@ -86,14 +86,38 @@ test("every board is offered, and every manifest names the files make-images.sh 
   }
 });
 
+/**
+ * The installer page from `url`, the SuperMini chosen (with Wi-Fi or not),
+ * the board's configuration partition marked when `nvs`, Install pressed.
+ */
+async function pressInstall(page, { url = site.url, wifi = true, nvs = false } = {}) {
+  await page.goto(url);
+  await page.waitForSelector("body[data-ready=true]", { timeout: 15000 });
+  if (nvs) await markNvs(page);
+  await page.check('input[name=board][value="c3-supermini"]');
+  await (wifi ? page.check("#wifi") : page.uncheck("#wifi"));
+  await page.click("#install-button");
+}
+
 /** ESP Web Tools' dialog for the chosen board, connected to the bridge. */
 async function openDialog(page) {
-  await page.goto(site.url);
-  await page.waitForSelector("body[data-ready=true]", { timeout: 15000 });
-  await page.check('input[name=board][value="c3-supermini"]');
-  await page.check("#wifi");
-  await page.click("#install-button");
+  await pressInstall(page);
   await until("Improv answered", async () => (await page.getByText("Connected to").count()) > 0, 20000);
+}
+
+/** Confirms the install in the dialog and waits for its end. */
+async function confirmAndWait(page) {
+  await page.locator("ew-text-button", { hasText: "Install" }).last().click();
+  await until(
+    "installed",
+    async () => (await page.locator('ewt-page-message[label="Installation complete!"]').count()) > 0,
+    180000,
+    500,
+  );
+  return page.evaluate(() => {
+    const { erased, stub, writes, resets } = window.__fakeSerial.rom;
+    return { erased, stub, writes, resets };
+  });
 }
 
 test("Improv Wi-Fi through ESP Web Tools: a wrong passphrase is refused, the right one joins, the passphrase never comes back", async () => {
@@ -201,24 +225,12 @@ test("a first install: ESP Web Tools erases the board, writes each part where th
   const b = await bridge(["--wifi-network", "HomeNet:correct-horse-9:-48"]);
   const { page, context, errors } = await pageFor(chromium, b, { width: 900, height: 900 }, { mode: "rom" });
   try {
-    await page.goto(site.url);
-    await page.waitForSelector("body[data-ready=true]", { timeout: 15000 });
-    await markNvs(page);
-    await page.check('input[name=board][value="c3-supermini"]');
-    await page.check("#wifi");
-    await page.click("#install-button");
+    await pressInstall(page, { nvs: true });
     // A board in download mode does not answer Improv: a new install.
     await until("new install", async () => (await page.getByText("Install TinyBMS bridge").count()) > 0, 30000);
     await page.getByText("Install TinyBMS bridge").click();
     await until("confirm", async () => (await page.getByText("All data on the device will be erased").count()) > 0);
-    await page.locator("ew-text-button", { hasText: "Install" }).last().click();
-    await until("installed", async () => (await page.locator('ewt-page-message[label="Installation complete!"]').count()) > 0, 180000, 500);
-    const rom = await page.evaluate(() => ({
-      erased: window.__fakeSerial.rom.erased,
-      stub: window.__fakeSerial.rom.stub,
-      writes: window.__fakeSerial.rom.writes,
-      resets: window.__fakeSerial.rom.resets,
-    }));
+    const rom = await confirmAndWait(page);
     assert.equal(rom.stub, true, "esptool-js ran its flasher stub");
     assert.equal(rom.erased, true, "a first install erases");
     const boot = part("tinybms-c3-supermini-wifi-boot.bin");
@@ -248,24 +260,13 @@ test("an update writes the new firmware and leaves the stored configuration alon
   const b = await bridge();
   const { page, context, errors } = await pageFor(chromium, b, { width: 900, height: 900 });
   try {
-    await page.goto(newer.url);
-    await page.waitForSelector("body[data-ready=true]", { timeout: 15000 });
-    await markNvs(page);
-    await page.check('input[name=board][value="c3-supermini"]');
-    await page.uncheck("#wifi");
-    await page.click("#install-button");
+    await pressInstall(page, { url: newer.url, wifi: false, nvs: true });
     await until("recognised", async () => (await page.getByText("Update TinyBMS bridge").count()) > 0, 30000);
     await page.screenshot({ path: shotPath("install-update.png") });
     await page.getByText("Update TinyBMS bridge").click();
     await until("confirm", async () => (await page.getByText("update to").count()) > 0);
     assert.equal(await page.getByText("All data on the device will be erased").count(), 0);
-    await page.locator("ew-text-button", { hasText: "Install" }).last().click();
-    await until("updated", async () => (await page.locator('ewt-page-message[label="Installation complete!"]').count()) > 0, 180000, 500);
-    const rom = await page.evaluate(() => ({
-      erased: window.__fakeSerial.rom.erased,
-      writes: window.__fakeSerial.rom.writes,
-      resets: window.__fakeSerial.rom.resets,
-    }));
+    const rom = await confirmAndWait(page);
     assert.equal(rom.erased, false, "an update erases nothing");
     assert.deepEqual(rom.resets.slice(0, 1), ["rom"], "esptool-js reset the board into its download mode");
     const boot = part("tinybms-c3-supermini-boot.bin");

@@ -206,7 +206,6 @@ mod direct {
     use tinybms_firmware::config::store::StoreError;
     use tinybms_firmware::config::Config;
     use tinybms_firmware::identity::{Features, Identity};
-    use tinybms_firmware::improv::{JoinFailure, WifiRequest};
     use tinybms_firmware::inverter::TxResult;
     use tinybms_firmware::station::{Action, Setup, Station};
 
@@ -277,10 +276,7 @@ mod direct {
                     Action::Save => station.saved(Err(StoreError::Partition)),
                     Action::Can(_) => station.can_sent(now, TxResult::Failed),
                     Action::CanRecover => station.can_recovered(now, false),
-                    Action::Wifi(WifiRequest::Join { .. }) => {
-                        station.wifi_joined(now, Err(JoinFailure::Other))
-                    }
-                    Action::Wifi(WifiRequest::Scan) => station.wifi_scanned(now, &[]),
+                    Action::Wifi(req) => station.wifi_unavailable(now, &req),
                     Action::WaitUntil(t) => {
                         wake = t;
                         break;
