@@ -16,6 +16,8 @@ use crate::bms::link::LinkStats;
 use crate::bridge::report::WriteOutcome;
 use crate::units::{fixed, physical, rounded, Dec};
 
+use super::lines::{self, Wire};
+
 /// Decimals of f32 quantities (pack voltage, current, speed): replay's
 /// `FLOAT_DECIMALS`.
 pub const FLOAT_DECIMALS: u32 = 4;
@@ -137,7 +139,7 @@ fn hex_digit(n: u8) -> char {
 }
 
 /// A name from a table, or `unknown_0xNN`.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Name {
     /// Known.
     Known(&'static str),
@@ -206,7 +208,8 @@ fn sensor_name(c: CurrentSensor) -> Name {
 }
 
 /// Cell voltages (0.1 mV) as a JSON array of volts.
-struct Cells<'a>(&'a [u16]);
+#[derive(Debug, Clone, PartialEq)]
+pub struct Cells<'a>(pub &'a [u16]);
 
 impl Serialize for Cells<'_> {
     fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
@@ -219,7 +222,8 @@ impl Serialize for Cells<'_> {
 }
 
 /// Upper-case hex, bytes separated by spaces (the capture format's).
-struct Hex<'a>(&'a [u8], bool);
+#[derive(Debug, Clone, PartialEq)]
+pub struct Hex<'a>(pub &'a [u8], pub bool);
 
 impl Serialize for Hex<'_> {
     fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
@@ -240,51 +244,6 @@ fn line<T: Serialize>(v: &T, out: &mut [u8]) -> Option<usize> {
     let n = serde_json_core::to_slice(v, out).ok()?;
     *out.get_mut(n)? = b'\n';
     Some(n + 1)
-}
-
-/// `hello`.
-#[derive(serde::Serialize)]
-struct HelloLine<'a> {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    protocol: u32,
-    firmware: &'a str,
-    build: &'a str,
-    chip: &'a str,
-    board: &'a str,
-    features: &'a [&'static str],
-    record_version: u8,
-    read_only: bool,
-    stream_period_ms: u32,
-    dropped_lines: u32,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    store: Option<StoreLine>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    mqtt: Option<&'static str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    wifi: Option<WifiLine<'a>>,
-}
-
-/// The Wi-Fi link (in `hello`, images with Wi-Fi).
-#[derive(serde::Serialize)]
-struct WifiLine<'a> {
-    state: &'static str,
-    ip: Option<&'a str>,
-}
-
-/// Where the configuration store lives (in `hello`).
-#[derive(serde::Serialize)]
-struct StoreLine {
-    flash_kib: u32,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    partition_offset: Option<u32>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    partition_bytes: Option<u32>,
-    needs_bytes: u32,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    problem: Option<&'static str>,
 }
 
 /// What a `hello` line says.
@@ -321,7 +280,7 @@ pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<us
         crate::text::ipv4(a, &mut ip);
     }
     line(
-        &HelloLine {
+        &lines::Hello::<Wire> {
             ty: "hello",
             req,
             protocol: super::PROTOCOL_VERSION,
@@ -334,7 +293,7 @@ pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<us
             read_only: f.read_only,
             stream_period_ms: f.stream_period_ms,
             dropped_lines: f.dropped_lines,
-            store: f.store.map(|s| StoreLine {
+            store: f.store.map(|s| lines::Store::<Wire> {
                 flash_kib: s.flash_bytes / 1024,
                 partition_offset: s.partition.map(|p| p.0),
                 partition_bytes: s.partition.map(|p| p.1),
@@ -342,105 +301,13 @@ pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<us
                 problem: s.problem().map(|p| p.reason()),
             }),
             mqtt: f.mqtt.map(crate::mqtt::MqttState::key),
-            wifi: f.wifi.map(|w| WifiLine {
+            wifi: f.wifi.map(|w| lines::Wifi::<Wire> {
                 state: w.key(),
                 ip: (!ip.as_str().is_empty()).then_some(ip.as_str()),
             }),
         },
         out,
     )
-}
-
-#[derive(serde::Serialize)]
-/// A `telemetry` line before the first snapshot.
-struct TelemetryLine {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    seq: u32,
-    age_ms: Option<u64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    stale_after_ms: Option<u64>,
-    online: bool,
-    ready: bool,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    inverter: Option<InverterMember>,
-}
-
-/// A `telemetry` line with the live fields, in replay's names and units.
-#[derive(serde::Serialize)]
-struct TelemetryFull<'a> {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    seq: u32,
-    age_ms: Option<u64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    stale_after_ms: Option<u64>,
-    online: bool,
-    ready: bool,
-    pack_voltage_v: Option<Dec>,
-    pack_current_a: Option<Dec>,
-    min_cell_voltage_v: Option<Dec>,
-    max_cell_voltage_v: Option<Dec>,
-    cell_voltages_v: Cells<'a>,
-    cell_first_register: u8,
-    cell_count: u16,
-    soc_percent: Option<Dec>,
-    soh_percent: Option<Dec>,
-    lifetime_s: u32,
-    estimated_time_left_s: u32,
-    internal_temperature_c: Option<Dec>,
-    external_temperature_1_c: Option<Dec>,
-    external_temperature_2_c: Option<Dec>,
-    online_status: Name,
-    balancing_decision_bits: u16,
-    real_balancing_bits: u16,
-    speed_kmh: Option<Dec>,
-    distance_left_km: u16,
-    flagged: Option<&'static str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    inverter: Option<InverterMember>,
-    // The MQTT state's members beyond the host link's (none on the host link).
-    // Absent (outer None) on the host link; present, maybe null, in the state.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    status: Option<&'static str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pack_power_w: Option<Option<Dec>>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    cell_spread_v: Option<Option<Dec>>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    data_age_s: Option<Option<Dec>>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    link_quality_percent: Option<Option<Dec>>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    cvl_v: Option<Option<Dec>>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    ccl_a: Option<Option<Dec>>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    dcl_a: Option<Option<Dec>>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    status_name: Option<&'static str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    balancing_cells: Option<&'a str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    remaining_capacity_ah: Option<Option<Dec>>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    energy_charged_kwh: Option<Option<Dec>>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    energy_discharged_kwh: Option<Option<Dec>>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    uptime_s: Option<u64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    bridge_firmware: Option<&'a str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    can_state: Option<Option<&'static str>>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    inverter_heard: Option<Option<bool>>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    wifi_rssi_dbm: Option<Option<i8>>,
 }
 
 /// What the MQTT state says besides the host link's telemetry fields.
@@ -508,29 +375,17 @@ pub struct InverterState {
     pub limits: Option<(u16, u16, u16)>,
 }
 
-#[derive(serde::Serialize)]
-struct InverterMember {
-    protocol: &'static str,
-    can: &'static str,
-    heard: bool,
-    cvl_v: Option<Dec>,
-    ccl_a: Option<Dec>,
-    dcl_a: Option<Dec>,
-}
-
-impl InverterMember {
-    fn of(s: &InverterState) -> Self {
-        let l = |f: fn(&(u16, u16, u16)) -> u16| {
-            s.limits.as_ref().and_then(|x| fixed(i64::from(f(x)), 1))
-        };
-        Self {
-            protocol: s.protocol,
-            can: s.can,
-            heard: s.heard,
-            cvl_v: l(|x| x.0),
-            ccl_a: l(|x| x.1),
-            dcl_a: l(|x| x.2),
-        }
+/// The `inverter` member of a `telemetry` line.
+fn inverter_member<'a>(s: &InverterState) -> lines::Inverter<Wire<'a>> {
+    let l =
+        |f: fn(&(u16, u16, u16)) -> u16| s.limits.as_ref().and_then(|x| fixed(i64::from(f(x)), 1));
+    lines::Inverter {
+        protocol: s.protocol,
+        can: s.can,
+        heard: s.heard,
+        cvl_v: l(|x| x.0),
+        ccl_a: l(|x| x.1),
+        dcl_a: l(|x| x.2),
     }
 }
 
@@ -543,9 +398,10 @@ pub fn telemetry(
     flagged: Option<&'static str>,
     extras: Option<&StateExtras>,
 ) -> Option<usize> {
-    let Some(s) = snapshot else {
-        return line(
-            &TelemetryLine {
+    let balancing = snapshot.map(|s| balancing_cells(s.real_balancing_bits, s.cell_count));
+    line(
+        &lines::Telemetry::<Wire> {
+            head: lines::Head {
                 ty: "telemetry",
                 req: head.req,
                 seq: head.seq,
@@ -553,70 +409,78 @@ pub fn telemetry(
                 stale_after_ms: head.stale_after_ms,
                 online: head.online,
                 ready: head.ready,
-                inverter: head.inverter.as_ref().map(InverterMember::of),
             },
-            out,
-        );
-    };
-    let f32v = |x: f32| rounded(f64::from(x), FLOAT_DECIMALS);
-    let ext = |t: Option<i16>| t.and_then(|t| fixed(i64::from(t), 1));
-    let balancing = balancing_cells(s.real_balancing_bits, s.cell_count);
-    line(
-        &TelemetryFull {
-            ty: "telemetry",
-            req: head.req,
-            seq: head.seq,
-            age_ms: head.age_ms,
-            stale_after_ms: head.stale_after_ms,
-            online: head.online,
-            ready: head.ready,
-            pack_voltage_v: f32v(s.pack_voltage_v),
-            pack_current_a: f32v(s.pack_current_a),
-            min_cell_voltage_v: fixed(i64::from(s.min_cell_mv), 3),
-            max_cell_voltage_v: fixed(i64::from(s.max_cell_mv), 3),
-            cell_voltages_v: Cells(&s.cells.raw),
-            cell_first_register: s.cells.first_register,
-            cell_count: s.cell_count,
-            soc_percent: fixed(i64::from(s.soc_raw), 6),
-            // 0.002 %: replay's rounded(raw / 500, 3), exactly.
-            soh_percent: fixed(2 * i64::from(s.soh_raw), 3),
-            lifetime_s: s.lifetime_s,
-            estimated_time_left_s: s.estimated_time_left_s,
-            internal_temperature_c: fixed(i64::from(s.internal_dc), 1),
-            external_temperature_1_c: ext(s.external1_dc),
-            external_temperature_2_c: ext(s.external2_dc),
-            online_status: status_name(s.status),
-            balancing_decision_bits: s.balancing_decision_bits,
-            real_balancing_bits: s.real_balancing_bits,
-            speed_kmh: f32v(s.speed_kmh),
-            distance_left_km: s.distance_left_km,
-            flagged,
-            inverter: head.inverter.as_ref().map(InverterMember::of),
-            status: extras.map(|e| e.status),
-            pack_power_w: extras
-                .map(|_| rounded(f64::from(s.pack_voltage_v) * f64::from(s.pack_current_a), 1)),
-            cell_spread_v: extras
-                .map(|_| fixed(i64::from(s.max_cell_mv.saturating_sub(s.min_cell_mv)), 3)),
-            data_age_s: extras.map(|e| fixed(e.age_ms.min(1 << 40) as i64, 3)),
-            link_quality_percent: extras
-                .map(|e| e.link_quality_permille.and_then(|p| fixed(i64::from(p), 1))),
-            cvl_v: extras.map(|e| e.limits.and_then(|l| fixed(i64::from(l.0), 1))),
-            ccl_a: extras.map(|e| e.limits.and_then(|l| fixed(i64::from(l.1), 1))),
-            dcl_a: extras.map(|e| e.limits.and_then(|l| fixed(i64::from(l.2), 1))),
-            status_name: extras.map(|e| e.status_name),
-            balancing_cells: extras.map(|_| balancing.as_str()),
-            remaining_capacity_ah: extras
-                .map(|e| e.remaining_cah.and_then(|c| fixed(i64::from(c), 2))),
-            energy_charged_kwh: extras.map(|e| fixed(e.energy_mwh.0.min(1 << 50) as i64, 6)),
-            energy_discharged_kwh: extras.map(|e| fixed(e.energy_mwh.1.min(1 << 50) as i64, 6)),
-            uptime_s: extras.map(|e| e.uptime_s),
-            bridge_firmware: extras.map(|e| e.bridge_firmware),
-            can_state: extras.map(|e| e.can_state),
-            inverter_heard: extras.map(|e| e.inverter_heard),
-            wifi_rssi_dbm: extras.map(|e| e.wifi_rssi_dbm),
+            snapshot: snapshot.map(|s| snapshot_members(s, flagged)),
+            told: lines::Told {
+                inverter: head.inverter.as_ref().map(inverter_member),
+            },
+            extras: match (snapshot, extras, &balancing) {
+                (Some(s), Some(e), Some(b)) => Some(extras_members(s, e, b)),
+                _ => None,
+            },
         },
         out,
     )
+}
+
+/// A snapshot's live values as a `telemetry` line says them.
+fn snapshot_members<'a>(
+    s: &'a LiveSnapshot,
+    flagged: Option<&'static str>,
+) -> lines::Snapshot<Wire<'a>> {
+    let f32v = |x: f32| rounded(f64::from(x), FLOAT_DECIMALS);
+    let ext = |t: Option<i16>| t.and_then(|t| fixed(i64::from(t), 1));
+    lines::Snapshot {
+        pack_voltage_v: f32v(s.pack_voltage_v),
+        pack_current_a: f32v(s.pack_current_a),
+        min_cell_voltage_v: fixed(i64::from(s.min_cell_mv), 3),
+        max_cell_voltage_v: fixed(i64::from(s.max_cell_mv), 3),
+        cell_voltages_v: Cells(&s.cells.raw),
+        cell_first_register: s.cells.first_register,
+        cell_count: s.cell_count,
+        soc_percent: fixed(i64::from(s.soc_raw), 6),
+        // 0.002 %: replay's rounded(raw / 500, 3), exactly.
+        soh_percent: fixed(2 * i64::from(s.soh_raw), 3),
+        lifetime_s: s.lifetime_s,
+        estimated_time_left_s: s.estimated_time_left_s,
+        internal_temperature_c: fixed(i64::from(s.internal_dc), 1),
+        external_temperature_1_c: ext(s.external1_dc),
+        external_temperature_2_c: ext(s.external2_dc),
+        online_status: status_name(s.status),
+        balancing_decision_bits: s.balancing_decision_bits,
+        real_balancing_bits: s.real_balancing_bits,
+        speed_kmh: f32v(s.speed_kmh),
+        distance_left_km: s.distance_left_km,
+        flagged,
+    }
+}
+
+/// The MQTT state's members beyond the host link's.
+fn extras_members<'a>(
+    s: &LiveSnapshot,
+    e: &StateExtras<'a>,
+    balancing: &'a str,
+) -> lines::Extras<Wire<'a>> {
+    lines::Extras {
+        status: e.status,
+        pack_power_w: rounded(f64::from(s.pack_voltage_v) * f64::from(s.pack_current_a), 1),
+        cell_spread_v: fixed(i64::from(s.max_cell_mv.saturating_sub(s.min_cell_mv)), 3),
+        data_age_s: fixed(e.age_ms.min(1 << 40) as i64, 3),
+        link_quality_percent: e.link_quality_permille.and_then(|p| fixed(i64::from(p), 1)),
+        cvl_v: e.limits.and_then(|l| fixed(i64::from(l.0), 1)),
+        ccl_a: e.limits.and_then(|l| fixed(i64::from(l.1), 1)),
+        dcl_a: e.limits.and_then(|l| fixed(i64::from(l.2), 1)),
+        status_name: e.status_name,
+        balancing_cells: balancing,
+        remaining_capacity_ah: e.remaining_cah.and_then(|c| fixed(i64::from(c), 2)),
+        energy_charged_kwh: fixed(e.energy_mwh.0.min(1 << 50) as i64, 6),
+        energy_discharged_kwh: fixed(e.energy_mwh.1.min(1 << 50) as i64, 6),
+        uptime_s: e.uptime_s,
+        bridge_firmware: e.bridge_firmware,
+        can_state: e.can_state,
+        inverter_heard: e.inverter_heard,
+        wifi_rssi_dbm: e.wifi_rssi_dbm,
+    }
 }
 
 /// The cells balancing now (bit 0 of the real balancing bits is cell 1), as
@@ -653,23 +517,6 @@ pub fn state(
     telemetry(out, head, snapshot, flagged, extras).map(|n| n.saturating_sub(1))
 }
 
-#[derive(serde::Serialize)]
-struct SettingLine<'a> {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    name: &'static str,
-    address: u16,
-    raw: Option<i32>,
-    value: Option<Dec>,
-    unit: &'a str,
-    min: Option<Dec>,
-    max: Option<Dec>,
-    bms_min: Option<Dec>,
-    bms_max: Option<Dec>,
-}
-
 /// Writes a `setting` line: the current raw value (when read), its physical
 /// value, Rev D's range and the BMS's own limits, all in the setting's unit.
 pub fn setting(
@@ -682,7 +529,7 @@ pub fn setting(
     let r = id.register();
     let range = r.and_then(|r| r.range);
     line(
-        &SettingLine {
+        &lines::SettingLine::<Wire> {
             ty: "setting",
             req,
             name: crate::bms::profile::setting_key(id),
@@ -699,48 +546,15 @@ pub fn setting(
     )
 }
 
-#[derive(serde::Serialize)]
-struct EndLine {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    count: u32,
-}
-
 /// Writes the line that closes a listing (`settings_end`, `events_end`).
 pub fn end(out: &mut [u8], ty: &'static str, req: Option<u32>, count: u32) -> Option<usize> {
-    line(&EndLine { ty, req, count }, out)
-}
-
-#[derive(serde::Serialize)]
-struct StatisticsLine {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    total_distance_km: Option<Dec>,
-    max_discharge_current_a: Option<Dec>,
-    max_charge_current_a: Option<Dec>,
-    max_cell_voltage_difference_v: Option<Dec>,
-    under_voltage_count: u16,
-    over_voltage_count: u16,
-    discharge_over_current_count: u16,
-    charge_over_current_count: u16,
-    over_heat_count: u16,
-    charging_count: u16,
-    full_charge_count: u16,
-    min_pack_temperature_c: i8,
-    max_pack_temperature_c: i8,
-    last_reset: Name,
-    last_wakeup: Name,
-    stats_cleared_at_s: u32,
+    line(&lines::End::<Wire> { ty, req, count }, out)
 }
 
 /// Writes a `statistics` line (replay's statistics fields).
 pub fn statistics(out: &mut [u8], req: Option<u32>, s: &Statistics) -> Option<usize> {
     line(
-        &StatisticsLine {
+        &lines::StatisticsLine::<Wire> {
             ty: "statistics",
             req,
             total_distance_km: fixed(i64::from(s.total_distance_raw), 2),
@@ -764,27 +578,10 @@ pub fn statistics(out: &mut [u8], req: Option<u32>, s: &Statistics) -> Option<us
     )
 }
 
-#[derive(serde::Serialize)]
-struct VersionLine<'a> {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    hardware_version: u8,
-    hardware_changes_version: u8,
-    firmware_public_version: u8,
-    high_power: bool,
-    current_sensor: Name,
-    firmware_internal_version: u16,
-    bootloader_version: u8,
-    profile_version: u8,
-    serial_number: Hex<'a>,
-}
-
 /// Writes a `version` line (replay's version fields).
 pub fn version(out: &mut [u8], req: Option<u32>, v: &VersionInfo) -> Option<usize> {
     line(
-        &VersionLine {
+        &lines::Version::<Wire> {
             ty: "version",
             req,
             hardware_version: v.hardware,
@@ -801,24 +598,10 @@ pub fn version(out: &mut [u8], req: Option<u32>, v: &VersionInfo) -> Option<usiz
     )
 }
 
-#[derive(serde::Serialize)]
-struct EventLine {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    timestamp_s: u32,
-    id: u8,
-    name: Name,
-    severity: &'static str,
-    #[serde(skip_serializing_if = "core::ops::Not::not")]
-    history: bool,
-}
-
 /// Writes an `event` line (replay's event fields; `history` on `get events`).
 pub fn event(out: &mut [u8], req: Option<u32>, e: &Event, history: bool) -> Option<usize> {
     line(
-        &EventLine {
+        &lines::EventLine::<Wire> {
             ty: "event",
             req,
             timestamp_s: e.timestamp_s,
@@ -829,16 +612,6 @@ pub fn event(out: &mut [u8], req: Option<u32>, e: &Event, history: bool) -> Opti
         },
         out,
     )
-}
-
-#[derive(serde::Serialize)]
-struct LogLine<'a> {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    level: &'static str,
-    text: &'a str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    boot: Option<bool>,
 }
 
 /// A `log` line: one of the bridge's own log lines, as its log has it.
@@ -854,7 +627,7 @@ pub fn boot_log(out: &mut [u8], level: crate::Level, text: &str) -> Option<usize
 
 fn log_line(out: &mut [u8], level: crate::Level, text: &str, boot: bool) -> Option<usize> {
     line(
-        &LogLine {
+        &lines::Log::<Wire> {
             ty: "log",
             level: match level {
                 crate::Level::Info => "info",
@@ -867,36 +640,6 @@ fn log_line(out: &mut [u8], level: crate::Level, text: &str, boot: bool) -> Opti
     )
 }
 
-#[derive(serde::Serialize)]
-struct LinkLine {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    requests: u32,
-    replies: u32,
-    timeouts: u32,
-    wakeup_resends: u32,
-    retries: u32,
-    crc_errors: u32,
-    framing_errors: u32,
-    invalid_replies: u32,
-    nacks_command: u32,
-    nacks_crc: u32,
-    nacks_other: u32,
-    skipped_bytes: u32,
-    unsolicited: u32,
-    failures: u32,
-    latency_min_us: u32,
-    latency_mean_us: u32,
-    latency_max_us: u32,
-    online: bool,
-    piece_registers: u16,
-    lines_in: u32,
-    errors: u32,
-    dropped_lines: u32,
-}
-
 /// Writes a `link` line: the UART link's counters and the host link's own.
 pub fn link(
     out: &mut [u8],
@@ -907,7 +650,7 @@ pub fn link(
     host: &super::HostLinkStats,
 ) -> Option<usize> {
     line(
-        &LinkLine {
+        &lines::Link::<Wire> {
             ty: "link",
             req,
             requests: s.requests,
@@ -937,47 +680,16 @@ pub fn link(
     )
 }
 
-#[derive(serde::Serialize)]
-struct AcceptedLine {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    cmd: &'static str,
-}
-
 /// Writes an `accepted` line.
 pub fn accepted(out: &mut [u8], req: Option<u32>, cmd: &'static str) -> Option<usize> {
     line(
-        &AcceptedLine {
+        &lines::Accepted::<Wire> {
             ty: "accepted",
             req,
             cmd,
         },
         out,
     )
-}
-
-#[derive(serde::Serialize)]
-struct OutcomeLine {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    name: &'static str,
-    raw: i32,
-    value: Option<Dec>,
-    outcome: &'static str,
-    detail: Option<&'static str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    read_back: Option<u16>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    nack_code: Option<u8>,
-    /// A value outside the chemistry's window: the chemistry (`lifepo4`, …).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    chemistry: Option<&'static str>,
-    #[serde(skip_serializing_if = "core::ops::Not::not")]
-    follow_up: bool,
 }
 
 /// Writes an `outcome` line for one setting through write/verify.
@@ -998,7 +710,7 @@ pub fn outcome(
         }
     };
     line(
-        &OutcomeLine {
+        &lines::Outcome::<Wire> {
             ty: "outcome",
             req,
             name: crate::bms::profile::setting_key(setting.id),
@@ -1020,19 +732,10 @@ pub fn outcome(
     )
 }
 
-#[derive(serde::Serialize)]
-struct ResetDoneLine {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    confirmed: bool,
-}
-
 /// Writes a `reset_done` line.
 pub fn reset_done(out: &mut [u8], req: Option<u32>, confirmed: bool) -> Option<usize> {
     line(
-        &ResetDoneLine {
+        &lines::ResetDone::<Wire> {
             ty: "reset_done",
             req,
             confirmed,
@@ -1041,20 +744,10 @@ pub fn reset_done(out: &mut [u8], req: Option<u32>, confirmed: bool) -> Option<u
     )
 }
 
-#[derive(serde::Serialize)]
-struct ClearedLine {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    what: &'static str,
-    ok: bool,
-}
-
 /// Writes a `cleared` line.
 pub fn cleared(out: &mut [u8], req: Option<u32>, what: &'static str, ok: bool) -> Option<usize> {
     line(
-        &ClearedLine {
+        &lines::Cleared::<Wire> {
             ty: "cleared",
             req,
             what,
@@ -1064,33 +757,16 @@ pub fn cleared(out: &mut [u8], req: Option<u32>, what: &'static str, ok: bool) -
     )
 }
 
-#[derive(serde::Serialize)]
-struct RawLine<'a> {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    dir: &'static str,
-    hex: Hex<'a>,
-}
-
 /// Writes a `raw` line (UART bytes while capture is on).
 pub fn raw(out: &mut [u8], dir: &'static str, bytes: &[u8]) -> Option<usize> {
     line(
-        &RawLine {
+        &lines::Raw::<Wire> {
             ty: "raw",
             dir,
             hex: Hex(bytes, true),
         },
         out,
     )
-}
-
-#[derive(serde::Serialize)]
-struct ErrorLine<'a> {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    req: Option<u32>,
-    error: &'static str,
-    detail: &'a str,
 }
 
 /// Writes an `error` line; `detail` is the reason, followed by `: subject` (the
@@ -1111,7 +787,7 @@ pub fn error(
         let _ = d.push_str(subject);
     }
     line(
-        &ErrorLine {
+        &lines::Error::<Wire> {
             ty: "error",
             req,
             error: code,
@@ -1119,24 +795,6 @@ pub fn error(
         },
         out,
     )
-}
-
-#[derive(serde::Serialize)]
-struct ConfigFieldLine<'a> {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    name: &'static str,
-    group: &'static str,
-    value: &'a str,
-    unit: &'static str,
-    default: &'a str,
-    range: &'a str,
-    applies: &'static str,
-    restart_pending: bool,
-    secret: bool,
-    help: &'static str,
 }
 
 /// Writes a `config` line: one field of the bridge's configuration, its value
@@ -1158,7 +816,7 @@ pub fn config_field(
     let mut r = Line::new();
     value::write_range(f, &mut r);
     line(
-        &ConfigFieldLine {
+        &lines::ConfigField::<Wire> {
             ty: "config",
             req,
             name: f.name,
@@ -1176,18 +834,6 @@ pub fn config_field(
     )
 }
 
-#[derive(serde::Serialize)]
-struct ConfigEndLine {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    count: u32,
-    version: u8,
-    source: &'static str,
-    restart_pending: u32,
-}
-
 /// Writes a `config_end` line: how many fields, the record's layout version,
 /// where the record the bridge started with came from, and how many fields
 /// wait for a restart.
@@ -1197,7 +843,7 @@ pub fn config_end(
     config: &crate::config::state::ConfigState,
 ) -> Option<usize> {
     line(
-        &ConfigEndLine {
+        &lines::ConfigEnd::<Wire> {
             ty: "config_end",
             req,
             count: crate::config::FIELDS.len() as u32,
@@ -1207,20 +853,6 @@ pub fn config_end(
         },
         out,
     )
-}
-
-#[derive(serde::Serialize)]
-struct ConfigOutcomeLine<'a> {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    name: &'a str,
-    outcome: &'static str,
-    value: Option<&'a str>,
-    error: Option<&'static str>,
-    detail: Option<&'static str>,
-    range: Option<&'a str>,
 }
 
 /// Writes a `config_outcome` line for a field of a `set_config`: the outcome,
@@ -1258,7 +890,7 @@ pub fn config_outcome(
     };
     let refused = error.is_some();
     line(
-        &ConfigOutcomeLine {
+        &lines::ConfigOutcome::<Wire> {
             ty: "config_outcome",
             req,
             name,
@@ -1275,7 +907,7 @@ pub fn config_outcome(
 /// Writes the `config_outcome` line of a name no field has.
 pub fn config_unknown(out: &mut [u8], req: Option<u32>, name: &str) -> Option<usize> {
     line(
-        &ConfigOutcomeLine {
+        &lines::ConfigOutcome::<Wire> {
             ty: "config_outcome",
             req,
             name,
@@ -1289,18 +921,6 @@ pub fn config_unknown(out: &mut [u8], req: Option<u32>, name: &str) -> Option<us
     )
 }
 
-#[derive(serde::Serialize)]
-struct ConfigDoneLine {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    req: Option<u32>,
-    changed: u8,
-    saved: Option<bool>,
-    restart_needed: u8,
-    detail: Option<&'static str>,
-}
-
 /// Writes a `config_done` line: the end of a `set_config` or `reset_config`.
 pub fn config_done(out: &mut [u8], done: &super::ConfigDone) -> Option<usize> {
     use crate::config::store::Saved;
@@ -1310,7 +930,7 @@ pub fn config_done(out: &mut [u8], done: &super::ConfigDone) -> Option<usize> {
         Some(Err(e)) => (Some(false), Some(e.reason())),
     };
     line(
-        &ConfigDoneLine {
+        &lines::ConfigDone::<Wire> {
             ty: "config_done",
             req: done.req,
             changed: done.changed,
@@ -1322,28 +942,6 @@ pub fn config_done(out: &mut [u8], done: &super::ConfigDone) -> Option<usize> {
     )
 }
 
-#[derive(serde::Serialize)]
-struct BatteryLine {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    node: u8,
-    speaking: bool,
-    packs_online: u8,
-    packs_offline: u8,
-    capacity_ah: Option<Dec>,
-    soc_percent: Option<Dec>,
-    soh_percent: Option<Dec>,
-    voltage_v: Option<Dec>,
-    current_a: Option<Dec>,
-    min_cell_v: Option<Dec>,
-    max_cell_v: Option<Dec>,
-    min_temperature_c: Option<Dec>,
-    max_temperature_c: Option<Dec>,
-    cvl_v: Option<Dec>,
-    ccl_a: Option<Dec>,
-    dcl_a: Option<Dec>,
-}
-
 /// A `battery` line: the battery of packs in parallel as this bridge sees it
 /// (all `null` but the counts while no pack takes part).
 pub fn battery(out: &mut [u8], v: &crate::inverter::packs::BatteryView) -> Option<usize> {
@@ -1353,7 +951,7 @@ pub fn battery(out: &mut [u8], v: &crate::inverter::packs::BatteryView) -> Optio
         .len()
         .saturating_sub(b.map_or(0, |(b, _)| usize::from(b.online)));
     line(
-        &BatteryLine {
+        &lines::Battery::<Wire> {
             ty: "battery",
             node: v.node,
             speaking: v.speaking,
@@ -1376,33 +974,11 @@ pub fn battery(out: &mut [u8], v: &crate::inverter::packs::BatteryView) -> Optio
     )
 }
 
-#[derive(serde::Serialize)]
-struct PackLine {
-    #[serde(rename = "type")]
-    ty: &'static str,
-    node: u8,
-    state: &'static str,
-    speaking: bool,
-    voltage_v: Option<Dec>,
-    current_a: Option<Dec>,
-    soc_percent: Option<Dec>,
-    soh_percent: u8,
-    min_cell_v: Option<Dec>,
-    max_cell_v: Option<Dec>,
-    min_temperature_c: Option<Dec>,
-    max_temperature_c: Option<Dec>,
-    capacity_ah: Option<Dec>,
-    data_age_s: Option<Dec>,
-    cvl_v: Option<Dec>,
-    ccl_a: Option<Dec>,
-    dcl_a: Option<Dec>,
-}
-
 /// A `pack` line: one pack of the battery, from its summary.
 pub fn pack(out: &mut [u8], p: &crate::inverter::packs::PackView) -> Option<usize> {
     let s = &p.summary;
     line(
-        &PackLine {
+        &lines::Pack::<Wire> {
             ty: "pack",
             node: p.node,
             state: p.part.name(),

@@ -31,6 +31,7 @@
 pub mod command;
 pub mod encode;
 pub mod line;
+pub mod lines;
 pub mod writer;
 
 use heapless::{Deque, String, Vec};
