@@ -37,14 +37,17 @@
 use std::collections::BTreeMap;
 
 use protocol_core::command as cmd;
-use protocol_core::events::{Event, EventId, OnlineStatus, ResetReason, WakeupReason};
+use protocol_core::events::{Event, OnlineStatus};
 use protocol_core::registers::{self as regs, MAX_CELLS};
 use protocol_core::request::{ResetOption, SettingsOption};
 use protocol_core::response::{RegisterBlock, Temperatures, Words};
 use protocol_core::settings::SettingId;
-use protocol_core::views::{self, CurrentSensor, LiveSnapshot, Statistics, VersionInfo};
+use protocol_core::views::{self, LiveSnapshot, Statistics, VersionInfo};
 use protocol_core::{DecodeError, Decoder, Frame, Request, RequestError, Response, ResponseError};
 use serde_json::{json, Map, Value};
+
+use tinybms_firmware::bms::profile::setting_key;
+use tinybms_firmware::host_link::{encode, lines};
 
 use crate::capture::{hex, parse_capture, Capture, CaptureError, Entry};
 
@@ -77,65 +80,17 @@ fn unknown_hex(raw: u32) -> String {
     format!("unknown_0x{raw:02X}")
 }
 
-/// snake_case key of a document name: "POR/PDR reset" -> "por_pdr_reset".
-fn snake(name: &str) -> String {
-    let mut s = String::new();
-    for c in name.chars() {
-        if c.is_ascii_alphanumeric() {
-            s.push(c.to_ascii_lowercase());
-        } else if !s.is_empty() && !s.ends_with('_') {
-            s.push('_');
-        }
-    }
-    while s.ends_with('_') {
-        s.pop();
-    }
-    s
-}
-
-/// snake_case of a CamelCase identifier: "FullyChargedVoltage" -> "fully_charged_voltage".
-fn snake_ident(ident: &str) -> String {
-    let mut s = String::new();
-    for c in ident.chars() {
-        if c.is_ascii_uppercase() && !s.is_empty() {
-            s.push('_');
-        }
-        s.push(c.to_ascii_lowercase());
-    }
-    s
-}
-
 fn online_status(s: OnlineStatus) -> Value {
     json!(s
         .key()
         .map_or_else(|| unknown_hex(u32::from(s.raw())), str::to_owned))
 }
 
-fn reset_reason(r: ResetReason) -> String {
-    match r {
-        ResetReason::Unknown(v) => unknown_hex(u32::from(v)),
-        other => snake(other.name()),
-    }
-}
-
-fn wakeup_reason(r: WakeupReason) -> String {
-    match r {
-        WakeupReason::Unknown(v) => unknown_hex(u32::from(v)),
-        other => snake(other.name()),
-    }
-}
-
-/// An event as replay prints it (`timestamp_s`, `id`, `name`, `severity`).
+/// An event as replay prints it: the members of the firmware's `event` line
+/// (`timestamp_s`, `id`, `name`, `severity`).
 pub fn event_json(e: &Event) -> Map<String, Value> {
-    let mut m = Map::new();
-    m.insert("timestamp_s".into(), json!(e.timestamp_s));
-    m.insert("id".into(), json!(e.id.raw()));
-    let name = match e.id {
-        EventId::Unknown(v) => unknown_hex(u32::from(v)),
-        id => id.name().to_owned(),
-    };
-    m.insert("name".into(), json!(name));
-    m.insert("severity".into(), json!(e.id.severity().name()));
+    let mut m = written(|out| encode::event(out, None, e, false));
+    m.shift_remove("type");
     m
 }
 
@@ -149,15 +104,6 @@ fn reset_option(o: ResetOption) -> &'static str {
 
 fn settings_option(o: SettingsOption) -> &'static str {
     o.name()
-}
-
-fn current_sensor(c: CurrentSensor) -> String {
-    match c {
-        CurrentSensor::InternalResistor => "internal_resistor".into(),
-        CurrentSensor::InternalHall => "internal_hall".into(),
-        CurrentSensor::External => "external".into(),
-        CurrentSensor::Unknown(v) => unknown_hex(u32::from(v)),
-    }
 }
 
 fn registers_json(regs: &[(u16, u16)]) -> Value {
@@ -181,6 +127,31 @@ fn padded(regs: &Regs, first: u16, last: u16) -> RegisterBlock {
     }
 }
 
+/// The members of a line as the firmware's encoder writes it.
+fn written(encode: impl FnOnce(&mut [u8]) -> Option<usize>) -> Map<String, Value> {
+    let mut buf = vec![0u8; 4096];
+    encode(&mut buf)
+        .and_then(|n| serde_json::from_slice(buf.get(..n)?).ok())
+        .unwrap_or_default()
+}
+
+/// Copies into `v` the members of `line` whose registers (`sources`, the
+/// line's own table in `host_link::lines`) were all read.
+fn put_read(
+    v: &mut Map<String, Value>,
+    line: &Map<String, Value>,
+    sources: &[(&str, &[(u16, u16)])],
+    all: &dyn Fn(u16, u16) -> bool,
+) {
+    for (member, ranges) in sources {
+        if ranges.iter().all(|&(first, last)| all(first, last)) {
+            if let Some(x) = line.get(*member) {
+                v.insert((*member).to_string(), x.clone());
+            }
+        }
+    }
+}
+
 /// Decoded quantities of whatever registers are present (see the module docs of
 /// docs/capture-format.md for names and units).
 pub fn register_values(regs: &Regs) -> Map<String, Value> {
@@ -188,77 +159,37 @@ pub fn register_values(regs: &Regs) -> Map<String, Value> {
     let has = |a: u16| regs.contains_key(&a);
     let all = |first: u16, last: u16| (first..=last).all(has);
 
-    // Live data, registers 0-55 (Rev D §3.1).
+    // Live data, registers 0-55 (Rev D §3.1): the members of the firmware's
+    // telemetry line whose registers were read.
     if (regs::LIVE_FIRST..=regs::LIVE_LAST).any(has) {
         if let Ok(s) =
             LiveSnapshot::from_registers(&padded(regs, regs::LIVE_FIRST, regs::LIVE_LAST))
         {
-            let mut put = |present: bool, k: &str, x: Value| {
-                if present {
-                    v.insert(k.into(), x);
-                }
+            let head = encode::TelemetryHead {
+                req: None,
+                seq: 0,
+                age_ms: None,
+                stale_after_ms: None,
+                online: true,
+                ready: true,
+                inverter: None,
             };
-            put(all(36, 37), "pack_voltage_v", f32_value(s.pack_voltage_v));
-            put(all(38, 39), "pack_current_a", f32_value(s.pack_current_a));
-            put(
-                has(40),
-                "min_cell_voltage_v",
-                fixed(i64::from(s.min_cell_mv), 3),
-            );
-            put(
-                has(41),
-                "max_cell_voltage_v",
-                fixed(i64::from(s.max_cell_mv), 3),
-            );
-            let cells_known = all(0, (MAX_CELLS - 1) as u16) && has(53);
-            if cells_known {
-                let cells: Vec<Value> = s
-                    .cells
-                    .raw
-                    .iter()
-                    .map(|&c| fixed(i64::from(c), 4))
-                    .collect();
-                put(true, "cell_voltages_v", Value::Array(cells));
-                put(true, "cell_first_register", json!(s.cells.first_register));
-            } else if (0..MAX_CELLS as u16).any(has) {
-                // Which register is which cell needs register 53 (HARDWARE-NOTES):
-                // report the voltages by register address instead.
-                let by_reg: Vec<Value> = regs
-                    .range(0..MAX_CELLS as u16)
-                    .map(|(&a, &c)| json!([a, fixed(i64::from(c), 4)]))
-                    .collect();
-                put(true, "cell_register_voltages_v", Value::Array(by_reg));
+            let line = written(|out| encode::telemetry(out, head, Some(&s), None, None));
+            for (member, ranges) in lines::SNAPSHOT_REGISTERS {
+                if *member == "cell_voltages_v"
+                    && !ranges.iter().all(|&(a, b)| all(a, b))
+                    && (0..MAX_CELLS as u16).any(has)
+                {
+                    // Which register is which cell needs register 53
+                    // (HARDWARE-NOTES): the voltages by register address instead.
+                    let by_reg: Vec<Value> = regs
+                        .range(0..MAX_CELLS as u16)
+                        .map(|(&a, &c)| json!([a, fixed(i64::from(c), 4)]))
+                        .collect();
+                    v.insert("cell_register_voltages_v".into(), Value::Array(by_reg));
+                }
+                put_read(&mut v, &line, &[(member, ranges)], &all);
             }
-            put(has(53), "cell_count", json!(s.cell_count));
-            put(all(46, 47), "soc_percent", fixed(i64::from(s.soc_raw), 6));
-            put(
-                has(45),
-                "soh_percent",
-                rounded(f64::from(s.soh_raw) / 500.0, 3),
-            );
-            put(all(32, 33), "lifetime_s", json!(s.lifetime_s));
-            put(
-                all(34, 35),
-                "estimated_time_left_s",
-                json!(s.estimated_time_left_s),
-            );
-            put(
-                has(48),
-                "internal_temperature_c",
-                fixed(i64::from(s.internal_dc), 1),
-            );
-            let ext = |t: Option<i16>| t.map_or(Value::Null, |t| fixed(i64::from(t), 1));
-            put(has(42), "external_temperature_1_c", ext(s.external1_dc));
-            put(has(43), "external_temperature_2_c", ext(s.external2_dc));
-            put(has(50), "online_status", online_status(s.status));
-            put(
-                has(51),
-                "balancing_decision_bits",
-                json!(s.balancing_decision_bits),
-            );
-            put(has(52), "real_balancing_bits", json!(s.real_balancing_bits));
-            put(all(54, 55), "speed_kmh", f32_value(s.speed_kmh));
-            put(has(44), "distance_left_km", json!(s.distance_left_km));
         }
     }
 
@@ -267,67 +198,8 @@ pub fn register_values(regs: &Regs) -> Map<String, Value> {
         if let Ok(s) =
             Statistics::from_registers(&padded(regs, regs::STATS_FIRST, regs::STATS_LAST))
         {
-            let mut put = |present: bool, k: &str, x: Value| {
-                if present {
-                    v.insert(k.into(), x);
-                }
-            };
-            put(
-                all(100, 101),
-                "total_distance_km",
-                fixed(i64::from(s.total_distance_raw), 2),
-            );
-            put(
-                has(102),
-                "max_discharge_current_a",
-                fixed(i64::from(s.max_discharge_current_da), 1),
-            );
-            put(
-                has(103),
-                "max_charge_current_a",
-                fixed(i64::from(s.max_charge_current_da), 1),
-            );
-            put(
-                has(104),
-                "max_cell_voltage_difference_v",
-                fixed(i64::from(s.max_cell_difference_raw), 4),
-            );
-            put(
-                has(105),
-                "under_voltage_count",
-                json!(s.under_voltage_count),
-            );
-            put(has(106), "over_voltage_count", json!(s.over_voltage_count));
-            put(
-                has(107),
-                "discharge_over_current_count",
-                json!(s.discharge_over_current_count),
-            );
-            put(
-                has(108),
-                "charge_over_current_count",
-                json!(s.charge_over_current_count),
-            );
-            put(has(109), "over_heat_count", json!(s.over_heat_count));
-            put(has(111), "charging_count", json!(s.charging_count));
-            put(has(112), "full_charge_count", json!(s.full_charge_count));
-            put(
-                has(113),
-                "min_pack_temperature_c",
-                json!(s.min_pack_temperature_c),
-            );
-            put(
-                has(113),
-                "max_pack_temperature_c",
-                json!(s.max_pack_temperature_c),
-            );
-            put(has(114), "last_reset", json!(reset_reason(s.last_reset)));
-            put(has(114), "last_wakeup", json!(wakeup_reason(s.last_wakeup)));
-            put(
-                all(116, 117),
-                "stats_cleared_at_s",
-                json!(s.stats_cleared_at_s),
-            );
+            let line = written(|out| encode::statistics(out, None, &s));
+            put_read(&mut v, &line, lines::STATISTICS_REGISTERS, &all);
         }
     }
 
@@ -363,7 +235,7 @@ pub fn register_values(regs: &Regs) -> Map<String, Value> {
                 continue;
             }
             if let Some(x) = id.read(&block) {
-                settings.insert(snake_ident(&format!("{id:?}")), json!(x));
+                settings.insert(setting_key(*id).into(), json!(x));
             }
         }
         if !settings.is_empty() {
@@ -376,37 +248,8 @@ pub fn register_values(regs: &Regs) -> Map<String, Value> {
         if let Ok(x) =
             VersionInfo::from_registers(&padded(regs, regs::VERSION_FIRST, regs::VERSION_LAST))
         {
-            let mut put = |present: bool, k: &str, val: Value| {
-                if present {
-                    v.insert(k.into(), val);
-                }
-            };
-            put(has(500), "hardware_version", json!(x.hardware));
-            put(
-                has(500),
-                "hardware_changes_version",
-                json!(x.hardware_changes),
-            );
-            put(
-                has(501),
-                "firmware_public_version",
-                json!(x.firmware_public),
-            );
-            put(has(501), "high_power", json!(x.high_power));
-            put(
-                has(501),
-                "current_sensor",
-                json!(current_sensor(x.current_sensor)),
-            );
-            put(
-                has(502),
-                "firmware_internal_version",
-                json!(x.firmware_internal),
-            );
-            put(has(503), "bootloader_version", json!(x.bootloader));
-            put(has(503), "profile_version", json!(x.profile));
-            let serial: String = x.serial.iter().map(|b| format!("{b:02X}")).collect();
-            put(all(504, 509), "serial_number", json!(serial));
+            let line = written(|out| encode::version(out, None, &x));
+            put_read(&mut v, &line, lines::VERSION_REGISTERS, &all);
         }
     }
     v

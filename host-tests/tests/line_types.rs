@@ -185,3 +185,62 @@ fn a_member_the_reading_side_lacks_is_caught() {
     let other: HostLine = serde_json::from_str(r#"{"type":"from_the_future","x":1}"#).unwrap();
     assert_eq!(other, HostLine::Other);
 }
+
+/// The members of a line as written, without the line's own (`type`, `req`
+/// and the telemetry head's).
+fn members(encode: impl FnOnce(&mut [u8]) -> Option<usize>, head: &[&str]) -> Vec<String> {
+    let mut buf = [0u8; 4096];
+    let n = encode(&mut buf).unwrap();
+    let v: serde_json::Map<String, Value> = serde_json::from_slice(&buf[..n]).unwrap();
+    v.keys()
+        .filter(|k| !head.contains(&k.as_str()))
+        .cloned()
+        .collect()
+}
+
+fn table(t: &[(&str, &[(u16, u16)])]) -> Vec<String> {
+    t.iter().map(|(m, _)| (*m).to_string()).collect()
+}
+
+#[test]
+fn the_register_tables_name_exactly_the_members_a_line_writes() {
+    use protocol_core::response::{RegisterBlock, Words};
+    use protocol_core::views::{LiveSnapshot, Statistics, VersionInfo};
+    use tinybms_firmware::host_link::lines;
+    let block = |start: u16, n: u16| {
+        let mut values = Words::new();
+        for i in 0..n {
+            // Register 53: 16 cells; everything else a small plausible word.
+            let _ = values.push(if start + i == 53 { 16 } else { 1 });
+        }
+        RegisterBlock { start, values }
+    };
+    let live = LiveSnapshot::from_registers(&block(0, 56)).unwrap();
+    let head = encode::TelemetryHead {
+        req: None,
+        seq: 1,
+        age_ms: Some(0),
+        stale_after_ms: None,
+        online: true,
+        ready: true,
+        inverter: None,
+    };
+    let telemetry_head = ["type", "seq", "age_ms", "online", "ready", "flagged"];
+    assert_eq!(
+        members(
+            |o| encode::telemetry(o, head, Some(&live), None, None),
+            &telemetry_head
+        ),
+        table(lines::SNAPSHOT_REGISTERS)
+    );
+    let stats = Statistics::from_registers(&block(100, 18)).unwrap();
+    assert_eq!(
+        members(|o| encode::statistics(o, None, &stats), &["type"]),
+        table(lines::STATISTICS_REGISTERS)
+    );
+    let version = VersionInfo::from_registers(&block(500, 10)).unwrap();
+    assert_eq!(
+        members(|o| encode::version(o, None, &version), &["type"]),
+        table(lines::VERSION_REGISTERS)
+    );
+}

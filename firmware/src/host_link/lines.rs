@@ -418,6 +418,67 @@ pub struct Snapshot<F: Form> {
     pub flagged: Option<F::Text>,
 }
 
+/// The registers each member of a [`Snapshot`] is read from (Rev D §3.1,
+/// HARDWARE-NOTES for register 53's cell rule), as inclusive ranges: a member
+/// can be told only when all of them were read. `replay` prints a partial read
+/// by it; a test checks that these are exactly the members a line writes.
+pub const SNAPSHOT_REGISTERS: &[(&str, &[(u16, u16)])] = &[
+    ("pack_voltage_v", &[(36, 37)]),
+    ("pack_current_a", &[(38, 39)]),
+    ("min_cell_voltage_v", &[(40, 40)]),
+    ("max_cell_voltage_v", &[(41, 41)]),
+    ("cell_voltages_v", &[(0, 15), (53, 53)]),
+    ("cell_first_register", &[(0, 15), (53, 53)]),
+    ("cell_count", &[(53, 53)]),
+    ("soc_percent", &[(46, 47)]),
+    ("soh_percent", &[(45, 45)]),
+    ("lifetime_s", &[(32, 33)]),
+    ("estimated_time_left_s", &[(34, 35)]),
+    ("internal_temperature_c", &[(48, 48)]),
+    ("external_temperature_1_c", &[(42, 42)]),
+    ("external_temperature_2_c", &[(43, 43)]),
+    ("online_status", &[(50, 50)]),
+    ("balancing_decision_bits", &[(51, 51)]),
+    ("real_balancing_bits", &[(52, 52)]),
+    ("speed_kmh", &[(54, 55)]),
+    ("distance_left_km", &[(44, 44)]),
+];
+
+/// The registers each member of a [`StatisticsLine`] is read from (Rev D
+/// §3.2), as [`SNAPSHOT_REGISTERS`].
+pub const STATISTICS_REGISTERS: &[(&str, &[(u16, u16)])] = &[
+    ("total_distance_km", &[(100, 101)]),
+    ("max_discharge_current_a", &[(102, 102)]),
+    ("max_charge_current_a", &[(103, 103)]),
+    ("max_cell_voltage_difference_v", &[(104, 104)]),
+    ("under_voltage_count", &[(105, 105)]),
+    ("over_voltage_count", &[(106, 106)]),
+    ("discharge_over_current_count", &[(107, 107)]),
+    ("charge_over_current_count", &[(108, 108)]),
+    ("over_heat_count", &[(109, 109)]),
+    ("charging_count", &[(111, 111)]),
+    ("full_charge_count", &[(112, 112)]),
+    ("min_pack_temperature_c", &[(113, 113)]),
+    ("max_pack_temperature_c", &[(113, 113)]),
+    ("last_reset", &[(114, 114)]),
+    ("last_wakeup", &[(114, 114)]),
+    ("stats_cleared_at_s", &[(116, 117)]),
+];
+
+/// The registers each member of a [`Version`] line is read from (Rev D §3.5),
+/// as [`SNAPSHOT_REGISTERS`].
+pub const VERSION_REGISTERS: &[(&str, &[(u16, u16)])] = &[
+    ("hardware_version", &[(500, 500)]),
+    ("hardware_changes_version", &[(500, 500)]),
+    ("firmware_public_version", &[(501, 501)]),
+    ("high_power", &[(501, 501)]),
+    ("current_sensor", &[(501, 501)]),
+    ("firmware_internal_version", &[(502, 502)]),
+    ("bootloader_version", &[(503, 503)]),
+    ("profile_version", &[(503, 503)]),
+    ("serial_number", &[(504, 509)]),
+];
+
 /// The inverter output as a `telemetry` line's `inverter` member says it.
 #[derive(Serialize)]
 #[serde(bound(serialize = ""))]
