@@ -162,7 +162,7 @@ impl PackSettings {
             overheat_c: b.get(319)? as i16,
             low_temp_charge_c: b.get(320)? as i16,
         };
-        let sane = (1..=16).contains(&s.cells)
+        let sane = (1..=MAX_SERIES_CELLS).contains(&s.cells)
             && s.charge_cutoff_a >= 1
             && s.discharge_cutoff_a >= 1
             && s.uv_cutoff_mv >= 1000
@@ -350,6 +350,29 @@ pub const RUNNER_RELEASE_MV: u16 = 5;
 pub const FLOAT_OF_ABSORPTION: (u32, u32) = (15, 16);
 /// The pack counts as charging above this current, A (below: noise, or rest).
 pub const CHARGING_ABOVE_A: f32 = 0.5;
+/// The current limits ramp over at most this much time in one update, µs
+/// (the time since the last update, capped: see `ChargeControl::ramp_interval`).
+pub const MAX_RAMP_INTERVAL_US: Instant = 60 * crate::SECOND;
+/// Series cells a TinyBMS manages at most (307 is 1..=16).
+pub const MAX_SERIES_CELLS: u16 = protocol_core::registers::MAX_CELLS as u16;
+/// Cell imbalance alarm: the spread of the cells at this multiple of the
+/// allowed disbalance (308).
+pub const IMBALANCE_ALARM_OF_ALLOWED: u16 = 4;
+/// Cell imbalance warning: the spread at this multiple of 308.
+pub const IMBALANCE_WARNING_OF_ALLOWED: u16 = 2;
+
+/// mV per V.
+const MV_PER_V: f32 = 1000.0;
+/// mV per 0.1 V (the unit of CVL and the discharge voltage).
+const MV_PER_DV: u32 = 100;
+/// 0.1 A per A (the unit of CCL and DCL).
+const DA_PER_A: u32 = 10;
+/// 0.1 °C per °C (temperatures are compared in tenths).
+const DC_PER_C: i32 = 10;
+/// A whole, in per mille (the taper factors).
+const PERMILLE: u32 = 1000;
+/// A whole, in percent.
+const PERCENT: u32 = 100;
 
 /// The charge controller. Call [`ChargeControl::update`] with each new snapshot.
 #[derive(Debug, Clone, PartialEq)]
@@ -433,16 +456,16 @@ impl Ramp {
 /// or negative setting can never turn the direction round.
 fn falling_permille(x: i32, stop: i32, width: i32) -> u32 {
     let w = i64::from(width.max(1));
-    let f = (i64::from(stop) - i64::from(x)) * 1000 / w;
-    f.clamp(0, 1000) as u32
+    let f = (i64::from(stop) - i64::from(x)) * i64::from(PERMILLE) / w;
+    f.clamp(0, i64::from(PERMILLE)) as u32
 }
 
 /// Linear factor in 0..=1000 that rises with `x`: 0 at or below `stop`, 1000 at
 /// or above `stop + width` (width at least 1).
 fn rising_permille(x: i32, stop: i32, width: i32) -> u32 {
     let w = i64::from(width.max(1));
-    let f = (i64::from(x) - i64::from(stop)) * 1000 / w;
-    f.clamp(0, 1000) as u32
+    let f = (i64::from(x) - i64::from(stop)) * i64::from(PERMILLE) / w;
+    f.clamp(0, i64::from(PERMILLE)) as u32
 }
 
 impl ChargeControl {
@@ -530,7 +553,9 @@ impl ChargeControl {
         (absorption, float)
     }
 
-    /// New limits and conditions from a snapshot taken at `now`.
+    /// New limits and conditions from a snapshot taken at `now`: the phase
+    /// first (it picks the target), then CVL, the current limits through their
+    /// hold and ramp, and the conditions.
     pub fn update(
         &mut self,
         now: Instant,
@@ -538,20 +563,50 @@ impl ChargeControl {
         p: &PackState,
     ) -> (Limits, Conditions) {
         let c = self.config;
+        let dt_us = self.ramp_interval(now);
+        let n = u32::from(s.cells.clamp(1, MAX_SERIES_CELLS));
+        let bounds = PackBounds::of(s, n);
+        let target = self.advance_phase(now, s, p, n);
+        let cvl_dv = self.charge_voltage_limit(now, p, n, target, bounds);
+        let temps = Temperatures::of(&c, s, p);
+        let (ccl_target, dcl_target) = current_targets(&c, s, p, temps);
+        self.targets = (ccl_target, dcl_target);
+        let ccl_da = self.ccl.step(now, ccl_target, dt_us, &c);
+        let dcl_da = self.dcl.step(now, dcl_target, dt_us, &c);
+        let limits = Limits {
+            cvl_dv,
+            ccl_da,
+            dcl_da,
+            discharge_dv: discharge_dv(&c, s, n, bounds),
+        };
+        (limits, conditions(&c, s, p, temps))
+    }
+
+    /// The time the current limits ramp over in this update: since the last
+    /// update (one second for the first), at most [`MAX_RAMP_INTERVAL_US`] so
+    /// that a long gap between updates (a stalled task, a long silence of
+    /// the BMS) is not one big rise. Records `now` as the last update.
+    fn ramp_interval(&mut self, now: Instant) -> Instant {
         let dt_us = self
             .last_update
             .map_or(crate::SECOND, |t| now.saturating_sub(t))
-            .min(60 * crate::SECOND);
+            .min(MAX_RAMP_INTERVAL_US);
         self.last_update = Some(now);
-        let n = u32::from(s.cells.clamp(1, 16));
-        let (absorption, float) = self.targets_mv(s);
+        dt_us
+    }
 
-        // Phase.
+    /// Absorption → float once the pack is at the absorption target with the
+    /// current tapered for [`ChargeConfig::full_hold_us`]; float → absorption
+    /// below [`ChargeConfig::rebulk_soc_pct`]. Returns the per-cell target of
+    /// the phase it is in now, mV.
+    fn advance_phase(&mut self, now: Instant, s: &PackSettings, p: &PackState, n: u32) -> u16 {
+        let c = &self.config;
+        let (absorption, float) = self.targets_mv(s);
         match self.phase {
             Phase::Absorption => {
                 // At the target: the highest cell there, or the pack held at CVL
                 // (the average cell within AT_TARGET_AVERAGE_MV of the target).
-                let avg_mv = (p.pack_v * 1000.0 / n as f32) as i32;
+                let avg_mv = (p.pack_v * MV_PER_V / n as f32) as i32;
                 let at_target = p.max_cell_mv.saturating_add(AT_TARGET_CELL_MV) >= absorption
                     || avg_mv.saturating_add(AT_TARGET_AVERAGE_MV) >= i32::from(absorption);
                 let tapered = p.current_a < c.tail_current_a;
@@ -571,42 +626,57 @@ impl ChargeControl {
                 }
             }
         }
-        let target = match self.phase {
+        match self.phase {
             Phase::Absorption => absorption,
             Phase::Float => float,
-        };
+        }
+    }
 
-        // A runner: when the highest cell is above the target because it runs
-        // ahead of the others (not because the whole pack is above a lower
-        // float target), lower CVL so that the runner — not the average —
-        // settles at the target (+ tolerance). Released once the runner is
-        // clearly below the target (and then only as fast as CVL may rise).
-        let avg_mv = (p.pack_v.max(0.0) * 1000.0 / n as f32) as u32;
+    /// CVL, 0.1 V: cells × `target` less the runner offset, kept within the
+    /// pack's bounds, in 0.1 V steps, raised at most once per
+    /// [`ChargeConfig::cvl_raise_interval_us`].
+    fn charge_voltage_limit(
+        &mut self,
+        now: Instant,
+        p: &PackState,
+        n: u32,
+        target: u16,
+        bounds: PackBounds,
+    ) -> u16 {
+        self.follow_runner(p, n, target);
+        let cvl_mv = (n * u32::from(target))
+            .saturating_sub(self.runner_offset_mv)
+            .max(bounds.floor_mv)
+            .min(bounds.ceil_mv);
+        let cvl_dv = bounds.round_inside_dv(cvl_mv);
+        self.limit_cvl_raise(now, cvl_dv)
+    }
+
+    /// A runner: when the highest cell is above the target because it runs
+    /// ahead of the others (not because the whole pack is above a lower float
+    /// target), CVL is lowered so that the runner — not the average — settles
+    /// at the target (+ tolerance). Released once the runner is clearly below
+    /// the target ([`RUNNER_RELEASE_MV`]), and then only as fast as CVL may rise.
+    fn follow_runner(&mut self, p: &PackState, n: u32, target: u16) {
+        let avg_mv = (p.pack_v.max(0.0) * MV_PER_V / n as f32) as u32;
         let lead_mv = u32::from(p.max_cell_mv).saturating_sub(avg_mv);
         if p.max_cell_mv > target {
-            self.runner_offset_mv = n * lead_mv.saturating_sub(u32::from(c.runner_tolerance_mv));
+            self.runner_offset_mv =
+                n * lead_mv.saturating_sub(u32::from(self.config.runner_tolerance_mv));
         } else if p.max_cell_mv.saturating_add(RUNNER_RELEASE_MV) < target {
             self.runner_offset_mv = 0;
         }
-        let floor_mv = n * u32::from(s.uv_cutoff_mv);
-        let ceil_mv = n * u32::from(s.ov_cutoff_mv);
-        let cvl_mv = (n * u32::from(target))
-            .saturating_sub(self.runner_offset_mv)
-            .max(floor_mv)
-            .min(ceil_mv);
-        // 0.1 V steps, rounded towards the inside of cells × [316, 315].
-        let mut cvl_dv = if cvl_mv <= floor_mv {
-            cvl_mv.div_ceil(100)
-        } else {
-            cvl_mv / 100
-        }
-        .max(1) as u16;
-        // Raised at most once per interval; lowered at once.
+    }
+
+    /// CVL is raised at most once per [`ChargeConfig::cvl_raise_interval_us`]
+    /// (an inverter need not chase every 0.1 V of a settling runner); it is
+    /// lowered at once. Returns the CVL to send and records it.
+    fn limit_cvl_raise(&mut self, now: Instant, mut cvl_dv: u16) -> u16 {
         if let Some(last) = self.last_cvl_dv {
             if cvl_dv > last {
                 let may = self
                     .last_cvl_raise
-                    .is_none_or(|t| now.saturating_sub(t) >= c.cvl_raise_interval_us);
+                    .is_none_or(|t| now.saturating_sub(t) >= self.config.cvl_raise_interval_us);
                 if may {
                     self.last_cvl_raise = Some(now);
                 } else {
@@ -615,99 +685,180 @@ impl ChargeControl {
             }
         }
         self.last_cvl_dv = Some(cvl_dv);
+        cvl_dv
+    }
+}
 
-        // Current limits before tapers.
-        let cap = |cutoff_a: u16, cap: Option<u16>| {
-            let da = u32::from(cutoff_a)
-                .saturating_mul(10)
-                .min(u32::from(u16::MAX)) as u16;
-            cap.map_or(da, |c| c.min(da))
-        };
-        let ccl_max = cap(s.charge_cutoff_a, c.ccl_cap_da);
-        let dcl_max = cap(s.discharge_cutoff_a, c.dcl_cap_da);
+/// The pack voltages no limit leaves: cells × [316, 315], mV.
+#[derive(Debug, Clone, Copy)]
+struct PackBounds {
+    /// Cells × the under-voltage cutoff (316).
+    floor_mv: u32,
+    /// Cells × the over-voltage cutoff (315).
+    ceil_mv: u32,
+}
 
-        // Tapers by cell voltage.
-        let stop_mv = i32::from(s.ov_cutoff_mv) - i32::from(c.ov_margin_mv);
-        let ccl_v = falling_permille(i32::from(p.max_cell_mv), stop_mv, i32::from(c.ccl_taper_mv));
-        let dstop_mv = i32::from(s.uv_cutoff_mv) + i32::from(c.uv_margin_mv);
-        let dcl_v = rising_permille(
-            i32::from(p.min_cell_mv),
-            dstop_mv,
-            i32::from(c.dcl_taper_mv),
-        );
-        // Temperature (°C ×10 to keep tenths).
-        let t = |x: f32| (x * 10.0) as i32;
-        let m = i32::from(c.temp_margin_c.max(1)) * 10;
-        let cold = i32::from(s.low_temp_charge_c) * 10;
-        let hot = i32::from(s.overheat_c) * 10;
-        let ccl_cold = rising_permille(t(p.min_temp_c), cold, m);
-        let ccl_hot = falling_permille(t(p.max_temp_c), hot, m);
-        let dcl_hot = falling_permille(t(p.max_temp_c), hot, m);
-        let scale = |x: u16, f: u32| (u32::from(x) * f / 1000) as u16;
-        let mut ccl_target = scale(scale(scale(ccl_max, ccl_v), ccl_cold), ccl_hot);
-        let mut dcl_target = scale(scale(dcl_max, dcl_v), dcl_hot);
-        if p.fault {
-            ccl_target = 0;
-            dcl_target = 0;
+impl PackBounds {
+    fn of(s: &PackSettings, n: u32) -> Self {
+        Self {
+            floor_mv: n * u32::from(s.uv_cutoff_mv),
+            ceil_mv: n * u32::from(s.ov_cutoff_mv),
         }
-        if p.charge_blocked {
-            ccl_target = 0;
+    }
+
+    /// A CVL in 0.1 V steps, rounded towards the inside of the bounds (up at
+    /// the floor, down elsewhere), never 0 (an inverter would read 0 as "no
+    /// limit" or refuse it).
+    fn round_inside_dv(self, cvl_mv: u32) -> u16 {
+        if cvl_mv <= self.floor_mv {
+            cvl_mv.div_ceil(MV_PER_DV)
+        } else {
+            cvl_mv / MV_PER_DV
         }
-        self.targets = (ccl_target, dcl_target);
-        let ccl_da = self.ccl.step(now, ccl_target, dt_us, &c);
-        let dcl_da = self.dcl.step(now, dcl_target, dt_us, &c);
+        .max(1) as u16
+    }
+}
 
-        let discharge_mv = (n * u32::from(dstop_mv.max(0) as u16))
-            .max(floor_mv)
-            .min(ceil_mv);
-        let limits = Limits {
-            cvl_dv,
-            ccl_da,
-            dcl_da,
-            discharge_dv: (discharge_mv / 100) as u16,
-        };
+/// The temperatures charge control compares, in 0.1 °C (the cutoffs are whole
+/// degrees; the measurements keep their tenths).
+#[derive(Debug, Clone, Copy)]
+struct Temperatures {
+    /// Lowest sensor.
+    min: i32,
+    /// Highest sensor.
+    max: i32,
+    /// The low-temperature charge cutoff (320).
+    cold: i32,
+    /// The over-heat cutoff (319).
+    hot: i32,
+    /// The derating window inside each cutoff ([`ChargeConfig::temp_margin_c`],
+    /// at least 1 °C).
+    margin: i32,
+}
 
-        // Alarms and warnings: warnings a margin inside each limit.
-        let w = c.warn_margin_mv;
-        let pct = |a: u16| u32::from(a) * u32::from(c.warn_current_pct) / 100;
-        let spread = p.max_cell_mv.saturating_sub(p.min_cell_mv);
-        let charging = p.current_a > CHARGING_ABOVE_A;
-        let conditions = Conditions {
-            high_voltage: level(
-                p.max_cell_mv >= s.ov_cutoff_mv,
-                p.max_cell_mv.saturating_add(w) >= s.ov_cutoff_mv,
-            ),
-            low_voltage: level(
-                p.min_cell_mv <= s.uv_cutoff_mv,
-                p.min_cell_mv <= s.uv_cutoff_mv.saturating_add(w),
-            ),
-            high_temperature: level(t(p.max_temp_c) >= hot, t(p.max_temp_c) >= hot - m),
-            // Rev D has no low-temperature discharge cutoff: below the charge
-            // cutoff is a warning (charging is blocked), never an alarm.
-            low_temperature: level(false, t(p.min_temp_c) <= cold),
-            high_temperature_charge: level(
-                charging && t(p.max_temp_c) >= hot,
-                charging && t(p.max_temp_c) >= hot - m,
-            ),
-            low_temperature_charge: level(
-                charging && t(p.min_temp_c) <= cold,
-                charging && t(p.min_temp_c) <= cold + m,
-            ),
-            high_discharge_current: level(
-                -p.current_a >= f32::from(s.discharge_cutoff_a),
-                -p.current_a >= pct(s.discharge_cutoff_a) as f32,
-            ),
-            high_charge_current: level(
-                p.current_a >= f32::from(s.charge_cutoff_a),
-                p.current_a >= pct(s.charge_cutoff_a) as f32,
-            ),
-            bms_internal: level(p.fault, false),
-            cell_imbalance: level(
-                s.allowed_disbalance_mv > 0 && spread >= s.allowed_disbalance_mv.saturating_mul(4),
-                s.allowed_disbalance_mv > 0 && spread >= s.allowed_disbalance_mv.saturating_mul(2),
-            ),
-            link_lost: 0,
-        };
-        (limits, conditions)
+impl Temperatures {
+    fn of(c: &ChargeConfig, s: &PackSettings, p: &PackState) -> Self {
+        let dc = |x: f32| (x * DC_PER_C as f32) as i32;
+        Self {
+            min: dc(p.min_temp_c),
+            max: dc(p.max_temp_c),
+            cold: i32::from(s.low_temp_charge_c) * DC_PER_C,
+            hot: i32::from(s.overheat_c) * DC_PER_C,
+            margin: i32::from(c.temp_margin_c.max(1)) * DC_PER_C,
+        }
+    }
+}
+
+/// A current cutoff in A as a limit in 0.1 A (saturating at what a frame
+/// carries), under the configured cap if any.
+fn capped_da(cutoff_a: u16, cap: Option<u16>) -> u16 {
+    let da = u32::from(cutoff_a)
+        .saturating_mul(DA_PER_A)
+        .min(u32::from(u16::MAX)) as u16;
+    cap.map_or(da, |c| c.min(da))
+}
+
+/// `x` scaled by a per-mille factor (rounded down).
+fn scale_permille(x: u16, f: u32) -> u16 {
+    (u32::from(x) * f / PERMILLE) as u16
+}
+
+/// The pack's current limits before the hold and ramp, 0.1 A (CCL, DCL): the
+/// cutoffs under their caps, tapered by the cells near their cutoffs and by
+/// the temperatures near theirs; CCL and DCL 0 on a BMS fault, CCL 0 while a
+/// charge-side fault is latched.
+fn current_targets(
+    c: &ChargeConfig,
+    s: &PackSettings,
+    p: &PackState,
+    t: Temperatures,
+) -> (u16, u16) {
+    let ccl_max = capped_da(s.charge_cutoff_a, c.ccl_cap_da);
+    let dcl_max = capped_da(s.discharge_cutoff_a, c.dcl_cap_da);
+    // Tapers by cell voltage.
+    let stop_mv = i32::from(s.ov_cutoff_mv) - i32::from(c.ov_margin_mv);
+    let ccl_v = falling_permille(i32::from(p.max_cell_mv), stop_mv, i32::from(c.ccl_taper_mv));
+    let dcl_v = rising_permille(
+        i32::from(p.min_cell_mv),
+        discharge_stop_mv(c, s),
+        i32::from(c.dcl_taper_mv),
+    );
+    // Tapers by temperature.
+    let ccl_cold = rising_permille(t.min, t.cold, t.margin);
+    let ccl_hot = falling_permille(t.max, t.hot, t.margin);
+    let dcl_hot = falling_permille(t.max, t.hot, t.margin);
+    let mut ccl_target = scale_permille(
+        scale_permille(scale_permille(ccl_max, ccl_v), ccl_cold),
+        ccl_hot,
+    );
+    let mut dcl_target = scale_permille(scale_permille(dcl_max, dcl_v), dcl_hot);
+    if p.fault {
+        ccl_target = 0;
+        dcl_target = 0;
+    }
+    if p.charge_blocked {
+        ccl_target = 0;
+    }
+    (ccl_target, dcl_target)
+}
+
+/// The cell voltage at which discharge stops: 316 + [`ChargeConfig::uv_margin_mv`], mV.
+fn discharge_stop_mv(c: &ChargeConfig, s: &PackSettings) -> i32 {
+    i32::from(s.uv_cutoff_mv) + i32::from(c.uv_margin_mv)
+}
+
+/// The discharge voltage sent with the limits: cells × the discharge stop,
+/// within the pack's bounds, 0.1 V (rounded down).
+fn discharge_dv(c: &ChargeConfig, s: &PackSettings, n: u32, bounds: PackBounds) -> u16 {
+    let discharge_mv = (n * u32::from(discharge_stop_mv(c, s).max(0) as u16))
+        .max(bounds.floor_mv)
+        .min(bounds.ceil_mv);
+    (discharge_mv / MV_PER_DV) as u16
+}
+
+/// Alarms and warnings: an alarm at or past each cutoff, a warning a margin
+/// inside it ([`ChargeConfig::warn_margin_mv`], the temperature window,
+/// [`ChargeConfig::warn_current_pct`], half the imbalance alarm).
+fn conditions(c: &ChargeConfig, s: &PackSettings, p: &PackState, t: Temperatures) -> Conditions {
+    let w = c.warn_margin_mv;
+    let pct = |a: u16| u32::from(a) * u32::from(c.warn_current_pct) / PERCENT;
+    let spread = p.max_cell_mv.saturating_sub(p.min_cell_mv);
+    let charging = p.current_a > CHARGING_ABOVE_A;
+    let (hot, cold, m) = (t.hot, t.cold, t.margin);
+    Conditions {
+        high_voltage: level(
+            p.max_cell_mv >= s.ov_cutoff_mv,
+            p.max_cell_mv.saturating_add(w) >= s.ov_cutoff_mv,
+        ),
+        low_voltage: level(
+            p.min_cell_mv <= s.uv_cutoff_mv,
+            p.min_cell_mv <= s.uv_cutoff_mv.saturating_add(w),
+        ),
+        high_temperature: level(t.max >= hot, t.max >= hot - m),
+        // Rev D has no low-temperature discharge cutoff: below the charge
+        // cutoff is a warning (charging is blocked), never an alarm.
+        low_temperature: level(false, t.min <= cold),
+        high_temperature_charge: level(charging && t.max >= hot, charging && t.max >= hot - m),
+        low_temperature_charge: level(charging && t.min <= cold, charging && t.min <= cold + m),
+        high_discharge_current: level(
+            -p.current_a >= f32::from(s.discharge_cutoff_a),
+            -p.current_a >= pct(s.discharge_cutoff_a) as f32,
+        ),
+        high_charge_current: level(
+            p.current_a >= f32::from(s.charge_cutoff_a),
+            p.current_a >= pct(s.charge_cutoff_a) as f32,
+        ),
+        bms_internal: level(p.fault, false),
+        cell_imbalance: level(
+            s.allowed_disbalance_mv > 0
+                && spread
+                    >= s.allowed_disbalance_mv
+                        .saturating_mul(IMBALANCE_ALARM_OF_ALLOWED),
+            s.allowed_disbalance_mv > 0
+                && spread
+                    >= s.allowed_disbalance_mv
+                        .saturating_mul(IMBALANCE_WARNING_OF_ALLOWED),
+        ),
+        link_lost: 0,
     }
 }

@@ -698,11 +698,7 @@ impl Inverter {
         if stale {
             let since = *self.stale_since.get_or_insert(now);
             if since == now {
-                self.report(InverterReport::Stale {
-                    age_ms: (age / crate::MS).min(u64::from(u32::MAX)) as u32,
-                    policy: self.config.stale_policy,
-                    hold_us: self.config.stale_hold_us,
-                });
+                self.report_stale(age);
             }
             match self.config.stale_policy {
                 // A Sunny Island keeps obeying the last 0x351 until 0x355 has been
@@ -813,138 +809,13 @@ impl Inverter {
     /// packs heard, and — when this bridge is the speaker — the inverter
     /// frames for the battery.
     fn fill_member(&mut self, now: Instant, slow: bool) {
-        let freshness = self.config.freshness;
-        // This pack: its own limits while its data is fresh.
-        let own = match (self.settings, self.state) {
-            (Some(settings), Some((state, taken_at))) => {
-                let age = now.saturating_sub(taken_at);
-                if !freshness.young(Some(age)) {
-                    if self.stale_since.is_none() {
-                        self.stale_since = Some(now);
-                        self.report(InverterReport::Stale {
-                            age_ms: (age / crate::MS).min(u64::from(u32::MAX)) as u32,
-                            policy: self.config.stale_policy,
-                            hold_us: self.config.stale_hold_us,
-                        });
-                    }
-                } else {
-                    if self.stale_since.take().is_some() {
-                        // This pack left the battery meanwhile; the battery's
-                        // hold and ramp rule its return (see `packs`).
-                        self.report(InverterReport::Fresh);
-                    }
-                    self.update_own(now, &settings, &state);
-                }
-                // The summary carries the pack's limits before its own hold
-                // and ramp: the battery holds and ramps as a whole, so a pack
-                // that comes back after a cut adds its share at once instead of
-                // holding the whole battery at 0.
-                let (ccl_da, dcl_da) = self.control.targets();
-                self.limits.map(|l| {
-                    let unheld = Limits {
-                        ccl_da,
-                        dcl_da,
-                        ..l
-                    };
-                    (state, age, unheld, self.conditions, settings.capacity_cah)
-                })
-            }
-            _ => None,
-        };
-        // Who speaks, then this pack's summary (saying so). A bridge that sends
-        // no summary (no BMS data yet; another bridge has its number) must not
-        // speak: the others would not know.
-        let able = own.is_some() && !self.duplicate_reported;
-        let was = self.election.speaking();
-        let speaking = self.election.update(now, &self.packs, able);
-        if speaking != was {
-            self.report(InverterReport::Speaker(speaking));
-        }
-        let node = self.packs.node();
-        // Every pack once (this one first), and the nodes taking part as bits.
-        let mut members: heapless::Vec<Member, { packs::MAX_NODES as usize }> =
-            heapless::Vec::new();
-        let mut nodes: heapless::Vec<u8, { packs::MAX_NODES as usize }> = heapless::Vec::new();
-        let mut mask = 0u16;
-        let mut add = |n: u8, m: Member| {
-            let _ = nodes.push(n);
-            // The packs in the battery's sums: a pack without fresh data that
-            // may still conduct stays (no hold restarts when a lossy bus
-            // makes packs come and go); one known open leaves.
-            if m.in_sums(freshness) {
-                mask |= 1 << (n.saturating_sub(1) & 15);
-            }
-            let _ = members.push(m);
-        };
-        if let Some((state, age, limits, conditions, cap)) = own {
-            let summary = Summary::own(&state, age, &limits, &conditions, cap, speaking);
-            // Another bridge with this node number: this one falls silent (the
-            // same identifiers with other data would collide on the bus) until
-            // it restarts; the log says why.
-            if !self.duplicate_reported {
-                if let Some(fs) = summary.frames(node, self.seq) {
-                    for f in fs {
-                        let _ = self.queue.push_back(f);
-                    }
-                }
-            }
-            self.seq = (self.seq + 1) & 0x0F;
-            self.own_summary = Some(summary);
-            if !summary.fault {
-                self.own_closed = Some((summary.limits.ccl_da, summary.limits.dcl_da));
-            }
-            add(
-                node,
-                Member {
-                    closed_limits: self.own_closed,
-                    ..Member::now(summary)
-                },
-            );
-        }
-        for (n, m) in self.packs.known(now) {
-            add(n, m);
-        }
-        // What is learnt of how the current splits (see `packs::shares`).
-        let mut part: heapless::Vec<(u8, i16), { packs::MAX_NODES as usize }> =
-            heapless::Vec::new();
-        for (n, m) in nodes.iter().zip(&members) {
-            if m.takes_part(freshness) {
-                let _ = part.push((*n, m.summary.current_da));
-            }
-        }
-        let unknown = members.iter().any(|m| m.unknown(freshness));
-        self.shares.update(&part, unknown);
-        let mut shares = [None; packs::MAX_NODES as usize];
-        for (s, n) in shares.iter_mut().zip(&nodes) {
-            *s = self.shares.of(*n);
-        }
-        let battery = packs::aggregate_with(&members, freshness, &shares);
-        let counts = battery.map_or((0, members.len() as u8), |b| (b.online, b.offline));
-        if self.logged_packs != Some(counts) {
-            self.logged_packs = Some(counts);
-            self.report(InverterReport::Packs {
-                online: counts.0,
-                offline: counts.1,
-            });
-        }
-        let Some(battery) = battery else {
-            self.battery = None;
-            self.battery_limits.cut(now);
-            if !self.battery_lost {
-                self.battery_lost = true;
-                self.report(InverterReport::BatteryLost);
-            }
-            if speaking && self.config.protocol.obeys_last_limits() {
-                // A Sunny Island obeys the last 0x351 for 60 s: stop it.
-                if let Some(last) = self.sent_battery {
-                    let stop = Limits {
-                        ccl_da: 0,
-                        dcl_da: 0,
-                        ..last
-                    };
-                    let _ = self.queue.push_back(frames::limits(&stop));
-                }
-            }
+        let own = self.own_pack(now);
+        let speaking = self.elect(now, own.is_some());
+        let own = own.map(|o| self.send_own_summary(o, speaking));
+        let gathered = self.gather(now, own);
+        let shares = self.learn_shares(&gathered);
+        let Some(battery) = self.aggregate(&gathered, &shares) else {
+            self.lose_battery(now, speaking);
             return;
         };
         self.battery_lost = false;
@@ -955,32 +826,215 @@ impl Inverter {
         }
         let limits = self
             .battery_limits
-            .step(now, &battery, mask, &self.config.charge);
+            .step(now, &battery, gathered.mask, &self.config.charge);
         self.battery = Some((battery, limits));
         if speaking {
-            if self.logged_battery != Some(limits) {
-                self.logged_battery = Some(limits);
-                self.report(InverterReport::BatteryLimits(limits));
-            }
-            self.sent_battery = Some(limits);
-            let capacity_ah = (battery.capacity_dah / 10).min(u32::from(u16::MAX)) as u16;
-            let modules = (
-                u16::from(battery.online),
-                u16::from(battery.blocking_charge),
-                u16::from(battery.blocking_discharge),
-                u16::from(battery.offline),
-            );
-            self.push_inverter_frames(
-                &limits,
-                &battery.state,
-                &battery.conditions,
-                capacity_ah,
-                modules,
-                slow,
-            );
+            self.speak_for_battery(&battery, limits, slow);
         } else {
             self.logged_battery = None;
         }
+    }
+
+    /// This pack as it goes into the battery, once the BMS has said anything:
+    /// its limits are computed while its data is fresh (see
+    /// [`Inverter::refresh_own`]). The summary carries the pack's limits before
+    /// its own hold and ramp: the battery holds and ramps as a whole, so a pack
+    /// that comes back after a cut adds its share at once instead of holding
+    /// the whole battery at 0.
+    fn own_pack(&mut self, now: Instant) -> Option<OwnPack> {
+        let (Some(settings), Some((state, taken_at))) = (self.settings, self.state) else {
+            return None;
+        };
+        let age = now.saturating_sub(taken_at);
+        self.refresh_own(now, age, &settings, &state);
+        let (ccl_da, dcl_da) = self.control.targets();
+        self.limits.map(|l| OwnPack {
+            state,
+            age,
+            limits: Limits {
+                ccl_da,
+                dcl_da,
+                ..l
+            },
+            conditions: self.conditions,
+            capacity_cah: settings.capacity_cah,
+        })
+    }
+
+    /// This pack's data `age` old: stale once (reported when it becomes so),
+    /// or fresh — reported when it was stale, and its limits computed. A pack
+    /// that was stale left the battery meanwhile; the battery's hold and ramp
+    /// rule its return (see `packs`), not this pack's.
+    fn refresh_own(
+        &mut self,
+        now: Instant,
+        age: Instant,
+        settings: &PackSettings,
+        state: &PackState,
+    ) {
+        if !self.config.freshness.young(Some(age)) {
+            if self.stale_since.is_none() {
+                self.stale_since = Some(now);
+                self.report_stale(age);
+            }
+        } else {
+            if self.stale_since.take().is_some() {
+                self.report(InverterReport::Fresh);
+            }
+            self.update_own(now, settings, state);
+        }
+    }
+
+    /// Stale telemetry, `age` old: what the configured policy does about it.
+    fn report_stale(&mut self, age: Instant) {
+        self.report(InverterReport::Stale {
+            age_ms: (age / crate::MS).min(u64::from(u32::MAX)) as u32,
+            policy: self.config.stale_policy,
+            hold_us: self.config.stale_hold_us,
+        });
+    }
+
+    /// Who speaks (reported when it changes). A bridge that sends no summary
+    /// (no BMS data yet; another bridge has its number) must not speak: the
+    /// others would not know.
+    fn elect(&mut self, now: Instant, has_own: bool) -> bool {
+        let able = has_own && !self.duplicate_reported;
+        let was = self.election.speaking();
+        let speaking = self.election.update(now, &self.packs, able);
+        if speaking != was {
+            self.report(InverterReport::Speaker(speaking));
+        }
+        speaking
+    }
+
+    /// This pack's summary (saying whether it speaks) onto the bus, and this
+    /// pack as a member of the battery. Another bridge with this node number:
+    /// this one falls silent (the same identifiers with other data would
+    /// collide on the bus) until it restarts; the log says why. The sequence
+    /// number advances either way.
+    fn send_own_summary(&mut self, own: OwnPack, speaking: bool) -> Member {
+        let summary = Summary::own(
+            &own.state,
+            own.age,
+            &own.limits,
+            &own.conditions,
+            own.capacity_cah,
+            speaking,
+        );
+        if !self.duplicate_reported {
+            if let Some(fs) = summary.frames(self.packs.node(), self.seq) {
+                for f in fs {
+                    let _ = self.queue.push_back(f);
+                }
+            }
+        }
+        self.seq = (self.seq + 1) & packs::SEQ_MASK;
+        self.own_summary = Some(summary);
+        // What the pack may take when its BMS closes its switch again.
+        if !summary.fault {
+            self.own_closed = Some((summary.limits.ccl_da, summary.limits.dcl_da));
+        }
+        Member {
+            closed_limits: self.own_closed,
+            ..Member::now(summary)
+        }
+    }
+
+    /// Every pack once (this one first, then the others heard), and the packs
+    /// in the battery's sums as bits.
+    fn gather(&self, now: Instant, own: Option<Member>) -> Gathered {
+        let freshness = self.config.freshness;
+        let mut g = Gathered::new();
+        if let Some(m) = own {
+            g.add(self.packs.node(), m, freshness);
+        }
+        for (n, m) in self.packs.known(now) {
+            g.add(n, m, freshness);
+        }
+        g
+    }
+
+    /// What is learnt of how the current splits (see `packs::shares`), from
+    /// the packs taking part; returns the learnt share of each member, in the
+    /// members' order.
+    fn learn_shares(&mut self, g: &Gathered) -> [Option<f32>; packs::MAX_NODES as usize] {
+        let freshness = self.config.freshness;
+        let mut part: heapless::Vec<(u8, i16), { packs::MAX_NODES as usize }> =
+            heapless::Vec::new();
+        for (n, m) in g.nodes.iter().zip(&g.members) {
+            if m.takes_part(freshness) {
+                let _ = part.push((*n, m.summary.current_da));
+            }
+        }
+        let unknown = g.members.iter().any(|m| m.unknown(freshness));
+        self.shares.update(&part, unknown);
+        let mut shares = [None; packs::MAX_NODES as usize];
+        for (s, n) in shares.iter_mut().zip(&g.nodes) {
+            *s = self.shares.of(*n);
+        }
+        shares
+    }
+
+    /// The battery the members add up to (`None`: no pack takes part); the
+    /// packs online and offline reported when they change.
+    fn aggregate(&mut self, g: &Gathered, shares: &[Option<f32>]) -> Option<Battery> {
+        let battery = packs::aggregate_with(&g.members, self.config.freshness, shares);
+        let counts = battery.map_or((0, g.members.len() as u8), |b| (b.online, b.offline));
+        if self.logged_packs != Some(counts) {
+            self.logged_packs = Some(counts);
+            self.report(InverterReport::Packs {
+                online: counts.0,
+                offline: counts.1,
+            });
+        }
+        battery
+    }
+
+    /// No pack takes part: no battery, its limits cut (they come back after
+    /// the hold), reported once. A speaker towards a Sunny Island, which obeys
+    /// the last 0x351 for 60 s, tells it to stop (CCL 0, DCL 0).
+    fn lose_battery(&mut self, now: Instant, speaking: bool) {
+        self.battery = None;
+        self.battery_limits.cut(now);
+        if !self.battery_lost {
+            self.battery_lost = true;
+            self.report(InverterReport::BatteryLost);
+        }
+        if speaking && self.config.protocol.obeys_last_limits() {
+            if let Some(last) = self.sent_battery {
+                let stop = Limits {
+                    ccl_da: 0,
+                    dcl_da: 0,
+                    ..last
+                };
+                let _ = self.queue.push_back(frames::limits(&stop));
+            }
+        }
+    }
+
+    /// As the speaker: the battery's limits (logged when they change, kept for
+    /// the stop frames of a lost battery) and its inverter frames.
+    fn speak_for_battery(&mut self, battery: &Battery, limits: Limits, slow: bool) {
+        if self.logged_battery != Some(limits) {
+            self.logged_battery = Some(limits);
+            self.report(InverterReport::BatteryLimits(limits));
+        }
+        self.sent_battery = Some(limits);
+        let capacity_ah = (battery.capacity_dah / DAH_PER_AH).min(u32::from(u16::MAX)) as u16;
+        let modules = (
+            u16::from(battery.online),
+            u16::from(battery.blocking_charge),
+            u16::from(battery.blocking_discharge),
+            u16::from(battery.offline),
+        );
+        self.push_inverter_frames(
+            &limits,
+            &battery.state,
+            &battery.conditions,
+            capacity_ah,
+            modules,
+            slow,
+        );
     }
 
     /// Stale: the limits frame with CCL 0 (and DCL 0 when `stop_discharge`),
@@ -1006,4 +1060,57 @@ impl Inverter {
         let _ = self.queue.push_back(frames::limits(&stale));
         let _ = self.queue.push_back(self.config.protocol.alarms(&c));
     }
+}
+
+/// 0.1 Ah per Ah (the battery's capacity is summed in 0.1 Ah, sent in Ah).
+const DAH_PER_AH: u32 = 10;
+
+/// This pack as it goes into the battery (with a node number).
+#[derive(Debug, Clone, Copy)]
+struct OwnPack {
+    /// Its state, as last decoded.
+    state: PackState,
+    /// The age of that state, µs.
+    age: Instant,
+    /// Its limits, CCL and DCL before its own hold and ramp.
+    limits: Limits,
+    /// Its alarms and warnings.
+    conditions: Conditions,
+    /// Its capacity (306), 0.01 Ah.
+    capacity_cah: u16,
+}
+
+/// Every pack of the battery once: their node numbers and members in the same
+/// order, and the packs in the battery's sums as bits (node n: bit n − 1).
+struct Gathered {
+    nodes: heapless::Vec<u8, { packs::MAX_NODES as usize }>,
+    members: heapless::Vec<Member, { packs::MAX_NODES as usize }>,
+    mask: u16,
+}
+
+impl Gathered {
+    fn new() -> Self {
+        Self {
+            nodes: heapless::Vec::new(),
+            members: heapless::Vec::new(),
+            mask: 0,
+        }
+    }
+
+    /// Node `n` as `m`. The packs in the battery's sums: a pack without fresh
+    /// data that may still conduct stays (no hold restarts when a lossy bus
+    /// makes packs come and go); one known open leaves.
+    fn add(&mut self, n: u8, m: Member, freshness: Freshness) {
+        let _ = self.nodes.push(n);
+        if m.in_sums(freshness) {
+            self.mask |= node_bit(n);
+        }
+        let _ = self.members.push(m);
+    }
+}
+
+/// Node `n`'s bit in a mask of nodes (bit `n − 1`; the index wrapped to the
+/// mask's 16 bits).
+const fn node_bit(n: u8) -> u16 {
+    1 << (n.saturating_sub(1) & (u16::BITS as u8 - 1))
 }

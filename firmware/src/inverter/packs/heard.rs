@@ -2,7 +2,7 @@
 //! their frames, and who was heard when.
 
 use super::battery::Member;
-use super::summary::{from_id, Summary, SummaryError, MAX_NODES, SUMMARY_FRAMES};
+use super::summary::{from_id, Summary, SummaryError, MAX_NODES, SEQ_MASK, SUMMARY_FRAMES};
 use crate::Instant;
 
 /// A pack whose last complete summary is older than this is lost and leaves
@@ -126,7 +126,7 @@ impl Packs {
                 *t = Some(now);
             }
         }
-        let seq = d[7] & 0x0F;
+        let seq = d[7] & SEQ_MASK;
         let Some(slot) = self.partial.get_mut(i) else {
             return Received::NotSummary;
         };

@@ -11,6 +11,9 @@ pub const SUMMARY_BASE_ID: u16 = 0x6A0;
 pub const MAX_NODES: u8 = 8;
 /// Frames per summary.
 pub const SUMMARY_FRAMES: usize = 4;
+/// Sequence numbers are 4 bits (0..=15, in the low bits of byte 7): the mask
+/// that keeps one in range, and wraps the next one round.
+pub const SEQ_MASK: u8 = 0x0F;
 /// Last identifier of the summary range.
 pub const SUMMARY_LAST_ID: u16 = SUMMARY_BASE_ID + (MAX_NODES as u16) * 4 - 1;
 
@@ -174,7 +177,7 @@ impl Summary {
     /// | 2 | max temperature s16 0.1 °C | capacity u16 0.1 Ah | discharge voltage u16 0.1 V | conditions bits 0-7 | seq |
     /// | 3 | CVL u16 0.1 V | CCL u16 0.1 A | DCL u16 0.1 A | conditions bits 8-15 | seq, conditions bits 16-19 (4-7) |
     pub fn frames(&self, node: u8, seq: u8) -> Option<[CanFrame; SUMMARY_FRAMES]> {
-        let seq = seq & 0x0F;
+        let seq = seq & SEQ_MASK;
         let mut out = [CanFrame {
             id: 0,
             len: 8,
