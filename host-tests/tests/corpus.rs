@@ -135,3 +135,54 @@ fn first_difference_is_readable() {
     let d = first_difference("a\n", "a\nb\n");
     assert!(d.contains("expected: <no line>"), "{d}");
 }
+
+/// Members of `values` that are replay's own (no host-link line has them):
+/// a partial cell read, the event log and its clock, settings by name, the
+/// extended version's register map.
+const REPLAY_ONLY: &[&str] = &[
+    "cell_register_voltages_v",
+    "events",
+    "bms_timestamp_s",
+    "settings",
+    "register_map_version",
+];
+
+/// Every other member replay prints is a member of the firmware's own lines,
+/// named once in `host_link::lines` (the register tables): a name replay
+/// spells differently (the single-value commands, 0x14 to 0x1F, spell theirs)
+/// fails here.
+#[test]
+fn every_value_replay_prints_is_named_by_the_firmware_lines() {
+    use tinybms_firmware::host_link::lines::{
+        SNAPSHOT_REGISTERS, STATISTICS_REGISTERS, VERSION_REGISTERS,
+    };
+    let known: std::collections::BTreeSet<&str> = SNAPSHOT_REGISTERS
+        .iter()
+        .chain(STATISTICS_REGISTERS)
+        .chain(VERSION_REGISTERS)
+        .map(|(m, _)| *m)
+        .chain(REPLAY_ONLY.iter().copied())
+        .collect();
+    let mut seen = 0;
+    for entry in std::fs::read_dir(captures_dir()).unwrap() {
+        let path = entry.unwrap().path();
+        if !path.to_string_lossy().ends_with(".expected.jsonl") {
+            continue;
+        }
+        for line in std::fs::read_to_string(&path).unwrap().lines() {
+            let v: serde_json::Value = serde_json::from_str(line).unwrap();
+            let Some(values) = v.get("values").and_then(|x| x.as_object()) else {
+                continue;
+            };
+            for k in values.keys() {
+                assert!(
+                    known.contains(k.as_str()),
+                    "{}: replay prints `{k}`, which no firmware line names",
+                    path.display()
+                );
+                seen += 1;
+            }
+        }
+    }
+    assert!(seen > 100, "only {seen} values in the golden files");
+}
