@@ -5,13 +5,21 @@
 use std::time::Duration;
 
 use serde_json::Value;
+use tinybms_firmware::host_link::lines::{Head, Link, Read};
+
+/// A line's members in the firmware's own types (`host_link::lines`); `None`
+/// when the line does not have them.
+fn read<T: serde::de::DeserializeOwned>(v: &Value) -> Option<T> {
+    serde_json::from_value(v.clone()).ok()
+}
 
 /// Link quality from a `link` line: share of requests answered at once, and the
 /// counts.
 pub fn link_quality(link: &Value) -> Option<String> {
-    let requests = link["requests"].as_u64()?;
-    let replies = link["replies"].as_u64().unwrap_or(0);
-    let failures = link["failures"].as_u64().unwrap_or(0);
+    let link: Link<Read> = read(link)?;
+    let requests = u64::from(link.requests);
+    let replies = link.replies;
+    let failures = u64::from(link.failures);
     let pct = if requests == 0 {
         100.0
     } else {
@@ -19,8 +27,7 @@ pub fn link_quality(link: &Value) -> Option<String> {
     };
     Some(format!(
         "{pct:.1} % ok ({requests} requests, {replies} replies, {failures} failed, {} retries, {} CRC errors)",
-        link["retries"].as_u64().unwrap_or(0),
-        link["crc_errors"].as_u64().unwrap_or(0)
+        link.retries, link.crc_errors
     ))
 }
 
@@ -38,16 +45,23 @@ pub enum Freshness {
 /// The age of `t`'s data now (seconds): its `age_ms` when it arrived plus the
 /// time since.
 pub fn data_age(t: &Value, received_ago: Duration) -> Option<f64> {
-    t["age_ms"]
-        .as_f64()
-        .map(|ms| ms / 1000.0 + received_ago.as_secs_f64())
+    age_of(&read(t)?, received_ago)
+}
+
+fn age_of(h: &Head<Read>, received_ago: Duration) -> Option<f64> {
+    h.age_ms
+        .map(|ms| ms as f64 / 1000.0 + received_ago.as_secs_f64())
 }
 
 /// The freshness rule of the bridge that sent `t`: the limit its line gives
 /// (`stale_after_ms`), or the default for a bridge whose lines carry none.
 pub fn rule_of(t: &Value) -> tinybms_firmware::freshness::Freshness {
-    let limit_us = t["stale_after_ms"]
-        .as_u64()
+    rule_of_head(read(t).as_ref())
+}
+
+fn rule_of_head(h: Option<&Head<Read>>) -> tinybms_firmware::freshness::Freshness {
+    let limit_us = h
+        .and_then(|h| h.stale_after_ms)
         .map_or(tinybms_firmware::freshness::DEFAULT_STALE_AFTER_US, |ms| {
             ms.saturating_mul(1000)
         });
@@ -59,12 +73,12 @@ pub fn rule_of(t: &Value) -> tinybms_firmware::freshness::Freshness {
 /// gave plus the time since it came (a bridge that stopped sending ages too).
 pub fn freshness(t: Option<&Value>, received_ago: Duration) -> Freshness {
     use tinybms_firmware::freshness::DataState;
-    let Some(t) = t else {
+    let Some(h) = t.and_then(read::<Head<Read>>) else {
         return Freshness::NoData(None);
     };
-    let age = data_age(t, received_ago);
+    let age = age_of(&h, received_ago);
     let age_us = age.map(|a| (a * 1e6) as u64);
-    match rule_of(t).state(t["online"] == true, age_us) {
+    match rule_of_head(Some(&h)).state(h.online, age_us) {
         DataState::Offline => Freshness::Offline(age),
         DataState::Fresh => Freshness::Fresh(age.unwrap_or(0.0)),
         DataState::NoData | DataState::Stale => Freshness::NoData(age),

@@ -20,10 +20,11 @@ use serde_json::Value;
 
 use super::client::Client;
 use super::picture::{
-    cells_of, freshness, freshness_text, inverter_text, link_quality, min_max, Freshness, Logger,
-    MonitorOptions, REDRAW,
+    freshness, freshness_text, link_quality, min_max, told_text, Freshness, Logger, MonitorOptions,
+    REDRAW,
 };
 use super::{interrupted, interrupted_error, ToolResult};
+use tinybms_firmware::host_link::lines::{HostLine, Read, Snapshot, Telemetry};
 
 /// How much history the sparklines show.
 pub const HISTORY: Duration = Duration::from_secs(300);
@@ -35,6 +36,8 @@ pub struct LiveState {
     pub header: String,
     /// The newest telemetry line and when it arrived.
     pub telemetry: Option<(Value, Instant)>,
+    /// The same line in the firmware's line types.
+    pub typed: Option<Telemetry<Read>>,
     /// The newest `link` line.
     pub link: Option<Value>,
     /// (when, pack V, pack A), oldest first, [`HISTORY`] long.
@@ -69,10 +72,16 @@ impl LiveState {
         }
     }
 
-    /// A new telemetry line.
+    /// A new telemetry line (read into the firmware's line types; anything
+    /// else is left alone).
     pub fn update(&mut self, t: Value, now: Instant) {
-        if let (Some(v), Some(i)) = (t["pack_voltage_v"].as_f64(), t["pack_current_a"].as_f64()) {
-            self.history.push_back((now, v, i));
+        let Ok(HostLine::Telemetry(typed)) = serde_json::from_value::<HostLine>(t.clone()) else {
+            return;
+        };
+        if let Some(s) = &typed.snapshot {
+            if let (Some(v), Some(i)) = (s.pack_voltage_v, s.pack_current_a) {
+                self.history.push_back((now, v, i));
+            }
         }
         while self
             .history
@@ -82,11 +91,12 @@ impl LiveState {
             self.history.pop_front();
         }
         self.telemetry = Some((t, now));
+        self.typed = Some(typed);
     }
 }
 
-fn num(t: &Value, k: &str, decimals: usize, unit: &str) -> String {
-    match t[k].as_f64() {
+fn num(x: Option<f64>, decimals: usize, unit: &str) -> String {
+    match x {
         Some(x) => format!("{x:.decimals$} {unit}"),
         None => "-".into(),
     }
@@ -145,7 +155,7 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
     let inverter_row = u16::from(
         s.telemetry
             .as_ref()
-            .is_some_and(|(t, _)| t.get("inverter").is_some_and(Value::is_object)),
+            .is_some_and(|_| s.typed.as_ref().is_some_and(|t| t.told.inverter.is_some())),
     );
     let [top, pack, cells_area, spark_area, foot, battery_area, log_area] = Layout::vertical([
         Constraint::Length(1),
@@ -200,20 +210,22 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         ])),
         top,
     );
-    let Some((t, _)) = s.telemetry.as_ref() else {
+    let Some(t) = s.typed.as_ref() else {
         f.render_widget(Paragraph::new("waiting for the first data..."), pack);
         return;
     };
+    let snap = t.snapshot.as_ref();
+    let m = |x: fn(&Snapshot<Read>) -> Option<f64>| snap.and_then(x);
     // Pack, status, temperatures.
-    let p = match (t["pack_voltage_v"].as_f64(), t["pack_current_a"].as_f64()) {
+    let p = match (m(|s| s.pack_voltage_v), m(|s| s.pack_current_a)) {
         (Some(v), Some(i)) => format!("{:.0} W", v * i),
         _ => "-".into(),
     };
-    let temp = |k: &str| match t[k].as_f64() {
+    let temp = |x: Option<f64>| match x {
         Some(x) => format!("{x:.1} °C"),
         None => "not connected".into(),
     };
-    let status = t["online_status"].as_str().unwrap_or("-");
+    let status = snap.map_or("-", |s| s.online_status.as_str());
     let status_style = if status == "fault" {
         alarm
     } else {
@@ -223,26 +235,26 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
     let lines = vec![
         Line::from(vec![
             Span::raw("Pack "),
-            Span::styled(num(t, "pack_voltage_v", 2, "V"), bold),
+            Span::styled(num(m(|s| s.pack_voltage_v), 2, "V"), bold),
             Span::raw("  "),
-            Span::styled(num(t, "pack_current_a", 2, "A"), bold),
+            Span::styled(num(m(|s| s.pack_current_a), 2, "A"), bold),
             Span::raw(format!("  {p}   SOC ")),
-            Span::styled(num(t, "soc_percent", 1, "%"), bold),
-            Span::raw(format!("   SOH {}", num(t, "soh_percent", 1, "%"))),
+            Span::styled(num(m(|s| s.soc_percent), 1, "%"), bold),
+            Span::raw(format!("   SOH {}", num(m(|s| s.soh_percent), 1, "%"))),
         ]),
         Line::from(vec![
             Span::raw("Status "),
             Span::styled(status.to_string(), status_style),
             Span::raw(format!(
                 "   internal {}   external {} / {}",
-                temp("internal_temperature_c"),
-                temp("external_temperature_1_c"),
-                temp("external_temperature_2_c")
+                temp(m(|s| s.internal_temperature_c)),
+                temp(m(|s| s.external_temperature_1_c)),
+                temp(m(|s| s.external_temperature_2_c))
             )),
         ]),
     ];
     let mut lines = lines;
-    if let Some(inv) = inverter_text(t) {
+    if let Some(inv) = t.told.inverter.as_ref().map(told_text) {
         let trouble = inv.contains("NO ACK") || inv.contains("BUS OFF");
         lines.push(Line::styled(
             inv,
@@ -299,10 +311,9 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
                 alarm
             },
         ),
-        Span::raw(format!("   seq {}", t["seq"])),
+        Span::raw(format!("   seq {}", t.head.seq)),
         Span::styled(
-            t["flagged"]
-                .as_str()
+            snap.and_then(|s| s.flagged.as_ref())
                 .map(|fl| format!("   flagged: {fl}"))
                 .unwrap_or_default(),
             alarm,
@@ -319,10 +330,13 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
 
 /// Every cell as a bar (scaled over the pack's own spread), the lowest blue,
 /// the highest red, a `*` where the BMS balances.
-fn draw_cells(f: &mut Frame, t: &Value, area: Rect) {
-    let cells = cells_of(t);
-    let balancing = t["real_balancing_bits"].as_u64().unwrap_or(0);
-    let Some((lo_i, hi_i)) = min_max(&cells) else {
+fn draw_cells(f: &mut Frame, t: &Telemetry<Read>, area: Rect) {
+    let Some(snap) = &t.snapshot else {
+        return;
+    };
+    let cells = &snap.cell_voltages_v;
+    let balancing = u64::from(snap.real_balancing_bits);
+    let Some((lo_i, hi_i)) = min_max(cells) else {
         return;
     };
     let (lo, hi) = (cells[lo_i], cells[hi_i]);
@@ -483,13 +497,18 @@ mod tests {
         out
     }
 
+    /// A telemetry line with every member the bridge writes (the tool reads
+    /// it into the firmware's line types).
     fn telemetry(online: bool) -> Value {
         json!({"type":"telemetry","seq":7,"age_ms":200,"online":online,"ready":true,
-            "pack_voltage_v":52.9,"pack_current_a":-10.0,"soc_percent":65.0,"soh_percent":97.0,
-            "cell_voltages_v":[3.30,3.31,3.29,3.305],"cell_count":4,
+            "pack_voltage_v":52.9,"pack_current_a":-10.0,"min_cell_voltage_v":3.29,
+            "max_cell_voltage_v":3.31,"cell_voltages_v":[3.30,3.31,3.29,3.305],
+            "cell_first_register":0,"cell_count":4,"soc_percent":65.0,"soh_percent":97.0,
+            "lifetime_s":3877000,"estimated_time_left_s":20255,
             "internal_temperature_c":27.0,"external_temperature_1_c":null,
             "external_temperature_2_c":24.8,"online_status":"discharging",
-            "real_balancing_bits":2,"flagged":null})
+            "balancing_decision_bits":2,"real_balancing_bits":2,"speed_kmh":0.0,
+            "distance_left_km":0,"flagged":null})
     }
 
     #[test]
@@ -551,7 +570,7 @@ mod tests {
         for (node, speaking) in [(1, true), (2, false)] {
             s.battery_line(
                 &json!({"type":"pack","node":node,"state":"part","speaking":speaking,
-                "voltage_v":53.2,"current_a":-4.1,"soc_percent":65.0,"min_cell_v":3.301,
+                "voltage_v":53.2,"current_a":-4.1,"soc_percent":65.0,"soh_percent":97,"min_cell_v":3.301,
                 "max_cell_v":3.345,"data_age_s":0.3,"ccl_a":58.8,"dcl_a":117.6}),
             );
         }

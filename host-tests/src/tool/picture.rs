@@ -7,6 +7,7 @@ use std::io::Write;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use serde_json::{json, Value};
+use tinybms_firmware::host_link::lines::{HostLine, Inverter, Read};
 
 use super::{ToolError, ToolResult};
 
@@ -97,10 +98,6 @@ pub fn utc(secs: i64, millis: u32) -> String {
     )
 }
 
-fn num(v: &Value, k: &str) -> Option<f64> {
-    v[k].as_f64()
-}
-
 fn fmt_opt(v: Option<f64>, decimals: usize, unit: &str) -> String {
     match v {
         Some(x) => format!("{x:.decimals$} {unit}"),
@@ -124,12 +121,10 @@ pub fn min_max(cells: &[f64]) -> Option<(usize, usize)> {
     Some((lo.0, hi.0))
 }
 
-/// The cell voltages of a telemetry line.
-pub fn cells_of(t: &Value) -> Vec<f64> {
-    t["cell_voltages_v"]
-        .as_array()
-        .map(|a| a.iter().filter_map(Value::as_f64).collect())
-        .unwrap_or_default()
+/// A line from the bridge read into the firmware's own types
+/// (`host_link::lines`); `None` when it is not one.
+fn read_line(v: &Value) -> Option<HostLine> {
+    serde_json::from_value(v.clone()).ok()
 }
 
 /// The plain-text picture of one telemetry line (no escape codes): what
@@ -141,16 +136,22 @@ pub fn render_text(t: &Value, link: Option<&Value>, header: &str, f: Freshness) 
         s.push('\n');
     };
     line(format!("TinyBMS {header}"));
-    if t.get("pack_voltage_v").is_none() {
+    let Some(HostLine::Telemetry(t)) = read_line(t) else {
+        line(format!("not a telemetry line the bridge writes: {t}"));
+        line(freshness_text(f));
+        return s;
+    };
+    let head = &t.head;
+    let Some(snap) = &t.snapshot else {
         line(format!(
             "no snapshot yet (online {}, ready {}): waiting for the BMS...",
-            t["online"], t["ready"]
+            head.online, head.ready
         ));
         line(freshness_text(f));
         return s;
-    }
-    let v = num(t, "pack_voltage_v");
-    let i = num(t, "pack_current_a");
+    };
+    let v = snap.pack_voltage_v;
+    let i = snap.pack_current_a;
     let p = match (v, i) {
         (Some(v), Some(i)) => Some(v * i),
         _ => None,
@@ -160,35 +161,34 @@ pub fn render_text(t: &Value, link: Option<&Value>, header: &str, f: Freshness) 
         fmt_opt(v, 2, "V"),
         fmt_opt(i, 2, "A"),
         fmt_opt(p, 0, "W"),
-        fmt_opt(num(t, "soc_percent"), 1, "%"),
-        fmt_opt(num(t, "soh_percent"), 1, "%"),
+        fmt_opt(snap.soc_percent, 1, "%"),
+        fmt_opt(snap.soh_percent, 1, "%"),
     ));
-    let temp = |k: &str| match t[k].as_f64() {
+    let temp = |x: Option<f64>| match x {
         Some(x) => format!("{x:.1} °C"),
         None => "not connected".into(),
     };
     line(format!(
         "Status {}   Temperatures: internal {}  external {} / {}",
-        t["online_status"].as_str().unwrap_or("-"),
-        temp("internal_temperature_c"),
-        temp("external_temperature_1_c"),
-        temp("external_temperature_2_c"),
+        snap.online_status,
+        temp(snap.internal_temperature_c),
+        temp(snap.external_temperature_1_c),
+        temp(snap.external_temperature_2_c),
     ));
-    if let Some(left) = t["estimated_time_left_s"].as_u64() {
-        let life = t["lifetime_s"].as_u64().unwrap_or(0);
-        line(format!(
-            "Time left {}h{:02}   BMS lifetime {}d {:02}:{:02}:{:02}",
-            left / 3600,
-            left / 60 % 60,
-            life / 86_400,
-            life / 3600 % 24,
-            life / 60 % 60,
-            life % 60
-        ));
-    }
-    let cells = cells_of(t);
-    let balancing = t["real_balancing_bits"].as_u64().unwrap_or(0);
-    if let Some((lo, hi)) = min_max(&cells) {
+    let left = snap.estimated_time_left_s;
+    let life = snap.lifetime_s;
+    line(format!(
+        "Time left {}h{:02}   BMS lifetime {}d {:02}:{:02}:{:02}",
+        left / 3600,
+        left / 60 % 60,
+        life / 86_400,
+        life / 3600 % 24,
+        life / 60 % 60,
+        life % 60
+    ));
+    let cells = &snap.cell_voltages_v;
+    let balancing = u64::from(snap.real_balancing_bits);
+    if let Some((lo, hi)) = min_max(cells) {
         line(format!(
             "Cells ({})  lowest #{} {:.4} V  highest #{} {:.4} V  spread {:.1} mV   (< lowest, > highest, * balancing)",
             cells.len(),
@@ -213,14 +213,14 @@ pub fn render_text(t: &Value, link: Option<&Value>, header: &str, f: Freshness) 
             line(l);
         }
     }
-    if let Some(inv) = inverter_text(t) {
-        line(inv);
+    if let Some(inv) = &t.told.inverter {
+        line(told_text(inv));
     }
-    let flagged = match t["flagged"].as_str() {
+    let flagged = match &snap.flagged {
         Some(fl) => format!("   flagged: {fl}"),
         None => String::new(),
     };
-    line(format!("{}   seq {}{flagged}", freshness_text(f), t["seq"]));
+    line(format!("{}   seq {}{flagged}", freshness_text(f), head.seq));
     if let Some(q) = link.and_then(link_quality) {
         line(format!("Link {q}"));
     }
@@ -231,8 +231,15 @@ pub fn render_text(t: &Value, link: Option<&Value>, header: &str, f: Freshness) 
 /// member: `Inverter victron: CAN running, inverter heard   CVL 56.8 V  CCL
 /// 60.0 A  DCL 60.0 A`. `None` for a bridge without CAN output.
 pub fn inverter_text(t: &Value) -> Option<String> {
-    let inv = t.get("inverter").filter(|v| v.is_object())?;
-    let can = match inv["can"].as_str().unwrap_or("-") {
+    match read_line(t)? {
+        HostLine::Telemetry(t) => t.told.inverter.as_ref().map(told_text),
+        _ => None,
+    }
+}
+
+/// [`inverter_text`] of the member read.
+pub fn told_text(inv: &Inverter<Read>) -> String {
+    let can = match inv.can.as_str() {
         "running" => "running".to_string(),
         "waiting" => "waiting (nothing sent yet)".to_string(),
         "no_ack" => "NO ACK (nobody acknowledges: wiring, termination, bit rate?)".to_string(),
@@ -240,78 +247,76 @@ pub fn inverter_text(t: &Value) -> Option<String> {
         "off" => "off (can_output=off)".to_string(),
         other => other.to_string(),
     };
-    let heard = if inv["heard"] == true {
+    let heard = if inv.heard {
         "inverter heard"
     } else {
         "inverter not heard"
     };
-    let told = match (
-        inv["cvl_v"].as_f64(),
-        inv["ccl_a"].as_f64(),
-        inv["dcl_a"].as_f64(),
-    ) {
+    let told = match (inv.cvl_v, inv.ccl_a, inv.dcl_a) {
         (Some(v), Some(c), Some(d)) => {
             format!("CVL {v:.1} V  CCL {c:.1} A  DCL {d:.1} A")
         }
         _ => "no limits sent".to_string(),
     };
-    Some(format!(
-        "Inverter {}: CAN {can}, {heard}   {told}",
-        inv["protocol"].as_str().unwrap_or("-")
-    ))
+    format!("Inverter {}: CAN {can}, {heard}   {told}", inv.protocol)
 }
 
 /// Packs in parallel: one line of text for a `battery` or `pack` line of a
 /// bridge with a node number (what `monitor --plain` prints after each picture).
 pub fn render_battery_line(v: &Value) -> String {
-    let f = |k: &str, d: usize, unit: &str| fmt_opt(num(v, k), d, unit);
-    if v["type"] == "battery" {
-        let online = v["packs_online"].as_u64().unwrap_or(0);
-        let offline = v["packs_offline"].as_u64().unwrap_or(0);
-        let who = if v["speaking"] == true {
-            format!("node {} speaks to the inverter", v["node"])
-        } else {
-            format!("node {} listens", v["node"])
-        };
-        if online == 0 {
-            return format!(
-                "Battery ({who}): no pack takes part ({offline} known): the inverter is stopped"
-            );
+    let f = |x: Option<f64>, d: usize, unit: &str| fmt_opt(x, d, unit);
+    match read_line(v) {
+        Some(HostLine::Battery(b)) => {
+            let online = b.packs_online;
+            let offline = b.packs_offline;
+            let who = if b.speaking {
+                format!("node {} speaks to the inverter", b.node)
+            } else {
+                format!("node {} listens", b.node)
+            };
+            if online == 0 {
+                return format!(
+                    "Battery ({who}): no pack takes part ({offline} known): the inverter is stopped"
+                );
+            }
+            format!(
+                "Battery ({who}): {online} of {} packs   {}   SOC {}   {}   {}   cells {} to {}   sent: CVL {}  CCL {}  DCL {}",
+                u16::from(online) + u16::from(offline),
+                f(b.capacity_ah, 0, "Ah"),
+                f(b.soc_percent, 1, "%"),
+                f(b.voltage_v, 2, "V"),
+                f(b.current_a, 1, "A"),
+                f(b.min_cell_v, 3, "V"),
+                f(b.max_cell_v, 3, "V"),
+                f(b.cvl_v, 1, "V"),
+                f(b.ccl_a, 1, "A"),
+                f(b.dcl_a, 1, "A"),
+            )
         }
-        return format!(
-            "Battery ({who}): {online} of {} packs   {}   SOC {}   {}   {}   cells {} to {}   sent: CVL {}  CCL {}  DCL {}",
-            online + offline,
-            f("capacity_ah", 0, "Ah"),
-            f("soc_percent", 1, "%"),
-            f("voltage_v", 2, "V"),
-            f("current_a", 1, "A"),
-            f("min_cell_v", 3, "V"),
-            f("max_cell_v", 3, "V"),
-            f("cvl_v", 1, "V"),
-            f("ccl_a", 1, "A"),
-            f("dcl_a", 1, "A"),
-        );
+        Some(HostLine::Pack(p)) => {
+            let state = match p.state.as_str() {
+                "part" => "in the battery",
+                "lost" => "LOST (no summary)",
+                "stale" => "STALE (its BMS data is old)",
+                "fault" => "FAULT (its switch is open)",
+                _ => "?",
+            };
+            format!(
+                "  pack {}{}  {state}   {}   {}   SOC {}   cells {} to {}   own CCL {}  DCL {}   data age {}",
+                p.node,
+                if p.speaking { "*" } else { " " },
+                f(p.voltage_v, 2, "V"),
+                f(p.current_a, 1, "A"),
+                f(p.soc_percent, 1, "%"),
+                f(p.min_cell_v, 3, "V"),
+                f(p.max_cell_v, 3, "V"),
+                f(p.ccl_a, 1, "A"),
+                f(p.dcl_a, 1, "A"),
+                f(p.data_age_s, 1, "s"),
+            )
+        }
+        _ => format!("not a battery or pack line the bridge writes: {v}"),
     }
-    let state = match v["state"].as_str() {
-        Some("part") => "in the battery",
-        Some("lost") => "LOST (no summary)",
-        Some("stale") => "STALE (its BMS data is old)",
-        Some("fault") => "FAULT (its switch is open)",
-        _ => "?",
-    };
-    format!(
-        "  pack {}{}  {state}   {}   {}   SOC {}   cells {} to {}   own CCL {}  DCL {}   data age {}",
-        v["node"],
-        if v["speaking"] == true { "*" } else { " " },
-        f("voltage_v", 2, "V"),
-        f("current_a", 1, "A"),
-        f("soc_percent", 1, "%"),
-        f("min_cell_v", 3, "V"),
-        f("max_cell_v", 3, "V"),
-        f("ccl_a", 1, "A"),
-        f("dcl_a", 1, "A"),
-        f("data_age_s", 1, "s"),
-    )
 }
 
 /// The CSV header for `cells` cells.

@@ -73,7 +73,9 @@ fn settings_are_checked_against_each_other_as_the_tool_checks_them() {
 
 #[test]
 fn the_freshness_rule_is_the_firmwares() {
-    let t = json!({"type": "telemetry", "online": true, "age_ms": 300, "stale_after_ms": 5000});
+    // Telemetry heads as the bridge writes them (read into its line types).
+    let t = json!({"type": "telemetry", "seq": 4, "age_ms": 300, "stale_after_ms": 5000,
+        "online": true, "ready": true});
     let r = ask(
         "freshness",
         json!({"telemetry": t, "received_ago_ms": 1000}),
@@ -88,7 +90,8 @@ fn the_freshness_rule_is_the_firmwares() {
         .as_str()
         .unwrap()
         .starts_with("NO DATA: nothing new from the port"));
-    let off = json!({"type": "telemetry", "online": false, "age_ms": 300, "stale_after_ms": 5000});
+    let off = json!({"type": "telemetry", "seq": 5, "age_ms": 300, "stale_after_ms": 5000,
+        "online": false, "ready": true});
     assert_eq!(
         ask("freshness", json!({"telemetry": off}))["state"],
         "offline"
