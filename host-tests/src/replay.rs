@@ -129,7 +129,7 @@ fn padded(regs: &Regs, first: u16, last: u16) -> RegisterBlock {
 
 /// The members of a line as the firmware's encoder writes it.
 fn written(encode: impl FnOnce(&mut [u8]) -> Option<usize>) -> Map<String, Value> {
-    let mut buf = vec![0u8; 4096];
+    let mut buf = [0u8; 4096];
     encode(&mut buf)
         .and_then(|n| serde_json::from_slice(buf.get(..n)?).ok())
         .unwrap_or_default()

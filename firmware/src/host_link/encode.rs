@@ -398,7 +398,10 @@ pub fn telemetry(
     flagged: Option<&'static str>,
     extras: Option<&StateExtras>,
 ) -> Option<usize> {
-    let balancing = snapshot.map(|s| balancing_cells(s.real_balancing_bits, s.cell_count));
+    // Only the MQTT state says which cells balance (in words).
+    let balancing = snapshot
+        .filter(|_| extras.is_some())
+        .map(|s| balancing_cells(s.real_balancing_bits, s.cell_count));
     line(
         &lines::Telemetry::<Wire> {
             head: lines::Head {

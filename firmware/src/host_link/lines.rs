@@ -50,89 +50,91 @@ impl<'a> Form for Wire<'a> {
     type Tag = &'static str;
 }
 
-/// `hello`: who the bridge is.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct Hello<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// Echoed request id.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    /// [`super::PROTOCOL_VERSION`].
-    pub protocol: u32,
-    /// The firmware's version.
-    pub firmware: F::Text,
-    /// What the image was built from.
-    pub build: F::Text,
-    /// The chip.
-    pub chip: F::Text,
-    /// The board.
-    pub board: F::Text,
-    /// What the image has built in.
-    pub features: F::Names,
-    /// The configuration record's layout.
-    pub record_version: u8,
-    /// Read-only.
-    pub read_only: bool,
-    /// The stream period, ms.
-    pub stream_period_ms: u32,
-    /// Lines the host did not get since start-up.
-    pub dropped_lines: u32,
-    /// Where the configuration store lives.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub store: Option<Store<F>>,
-    /// Where the MQTT connection stands (images with Wi-Fi).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub mqtt: Option<F::Text>,
-    /// The Wi-Fi link (images with Wi-Fi).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub wifi: Option<Wifi<F>>,
+/// Declares a line type with what every line type derives: `Serialize` for
+/// any form (each member's type says how it writes), and with `read-lines`
+/// `Deserialize` for a host's form ([`ReadSide`]).
+macro_rules! line_type {
+    ($(#[$m:meta])* pub struct $name:ident<F: Form> { $($body:tt)* }) => {
+        $(#[$m])*
+        #[derive(Serialize)]
+        #[serde(bound(serialize = ""))]
+        #[cfg_attr(
+            feature = "read-lines",
+            derive(serde::Deserialize, Debug, Clone, PartialEq),
+            serde(bound(deserialize = "F: ReadSide"))
+        )]
+        pub struct $name<F: Form> { $($body)* }
+    };
 }
 
-/// The Wi-Fi link, in `hello`.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct Wifi<F: Form> {
-    /// [`crate::improv::WifiLink::key`].
-    pub state: F::Text,
-    /// The address, once joined.
-    pub ip: Option<F::Text>,
+line_type! {
+    /// `hello`: who the bridge is.
+    pub struct Hello<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// Echoed request id.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        /// [`super::PROTOCOL_VERSION`].
+        pub protocol: u32,
+        /// The firmware's version.
+        pub firmware: F::Text,
+        /// What the image was built from.
+        pub build: F::Text,
+        /// The chip.
+        pub chip: F::Text,
+        /// The board.
+        pub board: F::Text,
+        /// What the image has built in.
+        pub features: F::Names,
+        /// The configuration record's layout.
+        pub record_version: u8,
+        /// Read-only.
+        pub read_only: bool,
+        /// The stream period, ms.
+        pub stream_period_ms: u32,
+        /// Lines the host did not get since start-up.
+        pub dropped_lines: u32,
+        /// Where the configuration store lives.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub store: Option<Store<F>>,
+        /// Where the MQTT connection stands (images with Wi-Fi).
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub mqtt: Option<F::Text>,
+        /// The Wi-Fi link (images with Wi-Fi).
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub wifi: Option<Wifi<F>>,
+    }
 }
 
-/// Where the configuration store lives, in `hello`.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct Store<F: Form> {
-    /// The flash's size, KiB.
-    pub flash_kib: u32,
-    /// The store partition's offset.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub partition_offset: Option<u32>,
-    /// The store partition's size, bytes.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub partition_bytes: Option<u32>,
-    /// What the store needs, bytes.
-    pub needs_bytes: u32,
-    /// Why the store cannot be used, if it cannot.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub problem: Option<F::Text>,
+line_type! {
+    /// The Wi-Fi link, in `hello`.
+    pub struct Wifi<F: Form> {
+        /// [`crate::improv::WifiLink::key`].
+        pub state: F::Text,
+        /// The address, once joined.
+        pub ip: Option<F::Text>,
+    }
+}
+
+line_type! {
+    /// Where the configuration store lives, in `hello`.
+    pub struct Store<F: Form> {
+        /// The flash's size, KiB.
+        pub flash_kib: u32,
+        /// The store partition's offset.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub partition_offset: Option<u32>,
+        /// The store partition's size, bytes.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub partition_bytes: Option<u32>,
+        /// What the store needs, bytes.
+        pub needs_bytes: u32,
+        /// Why the store cannot be used, if it cannot.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub problem: Option<F::Text>,
+    }
 }
 
 /// `telemetry` (and, with [`Extras`], the MQTT state): the head, the snapshot
@@ -170,47 +172,46 @@ impl<F: Form> Serialize for Telemetry<F> {
     }
 }
 
-/// A `telemetry` line's head.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct Head<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// Echoed request id.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    /// [`crate::Telemetry::snapshot_seq`].
-    pub seq: u32,
-    /// The snapshot's age, ms (`None`: none yet).
-    pub age_ms: Option<u64>,
-    /// The freshness rule's limit the bridge runs with, ms: a host shows
-    /// "stale" by the bridge's rule, not a constant of its own.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub stale_after_ms: Option<u64>,
-    /// The BMS answers.
-    pub online: bool,
-    /// Settings and limits read.
-    pub ready: bool,
+line_type! {
+    /// A `telemetry` line's head.
+    pub struct Head<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// Echoed request id.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        /// [`crate::Telemetry::snapshot_seq`].
+        pub seq: u32,
+        /// The snapshot's age, ms (`None`: none yet).
+        pub age_ms: Option<u64>,
+        /// The freshness rule's limit the bridge runs with, ms: a host shows
+        /// "stale" by the bridge's rule, not a constant of its own.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub stale_after_ms: Option<u64>,
+        /// The BMS answers.
+        pub online: bool,
+        /// Settings and limits read.
+        pub ready: bool,
+    }
 }
 
-/// What the inverter is told, as a `telemetry` line's `inverter` member.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct Told<F: Form> {
-    /// The inverter output (`None`: no CAN output, or the MQTT state).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub inverter: Option<Inverter<F>>,
+line_type! {
+    /// What the inverter is told, as a `telemetry` line's `inverter` member.
+    pub struct Told<F: Form> {
+        /// The inverter output (`None`: no CAN output, or the MQTT state).
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub inverter: Option<Inverter<F>>,
+    }
+}
+
+/// Serializer methods that refuse: only a struct's members go side by side.
+macro_rules! refuse {
+    ($($method:ident($($arg:ty),*)),* $(,)?) => {
+        $(fn $method(self, $(_: $arg),*) -> Result<(), M::Error> {
+            Err(not_a_struct())
+        })*
+    };
 }
 
 /// Writes a struct's members into the map being written (what serde's
@@ -237,60 +238,25 @@ impl<'a, M: serde::ser::SerializeMap> serde::Serializer for Flat<'a, M> {
     fn serialize_struct(self, _: &'static str, _: usize) -> Result<Self, M::Error> {
         Ok(self)
     }
-    fn serialize_bool(self, _: bool) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_i8(self, _: i8) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_i16(self, _: i16) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_i32(self, _: i32) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_i64(self, _: i64) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_u8(self, _: u8) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_u16(self, _: u16) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_u32(self, _: u32) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_u64(self, _: u64) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_f32(self, _: f32) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_f64(self, _: f64) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_char(self, _: char) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_str(self, _: &str) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_bytes(self, _: &[u8]) -> Result<(), M::Error> {
-        Err(not_a_struct())
+    refuse! {
+        serialize_bool(bool),
+        serialize_i8(i8),
+        serialize_i16(i16),
+        serialize_i32(i32),
+        serialize_i64(i64),
+        serialize_u8(u8),
+        serialize_u16(u16),
+        serialize_u32(u32),
+        serialize_u64(u64),
+        serialize_f32(f32),
+        serialize_f64(f64),
+        serialize_char(char),
+        serialize_str(&str),
+        serialize_bytes(&[u8]),
+        serialize_unit_struct(&'static str),
+        serialize_unit_variant(&'static str, u32, &'static str),
     }
     fn serialize_unit(self) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_unit_struct(self, _: &'static str) -> Result<(), M::Error> {
-        Err(not_a_struct())
-    }
-    fn serialize_unit_variant(
-        self,
-        _: &'static str,
-        _: u32,
-        _: &'static str,
-    ) -> Result<(), M::Error> {
         Err(not_a_struct())
     }
     fn serialize_newtype_struct<T: Serialize + ?Sized>(
@@ -367,55 +333,50 @@ fn not_a_struct<E: serde::ser::Error>() -> E {
     E::custom("only a struct's members go side by side")
 }
 
-/// A snapshot's live values, in replay's names and units.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct Snapshot<F: Form> {
-    /// Pack voltage, V.
-    pub pack_voltage_v: Option<F::Number>,
-    /// Pack current, A (negative: discharging).
-    pub pack_current_a: Option<F::Number>,
-    /// Lowest cell, V.
-    pub min_cell_voltage_v: Option<F::Number>,
-    /// Highest cell, V.
-    pub max_cell_voltage_v: Option<F::Number>,
-    /// Every cell register, V.
-    pub cell_voltages_v: F::Cells,
-    /// The register of the first cell (register 53's rule).
-    pub cell_first_register: u8,
-    /// Cells.
-    pub cell_count: u16,
-    /// State of charge, %.
-    pub soc_percent: Option<F::Number>,
-    /// State of health, %.
-    pub soh_percent: Option<F::Number>,
-    /// The BMS's lifetime counter, s.
-    pub lifetime_s: u32,
-    /// Estimated time left, s.
-    pub estimated_time_left_s: u32,
-    /// The BMS's own temperature, °C.
-    pub internal_temperature_c: Option<F::Number>,
-    /// External sensor 1, °C (`None`: not connected).
-    pub external_temperature_1_c: Option<F::Number>,
-    /// External sensor 2, °C.
-    pub external_temperature_2_c: Option<F::Number>,
-    /// Register 50's status.
-    pub online_status: F::Name,
-    /// Cells the BMS decided to balance (bit 0: cell 1).
-    pub balancing_decision_bits: u16,
-    /// Cells balancing now.
-    pub real_balancing_bits: u16,
-    /// Speed, km/h.
-    pub speed_kmh: Option<F::Number>,
-    /// Distance left, km.
-    pub distance_left_km: u16,
-    /// Why a value in this snapshot is doubtful, when one is.
-    pub flagged: Option<F::Text>,
+line_type! {
+    /// A snapshot's live values, in replay's names and units.
+    pub struct Snapshot<F: Form> {
+        /// Pack voltage, V.
+        pub pack_voltage_v: Option<F::Number>,
+        /// Pack current, A (negative: discharging).
+        pub pack_current_a: Option<F::Number>,
+        /// Lowest cell, V.
+        pub min_cell_voltage_v: Option<F::Number>,
+        /// Highest cell, V.
+        pub max_cell_voltage_v: Option<F::Number>,
+        /// Every cell register, V.
+        pub cell_voltages_v: F::Cells,
+        /// The register of the first cell (register 53's rule).
+        pub cell_first_register: u8,
+        /// Cells.
+        pub cell_count: u16,
+        /// State of charge, %.
+        pub soc_percent: Option<F::Number>,
+        /// State of health, %.
+        pub soh_percent: Option<F::Number>,
+        /// The BMS's lifetime counter, s.
+        pub lifetime_s: u32,
+        /// Estimated time left, s.
+        pub estimated_time_left_s: u32,
+        /// The BMS's own temperature, °C.
+        pub internal_temperature_c: Option<F::Number>,
+        /// External sensor 1, °C (`None`: not connected).
+        pub external_temperature_1_c: Option<F::Number>,
+        /// External sensor 2, °C.
+        pub external_temperature_2_c: Option<F::Number>,
+        /// Register 50's status.
+        pub online_status: F::Name,
+        /// Cells the BMS decided to balance (bit 0: cell 1).
+        pub balancing_decision_bits: u16,
+        /// Cells balancing now.
+        pub real_balancing_bits: u16,
+        /// Speed, km/h.
+        pub speed_kmh: Option<F::Number>,
+        /// Distance left, km.
+        pub distance_left_km: u16,
+        /// Why a value in this snapshot is doubtful, when one is.
+        pub flagged: Option<F::Text>,
+    }
 }
 
 /// The registers each member of a [`Snapshot`] is read from (Rev D §3.1,
@@ -479,570 +440,465 @@ pub const VERSION_REGISTERS: &[(&str, &[(u16, u16)])] = &[
     ("serial_number", &[(504, 509)]),
 ];
 
-/// The inverter output as a `telemetry` line's `inverter` member says it.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct Inverter<F: Form> {
-    /// `victron` or `sma`.
-    pub protocol: F::Text,
-    /// [`crate::inverter::CanState::key`].
-    pub can: F::Text,
-    /// The inverter's keep-alive is heard.
-    pub heard: bool,
-    /// Charge voltage limit told, V (`None`: nothing sent).
-    pub cvl_v: Option<F::Number>,
-    /// Charge current limit told, A.
-    pub ccl_a: Option<F::Number>,
-    /// Discharge current limit told, A.
-    pub dcl_a: Option<F::Number>,
+line_type! {
+    /// The inverter output as a `telemetry` line's `inverter` member says it.
+    pub struct Inverter<F: Form> {
+        /// `victron` or `sma`.
+        pub protocol: F::Text,
+        /// [`crate::inverter::CanState::key`].
+        pub can: F::Text,
+        /// The inverter's keep-alive is heard.
+        pub heard: bool,
+        /// Charge voltage limit told, V (`None`: nothing sent).
+        pub cvl_v: Option<F::Number>,
+        /// Charge current limit told, A.
+        pub ccl_a: Option<F::Number>,
+        /// Discharge current limit told, A.
+        pub dcl_a: Option<F::Number>,
+    }
 }
 
-/// The MQTT state's members beyond the host link's telemetry (`None` is
-/// published as `null`: unknown).
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-#[allow(missing_docs)]
-pub struct Extras<F: Form> {
-    pub status: F::Text,
-    pub pack_power_w: Option<F::Number>,
-    pub cell_spread_v: Option<F::Number>,
-    pub data_age_s: Option<F::Number>,
-    pub link_quality_percent: Option<F::Number>,
-    pub cvl_v: Option<F::Number>,
-    pub ccl_a: Option<F::Number>,
-    pub dcl_a: Option<F::Number>,
-    pub status_name: F::Text,
-    pub balancing_cells: F::Text,
-    pub remaining_capacity_ah: Option<F::Number>,
-    pub energy_charged_kwh: Option<F::Number>,
-    pub energy_discharged_kwh: Option<F::Number>,
-    pub uptime_s: u64,
-    pub bridge_firmware: F::Text,
-    pub can_state: Option<F::Text>,
-    pub inverter_heard: Option<bool>,
-    pub wifi_rssi_dbm: Option<i8>,
-}
-
-/// `setting`: one BMS setting, its value, Rev D's range and the BMS's own.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct SettingLine<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
+line_type! {
+    /// The MQTT state's members beyond the host link's telemetry (`None` is
+    /// published as `null`: unknown).
     #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// Echoed request id.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    /// The setting's key.
-    pub name: F::Text,
-    /// Its register.
-    pub address: u16,
-    /// The raw register value, when read.
-    pub raw: Option<i32>,
-    /// The physical value, in `unit`.
-    pub value: Option<F::Number>,
-    /// The unit.
-    pub unit: F::Text,
-    /// Rev D's lowest value.
-    pub min: Option<F::Number>,
-    /// Rev D's highest value.
-    pub max: Option<F::Number>,
-    /// The BMS's own lowest value (its 0x0D reply).
-    pub bms_min: Option<F::Number>,
-    /// The BMS's own highest value.
-    pub bms_max: Option<F::Number>,
+    pub struct Extras<F: Form> {
+        pub status: F::Text,
+        pub pack_power_w: Option<F::Number>,
+        pub cell_spread_v: Option<F::Number>,
+        pub data_age_s: Option<F::Number>,
+        pub link_quality_percent: Option<F::Number>,
+        pub cvl_v: Option<F::Number>,
+        pub ccl_a: Option<F::Number>,
+        pub dcl_a: Option<F::Number>,
+        pub status_name: F::Text,
+        pub balancing_cells: F::Text,
+        pub remaining_capacity_ah: Option<F::Number>,
+        pub energy_charged_kwh: Option<F::Number>,
+        pub energy_discharged_kwh: Option<F::Number>,
+        pub uptime_s: u64,
+        pub bridge_firmware: F::Text,
+        pub can_state: Option<F::Text>,
+        pub inverter_heard: Option<bool>,
+        pub wifi_rssi_dbm: Option<i8>,
+    }
 }
 
-/// `settings_end`, `events_end`: how many lines the answer had.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct End<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
+line_type! {
+    /// `setting`: one BMS setting, its value, Rev D's range and the BMS's own.
+    pub struct SettingLine<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// Echoed request id.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        /// The setting's key.
+        pub name: F::Text,
+        /// Its register.
+        pub address: u16,
+        /// The raw register value, when read.
+        pub raw: Option<i32>,
+        /// The physical value, in `unit`.
+        pub value: Option<F::Number>,
+        /// The unit.
+        pub unit: F::Text,
+        /// Rev D's lowest value.
+        pub min: Option<F::Number>,
+        /// Rev D's highest value.
+        pub max: Option<F::Number>,
+        /// The BMS's own lowest value (its 0x0D reply).
+        pub bms_min: Option<F::Number>,
+        /// The BMS's own highest value.
+        pub bms_max: Option<F::Number>,
+    }
+}
+
+line_type! {
+    /// `settings_end`, `events_end`: how many lines the answer had.
+    pub struct End<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// Echoed request id.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        /// Lines.
+        pub count: u32,
+    }
+}
+
+line_type! {
+    /// `statistics`: registers 100-118.
     #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// Echoed request id.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    /// Lines.
-    pub count: u32,
+    pub struct StatisticsLine<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        pub ty: F::Tag,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        pub total_distance_km: Option<F::Number>,
+        pub max_discharge_current_a: Option<F::Number>,
+        pub max_charge_current_a: Option<F::Number>,
+        pub max_cell_voltage_difference_v: Option<F::Number>,
+        pub under_voltage_count: u16,
+        pub over_voltage_count: u16,
+        pub discharge_over_current_count: u16,
+        pub charge_over_current_count: u16,
+        pub over_heat_count: u16,
+        pub charging_count: u16,
+        pub full_charge_count: u16,
+        pub min_pack_temperature_c: i8,
+        pub max_pack_temperature_c: i8,
+        pub last_reset: F::Name,
+        pub last_wakeup: F::Name,
+        pub stats_cleared_at_s: u32,
+    }
 }
 
-/// `statistics`: registers 100-118.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-#[allow(missing_docs)]
-pub struct StatisticsLine<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    pub ty: F::Tag,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    pub total_distance_km: Option<F::Number>,
-    pub max_discharge_current_a: Option<F::Number>,
-    pub max_charge_current_a: Option<F::Number>,
-    pub max_cell_voltage_difference_v: Option<F::Number>,
-    pub under_voltage_count: u16,
-    pub over_voltage_count: u16,
-    pub discharge_over_current_count: u16,
-    pub charge_over_current_count: u16,
-    pub over_heat_count: u16,
-    pub charging_count: u16,
-    pub full_charge_count: u16,
-    pub min_pack_temperature_c: i8,
-    pub max_pack_temperature_c: i8,
-    pub last_reset: F::Name,
-    pub last_wakeup: F::Name,
-    pub stats_cleared_at_s: u32,
-}
-
-/// `version`: the BMS's identity.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-#[allow(missing_docs)]
-pub struct Version<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    pub ty: F::Tag,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    pub hardware_version: u8,
-    pub hardware_changes_version: u8,
-    pub firmware_public_version: u8,
-    pub high_power: bool,
-    pub current_sensor: F::Name,
-    pub firmware_internal_version: u16,
-    pub bootloader_version: u8,
-    pub profile_version: u8,
-    /// Hex digits, no spaces.
-    pub serial_number: F::Hex,
-}
-
-/// `event`: one of the BMS's events, new or from its history.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct EventLine<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
+line_type! {
+    /// `version`: the BMS's identity.
     #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// Echoed request id.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    /// The BMS's timestamp, s.
-    pub timestamp_s: u32,
-    /// The event's id.
-    pub id: u8,
-    /// Its name.
-    pub name: F::Name,
-    /// `fault`, `warning` or `info`.
-    pub severity: F::Text,
-    /// From the history (`get events`), not new.
-    #[serde(skip_serializing_if = "core::ops::Not::not", default)]
-    pub history: bool,
+    pub struct Version<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        pub ty: F::Tag,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        pub hardware_version: u8,
+        pub hardware_changes_version: u8,
+        pub firmware_public_version: u8,
+        pub high_power: bool,
+        pub current_sensor: F::Name,
+        pub firmware_internal_version: u16,
+        pub bootloader_version: u8,
+        pub profile_version: u8,
+        /// Hex digits, no spaces.
+        pub serial_number: F::Hex,
+    }
 }
 
-/// `log`: a line of the bridge's log.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct Log<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
+line_type! {
+    /// `event`: one of the BMS's events, new or from its history.
+    pub struct EventLine<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// Echoed request id.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        /// The BMS's timestamp, s.
+        pub timestamp_s: u32,
+        /// The event's id.
+        pub id: u8,
+        /// Its name.
+        pub name: F::Name,
+        /// `fault`, `warning` or `info`.
+        pub severity: F::Text,
+        /// From the history (`get events`), not new.
+        #[serde(skip_serializing_if = "core::ops::Not::not", default)]
+        pub history: bool,
+    }
+}
+
+line_type! {
+    /// `log`: a line of the bridge's log.
+    pub struct Log<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// `info` or `warn`.
+        pub level: F::Text,
+        /// The text.
+        pub text: F::Text,
+        /// Kept from start-up and replayed after `hello`.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub boot: Option<bool>,
+    }
+}
+
+line_type! {
+    /// `link`: the UART link's and the host link's figures.
     #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// `info` or `warn`.
-    pub level: F::Text,
-    /// The text.
-    pub text: F::Text,
-    /// Kept from start-up and replayed after `hello`.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub boot: Option<bool>,
+    pub struct Link<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        pub ty: F::Tag,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        pub requests: u32,
+        pub replies: u32,
+        pub timeouts: u32,
+        pub wakeup_resends: u32,
+        pub retries: u32,
+        pub crc_errors: u32,
+        pub framing_errors: u32,
+        pub invalid_replies: u32,
+        pub nacks_command: u32,
+        pub nacks_crc: u32,
+        pub nacks_other: u32,
+        pub skipped_bytes: u32,
+        pub unsolicited: u32,
+        pub failures: u32,
+        pub latency_min_us: u32,
+        pub latency_mean_us: u32,
+        pub latency_max_us: u32,
+        pub online: bool,
+        pub piece_registers: u16,
+        pub lines_in: u32,
+        pub errors: u32,
+        pub dropped_lines: u32,
+    }
 }
 
-/// `link`: the UART link's and the host link's figures.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-#[allow(missing_docs)]
-pub struct Link<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    pub ty: F::Tag,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    pub requests: u32,
-    pub replies: u32,
-    pub timeouts: u32,
-    pub wakeup_resends: u32,
-    pub retries: u32,
-    pub crc_errors: u32,
-    pub framing_errors: u32,
-    pub invalid_replies: u32,
-    pub nacks_command: u32,
-    pub nacks_crc: u32,
-    pub nacks_other: u32,
-    pub skipped_bytes: u32,
-    pub unsolicited: u32,
-    pub failures: u32,
-    pub latency_min_us: u32,
-    pub latency_mean_us: u32,
-    pub latency_max_us: u32,
-    pub online: bool,
-    pub piece_registers: u16,
-    pub lines_in: u32,
-    pub errors: u32,
-    pub dropped_lines: u32,
+line_type! {
+    /// `accepted`: a command taken, its answer follows.
+    pub struct Accepted<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// Echoed request id.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        /// The command.
+        pub cmd: F::Text,
+    }
 }
 
-/// `accepted`: a command taken, its answer follows.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct Accepted<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
+line_type! {
+    /// `outcome`: one setting's write, verified by reading it back.
+    pub struct Outcome<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// Echoed request id.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        /// The setting's key.
+        pub name: F::Text,
+        /// The raw value asked for.
+        pub raw: i32,
+        /// Its physical value.
+        pub value: Option<F::Number>,
+        /// [`crate::bridge::report::WriteOutcome::name`].
+        pub outcome: F::Text,
+        /// Why, when not verified.
+        pub detail: Option<F::Text>,
+        /// What the BMS held instead.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub read_back: Option<u16>,
+        /// The BMS's refusal code.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub nack_code: Option<u8>,
+        /// The chemistry whose window refused the value.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub chemistry: Option<F::Text>,
+        /// A value written because another one was (the follow-up of a pair).
+        #[serde(skip_serializing_if = "core::ops::Not::not", default)]
+        pub follow_up: bool,
+    }
+}
+
+line_type! {
+    /// `reset_done`.
+    pub struct ResetDone<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// Echoed request id.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        /// The BMS said it restarts.
+        pub confirmed: bool,
+    }
+}
+
+line_type! {
+    /// `cleared`: events or statistics cleared.
+    pub struct Cleared<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// Echoed request id.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        /// `events` or `statistics`.
+        pub what: F::Text,
+        /// The BMS acknowledged.
+        pub ok: bool,
+    }
+}
+
+line_type! {
+    /// `raw`: UART bytes while capture is on.
+    pub struct Raw<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// `tx` or `rx`.
+        pub dir: F::Text,
+        /// The bytes, upper-case hex separated by spaces.
+        pub hex: F::Hex,
+    }
+}
+
+line_type! {
+    /// `error`: a command refused.
+    pub struct Error<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// Echoed request id (`null`: the line had none, or could not be read).
+        pub req: Option<u32>,
+        /// The code.
+        pub error: F::Text,
+        /// The reason, and the offending name after `: `.
+        pub detail: F::Text,
+    }
+}
+
+line_type! {
+    /// `config`: one configuration field.
+    pub struct ConfigField<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// Echoed request id.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        /// The field's name.
+        pub name: F::Text,
+        /// Its group.
+        pub group: F::Text,
+        /// The stored value as text (a secret: `set` or empty).
+        pub value: F::Text,
+        /// Its unit.
+        pub unit: F::Text,
+        /// The default as text.
+        pub default: F::Text,
+        /// The range as text.
+        pub range: F::Text,
+        /// When a change applies.
+        pub applies: F::Text,
+        /// Stored but not running until a restart.
+        pub restart_pending: bool,
+        /// A secret (never shown).
+        pub secret: bool,
+        /// What it is for.
+        pub help: F::Text,
+    }
+}
+
+line_type! {
+    /// `config_end`.
+    pub struct ConfigEnd<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// Echoed request id.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        /// Fields.
+        pub count: u32,
+        /// The record's layout.
+        pub version: u8,
+        /// Where the running record came from.
+        pub source: F::Text,
+        /// Fields waiting for a restart.
+        pub restart_pending: u32,
+    }
+}
+
+line_type! {
+    /// `config_outcome`: one field of a `set_config`.
+    pub struct ConfigOutcome<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// Echoed request id.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        /// The field's name as sent.
+        pub name: F::Text,
+        /// `applied`, `at_restart`, `unchanged`, `refused`, `not_applied`.
+        pub outcome: F::Text,
+        /// The value stored, as text.
+        pub value: Option<F::Text>,
+        /// `out_of_range`, `invalid_value`, `unknown_setting`.
+        pub error: Option<F::Text>,
+        /// Why.
+        pub detail: Option<F::Text>,
+        /// The field's range, when refused.
+        pub range: Option<F::Text>,
+    }
+}
+
+line_type! {
+    /// `config_done`: the end of a `set_config`.
+    pub struct ConfigDone<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        #[allow(missing_docs)]
+        pub ty: F::Tag,
+        /// Echoed request id.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub req: Option<u32>,
+        /// Fields changed.
+        pub changed: u8,
+        /// Saved to flash (`None`: nothing to save).
+        pub saved: Option<bool>,
+        /// Changes that wait for a restart.
+        pub restart_needed: u8,
+        /// Why the save failed.
+        pub detail: Option<F::Text>,
+    }
+}
+
+line_type! {
+    /// `battery`: the battery of several packs, as this bridge sees it.
     #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// Echoed request id.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    /// The command.
-    pub cmd: F::Text,
+    pub struct Battery<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        pub ty: F::Tag,
+        pub node: u8,
+        pub speaking: bool,
+        pub packs_online: u8,
+        pub packs_offline: u8,
+        pub capacity_ah: Option<F::Number>,
+        pub soc_percent: Option<F::Number>,
+        pub soh_percent: Option<F::Number>,
+        pub voltage_v: Option<F::Number>,
+        pub current_a: Option<F::Number>,
+        pub min_cell_v: Option<F::Number>,
+        pub max_cell_v: Option<F::Number>,
+        pub min_temperature_c: Option<F::Number>,
+        pub max_temperature_c: Option<F::Number>,
+        pub cvl_v: Option<F::Number>,
+        pub ccl_a: Option<F::Number>,
+        pub dcl_a: Option<F::Number>,
+    }
 }
 
-/// `outcome`: one setting's write, verified by reading it back.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct Outcome<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
+line_type! {
+    /// `pack`: one pack of the battery, from its summary on the bus.
     #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// Echoed request id.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    /// The setting's key.
-    pub name: F::Text,
-    /// The raw value asked for.
-    pub raw: i32,
-    /// Its physical value.
-    pub value: Option<F::Number>,
-    /// [`crate::bridge::report::WriteOutcome::name`].
-    pub outcome: F::Text,
-    /// Why, when not verified.
-    pub detail: Option<F::Text>,
-    /// What the BMS held instead.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub read_back: Option<u16>,
-    /// The BMS's refusal code.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub nack_code: Option<u8>,
-    /// The chemistry whose window refused the value.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub chemistry: Option<F::Text>,
-    /// A value written because another one was (the follow-up of a pair).
-    #[serde(skip_serializing_if = "core::ops::Not::not", default)]
-    pub follow_up: bool,
-}
-
-/// `reset_done`.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct ResetDone<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// Echoed request id.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    /// The BMS said it restarts.
-    pub confirmed: bool,
-}
-
-/// `cleared`: events or statistics cleared.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct Cleared<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// Echoed request id.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    /// `events` or `statistics`.
-    pub what: F::Text,
-    /// The BMS acknowledged.
-    pub ok: bool,
-}
-
-/// `raw`: UART bytes while capture is on.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct Raw<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// `tx` or `rx`.
-    pub dir: F::Text,
-    /// The bytes, upper-case hex separated by spaces.
-    pub hex: F::Hex,
-}
-
-/// `error`: a command refused.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct Error<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// Echoed request id (`null`: the line had none, or could not be read).
-    pub req: Option<u32>,
-    /// The code.
-    pub error: F::Text,
-    /// The reason, and the offending name after `: `.
-    pub detail: F::Text,
-}
-
-/// `config`: one configuration field.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct ConfigField<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// Echoed request id.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    /// The field's name.
-    pub name: F::Text,
-    /// Its group.
-    pub group: F::Text,
-    /// The stored value as text (a secret: `set` or empty).
-    pub value: F::Text,
-    /// Its unit.
-    pub unit: F::Text,
-    /// The default as text.
-    pub default: F::Text,
-    /// The range as text.
-    pub range: F::Text,
-    /// When a change applies.
-    pub applies: F::Text,
-    /// Stored but not running until a restart.
-    pub restart_pending: bool,
-    /// A secret (never shown).
-    pub secret: bool,
-    /// What it is for.
-    pub help: F::Text,
-}
-
-/// `config_end`.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct ConfigEnd<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// Echoed request id.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    /// Fields.
-    pub count: u32,
-    /// The record's layout.
-    pub version: u8,
-    /// Where the running record came from.
-    pub source: F::Text,
-    /// Fields waiting for a restart.
-    pub restart_pending: u32,
-}
-
-/// `config_outcome`: one field of a `set_config`.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct ConfigOutcome<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// Echoed request id.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    /// The field's name as sent.
-    pub name: F::Text,
-    /// `applied`, `at_restart`, `unchanged`, `refused`, `not_applied`.
-    pub outcome: F::Text,
-    /// The value stored, as text.
-    pub value: Option<F::Text>,
-    /// `out_of_range`, `invalid_value`, `unknown_setting`.
-    pub error: Option<F::Text>,
-    /// Why.
-    pub detail: Option<F::Text>,
-    /// The field's range, when refused.
-    pub range: Option<F::Text>,
-}
-
-/// `config_done`: the end of a `set_config`.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-pub struct ConfigDone<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    #[allow(missing_docs)]
-    pub ty: F::Tag,
-    /// Echoed request id.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub req: Option<u32>,
-    /// Fields changed.
-    pub changed: u8,
-    /// Saved to flash (`None`: nothing to save).
-    pub saved: Option<bool>,
-    /// Changes that wait for a restart.
-    pub restart_needed: u8,
-    /// Why the save failed.
-    pub detail: Option<F::Text>,
-}
-
-/// `battery`: the battery of several packs, as this bridge sees it.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-#[allow(missing_docs)]
-pub struct Battery<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    pub ty: F::Tag,
-    pub node: u8,
-    pub speaking: bool,
-    pub packs_online: u8,
-    pub packs_offline: u8,
-    pub capacity_ah: Option<F::Number>,
-    pub soc_percent: Option<F::Number>,
-    pub soh_percent: Option<F::Number>,
-    pub voltage_v: Option<F::Number>,
-    pub current_a: Option<F::Number>,
-    pub min_cell_v: Option<F::Number>,
-    pub max_cell_v: Option<F::Number>,
-    pub min_temperature_c: Option<F::Number>,
-    pub max_temperature_c: Option<F::Number>,
-    pub cvl_v: Option<F::Number>,
-    pub ccl_a: Option<F::Number>,
-    pub dcl_a: Option<F::Number>,
-}
-
-/// `pack`: one pack of the battery, from its summary on the bus.
-#[derive(Serialize)]
-#[serde(bound(serialize = ""))]
-#[cfg_attr(
-    feature = "read-lines",
-    derive(serde::Deserialize, Debug, Clone, PartialEq),
-    serde(bound(deserialize = "F: ReadSide"))
-)]
-#[allow(missing_docs)]
-pub struct Pack<F: Form> {
-    #[serde(rename = "type", skip_deserializing)]
-    pub ty: F::Tag,
-    pub node: u8,
-    /// [`crate::inverter::packs::Part::name`].
-    pub state: F::Text,
-    pub speaking: bool,
-    pub voltage_v: Option<F::Number>,
-    pub current_a: Option<F::Number>,
-    pub soc_percent: Option<F::Number>,
-    pub soh_percent: u8,
-    pub min_cell_v: Option<F::Number>,
-    pub max_cell_v: Option<F::Number>,
-    pub min_temperature_c: Option<F::Number>,
-    pub max_temperature_c: Option<F::Number>,
-    pub capacity_ah: Option<F::Number>,
-    pub data_age_s: Option<F::Number>,
-    pub cvl_v: Option<F::Number>,
-    pub ccl_a: Option<F::Number>,
-    pub dcl_a: Option<F::Number>,
+    pub struct Pack<F: Form> {
+        #[serde(rename = "type", skip_deserializing)]
+        pub ty: F::Tag,
+        pub node: u8,
+        /// [`crate::inverter::packs::Part::name`].
+        pub state: F::Text,
+        pub speaking: bool,
+        pub voltage_v: Option<F::Number>,
+        pub current_a: Option<F::Number>,
+        pub soc_percent: Option<F::Number>,
+        pub soh_percent: u8,
+        pub min_cell_v: Option<F::Number>,
+        pub max_cell_v: Option<F::Number>,
+        pub min_temperature_c: Option<F::Number>,
+        pub max_temperature_c: Option<F::Number>,
+        pub capacity_ah: Option<F::Number>,
+        pub data_age_s: Option<F::Number>,
+        pub cvl_v: Option<F::Number>,
+        pub ccl_a: Option<F::Number>,
+        pub dcl_a: Option<F::Number>,
+    }
 }
 
 #[cfg(feature = "read-lines")]

@@ -72,13 +72,18 @@ fn rule_of_head(h: Option<&Head<Read>>) -> tinybms_firmware::freshness::Freshnes
 /// firmware's one freshness rule with the bridge's limit, on the age the line
 /// gave plus the time since it came (a bridge that stopped sending ages too).
 pub fn freshness(t: Option<&Value>, received_ago: Duration) -> Freshness {
+    freshness_of(t.and_then(read::<Head<Read>>).as_ref(), received_ago)
+}
+
+/// [`freshness`] of a telemetry line already read: its head.
+pub fn freshness_of(h: Option<&Head<Read>>, received_ago: Duration) -> Freshness {
     use tinybms_firmware::freshness::DataState;
-    let Some(h) = t.and_then(read::<Head<Read>>) else {
+    let Some(h) = h else {
         return Freshness::NoData(None);
     };
-    let age = age_of(&h, received_ago);
+    let age = age_of(h, received_ago);
     let age_us = age.map(|a| (a * 1e6) as u64);
-    match rule_of_head(Some(&h)).state(h.online, age_us) {
+    match rule_of_head(Some(h)).state(h.online, age_us) {
         DataState::Offline => Freshness::Offline(age),
         DataState::Fresh => Freshness::Fresh(age.unwrap_or(0.0)),
         DataState::NoData | DataState::Stale => Freshness::NoData(age),

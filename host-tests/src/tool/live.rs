@@ -20,8 +20,8 @@ use serde_json::Value;
 
 use super::client::Client;
 use super::picture::{
-    freshness, freshness_text, link_quality, min_max, told_text, Freshness, Logger, MonitorOptions,
-    REDRAW,
+    freshness_of, freshness_text, link_quality, min_max, told_text, Freshness, Logger,
+    MonitorOptions, REDRAW,
 };
 use super::{interrupted, interrupted_error, ToolResult};
 use tinybms_firmware::host_link::lines::{HostLine, Read, Snapshot, Telemetry};
@@ -34,10 +34,9 @@ pub const HISTORY: Duration = Duration::from_secs(300);
 pub struct LiveState {
     /// `PORT — mode`.
     pub header: String,
-    /// The newest telemetry line and when it arrived.
-    pub telemetry: Option<(Value, Instant)>,
-    /// The same line in the firmware's line types.
-    pub typed: Option<Telemetry<Read>>,
+    /// The newest telemetry line (in the firmware's line types) and when it
+    /// arrived.
+    pub telemetry: Option<(Telemetry<Read>, Instant)>,
     /// The newest `link` line.
     pub link: Option<Value>,
     /// (when, pack V, pack A), oldest first, [`HISTORY`] long.
@@ -75,10 +74,10 @@ impl LiveState {
     /// A new telemetry line (read into the firmware's line types; anything
     /// else is left alone).
     pub fn update(&mut self, t: Value, now: Instant) {
-        let Ok(HostLine::Telemetry(typed)) = serde_json::from_value::<HostLine>(t.clone()) else {
+        let Ok(HostLine::Telemetry(t)) = serde_json::from_value::<HostLine>(t) else {
             return;
         };
-        if let Some(s) = &typed.snapshot {
+        if let Some(s) = &t.snapshot {
             if let (Some(v), Some(i)) = (s.pack_voltage_v, s.pack_current_a) {
                 self.history.push_back((now, v, i));
             }
@@ -91,7 +90,6 @@ impl LiveState {
             self.history.pop_front();
         }
         self.telemetry = Some((t, now));
-        self.typed = Some(typed);
     }
 }
 
@@ -142,8 +140,8 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         );
         return;
     }
-    let fresh = freshness(
-        s.telemetry.as_ref().map(|(t, _)| t),
+    let fresh = freshness_of(
+        s.telemetry.as_ref().map(|(t, _)| &t.head),
         s.telemetry
             .as_ref()
             .map_or(Duration::MAX, |(_, at)| now.saturating_duration_since(*at)),
@@ -155,7 +153,7 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
     let inverter_row = u16::from(
         s.telemetry
             .as_ref()
-            .is_some_and(|_| s.typed.as_ref().is_some_and(|t| t.told.inverter.is_some())),
+            .is_some_and(|(t, _)| t.told.inverter.is_some()),
     );
     let [top, pack, cells_area, spark_area, foot, battery_area, log_area] = Layout::vertical([
         Constraint::Length(1),
@@ -210,7 +208,7 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         ])),
         top,
     );
-    let Some(t) = s.typed.as_ref() else {
+    let Some((t, _)) = s.telemetry.as_ref() else {
         f.render_widget(Paragraph::new("waiting for the first data..."), pack);
         return;
     };

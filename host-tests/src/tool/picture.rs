@@ -12,7 +12,7 @@ use tinybms_firmware::host_link::lines::{HostLine, Inverter, Read};
 use super::{ToolError, ToolResult};
 
 pub use tinybms_rules::view::{
-    data_age, freshness, freshness_text, link_quality, rule_of, Freshness,
+    data_age, freshness, freshness_of, freshness_text, link_quality, rule_of, Freshness,
 };
 
 /// How often the picture is redrawn without new data (plain text: how often a
