@@ -27,7 +27,7 @@ use std::time::Duration;
 
 use clap::{CommandFactory, Parser};
 use protocol_core::settings::SettingId;
-use serde_json::Value;
+use tinybms_firmware::host_link::lines::{Hello, HostLine, Read};
 
 use crate::profile::{find_setting, snake_name};
 use cli::{Cli, Command, Conn, ModeArg};
@@ -232,14 +232,10 @@ fn read_profile(file: &Path, port: &str) -> ToolResult<String> {
 pub use crate::words::suggest;
 
 fn serial_suffix(c: &mut Client) -> String {
-    c.get_one("version")
-        .ok()
-        .and_then(|v| {
-            v["serial_number"]
-                .as_str()
-                .map(|s| format!(", BMS serial {s}"))
-        })
-        .unwrap_or_default()
+    match c.get_one("version").map(|r| r.line) {
+        Ok(HostLine::Version(v)) => format!(", BMS serial {}", v.serial_number),
+        _ => String::new(),
+    }
 }
 
 /// A setting whose write restarts the BMS (340, operation mode) is written only
@@ -290,31 +286,26 @@ fn write_settings(
             .map(|(id, v)| (snake_name(*id), f64::from(*v)))
             .collect();
         let outcomes = c.set(&named, true, chemistry, Duration::from_secs(15), |v| {
-            let follow = if v["follow_up"] == true {
-                " (follow-up)"
-            } else {
-                ""
-            };
-            let detail = v["detail"]
-                .as_str()
+            let follow = if v.follow_up { " (follow-up)" } else { "" };
+            let detail = v
+                .detail
+                .as_deref()
                 .filter(|d| !d.is_empty())
                 .map(|d| format!(": {d}"))
                 .unwrap_or_default();
-            let shown = match (v["name"].as_str().and_then(find_setting), v["raw"].as_i64()) {
-                (Some(id), Some(raw)) => settings::physical(id, raw),
-                _ => v["raw"].to_string(),
+            let shown = match find_setting(&v.name) {
+                Some(id) => settings::physical(id, i64::from(v.raw)),
+                None => v.raw.to_string(),
             };
             println!(
                 "{:<36} {:>24}  {}{follow}{detail}",
-                v["name"].as_str().unwrap_or("?"),
-                shown,
-                v["outcome"].as_str().unwrap_or("?")
+                v.name, shown, v.outcome
             );
         })?;
         // The last word on each setting: a follow-up settles an unconfirmed one.
         for (name, _) in &named {
-            let last = outcomes.iter().rev().find(|v| v["name"] == name.as_str());
-            match last.and_then(|v| v["outcome"].as_str()) {
+            let last = outcomes.iter().rev().find(|v| v.name == *name);
+            match last.map(|v| v.outcome.as_str()) {
                 Some("verified") => verified += 1,
                 Some("unchanged") => unchanged += 1,
                 _ => bad += 1,
@@ -340,7 +331,7 @@ fn write_settings(
     Ok(())
 }
 
-type Probed = Option<(Value, transport::LineSplitter)>;
+type Probed = Option<(Hello<Read>, transport::LineSplitter)>;
 
 /// Opens the port and finds out what is on it.
 fn open_and_probe(
