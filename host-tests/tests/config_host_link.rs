@@ -342,6 +342,10 @@ fn a_new_stale_limit_reaches_the_telemetry_lines_the_desktop_reads() {
     // 8 s old is still current.
     let mut old = t.clone();
     old["age_ms"] = json!(8000);
+    // Read as the desktop reads it: through the host link's types.
+    let old: tinybms_firmware::host_link::lines::Telemetry<
+        tinybms_firmware::host_link::lines::Read,
+    > = serde_json::from_value(old).unwrap();
     assert!(matches!(
         host_tests::tool::monitor::freshness(Some(&old), std::time::Duration::ZERO),
         host_tests::tool::monitor::Freshness::Fresh(_)

@@ -414,6 +414,93 @@ fn different_device_is_named() {
     assert!(o.stderr.contains("not with TinyBMS frames"), "{o}");
 }
 
+/// A fake bridge on a pty: answers every `{"cmd":"hello"}` with `answer`
+/// (when given) and pushes `pushed` every 100 ms; returns every byte the tool
+/// wrote to it once `tinybms version` has ended.
+fn against_fake_bridge(
+    answer: Option<&'static str>,
+    pushed: Option<&'static str>,
+) -> (Out, Vec<u8>) {
+    let pty = host_tests::pty::Pty::open().unwrap();
+    let path = pty.path().to_str().unwrap().to_string();
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let s = stop.clone();
+    let fake = std::thread::spawn(move || {
+        let (mut heard, mut buf, mut line) = (Vec::new(), [0u8; 256], Vec::new());
+        let mut last_push = Instant::now();
+        // Bounded: the test stops it, and it never runs past 30 s.
+        let end = Instant::now() + Duration::from_secs(30);
+        while !s.load(std::sync::atomic::Ordering::Relaxed) && Instant::now() < end {
+            let n = pty.read(&mut buf, Duration::from_millis(20)).unwrap_or(0);
+            heard.extend_from_slice(&buf[..n]);
+            for &b in &buf[..n] {
+                if b != b'\n' {
+                    line.push(b);
+                } else if std::mem::take(&mut line) == br#"{"cmd":"hello"}"# {
+                    if let Some(a) = answer {
+                        let _ = pty.write(format!("{a}\n").as_bytes());
+                    }
+                }
+            }
+            if let Some(p) = pushed {
+                if last_push.elapsed() >= Duration::from_millis(100) {
+                    let _ = pty.write(format!("{p}\n").as_bytes());
+                    last_push = Instant::now();
+                }
+            }
+        }
+        heard
+    });
+    let o = tinybms(&["version", &path, "--timeout", "3s"]);
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    (o, fake.join().unwrap())
+}
+
+/// What the tool wrote is hello commands and newlines only: no TinyBMS frame
+/// (0xAA ...) and no other command reached the fake bridge.
+fn only_hellos(heard: &[u8]) -> bool {
+    String::from_utf8_lossy(heard)
+        .split('\n')
+        .all(|l| l.is_empty() || l == r#"{"cmd":"hello"}"#)
+}
+
+#[test]
+fn a_bridge_of_another_protocol_is_named_and_left_alone() {
+    // A hello this tool's line types do not read (an older firmware's,
+    // without `features` and `build`).
+    let old = r#"{"type":"hello","protocol":1,"firmware":"0.0.9","chip":"esp32c3","board":"ESP32-C3 SuperMini","record_version":1,"read_only":false,"stream_period_ms":1000,"dropped_lines":0}"#;
+    // A complete hello of a protocol this tool does not speak.
+    let newer = r#"{"type":"hello","protocol":2,"firmware":"9.0.0","build":"v9.0.0","chip":"esp32c6","board":"ESP32-C6 DevKitC-1","features":["can","host-link"],"record_version":9,"read_only":false,"stream_period_ms":1000,"dropped_lines":0}"#;
+    for (hello, protocol, firmware) in [
+        (old, "protocol 1", "firmware 0.0.9"),
+        (newer, "protocol 2", "firmware 9.0.0"),
+    ] {
+        let (o, heard) = against_fake_bridge(Some(hello), None);
+        assert_eq!(o.code, 3, "{o}");
+        assert!(
+            o.stderr
+                .contains("another version of the host-link protocol"),
+            "{o}"
+        );
+        assert!(
+            o.stderr.contains(protocol) && o.stderr.contains(firmware),
+            "{o}"
+        );
+        assert!(
+            !heard.is_empty() && only_hellos(&heard),
+            "{:?}",
+            String::from_utf8_lossy(&heard)
+        );
+    }
+    // A bridge that pushes lines but never answers the hello is not taken
+    // for a TinyBMS (no frames sent at it).
+    let telemetry = r#"{"type":"telemetry","seq":1,"age_ms":0,"online":false,"ready":false}"#;
+    let (o, heard) = against_fake_bridge(None, Some(telemetry));
+    assert_eq!(o.code, 3, "{o}");
+    assert!(o.stderr.contains("writes JSON lines"), "{o}");
+    assert!(only_hellos(&heard), "{:?}", String::from_utf8_lossy(&heard));
+}
+
 #[test]
 fn bridge_monitor_settings_set_record() {
     let sim = Sim::start(&["--bridge-pty", "--stream-period", "200ms"]);

@@ -7,6 +7,7 @@
 use serde_json::Value;
 use tinybms_firmware::config::value::{self, Parsed};
 use tinybms_firmware::config::{Config, FieldId, Kind, FIELDS};
+use tinybms_firmware::host_link::lines::{ConfigField, Read};
 use tinybms_firmware::text::Line;
 
 use crate::words::suggest;
@@ -61,19 +62,18 @@ pub fn split_assignment(arg: &str) -> Result<(String, String), String> {
 /// The record the bridge holds, rebuilt from its `config` lines (secrets
 /// that are set get a placeholder, so the rules between fields can be
 /// checked).
-pub fn record_of(lines: &[Value]) -> Config {
+pub fn record_of(lines: &[ConfigField<Read>]) -> Config {
     let mut c = Config::default();
     for l in lines {
-        let s = |k: &str| l[k].as_str().unwrap_or("").to_string();
-        let Some(id) = FieldId::from_name(&s("name")) else {
+        let Some(id) = FieldId::from_name(&l.name) else {
             continue;
         };
         let f = id.field();
         let text = match f.kind {
-            Kind::Secret { hex64: true, .. } if s("value") == "set" => "0".repeat(64),
-            Kind::Secret { .. } if s("value") == "set" => "set".into(),
+            Kind::Secret { hex64: true, .. } if l.value == "set" => "0".repeat(64),
+            Kind::Secret { .. } if l.value == "set" => "set".into(),
             Kind::Secret { .. } => String::new(),
-            _ => s("value"),
+            _ => l.value.clone(),
         };
         if let Ok(p) = value::parse(f, &text) {
             let _ = c.set(id, p.as_value());

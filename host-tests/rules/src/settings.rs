@@ -6,7 +6,7 @@
 
 use protocol_core::registers::{option_name, ValueType};
 use protocol_core::settings::SettingId;
-use serde_json::Value;
+use tinybms_firmware::host_link::lines::{Read, SettingLine};
 use tinybms_firmware::units;
 
 pub use crate::profile::{find_setting, snake_name};
@@ -59,6 +59,13 @@ pub fn physical(id: SettingId, raw: i64) -> String {
     }
 }
 
+/// The raw value the BMS holds for `id`, from the bridge's `setting` lines
+/// (`None`: not listed, or not read).
+pub fn held(current: &[SettingLine<Read>], id: SettingId) -> Option<i32> {
+    let n = snake_name(id);
+    current.iter().find(|l| l.name == n).and_then(|l| l.raw)
+}
+
 /// The chemistry the cell voltages are checked against, and why.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Chem {
@@ -74,19 +81,12 @@ pub struct Chem {
 /// or when they name none. With it, the sentence the owner is told when
 /// `items` holds a cell voltage (`chemistry: LiFePO4 (taken from …)`).
 pub fn chemistry_of(
-    current: &[Value],
+    current: &[SettingLine<Read>],
     items: &[(SettingId, i32)],
     check: protocol_core::settings::ChemistryCheck,
 ) -> (Option<Chem>, Option<String>) {
     use protocol_core::settings::{Chemistry, ChemistryCheck};
-    let held = |id: SettingId| {
-        let n = snake_name(id);
-        current
-            .iter()
-            .find(|l| l["type"] == "setting" && l["name"] == n.as_str())
-            .and_then(|l| l["raw"].as_i64())
-            .and_then(|v| i32::try_from(v).ok())
-    };
+    let held = |id: SettingId| held(current, id);
     let voltages = items
         .iter()
         .any(|(id, _)| Chemistry::LiFePO4.range(*id).is_some());
@@ -126,7 +126,7 @@ pub fn chemistry_of(
 /// refusal then says what the number would be as a raw value. All problems
 /// at once, or Ok.
 pub fn check_all(
-    current: &[Value],
+    current: &[SettingLine<Read>],
     items: &[(SettingId, i32)],
     bare: Option<&[SettingId]>,
     chemistry: Option<&Chem>,
@@ -135,12 +135,10 @@ pub fn check_all(
     let mut problems = Vec::new();
     for &(id, raw) in items {
         let name = snake_name(id);
-        let line = current
-            .iter()
-            .find(|l| l["type"] == "setting" && l["name"] == name.as_str());
+        let line = current.iter().find(|l| l.name == name);
         let bms = line.and_then(|l| {
-            let lo = l["bms_min"].as_f64()?;
-            let hi = l["bms_max"].as_f64()?;
+            let lo = l.bms_min?;
+            let hi = l.bms_max?;
             let lo = tinybms_firmware::units::raw_from_physical(id, lo)?;
             let hi = tinybms_firmware::units::raw_from_physical(id, hi)?;
             Some((lo, hi))
@@ -152,14 +150,7 @@ pub fn check_all(
                 .iter()
                 .find(|(i, _)| *i == other)
                 .map(|(_, v)| *v)
-                .or_else(|| {
-                    let n = snake_name(other);
-                    current
-                        .iter()
-                        .find(|l| l["type"] == "setting" && l["name"] == n.as_str())
-                        .and_then(|l| l["raw"].as_i64())
-                        .and_then(|v| i32::try_from(v).ok())
-                })
+                .or_else(|| held(current, other))
         };
         let verdict = Setting::new(id, raw).and_then(|s| s.validate_with(bms));
         let relation = verdict.as_ref().ok().map(|()| {

@@ -4,31 +4,21 @@
 
 use std::time::Duration;
 
-use serde_json::Value;
-use tinybms_firmware::host_link::lines::{Head, Link, Read};
-
-/// A line's members in the firmware's own types (`host_link::lines`); `None`
-/// when the line does not have them.
-fn read<T: serde::de::DeserializeOwned>(v: &Value) -> Option<T> {
-    serde_json::from_value(v.clone()).ok()
-}
+use tinybms_firmware::host_link::lines::{Link, Read, Telemetry};
 
 /// Link quality from a `link` line: share of requests answered at once, and the
 /// counts.
-pub fn link_quality(link: &Value) -> Option<String> {
-    let link: Link<Read> = read(link)?;
-    let requests = u64::from(link.requests);
-    let replies = link.replies;
-    let failures = u64::from(link.failures);
+pub fn link_quality(link: &Link<Read>) -> String {
+    let (requests, replies, failures) = (link.requests, link.replies, link.failures);
     let pct = if requests == 0 {
         100.0
     } else {
-        100.0 * (requests.saturating_sub(failures)) as f64 / requests as f64
+        100.0 * f64::from(requests.saturating_sub(failures)) / f64::from(requests)
     };
-    Some(format!(
+    format!(
         "{pct:.1} % ok ({requests} requests, {replies} replies, {failures} failed, {} retries, {} CRC errors)",
         link.retries, link.crc_errors
-    ))
+    )
 }
 
 /// How fresh the picture is.
@@ -44,24 +34,18 @@ pub enum Freshness {
 
 /// The age of `t`'s data now (seconds): its `age_ms` when it arrived plus the
 /// time since.
-pub fn data_age(t: &Value, received_ago: Duration) -> Option<f64> {
-    age_of(&read(t)?, received_ago)
-}
-
-fn age_of(h: &Head<Read>, received_ago: Duration) -> Option<f64> {
-    h.age_ms
+pub fn data_age(t: &Telemetry<Read>, received_ago: Duration) -> Option<f64> {
+    t.head
+        .age_ms
         .map(|ms| ms as f64 / 1000.0 + received_ago.as_secs_f64())
 }
 
 /// The freshness rule of the bridge that sent `t`: the limit its line gives
 /// (`stale_after_ms`), or the default for a bridge whose lines carry none.
-pub fn rule_of(t: &Value) -> tinybms_firmware::freshness::Freshness {
-    rule_of_head(read(t).as_ref())
-}
-
-fn rule_of_head(h: Option<&Head<Read>>) -> tinybms_firmware::freshness::Freshness {
-    let limit_us = h
-        .and_then(|h| h.stale_after_ms)
+pub fn rule_of(t: &Telemetry<Read>) -> tinybms_firmware::freshness::Freshness {
+    let limit_us = t
+        .head
+        .stale_after_ms
         .map_or(tinybms_firmware::freshness::DEFAULT_STALE_AFTER_US, |ms| {
             ms.saturating_mul(1000)
         });
@@ -71,19 +55,14 @@ fn rule_of_head(h: Option<&Head<Read>>) -> tinybms_firmware::freshness::Freshnes
 /// What the picture should say about `t`, received `received_ago`: the
 /// firmware's one freshness rule with the bridge's limit, on the age the line
 /// gave plus the time since it came (a bridge that stopped sending ages too).
-pub fn freshness(t: Option<&Value>, received_ago: Duration) -> Freshness {
-    freshness_of(t.and_then(read::<Head<Read>>).as_ref(), received_ago)
-}
-
-/// [`freshness`] of a telemetry line already read: its head.
-pub fn freshness_of(h: Option<&Head<Read>>, received_ago: Duration) -> Freshness {
+pub fn freshness(t: Option<&Telemetry<Read>>, received_ago: Duration) -> Freshness {
     use tinybms_firmware::freshness::DataState;
-    let Some(h) = h else {
+    let Some(t) = t else {
         return Freshness::NoData(None);
     };
-    let age = age_of(h, received_ago);
+    let age = data_age(t, received_ago);
     let age_us = age.map(|a| (a * 1e6) as u64);
-    match rule_of_head(Some(h)).state(h.online, age_us) {
+    match rule_of(t).state(t.head.online, age_us) {
         DataState::Offline => Freshness::Offline(age),
         DataState::Fresh => Freshness::Fresh(age.unwrap_or(0.0)),
         DataState::NoData | DataState::Stale => Freshness::NoData(age),

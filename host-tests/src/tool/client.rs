@@ -2,11 +2,22 @@
 //! and collects the lines that answer it (firmware/src/host_link/PROTOCOL.md).
 //! Lines that answer nothing of ours (pushed telemetry, new events) are kept
 //! in [`Client::pushed`] for whoever wants them (the monitor).
+//!
+//! Every line from the bridge is read once, through the host link's own types
+//! ([`HostLine`], `tinybms_firmware::host_link::lines`): what a line holds,
+//! the tool reads from its type, never by a member's name in a string. The
+//! JSON it came as is kept beside it ([`Received::raw`]) only to be printed or
+//! logged as it came (`--json`, the log; `req` left out) and to list members a
+//! newer bridge adds that the types do not know (`tinybms stats`). A line that
+//! is not one the bridge writes is counted in [`Client::garbage_lines`].
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use serde_json::{json, Map, Value};
+use tinybms_firmware::host_link::lines::{
+    Error, Hello, HostLine, Link, Outcome, Read, SettingLine, Telemetry,
+};
 
 use super::transport::{Lines, Mode};
 use super::{ToolError, ToolResult};
@@ -17,6 +28,58 @@ pub const GET_TIMEOUT: Duration = Duration::from_secs(10);
 /// Stops an in-process bridge; returns its bytes sent and received.
 pub type Finish = Box<dyn FnMut() -> ToolResult<(u64, u64)> + Send>;
 
+/// A line from the bridge: read through the host link's types, and the JSON
+/// it came as (for printing or logging it as it came).
+#[derive(Debug, Clone)]
+pub struct Received {
+    /// The line.
+    pub line: HostLine,
+    /// The JSON object it came as.
+    pub raw: Value,
+}
+
+impl Received {
+    /// Reads one line of text; `None` when it is not a line the bridge writes
+    /// (not JSON, not an object, or members that are not the line's).
+    pub fn parse(text: &str) -> Option<Self> {
+        let raw: Value = serde_json::from_str(text).ok()?;
+        Self::of(raw)
+    }
+
+    /// Reads a JSON object already parsed (`None` as for [`Received::parse`]).
+    pub fn of(raw: Value) -> Option<Self> {
+        if !raw.is_object() {
+            return None;
+        }
+        let line = serde_json::from_value(raw.clone()).ok()?;
+        Some(Self { line, raw })
+    }
+
+    /// The JSON as it came without its `req`: an answer to one of ours,
+    /// printed like a pushed line.
+    pub fn raw_without_req(&self) -> Value {
+        without_req(self.raw.clone())
+    }
+}
+
+/// A line's JSON without its `req` (see [`Received::raw_without_req`]).
+pub fn without_req(mut raw: Value) -> Value {
+    if let Some(m) = raw.as_object_mut() {
+        m.shift_remove("req");
+    }
+    raw
+}
+
+/// The `setting` lines among `got` (a `get settings` answer).
+pub fn setting_lines(got: &[Received]) -> Vec<SettingLine<Read>> {
+    got.iter()
+        .filter_map(|r| match &r.line {
+            HostLine::Setting(s) => Some(s.clone()),
+            _ => None,
+        })
+        .collect()
+}
+
 /// A connected bridge (real, simulated or in-process).
 pub struct Client {
     lines: Box<dyn Lines>,
@@ -24,12 +87,13 @@ pub struct Client {
     /// How it is reached.
     pub mode: Mode,
     /// The `hello` line.
-    pub hello: Value,
+    pub hello: Hello<Read>,
     /// The port's path, for messages.
     pub port: String,
     /// Lines not answering any of our commands, oldest first.
-    pub pushed: VecDeque<Value>,
-    /// Lines from the bridge that were not JSON objects.
+    pub pushed: VecDeque<Received>,
+    /// Lines from the bridge that were not lines it writes (not JSON
+    /// objects, or not read as any line type's members).
     pub garbage_lines: u64,
     /// Direct mode: stops the in-process bridge, returns its bytes sent and
     /// received.
@@ -37,9 +101,9 @@ pub struct Client {
 }
 
 /// An `error` line as a tool error, with a hint where one helps.
-pub fn protocol_error(v: &Value) -> ToolError {
-    let code = v["error"].as_str().unwrap_or("error");
-    let detail = v["detail"].as_str().unwrap_or("");
+pub fn protocol_error(e: &Error<Read>) -> ToolError {
+    let code = e.error.as_str();
+    let detail = e.detail.as_str();
     let hint = match code {
         "read_only" => {
             " (the bridge is built or started read-only: host writes are switched off)"
@@ -62,7 +126,7 @@ pub fn protocol_error(v: &Value) -> ToolError {
 
 impl Client {
     /// A client on `lines`, after the hello.
-    pub fn new(lines: Box<dyn Lines>, mode: Mode, hello: Value, port: String) -> Self {
+    pub fn new(lines: Box<dyn Lines>, mode: Mode, hello: Hello<Read>, port: String) -> Self {
         Self {
             lines,
             next_req: 1,
@@ -86,16 +150,16 @@ impl Client {
         Ok(req)
     }
 
-    /// The next JSON object from the bridge, waiting up to `timeout`.
-    pub fn recv(&mut self, timeout: Duration) -> ToolResult<Option<Value>> {
+    /// The next line from the bridge, waiting up to `timeout`.
+    pub fn recv(&mut self, timeout: Duration) -> ToolResult<Option<Received>> {
         let end = Instant::now() + timeout;
         loop {
             let left = end.saturating_duration_since(Instant::now());
             match self.lines.recv_line(left)? {
                 None => return Ok(None),
-                Some(l) => match serde_json::from_str::<Value>(&l) {
-                    Ok(v) if v.is_object() => return Ok(Some(v)),
-                    _ => self.garbage_lines += 1,
+                Some(l) => match Received::parse(&l) {
+                    Some(r) => return Ok(Some(r)),
+                    None => self.garbage_lines += 1,
                 },
             }
             if left.is_zero() {
@@ -106,7 +170,7 @@ impl Client {
 
     /// The next line answering `req` (others go to [`Client::pushed`]); an
     /// `error` line for it is returned as an error.
-    pub fn recv_for(&mut self, req: u32, end: Instant, what: &str) -> ToolResult<Value> {
+    pub fn recv_for(&mut self, req: u32, end: Instant, what: &str) -> ToolResult<Received> {
         loop {
             let left = end.saturating_duration_since(Instant::now());
             if left.is_zero() {
@@ -116,11 +180,11 @@ impl Client {
             }
             match self.recv(left)? {
                 None => continue,
-                Some(v) if v["req"] == json!(req) => {
-                    if v["type"] == "error" {
-                        return Err(protocol_error(&v));
+                Some(r) if r.line.req() == Some(req) => {
+                    if let HostLine::Error(e) = &r.line {
+                        return Err(protocol_error(e));
                     }
-                    return Ok(v);
+                    return Ok(r);
                 }
                 Some(v) => {
                     if self.pushed.len() >= 10_000 {
@@ -134,47 +198,81 @@ impl Client {
 
     /// `get WHAT`: the lines answering it (for settings and events, up to and
     /// without the `_end` line).
-    pub fn get(&mut self, what: &str) -> ToolResult<Vec<Value>> {
+    pub fn get(&mut self, what: &str) -> ToolResult<Vec<Received>> {
         let req = self.send(json!({"cmd": "get", "what": what}))?;
         let end = Instant::now() + GET_TIMEOUT;
-        let last = match what {
-            "settings" => "settings_end",
-            "events" => "events_end",
-            "snapshot" => "telemetry",
-            "statistics" => "statistics",
-            other => other,
-        };
         let mut out = Vec::new();
         loop {
-            let v = self.recv_for(req, end, &format!("get {what}"))?;
-            if v["type"] == last {
-                if !last.ends_with("_end") {
-                    out.push(v);
-                }
+            let r = self.recv_for(req, end, &format!("get {what}"))?;
+            // The line that ends the answer: an `_end` line (left out), or the
+            // answer's one line.
+            let (last, kept) = match (&r.line, what) {
+                (HostLine::SettingsEnd(_), _) | (HostLine::EventsEnd(_), _) => (true, false),
+                (HostLine::Telemetry(_), "snapshot")
+                | (HostLine::Statistics(_), "statistics")
+                | (HostLine::Version(_), "version")
+                | (HostLine::Link(_), "link") => (true, true),
+                _ => (false, true),
+            };
+            if kept {
+                out.push(r);
+            }
+            if last {
                 return Ok(out);
             }
-            out.push(v);
         }
     }
 
     /// `get WHAT` for a single line.
-    pub fn get_one(&mut self, what: &str) -> ToolResult<Value> {
+    pub fn get_one(&mut self, what: &str) -> ToolResult<Received> {
         self.get(what)?
             .pop()
             .ok_or_else(|| ToolError::failed(format!("`get {what}` answered nothing")))
     }
 
+    /// `get WHAT` for a single line of the type `pick` takes.
+    fn get_typed<T>(&mut self, what: &str, pick: impl Fn(HostLine) -> Option<T>) -> ToolResult<T> {
+        pick(self.get_one(what)?.line)
+            .ok_or_else(|| ToolError::failed(format!("`get {what}` answered another line")))
+    }
+
+    /// `get snapshot`: the `telemetry` line.
+    pub fn snapshot(&mut self) -> ToolResult<Telemetry<Read>> {
+        self.get_typed("snapshot", |l| match l {
+            HostLine::Telemetry(t) => Some(t),
+            _ => None,
+        })
+    }
+
+    /// `get link`: the `link` line.
+    pub fn link(&mut self) -> ToolResult<Link<Read>> {
+        self.get_typed("link", |l| match l {
+            HostLine::Link(k) => Some(k),
+            _ => None,
+        })
+    }
+
+    /// `get settings`: the `setting` lines.
+    pub fn settings(&mut self) -> ToolResult<Vec<SettingLine<Read>>> {
+        Ok(setting_lines(&self.get("settings")?))
+    }
+
     /// Waits until the bridge is online and ready (settings and limits read);
     /// explains what is wrong when it does not get there within `timeout`.
     /// Says every few seconds on stderr what it is waiting for; Ctrl-C stops it.
-    pub fn wait_ready(&mut self, timeout: Duration) -> ToolResult<Value> {
+    /// Returns the `telemetry` line that said so.
+    pub fn wait_ready(&mut self, timeout: Duration) -> ToolResult<Received> {
         let start = Instant::now();
         let mut next_note = start + Duration::from_secs(3);
         loop {
-            let t = self.get_one("snapshot")?;
-            if t["ready"] == true && t["online"] == true {
-                return Ok(t);
+            let got = self.get_one("snapshot")?;
+            let HostLine::Telemetry(t) = &got.line else {
+                return Err(ToolError::failed("`get snapshot` answered another line"));
+            };
+            if t.head.ready && t.head.online {
+                return Ok(got);
             }
+            let t = t.clone();
             if start.elapsed() >= timeout {
                 return Err(self.not_ready_error(&t));
             }
@@ -183,15 +281,15 @@ impl Client {
             }
             if Instant::now() >= next_note {
                 next_note += Duration::from_secs(3);
-                let link = self.get_one("link").unwrap_or(Value::Null);
-                let n = |k: &str| link[k].as_u64().unwrap_or(0);
+                let link = self.link().ok();
+                let n = |k: fn(&Link<Read>) -> u32| link.as_ref().map_or(0, k);
                 eprintln!(
                     "waiting for the BMS ({:.0} s of {:.0} s): {} requests sent, {} replies{}",
                     start.elapsed().as_secs_f64(),
                     timeout.as_secs_f64(),
-                    n("requests"),
-                    n("replies"),
-                    if t["online"] == true {
+                    n(|l| l.requests),
+                    n(|l| l.replies),
+                    if t.head.online {
                         ", reading its settings"
                     } else {
                         ""
@@ -202,11 +300,11 @@ impl Client {
         }
     }
 
-    fn not_ready_error(&mut self, t: &Value) -> ToolError {
-        let link = self.get_one("link").unwrap_or(Value::Null);
-        let n = |k: &str| link[k].as_u64().unwrap_or(0);
-        let replies = n("replies");
-        let garbage = n("skipped_bytes") + n("crc_errors") + n("framing_errors");
+    fn not_ready_error(&mut self, t: &Telemetry<Read>) -> ToolError {
+        let link = self.link().ok();
+        let n = |k: fn(&Link<Read>) -> u32| link.as_ref().map_or(0, |l| u64::from(k(l)));
+        let replies = n(|l| l.replies);
+        let garbage = n(|l| l.skipped_bytes) + n(|l| l.crc_errors) + n(|l| l.framing_errors);
         let who = match self.mode {
             Mode::Direct => format!("`{}`", self.port),
             Mode::Bridge => "the bridge's UART".to_string(),
@@ -216,8 +314,8 @@ impl Client {
                 "something answers on {who}, but not with TinyBMS frames ({} bytes skipped, \
                  {} CRC errors): a different device on this port, or the wrong baud rate \
                  (the TinyBMS talks 115200 8N1)",
-                n("skipped_bytes"),
-                n("crc_errors")
+                n(|l| l.skipped_bytes),
+                n(|l| l.crc_errors)
             ))
         } else if replies == 0 {
             let unflashed = match self.mode {
@@ -233,14 +331,14 @@ impl Client {
                  RX crossed (TX -> BMS RX, RX <- BMS TX), a common ground (GND <-> BMS UART \
                  ground), 3.3 V logic levels, the BMS powered. A sleeping BMS is woken \
                  automatically (the first request is sent twice).",
-                n("requests")
+                n(|l| l.requests)
             ))
         } else {
             ToolError::connect(format!(
                 "the BMS answers ({replies} replies) but its settings could not be read \
                  completely yet (online {}, ready {}): a bad line? `tinybms monitor` shows the \
                  link quality",
-                t["online"], t["ready"]
+                t.head.online, t.head.ready
             ))
         }
     }
@@ -255,8 +353,8 @@ impl Client {
         raw: bool,
         chemistry: protocol_core::settings::ChemistryCheck,
         follow_up_wait: Duration,
-        mut on_outcome: impl FnMut(&Value),
-    ) -> ToolResult<Vec<Value>> {
+        mut on_outcome: impl FnMut(&Outcome<Read>),
+    ) -> ToolResult<Vec<Outcome<Read>>> {
         let mut map = Map::new();
         for (name, v) in settings {
             let num = if raw { json!(*v as i64) } else { json!(v) };
@@ -284,19 +382,19 @@ impl Client {
                 end = end.min(Instant::now() + follow_up_wait);
             }
             let v = match self.recv_for(req, end, "set") {
-                Ok(v) => v,
+                Ok(r) => match r.line {
+                    HostLine::Outcome(o) => o,
+                    _ => continue,
+                },
                 Err(_) if firsts == settings.len() => break,
                 Err(e) => return Err(e),
             };
-            if v["type"] != "outcome" {
-                continue;
-            }
-            if v["follow_up"] == true {
+            if v.follow_up {
                 unconfirmed -= 1;
             } else {
                 firsts += 1;
                 end = Instant::now() + per;
-                if v["outcome"] == "unconfirmed" {
+                if v.outcome == "unconfirmed" {
                     unconfirmed += 1;
                 }
             }
@@ -306,14 +404,19 @@ impl Client {
         Ok(out)
     }
 
-    /// A command answered by `accepted` then one line of type `done`.
-    pub fn command(&mut self, cmd: Value, done: &str, timeout: Duration) -> ToolResult<Value> {
+    /// A command answered by `accepted` then the line `done` takes (what
+    /// it returns for it).
+    pub fn command<T>(
+        &mut self,
+        cmd: Value,
+        timeout: Duration,
+        done: impl Fn(HostLine) -> Option<T>,
+    ) -> ToolResult<T> {
         let name = cmd["cmd"].as_str().unwrap_or("command").to_string();
         let req = self.send(cmd)?;
         let end = Instant::now() + timeout;
         loop {
-            let v = self.recv_for(req, end, &name)?;
-            if v["type"] == done {
+            if let Some(v) = done(self.recv_for(req, end, &name)?.line) {
                 return Ok(v);
             }
         }
@@ -327,10 +430,51 @@ impl Client {
     }
 
     /// The next pushed line (kept or new), waiting up to `timeout`.
-    pub fn next_pushed(&mut self, timeout: Duration) -> ToolResult<Option<Value>> {
+    pub fn next_pushed(&mut self, timeout: Duration) -> ToolResult<Option<Received>> {
         if let Some(v) = self.pushed.pop_front() {
             return Ok(Some(v));
         }
         self.recv(timeout)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A line the bridge writes is read through its type; anything else is
+    /// no line (counted as garbage by [`Client::recv`]), never a panic.
+    #[test]
+    fn only_lines_the_bridge_writes_are_read() {
+        let log = Received::parse(r#"{"type":"log","level":"info","text":"hello there"}"#)
+            .expect("a log line");
+        match &log.line {
+            HostLine::Log(l) => {
+                assert_eq!((l.level.as_str(), l.text.as_str()), ("info", "hello there"))
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(log.raw["text"], "hello there");
+        // A newer bridge's line type: read, as a line this tool does not know.
+        let newer = Received::parse(r#"{"type":"brand_new","x":1}"#).expect("a line");
+        assert_eq!(newer.line, HostLine::Other);
+        for garbage in [
+            "",
+            "this is not json",
+            "[1,2]",
+            "7",
+            r#"{"no_type":1}"#,
+            // A known type without its members: not a line the bridge writes.
+            r#"{"type":"telemetry"}"#,
+            r#"{"type":"error","req":3,"error":7}"#,
+        ] {
+            assert!(Received::parse(garbage).is_none(), "{garbage}");
+        }
+        let answer = Received::parse(
+            r#"{"type":"error","req":3,"error":"busy","detail":"the queue is full"}"#,
+        )
+        .expect("an error line");
+        assert_eq!(answer.line.req(), Some(3));
+        assert_eq!(answer.raw_without_req().get("req"), None);
     }
 }

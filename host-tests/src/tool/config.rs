@@ -27,6 +27,7 @@ use serde_json::{json, Map, Value};
 use tinybms_firmware::config::value::{self, Parsed};
 use tinybms_firmware::config::{Config, FieldId, Kind};
 use tinybms_firmware::host_link::line::LINE_MAX;
+use tinybms_firmware::host_link::lines::{ConfigEnd, ConfigField, Error, HostLine, Read};
 use tinybms_firmware::text::Line;
 use tinybms_rules::config::wire_text;
 
@@ -37,18 +38,8 @@ use super::{ToolError, ToolResult};
 /// How long the save to flash may take (a sector erase is at most ~0.5 s).
 pub const SAVE_TIMEOUT: Duration = Duration::from_secs(10);
 
-/// One field as the bridge reports it (`get config`).
-#[derive(Debug, Clone)]
-pub struct Shown {
-    /// The line.
-    pub line: Value,
-}
-
-impl Shown {
-    fn s(&self, k: &str) -> &str {
-        self.line[k].as_str().unwrap_or("")
-    }
-}
+/// One field as the bridge reports it (`get config`): its `config` line.
+pub type Shown = ConfigField<Read>;
 
 /// Refuses direct mode: a USB-UART adapter has no bridge configuration.
 pub fn require_bridge(c: &Client) -> ToolResult<()> {
@@ -65,15 +56,13 @@ pub fn require_bridge(c: &Client) -> ToolResult<()> {
 }
 
 /// Refuses a bridge whose image has no Wi-Fi (its `hello` lists what is
-/// built in; an older firmware that does not say is taken at its word).
+/// built in).
 pub fn require_wifi(c: &Client, command: &str) -> ToolResult<()> {
-    let Some(features) = c.hello["features"].as_array() else {
-        return Ok(());
-    };
+    let features = &c.hello.features;
     if features.iter().any(|f| f == "wifi") {
         return Ok(());
     }
-    let built: Vec<&str> = features.iter().filter_map(|f| f.as_str()).collect();
+    let built: Vec<&str> = features.iter().map(String::as_str).collect();
     Err(ToolError::usage(format!(
         "this bridge's image has no Wi-Fi (built in: {}): `tinybms {command}` would be \
          stored and never used. Flash an image with Wi-Fi (`tinybms-BOARD-wifi.bin`, or \
@@ -87,34 +76,29 @@ pub fn require_wifi(c: &Client, command: &str) -> ToolResult<()> {
 }
 
 /// The bridge's configuration: every field, and the `config_end` line.
-pub fn fetch(c: &mut Client) -> ToolResult<(Vec<Shown>, Value)> {
+pub fn fetch(c: &mut Client) -> ToolResult<(Vec<Shown>, ConfigEnd<Read>)> {
     let req = c.send(json!({"cmd": "get", "what": "config"}))?;
     let end = Instant::now() + super::client::GET_TIMEOUT;
     let mut out = Vec::new();
     loop {
-        let v = c.recv_for(req, end, "get config")?;
-        if v["type"] == "config_end" {
-            return Ok((out, v));
-        }
-        if v["type"] == "config" {
-            out.push(Shown { line: v });
+        match c.recv_for(req, end, "get config")?.line {
+            HostLine::ConfigEnd(e) => return Ok((out, e)),
+            HostLine::Config(f) => out.push(f),
+            _ => {}
         }
     }
 }
 
 /// The table `tinybms config PORT` prints.
-pub fn render(fields: &[Shown], end: &Value) -> String {
+pub fn render(fields: &[Shown], end: &ConfigEnd<Read>) -> String {
     let mut out = String::new();
-    let differing = fields
-        .iter()
-        .filter(|f| f.s("value") != f.s("default"))
-        .count();
-    let pending = end["restart_pending"].as_u64().unwrap_or(0);
+    let differing = fields.iter().filter(|f| f.value != f.default).count();
+    let pending = end.restart_pending;
     let _ =
         writeln!(
         out,
         "bridge configuration (started from {}; {differing} field{} differ{} from the defaults{})",
-        end["source"].as_str().unwrap_or("?"),
+        end.source,
         if differing == 1 { "" } else { "s" },
         if differing == 1 { "s" } else { "" },
         if pending > 0 {
@@ -123,25 +107,21 @@ pub fn render(fields: &[Shown], end: &Value) -> String {
             String::new()
         }
     );
-    let w = fields.iter().map(|f| f.s("name").len()).max().unwrap_or(10);
+    let w = fields.iter().map(|f| f.name.len()).max().unwrap_or(10);
     let vw = fields
         .iter()
-        .map(|f| with_unit(f.s("value"), f.s("unit")).chars().count())
+        .map(|f| with_unit(&f.value, &f.unit).chars().count())
         .max()
         .unwrap_or(8)
         .min(28);
     let mut group = "";
     for f in fields {
-        if f.s("group") != group {
-            group = f.s("group");
+        if f.group != group {
+            group = &f.group;
             let _ = writeln!(out, "\n{group}");
         }
-        let mark = if f.s("value") != f.s("default") {
-            '*'
-        } else {
-            ' '
-        };
-        let restart = if f.line["restart_pending"] == true {
+        let mark = if f.value != f.default { '*' } else { ' ' };
+        let restart = if f.restart_pending {
             "  (restart pending)"
         } else {
             ""
@@ -149,11 +129,11 @@ pub fn render(fields: &[Shown], end: &Value) -> String {
         let _ = writeln!(
             out,
             "{mark} {:<w$}  {:<vw$}  default {:<14} {}; {}{restart}",
-            f.s("name"),
-            with_unit(f.s("value"), f.s("unit")),
-            with_unit(f.s("default"), f.s("unit")),
-            f.s("range"),
-            match f.s("applies") {
+            f.name,
+            with_unit(&f.value, &f.unit),
+            with_unit(&f.default, &f.unit),
+            f.range,
+            match f.applies.as_str() {
                 "now" => "applies at once",
                 _ => "applies at the next restart",
             },
@@ -171,17 +151,17 @@ pub fn render(fields: &[Shown], end: &Value) -> String {
 pub fn render_one(f: &Shown) -> String {
     format!(
         "{}: {}\n  value    {}{}\n  default  {}\n  range    {}\n  applies  {}\n",
-        f.s("name"),
-        f.s("help"),
-        with_unit(f.s("value"), f.s("unit")),
-        if f.line["restart_pending"] == true {
+        f.name,
+        f.help,
+        with_unit(&f.value, &f.unit),
+        if f.restart_pending {
             " (stored; the bridge runs with the old value until it restarts)"
         } else {
             ""
         },
-        with_unit(f.s("default"), f.s("unit")),
-        f.s("range"),
-        if f.s("applies") == "now" {
+        with_unit(&f.default, &f.unit),
+        f.range,
+        if f.applies == "now" {
             "at once"
         } else {
             "at the next restart"
@@ -221,8 +201,7 @@ pub fn split_assignment(arg: &str) -> ToolResult<(String, String)> {
 /// The record the bridge holds, rebuilt from its `config` lines (secrets that
 /// are set get a placeholder, so the rules between fields can be checked).
 pub fn record_of(fields: &[Shown]) -> Config {
-    let lines: Vec<Value> = fields.iter().map(|f| f.line.clone()).collect();
-    tinybms_rules::config::record_of(&lines)
+    tinybms_rules::config::record_of(fields)
 }
 
 /// Checks `changes` against the bridge's record locally (every rule between
@@ -249,14 +228,14 @@ pub fn apply(c: &mut Client, changes: &[(FieldId, Parsed)]) -> ToolResult<()> {
         let end = Instant::now() + SAVE_TIMEOUT;
         loop {
             let v = match c.recv_for(req, end, "set_config") {
-                Ok(v) => v,
+                Ok(r) => r.line,
                 Err(e) => return Err(read_only_hint(e)),
             };
-            match v["type"].as_str() {
-                Some("config_outcome") => {
-                    let o = v["outcome"].as_str().unwrap_or("?");
-                    let name = v["name"].as_str().unwrap_or("?");
-                    let shown = v["value"].as_str().unwrap_or("");
+            match v {
+                HostLine::ConfigOutcome(v) => {
+                    let o = v.outcome.as_str();
+                    let name = v.name.as_str();
+                    let shown = v.value.as_deref().unwrap_or("");
                     let line = match o {
                         "applied" => format!("{name} = {shown}: applied"),
                         "at_restart" => {
@@ -269,10 +248,10 @@ pub fn apply(c: &mut Client, changes: &[(FieldId, Parsed)]) -> ToolResult<()> {
                             refused += 1;
                             format!(
                                 "{name}: refused, {} ({}){}",
-                                v["error"].as_str().unwrap_or("?"),
-                                v["detail"].as_str().unwrap_or(""),
-                                v["range"]
-                                    .as_str()
+                                v.error.as_deref().unwrap_or("?"),
+                                v.detail.as_deref().unwrap_or(""),
+                                v.range
+                                    .as_deref()
                                     .map(|r| format!("; it takes {r}"))
                                     .unwrap_or_default()
                             )
@@ -283,12 +262,12 @@ pub fn apply(c: &mut Client, changes: &[(FieldId, Parsed)]) -> ToolResult<()> {
                     }
                     println!("{line}");
                 }
-                Some("config_done") => {
-                    if v["saved"] == false {
+                HostLine::ConfigDone(v) => {
+                    if v.saved == Some(false) {
                         saved_all = false;
                         println!(
                             "NOT saved to flash: {} (the change holds until the bridge restarts)",
-                            v["detail"].as_str().unwrap_or("?")
+                            v.detail.as_deref().unwrap_or("?")
                         );
                     }
                     break;
@@ -369,20 +348,24 @@ fn read_only_hint(e: ToolError) -> ToolError {
 /// `--reset`: every field back to its default.
 pub fn reset(c: &mut Client) -> ToolResult<()> {
     let v = c
-        .command(json!({"cmd": "reset_config"}), "config_done", SAVE_TIMEOUT)
+        .command(json!({"cmd": "reset_config"}), SAVE_TIMEOUT, |l| match l {
+            HostLine::ConfigDone(d) => Some(d),
+            _ => None,
+        })
         .map_err(read_only_hint)?;
-    if v["saved"] == false {
+    if v.saved == Some(false) {
         return Err(ToolError::failed(format!(
             "the defaults were not saved to flash: {}",
-            v["detail"].as_str().unwrap_or("?")
+            v.detail.as_deref().unwrap_or("?")
         )));
     }
     println!(
         "{} field(s) back to their defaults{}",
-        v["changed"],
-        match v["restart_needed"].as_u64() {
-            Some(n) if n > 0 => format!("; {n} apply after a restart"),
-            _ => String::new(),
+        v.changed,
+        if v.restart_needed > 0 {
+            format!("; {} apply after a restart", v.restart_needed)
+        } else {
+            String::new()
         }
     );
     Ok(())
@@ -398,7 +381,7 @@ pub fn file_text(fields: &[Shown], header: &str) -> String {
     // (name, value, comment) per field; secrets by name only.
     let mut rows: Vec<(&str, Option<(String, String)>)> = Vec::new();
     for f in fields {
-        let name = f.s("name");
+        let name = f.name.as_str();
         let Some(id) = FieldId::from_name(name) else {
             continue;
         };
@@ -408,14 +391,10 @@ pub fn file_text(fields: &[Shown], header: &str) -> String {
             continue;
         }
         let value = match field.kind {
-            Kind::Text { .. } => json!(f.s("value")).to_string(),
-            _ => with_unit(f.s("value"), f.s("unit")),
+            Kind::Text { .. } => json!(f.value).to_string(),
+            _ => with_unit(&f.value, &f.unit),
         };
-        let comment = format!(
-            "{}; default {}",
-            f.s("range"),
-            with_unit(f.s("default"), f.s("unit"))
-        );
+        let comment = format!("{}; default {}", f.range, with_unit(&f.default, &f.unit));
         rows.push((name, Some((value, comment))));
     }
     // One width for the names and one for the values: the comments line up.
@@ -434,8 +413,8 @@ pub fn file_text(fields: &[Shown], header: &str) -> String {
             None => {
                 let value = fields
                     .iter()
-                    .find(|f| f.s("name") == name)
-                    .map_or("", |f| f.s("value"));
+                    .find(|f| f.name == name)
+                    .map_or("", |f| f.value.as_str());
                 let _ = writeln!(out, "# {name}: {value} (secrets are not saved)");
             }
             Some((value, comment)) => {
@@ -527,8 +506,8 @@ pub fn fetch_error(e: ToolError) -> ToolError {
 
 /// `error` lines of set_config turned into tool errors (kept for callers that
 /// parse answers themselves).
-pub fn error_of(v: &Value) -> ToolError {
-    read_only_hint(protocol_error(v))
+pub fn error_of(e: &Error<Read>) -> ToolError {
+    read_only_hint(protocol_error(e))
 }
 
 /// The WPA2 pre-shared key of `passphrase` on the network `ssid`

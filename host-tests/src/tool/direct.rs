@@ -8,11 +8,11 @@ use std::sync::{mpsc, Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use serde_json::Value;
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::config::Config;
+use tinybms_firmware::host_link::lines::HostLine;
 
-use super::client::Client;
+use super::client::{Client, Received};
 use super::transport::{Lines, Mode};
 use super::{ToolError, ToolResult};
 use crate::capture::CaptureWriter;
@@ -123,23 +123,33 @@ pub fn start(
         tx_bytes,
         rx_bytes,
     }));
-    let lines = DirectLines {
+    let mut lines = DirectLines {
         to_bridge,
         from_bridge,
         worker: worker.clone(),
     };
-    let mut c = Client::new(Box::new(lines), Mode::Direct, Value::Null, port);
-    c.finish = Some(Box::new(move || stop_worker(&worker)));
-    // The host link queued a hello when it was told of the connection.
+    // The host link queued a hello when it was told of the connection; what
+    // came before it is kept for the client, as it would have.
+    let mut before = std::collections::VecDeque::new();
+    let mut garbage = 0;
     let end = Instant::now() + Duration::from_secs(5);
     while Instant::now() < end {
-        match c.recv(Duration::from_millis(500))? {
-            Some(v) if v["type"] == "hello" => {
-                c.hello = v;
+        let Some(text) = lines.recv_line(Duration::from_millis(500))? else {
+            continue;
+        };
+        match Received::parse(&text) {
+            Some(Received {
+                line: HostLine::Hello(hello),
+                ..
+            }) => {
+                let mut c = Client::new(Box::new(lines), Mode::Direct, hello, port);
+                c.pushed = before;
+                c.garbage_lines = garbage;
+                c.finish = Some(Box::new(move || stop_worker(&worker)));
                 return Ok(c);
             }
-            Some(v) => c.pushed.push_back(v),
-            None => {}
+            Some(r) => before.push_back(r),
+            None => garbage += 1,
         }
     }
     Err(ToolError::failed(

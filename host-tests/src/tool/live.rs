@@ -16,15 +16,14 @@ use ratatui::style::{Color, Modifier, Style};
 use ratatui::text::{Line, Span};
 use ratatui::widgets::{Block, Borders, Paragraph, Sparkline};
 use ratatui::Frame;
-use serde_json::Value;
+use tinybms_firmware::host_link::lines::{HostLine, Link, Read, Telemetry};
 
-use super::client::Client;
+use super::client::{without_req, Client, Received};
 use super::picture::{
-    freshness_of, freshness_text, link_quality, min_max, told_text, Freshness, Logger,
-    MonitorOptions, REDRAW,
+    cells_of, freshness, freshness_text, inverter_text, link_quality, min_max, temperature,
+    Freshness, Logger, MonitorOptions, REDRAW,
 };
 use super::{interrupted, interrupted_error, ToolResult};
-use tinybms_firmware::host_link::lines::{HostLine, Read, Snapshot, Telemetry};
 
 /// How much history the sparklines show.
 pub const HISTORY: Duration = Duration::from_secs(300);
@@ -34,11 +33,10 @@ pub const HISTORY: Duration = Duration::from_secs(300);
 pub struct LiveState {
     /// `PORT — mode`.
     pub header: String,
-    /// The newest telemetry line (in the firmware's line types) and when it
-    /// arrived.
+    /// The newest telemetry line and when it arrived.
     pub telemetry: Option<(Telemetry<Read>, Instant)>,
     /// The newest `link` line.
-    pub link: Option<Value>,
+    pub link: Option<Link<Read>>,
     /// (when, pack V, pack A), oldest first, [`HISTORY`] long.
     pub history: VecDeque<(Instant, f64, f64)>,
     /// The bridge's latest log lines (`log` lines), oldest first.
@@ -60,27 +58,28 @@ impl LiveState {
         self.logs.push_back(format!("{level:<4} {text}"));
     }
 
-    /// A `battery` line (it starts a new list) or a `pack` line.
-    pub fn battery_line(&mut self, v: &Value) {
-        if v["type"] == "battery" {
+    /// A `battery` line (it starts a new list) or a `pack` line; any other
+    /// line is not for this list.
+    pub fn battery_line(&mut self, l: &HostLine) {
+        let Some(text) = super::picture::render_battery_line(l) else {
+            return;
+        };
+        if matches!(l, HostLine::Battery(_)) {
             self.battery.clear();
         }
         if self.battery.len() <= usize::from(tinybms_firmware::inverter::packs::MAX_NODES) {
-            self.battery
-                .push(super::picture::render_battery_line(v).trim().to_string());
+            self.battery.push(text.trim().to_string());
         }
     }
 
-    /// A new telemetry line (read into the firmware's line types; anything
-    /// else is left alone).
-    pub fn update(&mut self, t: Value, now: Instant) {
-        let Ok(HostLine::Telemetry(t)) = serde_json::from_value::<HostLine>(t) else {
-            return;
-        };
-        if let Some(s) = &t.snapshot {
-            if let (Some(v), Some(i)) = (s.pack_voltage_v, s.pack_current_a) {
-                self.history.push_back((now, v, i));
-            }
+    /// A new telemetry line.
+    pub fn update(&mut self, t: Telemetry<Read>, now: Instant) {
+        if let Some((v, i)) = t
+            .snapshot
+            .as_ref()
+            .and_then(|s| Some((s.pack_voltage_v?, s.pack_current_a?)))
+        {
+            self.history.push_back((now, v, i));
         }
         while self
             .history
@@ -140,8 +139,8 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         );
         return;
     }
-    let fresh = freshness_of(
-        s.telemetry.as_ref().map(|(t, _)| &t.head),
+    let fresh = freshness(
+        s.telemetry.as_ref().map(|(t, _)| t),
         s.telemetry
             .as_ref()
             .map_or(Duration::MAX, |(_, at)| now.saturating_duration_since(*at)),
@@ -212,18 +211,16 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         f.render_widget(Paragraph::new("waiting for the first data..."), pack);
         return;
     };
-    let snap = t.snapshot.as_ref();
-    let m = |x: fn(&Snapshot<Read>) -> Option<f64>| snap.and_then(x);
-    // Pack, status, temperatures.
-    let p = match (m(|s| s.pack_voltage_v), m(|s| s.pack_current_a)) {
+    // Pack, status, temperatures (nothing known before the first snapshot).
+    let sn = t.snapshot.as_ref();
+    let of =
+        |f: fn(&tinybms_firmware::host_link::lines::Snapshot<Read>) -> Option<f64>| sn.and_then(f);
+    let p = match (of(|s| s.pack_voltage_v), of(|s| s.pack_current_a)) {
         (Some(v), Some(i)) => format!("{:.0} W", v * i),
         _ => "-".into(),
     };
-    let temp = |x: Option<f64>| match x {
-        Some(x) => format!("{x:.1} °C"),
-        None => "not connected".into(),
-    };
-    let status = snap.map_or("-", |s| s.online_status.as_str());
+    let temp = |f| temperature(of(f));
+    let status = sn.map_or("-", |s| s.online_status.as_str());
     let status_style = if status == "fault" {
         alarm
     } else {
@@ -233,26 +230,26 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
     let lines = vec![
         Line::from(vec![
             Span::raw("Pack "),
-            Span::styled(num(m(|s| s.pack_voltage_v), 2, "V"), bold),
+            Span::styled(num(of(|s| s.pack_voltage_v), 2, "V"), bold),
             Span::raw("  "),
-            Span::styled(num(m(|s| s.pack_current_a), 2, "A"), bold),
+            Span::styled(num(of(|s| s.pack_current_a), 2, "A"), bold),
             Span::raw(format!("  {p}   SOC ")),
-            Span::styled(num(m(|s| s.soc_percent), 1, "%"), bold),
-            Span::raw(format!("   SOH {}", num(m(|s| s.soh_percent), 1, "%"))),
+            Span::styled(num(of(|s| s.soc_percent), 1, "%"), bold),
+            Span::raw(format!("   SOH {}", num(of(|s| s.soh_percent), 1, "%"))),
         ]),
         Line::from(vec![
             Span::raw("Status "),
             Span::styled(status.to_string(), status_style),
             Span::raw(format!(
                 "   internal {}   external {} / {}",
-                temp(m(|s| s.internal_temperature_c)),
-                temp(m(|s| s.external_temperature_1_c)),
-                temp(m(|s| s.external_temperature_2_c))
+                temp(|s| s.internal_temperature_c),
+                temp(|s| s.external_temperature_1_c),
+                temp(|s| s.external_temperature_2_c)
             )),
         ]),
     ];
     let mut lines = lines;
-    if let Some(inv) = t.told.inverter.as_ref().map(told_text) {
+    if let Some(inv) = inverter_text(t) {
         let trouble = inv.contains("NO ACK") || inv.contains("BUS OFF");
         lines.push(Line::styled(
             inv,
@@ -311,13 +308,13 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         ),
         Span::raw(format!("   seq {}", t.head.seq)),
         Span::styled(
-            snap.and_then(|s| s.flagged.as_ref())
+            sn.and_then(|s| s.flagged.as_deref())
                 .map(|fl| format!("   flagged: {fl}"))
                 .unwrap_or_default(),
             alarm,
         ),
     ])];
-    if let Some(q) = s.link.as_ref().and_then(link_quality) {
+    if let Some(q) = s.link.as_ref().map(link_quality) {
         foot_lines.push(Line::styled(
             format!("Link {q}"),
             Style::new().add_modifier(Modifier::DIM),
@@ -329,11 +326,11 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
 /// Every cell as a bar (scaled over the pack's own spread), the lowest blue,
 /// the highest red, a `*` where the BMS balances.
 fn draw_cells(f: &mut Frame, t: &Telemetry<Read>, area: Rect) {
-    let Some(snap) = &t.snapshot else {
-        return;
-    };
-    let cells = &snap.cell_voltages_v;
-    let balancing = u64::from(snap.real_balancing_bits);
+    let cells = cells_of(t);
+    let balancing = t
+        .snapshot
+        .as_ref()
+        .map_or(0, |s| u64::from(s.real_balancing_bits));
     let Some((lo_i, hi_i)) = min_max(cells) else {
         return;
     };
@@ -424,7 +421,7 @@ pub(super) fn run(
                 return Ok(());
             }
             if Instant::now() >= next_link {
-                s.link = client.get_one("link").ok();
+                s.link = client.link().ok();
                 next_link = Instant::now() + Duration::from_secs(5);
             }
             // Keys (raw mode: Ctrl-C is a key here, not a signal).
@@ -439,28 +436,25 @@ pub(super) fn run(
                     }
                 }
             }
-            if let Some(mut v) = client.next_pushed(Duration::from_millis(50))? {
-                if v["type"] == "log" {
-                    s.log(
-                        v["level"].as_str().unwrap_or("?"),
-                        v["text"].as_str().unwrap_or(""),
-                    );
-                    next_draw = Instant::now();
-                }
-                if v["type"] == "battery" || v["type"] == "pack" {
-                    s.battery_line(&v);
-                    next_draw = Instant::now();
-                }
-                if v["type"] == "telemetry" {
-                    if let Some(m) = v.as_object_mut() {
-                        m.shift_remove("req");
+            if let Some(Received { line, raw }) = client.next_pushed(Duration::from_millis(50))? {
+                match line {
+                    HostLine::Log(l) => {
+                        s.log(&l.level, &l.text);
+                        next_draw = Instant::now();
                     }
-                    if let Some(l) = logger.as_mut() {
-                        l.log(&v)?;
+                    l @ (HostLine::Battery(_) | HostLine::Pack(_)) => {
+                        s.battery_line(&l);
+                        next_draw = Instant::now();
                     }
-                    s.update(v, Instant::now());
-                    updates += 1;
-                    next_draw = Instant::now();
+                    HostLine::Telemetry(t) => {
+                        if let Some(l) = logger.as_mut() {
+                            l.log(&t, &without_req(raw))?;
+                        }
+                        s.update(t, Instant::now());
+                        updates += 1;
+                        next_draw = Instant::now();
+                    }
+                    _ => {}
                 }
             }
             if Instant::now() >= next_draw {
@@ -479,7 +473,19 @@ mod tests {
     use super::*;
     use ratatui::backend::TestBackend;
     use ratatui::Terminal;
-    use serde_json::json;
+    use serde_json::{json, Value};
+
+    /// A line as the tool reads it.
+    fn line(v: Value) -> HostLine {
+        serde_json::from_value(v).unwrap()
+    }
+
+    fn decoded(v: Value) -> Telemetry<Read> {
+        match line(v) {
+            HostLine::Telemetry(t) => t,
+            other => panic!("not telemetry: {other:?}"),
+        }
+    }
 
     fn screen(s: &LiveState, now: Instant) -> String {
         let mut term = Terminal::new(TestBackend::new(100, 40)).unwrap();
@@ -495,18 +501,21 @@ mod tests {
         out
     }
 
-    /// A telemetry line with every member the bridge writes (the tool reads
-    /// it into the firmware's line types).
-    fn telemetry(online: bool) -> Value {
-        json!({"type":"telemetry","seq":7,"age_ms":200,"online":online,"ready":true,
-            "pack_voltage_v":52.9,"pack_current_a":-10.0,"min_cell_voltage_v":3.29,
+    /// A telemetry line as the bridge writes it (`host_link::lines::Telemetry`).
+    fn telemetry_json(online: bool) -> Value {
+        json!({"type":"telemetry","seq":7,"age_ms":200,"online":online,
+            "ready":true,"pack_voltage_v":52.9,"pack_current_a":-10.0,"min_cell_voltage_v":3.29,
             "max_cell_voltage_v":3.31,"cell_voltages_v":[3.30,3.31,3.29,3.305],
             "cell_first_register":0,"cell_count":4,"soc_percent":65.0,"soh_percent":97.0,
-            "lifetime_s":3877000,"estimated_time_left_s":20255,
+            "lifetime_s":86_400,"estimated_time_left_s":36_000,
             "internal_temperature_c":27.0,"external_temperature_1_c":null,
             "external_temperature_2_c":24.8,"online_status":"discharging",
             "balancing_decision_bits":2,"real_balancing_bits":2,"speed_kmh":0.0,
             "distance_left_km":0,"flagged":null})
+    }
+
+    fn telemetry(online: bool) -> Telemetry<Read> {
+        decoded(telemetry_json(online))
     }
 
     #[test]
@@ -559,18 +568,21 @@ mod tests {
         let t0 = Instant::now();
         let mut s = LiveState::default();
         s.update(telemetry(true), t0);
-        s.battery_line(
-            &json!({"type":"battery","node":2,"speaking":false,"packs_online":2,
-            "packs_offline":0,"capacity_ah":560.0,"soc_percent":65.0,"voltage_v":53.2,
-            "current_a":-8.2,"min_cell_v":3.301,"max_cell_v":3.345,"cvl_v":55.2,"ccl_a":100.0,
+        s.battery_line(&line(
+            json!({"type":"battery","node":2,"speaking":false,"packs_online":2,
+            "packs_offline":0,"capacity_ah":560.0,"soc_percent":65.0,"soh_percent":100.0,
+            "voltage_v":53.2,"current_a":-8.2,"min_cell_v":3.301,"max_cell_v":3.345,
+            "min_temperature_c":21.5,"max_temperature_c":24.8,"cvl_v":55.2,"ccl_a":100.0,
             "dcl_a":200.0}),
-        );
+        ));
         for (node, speaking) in [(1, true), (2, false)] {
-            s.battery_line(
-                &json!({"type":"pack","node":node,"state":"part","speaking":speaking,
-                "voltage_v":53.2,"current_a":-4.1,"soc_percent":65.0,"soh_percent":97,"min_cell_v":3.301,
-                "max_cell_v":3.345,"data_age_s":0.3,"ccl_a":58.8,"dcl_a":117.6}),
-            );
+            s.battery_line(&line(
+                json!({"type":"pack","node":node,"state":"part","speaking":speaking,
+                "voltage_v":53.2,"current_a":-4.1,"soc_percent":65.0,"soh_percent":100,
+                "min_cell_v":3.301,"max_cell_v":3.345,"min_temperature_c":21.5,
+                "max_temperature_c":24.8,"capacity_ah":280.0,"data_age_s":0.3,"cvl_v":55.2,
+                "ccl_a":58.8,"dcl_a":117.6}),
+            ));
         }
         let text = screen(&s, t0);
         assert!(text.contains("Packs in parallel"), "{text}");
@@ -581,10 +593,13 @@ mod tests {
         assert!(text.contains("pack 1*  in the battery"), "{text}");
         assert!(text.contains("pack 2   in the battery"), "{text}");
         // A new battery line starts the list again.
-        s.battery_line(
-            &json!({"type":"battery","node":2,"speaking":false,"packs_online":0,
-            "packs_offline":2}),
-        );
+        s.battery_line(&line(
+            json!({"type":"battery","node":2,"speaking":false,"packs_online":0,
+            "packs_offline":2,"capacity_ah":null,"soc_percent":null,"soh_percent":null,
+            "voltage_v":null,"current_a":null,"min_cell_v":null,"max_cell_v":null,
+            "min_temperature_c":null,"max_temperature_c":null,"cvl_v":null,"ccl_a":null,
+            "dcl_a":null}),
+        ));
         assert_eq!(s.battery.len(), 1);
     }
 
@@ -602,12 +617,12 @@ mod tests {
         out
     }
 
-    fn sixteen_cells() -> Value {
-        let mut t = telemetry(true);
+    fn sixteen_cells() -> Telemetry<Read> {
+        let mut t = telemetry_json(true);
         let cells: Vec<f64> = (0..16).map(|k| 3.305 + f64::from(k % 8) * 0.001).collect();
         t["cell_voltages_v"] = json!(cells);
         t["cell_count"] = json!(16);
-        t
+        decoded(t)
     }
 
     /// Issue 26, item 11: a 60x20 terminal dropped cells 8 and 16 and cut

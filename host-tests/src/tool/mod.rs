@@ -27,7 +27,8 @@ use std::time::Duration;
 
 use clap::{CommandFactory, Parser};
 use protocol_core::settings::SettingId;
-use serde_json::Value;
+use tinybms_firmware::host_link::lines::{Hello, HostLine, Read};
+use tinybms_firmware::host_link::PROTOCOL_VERSION;
 
 use crate::profile::{find_setting, snake_name};
 use cli::{Cli, Command, Conn, ModeArg};
@@ -232,14 +233,10 @@ fn read_profile(file: &Path, port: &str) -> ToolResult<String> {
 pub use crate::words::suggest;
 
 fn serial_suffix(c: &mut Client) -> String {
-    c.get_one("version")
-        .ok()
-        .and_then(|v| {
-            v["serial_number"]
-                .as_str()
-                .map(|s| format!(", BMS serial {s}"))
-        })
-        .unwrap_or_default()
+    match c.get_one("version").map(|r| r.line) {
+        Ok(HostLine::Version(v)) => format!(", BMS serial {}", v.serial_number),
+        _ => String::new(),
+    }
 }
 
 /// A setting whose write restarts the BMS (340, operation mode) is written only
@@ -290,31 +287,26 @@ fn write_settings(
             .map(|(id, v)| (snake_name(*id), f64::from(*v)))
             .collect();
         let outcomes = c.set(&named, true, chemistry, Duration::from_secs(15), |v| {
-            let follow = if v["follow_up"] == true {
-                " (follow-up)"
-            } else {
-                ""
-            };
-            let detail = v["detail"]
-                .as_str()
+            let follow = if v.follow_up { " (follow-up)" } else { "" };
+            let detail = v
+                .detail
+                .as_deref()
                 .filter(|d| !d.is_empty())
                 .map(|d| format!(": {d}"))
                 .unwrap_or_default();
-            let shown = match (v["name"].as_str().and_then(find_setting), v["raw"].as_i64()) {
-                (Some(id), Some(raw)) => settings::physical(id, raw),
-                _ => v["raw"].to_string(),
+            let shown = match find_setting(&v.name) {
+                Some(id) => settings::physical(id, i64::from(v.raw)),
+                None => v.raw.to_string(),
             };
             println!(
                 "{:<36} {:>24}  {}{follow}{detail}",
-                v["name"].as_str().unwrap_or("?"),
-                shown,
-                v["outcome"].as_str().unwrap_or("?")
+                v.name, shown, v.outcome
             );
         })?;
         // The last word on each setting: a follow-up settles an unconfirmed one.
         for (name, _) in &named {
-            let last = outcomes.iter().rev().find(|v| v["name"] == name.as_str());
-            match last.and_then(|v| v["outcome"].as_str()) {
+            let last = outcomes.iter().rev().find(|v| v.name == *name);
+            match last.map(|v| v.outcome.as_str()) {
                 Some("verified") => verified += 1,
                 Some("unchanged") => unchanged += 1,
                 _ => bad += 1,
@@ -340,7 +332,7 @@ fn write_settings(
     Ok(())
 }
 
-type Probed = Option<(Value, transport::LineSplitter)>;
+type Probed = Option<(Hello<Read>, transport::LineSplitter)>;
 
 /// Opens the port and finds out what is on it.
 fn open_and_probe(
@@ -352,8 +344,22 @@ fn open_and_probe(
         return Ok((serial, Mode::Direct, None));
     }
     let (probe, split) = transport::probe(&mut serial, transport::PROBE_TIME)?;
+    if let Some(raw) = &probe.unread_hello {
+        return Err(other_protocol(port, raw));
+    }
     match (probe.hello, choice) {
+        (Some(h), _) if h.protocol != PROTOCOL_VERSION => Err(other_protocol(
+            port,
+            &serde_json::json!({"protocol": h.protocol, "firmware": h.firmware}),
+        )),
         (Some(h), _) => Ok((serial, Mode::Bridge, Some((h, split)))),
+        // JSON lines are a bridge's, never a TinyBMS's: TinyBMS frames sent
+        // at it would only be refused.
+        (None, ModeChoice::Auto) if probe.json_lines > 0 => Err(ToolError::connect(format!(
+            "something on `{port}` writes JSON lines ({} heard) but did not answer the \
+             hello: a bridge busy or stuck? Unplug it and plug it in again, then retry",
+            probe.json_lines
+        ))),
         (None, ModeChoice::Bridge) => Err(ToolError::connect(format!(
             "no bridge answered on `{port}` ({} bytes heard{}): is the bridge firmware \
              running on the board behind this port? A TinyBMS on a USB-UART adapter is \
@@ -367,6 +373,25 @@ fn open_and_probe(
         ))),
         (None, _) => Ok((serial, Mode::Direct, None)),
     }
+}
+
+/// A bridge whose hello this tool does not read, or whose protocol is not
+/// this tool's: its lines would be misread, so nothing more is sent to it.
+fn other_protocol(port: &str, hello: &serde_json::Value) -> ToolError {
+    let said = |k: &str| match hello.get(k) {
+        Some(serde_json::Value::String(s)) => s.clone(),
+        Some(v) if !v.is_null() => v.to_string(),
+        _ => "not given".to_string(),
+    };
+    ToolError::connect(format!(
+        "the bridge on `{port}` speaks another version of the host-link protocol \
+         (its protocol {}, firmware {}; this tool reads protocol {PROTOCOL_VERSION}, \
+         firmware {}): flash the firmware that matches this tool (docs/flashing.md), \
+         or use the tool released with the bridge's firmware",
+        said("protocol"),
+        said("firmware"),
+        env!("CARGO_PKG_VERSION"),
+    ))
 }
 
 fn choice(conn: &Conn) -> ModeChoice {

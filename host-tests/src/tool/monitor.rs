@@ -11,9 +11,10 @@
 use std::io::Write;
 use std::time::{Duration, Instant};
 
-use serde_json::{json, Value};
+use serde_json::json;
+use tinybms_firmware::host_link::lines::{HostLine, Link, Read, Telemetry};
 
-use super::client::Client;
+use super::client::{without_req, Client};
 pub use super::picture::*;
 use super::{interrupted, interrupted_error, ToolError, ToolResult};
 
@@ -57,9 +58,7 @@ pub fn run(client: &mut Client, o: &MonitorOptions) -> ToolResult<()> {
     };
     // A bridge keeps streaming at whatever period it was last asked for: give
     // it back the one it announced (also after Ctrl-C).
-    if let Some(p) = client.hello["stream_period_ms"].as_u64() {
-        let _ = client.stream(p as u32);
-    }
+    let _ = client.stream(client.hello.stream_period_ms);
     result
 }
 
@@ -70,12 +69,12 @@ fn pack_name(client: &mut Client) -> Option<String> {
         return None;
     }
     let (fields, _) = super::config::fetch(client).ok()?;
+    let id = tinybms_firmware::config::FieldId::PackName;
     fields
         .iter()
-        .find(|f| f.line["name"] == "pack_name")
-        .and_then(|f| f.line["value"].as_str())
+        .find(|f| f.name == id.name())
+        .map(|f| f.value.clone())
         .filter(|n| !n.is_empty())
-        .map(str::to_string)
 }
 
 /// What the monitor's first line says after its name: the pack's name when
@@ -105,10 +104,10 @@ fn watch(
 ) -> ToolResult<()> {
     let stdout = std::io::stdout();
     let header = format!("monitor — {title}");
-    let mut link: Option<Value> = None;
+    let mut link: Option<Link<Read>> = None;
     let mut next_link = Instant::now();
     let mut updates = 0u64;
-    let mut last: Option<(Value, Instant)> = None;
+    let mut last: Option<(Telemetry<Read>, Instant)> = None;
     let mut stale_said: Option<Instant> = None;
     loop {
         if interrupted() {
@@ -118,30 +117,34 @@ fn watch(
             break;
         }
         if o.view == View::Plain && Instant::now() >= next_link {
-            link = client.get_one("link").ok();
+            link = client.link().ok();
             next_link = Instant::now() + Duration::from_secs(5);
         }
         let wait = end.map_or(REDRAW, |e| {
             e.saturating_duration_since(Instant::now()).min(REDRAW)
         });
         let got = client.next_pushed(wait)?;
-        if let Some(b) = got
+        if let Some((b, text)) = got
             .as_ref()
-            .filter(|v| v["type"] == "battery" || v["type"] == "pack")
+            .and_then(|r| Some((r, render_battery_line(&r.line)?)))
         {
             // Packs in parallel: the battery and its packs after each picture.
             let mut out = stdout.lock();
             let said = if o.view == View::Json {
-                say(&mut out, format_args!("{b}"))
+                say(&mut out, format_args!("{}", b.raw))
             } else {
-                say(&mut out, format_args!("{}", render_battery_line(b)))
+                say(&mut out, format_args!("{text}"))
             };
             if !said {
                 return Ok(()); // the reader is gone (`| head`): done
             }
             continue;
         }
-        let Some(mut v) = got.filter(|v| v["type"] == "telemetry") else {
+        let Some((v, raw)) = got.and_then(|r| match r.line {
+            // The first picture answered our `get`: print it like the pushes.
+            HostLine::Telemetry(t) => Some((t, without_req(r.raw))),
+            _ => None,
+        }) else {
             // No new data: say so once it is old (every 10 s while it stays so).
             let f = freshness(
                 last.as_ref().map(|(t, _)| t),
@@ -169,19 +172,15 @@ fn watch(
             continue;
         };
         stale_said = None;
-        // The first picture answered our `get`: print it like the pushes.
-        if let Some(m) = v.as_object_mut() {
-            m.shift_remove("req");
-        }
         let received = Instant::now();
         let mut counted = false;
         if let Some(l) = logger.as_mut() {
-            counted |= l.log(&v)?;
+            counted |= l.log(&v, &raw)?;
         }
         let mut out = stdout.lock();
         let said = if o.view == View::Json {
             counted = true;
-            say(&mut out, format_args!("{v}"))
+            say(&mut out, format_args!("{raw}"))
         } else {
             let f = freshness(Some(&v), received.elapsed());
             counted |= logger.is_none();
@@ -217,42 +216,51 @@ pub fn log(client: &mut Client, duration: Option<Duration>) -> ToolResult<()> {
         }
         match client.next_pushed(Duration::from_millis(200)) {
             Err(e) => break Err(e),
-            Ok(Some(v)) if v["type"] == "log" => {
+            Ok(Some(r)) => {
+                let HostLine::Log(v) = r.line else {
+                    continue;
+                };
                 let mut out = stdout.lock();
                 // A line the bridge wrote at boot, kept for every host: no
                 // time of ours.
-                let when = if v["boot"] == true {
+                let when = if v.boot == Some(true) {
                     "at boot".to_string()
                 } else {
                     utc_now()[11..23].to_string()
                 };
                 let said = say(
                     &mut out,
-                    format_args!(
-                        "{:<12}  {:<4}  {}",
-                        when,
-                        v["level"].as_str().unwrap_or("?"),
-                        v["text"].as_str().unwrap_or("")
-                    ),
+                    format_args!("{:<12}  {:<4}  {}", when, v.level, v.text),
                 );
                 if !said {
                     break Ok(()); // the reader is gone (`| head`): done
                 }
             }
-            Ok(_) => {}
+            Ok(None) => {}
         }
     };
-    if let Some(p) = client.hello["stream_period_ms"].as_u64() {
-        let _ = client.stream(p as u32);
-    }
+    let _ = client.stream(client.hello.stream_period_ms);
     result
 }
 
 #[cfg(test)]
 mod tests {
     use super::{freshness, render_battery_line, Freshness};
-    use serde_json::json;
+    use serde_json::{json, Value};
     use std::time::Duration;
+    use tinybms_firmware::host_link::lines::{HostLine, Read, Telemetry};
+
+    /// A line as the tool reads it.
+    fn line(v: Value) -> HostLine {
+        serde_json::from_value(v).unwrap()
+    }
+
+    fn telemetry(v: Value) -> Telemetry<Read> {
+        match line(v) {
+            HostLine::Telemetry(t) => t,
+            other => panic!("not telemetry: {other:?}"),
+        }
+    }
 
     #[test]
     fn the_monitor_goes_stale_by_the_bridge_s_limit() {
@@ -262,7 +270,7 @@ mod tests {
             if let Some(l) = limit {
                 t["stale_after_ms"] = json!(l);
             }
-            freshness(Some(&t), Duration::from_millis(500))
+            freshness(Some(&telemetry(t)), Duration::from_millis(500))
         };
         // 6.5 s old: fresh by a bridge set to 10 s, stale by the default 5 s.
         assert!(matches!(with(Some(10_000), 6_000), Freshness::Fresh(_)));
@@ -271,7 +279,7 @@ mod tests {
         assert!(matches!(with(Some(5_000), 4_600), Freshness::NoData(_)));
         let offline = json!({"type":"telemetry","seq":3,"age_ms":0,"online":false,"ready":true});
         assert!(matches!(
-            freshness(Some(&offline), Duration::ZERO),
+            freshness(Some(&telemetry(offline)), Duration::ZERO),
             Freshness::Offline(_)
         ));
     }
@@ -283,21 +291,21 @@ mod tests {
             "min_cell_v":3.301,"max_cell_v":3.345,"min_temperature_c":21.5,"max_temperature_c":24.8,
             "cvl_v":55.2,"ccl_a":176.4,"dcl_a":352.8});
         assert_eq!(
-            render_battery_line(&b),
+            render_battery_line(&line(b)).unwrap(),
             "Battery (node 1 speaks to the inverter): 3 of 4 packs   840 Ah   SOC 65.4 %   53.20 V   -12.3 A   \
              cells 3.301 V to 3.345 V   sent: CVL 55.2 V  CCL 176.4 A  DCL 352.8 A"
         );
         let none = json!({"type":"battery","node":2,"speaking":false,"packs_online":0,"packs_offline":3,
             "capacity_ah":null,"soc_percent":null,"cvl_v":null,"ccl_a":null,"dcl_a":null});
         assert_eq!(
-            render_battery_line(&none),
+            render_battery_line(&line(none)).unwrap(),
             "Battery (node 2 listens): no pack takes part (3 known): the inverter is stopped"
         );
         let p = json!({"type":"pack","node":3,"state":"stale","speaking":false,"voltage_v":53.21,
             "current_a":-4.1,"soc_percent":65.43,"soh_percent":97,"min_cell_v":3.301,"max_cell_v":3.345,
             "capacity_ah":280.0,"data_age_s":12.5,"cvl_v":55.2,"ccl_a":58.8,"dcl_a":117.6});
         assert_eq!(
-            render_battery_line(&p),
+            render_battery_line(&line(p)).unwrap(),
             "  pack 3   STALE (its BMS data is old)   53.21 V   -4.1 A   SOC 65.4 %   cells 3.301 V to 3.345 V   \
              own CCL 58.8 A  DCL 117.6 A   data age 12.5 s"
         );

@@ -7,12 +7,14 @@ use std::io::Write;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use serde_json::{json, Value};
-use tinybms_firmware::host_link::lines::{HostLine, Inverter, Read};
+use tinybms_firmware::host_link::lines::{
+    Battery, HostLine, Inverter, Link, Pack, Read, Snapshot, Telemetry,
+};
 
 use super::{ToolError, ToolResult};
 
 pub use tinybms_rules::view::{
-    data_age, freshness, freshness_of, freshness_text, link_quality, rule_of, Freshness,
+    data_age, freshness, freshness_text, link_quality, rule_of, Freshness,
 };
 
 /// How often the picture is redrawn without new data (plain text: how often a
@@ -98,6 +100,17 @@ pub fn utc(secs: i64, millis: u32) -> String {
     )
 }
 
+/// A number as the bridge's line had it (and `--json` prints it): the
+/// shortest decimal that reads back as the same `f64`.
+pub fn json_number(x: f64) -> String {
+    serde_json::Number::from_f64(x).map_or_else(String::new, |n| n.to_string())
+}
+
+/// A member of the snapshot, when the line has one.
+fn snap<T>(t: &Telemetry<Read>, f: impl Fn(&Snapshot<Read>) -> Option<T>) -> Option<T> {
+    t.snapshot.as_ref().and_then(f)
+}
+
 fn fmt_opt(v: Option<f64>, decimals: usize, unit: &str) -> String {
     match v {
         Some(x) => format!("{x:.decimals$} {unit}"),
@@ -121,37 +134,37 @@ pub fn min_max(cells: &[f64]) -> Option<(usize, usize)> {
     Some((lo.0, hi.0))
 }
 
-/// A line from the bridge read into the firmware's own types
-/// (`host_link::lines`); `None` when it is not one.
-fn read_line(v: &Value) -> Option<HostLine> {
-    serde_json::from_value(v.clone()).ok()
+/// The cell voltages of a telemetry line (none before its first snapshot).
+pub fn cells_of(t: &Telemetry<Read>) -> &[f64] {
+    t.snapshot
+        .as_ref()
+        .map_or(&[][..], |s| s.cell_voltages_v.as_slice())
 }
 
 /// The plain-text picture of one telemetry line (no escape codes): what
 /// `monitor` prints when its output is not a terminal, or with `--plain`.
-pub fn render_text(t: &Value, link: Option<&Value>, header: &str, f: Freshness) -> String {
+pub fn render_text(
+    t: &Telemetry<Read>,
+    link: Option<&Link<Read>>,
+    header: &str,
+    f: Freshness,
+) -> String {
     let mut s = String::new();
     let mut line = |l: String| {
         s.push_str(l.trim_end());
         s.push('\n');
     };
     line(format!("TinyBMS {header}"));
-    let Some(HostLine::Telemetry(t)) = read_line(t) else {
-        line(format!("not a telemetry line the bridge writes: {t}"));
-        line(freshness_text(f));
-        return s;
-    };
-    let head = &t.head;
-    let Some(snap) = &t.snapshot else {
+    let Some(sn) = t.snapshot.as_ref() else {
         line(format!(
             "no snapshot yet (online {}, ready {}): waiting for the BMS...",
-            head.online, head.ready
+            t.head.online, t.head.ready
         ));
         line(freshness_text(f));
         return s;
     };
-    let v = snap.pack_voltage_v;
-    let i = snap.pack_current_a;
+    let v = sn.pack_voltage_v;
+    let i = sn.pack_current_a;
     let p = match (v, i) {
         (Some(v), Some(i)) => Some(v * i),
         _ => None,
@@ -161,22 +174,17 @@ pub fn render_text(t: &Value, link: Option<&Value>, header: &str, f: Freshness) 
         fmt_opt(v, 2, "V"),
         fmt_opt(i, 2, "A"),
         fmt_opt(p, 0, "W"),
-        fmt_opt(snap.soc_percent, 1, "%"),
-        fmt_opt(snap.soh_percent, 1, "%"),
+        fmt_opt(sn.soc_percent, 1, "%"),
+        fmt_opt(sn.soh_percent, 1, "%"),
     ));
-    let temp = |x: Option<f64>| match x {
-        Some(x) => format!("{x:.1} °C"),
-        None => "not connected".into(),
-    };
     line(format!(
         "Status {}   Temperatures: internal {}  external {} / {}",
-        snap.online_status,
-        temp(snap.internal_temperature_c),
-        temp(snap.external_temperature_1_c),
-        temp(snap.external_temperature_2_c),
+        sn.online_status,
+        temperature(sn.internal_temperature_c),
+        temperature(sn.external_temperature_1_c),
+        temperature(sn.external_temperature_2_c),
     ));
-    let left = snap.estimated_time_left_s;
-    let life = snap.lifetime_s;
+    let (left, life) = (sn.estimated_time_left_s, sn.lifetime_s);
     line(format!(
         "Time left {}h{:02}   BMS lifetime {}d {:02}:{:02}:{:02}",
         left / 3600,
@@ -186,8 +194,8 @@ pub fn render_text(t: &Value, link: Option<&Value>, header: &str, f: Freshness) 
         life / 60 % 60,
         life % 60
     ));
-    let cells = &snap.cell_voltages_v;
-    let balancing = u64::from(snap.real_balancing_bits);
+    let cells = cells_of(t);
+    let balancing = u64::from(sn.real_balancing_bits);
     if let Some((lo, hi)) = min_max(cells) {
         line(format!(
             "Cells ({})  lowest #{} {:.4} V  highest #{} {:.4} V  spread {:.1} mV   (< lowest, > highest, * balancing)",
@@ -213,32 +221,37 @@ pub fn render_text(t: &Value, link: Option<&Value>, header: &str, f: Freshness) 
             line(l);
         }
     }
-    if let Some(inv) = &t.told.inverter {
-        line(told_text(inv));
+    if let Some(inv) = inverter_text(t) {
+        line(inv);
     }
-    let flagged = match &snap.flagged {
+    let flagged = match &sn.flagged {
         Some(fl) => format!("   flagged: {fl}"),
         None => String::new(),
     };
-    line(format!("{}   seq {}{flagged}", freshness_text(f), head.seq));
-    if let Some(q) = link.and_then(link_quality) {
+    line(format!(
+        "{}   seq {}{flagged}",
+        freshness_text(f),
+        t.head.seq
+    ));
+    if let Some(q) = link.map(link_quality) {
         line(format!("Link {q}"));
     }
     s
 }
 
-/// What the inverter output does, from a `telemetry` line's `inverter`
-/// member: `Inverter victron: CAN running, inverter heard   CVL 56.8 V  CCL
-/// 60.0 A  DCL 60.0 A`. `None` for a bridge without CAN output.
-pub fn inverter_text(t: &Value) -> Option<String> {
-    match read_line(t)? {
-        HostLine::Telemetry(t) => t.told.inverter.as_ref().map(told_text),
-        _ => None,
+/// A temperature, or that its sensor is not connected.
+pub fn temperature(c: Option<f64>) -> String {
+    match c {
+        Some(x) => format!("{x:.1} °C"),
+        None => "not connected".into(),
     }
 }
 
-/// [`inverter_text`] of the member read.
-pub fn told_text(inv: &Inverter<Read>) -> String {
+/// What the inverter output does, from a `telemetry` line's `inverter`
+/// member: `Inverter victron: CAN running, inverter heard   CVL 56.8 V  CCL
+/// 60.0 A  DCL 60.0 A`. `None` for a bridge without CAN output.
+pub fn inverter_text(t: &Telemetry<Read>) -> Option<String> {
+    let inv: &Inverter<Read> = t.told.inverter.as_ref()?;
     let can = match inv.can.as_str() {
         "running" => "running".to_string(),
         "waiting" => "waiting (nothing sent yet)".to_string(),
@@ -258,65 +271,73 @@ pub fn told_text(inv: &Inverter<Read>) -> String {
         }
         _ => "no limits sent".to_string(),
     };
-    format!("Inverter {}: CAN {can}, {heard}   {told}", inv.protocol)
+    Some(format!(
+        "Inverter {}: CAN {can}, {heard}   {told}",
+        inv.protocol
+    ))
 }
 
 /// Packs in parallel: one line of text for a `battery` or `pack` line of a
-/// bridge with a node number (what `monitor --plain` prints after each picture).
-pub fn render_battery_line(v: &Value) -> String {
-    let f = |x: Option<f64>, d: usize, unit: &str| fmt_opt(x, d, unit);
-    match read_line(v) {
-        Some(HostLine::Battery(b)) => {
-            let online = b.packs_online;
-            let offline = b.packs_offline;
-            let who = if b.speaking {
-                format!("node {} speaks to the inverter", b.node)
-            } else {
-                format!("node {} listens", b.node)
-            };
-            if online == 0 {
-                return format!(
-                    "Battery ({who}): no pack takes part ({offline} known): the inverter is stopped"
-                );
-            }
-            format!(
-                "Battery ({who}): {online} of {} packs   {}   SOC {}   {}   {}   cells {} to {}   sent: CVL {}  CCL {}  DCL {}",
-                u16::from(online) + u16::from(offline),
-                f(b.capacity_ah, 0, "Ah"),
-                f(b.soc_percent, 1, "%"),
-                f(b.voltage_v, 2, "V"),
-                f(b.current_a, 1, "A"),
-                f(b.min_cell_v, 3, "V"),
-                f(b.max_cell_v, 3, "V"),
-                f(b.cvl_v, 1, "V"),
-                f(b.ccl_a, 1, "A"),
-                f(b.dcl_a, 1, "A"),
-            )
-        }
-        Some(HostLine::Pack(p)) => {
-            let state = match p.state.as_str() {
-                "part" => "in the battery",
-                "lost" => "LOST (no summary)",
-                "stale" => "STALE (its BMS data is old)",
-                "fault" => "FAULT (its switch is open)",
-                _ => "?",
-            };
-            format!(
-                "  pack {}{}  {state}   {}   {}   SOC {}   cells {} to {}   own CCL {}  DCL {}   data age {}",
-                p.node,
-                if p.speaking { "*" } else { " " },
-                f(p.voltage_v, 2, "V"),
-                f(p.current_a, 1, "A"),
-                f(p.soc_percent, 1, "%"),
-                f(p.min_cell_v, 3, "V"),
-                f(p.max_cell_v, 3, "V"),
-                f(p.ccl_a, 1, "A"),
-                f(p.dcl_a, 1, "A"),
-                f(p.data_age_s, 1, "s"),
-            )
-        }
-        _ => format!("not a battery or pack line the bridge writes: {v}"),
+/// bridge with a node number (what `monitor --plain` prints after each
+/// picture); `None` for any other line.
+pub fn render_battery_line(l: &HostLine) -> Option<String> {
+    match l {
+        HostLine::Battery(b) => Some(render_battery(b)),
+        HostLine::Pack(p) => Some(render_pack(p)),
+        _ => None,
     }
+}
+
+/// A `battery` line as text (see [`render_battery_line`]).
+pub fn render_battery(b: &Battery<Read>) -> String {
+    let (online, offline) = (u32::from(b.packs_online), u32::from(b.packs_offline));
+    let who = if b.speaking {
+        format!("node {} speaks to the inverter", b.node)
+    } else {
+        format!("node {} listens", b.node)
+    };
+    if online == 0 {
+        return format!(
+            "Battery ({who}): no pack takes part ({offline} known): the inverter is stopped"
+        );
+    }
+    format!(
+        "Battery ({who}): {online} of {} packs   {}   SOC {}   {}   {}   cells {} to {}   sent: CVL {}  CCL {}  DCL {}",
+        online + offline,
+        fmt_opt(b.capacity_ah, 0, "Ah"),
+        fmt_opt(b.soc_percent, 1, "%"),
+        fmt_opt(b.voltage_v, 2, "V"),
+        fmt_opt(b.current_a, 1, "A"),
+        fmt_opt(b.min_cell_v, 3, "V"),
+        fmt_opt(b.max_cell_v, 3, "V"),
+        fmt_opt(b.cvl_v, 1, "V"),
+        fmt_opt(b.ccl_a, 1, "A"),
+        fmt_opt(b.dcl_a, 1, "A"),
+    )
+}
+
+/// A `pack` line as text (see [`render_battery_line`]).
+pub fn render_pack(p: &Pack<Read>) -> String {
+    let state = match p.state.as_str() {
+        "part" => "in the battery",
+        "lost" => "LOST (no summary)",
+        "stale" => "STALE (its BMS data is old)",
+        "fault" => "FAULT (its switch is open)",
+        _ => "?",
+    };
+    format!(
+        "  pack {}{}  {state}   {}   {}   SOC {}   cells {} to {}   own CCL {}  DCL {}   data age {}",
+        p.node,
+        if p.speaking { "*" } else { " " },
+        fmt_opt(p.voltage_v, 2, "V"),
+        fmt_opt(p.current_a, 1, "A"),
+        fmt_opt(p.soc_percent, 1, "%"),
+        fmt_opt(p.min_cell_v, 3, "V"),
+        fmt_opt(p.max_cell_v, 3, "V"),
+        fmt_opt(p.ccl_a, 1, "A"),
+        fmt_opt(p.dcl_a, 1, "A"),
+        fmt_opt(p.data_age_s, 1, "s"),
+    )
 }
 
 /// The CSV header for `cells` cells.
@@ -333,49 +354,44 @@ pub fn csv_header(cells: usize) -> String {
     h
 }
 
-/// One CSV row of a telemetry line.
-pub fn csv_row(time: &str, t: &Value, cells: usize) -> String {
-    let field = |k: &str| match &t[k] {
-        Value::Null => String::new(),
-        Value::String(s) => s.clone(),
-        other => other.to_string(),
-    };
+/// One CSV row of a telemetry line: each value as the line had it, empty
+/// where it had none (the columns of [`csv_header`]).
+pub fn csv_row(time: &str, t: &Telemetry<Read>, cells: usize) -> String {
+    let num = |x: Option<f64>| x.map(json_number).unwrap_or_default();
+    let text = |x: Option<&str>| x.unwrap_or_default().to_string();
+    let of = |f: fn(&Snapshot<Read>) -> Option<f64>| num(snap(t, f));
+    let columns = [
+        t.head.seq.to_string(),
+        t.head.age_ms.map(|a| a.to_string()).unwrap_or_default(),
+        t.head.online.to_string(),
+        of(|s| s.pack_voltage_v),
+        of(|s| s.pack_current_a),
+        of(|s| s.soc_percent),
+        of(|s| s.soh_percent),
+        of(|s| s.min_cell_voltage_v),
+        of(|s| s.max_cell_voltage_v),
+        of(|s| s.internal_temperature_c),
+        of(|s| s.external_temperature_1_c),
+        of(|s| s.external_temperature_2_c),
+        text(t.snapshot.as_ref().map(|s| s.online_status.as_str())),
+        snap(t, |s| Some(s.real_balancing_bits.to_string())).unwrap_or_default(),
+        text(t.snapshot.as_ref().and_then(|s| s.flagged.as_deref())),
+        // What the inverter is told (empty without CAN output or limits).
+        num(t.told.inverter.as_ref().and_then(|i| i.cvl_v)),
+        num(t.told.inverter.as_ref().and_then(|i| i.ccl_a)),
+        num(t.told.inverter.as_ref().and_then(|i| i.dcl_a)),
+        text(t.told.inverter.as_ref().map(|i| i.can.as_str())),
+    ];
     let mut row = time.to_string();
-    for k in [
-        "seq",
-        "age_ms",
-        "online",
-        "pack_voltage_v",
-        "pack_current_a",
-        "soc_percent",
-        "soh_percent",
-        "min_cell_voltage_v",
-        "max_cell_voltage_v",
-        "internal_temperature_c",
-        "external_temperature_1_c",
-        "external_temperature_2_c",
-        "online_status",
-        "real_balancing_bits",
-        "flagged",
-    ] {
+    for c in columns {
         row.push(',');
-        row.push_str(&field(k));
+        row.push_str(&c);
     }
-    // What the inverter is told (empty without CAN output or limits).
-    let inv = t.get("inverter").cloned().unwrap_or(Value::Null);
-    for k in ["cvl_v", "ccl_a", "dcl_a", "can"] {
-        row.push(',');
-        row.push_str(&match &inv[k] {
-            Value::Null => String::new(),
-            Value::String(s) => s.clone(),
-            other => other.to_string(),
-        });
-    }
-    let list = t["cell_voltages_v"].as_array().cloned().unwrap_or_default();
+    let list = cells_of(t);
     for k in 0..cells {
         row.push(',');
         if let Some(c) = list.get(k) {
-            row.push_str(&c.to_string());
+            row.push_str(&json_number(*c));
         }
     }
     row
@@ -392,8 +408,10 @@ pub(crate) struct Logger {
 }
 
 impl Logger {
-    pub(crate) fn log(&mut self, t: &Value) -> ToolResult<bool> {
-        if Instant::now() < self.next || t.get("pack_voltage_v").is_none() {
+    /// Logs `t` (`raw`: the JSON it came as, without its `req`) when it is
+    /// time to and the line has a snapshot; true when it did.
+    pub(crate) fn log(&mut self, t: &Telemetry<Read>, raw: &Value) -> ToolResult<bool> {
+        if Instant::now() < self.next || t.snapshot.is_none() {
             return Ok(false);
         }
         self.next += self.every;
@@ -404,7 +422,7 @@ impl Logger {
         let err = |e: std::io::Error| ToolError::failed(format!("writing the log: {e}"));
         match self.format {
             LogFormat::Csv => {
-                let n = t["cell_count"].as_u64().unwrap_or(0) as usize;
+                let n = snap(t, |s| Some(usize::from(s.cell_count))).unwrap_or(0);
                 let first = self.cells.is_none();
                 let cells = *self.cells.get_or_insert(n);
                 let header = csv_header(cells);
@@ -424,7 +442,7 @@ impl Logger {
                 writeln!(self.out, "{}", csv_row(&time, t, cells)).map_err(err)?;
             }
             LogFormat::JsonLines => {
-                let mut v = t.clone();
+                let mut v = raw.clone();
                 if let Some(m) = v.as_object_mut() {
                     m.insert("time".into(), json!(time));
                 }

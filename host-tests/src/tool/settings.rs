@@ -3,7 +3,7 @@
 //! and the `NAME=VALUE` arguments of `set`.
 
 use protocol_core::settings::SettingId;
-use serde_json::Value;
+use tinybms_firmware::host_link::lines::{Read, SettingLine};
 
 use crate::profile::{find_setting, snake_name};
 
@@ -14,7 +14,7 @@ pub use tinybms_rules::settings::{check_all, parse_set_arg, physical, Chem};
 /// ([`tinybms_rules::settings::chemistry_of`]), said on stdout when a cell
 /// voltage is written.
 pub fn chemistry_of(
-    current: &[Value],
+    current: &[SettingLine<Read>],
     items: &[(SettingId, i32)],
     check: protocol_core::settings::ChemistryCheck,
 ) -> Option<Chem> {
@@ -25,15 +25,15 @@ pub fn chemistry_of(
     chem
 }
 
-fn range(min: &Value, max: &Value, unit: &str) -> String {
-    match (min.as_f64(), max.as_f64()) {
+fn range(min: Option<f64>, max: Option<f64>, unit: &str) -> String {
+    match (min, max) {
         (Some(a), Some(b)) => format!("{}..{} {unit}", short(a), short(b)),
         _ => "-".into(),
     }
 }
 
 /// The `settings` table, one row per `setting` line.
-pub fn render_table(lines: &[Value]) -> String {
+pub fn render_table(lines: &[SettingLine<Read>]) -> String {
     let mut rows = vec![[
         "name".to_string(),
         "value".to_string(),
@@ -41,16 +41,16 @@ pub fn render_table(lines: &[Value]) -> String {
         "Rev D range".to_string(),
         "BMS min..max".to_string(),
     ]];
-    for l in lines.iter().filter(|l| l["type"] == "setting") {
-        let unit = l["unit"].as_str().unwrap_or("");
-        let value = match l["value"].as_f64() {
+    for l in lines {
+        let unit = l.unit.as_str();
+        let value = match l.value {
             Some(v) if unit.is_empty() => short(v),
             Some(v) => format!("{} {unit}", short(v)),
             None => "-".into(),
         };
         // Not read (`raw` null): no value, whatever the setting.
-        let raw = l["raw"].as_i64();
-        let value = match (find_setting(l["name"].as_str().unwrap_or("")), raw) {
+        let raw = l.raw.map(i64::from);
+        let value = match (find_setting(&l.name), raw) {
             (Some(id), Some(0xFFFF)) if id.reads_back_marker() => {
                 "- (write-only: reads 0xFFFF)".to_string()
             }
@@ -60,11 +60,12 @@ pub fn render_table(lines: &[Value]) -> String {
             _ => value,
         };
         rows.push([
-            l["name"].as_str().unwrap_or("?").to_string(),
+            l.name.clone(),
             value,
-            l["raw"].to_string(),
-            range(&l["min"], &l["max"], unit),
-            range(&l["bms_min"], &l["bms_max"], unit),
+            // As the line has it: `null` when not read.
+            raw.map_or_else(|| "null".to_string(), |r| r.to_string()),
+            range(l.min, l.max, unit),
+            range(l.bms_min, l.bms_max, unit),
         ]);
     }
     let mut widths = [0usize; 5];
@@ -160,10 +161,10 @@ pub const GROUPS: &[(&str, &[SettingId])] = {
 
 /// The `settings` table in [`GROUPS`], one heading per group; a setting in no
 /// group (none today: a test checks) comes last under "Other".
-pub fn render_groups(lines: &[Value]) -> String {
-    let name_of = |l: &Value| l["name"].as_str().and_then(find_setting);
+pub fn render_groups(lines: &[SettingLine<Read>]) -> String {
+    let name_of = |l: &SettingLine<Read>| find_setting(&l.name);
     let mut out = String::new();
-    let mut groups: Vec<(&str, Vec<Value>)> = GROUPS
+    let mut groups: Vec<(&str, Vec<SettingLine<Read>>)> = GROUPS
         .iter()
         .map(|(g, ids)| {
             let rows = ids
@@ -173,9 +174,8 @@ pub fn render_groups(lines: &[Value]) -> String {
             (*g, rows)
         })
         .collect();
-    let other: Vec<Value> = lines
+    let other: Vec<SettingLine<Read>> = lines
         .iter()
-        .filter(|l| l["type"] == "setting")
         .filter(|l| {
             !GROUPS
                 .iter()
@@ -185,7 +185,7 @@ pub fn render_groups(lines: &[Value]) -> String {
         .collect();
     groups.push(("Other", other));
     // One width for all groups, so the columns line up down the page.
-    let all: Vec<Value> = groups.iter().flat_map(|(_, r)| r.iter().cloned()).collect();
+    let all: Vec<SettingLine<Read>> = groups.iter().flat_map(|(_, r)| r.iter().cloned()).collect();
     let table = render_table(&all);
     let mut rows = table.lines();
     // Indented like the rows under their group headings.
@@ -213,7 +213,7 @@ pub fn render_groups(lines: &[Value]) -> String {
 /// `host_tests::profile::parse_profile` (and so by `apply` and `sim --profile`).
 /// Settings that read back a marker instead of their value are left as
 /// comments.
-pub fn profile_text(lines: &[Value], header: &str) -> (String, usize) {
+pub fn profile_text(lines: &[SettingLine<Read>], header: &str) -> (String, usize) {
     let mut saved = 0;
     let mut out = String::new();
     for l in header.lines() {
@@ -223,9 +223,9 @@ pub fn profile_text(lines: &[Value], header: &str) -> (String, usize) {
         "# One setting per line: `name = value` in raw register units (Rev D §3.4);\n\
          # the comment gives the physical value. `tinybms apply PORT FILE` writes it back.\n\n",
     );
-    for l in lines.iter().filter(|l| l["type"] == "setting") {
-        let name = l["name"].as_str().unwrap_or("?");
-        let Some(raw) = l["raw"].as_i64() else {
+    for l in lines {
+        let name = l.name.as_str();
+        let Some(raw) = l.raw.map(i64::from) else {
             continue;
         };
         match find_setting(name) {
@@ -255,14 +255,10 @@ pub struct Change {
 
 /// The settings of `wanted` whose value differs from the bridge's `current`
 /// lines (later duplicates in the profile win).
-pub fn diff(current: &[Value], wanted: &[(SettingId, i32)]) -> Vec<Change> {
+pub fn diff(current: &[SettingLine<Read>], wanted: &[(SettingId, i32)]) -> Vec<Change> {
     let mut out: Vec<Change> = Vec::new();
     for &(id, to) in wanted {
-        let name = snake_name(id);
-        let from = current
-            .iter()
-            .find(|l| l["type"] == "setting" && l["name"] == name.as_str())
-            .and_then(|l| l["raw"].as_i64());
+        let from = tinybms_rules::settings::held(current, id).map(i64::from);
         out.retain(|c| c.id != id);
         if from != Some(i64::from(to)) {
             out.push(Change {
@@ -299,11 +295,24 @@ pub fn render_diff(changes: &[Change], unchanged: usize) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use serde_json::json;
+    use serde_json::{json, Value};
+    use tinybms_firmware::host_link::lines::HostLine;
 
-    fn line(name: &str, raw: i64, value: f64, unit: &str) -> Value {
-        json!({"type":"setting","name":name,"raw":raw,"value":value,"unit":unit,
-               "min":1.2,"max":4.5,"bms_min":null,"bms_max":null})
+    /// A `setting` line as the tool reads it.
+    fn setting(v: Value) -> SettingLine<Read> {
+        match serde_json::from_value(v).unwrap() {
+            HostLine::Setting(s) => s,
+            other => panic!("not a setting: {other:?}"),
+        }
+    }
+
+    /// A `setting` line as the bridge writes it.
+    fn line(name: &str, raw: i64, value: f64, unit: &str) -> SettingLine<Read> {
+        let address = find_setting(name).unwrap().address();
+        setting(
+            json!({"type":"setting","name":name,"address":address,"raw":raw,"value":value,
+               "unit":unit,"min":1.2,"max":4.5,"bms_min":null,"bms_max":null}),
+        )
     }
 
     #[test]
@@ -350,8 +359,11 @@ mod tests {
     #[test]
     fn unread_setting_shows_no_value() {
         for name in ["charger_type", "over_voltage_cutoff", "configuration_flags"] {
-            let lines = vec![json!({"type":"setting","name":name,"raw":null,"value":null,
-                "unit":"","min":0.0,"max":2.0,"bms_min":null,"bms_max":null})];
+            let address = find_setting(name).unwrap().address();
+            let lines = vec![setting(
+                json!({"type":"setting","name":name,"address":address,"raw":null,"value":null,
+                "unit":"","min":0.0,"max":2.0,"bms_min":null,"bms_max":null}),
+            )];
             let table = render_table(&lines);
             let row = table.lines().nth(1).unwrap();
             let cols: Vec<&str> = row

@@ -13,7 +13,9 @@ use std::io::{Read, Write};
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
+use tinybms_firmware::host_link::lines::{self, Hello, HostLine};
 
+use super::client::Received;
 use super::{ToolError, ToolResult};
 
 /// Longest line accepted from the bridge; longer ones are discarded up to the
@@ -238,11 +240,15 @@ pub fn open_port(path: &str) -> ToolResult<Box<dyn serialport::SerialPort>> {
 #[derive(Debug, Default)]
 pub struct ProbeResult {
     /// The `hello` line, when a bridge answered.
-    pub hello: Option<Value>,
+    pub hello: Option<Hello<lines::Read>>,
     /// Bytes received in all.
     pub bytes: usize,
     /// Complete JSON objects received that were not a hello.
     pub json_lines: usize,
+    /// A line that says it is a `hello` but that this tool's line types do
+    /// not read (a bridge whose firmware speaks another version of the
+    /// protocol): kept to name it in the error.
+    pub unread_hello: Option<Value>,
 }
 
 /// How long the probe waits for a `hello` answer (twice: the hello is sent
@@ -289,11 +295,20 @@ pub fn probe(
         }
         while let Some(line) = split.next_line() {
             match serde_json::from_str::<Value>(&line) {
-                Ok(v) if v["type"] == "hello" => {
-                    result.hello = Some(v);
-                    return Ok((result, split));
-                }
-                Ok(v) if v.is_object() => result.json_lines += 1,
+                Ok(v) if v.is_object() => match Received::of(v.clone()) {
+                    Some(Received {
+                        line: HostLine::Hello(h),
+                        ..
+                    }) => {
+                        result.hello = Some(h);
+                        return Ok((result, split));
+                    }
+                    _ if v.get("type").and_then(Value::as_str) == Some("hello") => {
+                        result.unread_hello = Some(v);
+                        return Ok((result, split));
+                    }
+                    _ => result.json_lines += 1,
+                },
                 _ => {}
             }
         }

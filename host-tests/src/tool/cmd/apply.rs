@@ -22,7 +22,7 @@ pub fn run(
     let wanted =
         parse_profile(&text).map_err(|e| ToolError::usage(format!("{}: {e}", file.display())))?;
     let mut c = connect_ready(&conn)?;
-    let current = c.get("settings")?;
+    let current = c.settings()?;
     let chem = settings::chemistry_of(&current, &wanted, chemistry);
     settings::check_all(&current, &wanted, None, chem.as_ref()).map_err(ToolError::failed)?;
     let changes = settings::diff(&current, &wanted);

@@ -116,7 +116,7 @@ pub fn run_config(
             .filter(|name| {
                 fields
                     .iter()
-                    .any(|f| f.line["name"] == name.as_str() && f.line["value"] == "unset")
+                    .any(|f| f.name == **name && f.value == "unset")
             })
             .collect();
         let say_missing = || {
@@ -148,7 +148,7 @@ pub fn run_config(
     if let Some(id) = explain {
         let f = fields
             .iter()
-            .find(|f| f.line["name"] == id.name())
+            .find(|f| f.name == id.name())
             .ok_or_else(|| ToolError::failed(format!("the bridge has no field `{}`", id.name())))?;
         print!("{}", config::render_one(f));
         return Ok(());
@@ -162,7 +162,7 @@ pub fn run_config(
         );
         std::fs::write(path, config::file_text(&fields, &header))
             .map_err(|e| ToolError::failed(format!("cannot write `{}`: {e}", path.display())))?;
-        let secrets = fields.iter().filter(|f| f.line["secret"] == true).count();
+        let secrets = fields.iter().filter(|f| f.secret).count();
         println!(
             "saved {} fields to {} ({secrets} secrets left out)",
             fields.len() - secrets,
@@ -230,9 +230,8 @@ fn print_changes(
         tinybms_firmware::config::value::write(id.field(), &p.as_value(), true, &mut l);
         let now = fields
             .iter()
-            .find(|f| f.line["name"] == id.name())
-            .and_then(|f| f.line["value"].as_str())
-            .unwrap_or("?");
+            .find(|f| f.name == id.name())
+            .map_or("?", |f| f.value.as_str());
         println!("  {:<24} {now} -> {}", id.name(), l.as_str());
     }
 }

@@ -1,6 +1,7 @@
 //! `tinybms events`: The BMS's event log, with wall-clock times from its lifetime counter.
 
-use serde_json::{json, Value};
+use serde_json::json;
+use tinybms_firmware::host_link::lines::HostLine;
 
 use crate::tool::cli::Conn;
 use crate::tool::{connect_ready, monitor, ToolResult};
@@ -11,31 +12,38 @@ pub fn run(conn: Conn, json: bool) -> ToolResult<()> {
     let events = c.get("events")?;
     // The BMS's clock: its lifetime counter now, against ours.
     let lifetime = c
-        .get_one("snapshot")
+        .snapshot()
         .ok()
-        .and_then(|t| t["lifetime_s"].as_u64());
+        .and_then(|t| t.snapshot.map(|s| u64::from(s.lifetime_s)));
     let now = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_secs() as i64)
         .unwrap_or(0);
     let wall = |ts: u64| lifetime.map(|l| monitor::utc(now - (l as i64 - ts as i64), 0));
-    let list: Vec<&Value> = events.iter().filter(|e| e["type"] == "event").collect();
+    // Each `event` line, and the JSON it came as.
+    let list: Vec<_> = events
+        .iter()
+        .filter_map(|r| match &r.line {
+            HostLine::Event(e) => Some((e, &r.raw)),
+            _ => None,
+        })
+        .collect();
     if json {
-        for e in list {
-            let mut e = e.clone();
-            let w = wall(e["timestamp_s"].as_u64().unwrap_or(0));
-            if let (Some(m), Some(w)) = (e.as_object_mut(), w) {
+        for (e, raw) in list {
+            let mut raw = raw.clone();
+            let w = wall(u64::from(e.timestamp_s));
+            if let (Some(m), Some(w)) = (raw.as_object_mut(), w) {
                 m.insert("time".into(), json!(w));
             }
-            println!("{e}");
+            println!("{raw}");
         }
         return Ok(());
     }
     if list.is_empty() {
         println!("no events");
     }
-    for e in list {
-        let t = e["timestamp_s"].as_u64().unwrap_or(0);
+    for (e, _) in list {
+        let t = u64::from(e.timestamp_s);
         let when = wall(t)
             .map(|w| format!("{}  ", &w[..19].replace('T', " ")))
             .unwrap_or_default();
@@ -45,9 +53,9 @@ pub fn run(conn: Conn, json: bool) -> ToolResult<()> {
             t / 3600 % 24,
             t / 60 % 60,
             t % 60,
-            e["id"].as_u64().unwrap_or(0),
-            e["severity"].as_str().unwrap_or("?"),
-            e["name"].as_str().unwrap_or("?")
+            e.id,
+            e.severity,
+            e.name
         );
     }
     if lifetime.is_some() {

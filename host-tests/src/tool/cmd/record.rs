@@ -4,6 +4,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use serde_json::json;
+use tinybms_firmware::host_link::lines::{HostLine, Raw, Read};
 
 use crate::capture::{parse_hex, CaptureWriter};
 use crate::tool::cli::Conn;
@@ -11,6 +12,11 @@ use crate::tool::client::{self, Client};
 use crate::tool::transport::Mode;
 use crate::tool::transport::SerialLines;
 use crate::tool::{choice, direct, interrupted, monitor, open_and_probe, ToolError, ToolResult};
+
+/// A `raw` line's bytes went to the BMS (else they came from it).
+fn is_tx(r: &Raw<Read>) -> bool {
+    r.dir == "tx"
+}
 
 pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
     let path = file.display().to_string();
@@ -58,15 +64,15 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
             // Ctrl-C ends the recording early; capture goes off all the same.
             while Instant::now() < end && !interrupted() {
                 let left = end.saturating_duration_since(Instant::now());
-                let Some(v) = c.next_pushed(left.min(Duration::from_millis(200)))? else {
+                let Some(r) = c.next_pushed(left.min(Duration::from_millis(200)))? else {
                     continue;
                 };
-                if v["type"] != "raw" {
+                let HostLine::Raw(v) = r.line else {
                     continue;
-                }
-                let bytes = parse_hex(v["hex"].as_str().unwrap_or(""))
+                };
+                let bytes = parse_hex(&v.hex)
                     .map_err(|e| ToolError::failed(format!("a raw line the bridge sent: {e}")))?;
-                if v["dir"] == "tx" {
+                if is_tx(&v) {
                     writer.tx(&bytes).map_err(werr)?;
                     tx += bytes.len();
                 } else {
@@ -78,15 +84,15 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
             let req = c.send(json!({"cmd": "capture", "on": false}))?;
             // Raw lines still queued before the answer are part of the capture.
             loop {
-                let Some(v) = c.recv(Duration::from_secs(5))? else {
+                let Some(r) = c.recv(Duration::from_secs(5))? else {
                     break;
                 };
-                if v["req"] == json!(req) {
+                if r.line.req() == Some(req) {
                     break;
                 }
-                if v["type"] == "raw" {
-                    if let Ok(bytes) = parse_hex(v["hex"].as_str().unwrap_or("")) {
-                        if v["dir"] == "tx" {
+                if let HostLine::Raw(v) = r.line {
+                    if let Ok(bytes) = parse_hex(&v.hex) {
+                        if is_tx(&v) {
                             writer.tx(&bytes).map_err(werr)?;
                         } else {
                             writer.rx(&bytes).map_err(werr)?;
@@ -94,11 +100,7 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
                     }
                 }
             }
-            if let Some(dropped) = c
-                .get_one("link")
-                .ok()
-                .and_then(|l| l["dropped_lines"].as_u64())
-            {
+            if let Some(dropped) = c.link().ok().map(|l| l.dropped_lines) {
                 if dropped > 0 {
                     let _ = writer.comment(&format!(
                         "the bridge dropped {dropped} output lines since it started (raw lines may be missing)"

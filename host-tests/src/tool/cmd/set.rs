@@ -34,7 +34,7 @@ pub fn run(
         items.push((id, value));
     }
     let mut c = connect_ready(&conn)?;
-    let current = c.get("settings")?;
+    let current = c.settings()?;
     let chem = settings::chemistry_of(&current, &items, chemistry);
     settings::check_all(&current, &items, Some(&bare), chem.as_ref()).map_err(ToolError::failed)?;
     if dry_run {

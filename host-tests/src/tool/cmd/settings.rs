@@ -3,19 +3,22 @@
 use std::path::PathBuf;
 
 use crate::tool::cli::Conn;
+use crate::tool::client::setting_lines;
 use crate::tool::transport::Mode;
 use crate::tool::{connect_ready, monitor, serial_suffix, settings, ToolError, ToolResult};
 
 /// Runs `tinybms settings`.
 pub fn run(conn: Conn, save: Option<PathBuf>, json: bool) -> ToolResult<()> {
     let mut c = connect_ready(&conn)?;
-    let lines = c.get("settings")?;
+    let got = c.get("settings")?;
     if json {
-        for l in &lines {
-            println!("{l}");
+        // As the bridge wrote them.
+        for r in &got {
+            println!("{}", r.raw);
         }
         return Ok(());
     }
+    let lines = setting_lines(&got);
     print!("{}", settings::render_groups(&lines));
     if let Some(path) = &save {
         let serial = serial_suffix(&mut c);

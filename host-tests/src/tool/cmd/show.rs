@@ -1,63 +1,67 @@
 //! `tinybms stats`, `tinybms version`: one block of the BMS's, as text or JSON.
 
-use serde_json::Value;
+use serde_json::{json, Map, Value};
+use tinybms_firmware::host_link::lines::{Hello, HostLine, Read, StatisticsLine, Store};
 
 use crate::tool::cli::Conn;
+use crate::tool::client::Received;
+use crate::tool::picture::json_number;
 use crate::tool::{connect_ready, ToolResult};
 
 pub fn show_one(conn: &Conn, what: &str, json: bool) -> ToolResult<()> {
     let mut c = connect_ready(conn)?;
-    let v = c.get_one(what)?;
+    let got = c.get_one(what)?;
     if json {
-        let mut v = v;
-        if let Some(m) = v.as_object_mut() {
-            m.shift_remove("req");
-        }
-        println!("{v}");
-    } else if what == "statistics" {
+        println!("{}", got.raw_without_req());
+    } else if let HostLine::Statistics(s) = &got.line {
         // The BMS's clock now (its lifetime counter), to say when the
         // statistics were cleared.
         let now_s = c
-            .get_one("snapshot")
+            .snapshot()
             .ok()
-            .and_then(|t| t["lifetime_s"].as_u64());
-        print!("{}", statistics_text(&v, now_s));
+            .and_then(|t| t.snapshot.map(|s| u64::from(s.lifetime_s)));
+        print!("{}", statistics_text(s, &got.raw, now_s));
     } else {
-        print_fields(&v);
+        print_fields(&got);
     }
     Ok(())
 }
 
-/// The words and unit of each member of a `statistics` line.
-const STATISTICS: &[(&str, &str, &str)] = &[
-    ("total_distance_km", "total distance", "km"),
-    ("max_discharge_current_a", "highest discharge current", "A"),
-    ("max_charge_current_a", "highest charge current", "A"),
-    (
-        "max_cell_voltage_difference_v",
-        "largest cell voltage difference",
-        "V",
-    ),
-    ("under_voltage_count", "under-voltage protections", ""),
-    ("over_voltage_count", "over-voltage protections", ""),
-    (
-        "discharge_over_current_count",
-        "discharge over-current protections",
-        "",
-    ),
-    (
-        "charge_over_current_count",
-        "charge over-current protections",
-        "",
-    ),
-    ("over_heat_count", "over-heat protections", ""),
-    ("charging_count", "charges", ""),
-    ("full_charge_count", "full charges", ""),
-    ("min_pack_temperature_c", "lowest pack temperature", "°C"),
-    ("max_pack_temperature_c", "highest pack temperature", "°C"),
-    ("last_reset", "last reset", ""),
-    ("last_wakeup", "last wake-up", ""),
-];
+/// The members of `raw` (a line as it came) that its type does not have (a
+/// newer bridge's), as they came; `typed`: the line as read, written back.
+fn unknown_members(typed: &Value, raw: &Value) -> Vec<(String, Value)> {
+    let known =
+        |k: &str| k == "type" || k == "req" || typed.as_object().is_some_and(|m| m.contains_key(k));
+    raw.as_object()
+        .into_iter()
+        .flatten()
+        .filter(|(k, _)| !known(k))
+        .map(|(k, v)| (k.clone(), v.clone()))
+        .collect()
+}
+
+/// The members of a line beside its type and `req`, in the order the bridge
+/// writes them: the ones its type has, as read (`typed`: written back), then
+/// the ones it does not have, as they came in `raw`.
+fn members(typed: Value, raw: &Value) -> Vec<(String, Value)> {
+    let mut out: Vec<(String, Value)> = typed
+        .as_object()
+        .into_iter()
+        .flatten()
+        .filter(|(k, _)| *k != "type" && *k != "req")
+        .map(|(k, v)| (k.clone(), v.clone()))
+        .collect();
+    out.extend(unknown_members(&typed, raw));
+    out
+}
+
+/// A member's value as text: text as it is, anything else as JSON.
+fn value_text(x: &Value) -> String {
+    match x {
+        Value::String(s) => s.clone(),
+        other => other.to_string(),
+    }
+}
 
 /// A duration in whole units, the two largest: `23 d 3 h`, `3 h 12 min`,
 /// `12 min 5 s`, `45 s`.
@@ -103,19 +107,65 @@ fn reason_words(key: &str, reset: bool) -> String {
 
 /// `tinybms stats` as text: each statistic in words with its unit; when they
 /// were cleared as a time ago by the BMS's clock `now_s` (its lifetime
-/// counter), with the BMS's timestamp.
-pub fn statistics_text(v: &Value, now_s: Option<u64>) -> String {
+/// counter), with the BMS's timestamp. `raw`: the line as it came, for the
+/// members this tool does not know yet.
+pub fn statistics_text(v: &StatisticsLine<Read>, raw: &Value, now_s: Option<u64>) -> String {
+    let num = |x: Option<f64>| x.map(json_number);
+    let count = |n: u16| Some(n.to_string());
+    // Each statistic: its words, its value (none: not known), its unit.
+    let known: [(&str, Option<String>, &str); 15] = [
+        ("total distance", num(v.total_distance_km), "km"),
+        (
+            "highest discharge current",
+            num(v.max_discharge_current_a),
+            "A",
+        ),
+        ("highest charge current", num(v.max_charge_current_a), "A"),
+        (
+            "largest cell voltage difference",
+            num(v.max_cell_voltage_difference_v),
+            "V",
+        ),
+        (
+            "under-voltage protections",
+            count(v.under_voltage_count),
+            "",
+        ),
+        ("over-voltage protections", count(v.over_voltage_count), ""),
+        (
+            "discharge over-current protections",
+            count(v.discharge_over_current_count),
+            "",
+        ),
+        (
+            "charge over-current protections",
+            count(v.charge_over_current_count),
+            "",
+        ),
+        ("over-heat protections", count(v.over_heat_count), ""),
+        ("charges", count(v.charging_count), ""),
+        ("full charges", count(v.full_charge_count), ""),
+        (
+            "lowest pack temperature",
+            Some(v.min_pack_temperature_c.to_string()),
+            "°C",
+        ),
+        (
+            "highest pack temperature",
+            Some(v.max_pack_temperature_c.to_string()),
+            "°C",
+        ),
+        ("last reset", Some(reason_words(&v.last_reset, true)), ""),
+        (
+            "last wake-up",
+            Some(reason_words(&v.last_wakeup, false)),
+            "",
+        ),
+    ];
     let mut rows: Vec<(String, String)> = Vec::new();
-    for (key, words, unit) in STATISTICS {
-        let x = &v[*key];
-        if x.is_null() {
+    for (words, text, unit) in known {
+        let Some(text) = text else {
             continue;
-        }
-        let text = match (x, *key) {
-            (Value::String(s), "last_reset") => reason_words(s, true),
-            (Value::String(s), "last_wakeup") => reason_words(s, false),
-            (Value::String(s), _) => s.clone(),
-            (other, _) => other.to_string(),
         };
         let text = if unit.is_empty() {
             text
@@ -124,30 +174,20 @@ pub fn statistics_text(v: &Value, now_s: Option<u64>) -> String {
         };
         rows.push((words.to_string(), text));
     }
-    if let Some(at) = v["stats_cleared_at_s"].as_u64() {
-        let text = match now_s {
-            Some(now) if now >= at => format!(
-                "{} ago (BMS time {at} s; now {now} s)",
-                duration_words(now - at)
-            ),
-            Some(now) => format!("at BMS time {at} s (ahead of its clock now, {now} s)"),
-            None => format!("at BMS time {at} s"),
-        };
-        rows.push(("statistics cleared".into(), text));
-    }
+    let at = u64::from(v.stats_cleared_at_s);
+    let text = match now_s {
+        Some(now) if now >= at => format!(
+            "{} ago (BMS time {at} s; now {now} s)",
+            duration_words(now - at)
+        ),
+        Some(now) => format!("at BMS time {at} s (ahead of its clock now, {now} s)"),
+        None => format!("at BMS time {at} s"),
+    };
+    rows.push(("statistics cleared".into(), text));
     // Members this tool does not know yet, as they come.
-    if let Some(m) = v.as_object() {
-        for (k, x) in m {
-            let known = STATISTICS.iter().any(|(key, _, _)| key == k);
-            if known || ["type", "req", "stats_cleared_at_s"].contains(&k.as_str()) {
-                continue;
-            }
-            let text = match x {
-                Value::String(s) => s.clone(),
-                other => other.to_string(),
-            };
-            rows.push((k.clone(), text));
-        }
+    let typed = serde_json::to_value(v).unwrap_or(Value::Null);
+    for (k, x) in unknown_members(&typed, raw) {
+        rows.push((k, value_text(&x)));
     }
     let w = rows
         .iter()
@@ -180,7 +220,7 @@ fn mqtt_text(key: &str) -> String {
 /// Where the bridge's configuration store lives (`hello`'s `store`), in
 /// words: `flash 4096 KiB, nvs partition at 0x9000, 24 KiB (the store needs
 /// 8 KiB)`, and why it cannot hold the store when it cannot.
-fn store_text(v: &Value) -> String {
+fn store_text(v: &Store<Read>) -> String {
     let kib = |b: u64| {
         if b.is_multiple_of(1024) {
             format!("{} KiB", b / 1024)
@@ -188,24 +228,24 @@ fn store_text(v: &Value) -> String {
             format!("{b} bytes")
         }
     };
-    let mut out = match v["flash_kib"].as_u64() {
-        Some(0) => "flash size not reported".to_string(),
-        Some(k) => format!("flash {k} KiB"),
-        None => "flash ?".to_string(),
+    let mut out = match v.flash_kib {
+        0 => "flash size not reported".to_string(),
+        k => format!("flash {k} KiB"),
     };
-    match (
-        v["partition_offset"].as_u64(),
-        v["partition_bytes"].as_u64(),
-    ) {
+    match (v.partition_offset, v.partition_bytes) {
         (Some(at), Some(len)) => {
-            out.push_str(&format!(", nvs partition at {at:#x}, {}", kib(len)));
+            out.push_str(&format!(
+                ", nvs partition at {at:#x}, {}",
+                kib(u64::from(len))
+            ));
         }
         _ => out.push_str(", no nvs partition"),
     }
-    if let Some(n) = v["needs_bytes"].as_u64() {
-        out.push_str(&format!(" (the store needs {})", kib(n)));
-    }
-    if let Some(p) = v["problem"].as_str() {
+    out.push_str(&format!(
+        " (the store needs {})",
+        kib(u64::from(v.needs_bytes))
+    ));
+    if let Some(p) = &v.problem {
         out.push_str(&format!(": {p}; the configuration lives in RAM only"));
     }
     out
@@ -217,31 +257,12 @@ fn store_text(v: &Value) -> String {
 /// connection stands).
 pub fn version(conn: &Conn, json: bool) -> ToolResult<()> {
     let mut c = connect_ready(conn)?;
-    let mut v = c.get_one("version")?;
-    let bridge = (c.mode == crate::tool::transport::Mode::Bridge).then(|| {
-        let h = &c.hello;
-        let mut b = serde_json::Map::new();
-        for k in [
-            "firmware",
-            "build",
-            "chip",
-            "board",
-            "features",
-            "record_version",
-            "store",
-            "mqtt",
-        ] {
-            if !h[k].is_null() {
-                b.insert(k.to_string(), h[k].clone());
-            }
-        }
-        b
-    });
-    if let Some(m) = v.as_object_mut() {
-        m.shift_remove("req");
-    }
+    let got = c.get_one("version")?;
+    let bridge = (c.mode == crate::tool::transport::Mode::Bridge).then(|| bridge_of(&c.hello));
     if json {
+        let mut v = got.raw_without_req();
         if let (Some(m), Some(b)) = (v.as_object_mut(), bridge) {
+            let b: Map<String, Value> = b.into_iter().map(|(k, x, _)| (k.to_string(), x)).collect();
             m.insert("bridge".into(), Value::Object(b));
         }
         println!("{v}");
@@ -249,39 +270,56 @@ pub fn version(conn: &Conn, json: bool) -> ToolResult<()> {
     }
     if let Some(b) = bridge {
         println!("the bridge (its own firmware):");
-        let w = b.keys().map(String::len).max().unwrap_or(0);
-        for (k, x) in &b {
-            let text = match x {
-                Value::String(s) if k == "mqtt" => mqtt_text(s),
-                Value::Object(_) if k == "store" => store_text(x),
-                Value::String(s) => s.clone(),
-                Value::Array(a) => a
-                    .iter()
-                    .filter_map(|f| f.as_str())
-                    .collect::<Vec<_>>()
-                    .join(", "),
-                other => other.to_string(),
-            };
+        let w = b.iter().map(|(k, _, _)| k.len()).max().unwrap_or(0);
+        for (k, _, text) in &b {
             println!("  {k:<w$}  {text}");
         }
         println!("the BMS:");
     }
-    print_fields(&v);
+    print_fields(&got);
     Ok(())
 }
 
-pub fn print_fields(v: &Value) {
-    if let Some(m) = v.as_object() {
-        let w = m.keys().map(String::len).max().unwrap_or(0);
-        for (k, x) in m {
-            if k == "type" || k == "req" {
-                continue;
-            }
-            let text = match x {
-                Value::String(s) => s.clone(),
-                other => other.to_string(),
-            };
-            println!("{k:<w$}  {text}");
-        }
+/// What `version` says of the bridge, from its `hello`: each member's name,
+/// its value (`--json`) and its words.
+fn bridge_of(h: &Hello<Read>) -> Vec<(&'static str, Value, String)> {
+    let mut b = vec![
+        ("firmware", json!(h.firmware), h.firmware.clone()),
+        ("build", json!(h.build), h.build.clone()),
+        ("chip", json!(h.chip), h.chip.clone()),
+        ("board", json!(h.board), h.board.clone()),
+        ("features", json!(h.features), h.features.join(", ")),
+        (
+            "record_version",
+            json!(h.record_version),
+            h.record_version.to_string(),
+        ),
+    ];
+    if let Some(s) = &h.store {
+        let v = serde_json::to_value(s).unwrap_or(Value::Null);
+        b.push(("store", v, store_text(s)));
+    }
+    if let Some(m) = &h.mqtt {
+        b.push(("mqtt", json!(m), mqtt_text(m)));
+    }
+    b
+}
+
+/// A `version` line's members, one a line (see [`members`]).
+pub fn print_fields(got: &Received) {
+    let typed = match &got.line {
+        HostLine::Version(v) => serde_json::to_value(v).unwrap_or(Value::Null),
+        _ => Value::Null,
+    };
+    let rows = members(typed, &got.raw);
+    // As wide as the widest member name (the type's own included).
+    let w = rows
+        .iter()
+        .map(|(k, _)| k.len())
+        .chain(["type".len()])
+        .max()
+        .unwrap_or(0);
+    for (k, x) in rows {
+        println!("{k:<w$}  {}", value_text(&x));
     }
 }

@@ -22,6 +22,12 @@
 //! | `direct_start` | `{now_ms}` | `{}`: the firmware's station starts in the page (direct mode) |
 //! | `direct_step` | `{now_ms, rx: [bytes from the BMS], host: "command lines"}` | `{tx: [bytes for the BMS], lines: [host-link lines], wake_ms}` |
 //!
+//! The bridge's lines the page passes in (`current`, `telemetry`, a `link`
+//! line) are read through the host link's own types
+//! ([`HostLine`](tinybms_firmware::host_link::lines::HostLine)), as the tool
+//! reads them; one that is not a line the bridge writes counts as none
+//! (left out of `current`; no `telemetry`; `link_quality` answers `{text: null}`).
+//!
 //! **Direct mode**: with a TinyBMS behind a plain USB-UART adapter there is no
 //! bridge on the port, so the page runs one — the firmware's own
 //! [`Station`](tinybms_firmware::station::Station), as `tinybms` does in its
@@ -31,6 +37,7 @@
 
 use serde_json::{json, Value};
 use tinybms_firmware::boards::BOARDS;
+use tinybms_firmware::host_link::lines::HostLine;
 
 /// Answers `name` with `arg` (JSON text); an unknown name or an argument
 /// that is not JSON gets `{"error": "…"}`. Never panics.
@@ -97,8 +104,17 @@ fn strings(v: &Value) -> Vec<String> {
         .unwrap_or_default()
 }
 
-fn lines(v: &Value) -> Vec<Value> {
-    v.as_array().cloned().unwrap_or_default()
+/// A host-link line the page passes on, read through the host link's types
+/// (`None`: not a line the bridge writes).
+fn line(v: &Value) -> Option<HostLine> {
+    serde_json::from_value(v.clone()).ok()
+}
+
+/// The lines of `v` (an array) that `pick` takes; the rest are left out.
+fn lines<T>(v: &Value, pick: impl Fn(HostLine) -> Option<T>) -> Vec<T> {
+    v.as_array()
+        .map(|a| a.iter().filter_map(line).filter_map(&pick).collect())
+        .unwrap_or_default()
 }
 
 /// `NAME=VALUE`s for the bridge's configuration, as `tinybms config PORT
@@ -117,7 +133,11 @@ fn check_config(arg: &Value) -> Value {
         messages.push("nothing to change: give NAME=VALUE".to_string());
     }
     if messages.is_empty() {
-        if let Err(m) = check_locally(&record_of(&lines(&arg["current"])), &changes) {
+        let current = lines(&arg["current"], |l| match l {
+            HostLine::Config(f) => Some(f),
+            _ => None,
+        });
+        if let Err(m) = check_locally(&record_of(&current), &changes) {
             messages.push(m);
         }
     }
@@ -137,7 +157,10 @@ fn check_config(arg: &Value) -> Value {
 /// --dry-run` checks them against the settings the bridge reported.
 fn check_settings(arg: &Value) -> Value {
     let raw = arg["raw"] == true;
-    let current = lines(&arg["current"]);
+    let current = lines(&arg["current"], |l| match l {
+        HostLine::Setting(s) => Some(s),
+        _ => None,
+    });
     let mut messages = Vec::new();
     let mut items = Vec::new();
     let mut bare = Vec::new();
@@ -181,9 +204,15 @@ fn check_settings(arg: &Value) -> Value {
 /// since, against the limit the bridge gave — in the monitor's words.
 fn freshness(arg: &Value) -> Value {
     use tinybms_rules::view::{freshness, freshness_text, Freshness};
-    let line = arg.get("telemetry").filter(|t| t.is_object());
+    let t = match arg.get("telemetry").and_then(line) {
+        Some(HostLine::Telemetry(t)) => Some(t),
+        _ => None,
+    };
     let since = arg["received_ago_ms"].as_f64().unwrap_or(0.0).max(0.0);
-    let f = freshness(line, std::time::Duration::from_secs_f64(since / 1000.0));
+    let f = freshness(
+        t.as_ref(),
+        std::time::Duration::from_secs_f64(since / 1000.0),
+    );
     let (state, age) = match f {
         Freshness::Fresh(a) => ("fresh", Some(a)),
         Freshness::Offline(a) => ("offline", a),
@@ -194,7 +223,11 @@ fn freshness(arg: &Value) -> Value {
 
 /// The link quality of a `link` line, in the monitor's words.
 fn link_quality(arg: &Value) -> Value {
-    json!({ "text": tinybms_rules::view::link_quality(arg) })
+    let text = match line(arg) {
+        Some(HostLine::Link(l)) => Some(tinybms_rules::view::link_quality(&l)),
+        _ => None,
+    };
+    json!({ "text": text })
 }
 
 /// The firmware's station in the page (direct mode).

@@ -43,9 +43,13 @@ fn a_good_change_gives_the_text_to_send_and_a_typo_a_suggestion() {
 
 #[test]
 fn settings_are_checked_against_each_other_as_the_tool_checks_them() {
+    // As the bridge writes them (`host_link::lines::SettingLine`).
     let setting = |name: &str, raw: i64, value: f64| {
-        json!({"type": "setting", "name": name, "raw": raw, "value": value, "unit": "V",
-               "min": 1.2, "max": 4.5, "bms_min": null, "bms_max": null})
+        let address = tinybms_rules::settings::find_setting(name)
+            .unwrap()
+            .address();
+        json!({"type": "setting", "name": name, "address": address, "raw": raw, "value": value,
+               "unit": "V", "min": 1.2, "max": 4.5, "bms_min": null, "bms_max": null})
     };
     let current = json!([
         setting("under_voltage_cutoff", 2500, 2.5),
@@ -73,9 +77,10 @@ fn settings_are_checked_against_each_other_as_the_tool_checks_them() {
 
 #[test]
 fn the_freshness_rule_is_the_firmwares() {
-    // Telemetry heads as the bridge writes them (read into its line types).
-    let t = json!({"type": "telemetry", "seq": 4, "age_ms": 300, "stale_after_ms": 5000,
-        "online": true, "ready": true});
+    // The members the rule reads: a telemetry line's head (the snapshot's
+    // members left out).
+    let t = json!({"type": "telemetry", "seq": 0, "age_ms": 300, "stale_after_ms": 5000,
+                   "online": true, "ready": true});
     let r = ask(
         "freshness",
         json!({"telemetry": t, "received_ago_ms": 1000}),
@@ -90,8 +95,8 @@ fn the_freshness_rule_is_the_firmwares() {
         .as_str()
         .unwrap()
         .starts_with("NO DATA: nothing new from the port"));
-    let off = json!({"type": "telemetry", "seq": 5, "age_ms": 300, "stale_after_ms": 5000,
-        "online": false, "ready": true});
+    let off = json!({"type": "telemetry", "seq": 0, "age_ms": 300, "stale_after_ms": 5000,
+                     "online": false, "ready": false});
     assert_eq!(
         ask("freshness", json!({"telemetry": off}))["state"],
         "offline"
@@ -99,6 +104,30 @@ fn the_freshness_rule_is_the_firmwares() {
     assert_eq!(
         ask("freshness", json!({"telemetry": null}))["state"],
         "no_data"
+    );
+}
+
+#[test]
+fn the_link_quality_of_a_link_line_and_of_anything_else() {
+    // A `link` line as the bridge writes it (`host_link::lines::Link`).
+    let link = json!({"type": "link", "requests": 200, "replies": 198, "timeouts": 2,
+        "wakeup_resends": 1, "retries": 3, "crc_errors": 1, "framing_errors": 0,
+        "invalid_replies": 0, "nacks_command": 0, "nacks_crc": 0, "nacks_other": 0,
+        "skipped_bytes": 0, "unsolicited": 0, "failures": 2, "latency_min_us": 9000,
+        "latency_mean_us": 12000, "latency_max_us": 30000, "online": true,
+        "piece_registers": 16, "lines_in": 12, "errors": 0, "dropped_lines": 0});
+    assert_eq!(
+        ask("link_quality", link)["text"],
+        "99.0 % ok (200 requests, 198 replies, 2 failed, 3 retries, 1 CRC errors)"
+    );
+    assert_eq!(
+        ask("link_quality", json!({"type": "link", "requests": 5}))["text"],
+        Value::Null,
+        "not a line the bridge writes"
+    );
+    assert_eq!(
+        ask("link_quality", json!({"type": "telemetry"}))["text"],
+        Value::Null
     );
 }
 
