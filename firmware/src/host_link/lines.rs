@@ -1,5 +1,6 @@
 //! The host link's output lines as types: one definition of every line's
-//! members, which the firmware writes ([`encode`](super::encode)) and a host
+//! members, which the firmware writes ([`encode`](super::encode), its values in
+//! [`wire`](super::wire)) and a host
 //! reads (`feature = "read-lines"`: [`Read`] and [`HostLine`]). A member renamed
 //! or added here changes both sides at once; nothing on either side spells a
 //! member's name in a string.
@@ -13,7 +14,7 @@
 
 use serde::Serialize;
 
-use super::encode::{Cells, Hex, Name};
+use super::wire::{Cells, Hex, Name};
 use crate::units::Dec;
 
 /// What a line's members are made of, on one side of the link.

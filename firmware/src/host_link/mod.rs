@@ -32,6 +32,7 @@ pub mod command;
 pub mod encode;
 pub mod line;
 pub mod lines;
+pub mod wire;
 pub mod writer;
 
 use heapless::{Deque, String, Vec};

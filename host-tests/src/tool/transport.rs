@@ -15,7 +15,6 @@ use std::time::{Duration, Instant};
 use serde_json::Value;
 use tinybms_firmware::host_link::lines::{self, Hello, HostLine};
 
-use super::client::Received;
 use super::{ToolError, ToolResult};
 
 /// Longest line accepted from the bridge; longer ones are discarded up to the
@@ -295,11 +294,8 @@ pub fn probe(
         }
         while let Some(line) = split.next_line() {
             match serde_json::from_str::<Value>(&line) {
-                Ok(v) if v.is_object() => match Received::of(v.clone()) {
-                    Some(Received {
-                        line: HostLine::Hello(h),
-                        ..
-                    }) => {
+                Ok(v) if v.is_object() => match serde_json::from_value::<HostLine>(v.clone()) {
+                    Ok(HostLine::Hello(h)) => {
                         result.hello = Some(h);
                         return Ok((result, split));
                     }
