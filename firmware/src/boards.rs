@@ -3,7 +3,7 @@
 //! the logs go.
 //!
 //! One cargo feature per board (`board-…`, see `firmware/Cargo.toml`) selects
-//! [`SELECTED`]; each board feature implies its chip feature. Every board in
+//! `SELECTED`; each board feature implies its chip feature. Every board in
 //! [`BOARDS`] is checked at compile time by [`check`]: none of its four signal
 //! pins may be
 //! * missing from the chip or from the board's pin header,
@@ -638,7 +638,7 @@ const SELECTED_COUNT: usize = cfg!(feature = "board-c3-devkitm-1") as usize
     + cfg!(feature = "board-xiao-esp32c6") as usize;
 
 const _: () = assert!(
-    SELECTED_COUNT <= 1,
+    matches!(SELECTED_COUNT, 0 | 1),
     "select one board feature only (board-…); use --no-default-features to replace the default board"
 );
 

@@ -12,7 +12,7 @@
 //! * a last line `{"kind":"summary","frames":N,"errors":N,"skipped_bytes":N,...}`.
 //!
 //! All decoding is protocol-core's: [`Decoder`] for framing, [`Request::parse`],
-//! [`Response::decode`] and the [`views`](protocol_core::views). This module only
+//! [`Response::decode`] and the [`protocol_core::views`]. This module only
 //! chooses names, units and rounding.
 //!
 //! Conversation rules:

@@ -176,7 +176,7 @@ open_enum! {
 }
 
 impl OnlineStatus {
-    /// Rev D marks Fault as [ERROR] and the others as [INFO].
+    /// Rev D marks Fault as `[ERROR]` and the others as `[INFO]`.
     pub const fn severity(self) -> Severity {
         match self {
             OnlineStatus::Fault => Severity::Fault,

@@ -356,7 +356,7 @@ pub const WAKEUP_OPTIONS: &[(u16, &str)] = &[
     (0x02, "Discharging detected"),
     (0x03, "UART communication detected"),
 ];
-/// Register 501 bits: bit 0 BPT, bits 1-2 BCS (see [`crate::views::Version`]).
+/// Register 501 bits: bit 0 BPT, bits 1-2 BCS (see [`crate::views::VersionInfo`]).
 pub const FW_FLAG_BITS: &[(u16, &str)] = &[
     (8, "BMS Power Type (0 low, 1 high)"),
     (

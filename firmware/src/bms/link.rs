@@ -288,7 +288,7 @@ impl Link {
 
     /// True when no reply can be on its way at `now`: no transaction in
     /// progress, no late answer to an earlier copy awaited
-    /// ([`Link::quiet_until`]), and no byte for [`Timing::reply_idle_gap_us`]
+    /// (`Link::quiet_until`), and no byte for [`Timing::reply_idle_gap_us`]
     /// (a reply in flight streams back to back). What a flash write, which
     /// stops the CPU for tens of milliseconds while the UART FIFO holds 11 ms
     /// of bytes, waits for.

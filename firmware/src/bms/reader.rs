@@ -271,7 +271,7 @@ impl BlockRead {
     }
 
     /// The request for the next piece, at the given piece size. The same piece is
-    /// asked again until [`BlockRead::on_reply`] accepts it.
+    /// asked again until [`BlockRead::on_block`] accepts it.
     pub fn next_request(&mut self, now: Instant, piece: u16) -> Request {
         let mut request = Request::ReadVersion;
         self.request_into(now, piece, &mut request);

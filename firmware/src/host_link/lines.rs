@@ -140,7 +140,7 @@ line_type! {
 
 /// `telemetry` (and, with [`Extras`], the MQTT state): the head, the snapshot
 /// when there is one, what the inverter is told, the MQTT state's members. One
-/// JSON object: the parts' members side by side (see [`Flat`]).
+/// JSON object: the parts' members side by side (see `Flat`).
 #[cfg_attr(
     feature = "read-lines",
     derive(serde::Deserialize, Debug, Clone, PartialEq),
@@ -883,7 +883,7 @@ line_type! {
         #[serde(rename = "type", skip_deserializing)]
         pub ty: F::Tag,
         pub node: u8,
-        /// [`crate::inverter::packs::Part::name`].
+        /// [`crate::inverter::packs::PackPart::name`].
         pub state: F::Text,
         pub speaking: bool,
         pub voltage_v: Option<F::Number>,

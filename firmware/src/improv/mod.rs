@@ -11,7 +11,7 @@
 //!   keeps the stored configuration. An image without Wi-Fi says
 //!   [`State::Stopped`] and refuses the Wi-Fi commands.
 //! * Wi-Fi settings: the passphrase is turned into the WPA2 key here
-//!   ([`psk`], 16 rounds per poll, never stored, never echoed), the Wi-Fi
+//!   (`psk`, 16 rounds per poll, never stored, never echoed), the Wi-Fi
 //!   side is asked to join ([`WifiRequest::Join`]), and only once it has
 //!   joined are the network and its key handed to the configuration
 //!   ([`Improv::take_joined`]); a network that cannot be joined (not found,

@@ -14,7 +14,7 @@
 //!
 //! **Stale data is never sent as fresh.** When the newest snapshot is older than
 //! [`InverterConfig::freshness`] allows, the configured [`StaleMode`] applies.
-//! The default, [`StalePolicy::StopSending`], sends nothing more to a Victron
+//! The default, [`StaleMode::Stop`], sends nothing more to a Victron
 //! GX: it stops charging and discharging 3 s after the last 0x351 (what
 //! Victron's own devices do on a lost battery). A Sunny Island would keep
 //! obeying the last 0x351 until 0x355 has been missing for 60 s, so it gets

@@ -1,7 +1,7 @@
 //! The entities of the battery in Home Assistant, as data, and their discovery
 //! configs (Home Assistant's MQTT discovery: a retained JSON config per entity
 //! under `<discovery_prefix>/<component>/<node_id>/<object_id>/config`). One
-//! writer, [`write`], for the pack's device and the battery's
+//! writer, [`write()`], for the pack's device and the battery's
 //! ([`super::battery`]).
 //!
 //! Every entity reads one member of the state JSON (the host link's telemetry

@@ -60,7 +60,7 @@ pub const PAYLOAD_MAX: usize = 1536;
 pub const MANUFACTURER: &str = "Energus";
 
 /// Where the MQTT connection stands, as `hello` says it (the session's latest
-/// note: [`session::Note::state`]).
+/// note: `session::Note::state`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum MqttState {

@@ -1,7 +1,7 @@
 //! The station: everything one bridge is, wired together, sans-IO. It owns
 //! the [`Bridge`] (the BMS side), the bridge's configuration
-//! ([`ConfigState`]), the host link ([`HostLink`]), the inverter output
-//! ([`Inverter`]) and what the MQTT output reads ([`Published`]); the chip
+//! ([`ConfigState`]), the host link ([`HostLink`](crate::host_link::HostLink)), the inverter output
+//! ([`Inverter`](crate::inverter::Inverter)) and what the MQTT output reads ([`Published`]); the chip
 //! shell and every desktop runner (the virtual-time harness and its closed
 //! loops, the multi-pack loop, `sim --bridge-pty`, the MQTT runner, the
 //! desktop tool's direct mode) drive this same type, so the wiring the chip
@@ -36,7 +36,7 @@
 //!   the log, in that order;
 //! * a change of the running configuration reaches the host link and the
 //!   inverter output at once;
-//! * what the inverter is told ([`Inverter::limits_sent`]) is what MQTT shows.
+//! * what the inverter is told ([`Inverter::limits_sent`](crate::inverter::Inverter::limits_sent)) is what MQTT shows.
 
 use heapless::Deque;
 use protocol_core::events::Event;

@@ -6,8 +6,9 @@
 //!   the TinyBMS; the firmware's bridge and host link run inside the tool
 //!   (`host_tests::realtime`), so everything above this layer is the same.
 //!
-//! [`connect`] opens the port (with a helpful sentence for each way that fails),
-//! sends `{"cmd":"hello"}` and picks the mode from what answers.
+//! [`open_port`] opens the port (with a helpful sentence for each way that
+//! fails); [`probe`] sends `{"cmd":"hello"}` and reports what answers, from
+//! which the tool picks the mode.
 
 use std::io::{Read, Write};
 use std::time::{Duration, Instant};

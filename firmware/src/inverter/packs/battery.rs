@@ -36,7 +36,7 @@ pub struct Battery {
 pub struct Member {
     /// Its summary.
     pub summary: Summary,
-    /// Heard within [`PACK_LOST_US`] (this bridge's own pack: always).
+    /// Heard within [`PACK_LOST_US`](super::heard::PACK_LOST_US) (this bridge's own pack: always).
     pub alive: bool,
     /// How long ago the summary came (this bridge's own: 0), µs.
     pub heard_ago_us: Instant,
@@ -398,7 +398,7 @@ impl BatteryLimits {
 pub enum PackPart {
     /// Taking part.
     Part,
-    /// Not heard within [`PACK_LOST_US`].
+    /// Not heard within [`PACK_LOST_US`](super::heard::PACK_LOST_US).
     Lost,
     /// Heard, but its data is older than the stale age.
     Stale,

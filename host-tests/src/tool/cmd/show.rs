@@ -305,7 +305,7 @@ fn bridge_of(h: &Hello<Read>) -> Vec<(&'static str, Value, String)> {
     b
 }
 
-/// A `version` line's members, one a line (see [`members`]).
+/// A `version` line's members, one a line (see `members`).
 pub fn print_fields(got: &Received) {
     let typed = match &got.line {
         HostLine::Version(v) => serde_json::to_value(v).unwrap_or(Value::Null),

@@ -24,7 +24,7 @@
 //!
 //! The bridge's lines the page passes in (`current`, `telemetry`, a `link`
 //! line) are read through the host link's own types
-//! ([`HostLine`](tinybms_firmware::host_link::lines::HostLine)), as the tool
+//! ([`tinybms_firmware::host_link::lines::HostLine`]), as the tool
 //! reads them; one that is not a line the bridge writes counts as none
 //! (left out of `current`; no `telemetry`; `link_quality` answers `{text: null}`).
 //!
