@@ -438,6 +438,26 @@ impl Client {
     }
 }
 
+/// Lines as the tool reads them, for the tool's unit tests.
+#[cfg(test)]
+pub(crate) mod fixtures {
+    use serde_json::Value;
+    use tinybms_firmware::host_link::lines::{HostLine, Read, Telemetry};
+
+    /// A line as the tool reads it.
+    pub fn line(v: Value) -> HostLine {
+        serde_json::from_value(v).unwrap()
+    }
+
+    /// A telemetry line as the tool reads it.
+    pub fn telemetry_line(v: Value) -> Telemetry<Read> {
+        match line(v) {
+            HostLine::Telemetry(t) => t,
+            other => panic!("not telemetry: {other:?}"),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -475,17 +475,7 @@ mod tests {
     use ratatui::Terminal;
     use serde_json::{json, Value};
 
-    /// A line as the tool reads it.
-    fn line(v: Value) -> HostLine {
-        serde_json::from_value(v).unwrap()
-    }
-
-    fn decoded(v: Value) -> Telemetry<Read> {
-        match line(v) {
-            HostLine::Telemetry(t) => t,
-            other => panic!("not telemetry: {other:?}"),
-        }
-    }
+    use crate::tool::client::fixtures::{line, telemetry_line as decoded};
 
     fn screen(s: &LiveState, now: Instant) -> String {
         let mut term = Terminal::new(TestBackend::new(100, 40)).unwrap();

@@ -246,21 +246,10 @@ pub fn log(client: &mut Client, duration: Option<Duration>) -> ToolResult<()> {
 #[cfg(test)]
 mod tests {
     use super::{freshness, render_battery_line, Freshness};
-    use serde_json::{json, Value};
+    use serde_json::json;
     use std::time::Duration;
-    use tinybms_firmware::host_link::lines::{HostLine, Read, Telemetry};
 
-    /// A line as the tool reads it.
-    fn line(v: Value) -> HostLine {
-        serde_json::from_value(v).unwrap()
-    }
-
-    fn telemetry(v: Value) -> Telemetry<Read> {
-        match line(v) {
-            HostLine::Telemetry(t) => t,
-            other => panic!("not telemetry: {other:?}"),
-        }
-    }
+    use crate::tool::client::fixtures::{line, telemetry_line as telemetry};
 
     #[test]
     fn the_monitor_goes_stale_by_the_bridge_s_limit() {
