@@ -80,6 +80,16 @@ impl Chip {
         }
     }
 
+    /// UART0's own pins (TX, RX): where the ROM prints, and where the host
+    /// link runs on a board whose connector is a USB-UART bridge
+    /// ([`HostWire::Uart0`]). The [`Restriction::Uart0`] pins below.
+    pub const fn uart0_pins(self) -> (u8, u8) {
+        match self {
+            Chip::Esp32c3 => (21, 20),
+            Chip::Esp32c6 => (16, 17),
+        }
+    }
+
     /// The reason `gpio` can never carry a bridge signal on this chip, if any.
     pub const fn restriction(self, gpio: u8) -> Option<Restriction> {
         if gpio >= self.gpio_count() {
@@ -131,6 +141,10 @@ impl LogPath {
         }
     }
 }
+
+/// The host link's rate on [`HostWire::Uart0`] (8N1): what the USB-UART
+/// bridges of these boards and every serial monitor take by default.
+pub const HOST_UART_BAUD: u32 = 115_200;
 
 /// Where the host link (JSON Lines to a computer, with the bridge's log lines)
 /// runs: on the wire the board's own USB connector reaches.

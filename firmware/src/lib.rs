@@ -44,6 +44,7 @@
 )]
 #![allow(clippy::large_enum_variant)]
 
+pub mod backoff;
 pub mod bms;
 pub mod boards;
 pub mod bridge;
@@ -59,6 +60,7 @@ pub mod mqtt;
 pub mod station;
 pub mod text;
 pub mod units;
+pub mod wifi;
 
 pub use bms::link::{LinkStats, Transmit};
 pub use bridge::report::{Level, Report};

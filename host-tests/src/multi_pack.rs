@@ -998,7 +998,10 @@ pub fn table(name: &str, l: &MultiLoop, end_us: u64) -> String {
             "  {:>4}  {:>4.0}  {:>4}..{:>4} / {:>4}..{:>4} mV   {:>6.1} / {:>3} A   \
              {:>9.1} / {:>3} A   {}",
             p.node,
-            f64::from(p.h.sim.register(306)) / 100.0,
+            f64::from(
+                p.h.sim
+                    .register(protocol_core::settings::SettingId::BatteryCapacity.address())
+            ) / 100.0,
             f.lowest_cell_mv,
             f.highest_cell_mv,
             f.uv_cutoff_mv,

@@ -8,7 +8,7 @@
 //! pack of 806 669 647 872 V, SOC 352 %, 18 cells on a 16S pack, 76.1 °C). Each
 //! check below names the property of real units it relies on. A block that fails
 //! one is re-read at once; the bridge publishes it only when an independent second
-//! reply confirms it (see [`crate::bridge`]), flagged with the check it failed.
+//! reply confirms it (see the bridge, `crate::bridge`), flagged with the check it failed.
 
 use protocol_core::events::OnlineStatus;
 use protocol_core::registers::MAX_CELLS;

@@ -416,7 +416,7 @@ impl State {
             .telemetry
             .settings
             .as_ref()
-            .and_then(|b| b.get(307))
+            .and_then(|b| b.get(SettingId::NumberOfSeriesCells.address()))
             .unwrap_or(0);
         self.out.push(Report::Ready {
             series_cells: cells,

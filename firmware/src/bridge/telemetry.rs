@@ -15,6 +15,7 @@
 //! live snapshot is published only here.
 
 use protocol_core::response::RegisterBlock;
+use protocol_core::settings::SettingId;
 use protocol_core::views::{LiveSnapshot, Statistics, VersionInfo};
 
 use super::Reports;
@@ -168,7 +169,11 @@ impl TelemetryModel {
             return false;
         };
         let ctx = checks::Context {
-            series_cells: self.telemetry.settings.as_ref().and_then(|b| b.get(307)),
+            series_cells: self
+                .telemetry
+                .settings
+                .as_ref()
+                .and_then(|b| b.get(SettingId::NumberOfSeriesCells.address())),
             assembled: a.pieces > 1,
         };
         let at = a.started_at;

@@ -21,7 +21,7 @@ use esp_hal::twai::{
 };
 use esp_hal::Async;
 use tinybms_firmware::inverter::frames::CanFrame;
-use tinybms_firmware::inverter::InverterConfig;
+use tinybms_firmware::inverter::{self, InverterConfig};
 use tinybms_firmware::text::Boot;
 
 use crate::wires::{self, CanCommand, CanDone};
@@ -29,12 +29,10 @@ use crate::{spawn, BOARD};
 
 /// CAN bit rate of both inverter protocols.
 const CAN_BAUDRATE: BaudRate = BaudRate::B500K;
-/// Longest a CAN transmission may take before it counts as failed.
-const CAN_TX_TIMEOUT: Duration = Duration::from_millis(100);
-/// Bus-off recovery: how long to wait for the controller to come back.
-const CAN_RECOVERY_WAIT: Duration = Duration::from_millis(500);
-/// How often the recovery looks whether the controller is back.
-const CAN_RECOVERY_POLL: Duration = Duration::from_millis(10);
+/// The library's limits ([`tinybms_firmware::inverter`]) as driver durations.
+const CAN_TX_TIMEOUT: Duration = Duration::from_micros(inverter::CAN_TX_TIMEOUT_US);
+const CAN_RECOVERY_WAIT: Duration = Duration::from_micros(inverter::BUS_RECOVERY_WAIT_US);
+const CAN_RECOVERY_POLL: Duration = Duration::from_micros(inverter::BUS_RECOVERY_POLL_US);
 
 /// TWAI (CAN) to the inverter, on the board's CAN pins, 500 kbit/s, unless
 /// the configuration has the output off (then the pins stay untouched and

@@ -150,10 +150,7 @@ async fn main(spawner: Spawner) {
     // The configuration record, before any task that runs with it. (Reading
     // flash stops the CPU only for microseconds; nothing runs yet anyway.)
     let (store, loaded, site) = store::open(p.FLASH);
-    // In a static of its own, not in the task's future: an `async fn`'s
-    // argument and the local it becomes would each take its size.
-    static STATION: static_cell::StaticCell<Station> = static_cell::StaticCell::new();
-    let station = STATION.init(Station::new(
+    let station = wires::STATION.init(Station::new(
         Setup {
             timing: Timing::default(),
             identity: IDENTITY,

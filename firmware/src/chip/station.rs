@@ -37,8 +37,10 @@ const RX_FIFO_FULL_THRESHOLD: u16 = 64;
 const DEADLINE_DRAIN_READS: usize = 4;
 /// Longest the station task sleeps without feeding the watchdog.
 const MAX_WAIT: Duration = Duration::from_millis(500);
-/// UART receive errors are logged at most once per this period.
-const RX_ERROR_LOG_PERIOD: Duration = Duration::from_secs(10);
+/// UART receive errors are logged (defmt) at most once per this period: the
+/// library's period for the link errors they cause.
+const RX_ERROR_LOG_PERIOD: Duration =
+    Duration::from_micros(tinybms_firmware::bms::timing::LINK_ERROR_LOG_PERIOD_US);
 
 /// UART1 to the TinyBMS on the board's pins, and the station task on it.
 pub fn start(

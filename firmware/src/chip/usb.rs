@@ -40,7 +40,7 @@ mod on {
     use esp_hal::uart::{Config as UartConfig, Uart, UartRx, UartTx};
     use esp_hal::usb::usb_serial_jtag::{UsbSerialJtag, UsbSerialJtagRx, UsbSerialJtagTx};
     use esp_hal::Async;
-    use tinybms_firmware::boards::{Chip, HostWire};
+    use tinybms_firmware::boards::{HostWire, HOST_UART_BAUD};
     use tinybms_firmware::config::Config;
     use tinybms_firmware::host_link::writer::{LineWriter, Start};
     use tinybms_firmware::text::Boot;
@@ -49,8 +49,11 @@ mod on {
 
     /// How often it looks for room meanwhile.
     const PROBE_STEP: Duration = Duration::from_millis(1);
-    /// Longest a UART0 write of a piece may take.
-    const LINE_WRITE_TIMEOUT: Duration = Duration::from_millis(100);
+    /// Longest a UART0 write of a piece may take: the library's limit for the
+    /// rest of a started line ([`tinybms_firmware::host_link::writer::LINE_WRITE_US`];
+    /// a UART drains whether anyone reads or not, so only a fault meets it).
+    const LINE_WRITE_TIMEOUT: Duration =
+        Duration::from_micros(tinybms_firmware::host_link::writer::LINE_WRITE_US);
 
     /// The host link on the USB cable: the USB-Serial-JTAG (CDC-ACM; its JTAG
     /// side, probe-rs and RTT, is a separate USB interface of the same device:
@@ -69,15 +72,12 @@ mod on {
             }
             HostWire::Uart0 => {
                 // UART0's own pins (the ROM and the bootloader print there too).
-                let (tx, rx) = match BOARD.chip {
-                    Chip::Esp32c3 => (21, 20),
-                    Chip::Esp32c6 => (16, 17),
-                };
+                let (tx, rx) = BOARD.chip.uart0_pins();
                 // SAFETY: UART0's pins, used by nothing else in this build: the
                 // board check keeps every signal of the bridge off them, and
                 // `log-uart` (defmt on UART0) is refused with this host wire (main.rs).
                 let (tx, rx) = unsafe { (AnyPin::steal(tx), AnyPin::steal(rx)) };
-                match Uart::new(uart0, UartConfig::default().with_baudrate(115_200)) {
+                match Uart::new(uart0, UartConfig::default().with_baudrate(HOST_UART_BAUD)) {
                     Ok(u) => {
                         let (rx, tx) = u.with_tx(tx).with_rx(rx).into_async().split();
                         spawn(spawner, uart0_rx_task(rx));

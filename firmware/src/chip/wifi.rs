@@ -36,6 +36,7 @@ use esp_radio::wifi::{
 use heapless::String;
 use protocol_core::events::Event;
 use static_cell::StaticCell;
+use tinybms_firmware::backoff::Backoff;
 use tinybms_firmware::config::Config;
 use tinybms_firmware::improv::{JoinFailure, Network, WifiLink, WifiRequest, SCAN_MAX};
 use tinybms_firmware::mqtt::net::StackNet;
@@ -44,6 +45,7 @@ use tinybms_firmware::mqtt::session::{self, Clock, Feed, Note, Target};
 use tinybms_firmware::mqtt::Settings;
 use tinybms_firmware::station::Published;
 use tinybms_firmware::text::Line;
+use tinybms_firmware::wifi::{self as wifi_rules, Cause};
 use tinybms_firmware::Level;
 
 use crate::{spawn, wires};
@@ -56,12 +58,12 @@ const HEAP_MORE: usize = 36 * 1024;
 /// TCP buffers of the MQTT connection, bytes each way.
 const TCP_BUFFER: usize = 2048;
 
-/// How often the access point's signal (RSSI) is read while joined.
-const RSSI_PERIOD: Duration = Duration::from_secs(10);
-
-/// Wi-Fi reconnect delays: the first, and the longest (doubling between).
-const WIFI_BACKOFF_MIN: Duration = Duration::from_secs(1);
-const WIFI_BACKOFF_MAX: Duration = Duration::from_secs(60);
+/// The library's rules ([`tinybms_firmware::wifi`]) as driver durations.
+const RSSI_PERIOD: Duration = Duration::from_micros(wifi_rules::RSSI_PERIOD_US);
+const DHCP_TIMEOUT: Duration = Duration::from_micros(wifi_rules::DHCP_TIMEOUT_US);
+const JOIN_TIME: Duration = Duration::from_micros(wifi_rules::JOIN_TIME_US);
+const SCAN_TIME: Duration = Duration::from_micros(wifi_rules::SCAN_TIME_US);
+const MQTT_SOCKET_TIMEOUT: Duration = Duration::from_micros(session::SOCKET_TIMEOUT_US);
 
 /// One log line (defmt and the host link's `log` lines) from pieces.
 fn say(level: Level, pieces: &[&str]) {
@@ -72,25 +74,25 @@ fn say(level: Level, pieces: &[&str]) {
     crate::log::line(level, &l);
 }
 
-/// A disconnect reason in words an owner can act on (defmt logs the exact one).
-fn reason_text(r: DisconnectReason) -> &'static str {
+/// The driver's disconnect reason sorted into the library's causes (what
+/// the log says and Improv answers come from [`Cause`]; defmt logs the exact
+/// reason).
+fn cause(r: DisconnectReason) -> Cause {
     use DisconnectReason as R;
     match r {
         R::NoAccessPointFound | R::NoAccessPointFoundInRssiThreshold | R::BeaconTimeout => {
-            "network not found (its name? in range?)"
+            Cause::NotFound
         }
         R::NoAccessPointFoundWithCompatibleSecurity | R::NoAccessPointFoundInAuthmodeThreshold => {
-            "the network's security does not fit (WPA3 only? it needs WPA2)"
+            Cause::Security
         }
         R::AuthenticationFailed
         | R::FourWayHandshakeTimeout
         | R::HandshakeTimeout
         | R::MicFailure
-        | R::AuthenticationExpired => "the key was not accepted (the passphrase? tinybms wifi)",
-        R::AssociationFailed | R::ConnectionFailed | R::AssociationTooMany => {
-            "the access point refused the station"
-        }
-        _ => "see the reason in the RTT log",
+        | R::AuthenticationExpired => Cause::KeyRefused,
+        R::AssociationFailed | R::ConnectionFailed | R::AssociationTooMany => Cause::Refused,
+        _ => Cause::Other,
     }
 }
 
@@ -149,7 +151,7 @@ pub fn start(
             return None;
         }
     };
-    let hostname = hostname(config, mac);
+    let hostname = wifi_rules::hostname(config.hostname.as_str(), mac);
     if stored.is_some() {
         say(
             Level::Info,
@@ -195,21 +197,6 @@ pub fn start(
     Some(hostname)
 }
 
-/// `hostname`, or `tinybms-` and the last three bytes of the MAC address.
-fn hostname(config: &Config, mac: [u8; 6]) -> String<32> {
-    if !config.hostname.is_empty() {
-        return config.hostname.clone();
-    }
-    let mut h = String::new();
-    let _ = h.push_str("tinybms-");
-    for b in mac.get(3..).unwrap_or(&[]) {
-        for nibble in [b >> 4, b & 0xF] {
-            let _ = h.push(char::from_digit(u32::from(nibble), 16).unwrap_or('0'));
-        }
-    }
-    h
-}
-
 /// How often the heap's use is logged.
 const HEAP_LOG_PERIOD: Duration = Duration::from_secs(600);
 
@@ -240,25 +227,11 @@ fn tell(done: wires::WifiDone) {
 
 /// What a failed connect means for the owner.
 fn failure(e: &ConnectionError) -> JoinFailure {
-    use DisconnectReason as R;
     match e {
-        ConnectionError::Failed(d) => match d.reason {
-            R::NoAccessPointFound | R::NoAccessPointFoundInRssiThreshold | R::BeaconTimeout => {
-                JoinFailure::NotFound
-            }
-            R::AuthenticationFailed
-            | R::FourWayHandshakeTimeout
-            | R::HandshakeTimeout
-            | R::MicFailure
-            | R::AuthenticationExpired => JoinFailure::KeyRefused,
-            _ => JoinFailure::Other,
-        },
+        ConnectionError::Failed(d) => cause(d.reason).failure(),
         _ => JoinFailure::Other,
     }
 }
-
-/// Longest wait for an address once joined.
-const DHCP_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// Joins the network the controller is configured for and waits for an
 /// address (DHCP).
@@ -355,19 +328,13 @@ async fn serve(
     }
 }
 
-/// The longest a join asked for by Improv may take here (the station's own
-/// limit, [`tinybms_firmware::improv::JOIN_TIMEOUT`], is longer).
-const JOIN_TIME: Duration = Duration::from_secs(25);
-/// The longest a scan may take.
-const SCAN_TIME: Duration = Duration::from_secs(10);
-
 #[embassy_executor::task]
 async fn wifi_task(
     mut controller: WifiController<'static>,
     stack: Stack<'static>,
     mut current: Option<StationConfig>,
 ) {
-    let mut backoff = WIFI_BACKOFF_MIN;
+    let mut backoff = Backoff::new();
     let mut connected = false;
     // When the link came up (the backoff starts over after a long one).
     let mut up = Instant::now();
@@ -389,7 +356,7 @@ async fn wifi_task(
                     match d {
                         Ok(d) => {
                             warn!("Wi-Fi down: {}", d.reason);
-                            say(Level::Warn, &["Wi-Fi down: ", reason_text(d.reason)]);
+                            say(Level::Warn, &["Wi-Fi down: ", cause(d.reason).text()]);
                         }
                         Err(e) => {
                             warn!("Wi-Fi down: {}", e);
@@ -399,9 +366,7 @@ async fn wifi_task(
                     wires::WIFI_RSSI.signal(None);
                     tell(wires::WifiDone::Link(WifiLink::Down));
                     connected = false;
-                    if up.elapsed() > WIFI_BACKOFF_MAX {
-                        backoff = WIFI_BACKOFF_MIN;
-                    }
+                    backoff.ended_after(up.elapsed().as_micros());
                 }
                 Either3::Second(req) => {
                     connected = serve(req, &mut controller, stack, &mut current, true).await;
@@ -434,8 +399,9 @@ async fn wifi_task(
                 tell(wires::WifiDone::Link(WifiLink::Up(ip)));
             }
             Either::First(Err(f)) => {
+                let wait = backoff.wait();
                 let mut secs = Line::new();
-                secs.uint(backoff.as_secs());
+                secs.uint(wait / tinybms_firmware::SECOND);
                 say(
                     Level::Warn,
                     &[
@@ -446,13 +412,15 @@ async fn wifi_task(
                         " s",
                     ],
                 );
-                if let Either::Second(req) =
-                    select(Timer::after(backoff), wires::WIFI_REQUEST.receive()).await
+                if let Either::Second(req) = select(
+                    Timer::after(Duration::from_micros(wait)),
+                    wires::WIFI_REQUEST.receive(),
+                )
+                .await
                 {
                     connected = serve(req, &mut controller, stack, &mut current, false).await;
                     up = Instant::now();
                 }
-                backoff = (backoff * 2).min(WIFI_BACKOFF_MAX);
             }
             Either::Second(req) => {
                 // A join under way is cancelled (the request is newer).
@@ -468,11 +436,7 @@ async fn wifi_task(
 /// MQTT publishes as the Wi-Fi signal diagnostic); `None` when the driver
 /// cannot say.
 fn hand_rssi(controller: &WifiController<'static>) {
-    let rssi = controller
-        .rssi()
-        .ok()
-        .and_then(|r| i8::try_from(r).ok())
-        .filter(|r| *r < 0);
+    let rssi = controller.rssi().ok().and_then(wifi_rules::rssi);
     wires::WIFI_RSSI.signal(rssi);
     wires::wake();
 }
@@ -541,7 +505,7 @@ async fn mqtt_task(
     };
     static STATE: StaticCell<TcpClientState<1, TCP_BUFFER, TCP_BUFFER>> = StaticCell::new();
     let mut client = TcpClient::new(stack, STATE.init(TcpClientState::new()));
-    client.set_timeout(Some(embassy_time::Duration::from_secs(30)));
+    client.set_timeout(Some(MQTT_SOCKET_TIMEOUT));
     let mut net = StackNet::new(stack, client, ChipClock, |a| {
         info!("IP {} (DHCP)", a);
         let o = a.address().octets();

@@ -5,9 +5,19 @@
 //! No queue is waited on by the station task while full: it writes with
 //! `try_*`, and what does not fit is dropped whole and counted where the
 //! station says so.
+//!
+//! Memory that one driver's set-up hands out once and no other task touches
+//! (the network stack's and the TCP client's buffers in `wifi.rs`, the flash
+//! region in `store.rs`) stays beside that set-up.
 
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex as Raw;
 use embassy_sync::signal::Signal;
+
+/// The station, which the station task owns: in a static of its own, not in
+/// the task's future (an `async fn`'s argument and the local it becomes
+/// would each take its size).
+pub static STATION: static_cell::StaticCell<tinybms_firmware::station::Station> =
+    static_cell::StaticCell::new();
 
 /// Something for the station arrived (bytes, a frame, a result, a button
 /// sample, a log line): the station task wakes and drains every queue.

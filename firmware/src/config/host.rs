@@ -19,8 +19,9 @@ pub struct HostLinkConfig {
     pub board: &'static str,
     /// What the image has built in, for `hello`.
     pub features: crate::identity::Features,
-    /// The freshness rule's limit, ms (in every `telemetry` line).
-    pub stale_after_ms: u64,
+    /// The freshness rule the bridge runs with ([`super::Config::freshness`]):
+    /// its limit goes out in every `telemetry` line.
+    pub freshness: crate::freshness::Freshness,
 }
 
 impl Default for HostLinkConfig {
@@ -32,7 +33,7 @@ impl Default for HostLinkConfig {
             chip: "unknown",
             board: "unknown",
             features: crate::identity::Features::default(),
-            stale_after_ms: crate::freshness::DEFAULT_STALE_AFTER_US / crate::MS,
+            freshness: crate::freshness::Freshness::new(crate::freshness::DEFAULT_STALE_AFTER_US),
         }
     }
 }

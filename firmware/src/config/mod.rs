@@ -732,6 +732,12 @@ impl Config {
         }
     }
 
+    /// The freshness rule with the record's `stale_after_s`: the one limit
+    /// the inverter output, the packs, MQTT and the host link go by.
+    pub fn freshness(&self) -> Freshness {
+        Freshness::new(Instant::from(self.stale_after_s) * SECOND)
+    }
+
     /// The inverter output's settings (periods and timeouts keep their
     /// documented defaults).
     pub fn inverter(&self) -> InverterConfig {
@@ -739,7 +745,7 @@ impl Config {
             enabled: self.can_output,
             protocol: self.protocol,
             charge: self.charge(),
-            freshness: Freshness::new(Instant::from(self.stale_after_s) * SECOND),
+            freshness: self.freshness(),
             stale_policy: self.stale_policy,
             stale_hold_us: Instant::from(self.stale_hold_s) * SECOND,
             node: self.pack_node,
@@ -756,7 +762,7 @@ impl Config {
             chip: who.chip,
             board: who.board,
             features: who.features,
-            stale_after_ms: u64::from(self.stale_after_s) * 1000,
+            freshness: self.freshness(),
         }
     }
 

@@ -87,7 +87,7 @@ pub struct HelloFields<'a> {
     pub store: Option<crate::config::store::StoreSite>,
     /// Where the MQTT connection stands, once its session said (images with
     /// Wi-Fi).
-    pub mqtt: Option<crate::mqtt::MqttState>,
+    pub mqtt: Option<&'static str>,
     /// The Wi-Fi link (images with Wi-Fi).
     pub wifi: Option<crate::improv::WifiLink>,
 }
@@ -119,7 +119,7 @@ pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<us
                 needs_bytes: crate::config::store::STORE_MIN_BYTES,
                 problem: s.problem().map(|p| p.reason()),
             }),
-            mqtt: f.mqtt.map(crate::mqtt::MqttState::key),
+            mqtt: f.mqtt,
             wifi: f.wifi.map(|w| lines::Wifi::<Wire> {
                 state: w.key(),
                 ip: (!ip.as_str().is_empty()).then_some(ip.as_str()),
@@ -135,7 +135,7 @@ pub struct StateExtras<'a> {
     /// The status's key, or `other` for a value no table knows.
     pub status: &'static str,
     /// The status's name (Rev D's), or `Other` (Home Assistant's enum sensor
-    /// needs a fixed list: [`crate::mqtt::discovery::STATUS_OPTIONS`]).
+    /// needs a fixed list: `mqtt::discovery::STATUS_OPTIONS`).
     pub status_name: &'static str,
     /// Data age, ms.
     pub age_ms: u64,

@@ -274,7 +274,7 @@ struct State {
     /// The inverter output now (each telemetry line says it), when built in.
     inverter: Option<encode::InverterState>,
     /// Where the MQTT connection stands (`hello`), once the session said.
-    mqtt: Option<crate::mqtt::MqttState>,
+    mqtt: Option<&'static str>,
     /// The Wi-Fi link (`hello`, images with Wi-Fi).
     wifi: crate::improv::WifiLink,
     capture: bool,
@@ -531,14 +531,10 @@ impl HostLink {
         self.s.inverter = state;
     }
 
-    /// Where the MQTT connection stands now (`hello` says it).
-    pub fn on_mqtt(&mut self, state: crate::mqtt::MqttState) {
-        use crate::mqtt::MqttState as S;
-        // While two clients fight over one id, each new connection is
-        // dropped again at once: only one that held ends the finding.
-        if !(self.s.mqtt == Some(S::ClientIdTaken) && state == S::Connected) {
-            self.s.mqtt = Some(state);
-        }
+    /// Where the MQTT connection stands now, as `hello` says it (the key of
+    /// the station's `mqtt::MqttState`).
+    pub fn on_mqtt(&mut self, key: &'static str) {
+        self.s.mqtt = Some(key);
     }
 
     /// Bytes sent to the BMS (for capture).
@@ -660,7 +656,7 @@ fn telemetry(
         req,
         seq: t.snapshot_seq,
         age_ms: t.snapshot_age_us(now).map(|a| a / crate::MS),
-        stale_after_ms: Some(s.config.stale_after_ms),
+        stale_after_ms: Some(s.config.freshness.limit_us / crate::MS),
         online: t.online,
         ready: t.ready,
         inverter: s.inverter,
@@ -732,7 +728,7 @@ impl State {
     /// Read-only and the stream period from the running configuration.
     fn apply_config(&mut self, now: Instant, running: &Config) {
         self.config.read_only = running.read_only;
-        self.config.stale_after_ms = u64::from(running.stale_after_s) * 1000;
+        self.config.freshness = running.freshness();
         if self.config.stream_period_ms != running.stream_period_ms {
             self.config.stream_period_ms = running.stream_period_ms;
             self.set_stream(now, configured_period(&self.config));

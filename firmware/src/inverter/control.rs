@@ -150,24 +150,27 @@ impl PackSettings {
     /// From a settings block (registers 300-343); `None` when a needed register
     /// is missing or the values make no sense (no cells, cutoffs inverted).
     pub fn from_registers(b: &protocol_core::response::RegisterBlock) -> Option<Self> {
+        use protocol_core::settings::SettingId as S;
+        let get = |id: S| u16::try_from(id.read(b)?).ok();
+        let signed = |id: S| i16::try_from(id.read(b)?).ok();
         let s = Self {
-            fully_charged_mv: b.get(300)?,
-            capacity_cah: b.get(306)?,
-            cells: b.get(307)?,
-            allowed_disbalance_mv: b.get(308)?,
-            ov_cutoff_mv: b.get(315)?,
-            uv_cutoff_mv: b.get(316)?,
-            discharge_cutoff_a: b.get(317)?,
-            charge_cutoff_a: b.get(318)?,
-            overheat_c: b.get(319)? as i16,
-            low_temp_charge_c: b.get(320)? as i16,
+            fully_charged_mv: get(S::FullyChargedVoltage)?,
+            capacity_cah: get(S::BatteryCapacity)?,
+            cells: get(S::NumberOfSeriesCells)?,
+            allowed_disbalance_mv: get(S::AllowedDisbalance)?,
+            ov_cutoff_mv: get(S::OverVoltageCutoff)?,
+            uv_cutoff_mv: get(S::UnderVoltageCutoff)?,
+            discharge_cutoff_a: get(S::DischargeOverCurrentCutoff)?,
+            charge_cutoff_a: get(S::ChargeOverCurrentCutoff)?,
+            overheat_c: signed(S::OverHeatCutoff)?,
+            low_temp_charge_c: signed(S::LowTemperatureChargerCutoff)?,
         };
         let sane = (1..=MAX_SERIES_CELLS).contains(&s.cells)
             && s.charge_cutoff_a >= 1
             && s.discharge_cutoff_a >= 1
-            && s.uv_cutoff_mv >= 1000
+            && s.uv_cutoff_mv >= SANE_CUTOFF_MV.0
             && s.ov_cutoff_mv > s.uv_cutoff_mv
-            && s.ov_cutoff_mv <= 5000
+            && s.ov_cutoff_mv <= SANE_CUTOFF_MV.1
             && s.overheat_c > s.low_temp_charge_c;
         sane.then_some(s)
     }
@@ -355,6 +358,11 @@ pub const CHARGING_ABOVE_A: f32 = 0.5;
 pub const MAX_RAMP_INTERVAL_US: Instant = 60 * crate::SECOND;
 /// Series cells a TinyBMS manages at most (307 is 1..=16).
 pub const MAX_SERIES_CELLS: u16 = protocol_core::registers::MAX_CELLS as u16;
+/// Cutoffs a pack's settings must lie within to be taken at all, mV: an
+/// under-voltage cutoff from 1 V, an over-voltage cutoff up to 5 V (every
+/// lithium chemistry's cells, and the pack summaries' cell range,
+/// [`super::packs::CELL_MAX_MV`]); outside, the block is misread, not a pack.
+pub const SANE_CUTOFF_MV: (u16, u16) = (1000, super::packs::CELL_MAX_MV);
 /// Cell imbalance alarm: the spread of the cells at this multiple of the
 /// allowed disbalance (308).
 pub const IMBALANCE_ALARM_OF_ALLOWED: u16 = 4;

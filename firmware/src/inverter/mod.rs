@@ -227,6 +227,17 @@ impl InverterReport {
 /// been out of "fault" this long, µs.
 pub const CHARGE_BLOCK_TIMEOUT_US: Instant = 5 * 60 * crate::SECOND;
 
+/// Longest one frame's transmission may take before it counts as failed
+/// ([`TxResult::Failed`]): a frame takes about 0.25 ms at 500 kbit/s, so
+/// this is only met when nobody acknowledges (the controller retries) or the
+/// bus is jammed. The CAN task goes by it, and by the two below.
+pub const CAN_TX_TIMEOUT_US: Instant = 100 * crate::MS;
+/// After [`InverterAction::Recover`], how long the controller is given to
+/// come back on the bus before the recovery counts as failed.
+pub const BUS_RECOVERY_WAIT_US: Instant = 500 * crate::MS;
+/// How often, meanwhile, it is asked whether it is back.
+pub const BUS_RECOVERY_POLL_US: Instant = 10 * crate::MS;
+
 /// Frames in one burst at most (a summary and a slow period of the battery's).
 const QUEUE: usize = 16;
 /// Failed transmissions in a row before "no ACK" is reported (and sending slows

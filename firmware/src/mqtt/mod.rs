@@ -42,6 +42,7 @@ pub mod session;
 
 pub mod battery;
 pub mod discovery;
+pub mod published;
 pub mod publisher;
 
 use heapless::String;

@@ -1,6 +1,8 @@
-//! What the station publishes for the MQTT output: a copy (the chip puts it
-//! in a `Watch`; the desktop runners in a mutex) that the session reads at its
-//! own pace, so nothing of the session reaches back into the station.
+//! What the MQTT output reads: the copy the station publishes (the chip puts
+//! it in a `Watch`; the desktop runners in a mutex), which the session reads
+//! at its own pace, so nothing of the session reaches back into the station.
+//! It lives on the MQTT side: the station writes it (`Station::published`),
+//! MQTT never names the station.
 
 use protocol_core::views::{LiveSnapshot, VersionInfo};
 

@@ -17,10 +17,10 @@ use protocol_core::views::LiveSnapshot;
 
 use super::battery;
 use super::discovery::{self, DeviceInfo, MAX_CELLS};
+use super::published::{InverterStatus, Published};
 use super::{device_topic, Identity, Settings, TOPIC_MAX};
 use crate::freshness::Freshness;
 use crate::host_link::encode::{self, StateExtras, TelemetryHead};
-use crate::station::{InverterStatus, Published};
 use crate::Instant;
 
 /// Events waiting to be published; beyond, the oldest are dropped (counted).

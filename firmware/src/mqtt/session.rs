@@ -6,7 +6,7 @@
 //! [`run`] never returns: connect (a TCP connection, then MQTT CONNECT with a
 //! retained will `offline` on the availability topic), subscribe to Home
 //! Assistant's status, publish what the publisher hands out, keep the
-//! connection alive, and on any failure reconnect after a backoff (1 s,
+//! connection alive, and on any failure reconnect after a backoff ([`crate::backoff`]: 1 s,
 //! doubling up to 60 s). Every wait is bounded by a timeout, so a broker that
 //! stalls, refuses, drops the connection or sends garbage costs a reconnect,
 //! never a hang and never a panic. Nothing here touches the bridge: it reads
@@ -44,10 +44,9 @@ pub const ANSWER_TIMEOUT_US: Instant = 10 * SECOND;
 pub const WRITE_TIMEOUT_US: Instant = 10 * SECOND;
 /// Longest the rest of a packet may take once its header came.
 pub const BODY_TIMEOUT_US: Instant = 5 * SECOND;
-/// First reconnect delay; it doubles up to [`BACKOFF_MAX_US`].
-pub const BACKOFF_MIN_US: Instant = SECOND;
-/// Longest reconnect delay.
-pub const BACKOFF_MAX_US: Instant = 60 * SECOND;
+/// Longest a TCP socket may stay silent before the stack gives it up: past
+/// the longest write and answer waits above, so those decide first.
+pub const SOCKET_TIMEOUT_US: Instant = 30 * SECOND;
 /// A connection the broker drops sooner than this after it came up counts as
 /// dropped at once.
 pub const QUICK_DROP_US: Instant = 10 * SECOND;
@@ -246,7 +245,7 @@ pub async fn run<N: Network, C: Clock, F: Feed>(
     publisher: &mut Publisher,
     note: &mut dyn FnMut(Note),
 ) -> ! {
-    let mut backoff = BACKOFF_MIN_US;
+    let mut backoff = crate::backoff::Backoff::new();
     let mut waiting_noted = false;
     let mut quick_drops: u8 = 0;
     loop {
@@ -277,16 +276,16 @@ pub async fn run<N: Network, C: Clock, F: Feed>(
             _ => quick_drops = 0,
         }
         // A connection that held a while starts the backoff afresh.
-        if matches!(result, Ok((_, up_for)) if up_for >= BACKOFF_MAX_US) {
-            backoff = BACKOFF_MIN_US;
+        if let Ok((_, up_for)) = result {
+            backoff.ended_after(up_for);
         }
-        let delay_ms = (backoff / MS) as u32;
+        let wait = backoff.wait();
+        let delay_ms = (wait / MS) as u32;
         note(match result {
             Ok((f, _)) => Note::Disconnected(f, delay_ms),
             Err(f) => Note::Failed(f, delay_ms),
         });
-        clock.sleep_until(clock.now().saturating_add(backoff)).await;
-        backoff = (backoff * 2).min(BACKOFF_MAX_US);
+        clock.sleep_until(clock.now().saturating_add(wait)).await;
     }
 }
 

@@ -40,6 +40,7 @@
 
 use heapless::Deque;
 use protocol_core::events::Event;
+use protocol_core::settings::SettingId;
 
 use crate::bms::timing::Timing;
 use crate::bridge::report::{Level, Report};
@@ -64,10 +65,10 @@ use crate::inverter::{InverterAction, InverterReport, TxResult};
 use crate::text::{self, Line};
 use crate::Instant;
 
-pub use self::published::{InverterStatus, Published};
+pub use crate::mqtt::published::{InverterStatus, Published};
+use crate::mqtt::MqttState;
 
 mod parts;
-mod published;
 
 /// How often a bridge of several packs hands the battery to the host link
 /// and the MQTT output, µs.
@@ -187,6 +188,8 @@ pub struct Station {
     energy: Energy,
     /// The Wi-Fi signal, dBm, as the Wi-Fi task last read it.
     wifi_rssi: Option<i8>,
+    /// The MQTT session's state as `hello` says it (see [`Station::mqtt_state`]).
+    mqtt: Option<MqttState>,
 }
 
 impl Station {
@@ -242,6 +245,7 @@ impl Station {
             missed_to_log: 0,
             energy: Energy::new(),
             wifi_rssi: None,
+            mqtt: None,
         }
     }
 
@@ -390,9 +394,15 @@ impl Station {
     }
 
     /// The MQTT session's latest state (images with Wi-Fi): `hello` says it.
-    pub fn mqtt_state(&mut self, state: crate::mqtt::MqttState) {
+    pub fn mqtt_state(&mut self, state: MqttState) {
+        // While two clients fight over one id, each new connection is
+        // dropped again at once: only one that held ends the finding.
+        if self.mqtt == Some(MqttState::ClientIdTaken) && state == MqttState::Connected {
+            return;
+        }
+        self.mqtt = Some(state);
         if let Some(h) = self.host.as_mut() {
-            h.on_mqtt(state);
+            h.on_mqtt(state.key());
         }
     }
 
@@ -564,7 +574,10 @@ impl Station {
             freshness: self.freshness(),
             battery: self.battery.clone(),
             energy_mwh: (self.energy.charged_mwh(), self.energy.discharged_mwh()),
-            capacity_cah: t.settings.as_ref().and_then(|b| b.get(306)),
+            capacity_cah: t
+                .settings
+                .as_ref()
+                .and_then(|b| b.get(SettingId::BatteryCapacity.address())),
             inverter: self.inverter.as_ref().map(|i| InverterStatus {
                 protocol: i.config().protocol.key(),
                 can: i.can_state(),
@@ -578,7 +591,7 @@ impl Station {
     pub fn freshness(&self) -> Freshness {
         match self.inverter.as_ref() {
             Some(i) => i.config().freshness,
-            None => self.config.running().inverter().freshness,
+            None => self.config.running().freshness(),
         }
     }
 

@@ -93,7 +93,7 @@ impl NoHost {
     pub fn on_inverter(&mut self, _: Option<crate::host_link::encode::InverterState>) {
         match *self {}
     }
-    pub fn on_mqtt(&mut self, _: crate::mqtt::MqttState) {
+    pub fn on_mqtt(&mut self, _: &'static str) {
         match *self {}
     }
     pub fn improv(&self) -> &crate::improv::Improv {

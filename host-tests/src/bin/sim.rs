@@ -1029,20 +1029,24 @@ fn run_inverter(o: &Options, protocol: Protocol) -> ExitCode {
                 }
             }
         };
+        use protocol_core::settings::SettingId::{
+            NumberOfSeriesCells, OverVoltageCutoff, UnderVoltageCutoff,
+        };
         let ceiling =
             l.h.bridge()
                 .telemetry()
                 .settings
                 .as_ref()
-                .and_then(|b| b.get(315))
+                .and_then(|b| b.get(OverVoltageCutoff.address()))
                 .map_or(0, |ov| ov.saturating_sub(config.charge.ov_margin_mv));
-        let cells = l.h.sim.register(307).max(1);
+        let cells = l.h.sim.register(NumberOfSeriesCells.address()).max(1);
         let f = &l.figures;
         let cvl_ok = l.sent_limits.iter().all(|&(_, cvl, _, _)| {
             let mv = u32::from(cvl) * 100;
             cvl > 0
-                && mv + 100 > u32::from(cells) * u32::from(l.h.sim.register(316))
-                && mv <= u32::from(cells) * u32::from(l.h.sim.register(315))
+                && mv + 100
+                    > u32::from(cells) * u32::from(l.h.sim.register(UnderVoltageCutoff.address()))
+                && mv <= u32::from(cells) * u32::from(l.h.sim.register(OverVoltageCutoff.address()))
         });
         let ok = f.max_cell_mv <= ceiling && cvl_ok && !l.sent_limits.is_empty();
         all_ok &= ok;
