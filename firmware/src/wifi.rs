@@ -63,15 +63,16 @@ impl Cause {
 }
 
 /// The bridge's name on the network: the record's `hostname`, or, when it
-/// has none, `tinybms-` and the last three bytes of the MAC address in hex
-/// (`tinybms-a1b2c3`), so two bridges on one network differ.
+/// has none (or one longer than a name may be, which the record's checks
+/// never let through), `tinybms-` and the last three bytes of the MAC
+/// address in hex (`tinybms-a1b2c3`), so two bridges on one network differ.
 pub fn hostname(stored: &str, mac: [u8; 6]) -> String<32> {
-    let mut h = String::new();
-    if !stored.is_empty() {
-        // The record's field holds 32 bytes at most, as `h` does.
-        let _ = h.push_str(stored);
-        return h;
+    if let Ok(h) = String::try_from(stored) {
+        if !h.is_empty() {
+            return h;
+        }
     }
+    let mut h = String::new();
     let _ = h.push_str("tinybms-");
     for b in mac.get(3..).unwrap_or(&[]) {
         for nibble in [b >> 4, b & 0xF] {
@@ -100,6 +101,12 @@ mod tests {
         );
         let longest = "a".repeat(32);
         assert_eq!(hostname(&longest, [0; 6]).as_str(), longest);
+        // Never an empty or cut name.
+        let too_long = "a".repeat(33);
+        assert_eq!(
+            hostname(&too_long, [0, 0, 0, 1, 2, 3]).as_str(),
+            "tinybms-010203"
+        );
     }
 
     #[test]
