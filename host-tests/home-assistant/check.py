@@ -504,16 +504,26 @@ def main():
                     if will is not None and will > last_at and time.monotonic() - will < 2.0:
                         return False
                 s = ours(ha.states(), serial)
-                for k, v in s.items():
-                    if v["state"] == "unavailable":
-                        first_gone.setdefault(k, time.monotonic())
+                seen = {k: time.monotonic() for k, v in s.items() if v["state"] == "unavailable"}
                 live = [
                     k
                     for k, v in s.items()
                     if v["state"] != "unavailable"
                     and not (override_will and k.startswith("event."))
                 ]
-                return not live and len(s) >= len(pack_rows)
+                done = not live and len(s) >= len(pack_rows)
+                if override_will and seen:
+                    # Home Assistant may read the will before this watcher
+                    # has it (both get it from the broker at once): look
+                    # again a moment later, and a reading the will explains
+                    # counts for nothing.
+                    time.sleep(0.5)
+                    will = watch.last_with(avail, b"offline")
+                    if will is not None and will > last_at and time.monotonic() - will < 2.5:
+                        return False
+                for k, at in seen.items():
+                    first_gone.setdefault(k, at)
+                return done
 
             wait_for("a hung bridge's entities unavailable", gone, EXPIRE_S + 30)
             t = time.monotonic() - last_at
