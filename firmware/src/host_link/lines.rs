@@ -55,6 +55,31 @@ impl<'a> Form for Wire<'a> {
 /// any form (each member's type says how it writes), and with `read-lines`
 /// `Deserialize` for a host's form ([`ReadSide`]).
 macro_rules! line_type {
+    // `answer`: the line's `type` member, then the request id it echoes (a
+    // line that answers a command), then the members given.
+    ($(#[$m:meta])* pub struct $name:ident<F: Form> answer { $($body:tt)* }) => {
+        line_type! {
+            $(#[$m])*
+            pub struct $name<F: Form> tagged {
+                /// Echoed request id.
+                #[serde(skip_serializing_if = "Option::is_none")]
+                pub req: Option<u32>,
+                $($body)*
+            }
+        }
+    };
+    // `tagged`: the line's `type` member, then the members given.
+    ($(#[$m:meta])* pub struct $name:ident<F: Form> tagged { $($body:tt)* }) => {
+        line_type! {
+            $(#[$m])*
+            pub struct $name<F: Form> {
+                #[serde(rename = "type", skip_deserializing)]
+                #[allow(missing_docs)]
+                pub ty: F::Tag,
+                $($body)*
+            }
+        }
+    };
     ($(#[$m:meta])* pub struct $name:ident<F: Form> { $($body:tt)* }) => {
         $(#[$m])*
         #[derive(Serialize)]
@@ -70,13 +95,7 @@ macro_rules! line_type {
 
 line_type! {
     /// `hello`: who the bridge is.
-    pub struct Hello<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
-        /// Echoed request id.
-        #[serde(skip_serializing_if = "Option::is_none")]
-        pub req: Option<u32>,
+    pub struct Hello<F: Form> answer {
         /// [`super::PROTOCOL_VERSION`].
         pub protocol: u32,
         /// The firmware's version.
@@ -175,13 +194,7 @@ impl<F: Form> Serialize for Telemetry<F> {
 
 line_type! {
     /// A `telemetry` line's head.
-    pub struct Head<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
-        /// Echoed request id.
-        #[serde(skip_serializing_if = "Option::is_none")]
-        pub req: Option<u32>,
+    pub struct Head<F: Form> answer {
         /// [`crate::Telemetry::snapshot_seq`].
         pub seq: u32,
         /// The snapshot's age, ms (`None`: none yet).
@@ -487,13 +500,7 @@ line_type! {
 
 line_type! {
     /// `setting`: one BMS setting, its value, Rev D's range and the BMS's own.
-    pub struct SettingLine<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
-        /// Echoed request id.
-        #[serde(skip_serializing_if = "Option::is_none")]
-        pub req: Option<u32>,
+    pub struct SettingLine<F: Form> answer {
         /// The setting's key.
         pub name: F::Text,
         /// Its register.
@@ -517,13 +524,7 @@ line_type! {
 
 line_type! {
     /// `settings_end`, `events_end`: how many lines the answer had.
-    pub struct End<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
-        /// Echoed request id.
-        #[serde(skip_serializing_if = "Option::is_none")]
-        pub req: Option<u32>,
+    pub struct End<F: Form> answer {
         /// Lines.
         pub count: u32,
     }
@@ -579,13 +580,7 @@ line_type! {
 
 line_type! {
     /// `event`: one of the BMS's events, new or from its history.
-    pub struct EventLine<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
-        /// Echoed request id.
-        #[serde(skip_serializing_if = "Option::is_none")]
-        pub req: Option<u32>,
+    pub struct EventLine<F: Form> answer {
         /// The BMS's timestamp, s.
         pub timestamp_s: u32,
         /// The event's id.
@@ -602,10 +597,7 @@ line_type! {
 
 line_type! {
     /// `log`: a line of the bridge's log.
-    pub struct Log<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
+    pub struct Log<F: Form> tagged {
         /// `info` or `warn`.
         pub level: F::Text,
         /// The text.
@@ -651,13 +643,7 @@ line_type! {
 
 line_type! {
     /// `accepted`: a command taken, its answer follows.
-    pub struct Accepted<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
-        /// Echoed request id.
-        #[serde(skip_serializing_if = "Option::is_none")]
-        pub req: Option<u32>,
+    pub struct Accepted<F: Form> answer {
         /// The command.
         pub cmd: F::Text,
     }
@@ -665,13 +651,7 @@ line_type! {
 
 line_type! {
     /// `outcome`: one setting's write, verified by reading it back.
-    pub struct Outcome<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
-        /// Echoed request id.
-        #[serde(skip_serializing_if = "Option::is_none")]
-        pub req: Option<u32>,
+    pub struct Outcome<F: Form> answer {
         /// The setting's key.
         pub name: F::Text,
         /// The raw value asked for.
@@ -699,13 +679,7 @@ line_type! {
 
 line_type! {
     /// `reset_done`.
-    pub struct ResetDone<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
-        /// Echoed request id.
-        #[serde(skip_serializing_if = "Option::is_none")]
-        pub req: Option<u32>,
+    pub struct ResetDone<F: Form> answer {
         /// The BMS said it restarts.
         pub confirmed: bool,
     }
@@ -713,13 +687,7 @@ line_type! {
 
 line_type! {
     /// `cleared`: events or statistics cleared.
-    pub struct Cleared<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
-        /// Echoed request id.
-        #[serde(skip_serializing_if = "Option::is_none")]
-        pub req: Option<u32>,
+    pub struct Cleared<F: Form> answer {
         /// `events` or `statistics`.
         pub what: F::Text,
         /// The BMS acknowledged.
@@ -729,10 +697,7 @@ line_type! {
 
 line_type! {
     /// `raw`: UART bytes while capture is on.
-    pub struct Raw<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
+    pub struct Raw<F: Form> tagged {
         /// `tx` or `rx`.
         pub dir: F::Text,
         /// The bytes, upper-case hex separated by spaces.
@@ -742,10 +707,7 @@ line_type! {
 
 line_type! {
     /// `error`: a command refused.
-    pub struct Error<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
+    pub struct Error<F: Form> tagged {
         /// Echoed request id (`null`: the line had none, or could not be read).
         pub req: Option<u32>,
         /// The code.
@@ -757,13 +719,7 @@ line_type! {
 
 line_type! {
     /// `config`: one configuration field.
-    pub struct ConfigField<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
-        /// Echoed request id.
-        #[serde(skip_serializing_if = "Option::is_none")]
-        pub req: Option<u32>,
+    pub struct ConfigField<F: Form> answer {
         /// The field's name.
         pub name: F::Text,
         /// Its group.
@@ -789,13 +745,7 @@ line_type! {
 
 line_type! {
     /// `config_end`.
-    pub struct ConfigEnd<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
-        /// Echoed request id.
-        #[serde(skip_serializing_if = "Option::is_none")]
-        pub req: Option<u32>,
+    pub struct ConfigEnd<F: Form> answer {
         /// Fields.
         pub count: u32,
         /// The record's layout.
@@ -809,13 +759,7 @@ line_type! {
 
 line_type! {
     /// `config_outcome`: one field of a `set_config`.
-    pub struct ConfigOutcome<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
-        /// Echoed request id.
-        #[serde(skip_serializing_if = "Option::is_none")]
-        pub req: Option<u32>,
+    pub struct ConfigOutcome<F: Form> answer {
         /// The field's name as sent.
         pub name: F::Text,
         /// `applied`, `at_restart`, `unchanged`, `refused`, `not_applied`.
@@ -833,13 +777,7 @@ line_type! {
 
 line_type! {
     /// `config_done`: the end of a `set_config`.
-    pub struct ConfigDone<F: Form> {
-        #[serde(rename = "type", skip_deserializing)]
-        #[allow(missing_docs)]
-        pub ty: F::Tag,
-        /// Echoed request id.
-        #[serde(skip_serializing_if = "Option::is_none")]
-        pub req: Option<u32>,
+    pub struct ConfigDone<F: Form> answer {
         /// Fields changed.
         pub changed: u8,
         /// Saved to flash (`None`: nothing to save).
