@@ -20,6 +20,7 @@
 //! | | [`mqtt`] | the battery in Home Assistant: discovery, state, availability (publish only) |
 //! | this installation | [`config`] | the bridge's own configuration: the record, its checks, its store in flash |
 //! | | [`boards`] | the supported boards' pins and log paths, checked at compile time |
+//! | | [`partitions`] | the ESP-IDF partition table, read from its bytes |
 //! | shared | [`text`] | the words of every log line |
 //! | | [`units`] | raw and physical values, exact decimals |
 //!
@@ -57,6 +58,7 @@ pub mod improv;
 pub mod inverter;
 pub mod line;
 pub mod mqtt;
+pub mod partitions;
 pub mod station;
 pub mod text;
 pub mod units;

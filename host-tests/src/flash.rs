@@ -209,8 +209,9 @@ impl<F: NorFlash> NorFlash for Timed<F> {
 
 impl<F: MultiwriteNorFlash> MultiwriteNorFlash for Timed<F> {}
 
-/// NOR flash of [`PARTITION_BYTES`] in RAM: what [`FileFlash`] is, without the
-/// file. Clones share the same bytes (the same chip's flash, seen by the
+/// NOR flash in RAM, of [`PARTITION_BYTES`] ([`RamFlash::new`]: what
+/// [`FileFlash`] is, without the file) or of a whole chip's image
+/// ([`RamFlash::from_bytes`]). Clones share the same bytes (the same chip's flash, seen by the
 /// store and by a test); [`RamFlash::copy`] makes an independent one (the flash
 /// as a restarted chip finds it).
 #[derive(Debug, Clone)]
@@ -230,6 +231,13 @@ impl RamFlash {
     /// Erased.
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// A flash holding `bytes` (a whole chip's image, say), of their size.
+    pub fn from_bytes(bytes: Vec<u8>) -> Self {
+        Self {
+            bytes: std::sync::Arc::new(std::sync::Mutex::new(bytes)),
+        }
     }
 
     /// An independent flash with the same contents.
@@ -274,7 +282,7 @@ impl ReadNorFlash for RamFlash {
     }
 
     fn capacity(&self) -> usize {
-        PARTITION_BYTES as usize
+        self.lock().len()
     }
 }
 

@@ -33,6 +33,7 @@ pub const SIM_STORE_SITE: tinybms_firmware::config::store::StoreSite =
     tinybms_firmware::config::store::StoreSite {
         flash_bytes: 4 * 1024 * 1024,
         partition: Some((0x9000, crate::flash::PARTITION_BYTES)),
+        lookup: None,
     };
 
 /// Longest line the host link produces that this loop can carry.

@@ -264,22 +264,11 @@ impl Network for TcpNet {
 /// The notes the session logged, in order (what `sim --mqtt` prints).
 pub type Notes = Arc<Mutex<Vec<Note>>>;
 
-/// One log line for a session note.
+/// One log line for a session note (the chip's words).
 pub fn note_text(n: &Note) -> String {
-    match n {
-        Note::Connected => "MQTT: connected to the broker".into(),
-        Note::Disconnected(f, ms) => {
-            format!(
-                "MQTT: connection lost ({}), reconnecting in {ms} ms",
-                f.reason()
-            )
-        }
-        Note::Failed(f, ms) => {
-            format!("MQTT: cannot connect ({}), next try in {ms} ms", f.reason())
-        }
-        Note::WaitingForBms => "MQTT: waiting for the BMS's serial number".into(),
-        Note::Held => "MQTT: the connection holds".into(),
-    }
+    let mut l = tinybms_firmware::line::Line::new();
+    n.write(&mut l);
+    l.as_str().to_string()
 }
 
 /// Starts the session on a thread of its own, over `net`, publishing with

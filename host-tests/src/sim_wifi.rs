@@ -16,6 +16,7 @@ use std::time::Duration;
 use tinybms_firmware::config::Config;
 use tinybms_firmware::improv::{JoinFailure, Network, WifiLink, WifiRequest};
 use tinybms_firmware::station::Station;
+use tinybms_firmware::wifi::{Radio, RADIO_START_LIMIT_US};
 use tinybms_firmware::Instant;
 
 /// A simulated network.
@@ -84,6 +85,7 @@ enum Done {
     Joined(Result<[u8; 4], JoinFailure>),
     Scanned(Vec<Network>),
     Link(WifiLink),
+    Radio(Radio),
 }
 
 /// The simulated radio. See the module documentation.
@@ -95,7 +97,16 @@ pub struct SimWifi {
     pending: Vec<(Instant, Done)>,
     /// Joins asked for, and how they ended (for tests).
     pub joins: Vec<(String, Result<[u8; 4], JoinFailure>)>,
+    /// The radio never finishes starting (a radio that hangs): the station
+    /// hears `starting`, then `late`, and nothing else of Wi-Fi.
+    pub radio_hangs: bool,
+    /// When a hanging radio is said to be late (the chip's
+    /// [`RADIO_START_LIMIT_US`]; shorter in tests).
+    pub late_after: Instant,
 }
+
+/// How long the simulated radio takes to start.
+pub const RADIO_START_US: Instant = 50 * tinybms_firmware::MS;
 
 impl SimWifi {
     /// These networks in range.
@@ -105,6 +116,8 @@ impl SimWifi {
             delay: Duration::from_millis(1500),
             pending: Vec::new(),
             joins: Vec::new(),
+            radio_hangs: false,
+            late_after: RADIO_START_LIMIT_US,
         }
     }
 
@@ -130,20 +143,35 @@ impl SimWifi {
 
     /// The station starts (boot or restart) with `record`: a stored network
     /// is joined in the background.
+    /// The radio starts first, as on the chip (`starting`, then `up`, or
+    /// `late` when it hangs).
     pub fn boot(&mut self, now: Instant, record: &Config) {
         self.pending.clear();
-        if record.wifi_ssid.is_empty() {
-            self.pending.push((now, Done::Link(WifiLink::Off)));
+        self.pending.push((now, Done::Radio(Radio::Starting)));
+        if self.radio_hangs {
+            self.pending
+                .push((now + self.late_after, Done::Radio(Radio::Late)));
             return;
         }
-        self.pending.push((now, Done::Link(WifiLink::Down)));
+        let up = now + RADIO_START_US;
+        self.pending.push((up, Done::Radio(Radio::Up)));
+        if record.wifi_ssid.is_empty() {
+            self.pending.push((up, Done::Link(WifiLink::Off)));
+            return;
+        }
+        self.pending.push((up, Done::Link(WifiLink::Down)));
         if let Ok(ip) = self.outcome(&record.wifi_ssid, &record.wifi_key) {
-            self.after(now, Done::Link(WifiLink::Up(ip)));
+            self.after(up, Done::Link(WifiLink::Up(ip)));
         }
     }
 
     /// The station asks at `now`.
     pub fn request(&mut self, now: Instant, req: WifiRequest) {
+        if self.radio_hangs {
+            // Nobody takes the request (the chip's Wi-Fi task never started):
+            // the station's own limits end it.
+            return;
+        }
         match req {
             WifiRequest::Join { ssid, psk } => {
                 let r = self.outcome(&ssid, &psk);
@@ -177,6 +205,7 @@ impl SimWifi {
                 Done::Joined(r) => station.wifi_joined(now, r),
                 Done::Scanned(list) => station.wifi_scanned(now, &list),
                 Done::Link(l) => station.wifi_link(l),
+                Done::Radio(r) => station.radio(r),
             }
         }
     }

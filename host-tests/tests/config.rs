@@ -826,6 +826,7 @@ mod store_site {
         let good = StoreSite {
             flash_bytes: MIB4,
             partition: Some((0x9000, 0x6000)),
+            lookup: None,
         };
         assert_eq!(good.problem(), None);
         let cases = [
@@ -833,6 +834,7 @@ mod store_site {
                 StoreSite {
                     flash_bytes: MIB4,
                     partition: None,
+                    lookup: None,
                 },
                 Some(SiteProblem::NoPartition),
                 "flash 4096 KiB (as the chip reports it), no nvs partition; the store needs 8 KiB \
@@ -842,6 +844,7 @@ mod store_site {
                 StoreSite {
                     flash_bytes: MIB4,
                     partition: Some((0x9000, 0x1000)),
+                    lookup: None,
                 },
                 Some(SiteProblem::TooSmall),
                 "flash 4096 KiB (as the chip reports it), nvs partition at 0x9000, 4 KiB; the store \
@@ -852,6 +855,7 @@ mod store_site {
                 StoreSite {
                     flash_bytes: MIB4,
                     partition: Some((0x9000, 0x6800)),
+                    lookup: None,
                 },
                 Some(SiteProblem::NotAligned),
                 "flash 4096 KiB (as the chip reports it), nvs partition at 0x9000, 26 KiB; the store \
@@ -863,6 +867,7 @@ mod store_site {
                 StoreSite {
                     flash_bytes: 0,
                     partition: Some((0x9000, 0x6000)),
+                    lookup: None,
                 },
                 Some(SiteProblem::BeyondFlash),
                 "flash 0 KiB (as the chip reports it), nvs partition at 0x9000, 24 KiB; the store \

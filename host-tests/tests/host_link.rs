@@ -394,6 +394,7 @@ fn hello_names_the_store_and_the_lines_a_host_missed() {
     r.h.station.set_store_site(StoreSite {
         flash_bytes: 0,
         partition: Some((0x9000, 0x6000)),
+        lookup: None,
     });
     // A host that did not read: the port dropped 12 lines.
     r.h.station.host_lines_dropped(12);

@@ -493,6 +493,7 @@ fn the_installer_provisions_the_bridge_and_the_key_is_stored_never_the_passphras
         hello.contains("\"wifi\":{\"state\":\"connected\",\"ip\":\"192.0.2.10\"}"),
         "{hello}"
     );
+    assert!(hello.contains("\"radio\":\"up\""), "{hello}");
     // Asked again, the state is provisioned, with its (empty) URL list.
     let mut req = rpc(2, b"");
     req.push(b'\n');
@@ -597,6 +598,65 @@ fn malformed_packets_are_refused_and_the_host_link_goes_on() {
         lines.iter().any(|l| l.contains("\"type\":\"link\"")),
         "{lines:#?}"
     );
+}
+
+/// A radio that never finishes starting (the chip's would hang in its RF
+/// calibration): the bridge polls the BMS and answers the host all the same,
+/// and `hello` says where the radio stands, `starting`, then `late`.
+#[test]
+fn a_radio_that_never_comes_up_holds_nothing_back() {
+    let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 5);
+    let mut h = Hosted::with_wifi(
+        SimPort::new(sim),
+        tinybms_firmware::bms::timing::Timing::default(),
+        SimFlash::Ram(RamFlash::new()),
+        "esp32c3",
+        true,
+    );
+    let mut w = SimWifi::new(vec![SimNetwork::parse("home:correct horse:-48").unwrap()]);
+    w.radio_hangs = true;
+    w.late_after = 1_500 * tinybms_firmware::MS;
+    h.driver.wifi = Some(w);
+    h.boot_wifi();
+    h.connected();
+    let mut b = Bridge {
+        h,
+        port: Port::default(),
+    };
+    let hello_with = |b: &mut Bridge, what: &str| {
+        b.take();
+        b.send(b"{\"cmd\":\"hello\"}\n");
+        b.until("hello", |_, l| {
+            l.iter().any(|l| l.contains("\"type\":\"hello\""))
+        });
+        let (_, lines) = b.take();
+        let hello = lines
+            .iter()
+            .find(|l| l.contains("\"type\":\"hello\""))
+            .unwrap()
+            .clone();
+        assert!(hello.contains(what), "{what}: {hello}");
+    };
+    hello_with(&mut b, "\"radio\":\"starting\"");
+    // The BMS is read meanwhile: the bridge gets ready.
+    let end = Wall::now() + Duration::from_secs(10);
+    while !b.h.station().bridge().telemetry().ready {
+        b.h.step(&mut b.port).unwrap();
+        assert!(
+            Wall::now() < end,
+            "the BMS was not read while the radio hung"
+        );
+    }
+    let end = Wall::now() + Duration::from_secs(5);
+    loop {
+        b.h.step(&mut b.port).unwrap();
+        let (_, l) = split(&b.port.out);
+        if l.iter().any(|l| l.contains("radio: not up after 20 s")) {
+            break;
+        }
+        assert!(Wall::now() < end, "no `late` line: {l:#?}");
+    }
+    hello_with(&mut b, "\"radio\":\"late\"");
 }
 
 #[test]

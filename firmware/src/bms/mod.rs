@@ -19,3 +19,4 @@ pub mod link;
 pub mod profile;
 pub mod reader;
 pub mod timing;
+pub mod uart;

@@ -7,7 +7,7 @@
 use embassy_executor::Spawner;
 use embassy_time::{Duration, Timer};
 use esp_hal::gpio::{AnyPin, Input, InputConfig, Pull};
-use tinybms_firmware::config::button::SAMPLE_PERIOD_US;
+use tinybms_firmware::config::button::{Samples, SAMPLE_PERIOD_US};
 
 use crate::{spawn, wires, BOARD};
 
@@ -22,20 +22,18 @@ pub fn start(spawner: Spawner) {
     }
 }
 
-/// Samples the pin every [`SAMPLE_PERIOD_US`]; the station hears every
-/// sample while the button is down and the one that says it is up (so the
-/// station task is not woken while nobody touches it).
+/// Samples the pin every [`SAMPLE_PERIOD_US`]; the library's [`Samples`]
+/// says which reach the station (every one while the button is down, and the
+/// one that says it is up: an untouched button never wakes the station task).
 #[embassy_executor::task]
 async fn button_task(pin: Input<'static>) {
-    let mut was_pressed = false;
+    let mut samples = Samples::new();
     loop {
         // The button pulls the pin low.
-        let pressed = pin.is_low();
-        if pressed || was_pressed {
+        if let Some(pressed) = samples.take(pin.is_low()) {
             wires::BUTTON.signal(pressed);
             wires::wake();
         }
-        was_pressed = pressed;
         Timer::after(Duration::from_micros(SAMPLE_PERIOD_US)).await;
     }
 }

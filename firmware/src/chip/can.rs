@@ -21,14 +21,18 @@ use esp_hal::twai::{
 };
 use esp_hal::Async;
 use tinybms_firmware::inverter::frames::CanFrame;
+use tinybms_firmware::inverter::port::{self, CanCommand, CanDone, Sent};
 use tinybms_firmware::inverter::{self, InverterConfig};
 use tinybms_firmware::text::Boot;
 
-use crate::wires::{self, CanCommand, CanDone};
+use crate::wires;
 use crate::{spawn, BOARD};
 
-/// CAN bit rate of both inverter protocols.
-const CAN_BAUDRATE: BaudRate = BaudRate::B500K;
+/// The protocols' bit rate ([`port::BITRATE`]) as the driver names it.
+const CAN_BAUDRATE: BaudRate = match port::BITRATE {
+    500_000 => BaudRate::B500K,
+    _ => panic!("no TWAI rate for the protocols' bit rate"),
+};
 /// The library's limits ([`tinybms_firmware::inverter`]) as driver durations.
 const CAN_TX_TIMEOUT: Duration = Duration::from_micros(inverter::CAN_TX_TIMEOUT_US);
 const CAN_RECOVERY_WAIT: Duration = Duration::from_micros(inverter::BUS_RECOVERY_WAIT_US);
@@ -75,17 +79,13 @@ async fn can_task(mut twai: Twai<'static, Async>) {
                     done(CanDone::Failed);
                     continue;
                 };
-                let result = with_timeout(CAN_TX_TIMEOUT, twai.transmit_async(&frame)).await;
-                done(
-                    if matches!(result, Ok(Err(EspTwaiError::BusOff))) || twai.is_bus_off() {
-                        CanDone::BusOff
-                    } else if matches!(result, Ok(Ok(()))) {
-                        CanDone::Sent
-                    } else {
-                        // Not acknowledged (no other node: error-passive), or too slow.
-                        CanDone::Failed
-                    },
-                );
+                let sent = match with_timeout(CAN_TX_TIMEOUT, twai.transmit_async(&frame)).await {
+                    Ok(Ok(())) => Sent::Acked,
+                    Ok(Err(EspTwaiError::BusOff)) => Sent::BusOff,
+                    Ok(Err(_)) => Sent::Error,
+                    Err(_) => Sent::TimedOut,
+                };
+                done(CanDone::after_send(sent, twai.is_bus_off()));
             }
             Either::First(CanCommand::Recover) => {
                 twai.initiate_recovery();
@@ -96,18 +96,12 @@ async fn can_task(mut twai: Twai<'static, Async>) {
                 done(CanDone::Recovered(!twai.is_bus_off()));
             }
             Either::Second(Ok(frame)) => {
-                if let Id::Standard(id) = frame.identifier() {
-                    let data = frame.data();
-                    let mut f = CanFrame {
-                        id: id.as_raw(),
-                        len: 0,
-                        data: [0; 8],
-                    };
-                    let n = data.len().min(8);
-                    if let (Some(dst), Some(src)) = (f.data.get_mut(..n), data.get(..n)) {
-                        dst.copy_from_slice(src);
-                        f.len = n as u8;
-                    }
+                let id = match frame.identifier() {
+                    Id::Standard(id) => u32::from(id.as_raw()),
+                    Id::Extended(id) => id.as_raw(),
+                };
+                // An extended frame is none of the protocols' (`None`).
+                if let Some(f) = CanFrame::from_bus(id, frame.data()) {
                     // Full: the frame is dropped (summaries and keep-alives repeat).
                     let _ = wires::CAN_RX.try_send(f);
                     wires::wake();

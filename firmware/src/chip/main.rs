@@ -107,8 +107,10 @@ const _: () = assert!(
     "this board's host link runs on UART0: use `log-rtt` (its log lines reach the host link as `log` lines)"
 );
 
-/// Watchdog timeout (MWDT stage 0 → system reset). Fed by the station task.
-const WDT_TIMEOUT: esp_hal::time::Duration = esp_hal::time::Duration::from_secs(4);
+/// Watchdog timeout (MWDT stage 0 → system reset), the library's. Fed by the
+/// station task, which never sleeps longer than the library's bound.
+const WDT_TIMEOUT: esp_hal::time::Duration =
+    esp_hal::time::Duration::from_micros(tinybms_firmware::station::pumps::WATCHDOG_US);
 
 /// esp-rtos task priority of `main`'s thread, which runs every task (module
 /// docs): esp-rtos's highest.
@@ -178,6 +180,9 @@ async fn main(spawner: Spawner) {
     let host = usb::start(spawner, p.USB_DEVICE, p.UART0, running);
     #[cfg(feature = "host-link")]
     button::start(spawner);
+    // Nothing here waits for the radio: `wifi::start` only prepares it and
+    // spawns its start, which runs on a thread below this one's once the
+    // station task (spawned last, first to run) waits.
     #[cfg(feature = "wifi")]
     let name = wifi::start(spawner, p.WIFI, running, IDENTITY);
     #[cfg(not(feature = "wifi"))]

@@ -6,10 +6,8 @@ unsafe extern "C" {
     fn esp_rom_uart_tx_one_char(c: u8) -> i32;
 }
 
-/// After a panic, time for the log reader to fetch the panic line and backtrace
-/// before the reset (RTT is polled by the host; UART0 drains its FIFO). Shorter
-/// than the watchdog's [`crate::WDT_TIMEOUT`], so the watchdog is only the fallback.
-const PANIC_RESET_DELAY_US: u32 = 1_000_000;
+/// The library's delay before the reset (the log reader fetches the panic line).
+const PANIC_RESET_DELAY_US: u32 = tinybms_firmware::host_link::panic::RESET_DELAY_US as u32;
 
 /// Every panic ends here: log "panic" and the backtrace (return addresses from
 /// the frame-pointer walk, innermost first: the panic helper(s) that were called —
@@ -32,27 +30,20 @@ fn panic(_info: &core::panic::PanicInfo) -> ! {
     #[cfg(feature = "host-link")]
     if matches!(crate::BOARD.host, tinybms_firmware::boards::HostWire::Uart0) {
         // On this board the log only reaches the cable through the host link:
-        // the same facts as one `log` line, written by the ROM (no driver,
-        // no allocation, whatever state the UART task was in).
-        let out = |b: &[u8]| {
+        // the same facts as one `log` line (the library's bytes), written by
+        // the ROM (no driver, no allocation, whatever state the UART task was in).
+        let pcs = backtrace
+            .frames()
+            .iter()
+            .map(|f| f.program_counter() as u32);
+        tinybms_firmware::host_link::panic::write_line(pcs, |b: &[u8]| {
             for &c in b {
                 // SAFETY: the ROM's console output (UART0), provided by the ROM
                 // linker script of esp-rom-sys; blocking, reentrancy irrelevant
                 // here (nothing else runs any more).
                 unsafe { esp_rom_uart_tx_one_char(c) };
             }
-        };
-        out(b"\n{\"type\":\"log\",\"level\":\"warn\",\"text\":\"panic, restarting; backtrace");
-        for frame in backtrace.frames() {
-            let pc = frame.program_counter() as u32;
-            let mut hex = *b" 0x00000000";
-            for (i, d) in hex.iter_mut().skip(3).enumerate() {
-                let n = (pc >> (28 - 4 * i as u32)) & 0xF;
-                *d = b"0123456789abcdef"[n as usize];
-            }
-            out(&hex);
-        }
-        out(b"\"}\n");
+        });
     }
     esp_hal::rom::ets_delay_us(PANIC_RESET_DELAY_US);
     esp_hal::system::software_reset()

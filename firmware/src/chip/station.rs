@@ -9,38 +9,22 @@
 use defmt::warn;
 use embassy_executor::Spawner;
 use embassy_futures::select::{select4, Either4};
-use embassy_time::{Duration, Instant, Timer};
+use embassy_time::{Instant, Timer};
 use esp_hal::gpio::AnyPin;
 use esp_hal::peripherals::{TIMG0, UART1};
 use esp_hal::timer::timg::Wdt;
 use esp_hal::uart::{Config as UartConfig, RxConfig, RxError, Uart, UartRx, UartTx};
 use esp_hal::Async;
 use tinybms_firmware::bms::profile;
+use tinybms_firmware::bms::uart::{self, RxErrors, WriteError};
+use tinybms_firmware::station::pumps::bounded_wait;
 use tinybms_firmware::station::{Action, Station};
 use tinybms_firmware::text::Boot;
 
-use crate::{log, now_us, spawn, store, wires, BOARD};
+#[cfg(feature = "can")]
+use tinybms_firmware::inverter::port::{CanCommand, CanDone};
 
-/// TinyBMS UART baud rate (8N1 is the esp-hal default frame format; Rev D §1).
-const BMS_BAUDRATE: u32 = 115_200;
-/// UART1 RX FIFO "full" interrupt level, bytes (of the 128-byte FIFO).
-///
-/// esp-hal's default is 120, which leaves 8 bytes (≈ 0.7 ms at 115 200 Bd) between
-/// the interrupt and an overflow; replies longer than 120 bytes exist (0x03 with
-/// ≥ 58 registers, packetized events). An overflow resets the FIFO: a CRC error
-/// and a retry. At 64 the task has 64 bytes ≈ 5.5 ms to read (issue 11).
-const RX_FIFO_FULL_THRESHOLD: u16 = 64;
-/// Most `read_buffered` calls when draining the FIFO at a deadline (128-byte FIFO,
-/// read into the bridge's receive space, which holds a whole reply's remaining
-/// bytes and grows as the bridge takes them; the bound only guards against a line
-/// that keeps delivering).
-const DEADLINE_DRAIN_READS: usize = 4;
-/// Longest the station task sleeps without feeding the watchdog.
-const MAX_WAIT: Duration = Duration::from_millis(500);
-/// UART receive errors are logged (defmt) at most once per this period: the
-/// library's period for the link errors they cause.
-const RX_ERROR_LOG_PERIOD: Duration =
-    Duration::from_micros(tinybms_firmware::bms::timing::LINK_ERROR_LOG_PERIOD_US);
+use crate::{log, now_us, spawn, store, wires, BOARD};
 
 /// UART1 to the TinyBMS on the board's pins, and the station task on it.
 pub fn start(
@@ -56,8 +40,8 @@ pub fn start(
     // each other and from the CAN pins, and are not flash/USB/UART0 pins.
     let (tx_pin, rx_pin) = unsafe { (AnyPin::steal(BOARD.bms_tx), AnyPin::steal(BOARD.bms_rx)) };
     let uart_config = UartConfig::default()
-        .with_baudrate(BMS_BAUDRATE)
-        .with_rx(RxConfig::default().with_fifo_full_threshold(RX_FIFO_FULL_THRESHOLD));
+        .with_baudrate(uart::BAUD)
+        .with_rx(RxConfig::default().with_fifo_full_threshold(uart::RX_FIFO_FULL_THRESHOLD));
     let uart = Uart::new(uart1, uart_config)
         .expect("UART1 config")
         .with_tx(tx_pin)
@@ -67,8 +51,8 @@ pub fn start(
     log::boot(
         station,
         &Boot::Uart {
-            baud: BMS_BAUDRATE,
-            pins: Some((BOARD.bms_tx, BOARD.bms_rx, RX_FIFO_FULL_THRESHOLD)),
+            baud: uart::BAUD,
+            pins: Some((BOARD.bms_tx, BOARD.bms_rx, uart::RX_FIFO_FULL_THRESHOLD)),
         },
     );
     // Before the task's first poll: the profile's boot line is kept too.
@@ -76,28 +60,11 @@ pub fn start(
     spawn(spawner, station_task(rx, tx, wdt, station, store));
 }
 
-/// UART receive errors, counted as they happen and logged (rate-limited) when
-/// the station logs, i.e. never while a reply is arriving.
-struct RxErrors {
-    count: u32,
-    last: Option<RxError>,
-    next_log: Instant,
-}
-
-impl RxErrors {
-    fn record(&mut self, e: RxError) {
-        self.count = self.count.wrapping_add(1);
-        self.last = Some(e);
-    }
-
-    fn log(&mut self) {
-        if let Some(e) = self.last {
-            if Instant::now() >= self.next_log {
-                warn!("uart rx error: {} ({=u32} so far)", e, self.count);
-                self.next_log = Instant::now() + RX_ERROR_LOG_PERIOD;
-                self.last = None;
-            }
-        }
+/// Logs the receive error the library's rule says is due (its words are
+/// the driver's).
+fn log_rx_errors(rx_errors: &mut RxErrors<RxError>) {
+    if let Some((e, count)) = rx_errors.due(now_us()) {
+        warn!("uart rx error: {} ({=u32} so far)", e, count);
     }
 }
 
@@ -117,11 +84,7 @@ async fn station_task(
     station: &'static mut Station,
     mut store: Option<store::ChipStore>,
 ) {
-    let mut rx_errors = RxErrors {
-        count: 0,
-        last: None,
-        next_log: Instant::now(),
-    };
+    let mut rx_errors = RxErrors::new();
     let mut pumps = Pumps::new();
     loop {
         wdt.feed();
@@ -130,21 +93,20 @@ async fn station_task(
         match station.poll(now_us()) {
             Action::Log(item) => {
                 log::logged(station, &item);
-                rx_errors.log();
+                log_rx_errors(&mut rx_errors);
             }
             Action::Transmit => {
                 // The line is quiet until the request is out.
-                rx_errors.log();
-                // Written from where the link keeps them (no copy).
-                let mut rest: &[u8] = station.transmit_bytes();
-                while !rest.is_empty() {
-                    match tx.write_async(rest).await {
-                        Ok(n) => rest = rest.get(n..).unwrap_or(&[]),
-                        Err(e) => {
-                            warn!("uart tx error: {}", e);
-                            break;
-                        }
-                    }
+                log_rx_errors(&mut rx_errors);
+                // Written from where the link keeps them (no copy); every
+                // byte, through the driver's partial writes.
+                let sent =
+                    uart::write_all(station.transmit_bytes(), async |b| tx.write_async(b).await)
+                        .await;
+                match sent {
+                    Ok(()) => {}
+                    Err(WriteError::Driver(e)) => warn!("uart tx error: {}", e),
+                    Err(WriteError::TookNothing) => warn!("uart tx: the driver took nothing"),
                 }
                 if let Err(e) = tx.flush_async().await {
                     warn!("uart flush error: {}", e);
@@ -157,20 +119,17 @@ async fn station_task(
             #[cfg(feature = "can")]
             Action::Can(frame) => {
                 if wires::CAN_COMMAND
-                    .try_send(wires::CanCommand::Send(frame))
+                    .try_send(CanCommand::Send(frame))
                     .is_err()
                 {
                     // No CAN task takes it (cannot happen: one at a time).
-                    station.can_sent(now_us(), tinybms_firmware::inverter::TxResult::Failed);
+                    station.can_done(now_us(), CanDone::Failed);
                 }
             }
             #[cfg(feature = "can")]
             Action::CanRecover => {
-                if wires::CAN_COMMAND
-                    .try_send(wires::CanCommand::Recover)
-                    .is_err()
-                {
-                    station.can_recovered(now_us(), false);
+                if wires::CAN_COMMAND.try_send(CanCommand::Recover).is_err() {
+                    station.can_done(now_us(), CanDone::Recovered(false));
                 }
             }
             #[cfg(not(feature = "can"))]
@@ -188,7 +147,7 @@ async fn station_task(
             #[cfg(not(feature = "wifi"))]
             Action::Wifi(_) => {}
             Action::WaitUntil(t) => {
-                let deadline = Instant::from_micros(t).min(Instant::now() + MAX_WAIT);
+                let deadline = Instant::from_micros(bounded_wait(t, now_us()));
                 // `read_async`, `Pipe::read` and `Signal::wait` are
                 // cancellation-safe: racing them against a timer loses nothing.
                 // The UART driver writes straight into the bridge's receive
@@ -208,7 +167,7 @@ async fn station_task(
                     Either4::Second(()) => {
                         // Bytes already received but not yet signalled go in
                         // before the deadline is handled by the next `poll`.
-                        for _ in 0..DEADLINE_DRAIN_READS {
+                        for _ in 0..uart::DEADLINE_DRAIN_READS {
                             match rx.read_buffered(station.rx_buffer()) {
                                 Ok(0) => break,
                                 Ok(n) => station.received(now_us(), n),
@@ -253,17 +212,7 @@ impl Pumps {
         #[cfg(feature = "can")]
         {
             while let Ok(done) = wires::CAN_DONE.try_receive() {
-                let now = now_us();
-                match done {
-                    wires::CanDone::Sent => {
-                        station.can_sent(now, tinybms_firmware::inverter::TxResult::Sent)
-                    }
-                    wires::CanDone::Failed => {
-                        station.can_sent(now, tinybms_firmware::inverter::TxResult::Failed)
-                    }
-                    wires::CanDone::BusOff => station.can_bus_off(now),
-                    wires::CanDone::Recovered(ok) => station.can_recovered(now, ok),
-                }
+                station.can_done(now_us(), done);
             }
             while let Ok(f) = wires::CAN_RX.try_receive() {
                 station.can_received(now_us(), f.id, f.bytes());
@@ -300,6 +249,10 @@ impl Pumps {
             if let Some(rssi) = wires::WIFI_RSSI.try_take() {
                 station.wifi_rssi(rssi);
             }
+            #[cfg(feature = "wifi")]
+            if let Some(r) = wires::RADIO.try_take() {
+                station.radio(r);
+            }
         }
         #[cfg(not(any(feature = "host-link", feature = "can")))]
         let _ = station;
@@ -309,13 +262,9 @@ impl Pumps {
     /// waits: a host line goes only when the pipe holds it whole).
     #[allow(clippy::unused_self)]
     fn hand_out(&mut self, station: &mut Station) {
+        // Whole lines only (the pipe's `try_write` stops at its wrap point).
         #[cfg(feature = "host-link")]
-        while wires::HOST_TX.free_capacity() >= self.line.len() {
-            let Some(n) = station.next_host_line(now_us(), &mut self.line) else {
-                break;
-            };
-            let _ = wires::HOST_TX.try_write(self.line.get(..n).unwrap_or(&[]));
-        }
+        station.hand_out_host_lines(now_us(), &mut &wires::HOST_TX, &mut self.line);
         #[cfg(feature = "wifi")]
         {
             // A copy into the Watch, no I/O: only when it changed.

@@ -1,11 +1,12 @@
-//! The configuration store on the chip: the default partition table's `nvs`
-//! partition (0x9000, 24 KiB: espflash's and ESP-IDF's default table; esp-radio
-//! does not use it), through `esp-storage` and `embassy-embedded-hal`'s
-//! `BlockingAsync` adapter into the library's `config::store::Store`.
+//! The configuration store on the chip: the flash through `esp-storage` and
+//! `embassy-embedded-hal`'s `BlockingAsync` adapter, handed to the library's
+//! `config::site::open`, which reads the partition table, finds the `nvs`
+//! partition (0x9000, 24 KiB in espflash's and ESP-IDF's default table;
+//! esp-radio does not use it) and opens the `config::store::Store` on it.
 //!
-//! Everything about the record — its codec, power-loss safety, when it may be
-//! written — is the library's (tested on the host); this file finds the
-//! partition.
+//! Everything about the record — where it lives, its codec, power-loss
+//! safety, when it may be written — is the library's (tested on the host,
+//! against the tables of the images CI makes); this file hands over the flash.
 //!
 //! Only with something to configure (feature `store`, implied by `can` and
 //! `host-link`); a bridge-only image runs with the defaults and links none of it.
@@ -19,97 +20,42 @@ pub use on::*;
 mod on {
     use defmt::warn;
     use embassy_embedded_hal::adapter::BlockingAsync;
-    use esp_bootloader_esp_idf::partitions::{self, FlashRegion, NorFlashRegion};
     use esp_hal::peripherals::FLASH;
     use esp_storage::FlashStorage;
-    use static_cell::StaticCell;
-    use tinybms_firmware::config::store::{Loaded, Saved, Source, Store, StoreError, StoreSite};
+    use tinybms_firmware::config::site;
+    use tinybms_firmware::config::store::{Loaded, Saved, Store, StoreError, StoreSite};
     use tinybms_firmware::config::Config;
 
-    /// The flash the store works on.
-    pub type Flash = BlockingAsync<NorFlashRegion<'static, 'static, 'static>>;
+    /// The flash the store works on: the whole chip (the library finds the
+    /// partition in the partition table and keeps to its range).
+    pub type Flash = BlockingAsync<FlashStorage<'static>>;
 
     /// The store on the chip.
     pub type ChipStore = Store<Flash>;
 
-    /// Partition table entry of the store: type data (1), subtype nvs (2), label.
-    const NVS_TYPE: u8 = 1;
-    const NVS_SUBTYPE: u8 = 2;
-    const NVS_LABEL: &[u8] = b"nvs";
-
-    static STORAGE: StaticCell<FlashStorage<'static>> = StaticCell::new();
-    static REGION: StaticCell<FlashRegion<'static, 'static>> = StaticCell::new();
-
-    /// Opens the store and loads the record. Without a usable partition the bridge
-    /// runs with the defaults (and says so) and changes are kept in RAM only.
+    /// Opens the store and loads the record (`tinybms_firmware::config::site`:
+    /// the table's lookup, the checks, the defaults and why). Without a usable
+    /// partition the bridge runs with the defaults and changes are kept in RAM
+    /// only.
     ///
     /// Not `async`: the flash under `BlockingAsync` never makes a future wait, so
-    /// the load is driven to completion here on the stack (an `async fn` would
-    /// keep the 3 KiB partition table buffer and the load's state in the main
-    /// task's static future for good).
+    /// the lookup and the load are driven to completion here on the stack (an
+    /// `async fn` would keep the 3 KiB table buffer and the load's state in the
+    /// main task's static future for good).
     pub fn open(flash: FLASH<'static>) -> (Option<Store<Flash>>, Loaded, StoreSite) {
-        let storage = STORAGE.init(FlashStorage::new(flash));
+        let storage = FlashStorage::new(flash);
         // What the flash says of its size (its read-ID answer): named in the
         // log and `hello` with the partition, so a failing store says why.
         let flash_bytes = u32::try_from(storage.capacity()).unwrap_or(u32::MAX);
-        let mut site = StoreSite {
+        let opened = embassy_futures::block_on(site::open(
+            BlockingAsync::new(storage),
             flash_bytes,
-            partition: None,
-        };
-        let entry = {
-            let mut table = [0u8; partitions::PARTITION_TABLE_MAX_LEN];
-            match partitions::read_partition_table(storage, &mut table) {
-                // By raw type and label: `partition_type()` panics on a subtype
-                // it does not know, and a custom table may have one.
-                Ok(t) => t.iter().find(|e| {
-                    e.raw_type() == NVS_TYPE
-                        && e.raw_subtype() == NVS_SUBTYPE
-                        && e.label() == NVS_LABEL
-                }),
-                Err(_) => None,
-            }
-        };
-        let Some(entry) = entry else {
-            warn!("no `nvs` partition in the partition table: configuration in RAM only");
-            return (None, defaults(StoreError::Partition), site);
-        };
-        site.partition = Some((entry.offset(), entry.len()));
-        if let Some(p) = site.problem() {
-            warn!(
-                "configuration in RAM only: {=str} (flash {=u32} KiB, nvs at {=u32:#x}, {=u32} bytes)",
-                p.reason(),
-                flash_bytes / 1024,
-                entry.offset(),
-                entry.len()
-            );
-            return (None, defaults(StoreError::Partition), site);
+            esp_storage::flash_encryption(),
+        ));
+        if let Some(p) = opened.site.problem() {
+            warn!("configuration in RAM only: {=str}", p.reason());
         }
-        let region = REGION.init(entry.as_flash_region(storage));
-        let Ok(nor) = region.as_nor_flash() else {
-            warn!("the `nvs` partition is encrypted: configuration in RAM only");
-            return (None, defaults(StoreError::Partition), site);
-        };
-        let len = entry.len();
-        match Store::new(BlockingAsync::new(nor), 0..len) {
-            Ok(mut store) => {
-                let loaded = embassy_futures::block_on(store.load());
-                (Some(store), loaded, site)
-            }
-            Err(e) => {
-                warn!(
-                    "the `nvs` partition cannot hold the store ({=u32} bytes)",
-                    len
-                );
-                (None, defaults(e), site)
-            }
-        }
-    }
-
-    fn defaults(e: StoreError) -> Loaded {
-        Loaded {
-            config: Config::default(),
-            source: Source::Unreadable(e),
-        }
+        (opened.store, opened.loaded, opened.site)
     }
 
     /// Writes the record (when the station says so: the BMS link is quiet),

@@ -42,18 +42,17 @@ mod on {
     use esp_hal::Async;
     use tinybms_firmware::boards::{HostWire, HOST_UART_BAUD};
     use tinybms_firmware::config::Config;
-    use tinybms_firmware::host_link::writer::{LineWriter, Start};
+    use tinybms_firmware::host_link::writer::{self, DrainingPort, LineWriter, Pieces, Start};
     use tinybms_firmware::text::Boot;
 
     use crate::{now_us, spawn, wires, BOARD};
 
-    /// How often it looks for room meanwhile.
-    const PROBE_STEP: Duration = Duration::from_millis(1);
+    /// How often it looks for room meanwhile (the library's).
+    const PROBE_STEP: Duration = Duration::from_micros(writer::PROBE_STEP_US);
     /// Longest a UART0 write of a piece may take: the library's limit for the
     /// rest of a started line ([`tinybms_firmware::host_link::writer::LINE_WRITE_US`];
     /// a UART drains whether anyone reads or not, so only a fault meets it).
-    const LINE_WRITE_TIMEOUT: Duration =
-        Duration::from_micros(tinybms_firmware::host_link::writer::LINE_WRITE_US);
+    const LINE_WRITE_TIMEOUT: Duration = Duration::from_micros(writer::LINE_WRITE_US);
 
     /// The host link on the USB cable: the USB-Serial-JTAG (CDC-ACM; its JTAG
     /// side, probe-rs and RTT, is a separate USB interface of the same device:
@@ -98,42 +97,18 @@ mod on {
         })
     }
 
-    /// Bytes the writers take from the pipe at once.
-    const CHUNK: usize = 64;
-
-    /// Splits what the writer reads into pieces of lines: each piece ends at
-    /// a newline or at the end of what was read. The station writes lines
-    /// whole, so once a line has begun, its rest is already in the pipe.
-    struct Pieces {
-        buf: [u8; CHUNK],
-        start: usize,
-        end: usize,
-    }
-
-    impl Pieces {
-        const fn new() -> Self {
-            Self {
-                buf: [0; CHUNK],
-                start: 0,
-                end: 0,
+    /// The next piece of a line from [`wires::HOST_TX`] (the library's
+    /// [`Pieces`] split what was read at newlines; reads when they are used up).
+    async fn next_piece(pieces: &mut Pieces) -> (&[u8], bool, bool) {
+        while !pieces.has_piece() {
+            if let Some(space) = pieces.space() {
+                let n = wires::HOST_TX.read(space).await;
+                pieces.filled(n);
             }
         }
-
-        /// The next piece, and whether it ends a line.
-        async fn next(&mut self) -> (&[u8], bool) {
-            if self.start >= self.end {
-                self.start = 0;
-                self.end = wires::HOST_TX.read(&mut self.buf).await;
-            }
-            let rest = self.buf.get(self.start..self.end).unwrap_or(&[]);
-            let len = rest
-                .iter()
-                .position(|&b| b == b'\n')
-                .map_or(rest.len(), |i| i + 1);
-            let piece = rest.get(..len).unwrap_or(&[]);
-            self.start += len;
-            (piece, piece.last() == Some(&b'\n'))
-        }
+        pieces.take().map_or((&[][..], false, false), |p| {
+            (p.bytes, p.starts_line, p.ends_line)
+        })
     }
 
     /// Host → station: bytes from the USB port into [`wires::HOST_RX`]. Waits
@@ -188,13 +163,11 @@ mod on {
         use embedded_io_async::Write;
         let mut pieces = Pieces::new();
         let mut w = LineWriter::new();
-        let mut at_start = true;
         let mut dropping = false;
         let mut deadline = Instant::now();
         loop {
-            let (mut piece, ends_line) = pieces.next().await;
-            let first_piece = at_start;
-            if at_start {
+            let (mut piece, starts_line, ends_line) = next_piece(&mut pieces).await;
+            if starts_line {
                 let Some(&first) = piece.first() else {
                     continue;
                 };
@@ -218,7 +191,7 @@ mod on {
             }
             if !dropping {
                 let sent = with_deadline(deadline, async {
-                    if first_piece {
+                    if starts_line {
                         // The first byte goes out alone: `write_async` fills
                         // 64 bytes without looking, and expects an empty FIFO.
                         tx.flush().await?;
@@ -238,7 +211,6 @@ mod on {
                     w.finished(now_us(), true);
                 }
             }
-            at_start = ends_line;
         }
     }
 
@@ -256,29 +228,31 @@ mod on {
         }
     }
 
-    /// Station → host over UART0: whole lines; a write error drops the rest of
-    /// the line, which is then ended with a newline (counted).
+    /// Station → host over UART0: whole lines; the library's [`DrainingPort`]
+    /// says what a failed write costs (the rest of its line, ended with a
+    /// newline, counted).
     #[embassy_executor::task]
     async fn uart0_tx_task(mut tx: UartTx<'static, Async>) {
         let mut pieces = Pieces::new();
-        let mut dropping = false;
+        let mut port = DrainingPort::new();
         loop {
-            let (piece, ends_line) = pieces.next().await;
+            let (piece, _, ends_line) = next_piece(&mut pieces).await;
             let mut rest = piece;
-            while !rest.is_empty() && !dropping {
+            while !rest.is_empty() && port.writing() {
                 match with_timeout(LINE_WRITE_TIMEOUT, tx.write_async(rest)).await {
-                    Ok(Ok(k)) => rest = rest.get(k..).unwrap_or(&[]),
+                    Ok(Ok(k)) if k > 0 => rest = rest.get(k..).unwrap_or(&[]),
                     _ => {
-                        dropping = true;
-                        let _ = with_timeout(LINE_WRITE_TIMEOUT, tx.write_async(b"\n")).await;
+                        if port.failed() {
+                            let _ = with_timeout(LINE_WRITE_TIMEOUT, tx.write_async(b"\n")).await;
+                        }
                     }
                 }
             }
             if ends_line {
-                if dropping {
-                    wires::host_lines_dropped(1);
+                let dropped = port.line_ended();
+                if dropped > 0 {
+                    wires::host_lines_dropped(dropped);
                 }
-                dropping = false;
             }
         }
     }

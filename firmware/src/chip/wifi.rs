@@ -23,6 +23,7 @@ use embassy_futures::select::{select, select3, Either, Either3};
 use embassy_net::tcp::client::{TcpClient, TcpClientState};
 use embassy_net::{DhcpConfig, Runner, Stack, StackResources};
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
+use embassy_sync::signal::Signal;
 use embassy_sync::watch::Receiver;
 use embassy_time::{Duration, Instant, Timer};
 use esp_hal::peripherals::WIFI;
@@ -31,7 +32,7 @@ use esp_radio::wifi::scan::ScanConfig;
 use esp_radio::wifi::sta::StationConfig;
 use esp_radio::wifi::{
     AuthenticationMethod, AuthenticationMethodConfig, Config as WifiConfig, ConnectionError,
-    ControllerConfig, DisconnectReason, Interface, Password, Ssid, WifiController,
+    ControllerConfig, DisconnectReason, Interface, Password, Ssid, WifiController, WifiError,
 };
 use heapless::String;
 use protocol_core::events::Event;
@@ -45,18 +46,15 @@ use tinybms_firmware::mqtt::session::{self, Clock, Feed, Note, Target};
 use tinybms_firmware::mqtt::Settings;
 use tinybms_firmware::station::Published;
 use tinybms_firmware::text::Line;
-use tinybms_firmware::wifi::{self as wifi_rules, Cause};
+use tinybms_firmware::wifi::{self as wifi_rules, Bringup, Cause, Radio, RadioMark, Said};
 use tinybms_firmware::Level;
 
 use crate::{spawn, wires};
 
-/// Heap for the Wi-Fi driver and the MQTT client's packet buffers, bytes: the
-/// station needs 47-57 KiB (esp-radio's documentation), MQTT a few.
-const HEAP_RECLAIMED: usize = 64 * 1024;
-const HEAP_MORE: usize = 36 * 1024;
-
-/// TCP buffers of the MQTT connection, bytes each way.
-const TCP_BUFFER: usize = 2048;
+/// The library's sizes ([`tinybms_firmware::wifi`], the MQTT session's).
+const HEAP_RECLAIMED: usize = wifi_rules::HEAP_RECLAIMED;
+const HEAP_MORE: usize = wifi_rules::HEAP_MORE;
+const TCP_BUFFER: usize = session::TCP_BUFFER;
 
 /// The library's rules ([`tinybms_firmware::wifi`]) as driver durations.
 const RSSI_PERIOD: Duration = Duration::from_micros(wifi_rules::RSSI_PERIOD_US);
@@ -65,13 +63,18 @@ const JOIN_TIME: Duration = Duration::from_micros(wifi_rules::JOIN_TIME_US);
 const SCAN_TIME: Duration = Duration::from_micros(wifi_rules::SCAN_TIME_US);
 const MQTT_SOCKET_TIMEOUT: Duration = Duration::from_micros(session::SOCKET_TIMEOUT_US);
 
-/// One log line (defmt and the host link's `log` lines) from pieces.
-fn say(level: Level, pieces: &[&str]) {
+/// One log line (defmt and the host link's `log` lines), the library's words.
+fn say(said: Said<'_>) {
     let mut l = Line::new();
-    for p in pieces {
-        l.push(p);
-    }
-    crate::log::line(level, &l);
+    said.write(&mut l);
+    crate::log::line(
+        if said.warns() {
+            Level::Warn
+        } else {
+            Level::Info
+        },
+        &l,
+    );
 }
 
 /// The driver's disconnect reason sorted into the library's causes (what
@@ -112,10 +115,21 @@ fn station_config(ssid: &str, key: &str) -> Option<StationConfig> {
     )
 }
 
-/// Starts the radio, the IP stack and the Wi-Fi task (which joins the
-/// record's network, and any network Improv Wi-Fi gives it over the host
-/// port), and MQTT when the record names a broker. Returns the bridge's
-/// name on the network (Improv shows it).
+/// What the Wi-Fi side starts with, handed to [`radio_task`].
+struct Plan {
+    iface: Interface,
+    stored: Option<StationConfig>,
+    hostname: String<32>,
+    mqtt: Option<(Target, Settings)>,
+    bridge: tinybms_firmware::identity::Identity,
+}
+
+/// Prepares Wi-Fi and MQTT and hands the radio's start to [`radio_task`],
+/// which starts the driver on a thread of its own below the bridge's (the
+/// station, CAN and USB tasks run first and never wait for it), unless the
+/// last start never finished (the chip's RTC memory says so:
+/// [`RadioMark`]): then the radio stays off. Returns the bridge's name on the
+/// network (Improv shows it) at once.
 pub fn start(
     spawner: Spawner,
     wifi: WIFI<'static>,
@@ -125,46 +139,154 @@ pub fn start(
     esp_alloc::heap_allocator!(#[esp_hal::ram(reclaimed)] size: HEAP_RECLAIMED);
     esp_alloc::heap_allocator!(size: HEAP_MORE);
 
+    let iface = Interface::station();
+    let hostname = wifi_rules::hostname(config.hostname.as_str(), iface.mac_address());
+    if mark(RadioMark::at_boot) == Bringup::HoldOff {
+        radio(Radio::HeldOff);
+        return Some(hostname);
+    }
     let stored = if config.wifi_ssid.is_empty() {
-        say(
-            Level::Info,
-            &["Wi-Fi: no network yet (the browser installer, or tinybms wifi PORT --ssid NAME)"],
-        );
+        say(Said::NoNetwork);
         None
     } else {
         let c = station_config(config.wifi_ssid.as_str(), config.wifi_key.as_str());
         if c.is_none() {
-            say(
-                Level::Warn,
-                &["Wi-Fi: the stored network or key is not valid"],
-            );
+            say(Said::StoredInvalid);
+        } else {
+            say(Said::Joining(config.wifi_ssid.as_str(), hostname.as_str()));
         }
         c
     };
-    let iface = Interface::station();
-    let mac = iface.mac_address();
-    let controller = match WifiController::new(wifi, ControllerConfig::default()) {
-        Ok(c) => c,
-        Err(e) => {
-            warn!("Wi-Fi off: the radio did not start: {}", e);
-            say(Level::Warn, &["Wi-Fi off: the radio did not start"]);
-            return None;
-        }
+    let mqtt = if config.mqtt_host.is_empty() {
+        say(Said::MqttOff);
+        None
+    } else {
+        Some((
+            Target::from_config(config, &hostname),
+            Settings::from_config(config),
+        ))
     };
-    let hostname = wifi_rules::hostname(config.hostname.as_str(), mac);
-    if stored.is_some() {
-        say(
-            Level::Info,
-            &[
-                "Wi-Fi: joining ",
-                config.wifi_ssid.as_str(),
-                " as ",
-                hostname.as_str(),
-            ],
+    RADIO_PERIPHERAL.lock(|p| p.set(Some(wifi)));
+    spawn(
+        spawner,
+        radio_task(
+            spawner,
+            Plan {
+                iface,
+                stored,
+                hostname: hostname.clone(),
+                mqtt,
+                bridge,
+            },
+        ),
+    );
+    Some(hostname)
+}
+
+/// The radio's mark in RTC memory: kept across a reset (a watchdog's, a
+/// panic's), zeroed by esp-hal's start-up only after a power-on.
+#[esp_hal::ram(unstable(rtc_fast, persistent))]
+static mut RADIO_MARK: [u32; RadioMark::WORDS] = [0; RadioMark::WORDS];
+
+/// Reads the mark, lets the library's rule change it, writes it back.
+fn mark<R>(f: impl FnOnce(&mut RadioMark) -> R) -> R {
+    critical_section::with(|_| {
+        // SAFETY: the mark is touched only here, inside a critical section.
+        let cell = unsafe { &mut *core::ptr::addr_of_mut!(RADIO_MARK) };
+        let mut m = RadioMark(*cell);
+        let r = f(&mut m);
+        *cell = m.0;
+        r
+    })
+}
+
+/// Tells the station where the radio's start stands (it logs it, and
+/// `hello` says it).
+fn radio(r: Radio) {
+    wires::RADIO.signal(r);
+    wires::wake();
+}
+
+/// The Wi-Fi peripheral, handed from `start` to the radio's thread.
+static RADIO_PERIPHERAL: embassy_sync::blocking_mutex::Mutex<
+    CriticalSectionRawMutex,
+    core::cell::Cell<Option<WIFI<'static>>>,
+> = embassy_sync::blocking_mutex::Mutex::new(core::cell::Cell::new(None));
+
+/// What the radio's thread made of the driver.
+static CONTROLLER: Signal<CriticalSectionRawMutex, Result<WifiController<'static>, WifiError>> =
+    Signal::new();
+
+/// esp-rtos priority of the radio's start thread: below the thread that runs
+/// the bridge's tasks (`MAIN_PRIORITY`, main.rs) and below the radio
+/// driver's own threads.
+const RADIO_START_PRIORITY: u32 = 1;
+/// Its stack, bytes (from the heap; freed when the thread ends).
+const RADIO_START_STACK: usize = wifi_rules::RADIO_START_STACK;
+
+/// The radio's start thread: the driver's set-up (the RF calibration
+/// included), which blocks for as long as it takes; then it hands the
+/// controller over and ends.
+extern "C" fn radio_start_thread(_: *mut core::ffi::c_void) {
+    if let Some(wifi) = RADIO_PERIPHERAL.lock(|p| p.take()) {
+        CONTROLLER.signal(WifiController::new(wifi, ControllerConfig::default()));
+    }
+    // SAFETY: `None` is the current task, which the scheduler ends.
+    unsafe { esp_radio_rtos_driver::schedule_task_deletion(None) };
+    loop {
+        esp_radio_rtos_driver::yield_task();
+    }
+}
+
+/// Starts the radio on its own thread, waits for it (saying so when it is
+/// late), then starts the IP stack, the Wi-Fi task and MQTT.
+#[embassy_executor::task]
+async fn radio_task(spawner: Spawner, plan: Plan) {
+    radio(Radio::Starting);
+    mark(RadioMark::starting);
+    // SAFETY: the thread's parameter is unused; the function never returns
+    // (it ends itself).
+    unsafe {
+        esp_radio_rtos_driver::task_create(
+            "radio start",
+            radio_start_thread,
+            core::ptr::null_mut(),
+            RADIO_START_PRIORITY,
+            None,
+            RADIO_START_STACK,
         );
     }
+    let started = match select(
+        CONTROLLER.wait(),
+        Timer::after(Duration::from_micros(wifi_rules::RADIO_START_LIMIT_US)),
+    )
+    .await
+    {
+        Either::First(r) => r,
+        Either::Second(()) => {
+            radio(Radio::Late);
+            CONTROLLER.wait().await
+        }
+    };
+    mark(RadioMark::started);
+    let controller = match started {
+        Ok(c) => c,
+        Err(e) => {
+            warn!("the radio did not start: {}", e);
+            radio(Radio::Failed);
+            return;
+        }
+    };
+    radio(Radio::Up);
+    let Plan {
+        iface,
+        stored,
+        hostname,
+        mqtt,
+        bridge,
+    } = plan;
     let mut dhcp = DhcpConfig::default();
-    dhcp.hostname = Some(hostname.clone());
+    dhcp.hostname = Some(hostname);
     // The true RNG is on once the controller runs.
     let rng = Rng::new();
     let seed = (u64::from(rng.random()) << 32) | u64::from(rng.random());
@@ -177,28 +299,15 @@ pub fn start(
     );
     spawn(spawner, wifi_task(controller, stack, stored));
     spawn(spawner, net_task(runner));
-    if config.mqtt_host.is_empty() {
-        say(
-            Level::Info,
-            &["MQTT off: no mqtt_host (tinybms mqtt PORT --host HOST)"],
-        );
-    } else {
-        let mut port = Line::new();
-        port.uint(config.mqtt_port.into());
-        say(
-            Level::Info,
-            &["MQTT to ", config.mqtt_host.as_str(), ":", port.as_str()],
-        );
-        let target = Target::from_config(config, &hostname);
-        let settings = Settings::from_config(config);
+    if let Some((target, settings)) = mqtt {
+        say(Said::MqttTo(target.host.as_str(), target.port));
         spawn(spawner, mqtt_task(stack, target, settings, bridge));
     }
     spawn(spawner, heap_task());
-    Some(hostname)
 }
 
-/// How often the heap's use is logged.
-const HEAP_LOG_PERIOD: Duration = Duration::from_secs(600);
+/// How often the heap's use is logged (the library's).
+const HEAP_LOG_PERIOD: Duration = Duration::from_micros(wifi_rules::HEAP_LOG_PERIOD_US);
 
 /// One line: the heap now and its high-water mark (the figure a run on a unit
 /// gives for docs/performance.md).
@@ -240,19 +349,7 @@ async fn join(
     stack: Stack<'static>,
 ) -> Result<[u8; 4], JoinFailure> {
     match controller.connect_async().await {
-        Ok(info) => {
-            let mut channel = Line::new();
-            channel.uint(info.channel.into());
-            say(
-                Level::Info,
-                &[
-                    "Wi-Fi up: ",
-                    info.ssid.as_str(),
-                    ", channel ",
-                    channel.as_str(),
-                ],
-            );
-        }
+        Ok(info) => say(Said::Up(info.ssid.as_str(), info.channel)),
         Err(e) => {
             warn!("Wi-Fi: cannot join ({})", e);
             return Err(failure(&e));
@@ -356,11 +453,11 @@ async fn wifi_task(
                     match d {
                         Ok(d) => {
                             warn!("Wi-Fi down: {}", d.reason);
-                            say(Level::Warn, &["Wi-Fi down: ", cause(d.reason).text()]);
+                            say(Said::Down(Some(cause(d.reason))));
                         }
                         Err(e) => {
                             warn!("Wi-Fi down: {}", e);
-                            say(Level::Warn, &["Wi-Fi down"]);
+                            say(Said::Down(None));
                         }
                     }
                     wires::WIFI_RSSI.signal(None);
@@ -385,10 +482,7 @@ async fn wifi_task(
         };
         tell(wires::WifiDone::Link(WifiLink::Down));
         if controller.set_config(&WifiConfig::Station(config)).is_err() {
-            say(
-                Level::Warn,
-                &["Wi-Fi: the driver refused the stored network"],
-            );
+            say(Said::DriverRefused);
             current = None;
             continue;
         }
@@ -400,18 +494,7 @@ async fn wifi_task(
             }
             Either::First(Err(f)) => {
                 let wait = backoff.wait();
-                let mut secs = Line::new();
-                secs.uint(wait / tinybms_firmware::SECOND);
-                say(
-                    Level::Warn,
-                    &[
-                        "Wi-Fi: cannot join (",
-                        f.text(),
-                        "), next try in ",
-                        secs.as_str(),
-                        " s",
-                    ],
-                );
+                say(Said::CannotJoin(f, wait / tinybms_firmware::SECOND));
                 if let Either::Second(req) = select(
                     Timer::after(Duration::from_micros(wait)),
                     wires::WIFI_REQUEST.receive(),
@@ -507,18 +590,7 @@ async fn mqtt_task(
     let mut client = TcpClient::new(stack, STATE.init(TcpClientState::new()));
     client.set_timeout(Some(MQTT_SOCKET_TIMEOUT));
     let mut net = StackNet::new(stack, client, ChipClock, |a| {
-        info!("IP {} (DHCP)", a);
-        let o = a.address().octets();
-        let mut l = Line::new();
-        l.push("IP ");
-        for (i, b) in o.iter().enumerate() {
-            if i > 0 {
-                l.push(".");
-            }
-            l.uint((*b).into());
-        }
-        l.push("/").uint(a.prefix_len().into()).push(" (DHCP)");
-        crate::log::line(Level::Info, &l);
+        say(Said::Address(a.address().octets(), a.prefix_len()));
     });
     let mut feed = ChipFeed {
         published,
@@ -528,41 +600,13 @@ async fn mqtt_task(
     let mut note = |n: Note| {
         wires::MQTT_STATE.signal(n.state());
         wires::wake();
-        let mut ms_text = Line::new();
-        match n {
-            Note::Connected => {
-                say(Level::Info, &["MQTT: connected to the broker"]);
-                log_heap();
-            }
-            Note::Disconnected(f, ms) => {
-                ms_text.uint(ms.into());
-                say(
-                    Level::Warn,
-                    &[
-                        "MQTT: connection lost (",
-                        f.reason(),
-                        "), reconnecting in ",
-                        ms_text.as_str(),
-                        " ms",
-                    ],
-                );
-            }
-            Note::Failed(f, ms) => {
-                ms_text.uint(ms.into());
-                say(
-                    Level::Warn,
-                    &[
-                        "MQTT: cannot connect (",
-                        f.reason(),
-                        "), next try in ",
-                        ms_text.as_str(),
-                        " ms",
-                    ],
-                );
-            }
-            Note::WaitingForBms => say(Level::Info, &["MQTT: waiting for the BMS's serial number"]),
-            // For `hello` only.
-            Note::Held => {}
+        if let Some(level) = n.level() {
+            let mut l = Line::new();
+            n.write(&mut l);
+            crate::log::line(level, &l);
+        }
+        if n == Note::Connected {
+            log_heap();
         }
     };
     session::run(

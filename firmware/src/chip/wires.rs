@@ -66,25 +66,9 @@ pub use can::*;
 mod can {
     use embassy_sync::channel::Channel;
     use tinybms_firmware::inverter::frames::CanFrame;
+    use tinybms_firmware::inverter::port::{CanCommand, CanDone};
 
     use super::Raw;
-
-    /// What the station asks of the CAN controller: one thing at a time (the
-    /// station hands out the next only after the result).
-    #[derive(Clone, Copy)]
-    pub enum CanCommand {
-        Send(CanFrame),
-        Recover,
-    }
-
-    /// What came of a [`CanCommand`].
-    #[derive(Clone, Copy)]
-    pub enum CanDone {
-        Sent,
-        Failed,
-        BusOff,
-        Recovered(bool),
-    }
 
     /// The station task → the CAN task.
     pub static CAN_COMMAND: Channel<Raw, CanCommand, 1> = Channel::new();
@@ -142,6 +126,11 @@ mod mqtt {
     /// The Wi-Fi task → the station task; when full, a link change is lost
     /// (the next one says it again).
     pub static WIFI_DONE: Channel<Raw, WifiDone, 4> = Channel::new();
+
+    /// Where the radio's start stands (the Wi-Fi side → the station task, for
+    /// `hello`; latest wins).
+    pub static RADIO: embassy_sync::signal::Signal<Raw, tinybms_firmware::wifi::Radio> =
+        embassy_sync::signal::Signal::new();
 
     /// The access point's signal, dBm, while joined (`None`: not joined or
     /// not read): the Wi-Fi task → the station task, for what MQTT

@@ -60,3 +60,53 @@ impl Hold {
         false
     }
 }
+
+/// Which of the shell's samples reach the station: every one while the button
+/// is down, and the one that says it came up, so that a button nobody touches
+/// never wakes the station.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Samples {
+    was_pressed: bool,
+}
+
+impl Samples {
+    /// Not pressed.
+    pub const fn new() -> Self {
+        Self { was_pressed: false }
+    }
+
+    /// A sample: `Some(pressed)` when the station should hear it.
+    pub fn take(&mut self, pressed: bool) -> Option<bool> {
+        let heard = (pressed || self.was_pressed).then_some(pressed);
+        self.was_pressed = pressed;
+        heard
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn only_a_pressed_button_and_its_release_reach_the_station() {
+        let mut s = Samples::new();
+        assert_eq!(s.take(false), None);
+        assert_eq!(s.take(true), Some(true));
+        assert_eq!(s.take(true), Some(true));
+        assert_eq!(s.take(false), Some(false), "the release, once");
+        assert_eq!(s.take(false), None);
+    }
+
+    #[test]
+    fn samples_held_long_enough_unlock_once() {
+        let mut s = Samples::new();
+        let mut h = Hold::new();
+        let mut unlocked = 0;
+        for i in 0..200u64 {
+            if let Some(p) = s.take(i < 150) {
+                unlocked += u32::from(h.sample(i * SAMPLE_PERIOD_US, p));
+            }
+        }
+        assert_eq!(unlocked, 1, "7.5 s held: one unlock");
+    }
+}

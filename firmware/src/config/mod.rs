@@ -19,6 +19,8 @@
 //!   changes by name with one outcome per field, when the flash may be written.
 //! * [`store`] — the record in a flash partition through `sequential-storage`
 //!   (power-loss safe: a write cut at any point leaves the old record or the new).
+//! * [`site`] — where that partition is: found through the partition table on
+//!   the flash itself, the same way on the chip and in the host tests.
 //! * [`button`] — the physical way out of read-only: the BOOT button held down.
 //!
 //! Sans-IO like the rest of the library: the chip shell moves the bytes between
@@ -28,6 +30,7 @@
 pub mod button;
 pub mod codec;
 mod host;
+pub mod site;
 pub mod state;
 pub mod store;
 pub mod value;

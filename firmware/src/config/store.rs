@@ -53,26 +53,37 @@ pub const SECTOR_BYTES: u32 = 4096;
 pub const STORE_MIN_BYTES: u32 = 2 * SECTOR_BYTES;
 
 /// Where the store lives and what the chip says it has: named in the log and
-/// in `hello`, so that an owner whose store fails can tell why (a partition
-/// table without `nvs`, a partition too small or not on sector boundaries, a
-/// flash smaller than the table says).
+/// in `hello`, so that an owner whose store fails can tell why (no partition
+/// table, one whose checksum fails, a table without `nvs`, a partition marked
+/// encrypted, too small or not on sector boundaries, a flash smaller than the
+/// table says). Found by [`super::site::open`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct StoreSite {
     /// The flash size the chip reports (the flash's answer to its read-ID
     /// command), bytes; 0: no answer.
     pub flash_bytes: u32,
-    /// The `nvs` partition found: offset and size, bytes (`None`: none in
-    /// the partition table).
+    /// The `nvs` partition found: offset and size, bytes (`None`: none found).
     pub partition: Option<(u32, u32)>,
+    /// What the lookup itself ran into before the partition's size was looked
+    /// at (the table could not be read, the partition is marked encrypted).
+    pub lookup: Option<SiteProblem>,
 }
 
 /// Why a [`StoreSite`] cannot hold the store.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum SiteProblem {
+    /// The flash could not be read where the partition table is.
+    FlashRead,
+    /// The chip encrypts its flash (not supported: the record is written plain).
+    FlashEncryption,
+    /// The partition table is missing or not valid.
+    Table(crate::partitions::TableError),
     /// The partition table has no `nvs` partition.
     NoPartition,
+    /// The `nvs` partition is marked encrypted.
+    Encrypted,
     /// Fewer than [`STORE_MIN_BYTES`].
     TooSmall,
     /// Not on [`SECTOR_BYTES`] boundaries.
@@ -85,7 +96,11 @@ impl SiteProblem {
     /// In words.
     pub const fn reason(self) -> &'static str {
         match self {
+            Self::FlashRead => "the flash cannot be read at the partition table",
+            Self::FlashEncryption => "flash encryption is on (not supported)",
+            Self::Table(e) => e.reason(),
             Self::NoPartition => "no `nvs` partition in the partition table",
+            Self::Encrypted => "the `nvs` partition is marked encrypted (not supported)",
             Self::TooSmall => "the `nvs` partition is smaller than the store needs",
             Self::NotAligned => "the `nvs` partition is not on 4 KiB sector boundaries",
             Self::BeyondFlash => "the `nvs` partition ends past the flash the chip reports",
@@ -96,6 +111,9 @@ impl SiteProblem {
 impl StoreSite {
     /// Why the store cannot live here, if it cannot.
     pub fn problem(&self) -> Option<SiteProblem> {
+        if let Some(p) = self.lookup {
+            return Some(p);
+        }
         let Some((offset, size)) = self.partition else {
             return Some(SiteProblem::NoPartition);
         };

@@ -88,6 +88,9 @@ pub struct HelloFields<'a> {
     /// Where the MQTT connection stands, once its session said (images with
     /// Wi-Fi).
     pub mqtt: Option<&'static str>,
+    /// The radio's start (`crate::wifi::Radio::key`; images with Wi-Fi,
+    /// once the shell said).
+    pub radio: Option<&'static str>,
     /// The Wi-Fi link (images with Wi-Fi).
     pub wifi: Option<crate::improv::WifiLink>,
 }
@@ -120,6 +123,7 @@ pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<us
                 problem: s.problem().map(|p| p.reason()),
             }),
             mqtt: f.mqtt,
+            radio: f.radio,
             wifi: f.wifi.map(|w| lines::Wifi::<Wire> {
                 state: w.key(),
                 ip: (!ip.as_str().is_empty()).then_some(ip.as_str()),

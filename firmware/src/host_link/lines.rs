@@ -122,6 +122,9 @@ line_type! {
         /// Where the MQTT connection stands (images with Wi-Fi).
         #[serde(skip_serializing_if = "Option::is_none")]
         pub mqtt: Option<F::Text>,
+        /// The radio's start ([`crate::wifi::Radio::key`]; images with Wi-Fi).
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub radio: Option<F::Text>,
         /// The Wi-Fi link (images with Wi-Fi).
         #[serde(skip_serializing_if = "Option::is_none")]
         pub wifi: Option<Wifi<F>>,

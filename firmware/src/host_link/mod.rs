@@ -17,7 +17,8 @@
 //!   when it wants to be called again;
 //! * output comes out one line at a time from [`HostLink::next_line`], encoded
 //!   only then (listings such as `get settings` are generated lazily, one line per
-//!   call), so the queue holds small items instead of text.
+//!   call), so the queue holds small items instead of text; [`queue::hand_off`]
+//!   puts each line whole into the queue to the port's writer.
 //!
 //! Nothing here waits: a missing or slow host only fills a bounded queue. Streamed
 //! telemetry and `raw` lines are the first to go (counted in `dropped_lines`);
@@ -32,6 +33,8 @@ pub mod command;
 pub mod encode;
 pub mod line;
 pub mod lines;
+pub mod panic;
+pub mod queue;
 pub mod wire;
 pub mod writer;
 
@@ -275,6 +278,8 @@ struct State {
     inverter: Option<encode::InverterState>,
     /// Where the MQTT connection stands (`hello`), once the session said.
     mqtt: Option<&'static str>,
+    /// The radio's start (`hello`, images with Wi-Fi), once the shell said.
+    radio: Option<crate::wifi::Radio>,
     /// The Wi-Fi link (`hello`, images with Wi-Fi).
     wifi: crate::improv::WifiLink,
     capture: bool,
@@ -340,6 +345,7 @@ impl HostLink {
                 battery_lines: 0,
                 inverter: None,
                 mqtt: None,
+                radio: None,
                 wifi: crate::improv::WifiLink::Off,
                 capture: false,
                 queue: Deque::new(),
@@ -535,6 +541,11 @@ impl HostLink {
     /// the station's `mqtt::MqttState`).
     pub fn on_mqtt(&mut self, key: &'static str) {
         self.s.mqtt = Some(key);
+    }
+
+    /// Where the radio's start stands now, as `hello` says it.
+    pub fn on_radio(&mut self, radio: crate::wifi::Radio) {
+        self.s.radio = Some(radio);
     }
 
     /// Bytes sent to the BMS (for capture).
@@ -1128,6 +1139,7 @@ impl State {
                         dropped_lines: self.stats.dropped_lines,
                         store: config.site(),
                         mqtt: self.mqtt,
+                        radio: self.radio.map(crate::wifi::Radio::key),
                         wifi: self.config.features.wifi.then_some(self.wifi),
                     },
                 )

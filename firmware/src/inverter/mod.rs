@@ -25,6 +25,7 @@
 pub mod control;
 pub mod frames;
 pub mod packs;
+pub mod port;
 pub mod protocol;
 
 use heapless::Deque;

@@ -120,6 +120,45 @@ pub enum Note {
 }
 
 impl Note {
+    /// The log line's words.
+    pub fn write(&self, out: &mut crate::line::Line) {
+        match self {
+            Self::Connected => {
+                out.push("MQTT: connected to the broker");
+            }
+            Self::Held => {
+                out.push("MQTT: the connection holds");
+            }
+            Self::Disconnected(f, ms) => {
+                out.push("MQTT: connection lost (")
+                    .push(f.reason())
+                    .push("), reconnecting in ")
+                    .uint(u64::from(*ms))
+                    .push(" ms");
+            }
+            Self::Failed(f, ms) => {
+                out.push("MQTT: cannot connect (")
+                    .push(f.reason())
+                    .push("), next try in ")
+                    .uint(u64::from(*ms))
+                    .push(" ms");
+            }
+            Self::WaitingForBms => {
+                out.push("MQTT: waiting for the BMS's serial number");
+            }
+        }
+    }
+
+    /// The log line's level; `None`: the chip does not log it (it only
+    /// changes what `hello` says).
+    pub const fn level(&self) -> Option<crate::Level> {
+        match self {
+            Self::Held => None,
+            Self::Connected | Self::WaitingForBms => Some(crate::Level::Info),
+            Self::Disconnected(..) | Self::Failed(..) => Some(crate::Level::Warn),
+        }
+    }
+
     /// Where the connection stands after this note (`hello` says it).
     pub const fn state(&self) -> super::MqttState {
         use super::MqttState as S;
@@ -188,6 +227,9 @@ impl Failure {
         }
     }
 }
+
+/// The TCP buffers of the broker's connection on the chip, bytes each way.
+pub const TCP_BUFFER: usize = 2048;
 
 /// Where to connect and as whom (the record's network fields).
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -69,6 +69,7 @@ pub use crate::mqtt::published::{InverterStatus, Published};
 use crate::mqtt::MqttState;
 
 mod parts;
+pub mod pumps;
 
 /// How often a bridge of several packs hands the battery to the host link
 /// and the MQTT output, µs.
@@ -109,6 +110,8 @@ pub enum Logged {
     HostMissed(u32),
     /// Improv Wi-Fi (the browser installer's network set-up).
     Improv(crate::improv::Note),
+    /// The radio's start (images with Wi-Fi).
+    Radio(crate::wifi::Radio),
 }
 
 impl Logged {
@@ -120,6 +123,8 @@ impl Logged {
             Self::Inverter(r) => r.level(),
             Self::HostMissed(_) => Level::Warn,
             Self::Improv(n) => text::improv_level(n),
+            Self::Radio(r) if r.warns() => Level::Warn,
+            Self::Radio(_) => Level::Info,
         }
     }
 }
@@ -184,6 +189,8 @@ pub struct Station {
     /// the log still has to say (once the host is back).
     host_missed: u32,
     missed_to_log: u32,
+    /// The radio's state to log, when it changed.
+    radio_to_log: Option<crate::wifi::Radio>,
     /// Energy in and out, counted over the snapshots.
     energy: Energy,
     /// The Wi-Fi signal, dBm, as the Wi-Fi task last read it.
@@ -243,6 +250,7 @@ impl Station {
             events_dropped: 0,
             host_missed: 0,
             missed_to_log: 0,
+            radio_to_log: None,
             energy: Energy::new(),
             wifi_rssi: None,
             mqtt: None,
@@ -403,6 +411,15 @@ impl Station {
         self.mqtt = Some(state);
         if let Some(h) = self.host.as_mut() {
             h.on_mqtt(state.key());
+        }
+    }
+
+    /// Where the radio's start stands (images with Wi-Fi): `hello` says it,
+    /// and the log (a later state before the line went out replaces it).
+    pub fn radio(&mut self, radio: crate::wifi::Radio) {
+        self.radio_to_log = Some(radio);
+        if let Some(h) = self.host.as_mut() {
+            h.on_radio(radio);
         }
     }
 
@@ -630,6 +647,9 @@ impl Station {
             Logged::HostMissed(_) => {}
             Logged::Improv(n) if cfg!(feature = "host-link") => text::improv_note(n, out),
             Logged::Improv(_) => {}
+            Logged::Radio(r) => {
+                out.push(r.text());
+            }
         }
     }
 
@@ -748,6 +768,8 @@ impl Station {
             Logged::HostMissed(core::mem::take(&mut self.missed_to_log))
         } else if let Some(n) = self.host.as_mut().and_then(|h| h.improv_mut().next_note()) {
             Logged::Improv(n)
+        } else if let Some(r) = self.radio_to_log.take() {
+            Logged::Radio(r)
         } else {
             return None;
         };

@@ -96,6 +96,9 @@ impl NoHost {
     pub fn on_mqtt(&mut self, _: &'static str) {
         match *self {}
     }
+    pub fn on_radio(&mut self, _: crate::wifi::Radio) {
+        match *self {}
+    }
     pub fn improv(&self) -> &crate::improv::Improv {
         match *self {}
     }

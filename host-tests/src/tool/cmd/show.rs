@@ -253,8 +253,8 @@ fn store_text(v: &Store<Read>) -> String {
 
 /// `tinybms version`: the BMS's version and, through a bridge, the bridge's
 /// own (from its `hello`: firmware, build, chip, board, what is built in,
-/// the configuration record's version, where its store lives, where its MQTT
-/// connection stands).
+/// the configuration record's version, where its store lives, where its
+/// radio's start and its MQTT connection stand).
 pub fn version(conn: &Conn, json: bool) -> ToolResult<()> {
     let mut c = connect_ready(conn)?;
     let got = c.get_one("version")?;
@@ -298,6 +298,13 @@ fn bridge_of(h: &Hello<Read>) -> Vec<(&'static str, Value, String)> {
     if let Some(s) = &h.store {
         let v = serde_json::to_value(s).unwrap_or(Value::Null);
         b.push(("store", v, store_text(s)));
+    }
+    if let Some(r) = &h.radio {
+        let text = tinybms_firmware::wifi::Radio::from_key(r).map_or_else(
+            || r.clone(),
+            |r| r.text().trim_start_matches("radio: ").to_string(),
+        );
+        b.push(("radio", json!(r), text));
     }
     if let Some(m) = &h.mqtt {
         b.push(("mqtt", json!(m), mqtt_text(m)));
