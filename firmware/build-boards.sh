@@ -12,6 +12,14 @@
 # to size-report.sh's budget for Wi-Fi images (WIFI_FLASH_BUDGET_KIB, default 1024;
 # WIFI_RAM_BUDGET_KIB, default 256: the radio's heap included).
 # Images are kept as target/boards/tinybms-firmware-<board>-<log>[-wifi].elf.
+#
+# BOARDS_IMAGES=DIR (CI): the log-rtt images, with and without Wi-Fi, are the
+# ready-made images' ELFs make-images.sh built into DIR (tinybms-<board>.elf,
+# tinybms-<board>-wifi.elf; the same features): sized, not built again. The
+# log-uart image is linked for the first board of each chip only (its size is
+# the log path's, held to the budget); for every other board, whose image
+# differs from that one only in pin constants, it is compiled and checked
+# without a fat-LTO link (`cargo check`: the board's compile-time checks run).
 # Exit status: 0 = all built and within budget; 1 = some image over budget;
 # anything else = a build or tool failure.
 #
@@ -48,9 +56,21 @@ for entry in $boards; do
         if [[ $variant == log-uart ]] && grep -qx "$board" <<<"$uart0_host"; then
             rest=can
         fi
-        cargo build --release --quiet --no-default-features --features "$board,$variant,$rest" --target "$target"
         elf="$out/tinybms-firmware-$board-${variant/,/-}.elf"
-        cp "target/$target/release/tinybms-firmware" "$elf"
+        features="$board,$variant,$rest"
+        if [[ -n ${BOARDS_IMAGES:-} && $variant != log-uart ]]; then
+            image="$BOARDS_IMAGES/tinybms-$board$([[ $variant == *wifi ]] && echo -wifi).elf"
+            [[ -f $image ]] || { echo "build-boards: $image missing (make-images.sh first)" >&2; exit 2; }
+            cp "$image" "$elf"
+        elif [[ -n ${BOARDS_IMAGES:-} && $variant == log-uart ]] && grep -qx "$chip" <<<"${linked_uart:-}"; then
+            cargo check --release --quiet --no-default-features --features "$features" --target "$target"
+            summary+=("$(printf '%-22s %-14s %s' "$board" "$variant" "checked, not linked (pins only differ from the linked image)")")
+            continue
+        else
+            cargo build --release --quiet --no-default-features --features "$features" --target "$target"
+            cp "target/$target/release/tinybms-firmware" "$elf"
+            [[ $variant == log-uart ]] && linked_uart+="$chip"$'\n'
+        fi
         if report=$(./size-report.sh "$elf"); then :; else
             rc=$?
             status=$(( rc > status ? rc : status ))

@@ -24,6 +24,9 @@
 # and SHA256SUMS over all of them. check-images.py checks their layout.
 # TINYBMS_VERSION (the release tag without its `v`; else the package's
 # version) is the version the images report and the manifests carry.
+# MAKE_IMAGES_STEP: `build` builds every board's ELF into OUT_DIR (no espflash
+# needed), `pack` makes the images, manifests and SHA256SUMS from those ELFs,
+# `all` (the default) both (CI builds while espflash installs).
 # Every image names what it was built from (`hello`'s `build`, `tinybms version`,
 # its first log line, Home Assistant's device info): TINYBMS_BUILD if set (a
 # release's name), else `git describe --always --dirty --tags`, else `unknown`
@@ -40,8 +43,12 @@ echo "== build $TINYBMS_BUILD"
 
 out=${1:-target/images}
 mkdir -p "$out"
+phase=${MAKE_IMAGES_STEP:-all}
+case $phase in build | pack | all) ;; *) echo "make-images: MAKE_IMAGES_STEP is build, pack or all" >&2; exit 2 ;; esac
 espflash=${ESPFLASH:-espflash}
-command -v "$espflash" >/dev/null || { echo "make-images: espflash not found (cargo install espflash --locked)" >&2; exit 2; }
+if [[ $phase != build ]]; then
+    command -v "$espflash" >/dev/null || { echo "make-images: espflash not found (cargo install espflash --locked)" >&2; exit 2; }
+fi
 
 version=${TINYBMS_VERSION:-$(sed -n 's/^version = "\(.*\)"$/\1/p' Cargo.toml | head -n 1)}
 export TINYBMS_VERSION=$version
@@ -71,14 +78,17 @@ for entry in $boards; do
             fi
         done
     fi
-    echo "== $board ($chip): cargo ${args[*]}"
-    cargo "${args[@]}" --quiet
-    elf="target/$target/release/tinybms-firmware"
     name="tinybms-$board${IMAGE_SUFFIX:-}"
-    "$espflash" save-image --chip "$chip" --merge --skip-padding "$elf" "$out/$name.bin" >/dev/null
-    "$espflash" save-image --chip "$chip" "$elf" "$out/$name-app.bin" >/dev/null
+    if [[ $phase != pack ]]; then
+        echo "== $board ($chip): cargo ${args[*]}"
+        cargo "${args[@]}" --quiet
+        cp "target/$target/release/tinybms-firmware" "$out/$name.elf"
+    fi
+    [[ $phase != build ]] || continue
+    [[ -f $out/$name.elf ]] || { echo "make-images: $out/$name.elf missing (MAKE_IMAGES_STEP=build first)" >&2; exit 2; }
+    "$espflash" save-image --chip "$chip" --merge --skip-padding "$out/$name.elf" "$out/$name.bin" >/dev/null
+    "$espflash" save-image --chip "$chip" "$out/$name.elf" "$out/$name-app.bin" >/dev/null
     head -c $((0x9000)) "$out/$name.bin" > "$out/$name-boot.bin"
-    cp "$elf" "$out/$name.elf"
     case $chip in
         esp32c3) family=ESP32-C3 ;;
         esp32c6) family=ESP32-C6 ;;
@@ -104,6 +114,10 @@ for entry in $boards; do
 MANIFEST
 done
 
+if [[ $phase == build ]]; then
+    echo "== ELFs in $out"
+    exit 0
+fi
 (cd "$out" && sha256sum -- *.bin > SHA256SUMS)
 echo "== images in $out"
 (cd "$out" && ls -l -- *.bin && cat SHA256SUMS)
