@@ -27,6 +27,8 @@
 # MAKE_IMAGES_STEP: `build` builds every board's ELF into OUT_DIR (no espflash
 # needed), `pack` makes the images, manifests and SHA256SUMS from those ELFs,
 # `all` (the default) both (CI builds while espflash installs).
+# IMAGE_LINT_BOARDS="board …": those boards' builds are also clippy's runs over
+# the firmware crate (-D warnings; CI).
 # Every image names what it was built from (`hello`'s `build`, `tinybms version`,
 # its first log line, Home Assistant's device info): TINYBMS_BUILD if set (a
 # release's name), else `git describe --always --dirty --tags`, else `unknown`
@@ -81,7 +83,13 @@ for entry in $boards; do
     name="tinybms-$board${IMAGE_SUFFIX:-}"
     if [[ $phase != pack ]]; then
         echo "== $board ($chip): cargo ${args[*]}"
-        cargo "${args[@]}" --quiet
+        if [[ " ${IMAGE_LINT_BOARDS:-} " == *" $board "* ]]; then
+            # clippy over the firmware crate as part of this build (CI).
+            RUSTC_WORKSPACE_WRAPPER=$(command -v clippy-driver) CLIPPY_ARGS=-Dwarnings \
+                cargo "${args[@]}" --quiet
+        else
+            cargo "${args[@]}" --quiet
+        fi
         cp "target/$target/release/tinybms-firmware" "$out/$name.elf"
     fi
     [[ $phase != build ]] || continue
@@ -96,7 +104,7 @@ for entry in $boards; do
     cat > "$out/manifest-$board${IMAGE_SUFFIX:-}.json" <<MANIFEST
 {
   "name": "$product",
-  "version": "$version",
+  "version": "$version$([[ ,${IMAGE_FEATURES:-}, == *,wifi,* ]] && echo +wifi)",
   "board": "$board",
   "wifi": $([[ ,${IMAGE_FEATURES:-}, == *,wifi,* ]] && echo true || echo false),
   "new_install_prompt_erase": false,
