@@ -103,6 +103,12 @@ def check_manifest(dirname, merged_name, chip, app_offset, problems):
         problems.append(f"{what}: name {m.get('name')!r}, the firmware says {product_name()!r}")
     if not m.get("version"):
         problems.append(f"{what}: no version")
+    # An image with Wi-Fi says `VERSION+wifi` (its Improv device info says the
+    # same): the installer then offers the switch between the two as an update.
+    elif m["version"].endswith("+wifi") != stem.endswith("-wifi") \
+            or m.get("wifi") is not stem.endswith("-wifi"):
+        problems.append(f"{what}: version {m['version']!r} / wifi {m.get('wifi')!r} "
+                        f"do not say whether the image has Wi-Fi")
     if m.get("new_install_prompt_erase") is not False:
         problems.append(f"{what}: a first install must erase (new_install_prompt_erase false)")
     family = {"esp32c3": "ESP32-C3", "esp32c6": "ESP32-C6"}[chip]

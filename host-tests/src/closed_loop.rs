@@ -441,6 +441,58 @@ pub fn candump_line(now_us: u64, f: &CanFrame) -> String {
     format!("({secs}.{micros:06}) can0 {:03X}#{data}", f.id)
 }
 
+/// The head of `sim --scenario`'s table (docs/simulator.md shows it).
+pub const SCENARIO_HEADER: &str =
+    "scenario       max cell  ceiling   min CVL   max CVL   CVL ch/h time to full  bus load     ok";
+
+/// One row of `sim --scenario`'s table for the loop `l` run until `end`, µs,
+/// and whether it kept its promises: the highest cell at most the ceiling
+/// (over-voltage cutoff less the margin), every CVL sent above the cells'
+/// under-voltage cutoff sum and at most their over-voltage cutoff sum.
+pub fn scenario_row(
+    name: &str,
+    l: &ClosedLoop,
+    end: u64,
+    config: InverterConfig,
+) -> (String, bool) {
+    use protocol_core::settings::SettingId::{
+        NumberOfSeriesCells, OverVoltageCutoff, UnderVoltageCutoff,
+    };
+    let ceiling =
+        l.h.bridge()
+            .telemetry()
+            .settings
+            .as_ref()
+            .and_then(|b| b.get(OverVoltageCutoff.address()))
+            .map_or(0, |ov| ov.saturating_sub(config.charge.ov_margin_mv));
+    let cells = l.h.sim.register(NumberOfSeriesCells.address()).max(1);
+    let f = &l.figures;
+    let cvl_ok = l.sent_limits.iter().all(|&(_, cvl, _, _)| {
+        let mv = u32::from(cvl) * 100;
+        cvl > 0
+            && mv + 100
+                > u32::from(cells) * u32::from(l.h.sim.register(UnderVoltageCutoff.address()))
+            && mv <= u32::from(cells) * u32::from(l.h.sim.register(OverVoltageCutoff.address()))
+    });
+    let ok = f.max_cell_mv <= ceiling && cvl_ok && !l.sent_limits.is_empty();
+    let v =
+        |dv: Option<u16>| dv.map_or("-".to_string(), |d| format!("{:.1} V", f64::from(d) / 10.0));
+    let row = format!(
+        "{:<13} {:>6} mV {:>5} mV {:>9} {:>9} {:>10.1} {:>12} {:>7.2} % {:>6}",
+        name,
+        f.max_cell_mv,
+        ceiling,
+        v(f.min_cvl_dv),
+        v(f.max_cvl_dv),
+        f.cvl_changes_per_hour(end),
+        f.float_at_us
+            .map_or("-".to_string(), |t| format!("{:.2} h", t as f64 / 3.6e9)),
+        f.bus_load_percent(end),
+        if ok { "yes" } else { "NO" }
+    );
+    (row, ok)
+}
+
 /// The closed-loop scenarios of the `sim` command (and of the tests).
 pub const SCENARIOS: [&str; 7] = [
     "full-charge",

@@ -98,6 +98,8 @@ impl<P: BytePort> Hosted<P> {
     /// the tool itself (streaming off), in RAM. No bridge of its own is
     /// configured, so its log says nothing about a configuration (it said
     /// "config saved to flash" as if the owner had changed one).
+    /// It has no CAN output: the computer it runs on drives no inverter, so
+    /// neither the live view nor the log tells of one.
     pub fn direct(port: P, bridge: Timing, record: Config, chip: &'static str) -> Self {
         let flash = SimFlash::Ram(crate::flash::RamFlash::new());
         Self::build(port, bridge, flash, chip, true, Some(record))
@@ -115,7 +117,9 @@ impl<P: BytePort> Hosted<P> {
         let mut store = crate::flash::store(flash);
         // The CAN output is built in, as in the ready-made images; a bus
         // with a simulated inverter is attached by `sim` (else nothing
-        // acknowledges a frame, as on a chip whose CAN is not wired).
+        // acknowledges a frame, as on a chip whose CAN is not wired). The
+        // tool's direct mode has none.
+        let direct = record.is_some();
         let setup = Setup {
             timing: bridge,
             identity: Identity::desktop(
@@ -124,12 +128,11 @@ impl<P: BytePort> Hosted<P> {
                     host_link: true,
                     store: true,
                     wifi,
-                    can: true,
+                    can: !direct,
                 },
             ),
             inverter: None,
         };
-        let direct = record.is_some();
         let station = match record {
             Some(config) => Station::with_record(setup, config, clock.now()),
             None => Station::new(setup, block_on(store.load()), clock.now()),
@@ -314,7 +317,7 @@ impl<P: BytePort> Hosted<P> {
             if let Outcome::Refused(e) = o {
                 return Err(format!("{}: {}", id.name(), e.detail));
             }
-            if let Outcome::RuleBroken(d) = o {
+            if let Outcome::RuleBroken(d, _) = o {
                 return Err(format!("{}: {d}", id.name()));
             }
         }

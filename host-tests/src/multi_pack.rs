@@ -244,6 +244,10 @@ pub struct BatteryFigures {
     pub speaker_changes: Vec<(u64, u8)>,
     /// Highest CCL sent, 0.1 A.
     pub highest_ccl_da: u16,
+    /// Highest and lowest DCL sent, 0.1 A (the lowest: `u16::MAX` before any).
+    pub dcl_da: (u16, u16),
+    /// Time the inverter was told DCL 0 (a Victron inverter is off then), µs.
+    pub dcl_zero_us: u64,
     /// Victron 0x35A frames that said "system offline" while packs took part.
     pub offline_flags: u64,
     /// The first pack in float: the battery's CVL goes to float (the lowest
@@ -695,8 +699,20 @@ impl MultiLoop {
         if limits.ccl_da == 0 && limits.dcl_da == 0 {
             self.figures.zero_limits_frames += 1;
         }
+        if let Some(&(at, _, last)) = self.sent_limits.last() {
+            if last.dcl_da == 0 {
+                self.figures.dcl_zero_us += now.saturating_sub(at);
+            }
+        }
         self.sent_limits.push((now, node, limits));
         self.figures.highest_ccl_da = self.figures.highest_ccl_da.max(limits.ccl_da);
+        let (hi, lo) = self.figures.dcl_da;
+        let lo = if self.sent_limits.len() == 1 {
+            u16::MAX
+        } else {
+            lo
+        };
+        self.figures.dcl_da = (hi.max(limits.dcl_da), lo.min(limits.dcl_da));
         if let Some(slot) = self.figures.limits_frames.get_mut(usize::from(node)) {
             *slot += 1;
         }
@@ -949,25 +965,39 @@ pub fn table(name: &str, l: &MultiLoop, end_us: u64) -> String {
     let b = &l.figures;
     let _ = writeln!(
         s,
-        "{name}: {} packs, {:.1} h, bus load {:.2} % ({} frames, {} of them summaries), \
-         battery in float {}, highest CCL sent {:.1} A, longest without 0x351 {:.1} s, \
-         speakers {}",
+        "{name}: {} packs, {:.1} h, battery in float {}",
         l.nodes.len(),
         end_us as f64 / 3.6e9,
-        b.bus_load_percent(end_us),
-        b.frames,
-        b.summary_frames,
         b.float_at_us.map_or("never".to_string(), |t| format!(
             "after {:.2} h",
             t as f64 / 3.6e9
         )),
+    );
+    let (dcl_hi, dcl_lo) = b.dcl_da;
+    let _ =
+        writeln!(
+        s,
+        "  told the inverter: charge current up to {:.1} A, discharge current {:.1} to {:.1} A \
+         (0 A for {:.1} s in all: an inverter off), longest without limits {:.1} s \
+         (a GX stops after 3 s)",
         f64::from(b.highest_ccl_da) / 10.0,
+        if dcl_lo == u16::MAX { 0.0 } else { f64::from(dcl_lo) / 10.0 },
+        f64::from(dcl_hi) / 10.0,
+        b.dcl_zero_us as f64 / 1e6,
         b.longest_without_limits_us as f64 / 1e6,
+    );
+    let _ = writeln!(
+        s,
+        "  the bridge that spoke to the inverter: {}; CAN bus load {:.2} % ({} frames, {} of them \
+         reports between the bridges)",
         b.speaker_changes
             .iter()
-            .map(|(t, n)| format!("{n} from {} s", t / 1_000_000))
+            .map(|(t, n)| format!("pack {n} from {} s", t / 1_000_000))
             .collect::<Vec<_>>()
             .join(", "),
+        b.bus_load_percent(end_us),
+        b.frames,
+        b.summary_frames,
     );
     let (charged, discharged) = BatteryFigures::energy_ah(&l.nodes);
     let worst = l
@@ -989,14 +1019,14 @@ pub fn table(name: &str, l: &MultiLoop, end_us: u64) -> String {
     );
     let _ = writeln!(
         s,
-        "  pack    Ah  cells low..high / cutoffs   charge / cutoff   discharge / cutoff   float"
+        "  pack    Ah  cells low..high / cutoffs   charge / cutoff   discharge / cutoff   float    its BMS"
     );
     for p in &l.nodes {
         let f = &p.figures;
         let _ = writeln!(
             s,
             "  {:>4}  {:>4.0}  {:>4}..{:>4} / {:>4}..{:>4} mV   {:>6.1} / {:>3} A   \
-             {:>9.1} / {:>3} A   {}",
+             {:>9.1} / {:>3} A   {:<7}  {}",
             p.node,
             f64::from(
                 p.h.sim
@@ -1012,6 +1042,14 @@ pub fn table(name: &str, l: &MultiLoop, end_us: u64) -> String {
             f.discharge_cutoff_a,
             f.float_at_us
                 .map_or("-".to_string(), |t| format!("{:.2} h", t as f64 / 3.6e9)),
+            // The pack whose BMS cut off, by name (its first trip and when).
+            f.trips
+                .first()
+                .map_or("ok".to_string(), |(at, why)| format!(
+                    "cut off at {} s: {}",
+                    at / 1_000_000,
+                    why.name()
+                )),
         );
     }
     s

@@ -174,7 +174,12 @@ fn a_bms_fault_cuts_both_limits_and_they_come_back_slowly() {
 
 #[test]
 fn a_lost_uart_link_stops_the_frames_and_the_inverter() {
-    let mut l = lfp(6, 100.0);
+    // The stop policy, chosen (the default holds: the next tests).
+    let config = InverterConfig {
+        stale_policy: StaleMode::Stop,
+        ..InverterConfig::default()
+    };
+    let mut l = ClosedLoop::new(PackProfile::LiFePO4_16S, 6, config, 100.0);
     l.h.sim.set_soc_percent(40.0);
     l.run_until(5 * MIN);
     assert!(l.model.current_a > 40.0);
@@ -260,6 +265,7 @@ fn after_a_hold_the_discharge_limit_is_not_cut_when_the_link_returns() {
 fn sma_with_stale_telemetry_is_told_to_stop_at_once() {
     let config = InverterConfig {
         protocol: Protocol::SmaSunnyIsland,
+        stale_policy: StaleMode::Stop,
         ..InverterConfig::default()
     };
     let mut l = ClosedLoop::new(PackProfile::LiFePO4_16S, 10, config, 100.0);

@@ -184,7 +184,16 @@ fn a_cap_above_what_the_bms_allows_is_refused() {
     let o = of_type(&out, "config_outcome");
     assert_eq!(o[0]["outcome"], "refused", "{out:#?}");
     assert_eq!(o[0]["error"], "out_of_range");
-    assert!(o[0]["detail"].as_str().unwrap().contains("318"), "{}", o[0]);
+    // Said in words and with what the BMS allows, not as a register number.
+    let detail = o[0]["detail"].as_str().unwrap();
+    assert!(detail.contains("charge over-current cutoff"), "{}", o[0]);
+    assert!(!detail.contains("318"), "{}", o[0]);
+    assert_eq!(
+        o[0]["range"],
+        format!("0.1 A to {:.1} A", f64::from(cutoff)),
+        "{}",
+        o[0]
+    );
     let out = set(
         &mut r,
         6,

@@ -416,7 +416,9 @@ fn the_installer_provisions_the_bridge_and_the_key_is_stored_never_the_passphras
         strings(&info.1),
         vec![
             "TinyBMS bridge".to_string(),
-            tinybms_firmware::identity::FIRMWARE.to_string(),
+            // An image with Wi-Fi, as its manifest names it (semver build
+            // metadata), so the installer offers the other image as an update.
+            format!("{}+wifi", tinybms_firmware::identity::FIRMWARE),
             "ESP32-C3".to_string(),
             "tinybms-test".to_string()
         ]
@@ -676,5 +678,7 @@ fn an_image_without_wifi_is_recognised_but_has_wifi_stopped() {
     assert!(p.contains(&(STATE, vec![0x00])), "stopped: {p:?}");
     let info = p.iter().find(|(t, d)| *t == RESULT && d[0] == 3).unwrap();
     assert_eq!(strings(&info.1)[0], "TinyBMS bridge");
+    // The version as the image without Wi-Fi's manifest has it: no `+wifi`.
+    assert_eq!(strings(&info.1)[1], tinybms_firmware::identity::FIRMWARE);
     assert!(b.h.station().config().stored().wifi_ssid.is_empty());
 }

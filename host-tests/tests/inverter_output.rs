@@ -214,6 +214,7 @@ fn reconfigure_keeps_the_protocol_and_defers_a_stale_policy_change() {
     let (snap, settings) = inputs();
     let stop = InverterConfig {
         protocol: Protocol::SmaSunnyIsland,
+        stale_policy: StaleMode::Stop,
         ..InverterConfig::default()
     };
     let mut inv = Inverter::new(stop, 0);
@@ -270,4 +271,80 @@ fn reconfigure_keeps_the_protocol_and_defers_a_stale_policy_change() {
         .map(|f| u16::from_le_bytes([f.data[2], f.data[3]]))
         .collect();
     assert!(!ccl.is_empty() && ccl.iter().all(|&c| c <= 55), "{ccl:?}");
+}
+
+/// A 25 s loss of the BMS's data, then fresh data from a healthy battery
+/// (issue 42: `sim --bridge-pty --bms-silent 8s+25s` kept DCL at 0 for 30 s
+/// after the data was back, an island inverter off three times as long as the
+/// glitch). Now, whatever the stale policy: DCL is back at once when the data
+/// is, CCL ramps from 0 without the 30 s hold, and the ramp is logged a few
+/// times rather than once a second. With the default policy (hold) DCL never
+/// reaches 0 at all.
+#[test]
+fn after_a_loss_of_data_the_discharge_limit_is_back_at_once() {
+    use tinybms_firmware::inverter::StaleMode;
+    let (snap, settings) = inputs();
+    for policy in [StaleMode::Hold, StaleMode::Stop] {
+        let config = InverterConfig {
+            stale_policy: policy,
+            ..InverterConfig::default()
+        };
+        let mut inv = Inverter::new(config, 0);
+        let mut limits = Vec::new();
+        let mut logged = Vec::new();
+        let mut now = 0u64;
+        let (lost, back, end) = (8 * S, 33 * S, 120 * S);
+        while now < end {
+            if now.is_multiple_of(S) && (now < lost || now >= back) {
+                inv.on_snapshot(now, &snap, Some(settings), None);
+            }
+            match inv.poll(now) {
+                InverterAction::Send(f) => {
+                    if f.id == frames::ID_LIMITS {
+                        let dcl = u16::from_le_bytes([f.data[4], f.data[5]]);
+                        let ccl = u16::from_le_bytes([f.data[2], f.data[3]]);
+                        limits.push((now, ccl, dcl));
+                    }
+                    inv.on_tx(now, TxResult::Sent);
+                }
+                InverterAction::Recover => {}
+                InverterAction::WaitUntil(t) => now = t.min((now / S + 1) * S).max(now + 1),
+            }
+            while let Some(r) = inv.next_report() {
+                if let InverterReport::Limits(l) = r {
+                    logged.push((now, l));
+                }
+            }
+        }
+        let before = limits.iter().rev().find(|(t, _, _)| *t < lost).unwrap();
+        let (full_ccl, full_dcl) = (before.1, before.2);
+        assert!(full_dcl > 0 && full_ccl > 0, "{policy:?}: {before:?}");
+        // From one second after the data is back, DCL is the battery's.
+        for (t, _, dcl) in limits.iter().filter(|(t, _, _)| *t >= back + S) {
+            assert_eq!(*dcl, full_dcl, "{policy:?}: DCL at {} s", t / S);
+        }
+        if policy == StaleMode::Hold {
+            assert!(
+                limits.iter().all(|(_, _, dcl)| *dcl > 0),
+                "hold: DCL never 0: {limits:?}"
+            );
+        }
+        // CCL ramps from 0 at once (2 A/s), without waiting the 30 s hold.
+        let ccl_at = |s: u64| {
+            limits
+                .iter()
+                .rev()
+                .find(|(t, _, _)| *t <= s * S)
+                .map(|l| l.1)
+                .unwrap()
+        };
+        assert!(ccl_at(35) > 0, "{policy:?}: CCL at 35 s: {}", ccl_at(35));
+        assert_eq!(ccl_at(115), full_ccl, "{policy:?}: the ramp ends");
+        // The recovery is logged a few times, not once a second.
+        let recovery = logged.iter().filter(|(t, _)| *t >= back).count();
+        assert!(
+            (1..=6).contains(&recovery),
+            "{policy:?}: {recovery} limits lines after the data came back: {logged:?}"
+        );
+    }
 }

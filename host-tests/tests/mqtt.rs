@@ -390,6 +390,51 @@ fn the_schedule() {
     assert_eq!(events, (112..120).collect::<Vec<_>>());
 }
 
+/// A connect before the bridge's first telemetry says nothing of the
+/// availability until the data comes (`online` alone: the broker already holds
+/// the will's `offline`), or says `offline` once the grace is over.
+#[test]
+fn a_connect_before_the_first_data_says_online_once_and_never_offline_first() {
+    use tinybms_firmware::mqtt::publisher::FIRST_DATA_GRACE_US;
+    let (snap, _) = inputs();
+    let mut nothing = view(&snap, 0);
+    nothing.snapshot = None;
+    nothing.age_us = None;
+    let mut p = Publisher::new(settings(), &bridge());
+    p.connected(SECOND, id());
+    assert!(drain(&mut p, SECOND, &nothing).is_empty());
+    assert!(drain(&mut p, 2 * SECOND, &nothing).is_empty());
+    // The chip wakes by the end of the grace at the latest, to say `offline`.
+    assert!(
+        p.next_due() <= SECOND + FIRST_DATA_GRACE_US,
+        "{}",
+        p.next_due()
+    );
+    let first = drain(&mut p, 3 * SECOND, &view(&snap, 0));
+    let avail: Vec<_> = first
+        .iter()
+        .filter(|m| m.2 == Kind::Availability)
+        .map(|m| m.1.clone())
+        .collect();
+    assert_eq!(avail, [b"online".to_vec()]);
+    // The data never comes: `offline` at the end of the grace, once.
+    let mut p = Publisher::new(settings(), &bridge());
+    p.connected(SECOND, id());
+    assert!(drain(&mut p, SECOND + FIRST_DATA_GRACE_US - 1, &nothing).is_empty());
+    let late = drain(&mut p, SECOND + FIRST_DATA_GRACE_US, &nothing);
+    assert_eq!(late.len(), 1, "{late:?}");
+    assert_eq!(
+        (late[0].2, late[0].1.as_slice()),
+        (Kind::Availability, &b"offline"[..])
+    );
+    assert!(drain(&mut p, 60 * SECOND, &nothing).is_empty());
+    // Data that is there but stale at the connect: `offline` at once.
+    let mut p = Publisher::new(settings(), &bridge());
+    p.connected(SECOND, id());
+    let stale = drain(&mut p, SECOND, &view(&snap, 30));
+    assert_eq!(stale[0].1, b"offline");
+}
+
 #[test]
 fn discovery_off_removes_the_configs() {
     let (snap, _) = inputs();

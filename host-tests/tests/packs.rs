@@ -790,6 +790,46 @@ mod through_the_inverter_output {
         sent
     }
 
+    /// Issue 42, item 11: a lone primary (pack_node 1, no other pack on the
+    /// bus yet) logged "no pack takes part in the battery" at every start,
+    /// before its own data was read. A bridge that never had a battery says
+    /// nothing; one that had and lost it still says so.
+    #[test]
+    fn a_lone_primary_warns_of_nothing_at_its_start() {
+        let (snap, settings) = inputs();
+        let mut inv = Inverter::new(
+            InverterConfig {
+                node: 1,
+                ..InverterConfig::default()
+            },
+            0,
+        );
+        let mut warnings = Vec::new();
+        for t in 0..300u64 {
+            let now = t * S / 10;
+            // Its own data from 2 s on, until 20 s; then none (stale at 25 s).
+            if (20..200).contains(&t) && t % 2 == 0 {
+                inv.on_snapshot(now, &snap, Some(settings), None);
+            }
+            while let InverterAction::Send(_) = inv.poll(now) {
+                inv.on_tx(now, TxResult::Sent);
+            }
+            while let Some(r) = inv.next_report() {
+                if r.level() == tinybms_firmware::Level::Warn {
+                    warnings.push((now, r));
+                }
+            }
+        }
+        let before_data: Vec<_> = warnings.iter().filter(|(t, _)| *t < 2 * S).collect();
+        assert!(before_data.is_empty(), "{before_data:?}");
+        assert!(
+            warnings
+                .iter()
+                .any(|(_, r)| matches!(r, InverterReport::BatteryLost)),
+            "a battery lost after it was there is still said: {warnings:?}"
+        );
+    }
+
     #[test]
     fn only_node_1_sends_the_inverter_frames_and_both_send_summaries() {
         let [a, b] = two(Protocol::Victron, 20, u64::MAX);

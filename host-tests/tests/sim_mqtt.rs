@@ -340,8 +340,9 @@ fn serial_and_mqtt(path: &str) -> Option<(String, String)> {
 
 /// Issue 26, item 14 and issue 29, item 2: two try-outs started without
 /// `--seed` had one serial and one client id, so on one broker they threw
-/// each other off (`client_id_taken`). Each now draws its own seed, says it,
-/// and has its own serial and client id; `--seed N` repeats one.
+/// each other off (`client_id_taken`). Each now has its own seed (the lowest
+/// free one, issue 42), says it, and has its own serial and client id;
+/// `--seed N` repeats one.
 #[test]
 fn two_default_try_outs_have_their_own_serial_and_client_id() {
     let port = free_port();
@@ -395,6 +396,52 @@ fn two_default_try_outs_have_their_own_serial_and_client_id() {
         assert!(Instant::now() < end, "no version from the repeat");
     }
     drop(broker);
+}
+
+/// Issue 42, item 6: every try-out drew a new seed, so every `sim --mqtt`
+/// left another device in Home Assistant. A try-out now takes the lowest seed
+/// no running simulator holds: run again, it is the same BMS (serial, client
+/// id, device); two at once are still two; a killed one gives its seed back.
+#[test]
+fn a_try_out_run_again_is_the_same_device() {
+    use std::io::{BufRead, BufReader};
+    let locks = std::env::temp_dir().join(format!("tinybms-seeds-test-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&locks);
+    let start = || {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_sim"))
+            .args(["--bridge-pty", "--quiet", "--duration", "60s"])
+            .env("TINYBMS_SIM_LOCKS", &locks)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let err = child.stderr.take().unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for l in BufReader::new(err).lines().map_while(Result::ok) {
+                if let Some(n) = l.strip_prefix("sim: seed ") {
+                    let _ = tx.send(n.split(':').next().unwrap_or("").to_string());
+                }
+            }
+        });
+        let seed = rx
+            .recv_timeout(std::time::Duration::from_secs(30))
+            .expect("sim said its seed");
+        (child, seed)
+    };
+    let (mut a, seed_a) = start();
+    let (mut b, seed_b) = start();
+    assert_eq!((seed_a.as_str(), seed_b.as_str()), ("1", "2"));
+    // The first one ends as a killed process does: its seed is free again.
+    a.kill().unwrap();
+    a.wait().unwrap();
+    let (mut c, seed_c) = start();
+    assert_eq!(seed_c, "1", "a try-out run again is the same BMS");
+    for p in [&mut b, &mut c] {
+        let _ = p.kill();
+        let _ = p.wait();
+    }
+    let _ = std::fs::remove_dir_all(&locks);
 }
 
 /// Issue 26, item 14: a broker that needs a login (Home Assistant's

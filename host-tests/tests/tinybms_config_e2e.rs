@@ -147,18 +147,21 @@ fn errors_a_user_meets_get_a_sentence() {
     );
     // Out of range: the range.
     let far = tinybms(&["config", &sim.path, "charge_current_cap=9999"]);
-    assert_eq!(far.code, 2, "{far}");
+    // A value the field refuses is a refusal (1), not a usage error (2).
+    assert_eq!(far.code, 1, "{far}");
+    assert!(far.stderr.contains("refused, nothing changed"), "{far}");
     assert!(far.stderr.contains("0.1 A to 750.0 A, or none"), "{far}");
     // A unit of another quantity.
     let unit = tinybms(&["config", &sim.path, "charge_current_cap=50V"]);
-    assert_eq!(unit.code, 2, "{unit}");
+    assert_eq!(unit.code, 1, "{unit}");
     assert!(unit.stderr.contains("not in this field's unit"), "{unit}");
     // A rule between fields, caught before sending.
     let rule = tinybms(&["config", &sim.path, "wifi_key=".to_string().as_str()]);
     assert_eq!(rule.code, 0, "{rule}");
     let key = format!("wifi_key={}", "ab".repeat(32));
     let rule = tinybms(&["config", &sim.path, &key]);
-    assert_eq!(rule.code, 2, "{rule}");
+    assert_eq!(rule.code, 1, "{rule}");
+    assert!(rule.stderr.contains("refused, nothing changed"), "{rule}");
     assert!(rule.stderr.contains("no wifi_ssid"), "{rule}");
     // The same field twice.
     let twice = tinybms(&["config", &sim.path, "stale_after=7", "stale_after=9"]);
@@ -430,7 +433,7 @@ fn dry_run_swapped_arguments_and_a_clamped_period_are_said() {
         "changed by a dry run: {after}"
     );
     let bad = tinybms(&["config", &sim.path, "charge_current_cap=0", "--dry-run"]);
-    assert_eq!(bad.code, 2, "a typed 0 is refused in a dry run too: {bad}");
+    assert_eq!(bad.code, 1, "a typed 0 is refused in a dry run too: {bad}");
     let swapped = tinybms(&["config", "charge_current_cap=5A", &sim.path]);
     assert_eq!(swapped.code, 2, "{swapped}");
     assert!(swapped.stderr.contains("the port comes first"), "{swapped}");

@@ -529,7 +529,8 @@ fn read_only_bridge_refuses_writes() {
     let sim = Sim::start(&["--bridge-pty", "--read-only"]);
     let o = tinybms(&["set", &sim.path, "over_voltage_cutoff=3.7"]);
     assert_eq!(o.code, 1, "{o}");
-    assert!(o.stderr.contains("read_only"), "{o}");
+    assert!(o.stderr.contains("the bridge is read-only"), "{o}");
+    assert!(o.stderr.contains("BOOT button"), "{o}");
     // Reading still works.
     let o = tinybms(&["version", &sim.path]);
     assert_eq!(o.code, 0, "{o}");

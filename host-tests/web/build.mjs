@@ -38,7 +38,10 @@ await build({
 });
 for (const f of ["index.html", "console.html", "style.css"]) copyFileSync(join(here, "src", f), join(out, f));
 if (!existsSync(wasm)) {
-  console.error(`build: ${wasm} missing: cargo build -p tinybms-web --release --target wasm32-unknown-unknown`);
+  console.error(
+    `build: ${wasm} missing: make it with\n  cargo rustc -p tinybms-web --release --target wasm32-unknown-unknown --crate-type cdylib\n` +
+      "(a plain `cargo build -p tinybms-web` makes no .wasm)",
+  );
   process.exit(1);
 }
 copyFileSync(wasm, join(out, "tinybms_web.wasm"));

@@ -236,21 +236,21 @@ fields! {
     StaleAfter = 3, "stale_after", "s", Inverter, Now, num(1, 60, 0),
         "BMS data older than this is stale: the stale policy applies.";
     StalePolicyField = 4, "stale_policy", "", Inverter, Now, Kind::Choice(STALE_MODES),
-        "On stale data: stop (stop sending; the inverter stops charging and discharging) or hold (charge limit 0, discharge allowed, for stale_hold).";
+        "On stale data: hold (charge limit 0, discharge allowed, for stale_hold: an island inverter keeps the house on through a short loss, the BMS's own cutoffs still protect the pack) or stop (stop sending: the inverter stops charging and discharging).";
     StaleHold = 5, "stale_hold", "s", Inverter, Now, num(10, 3600, 0),
         "With stale_policy hold: how long the inverter may keep discharging on stale data.";
     PackNode = 6, "pack_node", "", Inverter, Restart, num_or(1, 8, 0, "alone"),
         "Packs in parallel, one bridge each, on one CAN bus: this bridge's number (1 = the primary, which speaks to the inverter); alone = this pack is the whole battery.";
     AbsorptionVoltage = 10, "absorption_voltage", "mV", Charge, Now, num_or(1000, 4500, 0, "bms"),
-        "Charge target per cell; bms = the BMS's fully charged voltage (register 300).";
+        "Charge target per cell; bms = the BMS's own fully charged voltage setting.";
     AbsorptionMargin = 11, "absorption_margin", "mV", Charge, Now, num(20, 500, 0),
-        "The charge target stays at least this far below the over-voltage cutoff (315).";
+        "The charge target stays at least this far below the BMS's over-voltage cutoff.";
     FloatVoltage = 12, "float_voltage", "mV", Charge, Now, num_or(1000, 4500, 0, "auto"),
         "Float target per cell after a full charge; auto = 15/16 of the charge target.";
     CeilingMargin = 13, "ceiling_margin", "mV", Charge, Now, num(20, 500, 0),
         "No cell is charged closer than this to the over-voltage cutoff (the charge limit is 0 there).";
     DischargeMargin = 14, "discharge_margin", "mV", Charge, Now, num(0, 1000, 0),
-        "Discharge stops this far above the under-voltage cutoff (316).";
+        "Discharge stops this far above the BMS's under-voltage cutoff.";
     ChargeTaper = 15, "charge_taper", "mV", Charge, Now, num(10, 1000, 0),
         "The charge limit falls from full to 0 over this window below the ceiling.";
     DischargeTaper = 16, "discharge_taper", "mV", Charge, Now, num(10, 1000, 0),
@@ -264,13 +264,13 @@ fields! {
     RebulkSoc = 20, "rebulk_soc", "%", Charge, Now, num(50, 99, 0),
         "Below this state of charge float ends and charging starts again.";
     ChargeCurrentCap = 21, "charge_current_cap", "A", Charge, Now, num_or(1, 7500, 1, "none"),
-        "Most charge current ever asked for; none = the BMS's charge over-current cutoff (318).";
+        "Most charge current ever asked for; none = the BMS's charge over-current cutoff (a cap above it is refused).";
     DischargeCurrentCap = 22, "discharge_current_cap", "A", Charge, Now, num_or(1, 7500, 1, "none"),
-        "Most discharge current ever allowed; none = the BMS's discharge over-current cutoff (317).";
+        "Most discharge current ever allowed; none = the BMS's discharge over-current cutoff (a cap above it is refused).";
     TemperatureMargin = 23, "temperature_margin", "°C", Charge, Now, num(1, 20, 0),
         "Current limits are derated over this window inside each temperature cutoff.";
     LimitHold = 24, "limit_hold", "s", Charge, Now, num(0, 600, 0),
-        "After a limit was cut to 0, how long before it may rise again.";
+        "After a limit was cut to 0 for a cause in the BMS's data (a fault, a cell at its cutoff, a temperature), how long before it may rise again (a lost link is no such cause).";
     RampRate = 25, "ramp_rate", "A/s", Charge, Now, num(1, 1000, 1),
         "How fast a current limit may rise.";
     CvlRaiseInterval = 26, "cvl_raise_interval", "s", Charge, Now, num(5, 600, 0),
@@ -453,7 +453,7 @@ impl Default for Config {
             can_output: true,
             protocol: Protocol::Victron,
             stale_after_s: (i.freshness.limit_us / SECOND) as u16,
-            stale_policy: StaleMode::Stop,
+            stale_policy: StaleMode::Hold,
             stale_hold_s: (i.stale_hold_us / SECOND) as u16,
             pack_node: i.node,
             absorption_mv: c.absorption_mv.unwrap_or(0),
@@ -501,6 +501,20 @@ pub struct RuleError {
     pub field: FieldId,
     /// The rule, in a sentence.
     pub detail: &'static str,
+    /// The values the rule allows the field, raw (in the field's unit), when
+    /// they come from the BMS's own settings: what a refusal says the field
+    /// takes, instead of the field's whole range.
+    pub allowed: Option<(i32, i32)>,
+}
+
+impl RuleError {
+    const fn between_fields(field: FieldId, detail: &'static str) -> Self {
+        Self {
+            field,
+            detail,
+            allowed: None,
+        }
+    }
 }
 
 /// What charge control and its checks need of the BMS's settings (Rev D §3.4),
@@ -644,28 +658,28 @@ impl Config {
     /// run with.
     pub fn validate(&self) -> Result<(), RuleError> {
         if self.float_mv != 0 && self.absorption_mv != 0 && self.float_mv > self.absorption_mv {
-            return Err(RuleError {
-                field: FieldId::FloatVoltage,
-                detail: "the float voltage is above the absorption voltage",
-            });
+            return Err(RuleError::between_fields(
+                FieldId::FloatVoltage,
+                "the float voltage is above the absorption voltage",
+            ));
         }
         if !self.wifi_key.is_empty() && self.wifi_ssid.is_empty() {
-            return Err(RuleError {
-                field: FieldId::WifiKey,
-                detail: "a Wi-Fi key is set but no wifi_ssid",
-            });
+            return Err(RuleError::between_fields(
+                FieldId::WifiKey,
+                "a Wi-Fi key is set but no wifi_ssid",
+            ));
         }
         if !self.mqtt_password.is_empty() && self.mqtt_user.is_empty() {
-            return Err(RuleError {
-                field: FieldId::MqttPassword,
-                detail: "an MQTT password is set but no mqtt_user",
-            });
+            return Err(RuleError::between_fields(
+                FieldId::MqttPassword,
+                "an MQTT password is set but no mqtt_user",
+            ));
         }
         if self.discovery && self.topic_prefix == self.discovery_prefix {
-            return Err(RuleError {
-                field: FieldId::TopicPrefix,
-                detail: "the topic prefix is the discovery prefix",
-            });
+            return Err(RuleError::between_fields(
+                FieldId::TopicPrefix,
+                "the topic prefix is the discovery prefix",
+            ));
         }
         Ok(())
     }
@@ -676,20 +690,33 @@ impl Config {
     /// cutoff less the margin.
     pub fn validate_with_bms(&self, bms: &PackSettings) -> Result<(), RuleError> {
         self.validate()?;
-        let cutoff_da = |a: u16| u32::from(a) * 10;
-        if self.ccl_cap_da != 0 && u32::from(self.ccl_cap_da) > cutoff_da(bms.charge_cutoff_a) {
-            return Err(RuleError {
-                field: FieldId::ChargeCurrentCap,
-                detail: "above the BMS's charge over-current cutoff (318)",
-            });
+        // The caps in 0.1 A: from 0.1 A to the cutoff they cap.
+        let cap = |field: FieldId, set: u16, cutoff_a: u16, detail: &'static str| {
+            let cutoff_da = i32::from(cutoff_a) * 10;
+            (set != 0 && i32::from(set) > cutoff_da).then_some(RuleError {
+                field,
+                detail,
+                allowed: Some((1, cutoff_da)),
+            })
+        };
+        if let Some(e) = cap(
+            FieldId::ChargeCurrentCap,
+            self.ccl_cap_da,
+            bms.charge_cutoff_a,
+            "above the BMS's charge over-current cutoff, which it could never lower",
+        ) {
+            return Err(e);
         }
-        if self.dcl_cap_da != 0 && u32::from(self.dcl_cap_da) > cutoff_da(bms.discharge_cutoff_a) {
-            return Err(RuleError {
-                field: FieldId::DischargeCurrentCap,
-                detail: "above the BMS's discharge over-current cutoff (317)",
-            });
+        if let Some(e) = cap(
+            FieldId::DischargeCurrentCap,
+            self.dcl_cap_da,
+            bms.discharge_cutoff_a,
+            "above the BMS's discharge over-current cutoff, which it could never lower",
+        ) {
+            return Err(e);
         }
         let top = bms.ov_cutoff_mv.saturating_sub(self.absorption_margin_mv);
+        let allowed = Some((i32::from(bms.uv_cutoff_mv) + 1, i32::from(top)));
         for (field, v) in [
             (FieldId::AbsorptionVoltage, self.absorption_mv),
             (FieldId::FloatVoltage, self.float_mv),
@@ -697,13 +724,15 @@ impl Config {
             if v != 0 && v > top {
                 return Err(RuleError {
                     field,
-                    detail: "above the over-voltage cutoff (315) less absorption_margin",
+                    detail: "above the BMS's over-voltage cutoff less absorption_margin",
+                    allowed,
                 });
             }
             if v != 0 && v <= bms.uv_cutoff_mv {
                 return Err(RuleError {
                     field,
-                    detail: "at or below the under-voltage cutoff (316)",
+                    detail: "at or below the BMS's under-voltage cutoff",
+                    allowed,
                 });
             }
         }

@@ -36,8 +36,9 @@ pub enum Outcome {
     Unchanged,
     /// Refused: not a value of this field, or out of its range.
     Refused(FieldError),
-    /// Refused: the record would break a rule between fields.
-    RuleBroken(&'static str),
+    /// Refused: the record would break a rule between fields, or one against
+    /// the BMS's settings; then the values the field may take (raw).
+    RuleBroken(&'static str, Option<(i32, i32)>),
     /// Not applied, because another field of the change was refused.
     NotApplied,
 }
@@ -49,7 +50,7 @@ impl Outcome {
             Self::Applied => "applied",
             Self::AtRestart => "at_restart",
             Self::Unchanged => "unchanged",
-            Self::Refused(_) | Self::RuleBroken(_) => "refused",
+            Self::Refused(_) | Self::RuleBroken(..) => "refused",
             Self::NotApplied => "not_applied",
         }
     }
@@ -224,16 +225,26 @@ impl ConfigState {
             for ((id, _), r) in changes.iter().zip(results.iter()) {
                 let o = match (r, rule) {
                     (Some(o), _) => *o,
-                    (None, Some(RuleError { field, detail })) if field == *id => {
-                        Outcome::RuleBroken(detail)
-                    }
+                    (
+                        None,
+                        Some(RuleError {
+                            field,
+                            detail,
+                            allowed,
+                        }),
+                    ) if field == *id => Outcome::RuleBroken(detail, allowed),
                     _ => Outcome::NotApplied,
                 };
                 let _ = out.push((*id, o));
             }
-            if let Some(RuleError { field, detail }) = rule {
+            if let Some(RuleError {
+                field,
+                detail,
+                allowed,
+            }) = rule
+            {
                 if !changes.iter().any(|(id, _)| *id == field) {
-                    let _ = out.push((field, Outcome::RuleBroken(detail)));
+                    let _ = out.push((field, Outcome::RuleBroken(detail, allowed)));
                 }
             }
             return out;

@@ -163,12 +163,25 @@ fn check_text(rule: TextRule, s: &str) -> Result<(), FieldError> {
                 && !s.starts_with(['-', '.'])
                 && !s.ends_with(['-', '.'])
                 && !s.contains("..");
-            if ok {
-                Ok(())
-            } else {
+            let local = s
+                .rsplit('.')
+                .next()
+                .is_some_and(|last| s.contains('.') && last.eq_ignore_ascii_case("local"));
+            if !ok {
                 Err(FieldError::invalid(
                     "not a host name or IPv4 address (letters, digits, - and .)",
                 ))
+            } else if local {
+                // mDNS names (homeassistant.local) are answered by the hosts
+                // themselves, not by a DNS server: the bridge's resolver
+                // never finds them, so the session could never connect.
+                Err(FieldError::invalid(
+                    "a .local name is resolved by mDNS, which the bridge does not do: \
+                     give the broker's IP address (Home Assistant: Settings > System > \
+                     Network), or a name your router's DNS answers",
+                ))
+            } else {
+                Ok(())
             }
         }
         TextRule::Topic => {
@@ -373,7 +386,25 @@ pub fn write(field: &Field, v: &Value<'_>, unit: bool, out: &mut Line) {
     }
 }
 
-/// The range of a number field as text (`0.1 A … 750.0 A, or none`), for
+/// Writes the values `lo..=hi` (raw) of a number field as its range is
+/// written (`0.1 A to 60.0 A`); for another kind, its range.
+pub fn write_bounds(field: &Field, lo: i32, hi: i32, out: &mut Line) {
+    let Kind::Number { decimals, .. } = field.kind else {
+        write_range(field, out);
+        return;
+    };
+    for (i, v) in [lo, hi].into_iter().enumerate() {
+        if i > 0 {
+            out.push(" to ");
+        }
+        out.fixed(i64::from(v), u32::from(decimals));
+        if !field.unit.is_empty() {
+            out.push(" ").push(field.unit);
+        }
+    }
+}
+
+/// The range of a field as text (`0.1 A to 750.0 A, or none`), for
 /// refusals and `tinybms config`.
 pub fn write_range(field: &Field, out: &mut Line) {
     match field.kind {

@@ -631,9 +631,13 @@ pub fn config_field(
     req: Option<u32>,
     f: &crate::config::Field,
     config: &crate::config::state::ConfigState,
+    bms: Option<&crate::config::PackSettings>,
 ) -> Option<usize> {
     use crate::config::value;
     use crate::text::Line;
+    let mut e = Line::new();
+    let effective =
+        bms.and_then(|b| effective(f.id, config.stored(), b, &mut e).then(|| e.as_str()));
     let mut v = Line::new();
     value::write(f, &config.stored().get(f.id), false, &mut v);
     let defaults = crate::config::Config::default();
@@ -655,9 +659,40 @@ pub fn config_field(
             restart_pending: config.restart_pending(f.id),
             secret: f.is_secret(),
             help: f.help,
+            effective,
         },
         out,
     )
+}
+
+/// What a field that leaves its value to the BMS (`absorption_voltage bms`,
+/// `float_voltage auto`, a cap `none`) comes to with the BMS's settings `b`,
+/// as charge control computes it: written to `out` (true), or nothing to say.
+fn effective(
+    id: crate::config::FieldId,
+    c: &crate::config::Config,
+    b: &crate::config::PackSettings,
+    out: &mut crate::text::Line,
+) -> bool {
+    use crate::config::FieldId;
+    let (absorption, float) =
+        crate::inverter::control::ChargeControl::new(c.charge()).targets_mv(b);
+    match id {
+        FieldId::AbsorptionVoltage if c.absorption_mv == 0 => {
+            out.uint(u64::from(absorption)).push(" mV");
+        }
+        FieldId::FloatVoltage if c.float_mv == 0 => {
+            out.uint(u64::from(float)).push(" mV");
+        }
+        FieldId::ChargeCurrentCap if c.ccl_cap_da == 0 => {
+            out.uint(u64::from(b.charge_cutoff_a)).push(".0 A");
+        }
+        FieldId::DischargeCurrentCap if c.dcl_cap_da == 0 => {
+            out.uint(u64::from(b.discharge_cutoff_a)).push(".0 A");
+        }
+        _ => return false,
+    }
+    true
 }
 
 /// Writes a `config_end` line: how many fields, the record's layout version,
@@ -699,7 +734,13 @@ pub fn config_outcome(
     let mut r = Line::new();
     if let Some(id) = id {
         value::write(id.field(), &config.stored().get(id), true, &mut v);
-        value::write_range(id.field(), &mut r);
+        match outcome {
+            // What the BMS's settings allow, not the field's whole range.
+            Outcome::RuleBroken(_, Some((lo, hi))) => {
+                value::write_bounds(id.field(), lo, hi, &mut r)
+            }
+            _ => value::write_range(id.field(), &mut r),
+        }
     }
     let (error, detail) = match outcome {
         Outcome::Refused(e) => (
@@ -710,7 +751,7 @@ pub fn config_outcome(
             }),
             Some(e.detail),
         ),
-        Outcome::RuleBroken(d) => (Some("out_of_range"), Some(d)),
+        Outcome::RuleBroken(d, _) => (Some("out_of_range"), Some(d)),
         Outcome::NotApplied => (None, Some("another field was refused: nothing changed")),
         _ => (None, None),
     };

@@ -743,6 +743,11 @@ line_type! {
         pub secret: bool,
         /// What it is for.
         pub help: F::Text,
+        /// What a value that leaves it to the BMS (`bms`, `auto`, `none`)
+        /// comes to with the BMS's settings now (`3450 mV`, `60.0 A`), once
+        /// they are read.
+        #[serde(skip_serializing_if = "Option::is_none", default)]
+        pub effective: Option<F::Text>,
     }
 }
 

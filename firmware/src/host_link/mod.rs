@@ -1180,7 +1180,11 @@ impl State {
                 match fields.get(usize::from(*next)) {
                     Some(f) => {
                         *next = next.saturating_add(1);
-                        return encode::config_field(out, *req, f, config);
+                        let bms = t
+                            .settings
+                            .as_ref()
+                            .and_then(crate::config::PackSettings::from_registers);
+                        return encode::config_field(out, *req, f, config, bms.as_ref());
                     }
                     None => encode::config_end(out, *req, config),
                 }

@@ -38,6 +38,10 @@ pub use wire::{ErrorState, PacketError, Rpc, State};
 /// (an update then keeps the configuration).
 pub const PRODUCT: &str = "TinyBMS bridge";
 
+/// What an image with Wi-Fi adds to its version in Improv's device info and
+/// its installer manifest (`0.1.0+wifi`).
+pub const WIFI_VERSION_SUFFIX: &str = "+wifi";
+
 /// Longest the Wi-Fi side may take to join a network and get an address
 /// before the host is told "unable to connect", µs (the installer itself
 /// waits 45 s).
@@ -512,15 +516,26 @@ impl Improv {
             Out::State(s) => wire::current_state(s),
             Out::Error(e) => wire::error_state(e),
             Out::Empty(c) => wire::result(c, &[]),
-            Out::DeviceInfo => wire::result(
-                wire::command::DEVICE_INFO,
-                &[
-                    PRODUCT.as_bytes(),
-                    firmware.as_bytes(),
-                    self.chip_family.as_bytes(),
-                    self.name.as_bytes(),
-                ],
-            ),
+            Out::DeviceInfo => {
+                // The image's version as its installer manifest carries it:
+                // an image with Wi-Fi says `VERSION+wifi` (semver build
+                // metadata), so the installer offers the switch between the
+                // two images of one version as an update.
+                let mut version = Line::new();
+                version.push(firmware);
+                if self.wifi {
+                    version.push(WIFI_VERSION_SUFFIX);
+                }
+                wire::result(
+                    wire::command::DEVICE_INFO,
+                    &[
+                        PRODUCT.as_bytes(),
+                        version.as_str().as_bytes(),
+                        self.chip_family.as_bytes(),
+                        self.name.as_bytes(),
+                    ],
+                )
+            }
             Out::Network(i) => {
                 let n = self.networks.get(usize::from(i))?;
                 let mut rssi = Line::new();

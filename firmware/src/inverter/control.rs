@@ -35,7 +35,10 @@
 //! * **Hold and ramp:** after a cut (a limit forced to 0: fault, temperature,
 //!   a cell at the ceiling), the limit comes back only [`ChargeConfig::hold_us`]
 //!   after the cause ended, and then rises at most [`ChargeConfig::ramp_da_per_s`];
-//!   lowering is always immediate. CVL is raised at most
+//!   lowering is always immediate. A loss of the BMS's data is no such cause:
+//!   when fresh data from a healthy battery is back, the discharge limit is
+//!   back at once and the charge limit ramps from 0 without the hold
+//!   ([`ChargeControl::resume`]). CVL is raised at most
 //!   once per [`ChargeConfig::cvl_raise_interval_us`]; lowering is immediate.
 //! * **Alarms and warnings** from cells vs cutoffs, temperatures vs cutoffs,
 //!   currents vs cutoffs, cell imbalance (308), BMS fault status and link loss;
@@ -503,11 +506,16 @@ impl ChargeControl {
         }
     }
 
-    /// The inverter ran with CCL 0 but its last DCL (the hold policy): only the
-    /// charge limit comes back after the hold; the discharge limit is kept.
-    pub fn cut_charge(&mut self, now: Instant) {
+    /// Fresh data again after a loss of it: the loss itself is no cause the
+    /// battery gave, so nothing waits the hold. The charge limit comes back
+    /// from 0 at the ramp rate at once (the inverter charged with none
+    /// meanwhile); the discharge limit is what the data says at once (a DCL of
+    /// 0 would switch a Victron inverter off just as the data is back). A cause
+    /// in the fresh data (a fault, a cell at its cutoff, a temperature) still
+    /// cuts and holds as ever, and a hold a cause started before the loss runs
+    /// on.
+    pub fn resume(&mut self) {
         self.ccl.value_da = 0;
-        self.ccl.cut_at = Some(now);
         self.ccl.started = true;
     }
 

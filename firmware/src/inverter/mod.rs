@@ -14,13 +14,19 @@
 //!
 //! **Stale data is never sent as fresh.** When the newest snapshot is older than
 //! [`InverterConfig::freshness`] allows, the configured [`StaleMode`] applies.
-//! The default, [`StaleMode::Stop`], sends nothing more to a Victron
-//! GX: it stops charging and discharging 3 s after the last 0x351 (what
-//! Victron's own devices do on a lost battery). A Sunny Island would keep
-//! obeying the last 0x351 until 0x355 has been missing for 60 s, so it gets
-//! 0x351 with CCL 0 and DCL 0 (and no measurement frames: standby after 60 s). [`StaleMode::Hold`] keeps the inverter running on
-//! the battery for a bounded time: CCL 0, DCL and CVL as last computed, the
-//! alarm frame saying "BMS link lost", no measurement frames; then it stops too.
+//! The default, [`StaleMode::Hold`], keeps the inverter running on the
+//! battery for a bounded time (`stale_hold`, 120 s): CCL 0, DCL and CVL as
+//! last computed, the alarm frame saying "BMS link lost", no measurement
+//! frames; then it stops too. A short loss of the BMS's data (a loose UART
+//! wire, a BMS restart) then never switches an island inverter off, while the
+//! BMS's own cutoffs still protect the pack and nothing charges it.
+//! [`StaleMode::Stop`] sends nothing more to a Victron GX: it stops charging
+//! and discharging 3 s after the last 0x351 (what Victron's own devices do on
+//! a lost battery). A Sunny Island would keep obeying the last 0x351 until
+//! 0x355 has been missing for 60 s, so with `stop` it gets 0x351 with CCL 0
+//! and DCL 0 (and no measurement frames: standby after 60 s). When the data
+//! is back, nothing waits a hold: DCL is what the data says at once, CCL
+//! ramps from 0 ([`control::ChargeControl::resume`]).
 
 pub mod control;
 pub mod frames;
@@ -80,7 +86,7 @@ impl Default for InverterConfig {
             protocol: Protocol::Victron,
             charge: ChargeConfig::default(),
             freshness: Freshness::default(),
-            stale_policy: StaleMode::Stop,
+            stale_policy: StaleMode::Hold,
             stale_hold_us: 120 * crate::SECOND,
             fast_period_us: crate::SECOND,
             slow_period_us: 5 * crate::SECOND,
@@ -239,6 +245,32 @@ pub const BUS_RECOVERY_WAIT_US: Instant = 500 * crate::MS;
 /// How often, meanwhile, it is asked whether it is back.
 pub const BUS_RECOVERY_POLL_US: Instant = 10 * crate::MS;
 
+/// While the current limits only rise on their way to their targets (a ramp),
+/// they are logged at most this often; a limit that falls, and the end of a
+/// ramp, are logged at once.
+pub const LIMITS_LOG_PERIOD_US: Instant = 10 * crate::SECOND;
+
+/// Whether limits that differ from the ones last logged (at `at`) are logged
+/// now: always when one fell or the ramp reached its `targets` (CCL, DCL);
+/// on the way up, once a [`LIMITS_LOG_PERIOD_US`].
+fn limits_log_due(
+    last: Option<Limits>,
+    at: Instant,
+    limits: &Limits,
+    targets: (u16, u16),
+    now: Instant,
+) -> bool {
+    let Some(l) = last else {
+        return true;
+    };
+    let rising = limits.ccl_da >= l.ccl_da
+        && limits.dcl_da >= l.dcl_da
+        && limits.cvl_dv == l.cvl_dv
+        && limits.discharge_dv == l.discharge_dv;
+    let ramping = limits.ccl_da < targets.0 || limits.dcl_da < targets.1;
+    !(rising && ramping) || now.saturating_sub(at) >= LIMITS_LOG_PERIOD_US
+}
+
 /// Frames in one burst at most (a summary and a slow period of the battery's).
 const QUEUE: usize = 16;
 /// Failed transmissions in a row before "no ACK" is reported (and sending slows
@@ -256,6 +288,8 @@ pub struct Inverter {
     hardware: u16,
     limits: Option<Limits>,
     logged_limits: Option<Limits>,
+    /// When they were logged.
+    limits_logged_at: Instant,
     conditions: Conditions,
     charge_blocked: Option<EventId>,
     fault_clear_since: Option<Instant>,
@@ -310,6 +344,7 @@ impl Inverter {
             hardware: 0,
             limits: None,
             logged_limits: None,
+            limits_logged_at: 0,
             conditions: Conditions::default(),
             charge_blocked: None,
             fault_clear_since: None,
@@ -338,7 +373,9 @@ impl Inverter {
             battery: None,
             logged_battery: None,
             logged_packs: None,
-            battery_lost: false,
+            // No battery yet is no battery lost: a bridge that just started
+            // (its own data not read yet) says nothing until it had one.
+            battery_lost: true,
             sent_battery: None,
             duplicate_reported: false,
             refused_reported: 0,
@@ -732,15 +769,10 @@ impl Inverter {
             return;
         }
         if self.stale_since.take().is_some() {
-            // The inverter stopped (or ran without charge): limits ramp back —
-            // only CCL after a hold that kept discharging (a DCL of 0 would switch
-            // a Victron inverter off just as the link is back).
-            let held = self.config.stale_policy == StaleMode::Hold && !self.hold_ended;
-            if held {
-                self.control.cut_charge(now);
-            } else {
-                self.control.cut(now);
-            }
+            // The inverter stopped (or ran without charge): the loss was no
+            // cause the battery gave — DCL at once, CCL ramps from 0 without
+            // the hold (ChargeControl::resume).
+            self.control.resume();
             self.hold_ended = false;
             if let Some((p, hold)) = self.next_stale_policy.take() {
                 self.config.stale_policy = p;
@@ -771,8 +803,17 @@ impl Inverter {
         conditions.link_lost = 0;
         self.limits = Some(limits);
         self.conditions = conditions;
-        if self.logged_limits != Some(limits) {
+        if self.logged_limits != Some(limits)
+            && limits_log_due(
+                self.logged_limits,
+                self.limits_logged_at,
+                &limits,
+                self.control.targets(),
+                now,
+            )
+        {
             self.logged_limits = Some(limits);
+            self.limits_logged_at = now;
             self.report(InverterReport::Limits(limits));
         }
         (limits, conditions)

@@ -26,6 +26,14 @@ use crate::Instant;
 /// Events waiting to be published; beyond, the oldest are dropped (counted).
 pub const EVENT_QUEUE: usize = 8;
 
+/// How long after a connect the availability waits for the first telemetry,
+/// µs. The broker already holds `offline` (the will) when a bridge connects,
+/// so an `offline` at once followed by `online` a second later (the bridge's
+/// first poll) would only blink Home Assistant's entities; past this, with
+/// still no data, `offline` is said anyway (the retained topic may be older
+/// than the will: a broker restored from its persistence file).
+pub const FIRST_DATA_GRACE_US: Instant = 10_000_000;
+
 /// What the publisher needs of the bridge's latest telemetry.
 #[derive(Debug, Clone, Copy)]
 pub struct View<'a> {
@@ -151,6 +159,8 @@ pub struct Publisher {
     discovery_next: Option<usize>,
     /// Availability last sent on this connection.
     availability: Option<bool>,
+    /// When this connection came up.
+    connected_at: Instant,
     /// A state is wanted now.
     state_due: bool,
     next_state_at: Instant,
@@ -189,6 +199,7 @@ impl Publisher {
             announced_cells: 0,
             discovery_next: None,
             availability: None,
+            connected_at: 0,
             state_due: false,
             next_state_at: 0,
             last_status: None,
@@ -219,6 +230,7 @@ impl Publisher {
         self.announced_cells = 0;
         self.discovery_next = Some(0);
         self.availability = None;
+        self.connected_at = now;
         self.state_due = true;
         self.next_state_at = now;
         self.battery_next = Some(0);
@@ -261,8 +273,13 @@ impl Publisher {
 
     /// When [`Publisher::next`] may have something new (the next state), µs.
     pub fn next_due(&self) -> Instant {
+        let first_word = match (self.connected, self.availability) {
+            (true, None) => self.connected_at.saturating_add(FIRST_DATA_GRACE_US),
+            _ => Instant::MAX,
+        };
         self.next_state_at
             .min(self.battery_due.unwrap_or(Instant::MAX))
+            .min(first_word)
     }
 
     /// The next message at `now`, written into `topic` and `payload` (at least
@@ -286,7 +303,12 @@ impl Publisher {
             self.state_due = true;
         }
         for _ in 0..4 {
-            if self.availability != Some(fresh) {
+            // No telemetry yet on a new connection: silent for the grace
+            // (the will already says `offline`).
+            let first_wait = self.availability.is_none()
+                && view.snapshot.is_none()
+                && now < self.connected_at.saturating_add(FIRST_DATA_GRACE_US);
+            if self.availability != Some(fresh) && !first_wait {
                 self.availability = Some(fresh);
                 if !device_topic(topic, &self.settings, &id, "availability") {
                     return None;

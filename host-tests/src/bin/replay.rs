@@ -14,6 +14,7 @@ use host_tests::replay::replay;
 const USAGE: &str = "usage: replay FILE   (FILE = a .tbms capture, or - for standard input)";
 
 fn main() -> ExitCode {
+    host_tests::tool::end_quietly_on_a_closed_pipe();
     let args: Vec<String> = std::env::args().skip(1).collect();
     let path = match args.as_slice() {
         [a] if a == "-h" || a == "--help" => {

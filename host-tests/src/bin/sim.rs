@@ -9,7 +9,7 @@ use std::process::ExitCode;
 
 use clap::error::ErrorKind;
 use clap::{ArgGroup, ArgMatches, CommandFactory, FromArgMatches, Parser, ValueEnum};
-use host_tests::closed_loop::{run_scenario, ClosedLoop, SCENARIOS};
+use host_tests::closed_loop::{run_scenario, scenario_row, ClosedLoop, SCENARIOS, SCENARIO_HEADER};
 use host_tests::harness::{Harness, Soak};
 use host_tests::hosted::{serve_bridge_pty, BridgePtyOptions};
 use host_tests::profile::{parse_assignment, parse_profile};
@@ -71,9 +71,10 @@ struct Cli {
     #[arg(long, value_name = "P", value_enum, default_value_t = PackArg::Lifepo4_16s)]
     pack: PackArg,
     /// Seed of the simulator: the BMS's serial number and the noise of its
-    /// values (default 1; with --bridge-pty or --mqtt one drawn from the clock
-    /// and the process id, printed as `seed N: pass --seed N to repeat`, so
-    /// every simulated bridge has its own serial and MQTT client id)
+    /// values (default 1; with --bridge-pty or --mqtt the lowest from 1 that
+    /// no other running simulator holds, printed as `seed N: pass --seed N to
+    /// repeat`: a try-out run again is the same Home Assistant device, two at
+    /// once are two)
     #[arg(long, value_name = "N", conflicts_with = "seeds")]
     seed: Option<u64>,
     /// Run seeds A to B (inclusive) one after the other, summed up
@@ -161,7 +162,7 @@ struct Cli {
     /// availability, events) to the broker at HOST:PORT over an ordinary TCP
     /// socket; with or without --bridge-pty (the record's topic_prefix,
     /// mqtt_user, ... apply: --config); client id tinybms-sim-XXXXXX after the
-    /// BMS's serial (each try-out draws its own seed unless --seed is given); a
+    /// BMS's serial (the same when a try-out is run again: --seed); a
     /// broker that needs a login: --config mqtt_user=U --config
     /// mqtt_password=P; watch it with `mosquitto_sub -h HOST -p PORT -v -t '#'`
     #[arg(long, value_name = "HOST:PORT", value_parser = host_port, help_heading = REAL_TIME, conflicts_with = "pty")]
@@ -183,12 +184,13 @@ struct Cli {
     #[arg(long, value_name = "FILE", help_heading = INVERTER)]
     can_log: Option<String>,
     /// Every published snapshot and the limits, JSON Lines with the field names
-    /// of `replay`
-    #[arg(long, value_name = "FILE", help_heading = INVERTER)]
+    /// of `replay` (one bridge: not with --packs)
+    #[arg(long, value_name = "FILE", help_heading = INVERTER, conflicts_with = "packs")]
     json: Option<String>,
-    /// What the inverter output does while the data is stale: stop, or
-    /// hold:DURATION (CCL 0, keep discharging, for at most DURATION)
-    #[arg(long, value_name = "P", value_parser = stale_policy, default_value = "stop", help_heading = INVERTER)]
+    /// What the inverter output does while the data is stale: hold:DURATION
+    /// (CCL 0, keep discharging, for at most DURATION; the firmware's default,
+    /// hold:120s), or stop
+    #[arg(long, value_name = "P", value_parser = stale_policy, default_value = "hold:120s", help_heading = INVERTER)]
     stale_policy: StalePolicy,
     /// N packs in parallel (2-8), one bridge each with node numbers 1..N on one
     /// CAN bus, current split by physics, each BMS tripping at its own cutoffs;
@@ -418,10 +420,12 @@ impl Cli {
         let seeds = match (self.seed, self.seeds) {
             (Some(n), _) => (n, n),
             (None, Some(range)) => range,
-            // Every simulated bridge its own BMS (serial, MQTT client id, Home
-            // Assistant device): without --seed, the real-time bridges draw theirs.
+            // A broker keeps what a try-out announced (the Home Assistant
+            // device, its retained availability): every try-out takes the
+            // lowest seed no other running one holds, so trying again is the
+            // same device and two at once are two.
             (None, None) if self.bridge_pty || self.mqtt.is_some() => {
-                let seed = os_seed();
+                let seed = free_seed();
                 eprintln!("sim: seed {seed}: pass --seed {seed} to repeat");
                 (seed, seed)
             }
@@ -469,9 +473,44 @@ impl Cli {
     }
 }
 
+/// How many seeds [`free_seed`] tries before it draws one.
+const SEED_SLOTS: u64 = 64;
+
+/// The lowest seed from 1 that no other running simulator on this machine
+/// holds: each holds its seed by a lock on a file (`seed-N.lock` in
+/// `$TINYBMS_SIM_LOCKS`, or `tinybms-sim-seeds` in the temporary folder)
+/// until it ends, however it ends (the system drops the lock of a killed
+/// process). A try-out run again gets the seed, serial, MQTT client id and
+/// Home Assistant device of the one before; two at once get two. Where no
+/// lock can be taken, one drawn from the clock and the process id.
+fn free_seed() -> u64 {
+    use std::sync::OnceLock;
+    static HELD: OnceLock<std::fs::File> = OnceLock::new();
+    let dir = std::env::var_os("TINYBMS_SIM_LOCKS")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| std::env::temp_dir().join("tinybms-sim-seeds"));
+    if std::fs::create_dir_all(&dir).is_ok() {
+        for seed in 1..=SEED_SLOTS {
+            let Ok(f) = std::fs::OpenOptions::new()
+                .create(true)
+                .truncate(false)
+                .write(true)
+                .open(dir.join(format!("seed-{seed}.lock")))
+            else {
+                break;
+            };
+            if f.try_lock().is_ok() {
+                let _ = HELD.set(f);
+                return seed;
+            }
+        }
+    }
+    os_seed()
+}
+
 /// A seed from the clock and the process id (splitmix64 of both): two
 /// try-outs started together differ by their pids. At most nine digits, to be
-/// typed back as `--seed`.
+/// typed back as `--seed`; never one [`free_seed`] hands out.
 fn os_seed() -> u64 {
     let nanos = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -480,8 +519,7 @@ fn os_seed() -> u64 {
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     z ^= z >> 31;
-    // Seed 1 is every test's and the docs' default: never drawn.
-    2 + z % 999_999_998
+    SEED_SLOTS + 1 + z % (999_999_999 - SEED_SLOTS)
 }
 
 /// Harmless settings the `--write-every` cycle changes, with two values each.
@@ -704,6 +742,7 @@ fn print_link(h: &Harness) {
 }
 
 fn main() -> ExitCode {
+    host_tests::tool::end_quietly_on_a_closed_pipe();
     let o = parse_args();
     if let (Some(n), Some(broker)) = (o.packs, o.mqtt.as_ref()) {
         return run_packs_mqtt(&o, n, broker);
@@ -995,18 +1034,7 @@ fn run_inverter(o: &Options, protocol: Protocol) -> ExitCode {
     };
     let mut can_log = can_log;
     let mut json_log = json_log;
-    println!(
-        "{:<13} {:>9} {:>8} {:>9} {:>9} {:>10} {:>12} {:>9} {:>6}",
-        "scenario",
-        "max cell",
-        "ceiling",
-        "min CVL",
-        "max CVL",
-        "CVL ch/h",
-        "time to full",
-        "bus load",
-        "ok"
-    );
+    println!("{SCENARIO_HEADER}");
     let mut all_ok = true;
     for name in names {
         let mut start = |l: &mut ClosedLoop| {
@@ -1029,47 +1057,18 @@ fn run_inverter(o: &Options, protocol: Protocol) -> ExitCode {
                 }
             }
         };
-        use protocol_core::settings::SettingId::{
-            NumberOfSeriesCells, OverVoltageCutoff, UnderVoltageCutoff,
-        };
-        let ceiling =
-            l.h.bridge()
-                .telemetry()
-                .settings
-                .as_ref()
-                .and_then(|b| b.get(OverVoltageCutoff.address()))
-                .map_or(0, |ov| ov.saturating_sub(config.charge.ov_margin_mv));
-        let cells = l.h.sim.register(NumberOfSeriesCells.address()).max(1);
-        let f = &l.figures;
-        let cvl_ok = l.sent_limits.iter().all(|&(_, cvl, _, _)| {
-            let mv = u32::from(cvl) * 100;
-            cvl > 0
-                && mv + 100
-                    > u32::from(cells) * u32::from(l.h.sim.register(UnderVoltageCutoff.address()))
-                && mv <= u32::from(cells) * u32::from(l.h.sim.register(OverVoltageCutoff.address()))
-        });
-        let ok = f.max_cell_mv <= ceiling && cvl_ok && !l.sent_limits.is_empty();
-        all_ok &= ok;
-        let v = |dv: Option<u16>| {
-            dv.map_or("-".to_string(), |d| format!("{:.1} V", f64::from(d) / 10.0))
-        };
-        println!(
-            "{:<13} {:>6} mV {:>5} mV {:>9} {:>9} {:>10.1} {:>12} {:>7.2} % {:>6}",
+        let (row, ok) = scenario_row(
             if name.is_empty() {
                 "charge"
             } else {
                 name.as_str()
             },
-            f.max_cell_mv,
-            ceiling,
-            v(f.min_cvl_dv),
-            v(f.max_cvl_dv),
-            f.cvl_changes_per_hour(end),
-            f.float_at_us
-                .map_or("-".to_string(), |t| format!("{:.2} h", t as f64 / 3.6e9)),
-            f.bus_load_percent(end),
-            if ok { "yes" } else { "NO" }
+            &l,
+            end,
+            config,
         );
+        all_ok &= ok;
+        println!("{row}");
         can_log = l.can_log.take();
         json_log = l.json_log.take();
         if let Some(w) = can_log.as_mut() {

@@ -100,14 +100,27 @@ pub struct Client {
     pub finish: Option<Finish>,
 }
 
+/// What every command that writes says when the bridge is read-only.
+pub fn read_only_refusal() -> ToolError {
+    ToolError::failed(
+        "the bridge is read-only: it refuses every write, to the BMS and to its own \
+         configuration. To allow writes, hold the board's BOOT button for 5 seconds while \
+         the bridge runs (or erase its configuration: docs/configuration.md, \
+         \"Read-only, and the way out\")",
+    )
+}
+
+/// In direct mode, a port silent to every request this long is nothing the
+/// tool can talk to (the bridge inside the tool has sent its requests, their
+/// wake-up resends and retries by then).
+pub const DIRECT_SILENT_FOR: Duration = Duration::from_secs(4);
+
 /// An `error` line as a tool error, with a hint where one helps.
 pub fn protocol_error(e: &Error<Read>) -> ToolError {
     let code = e.error.as_str();
     let detail = e.detail.as_str();
     let hint = match code {
-        "read_only" => {
-            " (the bridge is built or started read-only: host writes are switched off)"
-        }
+        "read_only" => return read_only_refusal(),
         "not_ready" => " (the bridge has not read the settings and their limits yet: try again in a few seconds)",
         "busy" => " (the bridge's command queue is full: try again when the running writes are done)",
         "unknown_setting" => " (`tinybms settings PORT` lists the names)",
@@ -275,6 +288,19 @@ impl Client {
             let t = t.clone();
             if start.elapsed() >= timeout {
                 return Err(self.not_ready_error(&t));
+            }
+            // Direct mode on a port where not one byte came back: no TinyBMS
+            // (a sleeping one answers the wake-up resend at once), and no
+            // bridge answered the hello either. Said now, not after the
+            // whole timeout.
+            if self.mode == Mode::Direct && start.elapsed() >= DIRECT_SILENT_FOR {
+                let link = self.link().ok();
+                let silent = link
+                    .as_ref()
+                    .is_some_and(|l| l.requests > 0 && l.replies == 0 && l.skipped_bytes == 0);
+                if silent {
+                    return Err(self.not_ready_error(&t));
+                }
             }
             if super::interrupted() {
                 return Err(super::interrupted_error());

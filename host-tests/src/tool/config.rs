@@ -110,7 +110,7 @@ pub fn render(fields: &[Shown], end: &ConfigEnd<Read>) -> String {
     let w = fields.iter().map(|f| f.name.len()).max().unwrap_or(10);
     let vw = fields
         .iter()
-        .map(|f| with_unit(&f.value, &f.unit).chars().count())
+        .map(|f| shown(f).chars().count())
         .max()
         .unwrap_or(8)
         .min(28);
@@ -130,7 +130,7 @@ pub fn render(fields: &[Shown], end: &ConfigEnd<Read>) -> String {
             out,
             "{mark} {:<w$}  {:<vw$}  default {:<14} {}; {}{restart}",
             f.name,
-            with_unit(&f.value, &f.unit),
+            shown(f),
             with_unit(&f.default, &f.unit),
             f.range,
             match f.applies.as_str() {
@@ -153,7 +153,7 @@ pub fn render_one(f: &Shown) -> String {
         "{}: {}\n  value    {}{}\n  default  {}\n  range    {}\n  applies  {}\n",
         f.name,
         f.help,
-        with_unit(&f.value, &f.unit),
+        shown(f),
         if f.restart_pending {
             " (stored; the bridge runs with the old value until it restarts)"
         } else {
@@ -167,6 +167,16 @@ pub fn render_one(f: &Shown) -> String {
             "at the next restart"
         }
     )
+}
+
+/// A field's value as shown: with its unit, and what a value that leaves it
+/// to the BMS comes to now (`bms (3450 mV)`, `none (60.0 A)`).
+fn shown(f: &Shown) -> String {
+    let v = with_unit(&f.value, &f.unit);
+    match &f.effective {
+        Some(e) => format!("{v} ({e})"),
+        None => v,
+    }
 }
 
 /// A value with its unit, unless it is a word (`none`, `on`, `set`).
@@ -190,7 +200,11 @@ pub fn field_named(name: &str) -> ToolResult<FieldId> {
 /// Checks one `NAME=VALUE` as the bridge would: the field exists and the text
 /// is a value of it. Returns the name and the text to send.
 pub fn check_assignment(name: &str, text: &str) -> ToolResult<(FieldId, Parsed)> {
-    tinybms_rules::config::check_assignment(name, text).map_err(ToolError::usage)
+    // A name no field has is a usage error; a value the field refuses is a
+    // refusal, as the bridge's own (exit 1).
+    tinybms_rules::config::field_named(name).map_err(ToolError::usage)?;
+    tinybms_rules::config::check_assignment(name, text)
+        .map_err(|e| ToolError::failed(format!("refused, nothing changed: {e}")))
 }
 
 /// `NAME=VALUE` split.
@@ -208,7 +222,10 @@ pub fn record_of(fields: &[Shown]) -> Config {
 /// fields), so that a change that cannot be accepted is refused before
 /// anything is sent.
 pub fn check_locally(current: &Config, changes: &[(FieldId, Parsed)]) -> ToolResult<()> {
-    tinybms_rules::config::check_locally(current, changes).map_err(ToolError::usage)
+    // A value the rules refuse is a refusal, not a usage error: the command
+    // was right, the bridge would refuse what it asks.
+    tinybms_rules::config::check_locally(current, changes)
+        .map_err(|e| ToolError::failed(format!("refused, nothing changed: {e}")))
 }
 
 /// Sends `changes` (split into `set_config` lines that fit the protocol's
@@ -334,19 +351,16 @@ fn line_groups(changes: &[(FieldId, Parsed)]) -> Vec<Vec<(FieldId, Parsed)>> {
 }
 
 fn read_only_hint(e: ToolError) -> ToolError {
-    if e.message.contains("read_only") {
-        ToolError::failed(
-            "the bridge is read-only: it refuses every write, its configuration too. To allow \
-             changes, hold the board's BOOT button for 5 seconds while the bridge runs (or erase \
-             its configuration: docs/configuration.md, \"Read-only, and the way out\")",
-        )
+    if e.message.contains("read_only") || e.message.contains("read-only") {
+        super::client::read_only_refusal()
     } else {
         e
     }
 }
 
-/// `--reset`: every field back to its default.
-pub fn reset(c: &mut Client) -> ToolResult<()> {
+/// `--reset`: every field back to its default; says which changed (`fields`:
+/// the bridge's record before).
+pub fn reset(c: &mut Client, fields: &[Shown]) -> ToolResult<()> {
     let v = c
         .command(json!({"cmd": "reset_config"}), SAVE_TIMEOUT, |l| match l {
             HostLine::ConfigDone(d) => Some(d),
@@ -359,15 +373,37 @@ pub fn reset(c: &mut Client) -> ToolResult<()> {
             v.detail.as_deref().unwrap_or("?")
         )));
     }
-    println!(
-        "{} field(s) back to their defaults{}",
-        v.changed,
-        if v.restart_needed > 0 {
-            format!("; {} apply after a restart", v.restart_needed)
-        } else {
-            String::new()
-        }
-    );
+    let was: Vec<String> = fields
+        .iter()
+        .filter(|f| f.value != f.default)
+        .map(|f| {
+            let shown = if f.secret {
+                "set".to_string()
+            } else {
+                with_unit(&f.value, &f.unit)
+            };
+            format!(
+                "  {} = {} (was {shown})",
+                f.name,
+                with_unit(&f.default, &f.unit)
+            )
+        })
+        .collect();
+    match v.changed {
+        0 => println!("every field was at its default already: nothing changed"),
+        1 => println!("1 field back to its default:"),
+        n => println!("{n} fields back to their defaults:"),
+    }
+    for l in &was {
+        println!("{l}");
+    }
+    if v.restart_needed > 0 {
+        println!(
+            "{} of them apply{} at the next restart",
+            v.restart_needed,
+            if v.restart_needed == 1 { "s" } else { "" }
+        );
+    }
     Ok(())
 }
 

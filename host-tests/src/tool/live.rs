@@ -114,13 +114,66 @@ fn scaled(xs: &[f64], resolution: f64) -> Vec<u64> {
         .collect()
 }
 
-/// The smallest window the live view fills without dropping anything (16
-/// cells in two columns, the charts, the footer).
+/// The smallest window the live view draws in: every cell of a 16-cell pack
+/// in two columns with the pack and the footer; what does not fit then goes
+/// in this order: the charts, the log's older lines, the packs in parallel.
 pub const MIN_SIZE: (u16, u16) = (64, 24);
 
 /// The cell bars span at least this much, V: a healthy pack's few mV of
 /// spread must not look like a cell falling out.
 pub const CELL_SCALE_MIN_V: f64 = 0.050;
+
+/// How the window's rows go, cells first: the top line, the pack, the
+/// freshness lines and every cell (in one column when there is room, else two)
+/// always; then, as rows are left, the packs in parallel, the log (its newest
+/// lines) and the two charts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Rows {
+    cells: u16,
+    charts: u16,
+    battery: u16,
+    log: u16,
+}
+
+/// The charts' height.
+const CHART_ROWS: u16 = 6;
+
+impl Rows {
+    fn fit(height: u16, pack: u16, cells: usize, battery: usize, logs: usize) -> Self {
+        let fixed = 1 + pack + 2;
+        let left = height.saturating_sub(fixed);
+        let cells = cells as u16;
+        let two_columns = 1 + cells.div_ceil(2);
+        let one_column = 1 + cells;
+        let mut rest = left.saturating_sub(two_columns.max(4));
+        let battery = if battery == 0 {
+            0
+        } else {
+            (1 + battery as u16).min(rest)
+        };
+        rest -= battery;
+        let log = if logs == 0 || rest < 2 {
+            0
+        } else {
+            (1 + logs as u16).min(rest)
+        };
+        rest -= log;
+        let charts = if rest >= CHART_ROWS { CHART_ROWS } else { 0 };
+        rest -= charts;
+        // What is left widens the cells to one column when it is enough.
+        let cells = if rest + two_columns >= one_column {
+            one_column
+        } else {
+            two_columns.max(4)
+        };
+        Self {
+            cells,
+            charts,
+            battery,
+            log,
+        }
+    }
+}
 
 /// Draws the view of `s` at `now`.
 pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
@@ -154,26 +207,31 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
             .as_ref()
             .is_some_and(|(t, _)| t.told.inverter.is_some()),
     );
+    let rows = Rows::fit(
+        area.height,
+        3 + inverter_row,
+        s.telemetry.as_ref().map_or(0, |(t, _)| cells_of(t).len()),
+        s.battery.len(),
+        s.logs.len(),
+    );
     let [top, pack, cells_area, spark_area, foot, battery_area, log_area] = Layout::vertical([
         Constraint::Length(1),
         Constraint::Length(3 + inverter_row),
-        Constraint::Min(4),
-        Constraint::Length(6),
+        Constraint::Min(rows.cells),
+        Constraint::Length(rows.charts),
         Constraint::Length(2),
-        Constraint::Length(if s.battery.is_empty() {
-            0
-        } else {
-            1 + s.battery.len() as u16
-        }),
-        Constraint::Length(if s.logs.is_empty() {
-            0
-        } else {
-            1 + LOG_LINES as u16
-        }),
+        Constraint::Length(rows.battery),
+        Constraint::Length(rows.log),
     ])
     .areas(area);
-    if !s.battery.is_empty() {
-        let lines: Vec<Line> = s.battery.iter().map(|l| Line::raw(l.clone())).collect();
+    if rows.battery > 0 {
+        let shown = usize::from(rows.battery - 1);
+        let lines: Vec<Line> = s
+            .battery
+            .iter()
+            .take(shown)
+            .map(|l| Line::raw(l.clone()))
+            .collect();
         f.render_widget(
             Paragraph::new(lines).block(
                 Block::new()
@@ -183,8 +241,14 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
             battery_area,
         );
     }
-    if !s.logs.is_empty() {
-        let lines: Vec<Line> = s.logs.iter().map(|l| Line::raw(l.clone())).collect();
+    if rows.log > 0 {
+        let shown = usize::from(rows.log - 1);
+        let lines: Vec<Line> = s
+            .logs
+            .iter()
+            .skip(s.logs.len().saturating_sub(shown))
+            .map(|l| Line::raw(l.clone()))
+            .collect();
         f.render_widget(
             Paragraph::new(lines)
                 .block(Block::new().borders(Borders::TOP).title("The bridge's log")),
@@ -220,13 +284,21 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         _ => "-".into(),
     };
     let temp = |f| temperature(of(f));
-    let status = sn.map_or("-", |s| s.online_status.as_str());
-    let status_style = if status == "fault" {
-        alarm
+    // Data that is not fresh is shown as what it is: the last known values,
+    // dimmed, grey bars, and no status the BMS is not saying now.
+    let live = matches!(fresh, Freshness::Fresh(_));
+    let last = sn.map_or("-", |s| s.online_status.as_str());
+    let status = if live {
+        last.to_string()
     } else {
-        Style::new().add_modifier(Modifier::BOLD)
+        format!("unknown (last known: {last})")
     };
-    let bold = Style::new().add_modifier(Modifier::BOLD);
+    let bold = if live {
+        Style::new().add_modifier(Modifier::BOLD)
+    } else {
+        Style::new().add_modifier(Modifier::DIM)
+    };
+    let status_style = if live && last == "fault" { alarm } else { bold };
     let lines = vec![
         Line::from(vec![
             Span::raw("Pack "),
@@ -239,7 +311,7 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         ]),
         Line::from(vec![
             Span::raw("Status "),
-            Span::styled(status.to_string(), status_style),
+            Span::styled(status, status_style),
             Span::raw(format!(
                 "   internal {}   external {} / {}",
                 temp(|s| s.internal_temperature_c),
@@ -260,8 +332,8 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         Paragraph::new(lines).block(Block::new().borders(Borders::TOP)),
         pack,
     );
-    draw_cells(f, t, cells_area);
-    // Sparklines.
+    draw_cells(f, t, cells_area, live);
+    // Sparklines, when the window has room for them after the cells.
     let [vs, is] = Layout::horizontal([Constraint::Percentage(50), Constraint::Percentage(50)])
         .areas(spark_area);
     let volts: Vec<f64> = s.history.iter().map(|(_, v, _)| *v).collect();
@@ -279,6 +351,9 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         (vs, &volts, "Pack voltage", "V"),
         (is, &amps, "Current", "A"),
     ] {
+        if rows.charts == 0 {
+            break;
+        }
         let w = area.width.saturating_sub(2) as usize;
         // The title shows two decimals.
         let data = scaled(xs, 0.005);
@@ -292,7 +367,13 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
                 )))
                 .data(data)
                 .max(100)
-                .style(Style::new().fg(Color::Cyan)),
+                // History stays on screen when the BMS goes silent, greyed
+                // like the cells: nothing drawn in colour is stale.
+                .style(Style::new().fg(if matches!(fresh, Freshness::Fresh(_)) {
+                    Color::Cyan
+                } else {
+                    Color::DarkGray
+                })),
             area,
         );
     }
@@ -325,7 +406,7 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
 
 /// Every cell as a bar (scaled over the pack's own spread), the lowest blue,
 /// the highest red, a `*` where the BMS balances.
-fn draw_cells(f: &mut Frame, t: &Telemetry<Read>, area: Rect) {
+fn draw_cells(f: &mut Frame, t: &Telemetry<Read>, area: Rect, live: bool) {
     let cells = cells_of(t);
     let balancing = t
         .snapshot
@@ -339,7 +420,8 @@ fn draw_cells(f: &mut Frame, t: &Telemetry<Read>, area: Rect) {
     // least CELL_SCALE_MIN_V: a few mV of spread look like a few mV.
     let floor = hi - ((hi - lo) * 1.25).max(CELL_SCALE_MIN_V);
     let title = format!(
-        "Cells ({})  lowest #{} {:.4} V  highest #{} {:.4} V  spread {:.1} mV  bars from {:.3} V  * balancing",
+        "{}Cells ({})  lowest #{} {:.4} V  highest #{} {:.4} V  spread {:.1} mV  bars from {:.3} V  * balancing",
+        if live { "" } else { "Last known: " },
         cells.len(),
         lo_i + 1,
         lo,
@@ -379,7 +461,9 @@ fn draw_cells(f: &mut Frame, t: &Telemetry<Read>, area: Rect) {
             let Some(c) = cells.get(k) else { continue };
             let frac = ((c - floor) / (hi - floor).max(1e-9)).clamp(0.0, 1.0);
             let n = (frac * bar_w as f64).round() as usize;
-            let color = if cells.len() > 1 && k == hi_i {
+            let color = if !live {
+                Color::DarkGray
+            } else if cells.len() > 1 && k == hi_i {
                 Color::Red
             } else if cells.len() > 1 && k == lo_i {
                 Color::Blue
@@ -429,8 +513,12 @@ pub(super) fn run(
                 if let Ok(Event::Key(k)) = event::read() {
                     let ctrl_c =
                         k.code == KeyCode::Char('c') && k.modifiers.contains(KeyModifiers::CONTROL);
+                    if k.kind == KeyEventKind::Press && ctrl_c {
+                        // Ctrl-C ends every command alike: status 130.
+                        return Err(interrupted_error());
+                    }
                     if k.kind == KeyEventKind::Press
-                        && (ctrl_c || matches!(k.code, KeyCode::Char('q') | KeyCode::Esc))
+                        && matches!(k.code, KeyCode::Char('q') | KeyCode::Esc)
                     {
                         return Ok(());
                     }
@@ -629,6 +717,76 @@ mod tests {
         for k in 1..=16 {
             assert!(text.contains(&format!("{k:>2} 3.3")), "cell {k}: {text}");
         }
+    }
+
+    /// Issue 42, item 3: in an 80x24 terminal (most terminals' default) with
+    /// the log and the inverter's line, the monitor showed no cell at all
+    /// ("window too low for 16 cells"); the cells come before the charts.
+    #[test]
+    fn every_cell_shows_in_an_80x24_window_with_the_log_and_the_inverter() {
+        let t0 = Instant::now();
+        let mut s = LiveState::default();
+        let mut t = telemetry_json(true);
+        let cells: Vec<f64> = (0..16).map(|k| 3.305 + f64::from(k % 8) * 0.001).collect();
+        t["cell_voltages_v"] = json!(cells);
+        t["cell_count"] = json!(16);
+        t["inverter"] = json!({"protocol":"victron","can":"sending","heard":true,
+            "cvl_v":56.8,"ccl_a":60.0,"dcl_a":60.0});
+        s.update(decoded(t), t0);
+        for k in 0..5 {
+            s.log("info", &format!("log line {k}"));
+        }
+        for (w, h) in [(80, 24), (MIN_SIZE.0, MIN_SIZE.1), (120, 30)] {
+            let text = screen_of(&s, t0, w, h);
+            assert!(!text.contains("too low"), "{w}x{h}: {text}");
+            for k in 1..=16 {
+                assert!(
+                    text.contains(&format!("{k:>2} 3.3")),
+                    "{w}x{h}: cell {k}: {text}"
+                );
+            }
+            assert!(text.contains("Inverter"), "{w}x{h}: {text}");
+            assert!(
+                text.contains("log line 4"),
+                "{w}x{h}: the newest log line: {text}"
+            );
+        }
+        // Room left over gives the charts back.
+        assert!(screen_of(&s, t0, 120, 40).contains("Pack voltage, last"));
+    }
+
+    /// Issue 42, item 4: with the BMS silent the monitor kept the last values
+    /// bold, the bars green and "Status discharging": only the badge said
+    /// OFFLINE. Now the values are the last known ones, dimmed, in grey bars,
+    /// and no status is claimed.
+    #[test]
+    fn offline_data_does_not_look_live() {
+        let t0 = Instant::now();
+        let mut s = LiveState::default();
+        s.update(telemetry(false), t0);
+        let mut term = Terminal::new(TestBackend::new(100, 40)).unwrap();
+        term.draw(|f| draw(f, &s, t0)).unwrap();
+        let buf = term.backend().buffer().clone();
+        let text = screen(&s, t0);
+        assert!(text.contains("OFFLINE"), "{text}");
+        assert!(
+            text.contains("Status unknown (last known: discharging)"),
+            "{text}"
+        );
+        assert!(!text.contains("Status discharging"), "{text}");
+        assert!(text.contains("Last known: Cells (4)"), "{text}");
+        let bars: Vec<_> = buf
+            .content()
+            .iter()
+            .filter(|c| c.symbol() == "█")
+            .map(|c| c.fg)
+            .collect();
+        assert!(!bars.is_empty());
+        assert!(bars.iter().all(|c| *c == Color::DarkGray), "{bars:?}");
+        // Fresh again: colours and the status come back.
+        s.update(telemetry(true), t0);
+        let text = screen(&s, t0);
+        assert!(text.contains("Status discharging"), "{text}");
     }
 
     /// Issue 26, item 11: bars over a 7 mV spread looked alarming, and a

@@ -76,6 +76,9 @@ pub type ToolResult<T> = Result<T, ToolError>;
 /// leave the bridge as they found it (the stream period, capture off).
 static INTERRUPTED: AtomicBool = AtomicBool::new(false);
 
+/// A question waits for the user's answer on stdin.
+static PROMPTING: AtomicBool = AtomicBool::new(false);
+
 /// Ctrl-C was pressed.
 pub fn interrupted() -> bool {
     INTERRUPTED.load(Ordering::Relaxed)
@@ -86,6 +89,19 @@ pub fn interrupted_error() -> ToolError {
     ToolError {
         message: "interrupted".into(),
         status: 130,
+    }
+}
+
+/// A program whose output goes into a pipe that closes first (`tinybms
+/// settings PORT | head`) ends quietly, as `cat` does, instead of panicking
+/// on its next `println!`: the default action of SIGPIPE, which Rust's
+/// runtime sets to ignored. Called first by the desktop programs' `main`.
+pub fn end_quietly_on_a_closed_pipe() {
+    #[cfg(unix)]
+    // SAFETY: sets a signal's disposition to the system default, at the start
+    // of `main`, before any other thread exists.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }
 
@@ -103,8 +119,10 @@ pub fn main(argv: &[String]) -> ExitCode {
         }
     };
     let _ = ctrlc::set_handler(|| {
-        if INTERRUPTED.swap(true, Ordering::Relaxed) {
-            // A second Ctrl-C: the user insists.
+        if INTERRUPTED.swap(true, Ordering::Relaxed) || PROMPTING.load(Ordering::Relaxed) {
+            // A second Ctrl-C (the user insists), or one at a question
+            // (reading stdin would wait for Enter): nothing was changed yet.
+            eprintln!("\ntinybms: interrupted");
             std::process::exit(130);
         }
     });
@@ -114,11 +132,16 @@ pub fn main(argv: &[String]) -> ExitCode {
             eprintln!("tinybms: interrupted");
             ExitCode::from(130)
         }
+        Err(e) if e.status == 2 => {
+            // A usage error reads as clap's own (`error: …`, then where help is).
+            eprintln!(
+                "error: {}\n\nFor more information, try '--help'.",
+                e.message
+            );
+            ExitCode::from(2)
+        }
         Err(e) => {
             eprintln!("tinybms: {}", e.message);
-            if e.status == 2 {
-                eprintln!("(tinybms --help for the commands, tinybms COMMAND --help for one)");
-            }
             ExitCode::from(e.status)
         }
     }
@@ -266,10 +289,15 @@ fn confirm(question: &str) -> ToolResult<bool> {
     print!("{question}? Type `yes` to go on: ");
     let _ = std::io::stdout().flush();
     let mut line = String::new();
-    std::io::stdin()
-        .lock()
-        .read_line(&mut line)
-        .map_err(|e| ToolError::failed(format!("reading the answer: {e}")))?;
+    // Ctrl-C while the question waits ends the tool at once (the handler
+    // sees this flag), not at the next Enter.
+    PROMPTING.store(true, Ordering::Relaxed);
+    let read = std::io::stdin().lock().read_line(&mut line);
+    PROMPTING.store(false, Ordering::Relaxed);
+    read.map_err(|e| ToolError::failed(format!("reading the answer: {e}")))?;
+    if interrupted() {
+        return Err(interrupted_error());
+    }
     Ok(line.trim().eq_ignore_ascii_case("yes") || line.trim().eq_ignore_ascii_case("y"))
 }
 
@@ -343,7 +371,12 @@ fn open_and_probe(
     if choice == ModeChoice::Direct {
         return Ok((serial, Mode::Direct, None));
     }
-    let (probe, split) = transport::probe(&mut serial, transport::PROBE_TIME)?;
+    // The ESP32's own USB is a bridge or nothing this tool can use: it waits
+    // the whole probe and never falls back to direct mode. Any other port in
+    // auto mode that stays silent is taken for a TinyBMS's adapter at once.
+    let esp32 = transport::is_esp32_usb(port);
+    let silent_is_no = choice == ModeChoice::Auto && !esp32;
+    let (probe, split) = transport::probe(&mut serial, transport::PROBE_TIME, silent_is_no)?;
     if let Some(raw) = &probe.unread_hello {
         return Err(other_protocol(port, raw));
     }
@@ -370,6 +403,12 @@ fn open_and_probe(
             } else {
                 String::new()
             }
+        ))),
+        (None, _) if esp32 => Err(ToolError::connect(format!(
+            "the ESP32 on `{port}` (its own USB) did not answer the hello ({} bytes heard): \
+             is the bridge firmware flashed on it (docs/flashing.md)? If it was just plugged \
+             in, retry in a few seconds",
+            probe.bytes
         ))),
         (None, _) => Ok((serial, Mode::Direct, None)),
     }
@@ -416,7 +455,8 @@ fn connect(conn: &Conn) -> ToolResult<Client> {
     let (serial, mode, probe) = open_and_probe(&port, choice(conn))?;
     if mode == Mode::Direct && conn.mode == ModeArg::Auto {
         status(&format!(
-            "no bridge answered on {port}: talking to a TinyBMS on it directly (a USB-UART adapter; the firmware's bridge runs in this tool)"
+            "no bridge answered on {port}: trying a TinyBMS on it directly (a USB-UART \
+             adapter; the firmware's bridge runs in this tool)"
         ));
     }
     match (mode, probe) {

@@ -212,7 +212,7 @@ pub fn open_port(path: &str) -> ToolResult<Box<dyn serialport::SerialPort>> {
                 K::Io(IO::NotFound) | K::InvalidInput if !std::path::Path::new(path).exists() => {
                     format!("there is no serial port `{path}`. {}", ports_hint())
                 }
-                _ if not_a_tty_device(path) => {
+                _ if not_a_tty_device(path) || not_a_terminal(&e) => {
                     format!(
                         "`{path}` is not a serial port (not a tty device). {}",
                         ports_hint()
@@ -255,11 +255,34 @@ pub struct ProbeResult {
 /// again halfway, in case the first one met a bridge still booting).
 pub const PROBE_TIME: Duration = Duration::from_millis(1600);
 
+/// A port that stays silent this long after the hello is no bridge: a
+/// running bridge answers in milliseconds, and one that the port's opening
+/// reset (a USB-UART bridge's DTR) prints its ROM's boot text within tens of
+/// milliseconds, so bytes arrive either way. A silent port is a TinyBMS
+/// behind a USB-UART adapter (it never answers JSON) or nothing at all.
+pub const SILENT_AFTER: Duration = Duration::from_millis(300);
+
+/// The ESP32's own USB (USB-Serial-JTAG: the SuperMini, the XIAO, the
+/// DevKitC-1's "USB" port): a bridge or an ESP32 without this firmware,
+/// never a USB-UART adapter to a TinyBMS.
+pub fn is_esp32_usb(path: &str) -> bool {
+    serialport::available_ports().is_ok_and(|ports| {
+        ports.iter().any(|p| {
+            p.port_name == path
+                && matches!(&p.port_type, serialport::SerialPortType::UsbPort(u) if (u.vid, u.pid) == (0x303a, 0x1001))
+        })
+    })
+}
+
 /// Sends `{"cmd":"hello"}` and listens. Returns the splitter holding what came
 /// after the hello, for [`SerialLines`].
+///
+/// `silent_is_no`: a port silent for [`SILENT_AFTER`] ends the probe (auto
+/// mode on a port that may be a TinyBMS's adapter).
 pub fn probe(
     port: &mut Box<dyn serialport::SerialPort>,
     time: Duration,
+    silent_is_no: bool,
 ) -> ToolResult<(ProbeResult, LineSplitter)> {
     let mut result = ProbeResult::default();
     let mut split = LineSplitter::default();
@@ -276,6 +299,9 @@ pub fn probe(
             time
         }
     {
+        if silent_is_no && result.bytes == 0 && start.elapsed() >= SILENT_AFTER {
+            return Ok((result, split));
+        }
         if sent == 0 || (sent == 1 && start.elapsed() >= time / 2) {
             // The leading newline ends whatever partial line the bridge holds.
             port.write_all(b"\n{\"cmd\":\"hello\"}\n")
@@ -311,6 +337,24 @@ pub fn probe(
         }
     }
     Ok((result, split))
+}
+
+/// The error an open gives for a device that is no terminal (`/dev/null`:
+/// "Inappropriate ioctl for device", ENOTTY), whatever words the C library
+/// has for it.
+fn not_a_terminal(e: &serialport::Error) -> bool {
+    #[cfg(unix)]
+    {
+        let enotty = std::io::Error::from_raw_os_error(libc::ENOTTY).to_string();
+        e.to_string().contains(&enotty)
+            || e.to_string().contains("Not a typewriter")
+            || e.to_string().contains("Inappropriate ioctl")
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = e;
+        false
+    }
 }
 
 /// `path` exists and is not a character device (Unix); never on other systems,

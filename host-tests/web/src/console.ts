@@ -169,32 +169,58 @@ function cell(content: string, cls = ""): HTMLTableCellElement {
 
 // ----------------------------------------------------------- configuration
 
+/** The configuration's groups as `tinybms config` heads them. */
+const CONFIG_GROUPS: Record<string, string> = {
+  inverter: "Inverter (CAN)",
+  charge: "Charge control: the limits the inverter is told",
+  host: "Host link (USB)",
+  network: "Network: Wi-Fi, MQTT, Home Assistant",
+};
+
 function showConfig(lines: Line[]): void {
   const body = $("config").querySelector("tbody")!;
   const fields = lines.filter((l) => l.type === "config");
-  body.replaceChildren(
-    ...fields.map((f) => {
+  const rows: HTMLTableRowElement[] = [];
+  let group = "";
+  for (const f of fields) {
+    if (f.group !== group) {
+      // A heading row per group, as `tinybms config` prints them.
+      group = f.group;
       const tr = document.createElement("tr");
-      tr.dataset.field = f.name;
-      const value = f.secret ? f.value : `${f.value}${f.unit && /^-?\d/.test(f.value) ? " " + f.unit : ""}`;
-      const input = document.createElement("input");
-      input.name = f.name;
-      input.type = f.secret ? "password" : "text";
-      input.placeholder = f.secret ? "unchanged" : "";
-      input.autocomplete = "off";
-      const edit = document.createElement("td");
-      edit.append(input);
-      tr.append(
-        cell(f.name, "name"),
-        cell(value + (f.restart_pending ? " (restart pending)" : ""), "current"),
-        edit,
-        cell(f.range ?? ""),
-        cell(f.applies === "now" ? "at once" : "at the next restart"),
-      );
-      tr.title = f.help ?? "";
-      return tr;
-    }),
+      tr.className = "group";
+      const th = document.createElement("th");
+      th.colSpan = 5;
+      th.textContent = CONFIG_GROUPS[group] ?? group;
+      tr.append(th);
+      rows.push(tr);
+    }
+    rows.push(fieldRow(f));
+  }
+  body.replaceChildren(...rows);
+}
+
+function fieldRow(f: Line): HTMLTableRowElement {
+  const tr = document.createElement("tr");
+  tr.dataset.field = f.name;
+  const value = f.secret
+    ? f.value
+    : `${f.value}${f.unit && /^-?\d/.test(f.value) ? " " + f.unit : ""}${f.effective ? ` (${f.effective})` : ""}`;
+  const input = document.createElement("input");
+  input.name = f.name;
+  input.type = f.secret ? "password" : "text";
+  input.placeholder = f.secret ? "unchanged" : "";
+  input.autocomplete = "off";
+  const edit = document.createElement("td");
+  edit.append(input);
+  tr.append(
+    cell(f.name, "name"),
+    cell(value + (f.restart_pending ? " (restart pending)" : ""), "current"),
+    edit,
+    cell(f.range ?? ""),
+    cell(f.applies === "now" ? "at once" : "at the next restart"),
   );
+  tr.title = f.help ?? "";
+  return tr;
 }
 
 async function fetchConfig(s: Session): Promise<void> {

@@ -84,16 +84,33 @@ async function main(): Promise<void> {
     box.append(group);
   }
   ($("wifi") as HTMLInputElement).addEventListener("change", () => choose(boards, images));
+  if (!images.length) {
+    // A copy of the page built without images: say so, offer nothing to
+    // install or download (no dead checksum link either).
+    $("no-images").hidden = false;
+    $("downloads").hidden = true;
+    ($("install-button") as HTMLButtonElement).disabled = true;
+  }
+  // Downloads by board: its images with and without Wi-Fi, each with the
+  // parts the installer writes.
   const files = $("files");
-  for (const i of images) {
-    for (const f of i.files) {
-      const li = document.createElement("li");
-      const a = document.createElement("a");
-      a.href = `firmware/${f}`;
-      a.textContent = f;
-      li.append(a);
-      files.append(li);
-    }
+  for (const b of boards) {
+    const mine = images.filter((i) => i.board === b.board);
+    if (!mine.length) continue;
+    const li = document.createElement("li");
+    li.append(`${b.name}: `);
+    mine.forEach((i, k) => {
+      if (k > 0) li.append(" · ");
+      li.append(i.wifi ? "with Wi-Fi " : "without Wi-Fi ");
+      i.files.forEach((f, n) => {
+        const a = document.createElement("a");
+        a.href = `firmware/${f}`;
+        a.textContent = n === 0 ? "merged (0x0)" : f.endsWith("-boot.bin") ? "boot (0x0)" : "app (0x10000)";
+        a.title = f;
+        li.append(n > 0 ? ", " : "", a);
+      });
+    });
+    files.append(li);
   }
   choose(boards, images);
   document.body.dataset.ready = "true";

@@ -143,7 +143,7 @@ pub fn run_config(
         return Ok(());
     }
     if reset {
-        return config::reset(&mut c);
+        return config::reset(&mut c, &fields);
     }
     if let Some(id) = explain {
         let f = fields

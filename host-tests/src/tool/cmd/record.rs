@@ -137,5 +137,10 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
             Mode::Direct => "direct",
         }
     );
+    // The capture is kept and said; Ctrl-C ends the command as it ends
+    // every other (status 130).
+    if interrupted() {
+        return Err(crate::tool::interrupted_error());
+    }
     Ok(())
 }
