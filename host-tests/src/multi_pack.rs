@@ -365,6 +365,19 @@ impl MultiLoop {
         charger_max_a: f64,
         seed: u64,
     ) -> Self {
+        Self::with_packs_and_host(inverter, specs, charger_max_a, seed, false)
+    }
+
+    /// [`MultiLoop::with_packs`], with the host link of pack 1's bridge (the
+    /// primary) on when `primary_host` (`sim --packs N --bridge-pty`: its USB
+    /// port on a pseudo-terminal); the others have none, as in every scenario.
+    pub fn with_packs_and_host(
+        inverter: InverterConfig,
+        specs: &[PackSpec],
+        charger_max_a: f64,
+        seed: u64,
+        primary_host: bool,
+    ) -> Self {
         let n = specs.len().min(8);
         let nodes = specs
             .iter()
@@ -404,7 +417,7 @@ impl MultiLoop {
                         "sim",
                         Features {
                             can: true,
-                            host_link: false,
+                            host_link: primary_host && k == 0,
                             ..Features::default()
                         },
                     ),

@@ -946,3 +946,28 @@ fn a_typed_zero_is_never_the_word_for_zero() {
         Parsed::Number(0)
     );
 }
+
+/// Issue 42, item 7: a `.local` broker name (mDNS, which the bridge cannot
+/// resolve) is refused in any case; names that only contain "local" are
+/// not.
+#[test]
+fn a_local_mdns_name_is_refused_and_only_that() {
+    for refused in [
+        "homeassistant.local",
+        "HA.LOCAL",
+        "broker.Local",
+        "a.b.local",
+    ] {
+        let e = parse("mqtt_host", refused).unwrap_err();
+        assert!(e.detail.contains("mDNS"), "{refused}: {}", e.detail);
+    }
+    for taken in [
+        "local",
+        "mylocal",
+        "broker.localdomain",
+        "192.168.1.10",
+        "mqtt.lan",
+    ] {
+        assert!(parse("mqtt_host", taken).is_ok(), "{taken}");
+    }
+}

@@ -205,7 +205,7 @@ fn packs_on_mqtt_refuse_a_scenario() {
         .unwrap();
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("--scenario goes without --mqtt"), "{err}");
+    assert!(err.contains("--scenario goes without them"), "{err}");
 }
 
 /// Two bridges with one client id (here two try-outs of one `--seed`): each

@@ -274,3 +274,55 @@ fn output_into_a_pipe_closed_early_ends_quietly() {
 fn libc_sigpipe() -> i32 {
     13
 }
+
+/// Item 11: the monitor's packs-in-parallel panel could not be tried on the
+/// desk (`sim --bridge-pty` ran one bridge). `sim --bridge-pty --packs 3` puts
+/// pack 1's bridge on the pty: the battery line and one line per pack show.
+#[test]
+fn the_packs_panel_can_be_tried_on_the_desk() {
+    let sim = Sim::start(&["--bridge-pty", "--packs", "3", "--quiet"]);
+    // The packs find each other on the bus within seconds, and the battery's
+    // lines come between pictures (bounded wait: at most 3 x 12 pictures).
+    let mut last = None;
+    for _ in 0..3 {
+        let o = tinybms(&["monitor", &sim.path, "--plain", "--count", "12"]);
+        assert_eq!(o.code, 0, "{o}");
+        let done = o
+            .stdout
+            .contains("Battery (node 1 speaks to the inverter): 3 of 3 packs");
+        last = Some(o);
+        if done {
+            break;
+        }
+    }
+    let o = last.unwrap();
+    assert!(
+        o.stdout
+            .contains("Battery (node 1 speaks to the inverter): 3 of 3 packs"),
+        "{o}"
+    );
+    for node in 1..=3 {
+        assert!(
+            o.stdout
+                .lines()
+                .any(|l| l.trim_start().starts_with(&format!("pack {node}"))),
+            "pack {node}: {o}"
+        );
+    }
+    // One bridge's options are refused with --packs, not ignored.
+    // (--duration: it stops by itself should it be taken.)
+    let bad = std::process::Command::new(env!("CARGO_BIN_EXE_sim"))
+        .args([
+            "--bridge-pty",
+            "--packs",
+            "3",
+            "--read-only",
+            "--duration",
+            "1s",
+        ])
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&bad.stderr);
+    assert_eq!(bad.status.code(), Some(2), "{said}");
+    assert!(said.contains("go with one bridge"), "{said}");
+}

@@ -163,10 +163,12 @@ fn check_text(rule: TextRule, s: &str) -> Result<(), FieldError> {
                 && !s.starts_with(['-', '.'])
                 && !s.ends_with(['-', '.'])
                 && !s.contains("..");
-            let local = s
-                .rsplit('.')
-                .next()
-                .is_some_and(|last| s.contains('.') && last.eq_ignore_ascii_case("local"));
+            // `….local`, any case.
+            let name = s.as_bytes();
+            let local = name.len() > 6
+                && name
+                    .get(name.len() - 6..)
+                    .is_some_and(|t| t.eq_ignore_ascii_case(b".local"));
             if !ok {
                 Err(FieldError::invalid(
                     "not a host name or IPv4 address (letters, digits, - and .)",

@@ -626,6 +626,7 @@ pub fn error(
 /// Writes a `config` line: one field of the bridge's configuration, its value
 /// in the stored record as text (`set`/`unset` for a secret), its default,
 /// range and when a change applies.
+#[inline(never)]
 pub fn config_field(
     out: &mut [u8],
     req: Option<u32>,
@@ -668,6 +669,8 @@ pub fn config_field(
 /// What a field that leaves its value to the BMS (`absorption_voltage bms`,
 /// `float_voltage auto`, a cap `none`) comes to with the BMS's settings `b`,
 /// as charge control computes it: written to `out` (true), or nothing to say.
+/// Not inlined: one copy for every field of a listing (flash is tight).
+#[inline(never)]
 fn effective(
     id: crate::config::FieldId,
     c: &crate::config::Config,

@@ -201,10 +201,11 @@ struct Cli {
     /// all; prints each pack's cells and currents against its own cutoffs, the
     /// charge moved and the trips; with --mqtt instead: the packs charging in
     /// real time, each bridge publishing its pack (own serial and client id)
-    /// and the speaker the battery's device. Not with --pty or --bridge-pty,
-    /// which run one bridge
+    /// and the speaker the battery's device; with --bridge-pty: the packs
+    /// charging in real time, the path pack 1's bridge (the primary: `tinybms
+    /// monitor` shows the packs in parallel). Not with --pty
     #[arg(long, value_name = "N", value_parser = pack_count, help_heading = INVERTER,
-          conflicts_with_all = ["pty", "bridge_pty"])]
+          conflicts_with = "pty")]
     packs: Option<usize>,
 }
 
@@ -375,10 +376,24 @@ fn parse_args() -> Options {
 impl Cli {
     /// What `conflicts_with` and `requires` cannot say.
     fn validate(&self) -> Result<(), &'static str> {
-        if self.packs.is_some() && self.mqtt.is_some() && self.scenario.is_some() {
+        let live = self.mqtt.is_some() || self.bridge_pty;
+        if self.packs.is_some() && live && self.scenario.is_some() {
             return Err(
-                "--packs with --mqtt runs the packs charging in real time; --scenario goes \
-                 without --mqtt (virtual time)",
+                "--packs with --mqtt or --bridge-pty runs the packs charging in real time; \
+                 --scenario goes without them (virtual time)",
+            );
+        }
+        let one_bridge_only = self.flash.is_some()
+            || self.read_only
+            || self.stream_period.is_some()
+            || self.boot_button.is_some()
+            || self.bms_silent.is_some()
+            || self.freeze.is_some()
+            || !self.wifi_network.is_empty();
+        if self.packs.is_some() && one_bridge_only {
+            return Err(
+                "--flash, --read-only, --stream-period, --boot-button, --bms-silent, --freeze \
+                 and --wifi-network go with one bridge, not with --packs",
             );
         }
         Ok(())
@@ -744,8 +759,8 @@ fn print_link(h: &Harness) {
 fn main() -> ExitCode {
     host_tests::tool::end_quietly_on_a_closed_pipe();
     let o = parse_args();
-    if let (Some(n), Some(broker)) = (o.packs, o.mqtt.as_ref()) {
-        return run_packs_mqtt(&o, n, broker);
+    if let Some(n) = o.packs.filter(|_| o.mqtt.is_some() || o.bridge_pty) {
+        return run_packs_live(&o, n);
     }
     if o.pty || o.bridge_pty || o.mqtt.is_some() {
         return run_realtime(&o);
@@ -907,9 +922,10 @@ fn run_realtime(o: &Options) -> ExitCode {
     }
 }
 
-/// `--packs N --mqtt HOST:PORT`: the packs in real time, each bridge
-/// publishing (logic in `host_tests::packs_mqtt`).
-fn run_packs_mqtt(o: &Options, n: usize, (host, port): &(String, u16)) -> ExitCode {
+/// `--packs N` with `--mqtt HOST:PORT` and/or `--bridge-pty`: the packs in
+/// real time, each bridge publishing, pack 1's host link on a pty (logic in
+/// `host_tests::packs_mqtt`).
+fn run_packs_live(o: &Options, n: usize) -> ExitCode {
     use host_tests::packs_mqtt::{record, PacksOnMqtt};
     let record = match record(&o.config) {
         Ok(r) => r,
@@ -922,19 +938,41 @@ fn run_packs_mqtt(o: &Options, n: usize, (host, port): &(String, u16)) -> ExitCo
         protocol: o.inverter.unwrap_or(Protocol::Victron),
         ..record.inverter()
     };
-    let mut packs = match PacksOnMqtt::start(n, config, (host, *port), &record, o.seeds.0, !o.quiet)
-    {
+    let broker = o.mqtt.as_ref().map(|(h, p)| (h.as_str(), *p));
+    let mut packs = match PacksOnMqtt::start(
+        n,
+        config,
+        (broker, o.bridge_pty),
+        &record,
+        o.seeds.0,
+        !o.quiet,
+    ) {
         Ok(p) => p,
         Err(e) => {
             eprintln!("sim: {e}");
             return ExitCode::from(2);
         }
     };
+    let pty = if o.bridge_pty {
+        match host_tests::pty::Pty::open_announced(&mut std::io::stdout()) {
+            Ok(p) => Some(p),
+            Err(e) => {
+                eprintln!("sim: {e}");
+                return ExitCode::from(2);
+            }
+        }
+    } else {
+        None
+    };
+    let mut side = pty.as_ref().map(host_tests::hosted::PtySide::new);
     let duration = o
         .duration_given
         .then(|| std::time::Duration::from_micros(o.duration_us));
     let stop = std::sync::atomic::AtomicBool::new(false);
-    match packs.run(duration, &stop) {
+    let host = side
+        .as_mut()
+        .map(|s| s as &mut dyn host_tests::hosted::HostSide);
+    match packs.run(duration, &stop, host) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("sim: {e}");

@@ -14,7 +14,7 @@ use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers
 use ratatui::layout::{Constraint, Layout, Rect};
 use ratatui::style::{Color, Modifier, Style};
 use ratatui::text::{Line, Span};
-use ratatui::widgets::{Block, Borders, Paragraph, Sparkline};
+use ratatui::widgets::{Block, Borders, Paragraph, Sparkline, Wrap};
 use ratatui::Frame;
 use tinybms_firmware::host_link::lines::{HostLine, Link, Read, Telemetry};
 
@@ -175,106 +175,9 @@ impl Rows {
     }
 }
 
-/// Draws the view of `s` at `now`.
-pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
-    let area = f.area();
-    if area.width < MIN_SIZE.0 || area.height < MIN_SIZE.1 {
-        f.render_widget(
-            Paragraph::new(vec![
-                Line::raw(format!(
-                    "window too small: {}x{}, the live view needs {}x{}",
-                    area.width, area.height, MIN_SIZE.0, MIN_SIZE.1
-                )),
-                Line::raw("make it larger, or use `tinybms monitor PORT --plain`"),
-                Line::raw("q quits"),
-            ]),
-            area,
-        );
-        return;
-    }
-    let fresh = freshness(
-        s.telemetry.as_ref().map(|(t, _)| t),
-        s.telemetry
-            .as_ref()
-            .map_or(Duration::MAX, |(_, at)| now.saturating_duration_since(*at)),
-    );
-    let alarm = Style::new()
-        .fg(Color::White)
-        .bg(Color::Red)
-        .add_modifier(Modifier::BOLD);
-    let inverter_row = u16::from(
-        s.telemetry
-            .as_ref()
-            .is_some_and(|(t, _)| t.told.inverter.is_some()),
-    );
-    let rows = Rows::fit(
-        area.height,
-        3 + inverter_row,
-        s.telemetry.as_ref().map_or(0, |(t, _)| cells_of(t).len()),
-        s.battery.len(),
-        s.logs.len(),
-    );
-    let [top, pack, cells_area, spark_area, foot, battery_area, log_area] = Layout::vertical([
-        Constraint::Length(1),
-        Constraint::Length(3 + inverter_row),
-        Constraint::Min(rows.cells),
-        Constraint::Length(rows.charts),
-        Constraint::Length(2),
-        Constraint::Length(rows.battery),
-        Constraint::Length(rows.log),
-    ])
-    .areas(area);
-    if rows.battery > 0 {
-        let shown = usize::from(rows.battery - 1);
-        let lines: Vec<Line> = s
-            .battery
-            .iter()
-            .take(shown)
-            .map(|l| Line::raw(l.clone()))
-            .collect();
-        f.render_widget(
-            Paragraph::new(lines).block(
-                Block::new()
-                    .borders(Borders::TOP)
-                    .title("Packs in parallel (* speaks to the inverter)"),
-            ),
-            battery_area,
-        );
-    }
-    if rows.log > 0 {
-        let shown = usize::from(rows.log - 1);
-        let lines: Vec<Line> = s
-            .logs
-            .iter()
-            .skip(s.logs.len().saturating_sub(shown))
-            .map(|l| Line::raw(l.clone()))
-            .collect();
-        f.render_widget(
-            Paragraph::new(lines)
-                .block(Block::new().borders(Borders::TOP).title("The bridge's log")),
-            log_area,
-        );
-    }
-    let state = match fresh {
-        Freshness::Fresh(_) => {
-            Span::styled(" online ", Style::new().fg(Color::Black).bg(Color::Green))
-        }
-        Freshness::Offline(_) => Span::styled(" OFFLINE ", alarm),
-        Freshness::NoData(_) => Span::styled(" NO DATA ", alarm),
-    };
-    f.render_widget(
-        Paragraph::new(Line::from(vec![
-            Span::styled("TinyBMS ", Style::new().add_modifier(Modifier::BOLD)),
-            Span::raw(format!("{}  ", s.header)),
-            state,
-            Span::raw("   q quits"),
-        ])),
-        top,
-    );
-    let Some((t, _)) = s.telemetry.as_ref() else {
-        f.render_widget(Paragraph::new("waiting for the first data..."), pack);
-        return;
-    };
+/// The pack's lines (pack, status and temperatures, the inverter), values
+/// bold when `live`, dimmed when not.
+fn pack_lines(t: &Telemetry<Read>, live: bool, alarm: Style) -> Vec<Line<'static>> {
     // Pack, status, temperatures (nothing known before the first snapshot).
     let sn = t.snapshot.as_ref();
     let of =
@@ -286,7 +189,6 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
     let temp = |f| temperature(of(f));
     // Data that is not fresh is shown as what it is: the last known values,
     // dimmed, grey bars, and no status the BMS is not saying now.
-    let live = matches!(fresh, Freshness::Fresh(_));
     let last = sn.map_or("-", |s| s.online_status.as_str());
     let status = if live {
         last.to_string()
@@ -328,8 +230,173 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
             if trouble { alarm } else { Style::new() },
         ));
     }
+    lines
+}
+
+/// `text` in `width` columns, never cut inside a figure: whole as it is when
+/// it fits, else up to the last gap between its parts (three spaces) or,
+/// without one, the last space that fits, then ` …`.
+fn fit(text: &str, width: u16) -> String {
+    let width = usize::from(width);
+    if text.chars().count() <= width {
+        return text.to_string();
+    }
+    // The last cut at a gap (else at a space) whose head and ` …` fit.
+    let fits = |p: &usize| text.get(..*p).map_or(0, |h| h.chars().count()) + 2 <= width;
+    let last_fit = |sep: &str| {
+        text.match_indices(sep)
+            .map(|(p, _)| p)
+            .filter(|p| *p > 0)
+            .take_while(fits)
+            .last()
+    };
+    let cut = last_fit("   ")
+        .or_else(|| last_fit(" "))
+        .unwrap_or_else(|| {
+            text.char_indices()
+                .nth(width.saturating_sub(2))
+                .map_or(text.len(), |(i, _)| i)
+        });
+    format!("{} …", text.get(..cut).unwrap_or("").trim_end())
+}
+
+/// Rows `text` takes in `width` columns wrapped at its spaces, as the
+/// paragraph wraps it (at least one).
+fn rows_for(text: &str, width: u16) -> u16 {
+    let width = usize::from(width.max(1));
+    let (mut rows, mut col) = (1u16, 0usize);
+    for word in text.split(' ') {
+        let w = word.chars().count();
+        if col > 0 && col + 1 + w > width {
+            rows = rows.saturating_add(1);
+            col = w;
+        } else {
+            col += usize::from(col > 0) + w;
+        }
+        while col > width {
+            rows = rows.saturating_add(1);
+            col -= width;
+        }
+    }
+    rows
+}
+
+/// Draws the view of `s` at `now`.
+pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
+    let area = f.area();
+    if area.width < MIN_SIZE.0 || area.height < MIN_SIZE.1 {
+        f.render_widget(
+            Paragraph::new(vec![
+                Line::raw(format!(
+                    "window too small: {}x{}, the live view needs {}x{}",
+                    area.width, area.height, MIN_SIZE.0, MIN_SIZE.1
+                )),
+                Line::raw("make it larger, or use `tinybms monitor PORT --plain`"),
+                Line::raw("q quits"),
+            ]),
+            area,
+        );
+        return;
+    }
+    let fresh = freshness(
+        s.telemetry.as_ref().map(|(t, _)| t),
+        s.telemetry
+            .as_ref()
+            .map_or(Duration::MAX, |(_, at)| now.saturating_duration_since(*at)),
+    );
+    let alarm = Style::new()
+        .fg(Color::White)
+        .bg(Color::Red)
+        .add_modifier(Modifier::BOLD);
+    // The pack's lines wrap rather than lose their end (the limits, what to
+    // check when nobody acknowledges) in a narrow window: as many rows as
+    // they take.
+    let lines = s
+        .telemetry
+        .as_ref()
+        .map(|(t, _)| pack_lines(t, matches!(fresh, Freshness::Fresh(_)), alarm));
+    let pack_rows = 1 + lines.as_ref().map_or(2, |lines| {
+        lines
+            .iter()
+            .map(|l| {
+                let text: String = l.spans.iter().map(|s| s.content.as_ref()).collect();
+                rows_for(&text, area.width)
+            })
+            .sum()
+    });
+    let rows = Rows::fit(
+        area.height,
+        pack_rows,
+        s.telemetry.as_ref().map_or(0, |(t, _)| cells_of(t).len()),
+        s.battery.len(),
+        s.logs.len(),
+    );
+    let [top, pack, cells_area, spark_area, foot, battery_area, log_area] = Layout::vertical([
+        Constraint::Length(1),
+        Constraint::Length(pack_rows),
+        Constraint::Min(rows.cells),
+        Constraint::Length(rows.charts),
+        Constraint::Length(2),
+        Constraint::Length(rows.battery),
+        Constraint::Length(rows.log),
+    ])
+    .areas(area);
+    if rows.battery > 0 {
+        let shown = usize::from(rows.battery - 1);
+        let lines: Vec<Line> = s
+            .battery
+            .iter()
+            .take(shown)
+            .map(|l| Line::raw(fit(l, battery_area.width)))
+            .collect();
+        f.render_widget(
+            Paragraph::new(lines).block(
+                Block::new()
+                    .borders(Borders::TOP)
+                    .title("Packs in parallel (* speaks to the inverter)"),
+            ),
+            battery_area,
+        );
+    }
+    if rows.log > 0 {
+        let shown = usize::from(rows.log - 1);
+        let lines: Vec<Line> = s
+            .logs
+            .iter()
+            .skip(s.logs.len().saturating_sub(shown))
+            .map(|l| Line::raw(fit(l, log_area.width)))
+            .collect();
+        f.render_widget(
+            Paragraph::new(lines)
+                .block(Block::new().borders(Borders::TOP).title("The bridge's log")),
+            log_area,
+        );
+    }
+    let state = match fresh {
+        Freshness::Fresh(_) => {
+            Span::styled(" online ", Style::new().fg(Color::Black).bg(Color::Green))
+        }
+        Freshness::Offline(_) => Span::styled(" OFFLINE ", alarm),
+        Freshness::NoData(_) => Span::styled(" NO DATA ", alarm),
+    };
     f.render_widget(
-        Paragraph::new(lines).block(Block::new().borders(Borders::TOP)),
+        Paragraph::new(Line::from(vec![
+            Span::styled("TinyBMS ", Style::new().add_modifier(Modifier::BOLD)),
+            Span::raw(format!("{}  ", s.header)),
+            state,
+            Span::raw("   q quits"),
+        ])),
+        top,
+    );
+    let (Some((t, _)), Some(lines)) = (s.telemetry.as_ref(), lines) else {
+        f.render_widget(Paragraph::new("waiting for the first data..."), pack);
+        return;
+    };
+    let live = matches!(fresh, Freshness::Fresh(_));
+    f.render_widget(
+        Paragraph::new(lines)
+            .wrap(Wrap { trim: false })
+            .block(Block::new().borders(Borders::TOP)),
         pack,
     );
     draw_cells(f, t, cells_area, live);
@@ -389,7 +456,9 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         ),
         Span::raw(format!("   seq {}", t.head.seq)),
         Span::styled(
-            sn.and_then(|s| s.flagged.as_deref())
+            t.snapshot
+                .as_ref()
+                .and_then(|s| s.flagged.as_deref())
                 .map(|fl| format!("   flagged: {fl}"))
                 .unwrap_or_default(),
             alarm,
@@ -419,17 +488,27 @@ fn draw_cells(f: &mut Frame, t: &Telemetry<Read>, area: Rect, live: bool) {
     // The bars start below the lowest cell (so it still shows) and span at
     // least CELL_SCALE_MIN_V: a few mV of spread look like a few mV.
     let floor = hi - ((hi - lo) * 1.25).max(CELL_SCALE_MIN_V);
-    let title = format!(
-        "{}Cells ({})  lowest #{} {:.4} V  highest #{} {:.4} V  spread {:.1} mV  bars from {:.3} V  * balancing",
-        if live { "" } else { "Last known: " },
-        cells.len(),
-        lo_i + 1,
-        lo,
-        hi_i + 1,
-        hi,
-        (hi - lo) * 1000.0,
-        floor,
-    );
+    // The title's parts, most important first: as many as the width holds,
+    // none cut (a cut figure reads as another figure).
+    let parts = [
+        format!(
+            "{}Cells ({})",
+            if live { "" } else { "Last known: " },
+            cells.len()
+        ),
+        format!("  lowest #{} {lo:.4} V", lo_i + 1),
+        format!("  highest #{} {hi:.4} V", hi_i + 1),
+        format!("  spread {:.1} mV", (hi - lo) * 1000.0),
+        format!("  bars from {floor:.3} V"),
+        "  * balancing".to_string(),
+    ];
+    let mut title = String::new();
+    for part in parts {
+        if title.chars().count() + part.chars().count() > usize::from(area.width) {
+            break;
+        }
+        title.push_str(&part);
+    }
     let block = Block::new().borders(Borders::TOP).title(title);
     let inner = block.inner(area);
     f.render_widget(block, area);
@@ -753,6 +832,65 @@ mod tests {
         }
         // Room left over gives the charts back.
         assert!(screen_of(&s, t0, 120, 40).contains("Pack voltage, last"));
+    }
+
+    /// Seen on an 80x24 capture of the real monitor: the inverter's line lost
+    /// its end ("DCL 60.0" without its unit; with nobody acknowledging, what
+    /// to check) and the cells' title was cut mid-figure. Now the inverter's
+    /// line wraps and the title keeps only whole parts.
+    #[test]
+    fn no_line_is_cut_in_a_narrow_window() {
+        let t0 = Instant::now();
+        let mut s = LiveState::default();
+        let mut t = telemetry_json(true);
+        let cells: Vec<f64> = (0..16).map(|k| 3.305 + f64::from(k % 8) * 0.001).collect();
+        t["cell_voltages_v"] = json!(cells);
+        t["cell_count"] = json!(16);
+        t["inverter"] = json!({"protocol":"victron","can":"no_ack","heard":false,
+            "cvl_v":56.8,"ccl_a":120.0,"dcl_a":150.0});
+        s.update(decoded(t), t0);
+        s.battery = vec![
+            "Battery (node 1 speaks to the inverter): 3 of 3 packs   840 Ah   SOC 62.1 %   53.06 V   28.3 A".into(),
+            "  pack 1*  in the battery   53.06 V   28.3 A   SOC 60.1 %   cells 3.313 V to 3.320 V".into(),
+        ];
+        for (w, h) in [(80, 24), (MIN_SIZE.0, MIN_SIZE.1)] {
+            let text = screen_of(&s, t0, w, h);
+            // A panel line too long for the window ends at a gap, marked.
+            let battery = text
+                .lines()
+                .find(|l| l.starts_with("Battery"))
+                .unwrap_or_else(|| panic!("{w}x{h}: {text}"));
+            assert!(battery.trim_end().ends_with(" …"), "{w}x{h}: {battery}");
+            assert!(!battery.contains(" 53 "), "{w}x{h}: {battery}");
+            // The screen's rows joined: a wrapped line reads whole.
+            let joined = text
+                .lines()
+                .map(str::trim_end)
+                .collect::<Vec<_>>()
+                .join(" ");
+            assert!(joined.contains("DCL 150.0 A"), "{w}x{h}: {text}");
+            assert!(joined.contains("bit rate?"), "{w}x{h}: {text}");
+            let title = text
+                .lines()
+                .find(|l| l.contains("Cells (16)"))
+                .unwrap_or_else(|| panic!("{w}x{h}: {text}"));
+            let title = title.trim_end_matches(['─', ' ']);
+            assert!(
+                title.ends_with(" V") || title.ends_with(" mV") || title.ends_with("balancing"),
+                "{w}x{h}: the title cut: {title}"
+            );
+            for k in 1..=16 {
+                assert!(text.contains(&format!("{k:>2} 3.3")), "{w}x{h}: cell {k}");
+            }
+        }
+        assert_eq!(fit("pack 1   53.06 V   28.3 A", 20), "pack 1   53.06 V …");
+        assert_eq!(fit("BMS 27.0 °C now", 12), "BMS 27.0 …");
+        assert_eq!(fit("short", 20), "short");
+        assert_eq!(fit("abcdefghij", 6), "abcd …");
+        assert_eq!(rows_for("a bb ccc", 4), 2);
+        assert_eq!(rows_for("a bb ccc dd", 4), 3);
+        assert_eq!(rows_for("abcdefgh", 4), 2);
+        assert_eq!(rows_for("", 4), 1);
     }
 
     /// Issue 42, item 4: with the BMS silent the monitor kept the last values
