@@ -4,10 +4,10 @@
 // firmware's rules compiled to WebAssembly, and the ready-made images with
 // the manifests firmware/make-images.sh wrote beside them.
 //
-//   node build.mjs [--images DIR] [--wasm FILE] [--require-images]
+//   node build.mjs [--images DIR] [--wasm FILE] [--require-images] [--out DIR]
 //
 // DIR defaults to ../../firmware/target/images, FILE to the release build of
-// host-tests/web/wasm for wasm32-unknown-unknown.
+// host-tests/web/wasm for wasm32-unknown-unknown, --out to dist/.
 import { build } from "esbuild";
 import { copyFileSync, existsSync, mkdirSync, readdirSync, readFileSync, rmSync, writeFileSync } from "node:fs";
 import { dirname, join } from "node:path";
@@ -20,7 +20,7 @@ const arg = (name, fallback) => {
 };
 const images = arg("--images", join(here, "../../firmware/target/images"));
 const wasm = arg("--wasm", join(here, "../../target/wasm32-unknown-unknown/release/tinybms_web.wasm"));
-const out = join(here, "dist");
+const out = arg("--out", join(here, "dist"));
 
 rmSync(out, { recursive: true, force: true });
 mkdirSync(join(out, "firmware"), { recursive: true });

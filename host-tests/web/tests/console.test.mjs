@@ -82,6 +82,14 @@ test("live values are the ones the bridge sent, and a configuration change survi
     await page.click("#config-apply");
     await until("applied", async () => /saved to the bridge's flash/.test(await page.textContent("#config-messages")));
     assert.match(await page.textContent("#config-messages"), /charge_current_cap = 42(\.0)? A: applied/);
+    // Issue 42, item 12: the fields by group, not one flat form.
+    const groups = await page.locator("#config tbody th").allTextContents();
+    for (const g of ["Inverter (CAN)", "Charge control", "Host link (USB)", "Network"]) {
+      assert.ok(
+        groups.some((t) => t.startsWith(g)),
+        `${g}: ${groups.join(" | ")}`,
+      );
+    }
     await page.locator("#config-section").screenshot({ path: shotPath("console-config.png") });
     // ...survives a restart of the bridge (the same flash file).
     await page.click("#disconnect");

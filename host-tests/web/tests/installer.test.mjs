@@ -4,7 +4,8 @@
 // station (`sim --bridge-pty`, simulated networks).
 import assert from "node:assert/strict";
 import { spawnSync } from "node:child_process";
-import { readFileSync, statSync } from "node:fs";
+import { mkdtempSync, readFileSync, rmSync, statSync } from "node:fs";
+import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { after, before, test } from "node:test";
 
@@ -72,6 +73,30 @@ test("every board is offered, and every manifest names the files make-images.sh 
         assert.equal(size, statSync(join(images, p.path)).size, p.path);
       }
     }
+    // Issue 42, item 2: the page ticked "With Wi-Fi" by default (the README's
+    // default build has none), and both images of a board had one version, so
+    // ESP Web Tools offered no update from one to the other.
+    assert.equal(await page.isChecked("#wifi"), false, "With Wi-Fi is unticked at first");
+    const versions = {};
+    for (const entry of index) {
+      const m = await page.evaluate(async (p) => (await fetch(`firmware/${p}`)).json(), entry.manifest);
+      versions[entry.manifest] = m.version;
+    }
+    for (const [manifest, version] of Object.entries(versions)) {
+      if (!manifest.endsWith("-wifi.json")) {
+        assert.doesNotMatch(version, /\+wifi$/, manifest);
+        const other = versions[manifest.replace(/\.json$/, "-wifi.json")];
+        assert.equal(other, `${version}+wifi`, `${manifest}: the Wi-Fi image's version`);
+      }
+    }
+    // Item 12: the downloads by board, one line each, its parts named.
+    const downloads = await page.locator("#files li").allTextContents();
+    assert.equal(downloads.length, boards.length, downloads.join("\n"));
+    for (const line of downloads) {
+      for (const part of [/without Wi-Fi merged/, /with Wi-Fi merged/, /boot \(0x0\)/, /app \(0x10000\)/]) {
+        assert.match(line, part, line);
+      }
+    }
     // Choosing a board points the install button at its manifest.
     await page.check('input[name=board][value="c3-supermini"]');
     await page.check("#wifi");
@@ -80,6 +105,43 @@ test("every board is offered, and every manifest names the files make-images.sh 
     assert.equal(await page.getAttribute("#install", "manifest"), "firmware/manifest-c3-supermini.json");
     assert.match(await page.textContent("#chosen"), /ESP32-C3 SuperMini \(ESP32-C3\), without Wi-Fi/);
     await page.screenshot({ path: shotPath("installer.png"), fullPage: true });
+    assert.deepEqual(errors, []);
+  } finally {
+    await context.close();
+  }
+});
+
+test("a build without the WebAssembly says how to make it (a plain cargo build makes none)", () => {
+  const out = mkdtempSync(join(tmpdir(), "tinybms-site-"));
+  try {
+    const r = spawnSync(
+      process.execPath,
+      [join(root, "host-tests/web/build.mjs"), "--wasm", join(out, "missing.wasm"), "--out", join(out, "dist")],
+      { encoding: "utf8", timeout: 120000 },
+    );
+    assert.equal(r.status, 1, r.stdout + r.stderr);
+    assert.match(r.stderr, /cargo rustc -p tinybms-web --release --target wasm32-unknown-unknown --crate-type cdylib/);
+    assert.match(r.stderr, /a plain `cargo build -p tinybms-web` makes no \.wasm/);
+  } finally {
+    rmSync(out, { recursive: true, force: true });
+  }
+});
+
+test("a page built without images says so, offers nothing to install and no dead checksum link", async () => {
+  const context = await chromium.newContext({ viewport: { width: 1100, height: 1400 } });
+  const page = await context.newPage();
+  const errors = [];
+  page.on("pageerror", (e) => errors.push(e.message));
+  try {
+    // The site as build.mjs makes it without images: an empty index.
+    await page.route("**/firmware/index.json", (r) =>
+      r.fulfill({ status: 200, contentType: "application/json", body: "[]" }),
+    );
+    await page.goto(site.url);
+    await page.waitForSelector("body[data-ready=true]", { timeout: 15000 });
+    assert.equal(await page.isVisible("#no-images"), true);
+    assert.equal(await page.isDisabled("#install-button"), true);
+    assert.equal(await page.isVisible("#downloads"), false);
     assert.deepEqual(errors, []);
   } finally {
     await context.close();
