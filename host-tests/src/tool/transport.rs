@@ -260,7 +260,7 @@ pub const PROBE_TIME: Duration = Duration::from_millis(1600);
 /// reset (a USB-UART bridge's DTR) prints its ROM's boot text within tens of
 /// milliseconds, so bytes arrive either way. A silent port is a TinyBMS
 /// behind a USB-UART adapter (it never answers JSON) or nothing at all.
-pub const SILENT_AFTER: Duration = Duration::from_millis(300);
+pub const SILENT_AFTER: Duration = Duration::from_millis(200);
 
 /// The ESP32's own USB (USB-Serial-JTAG: the SuperMini, the XIAO, the
 /// DevKitC-1's "USB" port): a bridge or an ESP32 without this firmware,
