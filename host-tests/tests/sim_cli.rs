@@ -2,48 +2,19 @@
 //! (unknown options, bad values, options that do not go together).
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 
+mod common;
+
 use std::process::Command;
 
 /// Runs `sim args` to its end; one still running after 5 minutes (an option
 /// taken that was meant to be refused: a real-time run) is killed and fails
 /// the test, so no test waits for ever.
 fn sim(args: &[&str]) -> (i32, String, String) {
-    use std::io::Read;
-    let mut child = Command::new(env!("CARGO_BIN_EXE_sim"))
-        .args(args)
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .expect("run sim");
-    let mut out = child.stdout.take().expect("stdout");
-    let mut err = child.stderr.take().expect("stderr");
-    let t_out = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = out.read_to_string(&mut s);
-        s
-    });
-    let t_err = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = err.read_to_string(&mut s);
-        s
-    });
-    let start = std::time::Instant::now();
-    let status = loop {
-        if let Some(s) = child.try_wait().expect("wait for sim") {
-            break s;
-        }
-        if start.elapsed() > std::time::Duration::from_secs(300) {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!("sim {args:?} still ran after 5 minutes");
-        }
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    };
-    (
-        status.code().unwrap_or(-1),
-        t_out.join().expect("stdout reader"),
-        t_err.join().expect("stderr reader"),
-    )
+    let running = common::Captured::start(Command::new(env!("CARGO_BIN_EXE_sim")).args(args));
+    let (status, out, err) = running
+        .wait(std::time::Duration::from_secs(300))
+        .unwrap_or_else(|| panic!("sim {args:?} still ran after 5 minutes"));
+    (status.code().unwrap_or(-1), out, err)
 }
 
 /// Every option of `sim`, as `--help` lists it.

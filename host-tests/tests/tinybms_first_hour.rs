@@ -75,45 +75,18 @@ fn a_silent_port_is_named_within_seconds_and_not_called_a_tinybms() {
 /// sends it SIGINT after `after`, and waits (bounded) for its exit: the
 /// status, stdout and stderr.
 fn ctrl_c_at(args: &[&str], after: std::time::Duration) -> (Option<i32>, String, String) {
-    use std::io::Read;
     use std::process::{Command, Stdio};
-    use std::time::{Duration, Instant};
-    let mut child = Command::new(tinybms_bin())
-        .args(args)
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let stdin = child.stdin.take();
-    let mut out = child.stdout.take().unwrap();
-    let mut err = child.stderr.take().unwrap();
-    let o = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = out.read_to_string(&mut s);
-        s
-    });
-    let e = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = err.read_to_string(&mut s);
-        s
-    });
+    let mut cmd = Command::new(tinybms_bin());
+    cmd.args(args).stdin(Stdio::piped());
+    let running = Captured::start(&mut cmd);
     std::thread::sleep(after);
     // SAFETY: kill(2) on our own child's pid.
-    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
-    let start = Instant::now();
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        assert!(
-            start.elapsed() < Duration::from_secs(10),
-            "no exit within 10 s of Ctrl-C"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    drop(stdin);
-    (status.code(), o.join().unwrap(), e.join().unwrap())
+    unsafe { libc::kill(running.child.id() as i32, libc::SIGINT) };
+    // (stdin stays open until the exit: a user at a prompt.)
+    let (status, out, err) = running
+        .wait(std::time::Duration::from_secs(10))
+        .expect("no exit within 10 s of Ctrl-C");
+    (status.code(), out, err)
 }
 
 /// Item 10: Ctrl-C at a `Type yes` question did nothing until Enter, then

@@ -675,6 +675,16 @@ mod tests {
         decoded(telemetry_json(online))
     }
 
+    /// Fresh telemetry of 16 cells (3.305..3.312 V) with `inverter`'s line.
+    fn sixteen_cells_and(inverter: Value) -> Telemetry<Read> {
+        let mut t = telemetry_json(true);
+        let cells: Vec<f64> = (0..16).map(|k| 3.305 + f64::from(k % 8) * 0.001).collect();
+        t["cell_voltages_v"] = json!(cells);
+        t["cell_count"] = json!(16);
+        t["inverter"] = inverter;
+        decoded(t)
+    }
+
     #[test]
     fn cells_pack_and_freshness_are_on_the_screen() {
         let t0 = Instant::now();
@@ -805,13 +815,11 @@ mod tests {
     fn every_cell_shows_in_an_80x24_window_with_the_log_and_the_inverter() {
         let t0 = Instant::now();
         let mut s = LiveState::default();
-        let mut t = telemetry_json(true);
-        let cells: Vec<f64> = (0..16).map(|k| 3.305 + f64::from(k % 8) * 0.001).collect();
-        t["cell_voltages_v"] = json!(cells);
-        t["cell_count"] = json!(16);
-        t["inverter"] = json!({"protocol":"victron","can":"sending","heard":true,
-            "cvl_v":56.8,"ccl_a":60.0,"dcl_a":60.0});
-        s.update(decoded(t), t0);
+        s.update(
+            sixteen_cells_and(json!({"protocol":"victron","can":"sending","heard":true,
+                "cvl_v":56.8,"ccl_a":60.0,"dcl_a":60.0})),
+            t0,
+        );
         for k in 0..5 {
             s.log("info", &format!("log line {k}"));
         }
@@ -842,13 +850,11 @@ mod tests {
     fn no_line_is_cut_in_a_narrow_window() {
         let t0 = Instant::now();
         let mut s = LiveState::default();
-        let mut t = telemetry_json(true);
-        let cells: Vec<f64> = (0..16).map(|k| 3.305 + f64::from(k % 8) * 0.001).collect();
-        t["cell_voltages_v"] = json!(cells);
-        t["cell_count"] = json!(16);
-        t["inverter"] = json!({"protocol":"victron","can":"no_ack","heard":false,
-            "cvl_v":56.8,"ccl_a":120.0,"dcl_a":150.0});
-        s.update(decoded(t), t0);
+        s.update(
+            sixteen_cells_and(json!({"protocol":"victron","can":"no_ack","heard":false,
+                "cvl_v":56.8,"ccl_a":120.0,"dcl_a":150.0})),
+            t0,
+        );
         s.battery = vec![
             "Battery (node 1 speaks to the inverter): 3 of 3 packs   840 Ah   SOC 62.1 %   53.06 V   28.3 A".into(),
             "  pack 1*  in the battery   53.06 V   28.3 A   SOC 60.1 %   cells 3.313 V to 3.320 V".into(),

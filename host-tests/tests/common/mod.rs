@@ -88,45 +88,65 @@ pub fn tinybms_with_input(args: &[&str], input: &str) -> Out {
 /// Runs `tinybms args`, with `input` on stdin; `None` when it had not
 /// finished after `limit` (then it is killed).
 pub fn tinybms_limited(args: &[&str], input: &str, limit: Duration) -> Option<Out> {
-    let mut child = Command::new(tinybms_bin())
-        .args(args)
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start tinybms");
-    let mut stdin = child.stdin.take().unwrap();
+    let mut cmd = Command::new(tinybms_bin());
+    cmd.args(args).stdin(Stdio::piped());
+    let mut running = Captured::start(&mut cmd);
+    let mut stdin = running.child.stdin.take().unwrap();
     let _ = stdin.write_all(input.as_bytes());
     drop(stdin);
-    let mut out = child.stdout.take().unwrap();
-    let mut err = child.stderr.take().unwrap();
-    let t_out = std::thread::spawn(move || {
-        let mut s = Vec::new();
-        let _ = out.read_to_end(&mut s);
-        s
-    });
-    let t_err = std::thread::spawn(move || {
-        let mut s = Vec::new();
-        let _ = err.read_to_end(&mut s);
-        s
-    });
-    let start = Instant::now();
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        if start.elapsed() > limit {
-            let _ = child.kill();
-            let _ = child.wait();
-            return None;
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let (status, stdout, stderr) = running.wait(limit)?;
     Some(Out {
         code: status.code().unwrap_or(-1),
-        stdout: String::from_utf8_lossy(&t_out.join().unwrap()).into_owned(),
-        stderr: String::from_utf8_lossy(&t_err.join().unwrap()).into_owned(),
+        stdout,
+        stderr,
     })
+}
+
+/// A child process whose stdout and stderr are read to their end as it runs
+/// (so a full pipe never stalls it).
+pub struct Captured {
+    pub child: Child,
+    out: std::thread::JoinHandle<String>,
+    err: std::thread::JoinHandle<String>,
+}
+
+impl Captured {
+    /// Starts `cmd` with stdout and stderr piped (stdin as `cmd` says).
+    pub fn start(cmd: &mut Command) -> Self {
+        let mut child = cmd
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("start the program under test");
+        let read = |mut r: Box<dyn Read + Send>| {
+            std::thread::spawn(move || {
+                let mut s = Vec::new();
+                let _ = r.read_to_end(&mut s);
+                String::from_utf8_lossy(&s).into_owned()
+            })
+        };
+        let out = read(Box::new(child.stdout.take().unwrap()));
+        let err = read(Box::new(child.stderr.take().unwrap()));
+        Self { child, out, err }
+    }
+
+    /// Waits for its exit, at most `limit` (then kills it: `None`): the
+    /// status, stdout and stderr.
+    pub fn wait(mut self, limit: Duration) -> Option<(std::process::ExitStatus, String, String)> {
+        let start = Instant::now();
+        let status = loop {
+            if let Some(s) = self.child.try_wait().unwrap() {
+                break s;
+            }
+            if start.elapsed() > limit {
+                let _ = self.child.kill();
+                let _ = self.child.wait();
+                return None;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        Some((status, self.out.join().unwrap(), self.err.join().unwrap()))
+    }
 }
 
 pub fn tinybms(args: &[&str]) -> Out {
