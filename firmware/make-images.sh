@@ -3,7 +3,11 @@
 # checksums — for owners who flash without a Rust toolchain (docs/flashing.md).
 #
 # Usage: ./make-images.sh [OUT_DIR]            (default: target/images)
-# Needs: espflash (cargo install espflash --locked), the firmware's toolchain.
+# Needs: the firmware's toolchain. The images are packed by
+# host-tests/pack-images (espflash's library: byte for byte what
+# `espflash save-image` writes), built here unless PACK_IMAGES names it;
+# PACK_IMAGES_CROSSCHECK=espflash also runs the espflash command (4.7.0) on
+# every ELF and fails unless its images are the same bytes (the release does).
 # Environment: IMAGE_FEATURES — extra cargo features for every image, and
 # IMAGE_SUFFIX — a name part for them (e.g. IMAGE_FEATURES=wifi IMAGE_SUFFIX=-wifi).
 #
@@ -24,9 +28,9 @@
 # and SHA256SUMS over all of them. check-images.py checks their layout.
 # TINYBMS_VERSION (the release tag without its `v`; else the package's
 # version) is the version the images report and the manifests carry.
-# MAKE_IMAGES_STEP: `build` builds every board's ELF into OUT_DIR (no espflash
-# needed), `pack` makes the images, manifests and SHA256SUMS from those ELFs,
-# `all` (the default) both (CI builds while espflash installs).
+# MAKE_IMAGES_STEP: `build` builds every board's ELF into OUT_DIR, `pack` makes
+# the images, manifests and SHA256SUMS from those ELFs, `all` (the default)
+# both.
 # IMAGE_LINT_BOARDS="board …": those boards' builds are also clippy's runs over
 # the firmware crate (-D warnings; CI).
 # Every image names what it was built from (`hello`'s `build`, `tinybms version`,
@@ -47,9 +51,18 @@ out=${1:-target/images}
 mkdir -p "$out"
 phase=${MAKE_IMAGES_STEP:-all}
 case $phase in build | pack | all) ;; *) echo "make-images: MAKE_IMAGES_STEP is build, pack or all" >&2; exit 2 ;; esac
-espflash=${ESPFLASH:-espflash}
 if [[ $phase != build ]]; then
-    command -v "$espflash" >/dev/null || { echo "make-images: espflash not found (cargo install espflash --locked)" >&2; exit 2; }
+    if [[ -z ${PACK_IMAGES:-} ]]; then
+        # Its own workspace, built from its folder (this folder's cargo
+        # configuration would build it for the chip).
+        (cd ../host-tests/pack-images && cargo build -q --locked)
+        PACK_IMAGES=$PWD/../host-tests/pack-images/target/debug/pack-images
+    fi
+    [[ -x $PACK_IMAGES ]] || { echo "make-images: $PACK_IMAGES is not a program" >&2; exit 2; }
+    if [[ -n ${PACK_IMAGES_CROSSCHECK:-} ]]; then
+        "$PACK_IMAGES_CROSSCHECK" --version | grep -qx 'espflash 4.7.0' \
+            || { echo "make-images: the cross-check needs espflash 4.7.0" >&2; exit 2; }
+    fi
 fi
 
 version=${TINYBMS_VERSION:-$(sed -n 's/^version = "\(.*\)"$/\1/p' Cargo.toml | head -n 1)}
@@ -90,12 +103,20 @@ for entry in $boards; do
         else
             cargo "${args[@]}" --quiet
         fi
-        cp "target/$target/release/tinybms-firmware" "$out/$name.elf"
+        cp "${CARGO_TARGET_DIR:-target}/$target/release/tinybms-firmware" "$out/$name.elf"
     fi
     [[ $phase != build ]] || continue
     [[ -f $out/$name.elf ]] || { echo "make-images: $out/$name.elf missing (MAKE_IMAGES_STEP=build first)" >&2; exit 2; }
-    "$espflash" save-image --chip "$chip" --merge --skip-padding "$out/$name.elf" "$out/$name.bin" >/dev/null
-    "$espflash" save-image --chip "$chip" "$out/$name.elf" "$out/$name-app.bin" >/dev/null
+    "$PACK_IMAGES" "$chip" "$out/$name.elf" "$out/$name.bin" "$out/$name-app.bin" >/dev/null
+    if [[ -n ${PACK_IMAGES_CROSSCHECK:-} ]]; then
+        x=$(mktemp -d)
+        "$PACK_IMAGES_CROSSCHECK" save-image --chip "$chip" --merge --skip-padding "$out/$name.elf" "$x/m.bin" >/dev/null
+        "$PACK_IMAGES_CROSSCHECK" save-image --chip "$chip" "$out/$name.elf" "$x/a.bin" >/dev/null
+        cmp "$x/m.bin" "$out/$name.bin" && cmp "$x/a.bin" "$out/$name-app.bin" \
+            || { echo "make-images: $name: not espflash's bytes" >&2; exit 1; }
+        rm -rf "$x"
+        echo "== $name: the same bytes as espflash save-image"
+    fi
     head -c $((0x9000)) "$out/$name.bin" > "$out/$name-boot.bin"
     case $chip in
         esp32c3) family=ESP32-C3 ;;

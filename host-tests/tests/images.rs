@@ -1,5 +1,5 @@
 //! `firmware/make-images.sh`, the ready-made images' script, run with a
-//! stand-in `cargo` and `espflash` (no firmware is built): what build name it
+//! stand-in `cargo` and `pack-images` (no firmware is built): what build name it
 //! gives every image. Unix only (bash, git, sha256sum).
 #![cfg(unix)]
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
@@ -12,7 +12,8 @@ use std::process::Command;
 /// version, the build aliases, the firmware's name for the manifests) in a
 /// fresh folder, and stand-ins on PATH: `cargo`
 /// writes the TINYBMS_BUILD it was run with to `builds.txt` and an empty
-/// ELF where the alias puts it; `espflash` writes the image it is asked for.
+/// ELF where the alias puts it; `pack-images` (PACK_IMAGES) writes the two
+/// images it is asked for.
 fn scratch(name: &str) -> PathBuf {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware");
     let dir = std::env::temp_dir().join(format!("tinybms-images-{name}-{}", std::process::id()));
@@ -42,10 +43,7 @@ target=riscv32imc-unknown-none-elf
 for a in "$@"; do case $a in riscv32imac-unknown-none-elf) target=$a ;; esac; done
 mkdir -p "target/$target/release" && : > "target/$target/release/tinybms-firmware""#,
     );
-    stub(
-        "espflash",
-        r#"for a in "$@"; do last=$a; done; : > "$last""#,
-    );
+    stub("pack-images", r#": > "$3"; : > "$4""#);
     dir
 }
 
@@ -62,6 +60,7 @@ fn run(dir: &Path, env: &[(&str, &str)]) -> Vec<String> {
     c.arg(dir.join("firmware/make-images.sh"))
         .env("PATH", path)
         .env("STUB_LOG", &log)
+        .env("PACK_IMAGES", dir.join("bin/pack-images"))
         .env_remove("TINYBMS_BUILD")
         // Never a repository above the scratch folder.
         .env("GIT_CEILING_DIRECTORIES", dir.parent().unwrap());
