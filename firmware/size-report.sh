@@ -14,7 +14,7 @@
 # Figures (flash / static RAM, bytes): default C3 (SuperMini) 282,504 / 39,448, C6
 # (DevKitC-1) 285,420 / 40,556; bridge only C3 112,828 / 19,028, C6 113,996 / 19,356.
 # The tree the 84 KiB /
-# 16 KiB goal was set on, with the goal's measures: ./size-filing-day.sh (C3 81,150 /
+# 16 KiB goal was set on, with the goal's measures: ./size-goal.sh (C3 81,150 /
 # 15,692). docs/performance.md: what makes them up.
 # With Wi-Fi and MQTT (feature `wifi`; held to 1024 / 256 KiB, below):
 # C3 855,682 / 210,556, C6 936,574 / 238,204 (a 100 KiB heap included in

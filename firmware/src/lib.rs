@@ -14,18 +14,24 @@
 //! | --- | --- | --- |
 //! | the BMS | [`bms`] | the UART link, block reads, the checks a snapshot passes, the event log, the start-up profile, timing |
 //! | the bridge | [`bridge`] | the coordinator on top of the link: poll schedule, sync, telemetry, the write/verify machine, [`Report`]s |
-//! | consumers | [`inverter`] | charge control and the inverter CAN protocols (Victron, SMA Sunny Island) |
+//! | consumers | [`inverter`] | charge control and the inverter CAN protocols (Victron, SMA Sunny Island), the CAN port's health, several packs on one bus |
 //! | | [`host_link`] | JSON Lines to a computer over USB |
 //! | | [`improv`] | Improv Wi-Fi on the same port: the browser installer's network set-up |
 //! | | [`mqtt`] | the battery in Home Assistant: discovery, state, availability (publish only) |
+//! | | [`wifi`] | the Wi-Fi side's rules: joins, scans, the radio's start, the bridge's name on the network |
 //! | this installation | [`config`] | the bridge's own configuration: the record, its checks, its store in flash |
 //! | | [`boards`] | the supported boards' pins and log paths, checked at compile time |
 //! | | [`partitions`] | the ESP-IDF partition table, read from its bytes |
-//! | shared | [`text`] | the words of every log line |
+//! | | [`identity`], [`energy`] | who the bridge is (firmware, build, chip, board, features); energy into and out of the pack |
+//! | all of it | [`station`] | **the entry point**: one bridge with everything it feeds, wired together — what the chip runs and every desktop runner runs |
+//! | shared | [`freshness`] | the one freshness rule and the one stale choice |
+//! | | [`backoff`] | how a lost connection is retried (Wi-Fi and MQTT alike) |
+//! | | [`text`], [`log_line`] | the words of every log line, and the bounded line they are written into |
 //! | | [`units`] | raw and physical values, exact decimals |
 //!
-//! Consumers read [`Bridge::telemetry`] and act through [`Bridge::submit`]; none
-//! reaches into another's state.
+//! A runner builds a [`station::Station`] and drives it: bytes, frames and time
+//! in, [`station::Action`]s out. Consumers read [`Bridge::telemetry`] and act
+//! through [`Bridge::submit`]; none reaches into another's state.
 #![no_std]
 #![deny(missing_docs)]
 #![deny(
@@ -56,7 +62,7 @@ pub mod host_link;
 pub mod identity;
 pub mod improv;
 pub mod inverter;
-pub mod line;
+pub mod log_line;
 pub mod mqtt;
 pub mod partitions;
 pub mod station;
@@ -66,7 +72,7 @@ pub mod wifi;
 
 pub use bms::link::{LinkStats, Transmit};
 pub use bridge::report::{Level, Report};
-pub use bridge::{Action, Bridge, Command, LiveMeta, Step, Telemetry};
+pub use bridge::{Bridge, Command, LiveMeta, Step, Telemetry};
 
 /// Time in microseconds since an arbitrary origin (boot on the chip, 0 in the
 /// simulator). Always passed in, never read.

@@ -18,7 +18,7 @@ use crate::bms::link::Failure;
 use crate::bridge::report::{permille, Report, SnapshotLine, WriteOutcome};
 use crate::inverter::{InverterReport, StaleMode};
 
-pub use crate::line::{Line, LINE_MAX};
+pub use crate::log_line::{Line, LINE_MAX};
 
 /// A status as printed: its name, or `unknown_0xNN`.
 fn status(out: &mut Line, s: OnlineStatus) {

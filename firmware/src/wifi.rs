@@ -1,7 +1,7 @@
 //! The Wi-Fi side's rules, sans-IO: how long a join, a scan and DHCP may
 //! take, how often the signal is read, what a disconnect means for an owner,
 //! the bridge's name on the network and which signal readings are real. The
-//! chip's Wi-Fi task (`src/chip/wifi.rs`) makes the driver calls and goes by
+//! chip's Wi-Fi task (`src/chip/network.rs`) makes the driver calls and goes by
 //! these; it retries a lost network by [`crate::backoff`], as MQTT retries a
 //! lost broker.
 
@@ -137,7 +137,7 @@ impl Said<'_> {
     }
 
     /// The words.
-    pub fn write(&self, out: &mut crate::line::Line) {
+    pub fn write(&self, out: &mut crate::log_line::Line) {
         match *self {
             Self::NoNetwork => {
                 out.push("Wi-Fi: no network yet (the browser installer, or tinybms wifi PORT --ssid NAME)");
@@ -420,8 +420,8 @@ mod tests {
         assert_eq!(m.at_boot(), Bringup::HoldOff);
     }
 
-    fn said(s: Said<'_>) -> crate::line::Line {
-        let mut l = crate::line::Line::new();
+    fn said(s: Said<'_>) -> crate::log_line::Line {
+        let mut l = crate::log_line::Line::new();
         s.write(&mut l);
         l
     }

@@ -7,7 +7,6 @@
 //! cargo build --release -p host-tests --bins
 //! cargo run --release -p host-tests --example connect_times [RUNS]
 //! ```
-#![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;

@@ -9,7 +9,6 @@
 //! ```sh
 //! cargo run --release -p host-tests --example wiring_trace -- target/after
 //! ```
-#![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -17,9 +16,9 @@ use std::sync::{Arc, Mutex};
 
 use host_tests::closed_loop::{self, ClosedLoop};
 use host_tests::flash::RamFlash;
-use host_tests::harness::Harness;
 use host_tests::multi_pack;
 use host_tests::sim::{FaultConfig, PackProfile, SimBms, SimConfig};
+use host_tests::virtual_time::Harness;
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::inverter::{InverterConfig, Protocol};
 

@@ -24,8 +24,8 @@ use tinybms_firmware::inverter::{Inverter, InverterConfig, InverterReport};
 use tinybms_firmware::station::{Logged, Setup, Station};
 
 use crate::flash::RamFlash;
-use crate::harness::Harness;
 use crate::sim::{PackProfile, SimBms, SimConfig};
+use crate::virtual_time::Harness;
 
 /// How often the loop advances, µs (the inverter model's control step).
 pub const STEP_US: u64 = 100_000;
@@ -274,7 +274,7 @@ impl ClosedLoop {
         };
         let station = Station::new(setup, loaded, 0);
         let mut l = Self::with_station(profile, seed, station, charger_max_a);
-        l.h.saver = Some(crate::host_link::ram_saver(
+        l.h.saver = Some(crate::virtual_host_link::ram_saver(
             &flash,
             std::rc::Rc::new(std::cell::Cell::new(0)),
         ));

@@ -5,10 +5,6 @@
 pub mod capture;
 pub mod closed_loop;
 pub mod flash;
-pub mod harness;
-pub mod host_link;
-pub mod host_port;
-pub mod hosted;
 pub mod mqtt;
 pub mod mqtt_e2e;
 pub mod multi_pack;
@@ -19,7 +15,8 @@ pub mod pty;
 #[cfg(not(unix))]
 #[path = "pty_unsupported.rs"]
 pub mod pty;
-pub mod realtime;
+pub mod real_time;
+pub mod real_time_station;
 pub mod replay;
 pub mod sim;
 pub mod sim_can;
@@ -27,6 +24,9 @@ pub mod sim_wifi;
 pub mod tool;
 pub mod trace;
 pub mod truth;
+pub mod virtual_host_link;
+pub mod virtual_host_port;
+pub mod virtual_time;
 pub mod words;
 
 impl pty::Pty {

@@ -27,7 +27,7 @@ use tinybms_firmware::mqtt::Settings;
 use tinybms_firmware::station::{Published, Station};
 use tinybms_firmware::Instant;
 
-use crate::realtime;
+use crate::real_time;
 
 /// Events kept for the session; beyond, the oldest are dropped.
 pub const EVENTS: usize = 16;
@@ -124,7 +124,7 @@ impl Feed for SharedFeed {
 
 /// The session's clock: the bridge's (µs since its start), timers from async-io.
 #[derive(Clone, Copy)]
-pub struct HostClock(pub realtime::Clock);
+pub struct HostClock(pub real_time::Clock);
 
 impl Clock for HostClock {
     fn now(&self) -> Instant {
@@ -266,7 +266,7 @@ pub type Notes = Arc<Mutex<Vec<Note>>>;
 
 /// One log line for a session note (the chip's words).
 pub fn note_text(n: &Note) -> String {
-    let mut l = tinybms_firmware::line::Line::new();
+    let mut l = tinybms_firmware::log_line::Line::new();
     n.write(&mut l);
     l.as_str().to_string()
 }
@@ -277,7 +277,7 @@ pub fn spawn<N: Network + Send + 'static>(
     target: Target,
     (settings, bridge): (Settings, Identity),
     shared: Shared,
-    clock: realtime::Clock,
+    clock: real_time::Clock,
     net: N,
     log: bool,
 ) -> Notes {
@@ -296,7 +296,7 @@ pub fn spawn_with<N: Network + 'static>(
     target: Target,
     (settings, bridge): (Settings, Identity),
     shared: Shared,
-    clock: realtime::Clock,
+    clock: real_time::Clock,
     log: bool,
     make: impl FnOnce() -> (N, Beside) + Send + 'static,
 ) -> Notes {

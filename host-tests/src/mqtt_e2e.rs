@@ -23,9 +23,9 @@ use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::mqtt::session::Note;
 
 use crate::flash::{RamFlash, SimFlash};
-use crate::hosted::{Hosted, NoHost};
 use crate::mqtt::{Kill, Notes, Shared};
-use crate::realtime::{self, SimPort};
+use crate::real_time::{self, SimPort};
+use crate::real_time_station::{Hosted, NoHost};
 use crate::replay::register_values;
 use crate::sim::{PackProfile, SimBms, SimConfig};
 
@@ -279,7 +279,7 @@ pub struct BridgeThread {
     pub published: Arc<Mutex<BTreeMap<u32, BTreeMap<u16, u16>>>>,
     join: Option<std::thread::JoinHandle<()>>,
     /// The bridge's clock.
-    pub clock: realtime::Clock,
+    pub clock: real_time::Clock,
     /// What the session reads.
     pub shared: Shared,
 }

@@ -46,9 +46,9 @@ use protocol_core::events::EventId;
 use tinybms_firmware::inverter::packs::Summary;
 
 use crate::closed_loop::{candump_line, frame_bits, InverterModel, STEP_US};
-use crate::harness::Harness;
 use crate::sim::rng::Rng;
 use crate::sim::{PackProfile, SimBms, SimConfig};
+use crate::virtual_time::Harness;
 
 /// A BMS that opened its switch at one of its cutoffs closes it again this
 /// long after (a real TinyBMS recovers once the cause is gone), µs.

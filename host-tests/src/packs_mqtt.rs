@@ -21,10 +21,10 @@ use tinybms_firmware::inverter::InverterConfig;
 use tinybms_firmware::mqtt::session::Target;
 use tinybms_firmware::mqtt::Settings;
 
-use crate::hosted::{sim_client_id, HostSide, LINE_BUF};
 use crate::mqtt::{Notes, Shared, TcpNet};
 use crate::multi_pack::{MultiLoop, PackSpec};
-use crate::realtime;
+use crate::real_time;
+use crate::real_time_station::{sim_client_id, HostSide, LINE_BUF};
 
 /// How often the loop catches up with the wall clock.
 const PACE: Duration = Duration::from_millis(50);
@@ -52,7 +52,7 @@ pub struct PacksOnMqtt {
     pub shared: Vec<Shared>,
     /// Each pack's session notes (none without a broker).
     pub notes: Vec<Notes>,
-    clock: realtime::Clock,
+    clock: real_time::Clock,
     input: Vec<u8>,
     line: Vec<u8>,
 }
@@ -71,7 +71,7 @@ impl PacksOnMqtt {
     ) -> Result<Self, String> {
         let specs = PackSpec::alike(n.clamp(2, 8), |k| 60.0 + 2.0 * k as f64);
         let mut packs = MultiLoop::with_packs_and_host(inverter, &specs, 100.0, seed, primary_host);
-        let clock = realtime::Clock::start();
+        let clock = real_time::Clock::start();
         let mut shared = Vec::new();
         let mut notes = Vec::new();
         for p in &mut packs.nodes {

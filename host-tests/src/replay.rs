@@ -47,7 +47,7 @@ use protocol_core::{DecodeError, Decoder, Frame, Request, RequestError, Response
 use serde_json::{json, Map, Value};
 
 use tinybms_firmware::bms::profile::setting_key;
-use tinybms_firmware::host_link::{encode, lines};
+use tinybms_firmware::host_link::{encode, schema};
 
 use crate::capture::{hex, parse_capture, Capture, CaptureError, Entry};
 
@@ -136,7 +136,7 @@ fn written(encode: impl FnOnce(&mut [u8]) -> Option<usize>) -> Map<String, Value
 }
 
 /// Copies into `v` the members of `line` whose registers (`sources`, the
-/// line's own table in `host_link::lines`) were all read.
+/// line's own table in `host_link::schema`) were all read.
 fn put_read(
     v: &mut Map<String, Value>,
     line: &Map<String, Value>,
@@ -175,7 +175,7 @@ pub fn register_values(regs: &Regs) -> Map<String, Value> {
                 inverter: None,
             };
             let line = written(|out| encode::telemetry(out, head, Some(&s), None, None));
-            for (member, ranges) in lines::SNAPSHOT_REGISTERS {
+            for (member, ranges) in schema::SNAPSHOT_REGISTERS {
                 if *member == "cell_voltages_v"
                     && !ranges.iter().all(|&(a, b)| all(a, b))
                     && (0..MAX_CELLS as u16).any(has)
@@ -199,7 +199,7 @@ pub fn register_values(regs: &Regs) -> Map<String, Value> {
             Statistics::from_registers(&padded(regs, regs::STATS_FIRST, regs::STATS_LAST))
         {
             let line = written(|out| encode::statistics(out, None, &s));
-            put_read(&mut v, &line, lines::STATISTICS_REGISTERS, &all);
+            put_read(&mut v, &line, schema::STATISTICS_REGISTERS, &all);
         }
     }
 
@@ -249,7 +249,7 @@ pub fn register_values(regs: &Regs) -> Map<String, Value> {
             VersionInfo::from_registers(&padded(regs, regs::VERSION_FIRST, regs::VERSION_LAST))
         {
             let line = written(|out| encode::version(out, None, &x));
-            put_read(&mut v, &line, lines::VERSION_REGISTERS, &all);
+            put_read(&mut v, &line, schema::VERSION_REGISTERS, &all);
         }
     }
     v

@@ -20,7 +20,7 @@ use tinybms_firmware::inverter::TxResult;
 use tinybms_firmware::Instant;
 
 use crate::closed_loop::candump_line;
-use crate::realtime::CanSide;
+use crate::real_time::CanSide;
 
 /// How often the simulated inverter sends its keep-alive.
 pub const KEEPALIVE_EVERY: Duration = Duration::from_secs(1);
@@ -93,7 +93,6 @@ impl CanSide for SimInverterBus {
 
 #[cfg(test)]
 mod tests {
-    #![allow(clippy::unwrap_used)]
     use super::*;
 
     #[test]

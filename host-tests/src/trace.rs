@@ -19,7 +19,7 @@
 //! ```
 
 use protocol_core::crc::crc16;
-use tinybms_firmware::Action;
+use tinybms_firmware::bridge::Action;
 
 /// Magic bytes at the start of a trace.
 pub const MAGIC: &[u8; 4] = b"TBT1";

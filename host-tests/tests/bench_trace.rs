@@ -2,8 +2,8 @@
 //! the bridge does today: regenerate it with
 //! `cargo run -p host-tests --bin bench-trace` when the bridge's decisions change.
 
-use host_tests::harness::record_clean;
 use host_tests::trace::{calls, find_live_reply, Call, BENCH_TRACE_SEED, BENCH_TRACE_US};
+use host_tests::virtual_time::record_clean;
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::Bridge;
 

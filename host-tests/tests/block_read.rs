@@ -1,12 +1,6 @@
 //! Block reads whose assembled block is lent in place and whose next pass
 //! starts at the next request (the deferred restart): a new pass never keeps a
 //! value of the previous one.
-#![allow(
-    clippy::unwrap_used,
-    clippy::expect_used,
-    clippy::panic,
-    clippy::indexing_slicing
-)]
 
 use protocol_core::request::Request;
 use protocol_core::response::{RegisterBlock, Words};

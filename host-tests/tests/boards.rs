@@ -1,12 +1,6 @@
 //! The board table (`tinybms_firmware::boards`): its compile-time check rejects
 //! each kind of bad pin, every board passes it, and the places that repeat the
 //! table (Cargo features, cargo aliases, the README wiring table) agree with it.
-#![allow(
-    clippy::unwrap_used,
-    clippy::expect_used,
-    clippy::panic,
-    clippy::indexing_slicing
-)]
 
 use tinybms_firmware::boards::{
     check, Board, Chip, LogPath, PinError, Restriction, Role, BOARDS, C3_DEVKITM_1, C3_RUST_1,

@@ -2,12 +2,6 @@
 //! against the simulated TinyBMS and an inverter/charger model that obeys the
 //! CAN frames (host_tests::closed_loop). Each scenario checks the limits sent and
 //! the cells that result.
-#![allow(
-    clippy::unwrap_used,
-    clippy::expect_used,
-    clippy::panic,
-    clippy::indexing_slicing
-)]
 
 use host_tests::closed_loop::ClosedLoop;
 use host_tests::sim::PackProfile;

@@ -3,7 +3,6 @@
 //! cap set at run time over the host link bounds every CCL sent from then on,
 //! and a protocol switch takes effect after a restart — the record kept in
 //! flash across it.
-#![allow(clippy::unwrap_used, clippy::panic, clippy::indexing_slicing)]
 
 use host_tests::closed_loop::ClosedLoop;
 use host_tests::flash::RamFlash;

@@ -17,8 +17,8 @@ use std::rc::Rc;
 
 use embassy_futures::block_on;
 use host_tests::flash::{Timed, ERASE_STALL_US};
-use host_tests::harness::Harness;
 use host_tests::sim::{PackProfile, SimBms, SimConfig};
+use host_tests::virtual_time::Harness;
 use sequential_storage::mock_flash::{MockFlashBase, WriteCountCheck};
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::config::state::ConfigState;

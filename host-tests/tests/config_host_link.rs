@@ -2,10 +2,9 @@
 //! with one outcome per field and the save to flash, `reset_config`,
 //! read-only, secrets never echoed — on the real bridge and host link against
 //! the simulated BMS, in virtual time, with the store on a flash in RAM.
-#![allow(clippy::unwrap_used, clippy::panic, clippy::indexing_slicing)]
 
 use embassy_futures::block_on;
-use host_tests::host_link::{config, Rig};
+use host_tests::virtual_host_link::{config, Rig};
 use serde_json::{json, Value};
 use tinybms_firmware::config::{Config, FIELDS};
 use tinybms_firmware::inverter::Protocol;
@@ -328,7 +327,7 @@ fn malformed_set_config_lines_are_errors() {
     }
     assert_eq!(
         r.config().stored(),
-        &host_tests::host_link::record_for(&config(false, 0))
+        &host_tests::virtual_host_link::record_for(&config(false, 0))
     );
 }
 
@@ -352,8 +351,8 @@ fn a_new_stale_limit_reaches_the_telemetry_lines_the_desktop_reads() {
     let mut old = t.clone();
     old["age_ms"] = json!(8000);
     // Read as the desktop reads it: through the host link's types.
-    let old: tinybms_firmware::host_link::lines::Telemetry<
-        tinybms_firmware::host_link::lines::Read,
+    let old: tinybms_firmware::host_link::schema::Telemetry<
+        tinybms_firmware::host_link::schema::Read,
     > = serde_json::from_value(old).unwrap();
     assert!(matches!(
         host_tests::tool::monitor::freshness(Some(&old), std::time::Duration::ZERO),

@@ -6,17 +6,17 @@
 //! received and every snapshot published (with its time) are identical. What the consumers lost
 //! is counted (the host link's `dropped_lines`, the inverter output's failed
 //! frames), not hidden. (The broker: `tests/mqtt_in_the_way.rs`.)
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::indexing_slicing)]
 
-use host_tests::harness::Harness;
 use host_tests::sim::{FaultConfig, PackProfile, SimBms, SimConfig};
 use host_tests::trace::{calls, Call, MAGIC};
+use host_tests::virtual_time::Harness;
 use protocol_core::views::LiveSnapshot;
 use tinybms_firmware::bms::timing::Timing;
+use tinybms_firmware::bridge::Action;
 use tinybms_firmware::config::store::{Loaded, Source};
 use tinybms_firmware::config::Config;
 use tinybms_firmware::station::{Logged, Setup, Station};
-use tinybms_firmware::{Action, SECOND};
+use tinybms_firmware::SECOND;
 
 /// How each consumer behaves.
 #[derive(Clone, Copy)]
@@ -235,7 +235,7 @@ fn a_controller_that_stays_bus_off_does_not_hold_the_bridge_back() {
 // ------------------------------------------------- the closed-loop scenarios
 
 use host_tests::closed_loop::{run_scenario_on, ClosedLoop};
-use host_tests::host_port::{Drain, HostPort};
+use host_tests::virtual_host_port::{Drain, HostPort};
 use tinybms_firmware::inverter::InverterConfig;
 
 /// How the loop's consumers misbehave.
@@ -335,7 +335,7 @@ fn is_live_read(b: &[u8]) -> bool {
 
 /// How far a request or a snapshot may move: four UART chunks (16 bytes
 /// each, the RX FIFO's timeout/threshold model), µs.
-const SHIFT_US: i64 = 4 * host_tests::harness::RX_CHUNK_US as i64;
+const SHIFT_US: i64 = 4 * host_tests::virtual_time::RX_CHUNK_US as i64;
 
 /// `Err` (what differs) when `r`'s bridge was held back against
 /// `reference`'s: every request the same, in the same order, at the same time

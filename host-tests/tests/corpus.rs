@@ -148,12 +148,12 @@ const REPLAY_ONLY: &[&str] = &[
 ];
 
 /// Every other member replay prints is a member of the firmware's own lines,
-/// named once in `host_link::lines` (the register tables): a name replay
+/// named once in `host_link::schema` (the register tables): a name replay
 /// spells differently (the single-value commands, 0x14 to 0x1F, spell theirs)
 /// fails here.
 #[test]
 fn every_value_replay_prints_is_named_by_the_firmware_lines() {
-    use tinybms_firmware::host_link::lines::{
+    use tinybms_firmware::host_link::schema::{
         SNAPSHOT_REGISTERS, STATISTICS_REGISTERS, VERSION_REGISTERS,
     };
     let known: std::collections::BTreeSet<&str> = SNAPSHOT_REGISTERS

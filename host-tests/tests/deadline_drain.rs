@@ -9,16 +9,11 @@
 //! belong to; the second shows what the rule prevents (a resend the awake BMS
 //! answers twice, or a retry after a cut-off reply), so the tests fail if the
 //! order stops mattering or the drained bytes stop completing the transaction.
-#![allow(
-    clippy::unwrap_used,
-    clippy::expect_used,
-    clippy::panic,
-    clippy::indexing_slicing
-)]
 
 use host_tests::sim::{PackProfile, SimBms, SimConfig};
 use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
-use tinybms_firmware::{Action, Bridge, Report};
+use tinybms_firmware::bridge::Action;
+use tinybms_firmware::{Bridge, Report};
 
 /// The bridge's first request, sent at time 0; returns (request bytes, time its
 /// last byte left, deadline the bridge then waits for).

@@ -4,12 +4,6 @@
 //! moved): here each is compared with what today's build prints, either
 //! exactly (figures that do not move from run to run) or by its shape (the
 //! words and the layout, every number standing for any number).
-#![allow(
-    clippy::unwrap_used,
-    clippy::expect_used,
-    clippy::panic,
-    clippy::indexing_slicing
-)]
 
 mod common;
 

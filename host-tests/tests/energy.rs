@@ -2,10 +2,9 @@
 //! (`tinybms_firmware::energy`): unit cases, and the station's counters
 //! against the integral of what the simulated BMS sent, with a lost link in
 //! between that must count nothing.
-#![allow(clippy::unwrap_used)]
 
-use host_tests::harness::Harness;
 use host_tests::sim::{PackProfile, SimBms, SimConfig};
+use host_tests::virtual_time::Harness;
 use protocol_core::response::RegisterBlock;
 use protocol_core::views::LiveSnapshot;
 use tinybms_firmware::energy::Energy;

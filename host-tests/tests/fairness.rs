@@ -2,8 +2,8 @@
 //! the event log and the statistics are still read at their own periods, and the
 //! snapshot latency figure measures the live read that produced each snapshot.
 
-use host_tests::harness::Harness;
 use host_tests::sim::{PackProfile, SimBms, SimConfig};
+use host_tests::virtual_time::Harness;
 use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US, EVENTS_PERIOD_US, STATS_PERIOD_US};
 use tinybms_firmware::MS;
 

@@ -3,25 +3,19 @@
 //! every error code, outcome correlation, read-only, a slow host, telemetry equal
 //! to replay's output for the same registers, and property tests of the line
 //! assembler and the whole input path.
-#![allow(
-    clippy::unwrap_used,
-    clippy::expect_used,
-    clippy::panic,
-    clippy::indexing_slicing
-)]
 
 use std::collections::BTreeMap;
 
-use host_tests::host_link::{check_line, config, fuzz_one, Rig};
 use host_tests::replay::{event_json, register_values};
+use host_tests::virtual_host_link::{check_line, config, fuzz_one, Rig};
 use proptest::prelude::*;
 use protocol_core::events::{Event, EventId};
 use protocol_core::response::RegisterBlock;
 use protocol_core::settings::SettingId;
 use serde_json::{json, Value};
 use tinybms_firmware::bridge::report::WriteOutcome;
+use tinybms_firmware::host_link::assembler::{LineAssembler, Piece, LINE_MAX};
 use tinybms_firmware::host_link::encode;
-use tinybms_firmware::host_link::line::{LineAssembler, Piece, LINE_MAX};
 use tinybms_firmware::host_link::{HostLink, OUT_LINE_MAX};
 use tinybms_firmware::units;
 use tinybms_firmware::{Report, MS, SECOND};
@@ -1313,7 +1307,7 @@ fn log_lines_carry_the_bridges_log_latest_four_after_answers_before_telemetry() 
 /// Every line the simulated bridge writes to its host.
 struct Capture(Vec<Value>);
 
-impl host_tests::hosted::HostSide for Capture {
+impl host_tests::real_time_station::HostSide for Capture {
     fn read(&mut self, _: &mut Vec<u8>) -> std::io::Result<()> {
         Ok(())
     }
@@ -1331,8 +1325,8 @@ fn the_bridges_reports_reach_the_host_as_log_lines_in_the_simulated_bridge() {
     // `sim --bridge-pty` hands every report's log line to the host link, as the
     // chip's log does: the start of a session has the sync and snapshot lines.
     use host_tests::flash::{RamFlash, SimFlash};
-    use host_tests::hosted::Hosted;
-    use host_tests::realtime::SimPort;
+    use host_tests::real_time::SimPort;
+    use host_tests::real_time_station::Hosted;
     use host_tests::sim::{PackProfile, SimBms, SimConfig};
     let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 3);
     let mut h = Hosted::new(

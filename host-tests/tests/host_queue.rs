@@ -155,7 +155,7 @@ fn a_queue_that_takes_less_than_it_promised_is_reported_cut() {
 /// they are the lines a direct reader gets, in the same order.
 #[test]
 fn the_stations_pump_into_the_chips_queue_gives_only_whole_lines() {
-    use host_tests::host_link::{check_line, config, Rig};
+    use host_tests::virtual_host_link::{check_line, config, Rig};
 
     let mut direct = Rig::ready(config(false, 200));
     let mut pumped = Rig::ready(config(false, 200));

@@ -2,11 +2,13 @@
 //! stand-in `cargo` and `pack-images` (no firmware is built): what build name it
 //! gives every image. Unix only (bash, git, sha256sum).
 #![cfg(unix)]
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 use std::process::Command;
+
+mod common;
+use common::git;
 
 /// A copy of the script with what it reads (Cargo.toml's board features and
 /// version, the build aliases, the firmware's name for the manifests) in a
@@ -78,24 +80,6 @@ fn run(dir: &Path, env: &[(&str, &str)]) -> Vec<String> {
     let builds: Vec<String> = text.lines().map(str::to_string).collect();
     assert_eq!(builds.len(), 7, "one build per board: {builds:?}");
     builds
-}
-
-fn git(dir: &Path, args: &[&str]) {
-    let o = Command::new("git")
-        .args([
-            "-c",
-            "user.name=t",
-            "-c",
-            "user.email=t@t",
-            "-c",
-            "commit.gpgsign=false",
-        ])
-        .args(args)
-        .current_dir(dir)
-        .env("GIT_CEILING_DIRECTORIES", dir.parent().unwrap())
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "git {args:?}: {o:?}");
 }
 
 /// Issue 26, item 8: the ready-made images said `build dev` (nothing set

@@ -6,12 +6,12 @@
 use std::time::{Duration, Instant as Wall};
 
 use host_tests::flash::{RamFlash, SimFlash};
-use host_tests::hosted::{HostSide, Hosted};
-use host_tests::realtime::SimPort;
+use host_tests::real_time::SimPort;
+use host_tests::real_time_station::{HostSide, Hosted};
 use host_tests::sim::{PackProfile, SimBms, SimConfig};
 use host_tests::sim_wifi::{SimNetwork, SimWifi};
 use proptest::prelude::*;
-use tinybms_firmware::host_link::line::{LineAssembler, Piece};
+use tinybms_firmware::host_link::assembler::{LineAssembler, Piece};
 use tinybms_firmware::improv::psk::{PskDerivation, PskError, Start};
 use tinybms_firmware::improv::wire::{self, checksum, ErrorState, PacketError, Rpc, State};
 

@@ -1,11 +1,5 @@
 //! The inverter frames byte by byte, the DBC files against the encoder, and the
 //! properties of charge control.
-#![allow(
-    clippy::unwrap_used,
-    clippy::expect_used,
-    clippy::panic,
-    clippy::indexing_slicing
-)]
 
 use std::collections::BTreeMap;
 

@@ -1,11 +1,5 @@
 //! The inverter output's scheduler through its sans-IO interface: what goes on
 //! the bus, when, and what is logged.
-#![allow(
-    clippy::unwrap_used,
-    clippy::expect_used,
-    clippy::panic,
-    clippy::indexing_slicing
-)]
 
 use host_tests::sim::{PackProfile, SimBms, SimConfig};
 use protocol_core::response::RegisterBlock;

@@ -1,4 +1,4 @@
-//! The host link's lines are one set of types (`host_link::lines`): what the
+//! The host link's lines are one set of types (`host_link::schema`): what the
 //! firmware writes from them, a host reads back into them with nothing lost and
 //! nothing added. A member the firmware writes that the reading side does not
 //! have (or names otherwise) fails here, as does a line type the host would
@@ -11,7 +11,7 @@ use host_tests::flash::RamFlash;
 use host_tests::multi_pack;
 use host_tests::sim::PackProfile;
 use tinybms_firmware::host_link::encode;
-use tinybms_firmware::host_link::lines::HostLine;
+use tinybms_firmware::host_link::schema::HostLine;
 use tinybms_firmware::inverter::InverterConfig;
 
 /// The line's members as the reading side holds them, written back.
@@ -206,7 +206,7 @@ fn table(t: &[(&str, &[(u16, u16)])]) -> Vec<String> {
 fn the_register_tables_name_exactly_the_members_a_line_writes() {
     use protocol_core::response::{RegisterBlock, Words};
     use protocol_core::views::{LiveSnapshot, Statistics, VersionInfo};
-    use tinybms_firmware::host_link::lines;
+    use tinybms_firmware::host_link::schema;
     let block = |start: u16, n: u16| {
         let mut values = Words::new();
         for i in 0..n {
@@ -231,16 +231,16 @@ fn the_register_tables_name_exactly_the_members_a_line_writes() {
             |o| encode::telemetry(o, head, Some(&live), None, None),
             &telemetry_head
         ),
-        table(lines::SNAPSHOT_REGISTERS)
+        table(schema::SNAPSHOT_REGISTERS)
     );
     let stats = Statistics::from_registers(&block(100, 18)).unwrap();
     assert_eq!(
         members(|o| encode::statistics(o, None, &stats), &["type"]),
-        table(lines::STATISTICS_REGISTERS)
+        table(schema::STATISTICS_REGISTERS)
     );
     let version = VersionInfo::from_registers(&block(500, 10)).unwrap();
     assert_eq!(
         members(|o| encode::version(o, None, &version), &["type"]),
-        table(lines::VERSION_REGISTERS)
+        table(schema::VERSION_REGISTERS)
     );
 }

@@ -1,11 +1,5 @@
 //! The link engine's rules, against a scripted responder (no simulator): what is
 //! sent, when, and how many times.
-#![allow(
-    clippy::unwrap_used,
-    clippy::expect_used,
-    clippy::panic,
-    clippy::indexing_slicing
-)]
 
 use protocol_core::frame::{Frame, NackCode};
 use protocol_core::request::Request;

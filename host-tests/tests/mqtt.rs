@@ -3,7 +3,6 @@
 //! fit their device class, templates that read members the state really has)
 //! and the schedule (availability, discovery and its removal, the state every
 //! period and at once on a status change, stale data never published, events).
-#![allow(clippy::unwrap_used, clippy::panic, clippy::indexing_slicing)]
 
 use heapless::String;
 use host_tests::sim::{PackProfile, SimBms, SimConfig};

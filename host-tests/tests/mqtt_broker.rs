@@ -8,7 +8,6 @@
 //!
 //! Needs `mosquitto` and `mosquitto_sub`/`mosquitto_pub` (Debian: `apt-get install
 //! mosquitto mosquitto-clients`; `.ci/run` installs them).
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 
 use host_tests::mqtt::{self as hm, TcpNet};
 use host_tests::mqtt_e2e;

@@ -15,12 +15,6 @@
 //! trouble, reconnects after each, never panics, and publishes to the good
 //! broker. The figures printed: the poll rate, the CAN intervals, the session's
 //! heap high-water mark (on this 64-bit host) and its longest poll.
-#![allow(
-    clippy::unwrap_used,
-    clippy::expect_used,
-    clippy::panic,
-    clippy::indexing_slicing
-)]
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::{Cell, RefCell};

@@ -3,7 +3,6 @@
 //! without root): the `mqtt-tap` binary, which refuses any namespace but a new
 //! one. Without namespaces (a container that forbids them) the test says so and
 //! passes — unless `TINYBMS_TAP_TEST=required` (set by `.ci/run`), when it fails.
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 
 use std::process::{Command, Stdio};
 

@@ -4,12 +4,6 @@
 //! In every one, no pack goes past its own cutoffs (cells, charge and discharge
 //! current: the packs' truth, not what the bridges said), never two bridges
 //! speak, and the inverter is never without limits for the 3 s a GX waits.
-#![allow(
-    clippy::unwrap_used,
-    clippy::expect_used,
-    clippy::panic,
-    clippy::indexing_slicing
-)]
 
 use host_tests::multi_pack::{
     problems, run_scenario, run_scenario_at, table, BatteryFigures, BusFaults, MultiLoop, PackSpec,

@@ -1,12 +1,6 @@
 //! Several packs, one battery: the summary frames, the table of what was
 //! heard, the election of one speaker and the battery's limits, through the
 //! library's sans-IO interface.
-#![allow(
-    clippy::unwrap_used,
-    clippy::expect_used,
-    clippy::panic,
-    clippy::indexing_slicing
-)]
 
 use proptest::prelude::*;
 use tinybms_firmware::inverter::control::{ChargeConfig, Conditions, Limits, PackState};

@@ -1,8 +1,8 @@
 //! The line a panicking chip writes to the host (UART0 boards): a `log` line
 //! at `warn` that the host's own line types read, with every return address.
 
-use tinybms_firmware::host_link::lines::HostLine;
 use tinybms_firmware::host_link::panic::{write_line, FRAMES_MAX};
+use tinybms_firmware::host_link::schema::HostLine;
 
 fn line(pcs: &[u32]) -> Vec<u8> {
     let mut out = Vec::new();

@@ -3,7 +3,6 @@
 //! exactly, an enumeration value's name (as `tinybms settings` prints it) — and
 //! what they refuse: a decimal without its unit, another unit, a value between
 //! two register steps, an unknown name, a setting given twice.
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 
 use host_tests::profile::{parse_profile, snake_name};
 use host_tests::tool::settings::physical;

@@ -1,15 +1,9 @@
 //! The firmware's bridge logic against the simulated TinyBMS, in virtual time: the
 //! scenarios of the firmware issue. Each runs the real `tinybms_firmware::Bridge`
-//! through `host_tests::harness::Harness` (the same loop as the chip shell).
-#![allow(
-    clippy::unwrap_used,
-    clippy::expect_used,
-    clippy::panic,
-    clippy::indexing_slicing
-)]
+//! through `host_tests::virtual_time::Harness` (the same loop as the chip shell).
 
-use host_tests::harness::Harness;
 use host_tests::sim::{CurrentSensor, FaultConfig, PackProfile, SimBms, SimConfig};
+use host_tests::virtual_time::Harness;
 use protocol_core::events::{EventId, OnlineStatus};
 use protocol_core::settings::{Setting, SettingError, SettingId};
 use tinybms_firmware::bridge::report::WriteOutcome;

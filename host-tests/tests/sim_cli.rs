@@ -1,6 +1,5 @@
 //! The `sim` command: help, a checked soak with its figures, usage errors
 //! (unknown options, bad values, options that do not go together).
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 
 mod common;
 

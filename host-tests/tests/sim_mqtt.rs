@@ -6,7 +6,6 @@
 //! serial and client id, and `--packs N --mqtt` publishes every pack and the
 //! battery's device. (The real Home Assistant reads all of it in
 //! `host-tests/home-assistant/check.py`, run by `.ci/run`.)
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 
 use std::process::{Child, Command, Stdio};
 use std::time::Instant;

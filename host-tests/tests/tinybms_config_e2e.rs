@@ -2,7 +2,6 @@
 //! --flash FILE` — the firmware's bridge, host link and configuration store in
 //! the sim process, the record in a file-backed flash that a restarted sim
 //! finds again.
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 
 mod common;
 use common::*;

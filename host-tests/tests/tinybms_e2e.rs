@@ -5,7 +5,6 @@
 //!
 //! Robust on a busy machine: every wait is generous and bounded, nothing
 //! asserts on timing, and every child is killed when its guard drops.
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 
 use std::io::{BufRead, BufReader, Write};
 use std::process::{Command, Stdio};

@@ -2,7 +2,6 @@
 //! the desk with the built `tinybms` against `sim --pty` and `sim
 //! --bridge-pty`, each with the behaviour it has now. Every wait is bounded;
 //! nothing asserts on timing.
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 
 mod common;
 use common::*;

@@ -4,7 +4,6 @@
 //! with `TINYBMS_BIN=<an older tinybms>` to see them fail there.
 //!
 //! Every wait is bounded; nothing asserts on timing.
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 
 use std::io::Read;
 use std::process::{Command, Stdio};

@@ -2,15 +2,9 @@
 //! offline on a noisy line, keeps telemetry flowing, loses no event and says what
 //! it knows about each write. Every test runs the firmware's bridge against the
 //! simulated TinyBMS with the ground-truth checks of `Harness::checked`.
-#![allow(
-    clippy::unwrap_used,
-    clippy::expect_used,
-    clippy::panic,
-    clippy::indexing_slicing
-)]
 
-use host_tests::harness::Harness;
 use host_tests::sim::{CurrentSensor, FaultConfig, PackProfile, SimBms, SimConfig};
+use host_tests::virtual_time::Harness;
 use protocol_core::events::EventId;
 use protocol_core::registers;
 use protocol_core::request::Request;

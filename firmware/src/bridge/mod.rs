@@ -33,7 +33,7 @@
 //! | `telemetry.rs` | the published picture, the checks a live block passes, the snapshot line |
 //! | `writes.rs` | the command queue and its jobs: write/verify, clear |
 //! | `reset.rs` | the reset job and its proof (a newer "System Started" event) |
-//! | `reports.rs` | the report queue and the periodic, rate-limited lines |
+//! | `report_queue.rs` | the report queue and the periodic, rate-limited lines |
 //! | `events.rs` | the BMS event log replies, every event reported once |
 //!
 //! ## Phases
@@ -77,7 +77,7 @@ mod events;
 mod job;
 mod purpose;
 pub mod report;
-mod reports;
+mod report_queue;
 mod reset;
 mod schedule;
 mod sync;
@@ -92,7 +92,7 @@ use protocol_core::views::{Statistics, VersionInfo};
 
 use self::job::Effect;
 use self::purpose::{Aux, Purpose};
-use self::reports::Reports;
+use self::report_queue::Reports;
 use self::schedule::{on_piece, Schedule};
 use self::sync::SyncState;
 use self::telemetry::TelemetryModel;

@@ -9,7 +9,7 @@
 //! | [`can`] | `can_task` | TWAI to the inverter (feature `can`): a pump |
 //! | [`usb`] | `usb_rx_task`, `usb_tx_task` (or `uart0_…`) | the host link's wire (feature `host-link`): pumps |
 //! | [`button`] | `button_task` | the BOOT button's samples (feature `host-link`) |
-//! | [`wifi`] | `wifi_task`, `net_task`, `mqtt_task` | Wi-Fi and MQTT to Home Assistant (feature `wifi`) |
+//! | [`network`] | `wifi_task`, `net_task`, `mqtt_task` | Wi-Fi and MQTT to Home Assistant (feature `wifi`) |
 //! | [`store`] | — | the configuration record in the `nvs` flash partition |
 //! | [`log`] | — | log lines → defmt (the words come from the library) |
 //! | [`wires`] | — | every static the tasks share, each with its role |
@@ -50,12 +50,12 @@ mod button;
 #[cfg(feature = "can")]
 mod can;
 mod log;
+#[cfg(feature = "wifi")]
+mod network;
 mod panic;
 mod station;
 mod store;
 mod usb;
-#[cfg(feature = "wifi")]
-mod wifi;
 mod wires;
 
 #[cfg(feature = "log-rtt")]
@@ -180,11 +180,11 @@ async fn main(spawner: Spawner) {
     let host = usb::start(spawner, p.USB_DEVICE, p.UART0, running);
     #[cfg(feature = "host-link")]
     button::start(spawner);
-    // Nothing here waits for the radio: `wifi::start` only prepares it and
+    // Nothing here waits for the radio: `network::start` only prepares it and
     // spawns its start, which runs on a thread below this one's once the
     // station task (spawned last, first to run) waits.
     #[cfg(feature = "wifi")]
-    let name = wifi::start(spawner, p.WIFI, running, IDENTITY);
+    let name = network::start(spawner, p.WIFI, running, IDENTITY);
     #[cfg(not(feature = "wifi"))]
     let name: Option<heapless::String<32>> =
         (!running.hostname.is_empty()).then(|| running.hostname.clone());

@@ -34,11 +34,7 @@ pub const RECORD_MAX: usize = 640;
 /// The layout version that added the field stored under `tag` (version 2:
 /// `pack_node`; version 3: `pack_name`).
 pub const fn introduced(tag: u8) -> u8 {
-    match tag {
-        6 => 2,
-        71 => 3,
-        _ => 1,
-    }
+    super::introduced_in(tag)
 }
 
 /// Why bytes are not a record.

@@ -179,9 +179,21 @@ pub const TEXT_MAX: usize = 64;
 
 pub use crate::freshness::StaleMode;
 
+/// The record's one table: each row is a field — its name in code, its tag
+/// in flash and the layout version that added it, its name for an owner,
+/// unit, group, when a change applies, kind and range — then the record's
+/// member that holds it, with its type and default, then its sentence for
+/// an owner. From the rows come [`FieldId`], [`FIELDS`], [`Config`], its
+/// [`Default`], [`Config::get`], [`Config::set`] and
+/// [`codec::introduced`]: adding a field is one row (and its use).
 macro_rules! fields {
-    ($( $id:ident = $tag:literal, $name:literal, $unit:literal, $group:ident, $applies:ident,
-        $kind:expr, $help:literal; )*) => {
+    (
+        defaults($c:ident = $charge:expr, $i:ident = $inverter:expr);
+        $( $id:ident = $tag:literal since $since:literal, $name:literal, $unit:literal,
+            $group:ident, $applies:ident, $kind:expr,
+            $member:ident: $ty:ty = $default:expr,
+            $help:literal; )*
+    ) => {
         /// A field of the record, by name in code.
         #[derive(Debug, Clone, Copy, PartialEq, Eq)]
         #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -198,8 +210,125 @@ macro_rules! fields {
             group: Group::$group,
             help: $help,
         }, )* ];
+
+        /// The bridge's configuration record. See the module documentation;
+        /// every field's unit and range is in [`FIELDS`].
+        #[derive(Debug, Clone, PartialEq, Eq)]
+        pub struct Config {
+            $( #[doc = concat!("`", $name, "`: ", $help)] pub $member: $ty, )*
+        }
+
+        impl Default for Config {
+            /// An unconfigured bridge: Victron protocol, CAN on, a hold on
+            /// stale data, charge control's documented defaults
+            /// ([`ChargeConfig::default`]), a read-write host link streaming
+            /// every second, no network.
+            fn default() -> Self {
+                let $c = $charge;
+                let $i = $inverter;
+                Self { $( $member: $default, )* }
+            }
+        }
+
+        impl Config {
+            /// This field's value.
+            pub fn get(&self, id: FieldId) -> Value<'_> {
+                match id { $( FieldId::$id => Member::get(&self.$member), )* }
+            }
+
+            /// Sets this field, after [`value::check`]: a value outside the
+            /// field's kind or range is refused and nothing changes.
+            pub fn set(&mut self, id: FieldId, v: Value<'_>) -> Result<(), FieldError> {
+                value::check(id.field(), &v)?;
+                match id { $( FieldId::$id => Member::put(&mut self.$member, v), )* }
+            }
+        }
+
+        /// The layout version that added the field stored under `tag`
+        /// (1 for a tag no field has).
+        const fn introduced_in(tag: u8) -> u8 {
+            match tag {
+                $( $tag => $since, )*
+                _ => 1,
+            }
+        }
     };
 }
+
+/// How a member of [`Config`] holds a field's [`Value`]. [`value::check`]
+/// has bounded every number to its field's range, which fits the member's
+/// type: the casts cannot truncate.
+trait Member {
+    fn get(&self) -> Value<'_>;
+    fn put(&mut self, v: Value<'_>) -> Result<(), FieldError>;
+}
+
+impl Member for bool {
+    fn get(&self) -> Value<'_> {
+        Value::Bool(*self)
+    }
+    fn put(&mut self, v: Value<'_>) -> Result<(), FieldError> {
+        match v {
+            Value::Bool(b) => *self = b,
+            _ => return Err(FieldError::WRONG_KIND),
+        }
+        Ok(())
+    }
+}
+
+macro_rules! number_member {
+    ($($t:ty),*) => { $(
+        impl Member for $t {
+            fn get(&self) -> Value<'_> {
+                Value::Number(u32::from(*self) as i32)
+            }
+            fn put(&mut self, v: Value<'_>) -> Result<(), FieldError> {
+                match v {
+                    Value::Number(n) => *self = n as $t,
+                    _ => return Err(FieldError::WRONG_KIND),
+                }
+                Ok(())
+            }
+        }
+    )* };
+}
+number_member!(u8, u16, u32);
+
+impl<const N: usize> Member for String<N> {
+    fn get(&self) -> Value<'_> {
+        Value::Text(self)
+    }
+    fn put(&mut self, v: Value<'_>) -> Result<(), FieldError> {
+        let Value::Text(s) = v else {
+            return Err(FieldError::WRONG_KIND);
+        };
+        if set_text(self, s) {
+            Ok(())
+        } else {
+            Err(FieldError::TOO_LONG)
+        }
+    }
+}
+
+/// A choice of two values held as the value: the first is choice 0.
+macro_rules! choice_member {
+    ($t:ty: $zero:expr, $one:expr) => {
+        impl Member for $t {
+            fn get(&self) -> Value<'_> {
+                Value::Choice(u8::from(*self != $zero))
+            }
+            fn put(&mut self, v: Value<'_>) -> Result<(), FieldError> {
+                match v {
+                    Value::Choice(c) => *self = if c == 0 { $zero } else { $one },
+                    _ => return Err(FieldError::WRONG_KIND),
+                }
+                Ok(())
+            }
+        }
+    };
+}
+choice_member!(Protocol: Protocol::Victron, Protocol::SmaSunnyIsland);
+choice_member!(StaleMode: StaleMode::Stop, StaleMode::Hold);
 
 /// Choices of `inverter_protocol`.
 pub const PROTOCOLS: &[&str] = &["victron", "sma"];
@@ -229,83 +358,123 @@ const fn text(max: u8, rule: TextRule) -> Kind {
 }
 
 fields! {
-    CanOutput = 1, "can_output", "", Inverter, Restart, Kind::Bool,
+    defaults(c = ChargeConfig::default(), i = InverterConfig::default());
+    CanOutput = 1 since 1, "can_output", "", Inverter, Restart, Kind::Bool,
+        can_output: bool = true,
         "Send the battery's limits and state to the inverter over CAN.";
-    InverterProtocol = 2, "inverter_protocol", "", Inverter, Restart, Kind::Choice(PROTOCOLS),
+    InverterProtocol = 2 since 1, "inverter_protocol", "", Inverter, Restart, Kind::Choice(PROTOCOLS),
+        protocol: Protocol = Protocol::Victron,
         "The inverter's CAN protocol: victron (a GX, \"CAN-bus BMS 500 kbit/s\") or sma (Sunny Island).";
-    StaleAfter = 3, "stale_after", "s", Inverter, Now, num(1, 60, 0),
+    StaleAfter = 3 since 1, "stale_after", "s", Inverter, Now, num(1, 60, 0),
+        stale_after_s: u16 = (i.freshness.limit_us / SECOND) as u16,
         "BMS data older than this is stale: the stale policy applies.";
-    StalePolicyField = 4, "stale_policy", "", Inverter, Now, Kind::Choice(STALE_MODES),
+    StalePolicyField = 4 since 1, "stale_policy", "", Inverter, Now, Kind::Choice(STALE_MODES),
+        stale_policy: StaleMode = StaleMode::Hold,
         "On stale data: hold (charge limit 0, discharge allowed, for stale_hold: an island inverter keeps the house on through a short loss, the BMS's own cutoffs still protect the pack) or stop (stop sending: the inverter stops charging and discharging).";
-    StaleHold = 5, "stale_hold", "s", Inverter, Now, num(10, 3600, 0),
+    StaleHold = 5 since 1, "stale_hold", "s", Inverter, Now, num(10, 3600, 0),
+        stale_hold_s: u16 = (i.stale_hold_us / SECOND) as u16,
         "With stale_policy hold: how long the inverter may keep discharging on stale data.";
-    PackNode = 6, "pack_node", "", Inverter, Restart, num_or(1, 8, 0, "alone"),
+    PackNode = 6 since 2, "pack_node", "", Inverter, Restart, num_or(1, 8, 0, "alone"),
+        pack_node: u8 = i.node,
         "Packs in parallel, one bridge each, on one CAN bus: this bridge's number (1 = the primary, which speaks to the inverter); alone = this pack is the whole battery.";
-    AbsorptionVoltage = 10, "absorption_voltage", "mV", Charge, Now, num_or(1000, 4500, 0, "bms"),
+    AbsorptionVoltage = 10 since 1, "absorption_voltage", "mV", Charge, Now, num_or(1000, 4500, 0, "bms"),
+        absorption_mv: u16 = c.absorption_mv.unwrap_or(0),
         "Charge target per cell; bms = the BMS's own fully charged voltage setting.";
-    AbsorptionMargin = 11, "absorption_margin", "mV", Charge, Now, num(20, 500, 0),
+    AbsorptionMargin = 11 since 1, "absorption_margin", "mV", Charge, Now, num(20, 500, 0),
+        absorption_margin_mv: u16 = c.absorption_margin_mv,
         "The charge target stays at least this far below the BMS's over-voltage cutoff.";
-    FloatVoltage = 12, "float_voltage", "mV", Charge, Now, num_or(1000, 4500, 0, "auto"),
+    FloatVoltage = 12 since 1, "float_voltage", "mV", Charge, Now, num_or(1000, 4500, 0, "auto"),
+        float_mv: u16 = c.float_mv.unwrap_or(0),
         "Float target per cell after a full charge; auto = 15/16 of the charge target.";
-    CeilingMargin = 13, "ceiling_margin", "mV", Charge, Now, num(20, 500, 0),
+    CeilingMargin = 13 since 1, "ceiling_margin", "mV", Charge, Now, num(20, 500, 0),
+        ceiling_margin_mv: u16 = c.ov_margin_mv,
         "No cell is charged closer than this to the over-voltage cutoff (the charge limit is 0 there).";
-    DischargeMargin = 14, "discharge_margin", "mV", Charge, Now, num(0, 1000, 0),
+    DischargeMargin = 14 since 1, "discharge_margin", "mV", Charge, Now, num(0, 1000, 0),
+        discharge_margin_mv: u16 = c.uv_margin_mv,
         "Discharge stops this far above the BMS's under-voltage cutoff.";
-    ChargeTaper = 15, "charge_taper", "mV", Charge, Now, num(10, 1000, 0),
+    ChargeTaper = 15 since 1, "charge_taper", "mV", Charge, Now, num(10, 1000, 0),
+        charge_taper_mv: u16 = c.ccl_taper_mv,
         "The charge limit falls from full to 0 over this window below the ceiling.";
-    DischargeTaper = 16, "discharge_taper", "mV", Charge, Now, num(10, 1000, 0),
+    DischargeTaper = 16 since 1, "discharge_taper", "mV", Charge, Now, num(10, 1000, 0),
+        discharge_taper_mv: u16 = c.dcl_taper_mv,
         "The discharge limit falls from full to 0 over this window above the discharge stop.";
-    RunnerTolerance = 17, "runner_tolerance", "mV", Charge, Now, num(0, 200, 0),
+    RunnerTolerance = 17 since 1, "runner_tolerance", "mV", Charge, Now, num(0, 200, 0),
+        runner_tolerance_mv: u16 = c.runner_tolerance_mv,
         "How far the highest cell may run ahead of the average before the charge voltage is lowered for it.";
-    TailCurrent = 18, "tail_current", "A", Charge, Now, num(1, 1000, 1),
+    TailCurrent = 18 since 1, "tail_current", "A", Charge, Now, num(1, 1000, 1),
+        tail_current_da: u16 = (c.tail_current_a * 10.0) as u16,
         "Charge current below which a full pack counts as tapered (for the switch to float).";
-    FullHold = 19, "full_hold", "s", Charge, Now, num(10, 3600, 0),
+    FullHold = 19 since 1, "full_hold", "s", Charge, Now, num(10, 3600, 0),
+        full_hold_s: u16 = (c.full_hold_us / SECOND) as u16,
         "How long the pack stays at the target, tapered, before float.";
-    RebulkSoc = 20, "rebulk_soc", "%", Charge, Now, num(50, 99, 0),
+    RebulkSoc = 20 since 1, "rebulk_soc", "%", Charge, Now, num(50, 99, 0),
+        rebulk_soc_pct: u8 = c.rebulk_soc_pct as u8,
         "Below this state of charge float ends and charging starts again.";
-    ChargeCurrentCap = 21, "charge_current_cap", "A", Charge, Now, num_or(1, 7500, 1, "none"),
+    ChargeCurrentCap = 21 since 1, "charge_current_cap", "A", Charge, Now, num_or(1, 7500, 1, "none"),
+        ccl_cap_da: u16 = c.ccl_cap_da.unwrap_or(0),
         "Most charge current ever asked for; none = the BMS's charge over-current cutoff (a cap above it is refused).";
-    DischargeCurrentCap = 22, "discharge_current_cap", "A", Charge, Now, num_or(1, 7500, 1, "none"),
+    DischargeCurrentCap = 22 since 1, "discharge_current_cap", "A", Charge, Now, num_or(1, 7500, 1, "none"),
+        dcl_cap_da: u16 = c.dcl_cap_da.unwrap_or(0),
         "Most discharge current ever allowed; none = the BMS's discharge over-current cutoff (a cap above it is refused).";
-    TemperatureMargin = 23, "temperature_margin", "°C", Charge, Now, num(1, 20, 0),
+    TemperatureMargin = 23 since 1, "temperature_margin", "°C", Charge, Now, num(1, 20, 0),
+        temperature_margin_c: u8 = c.temp_margin_c as u8,
         "Current limits are derated over this window inside each temperature cutoff.";
-    LimitHold = 24, "limit_hold", "s", Charge, Now, num(0, 600, 0),
+    LimitHold = 24 since 1, "limit_hold", "s", Charge, Now, num(0, 600, 0),
+        limit_hold_s: u16 = (c.hold_us / SECOND) as u16,
         "After a limit was cut to 0 for a cause in the BMS's data (a fault, a cell at its cutoff, a temperature), how long before it may rise again (a lost link is no such cause).";
-    RampRate = 25, "ramp_rate", "A/s", Charge, Now, num(1, 1000, 1),
+    RampRate = 25 since 1, "ramp_rate", "A/s", Charge, Now, num(1, 1000, 1),
+        ramp_da_per_s: u16 = c.ramp_da_per_s,
         "How fast a current limit may rise.";
-    CvlRaiseInterval = 26, "cvl_raise_interval", "s", Charge, Now, num(5, 600, 0),
+    CvlRaiseInterval = 26 since 1, "cvl_raise_interval", "s", Charge, Now, num(5, 600, 0),
+        cvl_raise_interval_s: u16 = (c.cvl_raise_interval_us / SECOND) as u16,
         "The charge voltage is raised at most this often (lowered at once).";
-    WarningMargin = 27, "warning_margin", "mV", Charge, Now, num(0, 500, 0),
+    WarningMargin = 27 since 1, "warning_margin", "mV", Charge, Now, num(0, 500, 0),
+        warning_margin_mv: u16 = c.warn_margin_mv,
         "Voltage warnings start this far inside a cutoff.";
-    WarningCurrent = 28, "warning_current", "%", Charge, Now, num(50, 100, 0),
+    WarningCurrent = 28 since 1, "warning_current", "%", Charge, Now, num(50, 100, 0),
+        warning_current_pct: u8 = c.warn_current_pct,
         "Current warnings start at this share of a current cutoff.";
-    ReadOnly = 40, "read_only", "", Host, Now, Kind::Bool,
+    ReadOnly = 40 since 1, "read_only", "", Host, Now, Kind::Bool,
+        read_only: bool = false,
         "Refuse every write from the computer: BMS settings, resets, clears and this configuration.";
-    StreamPeriod = 41, "stream_period", "ms", Host, Now, num_or(100, 60_000, 0, "off"),
+    StreamPeriod = 41 since 1, "stream_period", "ms", Host, Now, num_or(100, 60_000, 0, "off"),
+        stream_period_ms: u32 = DEFAULT_STREAM_PERIOD_MS,
         "How often telemetry is pushed to the computer.";
-    WifiSsid = 60, "wifi_ssid", "", Network, Restart, text(32, TextRule::Printable),
+    WifiSsid = 60 since 1, "wifi_ssid", "", Network, Restart, text(32, TextRule::Printable),
+        wifi_ssid: String<32> = String::new(),
         "The Wi-Fi network's name; empty = no Wi-Fi.";
-    WifiKey = 61, "wifi_key", "", Network, Restart, Kind::Secret { max: 64, hex64: true },
+    WifiKey = 61 since 1, "wifi_key", "", Network, Restart, Kind::Secret { max: 64, hex64: true },
+        wifi_key: String<64> = String::new(),
         "The WPA2 pre-shared key, 64 hex digits (`tinybms wifi` derives it from the passphrase).";
-    Hostname = 62, "hostname", "", Network, Restart, text(32, TextRule::Host),
+    Hostname = 62 since 1, "hostname", "", Network, Restart, text(32, TextRule::Host),
+        hostname: String<32> = String::new(),
         "The bridge's name on the network; empty = tinybms-XXXXXX from its MAC address.";
-    MqttHost = 63, "mqtt_host", "", Network, Restart, text(64, TextRule::Host),
+    MqttHost = 63 since 1, "mqtt_host", "", Network, Restart, text(64, TextRule::Host),
+        mqtt_host: String<64> = String::new(),
         "The MQTT broker (host name or IPv4 address); empty = no MQTT.";
-    MqttPort = 64, "mqtt_port", "", Network, Restart, num(1, 65_535, 0),
+    MqttPort = 64 since 1, "mqtt_port", "", Network, Restart, num(1, 65_535, 0),
+        mqtt_port: u16 = 1883,
         "The broker's TCP port.";
-    MqttUser = 65, "mqtt_user", "", Network, Restart, text(32, TextRule::Printable),
+    MqttUser = 65 since 1, "mqtt_user", "", Network, Restart, text(32, TextRule::Printable),
+        mqtt_user: String<32> = String::new(),
         "User name at the broker; empty = none.";
-    MqttPassword = 66, "mqtt_password", "", Network, Restart, Kind::Secret { max: 64, hex64: false },
+    MqttPassword = 66 since 1, "mqtt_password", "", Network, Restart, Kind::Secret { max: 64, hex64: false },
+        mqtt_password: String<64> = String::new(),
         "Password at the broker.";
-    TopicPrefix = 67, "topic_prefix", "", Network, Restart, text(32, TextRule::Topic),
+    TopicPrefix = 67 since 1, "topic_prefix", "", Network, Restart, text(32, TextRule::Topic),
+        topic_prefix: String<32> = fixed_text("tinybms"),
         "The bridge's MQTT topics start with this.";
-    Discovery = 68, "discovery", "", Network, Restart, Kind::Bool,
+    Discovery = 68 since 1, "discovery", "", Network, Restart, Kind::Bool,
+        discovery: bool = true,
         "Publish Home Assistant discovery configs (off: remove them).";
-    DiscoveryPrefix = 69, "discovery_prefix", "", Network, Restart, text(32, TextRule::Topic),
+    DiscoveryPrefix = 69 since 1, "discovery_prefix", "", Network, Restart, text(32, TextRule::Topic),
+        discovery_prefix: String<32> = fixed_text("homeassistant"),
         "Home Assistant's discovery prefix.";
-    PublishPeriod = 70, "publish_period", "s", Network, Restart, num(1, 3600, 0),
+    PublishPeriod = 70 since 1, "publish_period", "s", Network, Restart, num(1, 3600, 0),
+        publish_period_s: u16 = 5,
         "How often the state is published (and at once on a status change).";
-    PackName = 71, "pack_name", "", Network, Restart, text(24, TextRule::Printable),
+    PackName = 71 since 3, "pack_name", "", Network, Restart, text(24, TextRule::Printable),
+        pack_name: String<24> = String::new(),
         "The pack's name: its device in Home Assistant and `tinybms monitor`'s header; empty = TinyBMS and the end of the BMS's serial.";
 }
 
@@ -350,147 +519,11 @@ const FIELDS_FALLBACK: Field = Field {
     help: "",
 };
 
-/// The bridge's configuration record. See the module documentation; every
-/// field's unit and range is in [`FIELDS`].
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Config {
-    /// `can_output`.
-    pub can_output: bool,
-    /// `inverter_protocol`.
-    pub protocol: Protocol,
-    /// `stale_after`, s.
-    pub stale_after_s: u16,
-    /// `stale_policy`.
-    pub stale_policy: StaleMode,
-    /// `stale_hold`, s.
-    pub stale_hold_s: u16,
-    /// `pack_node` (0: alone).
-    pub pack_node: u8,
-    /// `absorption_voltage`, mV per cell (0: the BMS's register 300).
-    pub absorption_mv: u16,
-    /// `absorption_margin`, mV.
-    pub absorption_margin_mv: u16,
-    /// `float_voltage`, mV per cell (0: 15/16 of absorption).
-    pub float_mv: u16,
-    /// `ceiling_margin`, mV.
-    pub ceiling_margin_mv: u16,
-    /// `discharge_margin`, mV.
-    pub discharge_margin_mv: u16,
-    /// `charge_taper`, mV.
-    pub charge_taper_mv: u16,
-    /// `discharge_taper`, mV.
-    pub discharge_taper_mv: u16,
-    /// `runner_tolerance`, mV.
-    pub runner_tolerance_mv: u16,
-    /// `tail_current`, 0.1 A.
-    pub tail_current_da: u16,
-    /// `full_hold`, s.
-    pub full_hold_s: u16,
-    /// `rebulk_soc`, %.
-    pub rebulk_soc_pct: u8,
-    /// `charge_current_cap`, 0.1 A (0: none).
-    pub ccl_cap_da: u16,
-    /// `discharge_current_cap`, 0.1 A (0: none).
-    pub dcl_cap_da: u16,
-    /// `temperature_margin`, °C.
-    pub temperature_margin_c: u8,
-    /// `limit_hold`, s.
-    pub limit_hold_s: u16,
-    /// `ramp_rate`, 0.1 A/s.
-    pub ramp_da_per_s: u16,
-    /// `cvl_raise_interval`, s.
-    pub cvl_raise_interval_s: u16,
-    /// `warning_margin`, mV.
-    pub warning_margin_mv: u16,
-    /// `warning_current`, %.
-    pub warning_current_pct: u8,
-    /// `read_only`.
-    pub read_only: bool,
-    /// `stream_period`, ms (0: off).
-    pub stream_period_ms: u32,
-    /// `wifi_ssid`.
-    pub wifi_ssid: String<32>,
-    /// `wifi_key` (64 hex digits or empty).
-    pub wifi_key: String<64>,
-    /// `hostname`.
-    pub hostname: String<32>,
-    /// `mqtt_host`.
-    pub mqtt_host: String<64>,
-    /// `mqtt_port`.
-    pub mqtt_port: u16,
-    /// `mqtt_user`.
-    pub mqtt_user: String<32>,
-    /// `mqtt_password`.
-    pub mqtt_password: String<64>,
-    /// `topic_prefix`.
-    pub topic_prefix: String<32>,
-    /// `discovery`.
-    pub discovery: bool,
-    /// `discovery_prefix`.
-    pub discovery_prefix: String<32>,
-    /// `publish_period`, s.
-    pub publish_period_s: u16,
-    /// `pack_name` (empty: none).
-    pub pack_name: String<24>,
-}
-
 /// `s` as a heapless string (a default's text always fits its field).
 fn fixed_text<const N: usize>(s: &str) -> String<N> {
     let mut out = String::new();
     let _ = out.push_str(s);
     out
-}
-
-impl Default for Config {
-    /// An unconfigured bridge: Victron protocol, CAN on, stop sending on stale
-    /// data, charge control's documented defaults
-    /// ([`ChargeConfig::default`]), a read-write host link streaming every
-    /// second, no network.
-    fn default() -> Self {
-        let c = ChargeConfig::default();
-        let i = InverterConfig::default();
-        Self {
-            can_output: true,
-            protocol: Protocol::Victron,
-            stale_after_s: (i.freshness.limit_us / SECOND) as u16,
-            stale_policy: StaleMode::Hold,
-            stale_hold_s: (i.stale_hold_us / SECOND) as u16,
-            pack_node: i.node,
-            absorption_mv: c.absorption_mv.unwrap_or(0),
-            absorption_margin_mv: c.absorption_margin_mv,
-            float_mv: c.float_mv.unwrap_or(0),
-            ceiling_margin_mv: c.ov_margin_mv,
-            discharge_margin_mv: c.uv_margin_mv,
-            charge_taper_mv: c.ccl_taper_mv,
-            discharge_taper_mv: c.dcl_taper_mv,
-            runner_tolerance_mv: c.runner_tolerance_mv,
-            tail_current_da: (c.tail_current_a * 10.0) as u16,
-            full_hold_s: (c.full_hold_us / SECOND) as u16,
-            rebulk_soc_pct: c.rebulk_soc_pct as u8,
-            ccl_cap_da: c.ccl_cap_da.unwrap_or(0),
-            dcl_cap_da: c.dcl_cap_da.unwrap_or(0),
-            temperature_margin_c: c.temp_margin_c as u8,
-            limit_hold_s: (c.hold_us / SECOND) as u16,
-            ramp_da_per_s: c.ramp_da_per_s,
-            cvl_raise_interval_s: (c.cvl_raise_interval_us / SECOND) as u16,
-            warning_margin_mv: c.warn_margin_mv,
-            warning_current_pct: c.warn_current_pct,
-            read_only: false,
-            stream_period_ms: DEFAULT_STREAM_PERIOD_MS,
-            wifi_ssid: String::new(),
-            wifi_key: String::new(),
-            hostname: String::new(),
-            mqtt_host: String::new(),
-            mqtt_port: 1883,
-            mqtt_user: String::new(),
-            mqtt_password: String::new(),
-            topic_prefix: fixed_text("tinybms"),
-            discovery: true,
-            discovery_prefix: fixed_text("homeassistant"),
-            publish_period_s: 5,
-            pack_name: String::new(),
-        }
-    }
 }
 
 /// Why a record (or a change to it) breaks a rule between fields.
@@ -526,134 +559,6 @@ fn opt(v: u16) -> Option<u16> {
 }
 
 impl Config {
-    /// This field's value.
-    pub fn get(&self, id: FieldId) -> Value<'_> {
-        use FieldId::*;
-        let n = |v: u32| Value::Number(v as i32);
-        match id {
-            CanOutput => Value::Bool(self.can_output),
-            InverterProtocol => Value::Choice(match self.protocol {
-                Protocol::Victron => 0,
-                Protocol::SmaSunnyIsland => 1,
-            }),
-            StaleAfter => n(self.stale_after_s.into()),
-            StalePolicyField => Value::Choice(match self.stale_policy {
-                StaleMode::Stop => 0,
-                StaleMode::Hold => 1,
-            }),
-            StaleHold => n(self.stale_hold_s.into()),
-            PackNode => n(self.pack_node.into()),
-            AbsorptionVoltage => n(self.absorption_mv.into()),
-            AbsorptionMargin => n(self.absorption_margin_mv.into()),
-            FloatVoltage => n(self.float_mv.into()),
-            CeilingMargin => n(self.ceiling_margin_mv.into()),
-            DischargeMargin => n(self.discharge_margin_mv.into()),
-            ChargeTaper => n(self.charge_taper_mv.into()),
-            DischargeTaper => n(self.discharge_taper_mv.into()),
-            RunnerTolerance => n(self.runner_tolerance_mv.into()),
-            TailCurrent => n(self.tail_current_da.into()),
-            FullHold => n(self.full_hold_s.into()),
-            RebulkSoc => n(self.rebulk_soc_pct.into()),
-            ChargeCurrentCap => n(self.ccl_cap_da.into()),
-            DischargeCurrentCap => n(self.dcl_cap_da.into()),
-            TemperatureMargin => n(self.temperature_margin_c.into()),
-            LimitHold => n(self.limit_hold_s.into()),
-            RampRate => n(self.ramp_da_per_s.into()),
-            CvlRaiseInterval => n(self.cvl_raise_interval_s.into()),
-            WarningMargin => n(self.warning_margin_mv.into()),
-            WarningCurrent => n(self.warning_current_pct.into()),
-            ReadOnly => Value::Bool(self.read_only),
-            StreamPeriod => n(self.stream_period_ms),
-            WifiSsid => Value::Text(&self.wifi_ssid),
-            WifiKey => Value::Text(&self.wifi_key),
-            Hostname => Value::Text(&self.hostname),
-            MqttHost => Value::Text(&self.mqtt_host),
-            MqttPort => n(self.mqtt_port.into()),
-            MqttUser => Value::Text(&self.mqtt_user),
-            MqttPassword => Value::Text(&self.mqtt_password),
-            TopicPrefix => Value::Text(&self.topic_prefix),
-            Discovery => Value::Bool(self.discovery),
-            DiscoveryPrefix => Value::Text(&self.discovery_prefix),
-            PublishPeriod => n(self.publish_period_s.into()),
-            PackName => Value::Text(&self.pack_name),
-        }
-    }
-
-    /// Sets this field, after [`value::check`]: a value outside the field's
-    /// kind or range is refused and nothing changes.
-    pub fn set(&mut self, id: FieldId, v: Value<'_>) -> Result<(), FieldError> {
-        value::check(id.field(), &v)?;
-        use FieldId::*;
-        let text = |s: &str, out: &mut dyn FnMut(&str) -> bool| {
-            if out(s) {
-                Ok(())
-            } else {
-                Err(FieldError::TOO_LONG)
-            }
-        };
-        // `check` has bounded every number to its field's range, which fits
-        // the field's type: the casts below cannot truncate.
-        match (id, v) {
-            (CanOutput, Value::Bool(b)) => self.can_output = b,
-            (ReadOnly, Value::Bool(b)) => self.read_only = b,
-            (Discovery, Value::Bool(b)) => self.discovery = b,
-            (InverterProtocol, Value::Choice(c)) => {
-                self.protocol = if c == 0 {
-                    Protocol::Victron
-                } else {
-                    Protocol::SmaSunnyIsland
-                }
-            }
-            (StalePolicyField, Value::Choice(c)) => {
-                self.stale_policy = if c == 0 {
-                    StaleMode::Stop
-                } else {
-                    StaleMode::Hold
-                }
-            }
-            (StaleAfter, Value::Number(n)) => self.stale_after_s = n as u16,
-            (StaleHold, Value::Number(n)) => self.stale_hold_s = n as u16,
-            (PackNode, Value::Number(n)) => self.pack_node = n as u8,
-            (AbsorptionVoltage, Value::Number(n)) => self.absorption_mv = n as u16,
-            (AbsorptionMargin, Value::Number(n)) => self.absorption_margin_mv = n as u16,
-            (FloatVoltage, Value::Number(n)) => self.float_mv = n as u16,
-            (CeilingMargin, Value::Number(n)) => self.ceiling_margin_mv = n as u16,
-            (DischargeMargin, Value::Number(n)) => self.discharge_margin_mv = n as u16,
-            (ChargeTaper, Value::Number(n)) => self.charge_taper_mv = n as u16,
-            (DischargeTaper, Value::Number(n)) => self.discharge_taper_mv = n as u16,
-            (RunnerTolerance, Value::Number(n)) => self.runner_tolerance_mv = n as u16,
-            (TailCurrent, Value::Number(n)) => self.tail_current_da = n as u16,
-            (FullHold, Value::Number(n)) => self.full_hold_s = n as u16,
-            (RebulkSoc, Value::Number(n)) => self.rebulk_soc_pct = n as u8,
-            (ChargeCurrentCap, Value::Number(n)) => self.ccl_cap_da = n as u16,
-            (DischargeCurrentCap, Value::Number(n)) => self.dcl_cap_da = n as u16,
-            (TemperatureMargin, Value::Number(n)) => self.temperature_margin_c = n as u8,
-            (LimitHold, Value::Number(n)) => self.limit_hold_s = n as u16,
-            (RampRate, Value::Number(n)) => self.ramp_da_per_s = n as u16,
-            (CvlRaiseInterval, Value::Number(n)) => self.cvl_raise_interval_s = n as u16,
-            (WarningMargin, Value::Number(n)) => self.warning_margin_mv = n as u16,
-            (WarningCurrent, Value::Number(n)) => self.warning_current_pct = n as u8,
-            (StreamPeriod, Value::Number(n)) => self.stream_period_ms = n as u32,
-            (MqttPort, Value::Number(n)) => self.mqtt_port = n as u16,
-            (PublishPeriod, Value::Number(n)) => self.publish_period_s = n as u16,
-            (WifiSsid, Value::Text(s)) => text(s, &mut |s| set_text(&mut self.wifi_ssid, s))?,
-            (WifiKey, Value::Text(s)) => text(s, &mut |s| set_text(&mut self.wifi_key, s))?,
-            (Hostname, Value::Text(s)) => text(s, &mut |s| set_text(&mut self.hostname, s))?,
-            (MqttHost, Value::Text(s)) => text(s, &mut |s| set_text(&mut self.mqtt_host, s))?,
-            (MqttUser, Value::Text(s)) => text(s, &mut |s| set_text(&mut self.mqtt_user, s))?,
-            (MqttPassword, Value::Text(s)) => {
-                text(s, &mut |s| set_text(&mut self.mqtt_password, s))?
-            }
-            (TopicPrefix, Value::Text(s)) => text(s, &mut |s| set_text(&mut self.topic_prefix, s))?,
-            (DiscoveryPrefix, Value::Text(s)) => {
-                text(s, &mut |s| set_text(&mut self.discovery_prefix, s))?
-            }
-            (PackName, Value::Text(s)) => text(s, &mut |s| set_text(&mut self.pack_name, s))?,
-            _ => return Err(FieldError::WRONG_KIND),
-        }
-        Ok(())
-    }
-
     /// The rules between fields. A record that breaks one is never stored nor
     /// run with.
     pub fn validate(&self) -> Result<(), RuleError> {

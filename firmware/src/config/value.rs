@@ -20,7 +20,7 @@
 use heapless::String;
 
 use super::{Field, Kind, TextRule, TEXT_MAX};
-use crate::line::Line;
+use crate::log_line::Line;
 
 /// A value of some field.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

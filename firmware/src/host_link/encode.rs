@@ -17,7 +17,7 @@ use crate::bms::link::LinkStats;
 use crate::bridge::report::WriteOutcome;
 use crate::units::{fixed, physical, rounded};
 
-use super::lines::{self, Wire};
+use super::schema::{self, Wire};
 use super::wire::{Cells, Hex, Name};
 
 /// Decimals of f32 quantities (pack voltage, current, speed): replay's
@@ -97,12 +97,12 @@ pub struct HelloFields<'a> {
 
 /// Writes a `hello` line.
 pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<usize> {
-    let mut ip = crate::line::Line::new();
+    let mut ip = crate::log_line::Line::new();
     if let Some(crate::improv::WifiLink::Up(a)) = f.wifi {
         crate::text::ipv4(a, &mut ip);
     }
     line(
-        &lines::Hello::<Wire> {
+        &schema::Hello::<Wire> {
             ty: "hello",
             req,
             protocol: super::PROTOCOL_VERSION,
@@ -115,7 +115,7 @@ pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<us
             read_only: f.read_only,
             stream_period_ms: f.stream_period_ms,
             dropped_lines: f.dropped_lines,
-            store: f.store.map(|s| lines::Store::<Wire> {
+            store: f.store.map(|s| schema::Store::<Wire> {
                 flash_kib: s.flash_bytes / 1024,
                 partition_offset: s.partition.map(|p| p.0),
                 partition_bytes: s.partition.map(|p| p.1),
@@ -124,7 +124,7 @@ pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<us
             }),
             mqtt: f.mqtt,
             radio: f.radio,
-            wifi: f.wifi.map(|w| lines::Wifi::<Wire> {
+            wifi: f.wifi.map(|w| schema::Wifi::<Wire> {
                 state: w.key(),
                 ip: (!ip.as_str().is_empty()).then_some(ip.as_str()),
             }),
@@ -199,10 +199,10 @@ pub struct InverterState {
 }
 
 /// The `inverter` member of a `telemetry` line.
-fn inverter_member<'a>(s: &InverterState) -> lines::Inverter<Wire<'a>> {
+fn inverter_member<'a>(s: &InverterState) -> schema::Inverter<Wire<'a>> {
     let l =
         |f: fn(&(u16, u16, u16)) -> u16| s.limits.as_ref().and_then(|x| fixed(i64::from(f(x)), 1));
-    lines::Inverter {
+    schema::Inverter {
         protocol: s.protocol,
         can: s.can,
         heard: s.heard,
@@ -226,8 +226,8 @@ pub fn telemetry(
         .filter(|_| extras.is_some())
         .map(|s| balancing_cells(s.real_balancing_bits, s.cell_count));
     line(
-        &lines::Telemetry::<Wire> {
-            head: lines::Head {
+        &schema::Telemetry::<Wire> {
+            head: schema::Head {
                 ty: "telemetry",
                 req: head.req,
                 seq: head.seq,
@@ -237,7 +237,7 @@ pub fn telemetry(
                 ready: head.ready,
             },
             snapshot: snapshot.map(|s| snapshot_members(s, flagged)),
-            told: lines::Told {
+            told: schema::Told {
                 inverter: head.inverter.as_ref().map(inverter_member),
             },
             extras: match (snapshot, extras, &balancing) {
@@ -253,10 +253,10 @@ pub fn telemetry(
 fn snapshot_members<'a>(
     s: &'a LiveSnapshot,
     flagged: Option<&'static str>,
-) -> lines::Snapshot<Wire<'a>> {
+) -> schema::Snapshot<Wire<'a>> {
     let f32v = |x: f32| rounded(f64::from(x), FLOAT_DECIMALS);
     let ext = |t: Option<i16>| t.and_then(|t| fixed(i64::from(t), 1));
-    lines::Snapshot {
+    schema::Snapshot {
         pack_voltage_v: f32v(s.pack_voltage_v),
         pack_current_a: f32v(s.pack_current_a),
         min_cell_voltage_v: fixed(i64::from(s.min_cell_mv), 3),
@@ -286,8 +286,8 @@ fn extras_members<'a>(
     s: &LiveSnapshot,
     e: &StateExtras<'a>,
     balancing: &'a str,
-) -> lines::Extras<Wire<'a>> {
-    lines::Extras {
+) -> schema::Extras<Wire<'a>> {
+    schema::Extras {
         status: e.status,
         pack_power_w: rounded(f64::from(s.pack_voltage_v) * f64::from(s.pack_current_a), 1),
         cell_spread_v: fixed(i64::from(s.max_cell_mv.saturating_sub(s.min_cell_mv)), 3),
@@ -355,7 +355,7 @@ pub fn setting(
     let r = id.register();
     let range = r.and_then(|r| r.range);
     line(
-        &lines::SettingLine::<Wire> {
+        &schema::SettingLine::<Wire> {
             ty: "setting",
             req,
             name: crate::bms::profile::setting_key(id),
@@ -374,13 +374,13 @@ pub fn setting(
 
 /// Writes the line that closes a listing (`settings_end`, `events_end`).
 pub fn end(out: &mut [u8], ty: &'static str, req: Option<u32>, count: u32) -> Option<usize> {
-    line(&lines::End::<Wire> { ty, req, count }, out)
+    line(&schema::End::<Wire> { ty, req, count }, out)
 }
 
 /// Writes a `statistics` line (replay's statistics fields).
 pub fn statistics(out: &mut [u8], req: Option<u32>, s: &Statistics) -> Option<usize> {
     line(
-        &lines::StatisticsLine::<Wire> {
+        &schema::StatisticsLine::<Wire> {
             ty: "statistics",
             req,
             total_distance_km: fixed(i64::from(s.total_distance_raw), 2),
@@ -407,7 +407,7 @@ pub fn statistics(out: &mut [u8], req: Option<u32>, s: &Statistics) -> Option<us
 /// Writes a `version` line (replay's version fields).
 pub fn version(out: &mut [u8], req: Option<u32>, v: &VersionInfo) -> Option<usize> {
     line(
-        &lines::Version::<Wire> {
+        &schema::Version::<Wire> {
             ty: "version",
             req,
             hardware_version: v.hardware,
@@ -427,7 +427,7 @@ pub fn version(out: &mut [u8], req: Option<u32>, v: &VersionInfo) -> Option<usiz
 /// Writes an `event` line (replay's event fields; `history` on `get events`).
 pub fn event(out: &mut [u8], req: Option<u32>, e: &Event, history: bool) -> Option<usize> {
     line(
-        &lines::EventLine::<Wire> {
+        &schema::EventLine::<Wire> {
             ty: "event",
             req,
             timestamp_s: e.timestamp_s,
@@ -453,7 +453,7 @@ pub fn boot_log(out: &mut [u8], level: crate::Level, text: &str) -> Option<usize
 
 fn log_line(out: &mut [u8], level: crate::Level, text: &str, boot: bool) -> Option<usize> {
     line(
-        &lines::Log::<Wire> {
+        &schema::Log::<Wire> {
             ty: "log",
             level: match level {
                 crate::Level::Info => "info",
@@ -476,7 +476,7 @@ pub fn link(
     host: &super::HostLinkStats,
 ) -> Option<usize> {
     line(
-        &lines::Link::<Wire> {
+        &schema::Link::<Wire> {
             ty: "link",
             req,
             requests: s.requests,
@@ -509,7 +509,7 @@ pub fn link(
 /// Writes an `accepted` line.
 pub fn accepted(out: &mut [u8], req: Option<u32>, cmd: &'static str) -> Option<usize> {
     line(
-        &lines::Accepted::<Wire> {
+        &schema::Accepted::<Wire> {
             ty: "accepted",
             req,
             cmd,
@@ -536,7 +536,7 @@ pub fn outcome(
         }
     };
     line(
-        &lines::Outcome::<Wire> {
+        &schema::Outcome::<Wire> {
             ty: "outcome",
             req,
             name: crate::bms::profile::setting_key(setting.id),
@@ -561,7 +561,7 @@ pub fn outcome(
 /// Writes a `reset_done` line.
 pub fn reset_done(out: &mut [u8], req: Option<u32>, confirmed: bool) -> Option<usize> {
     line(
-        &lines::ResetDone::<Wire> {
+        &schema::ResetDone::<Wire> {
             ty: "reset_done",
             req,
             confirmed,
@@ -573,7 +573,7 @@ pub fn reset_done(out: &mut [u8], req: Option<u32>, confirmed: bool) -> Option<u
 /// Writes a `cleared` line.
 pub fn cleared(out: &mut [u8], req: Option<u32>, what: &'static str, ok: bool) -> Option<usize> {
     line(
-        &lines::Cleared::<Wire> {
+        &schema::Cleared::<Wire> {
             ty: "cleared",
             req,
             what,
@@ -586,7 +586,7 @@ pub fn cleared(out: &mut [u8], req: Option<u32>, what: &'static str, ok: bool) -
 /// Writes a `raw` line (UART bytes while capture is on).
 pub fn raw(out: &mut [u8], dir: &'static str, bytes: &[u8]) -> Option<usize> {
     line(
-        &lines::Raw::<Wire> {
+        &schema::Raw::<Wire> {
             ty: "raw",
             dir,
             hex: Hex(bytes, true),
@@ -613,7 +613,7 @@ pub fn error(
         let _ = d.push_str(subject);
     }
     line(
-        &lines::Error::<Wire> {
+        &schema::Error::<Wire> {
             ty: "error",
             req,
             error: code,
@@ -647,7 +647,7 @@ pub fn config_field(
     let mut r = Line::new();
     value::write_range(f, &mut r);
     line(
-        &lines::ConfigField::<Wire> {
+        &schema::ConfigField::<Wire> {
             ty: "config",
             req,
             name: f.name,
@@ -707,7 +707,7 @@ pub fn config_end(
     config: &crate::config::state::ConfigState,
 ) -> Option<usize> {
     line(
-        &lines::ConfigEnd::<Wire> {
+        &schema::ConfigEnd::<Wire> {
             ty: "config_end",
             req,
             count: crate::config::FIELDS.len() as u32,
@@ -760,7 +760,7 @@ pub fn config_outcome(
     };
     let refused = error.is_some();
     line(
-        &lines::ConfigOutcome::<Wire> {
+        &schema::ConfigOutcome::<Wire> {
             ty: "config_outcome",
             req,
             name,
@@ -777,7 +777,7 @@ pub fn config_outcome(
 /// Writes the `config_outcome` line of a name no field has.
 pub fn config_unknown(out: &mut [u8], req: Option<u32>, name: &str) -> Option<usize> {
     line(
-        &lines::ConfigOutcome::<Wire> {
+        &schema::ConfigOutcome::<Wire> {
             ty: "config_outcome",
             req,
             name,
@@ -800,7 +800,7 @@ pub fn config_done(out: &mut [u8], done: &super::ConfigDone) -> Option<usize> {
         Some(Err(e)) => (Some(false), Some(e.reason())),
     };
     line(
-        &lines::ConfigDone::<Wire> {
+        &schema::ConfigDone::<Wire> {
             ty: "config_done",
             req: done.req,
             changed: done.changed,
@@ -821,7 +821,7 @@ pub fn battery(out: &mut [u8], v: &crate::inverter::packs::BatteryView) -> Optio
         .len()
         .saturating_sub(b.map_or(0, |(b, _)| usize::from(b.online)));
     line(
-        &lines::Battery::<Wire> {
+        &schema::Battery::<Wire> {
             ty: "battery",
             node: v.node,
             speaking: v.speaking,
@@ -848,7 +848,7 @@ pub fn battery(out: &mut [u8], v: &crate::inverter::packs::BatteryView) -> Optio
 pub fn pack(out: &mut [u8], p: &crate::inverter::packs::PackView) -> Option<usize> {
     let s = &p.summary;
     line(
-        &lines::Pack::<Wire> {
+        &schema::Pack::<Wire> {
             ty: "pack",
             node: p.node,
             state: p.part.name(),

@@ -1,4 +1,4 @@
-//! The values the firmware's lines are made of ([`Wire`](super::lines::Wire)'s
+//! The values the firmware's lines are made of ([`Wire`](super::schema::Wire)'s
 //! members), and how each is written: exact decimals ([`Dec`]) as `serde_json`
 //! prints an `f64`, names from the BMS's tables ([`Name`]), cell voltages
 //! ([`Cells`]) and bytes as hex ([`Hex`]). No allocation, no `core::fmt`.

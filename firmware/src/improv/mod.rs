@@ -29,7 +29,7 @@ pub mod wire;
 use heapless::{Deque, String, Vec};
 
 use crate::identity::Identity;
-use crate::line::Line;
+use crate::log_line::Line;
 use crate::Instant;
 pub use wire::{ErrorState, PacketError, Rpc, State};
 

@@ -3,7 +3,13 @@
 //! TWAI controller; the host runs it against a simulated pack and inverter.
 //!
 //! * [`control`] — the charge limits and alarms (the part that protects cells).
-//! * [`frames`] — the Victron and SMA Sunny Island frame layouts.
+//! * [`frames`] — the Victron and SMA Sunny Island frame layouts;
+//!   [`protocol`] — which frames each protocol sends.
+//! * [`bus`] — the CAN port's health (no ACK, bus-off, the inverter heard).
+//! * [`stale`] — a stale episode, its hold and a policy given meanwhile.
+//! * [`membership`] and [`packs`] — several packs on one bus: this bridge's
+//!   part, and the wire and rules they share.
+//! * [`port`] — the controller's side, as the chip's CAN task pumps it.
 //!
 //! Inputs: [`Inverter::on_snapshot`] (each published snapshot, with the
 //! settings), [`Inverter::on_event`] (BMS events), [`Inverter::on_received`]
@@ -28,22 +34,25 @@
 //! is back, nothing waits a hold: DCL is what the data says at once, CCL
 //! ramps from 0 ([`control::ChargeControl::resume`]).
 
+pub mod bus;
 pub mod control;
 pub mod frames;
+pub mod membership;
 pub mod packs;
 pub mod port;
 pub mod protocol;
+pub mod stale;
 
 use heapless::Deque;
 use protocol_core::events::{Event, EventId};
 use protocol_core::views::{LiveSnapshot, VersionInfo};
 
+use self::bus::BusHealth;
 use self::control::{ChargeConfig, ChargeControl, Conditions, Limits, PackSettings, PackState};
 use self::frames::CanFrame;
-use self::packs::{
-    Battery, BatteryLimits, BatteryView, Election, Member, PackPart, PackView, Packs, Received,
-    Shares, Summary,
-};
+use self::membership::Membership;
+use self::packs::{Battery, BatteryView, Packs, Shares, Summary};
+use self::stale::StaleEpisode;
 use crate::Instant;
 
 pub use self::protocol::Protocol;
@@ -273,9 +282,26 @@ fn limits_log_due(
 
 /// Frames in one burst at most (a summary and a slow period of the battery's).
 const QUEUE: usize = 16;
-/// Failed transmissions in a row before "no ACK" is reported (and sending slows
-/// to the fast period only).
-const NO_ACK_AFTER: u32 = 8;
+
+/// What the inverter output has to log, oldest first; when full, the oldest
+/// is dropped.
+#[derive(Debug, Clone, Default)]
+pub struct Reports(Deque<InverterReport, 8>);
+
+impl Reports {
+    /// Adds `r` (dropping the oldest when full).
+    pub fn push(&mut self, r: InverterReport) {
+        if self.0.is_full() {
+            let _ = self.0.pop_front();
+        }
+        let _ = self.0.push_back(r);
+    }
+
+    /// The oldest, taken.
+    pub fn pop(&mut self) -> Option<InverterReport> {
+        self.0.pop_front()
+    }
+}
 
 /// The inverter output. See the module documentation.
 #[derive(Debug, Clone)]
@@ -296,37 +322,10 @@ pub struct Inverter {
     queue: Deque<CanFrame, QUEUE>,
     next_fast: Instant,
     next_slow: Instant,
-    stale_since: Option<Instant>,
-    hold_ended: bool,
-    inverter_seen_at: Option<Instant>,
-    inverter_seen: bool,
-    tx_failures: u32,
-    no_ack_reported: bool,
-    bus_off: Option<Instant>,
-    bus_offs: u32,
-    frames_sent: u32,
-    reports: Deque<InverterReport, 8>,
-    /// A stale policy given while the data is stale: it applies from the next
-    /// stale episode on (see [`Inverter::reconfigure`]).
-    next_stale_policy: Option<(StaleMode, Instant)>,
-    /// Several packs: what was heard, who speaks, the battery's limits.
-    packs: Packs,
-    election: Election,
-    battery_limits: BatteryLimits,
-    shares: Shares,
-    battery: Option<(Battery, Limits)>,
-    logged_battery: Option<Limits>,
-    logged_packs: Option<(u8, u8)>,
-    battery_lost: bool,
-    /// The battery's limits last sent as the speaker (for the stop frames a
-    /// Sunny Island needs when the battery is lost).
-    sent_battery: Option<Limits>,
-    duplicate_reported: bool,
-    /// Nodes whose refused summary was reported (bit `node - 1`).
-    refused_reported: u8,
-    seq: u8,
-    own_summary: Option<Summary>,
-    own_closed: Option<(u16, u16)>,
+    stale: StaleEpisode,
+    bus: BusHealth,
+    reports: Reports,
+    membership: Membership,
     /// The last 0x351 handed out, and when.
     told: Option<(Limits, Instant)>,
 }
@@ -351,102 +350,39 @@ impl Inverter {
             queue: Deque::new(),
             next_fast: now,
             next_slow: now,
-            stale_since: None,
-            hold_ended: false,
-            inverter_seen_at: None,
-            inverter_seen: false,
-            tx_failures: 0,
-            no_ack_reported: false,
-            bus_off: None,
-            bus_offs: 0,
-            frames_sent: 0,
-            reports: Deque::new(),
-            next_stale_policy: None,
-            packs: Packs::new(if config.node <= packs::MAX_NODES {
-                config.node
-            } else {
-                0
-            }),
-            election: Election::new(now),
-            battery_limits: BatteryLimits::new(),
-            shares: Shares::new(),
-            battery: None,
-            logged_battery: None,
-            logged_packs: None,
-            // No battery yet is no battery lost: a bridge that just started
-            // (its own data not read yet) says nothing until it had one.
-            battery_lost: true,
-            sent_battery: None,
-            duplicate_reported: false,
-            refused_reported: 0,
-            seq: 0,
-            own_summary: None,
-            own_closed: None,
+            stale: StaleEpisode::default(),
+            bus: BusHealth::default(),
+            reports: Reports::default(),
+            membership: Membership::new(config.node, now),
             told: None,
         }
     }
 
     /// The node number it runs with (0 = alone).
     pub fn node(&self) -> u8 {
-        self.packs.node()
+        self.membership.node()
     }
 
     /// Several packs: the battery last computed and the limits sent for it
     /// (computed by every node, sent by the speaker only).
     pub fn battery(&self) -> Option<&(Battery, Limits)> {
-        self.battery.as_ref()
+        self.membership.battery()
     }
 
     /// Several packs: this bridge speaks to the inverter.
     pub fn speaking(&self) -> bool {
-        self.election.speaking()
+        self.membership.speaking()
     }
 
     /// Several packs: what was heard of the other nodes.
     pub fn packs(&self) -> &Packs {
-        &self.packs
+        self.membership.packs()
     }
 
     /// Several packs: the battery and every pack as this bridge sees them at
     /// `now`; `None` for a bridge alone (node 0).
     pub fn battery_view(&self, now: Instant) -> Option<BatteryView> {
-        let node = self.packs.node();
-        if node == 0 {
-            return None;
-        }
-        let freshness = self.config.freshness;
-        let mut packs: heapless::Vec<PackView, { packs::MAX_NODES as usize }> =
-            heapless::Vec::new();
-        // By node number: the others come in order; this one goes between.
-        // The data's age now (sent age plus the time since), as the line shows it.
-        let view = |n: u8, m: Member| PackView {
-            node: n,
-            summary: Summary {
-                age_ds: m
-                    .data_age_us()
-                    .map_or(u8::MAX, |a| (a / (100 * crate::MS)).min(255) as u8),
-                ..m.summary
-            },
-            part: PackPart::of(&m, freshness),
-        };
-        let mut own = self.own_summary.map(|s| view(node, Member::now(s)));
-        for (n, m) in self.packs.known(now) {
-            if n > node {
-                if let Some(o) = own.take() {
-                    let _ = packs.push(o);
-                }
-            }
-            let _ = packs.push(view(n, m));
-        }
-        if let Some(o) = own {
-            let _ = packs.push(o);
-        }
-        Some(BatteryView {
-            node,
-            speaking: self.election.speaking(),
-            battery: self.battery,
-            packs,
-        })
+        self.membership.view(now, self.config.freshness)
     }
 
     /// The configuration changed while running (a `set_config` of fields that
@@ -463,12 +399,8 @@ impl Inverter {
         c.protocol = self.config.protocol;
         c.node = self.config.node;
         let policy = |c: &InverterConfig| (c.stale_policy, c.stale_hold_us);
-        if self.stale_since.is_some() && policy(&c) != policy(&self.config) {
-            self.next_stale_policy = Some(policy(&c));
-            (c.stale_policy, c.stale_hold_us) = policy(&self.config);
-        } else {
-            self.next_stale_policy = None;
-        }
+        (c.stale_policy, c.stale_hold_us) =
+            self.stale.reconfigure(policy(&self.config), policy(&c));
         self.control.set_config(c.charge);
         self.config = c;
     }
@@ -505,19 +437,12 @@ impl Inverter {
 
     /// Frames transmitted successfully.
     pub fn frames_sent(&self) -> u32 {
-        self.frames_sent
+        self.bus.frames_sent()
     }
 
     /// The next report to log.
     pub fn next_report(&mut self) -> Option<InverterReport> {
-        self.reports.pop_front()
-    }
-
-    fn report(&mut self, r: InverterReport) {
-        if self.reports.is_full() {
-            let _ = self.reports.pop_front();
-        }
-        let _ = self.reports.push_back(r);
+        self.reports.pop()
     }
 
     /// A published snapshot, decoded at `taken_at`, with the BMS settings
@@ -575,35 +500,14 @@ impl Inverter {
         }
     }
 
-    /// A frame from the bus (the GX keep-alive).
+    /// A frame from the bus (the GX keep-alive, other packs' summaries).
     pub fn on_received(&mut self, now: Instant, id: u16, data: &[u8]) {
         if !self.config.enabled {
             return; // output off: the bus is none of our business
         }
-        match self.packs.on_frame(now, id, data) {
-            Received::DuplicateNode if !self.duplicate_reported => {
-                self.duplicate_reported = true;
-                let n = self.packs.node();
-                self.report(InverterReport::DuplicateNode(n));
-            }
-            Received::Refused(node, e) => {
-                let bit = 1u8 << (node.saturating_sub(1) & 7);
-                if self.refused_reported & bit == 0 {
-                    self.refused_reported |= bit;
-                    self.report(InverterReport::SummaryRefused(node, e));
-                }
-            }
-            Received::Complete(node) => {
-                self.refused_reported &= !(1u8 << (node.saturating_sub(1) & 7));
-            }
-            _ => {}
-        }
+        self.membership.on_frame(now, id, data, &mut self.reports);
         if id == frames::ID_GX_KEEPALIVE || id == frames::ID_GX_KEEPALIVE_2 {
-            self.inverter_seen_at = Some(now);
-            if !self.inverter_seen {
-                self.inverter_seen = true;
-                self.report(InverterReport::InverterSeen);
-            }
+            self.bus.keepalive(now, &mut self.reports);
         }
     }
 
@@ -611,44 +515,22 @@ impl Inverter {
     pub fn can_state(&self) -> CanState {
         if !self.config.enabled {
             CanState::Off
-        } else if self.bus_off.is_some() {
-            CanState::BusOff
-        } else if self.no_ack_reported {
-            CanState::NoAck
-        } else if self.frames_sent > 0 {
-            CanState::Running
         } else {
-            CanState::Waiting
+            self.bus.state()
         }
     }
 
     /// The inverter's keep-alive is heard (within its timeout).
     pub fn inverter_heard(&self) -> bool {
-        self.inverter_seen
+        self.bus.inverter_heard()
     }
 
     /// Result of the last [`InverterAction::Send`].
     pub fn on_tx(&mut self, _now: Instant, result: TxResult) {
-        match result {
-            TxResult::Sent => {
-                self.frames_sent = self.frames_sent.wrapping_add(1);
-                if self.no_ack_reported {
-                    self.report(InverterReport::BusOk);
-                }
-                self.tx_failures = 0;
-                self.no_ack_reported = false;
-            }
-            TxResult::Failed => {
-                self.tx_failures = self.tx_failures.saturating_add(1);
-                if self.tx_failures >= NO_ACK_AFTER && !self.no_ack_reported {
-                    self.no_ack_reported = true;
-                    let failures = self.tx_failures;
-                    self.report(InverterReport::NoAck { failures });
-                }
-                // Whatever was queued is not retried: the next period sends
-                // fresh values (never stale ones late).
-                self.queue.clear();
-            }
+        if !self.bus.on_tx(result, &mut self.reports) {
+            // Whatever was queued is not retried: the next period sends
+            // fresh values (never stale ones late).
+            self.queue.clear();
         }
     }
 
@@ -656,21 +538,10 @@ impl Inverter {
     pub fn on_bus_off(&mut self, now: Instant) {
         // With a node number: not the speaker while off the bus, and no battery
         // shown as current meanwhile; it listens again after the recovery.
-        if self.election.speaking() {
-            self.report(InverterReport::Speaker(false));
-        }
-        self.election.restart(now);
-        self.battery = None;
-        self.bus_offs = self.bus_offs.saturating_add(1);
-        let shift = self.bus_offs.saturating_sub(1).min(4);
-        let backoff = self.config.bus_off_backoff_us.saturating_mul(1 << shift);
-        self.bus_off = Some(now.saturating_add(backoff));
+        self.membership.on_bus_off(now, &mut self.reports);
         self.queue.clear();
-        let count = self.bus_offs;
-        self.report(InverterReport::BusOff {
-            count,
-            backoff_ms: (backoff / crate::MS).min(u64::from(u32::MAX)) as u32,
-        });
+        self.bus
+            .on_bus_off(now, self.config.bus_off_backoff_us, &mut self.reports);
     }
 
     /// What to do now.
@@ -678,20 +549,19 @@ impl Inverter {
         if !self.config.enabled {
             return InverterAction::WaitUntil(Instant::MAX);
         }
-        self.check_inverter(now);
-        if let Some(t) = self.bus_off {
-            if now < t {
-                return InverterAction::WaitUntil(t);
-            }
-            self.bus_off = None;
-            if self.packs.node() == 0 {
+        let timeout = self.config.inverter_timeout_us;
+        self.bus.check_keepalive(now, timeout, &mut self.reports);
+        if let Some(t) = self.bus.off_until(now) {
+            return InverterAction::WaitUntil(t);
+        }
+        if self.bus.recovery_due(now) {
+            if self.membership.node() == 0 {
                 // The inverter saw no limits meanwhile: they ramp back.
                 self.control.cut(now);
             }
             // With a node number: listen again before speaking; the battery's
             // limits come back after the hold.
-            self.election.restart(now);
-            self.battery_limits.cut(now);
+            self.membership.on_recovery(now);
             return InverterAction::Recover;
         }
         if let Some(f) = self.queue.pop_front() {
@@ -709,10 +579,8 @@ impl Inverter {
             }
         }
         let mut wake = self.next_fast;
-        if let Some(t) = self.inverter_seen_at {
-            if self.inverter_seen {
-                wake = wake.min(t.saturating_add(self.config.inverter_timeout_us));
-            }
+        if let Some(t) = self.bus.keepalive_deadline(timeout) {
+            wake = wake.min(t);
         }
         InverterAction::WaitUntil(wake.max(now.saturating_add(1)))
     }
@@ -724,18 +592,9 @@ impl Inverter {
         InverterAction::Send(f)
     }
 
-    fn check_inverter(&mut self, now: Instant) {
-        if let Some(t) = self.inverter_seen_at {
-            if self.inverter_seen && now.saturating_sub(t) >= self.config.inverter_timeout_us {
-                self.inverter_seen = false;
-                self.report(InverterReport::InverterLost);
-            }
-        }
-    }
-
     /// Computes the limits and queues this period's frames.
     fn fill(&mut self, now: Instant, slow: bool) {
-        if self.packs.node() != 0 {
+        if self.membership.node() != 0 {
             self.fill_member(now, slow);
             return;
         }
@@ -743,42 +602,20 @@ impl Inverter {
             return; // nothing the BMS said yet: nothing to send
         };
         let age = now.saturating_sub(taken_at);
-        let stale = !self.config.freshness.young(Some(age));
-        if stale {
-            let since = *self.stale_since.get_or_insert(now);
-            if since == now {
-                self.report_stale(age);
-            }
-            match self.config.stale_policy {
-                // A Sunny Island keeps obeying the last 0x351 until 0x355 has been
-                // missing for 60 s: tell it to stop at once (CCL 0, DCL 0, no
-                // measurement frames, so it goes to standby after 60 s as well).
-                StaleMode::Stop if self.config.protocol.obeys_last_limits() => {
-                    self.queue_stale(true);
-                }
-                StaleMode::Stop => {}
-                StaleMode::Hold => {
-                    if now.saturating_sub(since) <= self.config.stale_hold_us {
-                        self.queue_stale(false);
-                    } else if !self.hold_ended {
-                        self.hold_ended = true;
-                        self.report(InverterReport::StaleHoldEnded);
-                    }
-                }
-            }
+        if !self.config.freshness.young(Some(age)) {
+            self.fill_stale(now, age);
             return;
         }
-        if self.stale_since.take().is_some() {
+        if self.stale.ends() {
             // The inverter stopped (or ran without charge): the loss was no
             // cause the battery gave — DCL at once, CCL ramps from 0 without
             // the hold (ChargeControl::resume).
             self.control.resume();
-            self.hold_ended = false;
-            if let Some((p, hold)) = self.next_stale_policy.take() {
+            if let Some((p, hold)) = self.stale.resume() {
                 self.config.stale_policy = p;
                 self.config.stale_hold_us = hold;
             }
-            self.report(InverterReport::Fresh);
+            self.reports.push(InverterReport::Fresh);
         }
         let (limits, conditions) = self.update_own(now, &settings, &state);
         let capacity_ah = settings.capacity_cah / 100;
@@ -789,6 +626,31 @@ impl Inverter {
             0,
         );
         self.push_inverter_frames(&limits, &state, &conditions, capacity_ah, modules, slow);
+    }
+
+    /// A bridge alone whose newest data is `age` old, stale: what its
+    /// policy sends.
+    fn fill_stale(&mut self, now: Instant, age: Instant) {
+        let since = self.stale.stale_at(now);
+        if since == now {
+            self.report_stale(age);
+        }
+        match self.config.stale_policy {
+            // A Sunny Island keeps obeying the last 0x351 until 0x355 has been
+            // missing for 60 s: tell it to stop at once (CCL 0, DCL 0, no
+            // measurement frames, so it goes to standby after 60 s as well).
+            StaleMode::Stop if self.config.protocol.obeys_last_limits() => {
+                self.queue_stale(true);
+            }
+            StaleMode::Stop => {}
+            StaleMode::Hold => {
+                if now.saturating_sub(since) <= self.config.stale_hold_us {
+                    self.queue_stale(false);
+                } else if self.stale.hold_ends() {
+                    self.reports.push(InverterReport::StaleHoldEnded);
+                }
+            }
+        }
     }
 
     /// This pack's limits and conditions from fresh data: kept, and logged
@@ -814,7 +676,7 @@ impl Inverter {
         {
             self.logged_limits = Some(limits);
             self.limits_logged_at = now;
-            self.report(InverterReport::Limits(limits));
+            self.reports.push(InverterReport::Limits(limits));
         }
         (limits, conditions)
     }
@@ -850,244 +712,21 @@ impl Inverter {
 
     /// What this bridge has learnt of how the battery's current splits.
     pub fn shares(&self) -> &Shares {
-        &self.shares
+        self.membership.shares()
     }
 
     /// This bridge's own summary as it last sent it (with a node number).
     pub fn own_summary(&self) -> Option<Summary> {
-        self.own_summary
-    }
-
-    /// With a node number: this pack's limits and summary, the battery of all
-    /// packs heard, and — when this bridge is the speaker — the inverter
-    /// frames for the battery.
-    fn fill_member(&mut self, now: Instant, slow: bool) {
-        let own = self.own_pack(now);
-        let speaking = self.elect(now, own.is_some());
-        let own = own.map(|o| self.send_own_summary(o, speaking));
-        let gathered = self.gather(now, own);
-        let shares = self.learn_shares(&gathered);
-        let Some(battery) = self.aggregate(&gathered, &shares) else {
-            self.lose_battery(now, speaking);
-            return;
-        };
-        self.battery_lost = false;
-        if !self.election.listened(now) {
-            // Not every pack heard yet: no battery limits (nor speaking).
-            self.battery = None;
-            return;
-        }
-        let limits = self
-            .battery_limits
-            .step(now, &battery, gathered.mask, &self.config.charge);
-        self.battery = Some((battery, limits));
-        if speaking {
-            self.speak_for_battery(&battery, limits, slow);
-        } else {
-            self.logged_battery = None;
-        }
-    }
-
-    /// This pack as it goes into the battery, once the BMS has said anything:
-    /// its limits are computed while its data is fresh (see
-    /// [`Inverter::refresh_own`]). The summary carries the pack's limits before
-    /// its own hold and ramp: the battery holds and ramps as a whole, so a pack
-    /// that comes back after a cut adds its share at once instead of holding
-    /// the whole battery at 0.
-    fn own_pack(&mut self, now: Instant) -> Option<OwnPack> {
-        let (Some(settings), Some((state, taken_at))) = (self.settings, self.state) else {
-            return None;
-        };
-        let age = now.saturating_sub(taken_at);
-        self.refresh_own(now, age, &settings, &state);
-        let (ccl_da, dcl_da) = self.control.targets();
-        self.limits.map(|l| OwnPack {
-            state,
-            age,
-            limits: Limits {
-                ccl_da,
-                dcl_da,
-                ..l
-            },
-            conditions: self.conditions,
-            capacity_cah: settings.capacity_cah,
-        })
-    }
-
-    /// This pack's data `age` old: stale once (reported when it becomes so),
-    /// or fresh — reported when it was stale, and its limits computed. A pack
-    /// that was stale left the battery meanwhile; the battery's hold and ramp
-    /// rule its return (see `packs`), not this pack's.
-    fn refresh_own(
-        &mut self,
-        now: Instant,
-        age: Instant,
-        settings: &PackSettings,
-        state: &PackState,
-    ) {
-        if !self.config.freshness.young(Some(age)) {
-            if self.stale_since.is_none() {
-                self.stale_since = Some(now);
-                self.report_stale(age);
-            }
-        } else {
-            if self.stale_since.take().is_some() {
-                self.report(InverterReport::Fresh);
-            }
-            self.update_own(now, settings, state);
-        }
+        self.membership.own_summary()
     }
 
     /// Stale telemetry, `age` old: what the configured policy does about it.
     fn report_stale(&mut self, age: Instant) {
-        self.report(InverterReport::Stale {
+        self.reports.push(InverterReport::Stale {
             age_ms: (age / crate::MS).min(u64::from(u32::MAX)) as u32,
             policy: self.config.stale_policy,
             hold_us: self.config.stale_hold_us,
         });
-    }
-
-    /// Who speaks (reported when it changes). A bridge that sends no summary
-    /// (no BMS data yet; another bridge has its number) must not speak: the
-    /// others would not know.
-    fn elect(&mut self, now: Instant, has_own: bool) -> bool {
-        let able = has_own && !self.duplicate_reported;
-        let was = self.election.speaking();
-        let speaking = self.election.update(now, &self.packs, able);
-        if speaking != was {
-            self.report(InverterReport::Speaker(speaking));
-        }
-        speaking
-    }
-
-    /// This pack's summary (saying whether it speaks) onto the bus, and this
-    /// pack as a member of the battery. Another bridge with this node number:
-    /// this one falls silent (the same identifiers with other data would
-    /// collide on the bus) until it restarts; the log says why. The sequence
-    /// number advances either way.
-    fn send_own_summary(&mut self, own: OwnPack, speaking: bool) -> Member {
-        let summary = Summary::own(
-            &own.state,
-            own.age,
-            &own.limits,
-            &own.conditions,
-            own.capacity_cah,
-            speaking,
-        );
-        if !self.duplicate_reported {
-            if let Some(fs) = summary.frames(self.packs.node(), self.seq) {
-                for f in fs {
-                    let _ = self.queue.push_back(f);
-                }
-            }
-        }
-        self.seq = (self.seq + 1) & packs::SEQ_MASK;
-        self.own_summary = Some(summary);
-        // What the pack may take when its BMS closes its switch again.
-        if !summary.fault {
-            self.own_closed = Some((summary.limits.ccl_da, summary.limits.dcl_da));
-        }
-        Member {
-            closed_limits: self.own_closed,
-            ..Member::now(summary)
-        }
-    }
-
-    /// Every pack once (this one first, then the others heard), and the packs
-    /// in the battery's sums as bits.
-    fn gather(&self, now: Instant, own: Option<Member>) -> Gathered {
-        let freshness = self.config.freshness;
-        let mut g = Gathered::new();
-        if let Some(m) = own {
-            g.add(self.packs.node(), m, freshness);
-        }
-        for (n, m) in self.packs.known(now) {
-            g.add(n, m, freshness);
-        }
-        g
-    }
-
-    /// What is learnt of how the current splits (see `packs::shares`), from
-    /// the packs taking part; returns the learnt share of each member, in the
-    /// members' order.
-    fn learn_shares(&mut self, g: &Gathered) -> [Option<f32>; packs::MAX_NODES as usize] {
-        let freshness = self.config.freshness;
-        let mut part: heapless::Vec<(u8, i16), { packs::MAX_NODES as usize }> =
-            heapless::Vec::new();
-        for (n, m) in g.nodes.iter().zip(&g.members) {
-            if m.takes_part(freshness) {
-                let _ = part.push((*n, m.summary.current_da));
-            }
-        }
-        let unknown = g.members.iter().any(|m| m.unknown(freshness));
-        self.shares.update(&part, unknown);
-        let mut shares = [None; packs::MAX_NODES as usize];
-        for (s, n) in shares.iter_mut().zip(&g.nodes) {
-            *s = self.shares.of(*n);
-        }
-        shares
-    }
-
-    /// The battery the members add up to (`None`: no pack takes part); the
-    /// packs online and offline reported when they change.
-    fn aggregate(&mut self, g: &Gathered, shares: &[Option<f32>]) -> Option<Battery> {
-        let battery = packs::aggregate_with(&g.members, self.config.freshness, shares);
-        let counts = battery.map_or((0, g.members.len() as u8), |b| (b.online, b.offline));
-        if self.logged_packs != Some(counts) {
-            self.logged_packs = Some(counts);
-            self.report(InverterReport::Packs {
-                online: counts.0,
-                offline: counts.1,
-            });
-        }
-        battery
-    }
-
-    /// No pack takes part: no battery, its limits cut (they come back after
-    /// the hold), reported once. A speaker towards a Sunny Island, which obeys
-    /// the last 0x351 for 60 s, tells it to stop (CCL 0, DCL 0).
-    fn lose_battery(&mut self, now: Instant, speaking: bool) {
-        self.battery = None;
-        self.battery_limits.cut(now);
-        if !self.battery_lost {
-            self.battery_lost = true;
-            self.report(InverterReport::BatteryLost);
-        }
-        if speaking && self.config.protocol.obeys_last_limits() {
-            if let Some(last) = self.sent_battery {
-                let stop = Limits {
-                    ccl_da: 0,
-                    dcl_da: 0,
-                    ..last
-                };
-                let _ = self.queue.push_back(frames::limits(&stop));
-            }
-        }
-    }
-
-    /// As the speaker: the battery's limits (logged when they change, kept for
-    /// the stop frames of a lost battery) and its inverter frames.
-    fn speak_for_battery(&mut self, battery: &Battery, limits: Limits, slow: bool) {
-        if self.logged_battery != Some(limits) {
-            self.logged_battery = Some(limits);
-            self.report(InverterReport::BatteryLimits(limits));
-        }
-        self.sent_battery = Some(limits);
-        let capacity_ah = (battery.capacity_dah / DAH_PER_AH).min(u32::from(u16::MAX)) as u16;
-        let modules = (
-            u16::from(battery.online),
-            u16::from(battery.blocking_charge),
-            u16::from(battery.blocking_discharge),
-            u16::from(battery.offline),
-        );
-        self.push_inverter_frames(
-            &limits,
-            &battery.state,
-            &battery.conditions,
-            capacity_ah,
-            modules,
-            slow,
-        );
     }
 
     /// Stale: the limits frame with CCL 0 (and DCL 0 when `stop_discharge`),
@@ -1113,57 +752,4 @@ impl Inverter {
         let _ = self.queue.push_back(frames::limits(&stale));
         let _ = self.queue.push_back(self.config.protocol.alarms(&c));
     }
-}
-
-/// 0.1 Ah per Ah (the battery's capacity is summed in 0.1 Ah, sent in Ah).
-const DAH_PER_AH: u32 = 10;
-
-/// This pack as it goes into the battery (with a node number).
-#[derive(Debug, Clone, Copy)]
-struct OwnPack {
-    /// Its state, as last decoded.
-    state: PackState,
-    /// The age of that state, µs.
-    age: Instant,
-    /// Its limits, CCL and DCL before its own hold and ramp.
-    limits: Limits,
-    /// Its alarms and warnings.
-    conditions: Conditions,
-    /// Its capacity (306), 0.01 Ah.
-    capacity_cah: u16,
-}
-
-/// Every pack of the battery once: their node numbers and members in the same
-/// order, and the packs in the battery's sums as bits (node n: bit n − 1).
-struct Gathered {
-    nodes: heapless::Vec<u8, { packs::MAX_NODES as usize }>,
-    members: heapless::Vec<Member, { packs::MAX_NODES as usize }>,
-    mask: u16,
-}
-
-impl Gathered {
-    fn new() -> Self {
-        Self {
-            nodes: heapless::Vec::new(),
-            members: heapless::Vec::new(),
-            mask: 0,
-        }
-    }
-
-    /// Node `n` as `m`. The packs in the battery's sums: a pack without fresh
-    /// data that may still conduct stays (no hold restarts when a lossy bus
-    /// makes packs come and go); one known open leaves.
-    fn add(&mut self, n: u8, m: Member, freshness: Freshness) {
-        let _ = self.nodes.push(n);
-        if m.in_sums(freshness) {
-            self.mask |= node_bit(n);
-        }
-        let _ = self.members.push(m);
-    }
-}
-
-/// Node `n`'s bit in a mask of nodes (bit `n − 1`; the index wrapped to the
-/// mask's 16 bits).
-const fn node_bit(n: u8) -> u16 {
-    1 << (n.saturating_sub(1) & (u16::BITS as u8 - 1))
 }

@@ -121,7 +121,7 @@ pub enum Note {
 
 impl Note {
     /// The log line's words.
-    pub fn write(&self, out: &mut crate::line::Line) {
+    pub fn write(&self, out: &mut crate::log_line::Line) {
         match self {
             Self::Connected => {
                 out.push("MQTT: connected to the broker");

@@ -32,7 +32,8 @@ use protocol_core::response::Response;
 use protocol_core::views::LiveSnapshot;
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::bridge::snapshot_line;
-use tinybms_firmware::{Action, Bridge, Step};
+use tinybms_firmware::bridge::Action;
+use tinybms_firmware::{Bridge, Step};
 
 static TRACE: &[u8] = include_bytes!("../trace.bin");
 

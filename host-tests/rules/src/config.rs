@@ -7,7 +7,7 @@
 use serde_json::Value;
 use tinybms_firmware::config::value::{self, Parsed};
 use tinybms_firmware::config::{Config, FieldId, Kind, FIELDS};
-use tinybms_firmware::host_link::lines::{ConfigField, Read};
+use tinybms_firmware::host_link::schema::{ConfigField, Read};
 use tinybms_firmware::text::Line;
 
 use crate::words::suggest;

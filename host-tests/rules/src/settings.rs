@@ -6,7 +6,7 @@
 
 use protocol_core::registers::{option_name, ValueType};
 use protocol_core::settings::SettingId;
-use tinybms_firmware::host_link::lines::{Read, SettingLine};
+use tinybms_firmware::host_link::schema::{Read, SettingLine};
 use tinybms_firmware::units;
 
 pub use crate::profile::{find_setting, snake_name};

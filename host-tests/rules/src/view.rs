@@ -4,7 +4,7 @@
 
 use std::time::Duration;
 
-use tinybms_firmware::host_link::lines::{Link, Read, Telemetry};
+use tinybms_firmware::host_link::schema::{Link, Read, Telemetry};
 
 /// Link quality from a `link` line: share of requests answered at once, and the
 /// counts.

@@ -6,8 +6,8 @@
 
 use std::process::ExitCode;
 
-use host_tests::harness::record_clean;
 use host_tests::trace::{BENCH_TRACE_SEED, BENCH_TRACE_US};
+use host_tests::virtual_time::record_clean;
 
 fn main() -> ExitCode {
     let out = std::env::args()

@@ -45,7 +45,7 @@ mod linux {
 
     const BROKER: &str = "10.42.0.1";
     const PORT: u16 = 1883;
-    /// The chip's TCP buffers (src/chip/wifi.rs).
+    /// The chip's TCP buffers (src/chip/network.rs).
     const TCP_BUFFER: usize = 2048;
 
     fn ip(args: &[&str]) -> Result<(), String> {

@@ -10,12 +10,12 @@ use std::process::ExitCode;
 use clap::error::ErrorKind;
 use clap::{ArgGroup, ArgMatches, CommandFactory, FromArgMatches, Parser, ValueEnum};
 use host_tests::closed_loop::{run_scenario, scenario_row, ClosedLoop, SCENARIOS, SCENARIO_HEADER};
-use host_tests::harness::{Harness, Soak};
-use host_tests::hosted::{serve_bridge_pty, BridgePtyOptions};
 use host_tests::profile::{parse_assignment, parse_profile};
-use host_tests::realtime::{serve_sim_pty, SimOptions};
+use host_tests::real_time::{serve_sim_pty, SimOptions};
+use host_tests::real_time_station::{serve_bridge_pty, BridgePtyOptions};
 use host_tests::sim::{FaultConfig, PackProfile, SimBms, SimConfig};
 use host_tests::sim_wifi::SimNetwork;
+use host_tests::virtual_time::{Harness, Soak};
 use protocol_core::settings::{Setting, SettingId};
 use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
 use tinybms_firmware::inverter::{InverterConfig, Protocol, StaleMode};
@@ -237,9 +237,9 @@ enum StalePolicy {
 #[derive(Clone)]
 struct ProfileFile(Vec<(SettingId, i32)>);
 
-/// A duration in µs (the syntax of [`host_tests::realtime::parse_duration`]).
+/// A duration in µs (the syntax of [`host_tests::real_time::parse_duration`]).
 fn duration_us(s: &str) -> Result<u64, String> {
-    host_tests::realtime::parse_duration(s)
+    host_tests::real_time::parse_duration(s)
         .map(|d| u64::try_from(d.as_micros()).unwrap_or(u64::MAX))
 }
 
@@ -841,7 +841,7 @@ fn main() -> ExitCode {
 }
 
 /// `--pty` / `--bridge-pty`: real time on a pseudo-terminal (logic in
-/// `host_tests::realtime`).
+/// `host_tests::real_time`).
 fn run_realtime(o: &Options) -> ExitCode {
     let sim = SimOptions {
         pack: o.pack,
@@ -964,14 +964,16 @@ fn run_packs_live(o: &Options, n: usize) -> ExitCode {
     } else {
         None
     };
-    let mut side = pty.as_ref().map(host_tests::hosted::PtySide::new);
+    let mut side = pty
+        .as_ref()
+        .map(host_tests::real_time_station::PtySide::new);
     let duration = o
         .duration_given
         .then(|| std::time::Duration::from_micros(o.duration_us));
     let stop = std::sync::atomic::AtomicBool::new(false);
     let host = side
         .as_mut()
-        .map(|s| s as &mut dyn host_tests::hosted::HostSide);
+        .map(|s| s as &mut dyn host_tests::real_time_station::HostSide);
     match packs.run(duration, &stop, host) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

@@ -4,7 +4,7 @@
 //! in [`Client::pushed`] for whoever wants them (the monitor).
 //!
 //! Every line from the bridge is read once, through the host link's own types
-//! ([`HostLine`], `tinybms_firmware::host_link::lines`): what a line holds,
+//! ([`HostLine`], `tinybms_firmware::host_link::schema`): what a line holds,
 //! the tool reads from its type, never by a member's name in a string. The
 //! JSON it came as is kept beside it ([`Received::raw`]) only to be printed or
 //! logged as it came (`--json`, the log; `req` left out) and to list members a
@@ -15,7 +15,7 @@ use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use serde_json::{json, Map, Value};
-use tinybms_firmware::host_link::lines::{
+use tinybms_firmware::host_link::schema::{
     Error, Hello, HostLine, Link, Outcome, Read, SettingLine, Telemetry,
 };
 
@@ -468,7 +468,7 @@ impl Client {
 #[cfg(test)]
 pub(crate) mod fixtures {
     use serde_json::Value;
-    use tinybms_firmware::host_link::lines::{HostLine, Read, Telemetry};
+    use tinybms_firmware::host_link::schema::{HostLine, Read, Telemetry};
 
     /// A line as the tool reads it.
     pub fn line(v: Value) -> HostLine {

@@ -26,8 +26,8 @@ use std::time::{Duration, Instant};
 use serde_json::{json, Map, Value};
 use tinybms_firmware::config::value::{self, Parsed};
 use tinybms_firmware::config::{Config, FieldId, Kind};
-use tinybms_firmware::host_link::line::LINE_MAX;
-use tinybms_firmware::host_link::lines::{ConfigEnd, ConfigField, Error, HostLine, Read};
+use tinybms_firmware::host_link::assembler::LINE_MAX;
+use tinybms_firmware::host_link::schema::{ConfigEnd, ConfigField, Error, HostLine, Read};
 use tinybms_firmware::text::Line;
 use tinybms_rules::config::wire_text;
 

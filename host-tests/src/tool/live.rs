@@ -16,7 +16,7 @@ use ratatui::style::{Color, Modifier, Style};
 use ratatui::text::{Line, Span};
 use ratatui::widgets::{Block, Borders, Paragraph, Sparkline, Wrap};
 use ratatui::Frame;
-use tinybms_firmware::host_link::lines::{HostLine, Link, Read, Telemetry};
+use tinybms_firmware::host_link::schema::{HostLine, Link, Read, Telemetry};
 
 use super::client::{without_req, Client, Received};
 use super::picture::{
@@ -181,7 +181,7 @@ fn pack_lines(t: &Telemetry<Read>, live: bool, alarm: Style) -> Vec<Line<'static
     // Pack, status, temperatures (nothing known before the first snapshot).
     let sn = t.snapshot.as_ref();
     let of =
-        |f: fn(&tinybms_firmware::host_link::lines::Snapshot<Read>) -> Option<f64>| sn.and_then(f);
+        |f: fn(&tinybms_firmware::host_link::schema::Snapshot<Read>) -> Option<f64>| sn.and_then(f);
     let p = match (of(|s| s.pack_voltage_v), of(|s| s.pack_current_a)) {
         (Some(v), Some(i)) => format!("{:.0} W", v * i),
         _ => "-".into(),
@@ -658,7 +658,7 @@ mod tests {
         out
     }
 
-    /// A telemetry line as the bridge writes it (`host_link::lines::Telemetry`).
+    /// A telemetry line as the bridge writes it (`host_link::schema::Telemetry`).
     fn telemetry_json(online: bool) -> Value {
         json!({"type":"telemetry","seq":7,"age_ms":200,"online":online,
             "ready":true,"pack_voltage_v":52.9,"pack_current_a":-10.0,"min_cell_voltage_v":3.29,

@@ -27,7 +27,7 @@ use std::time::Duration;
 
 use clap::{CommandFactory, Parser};
 use protocol_core::settings::SettingId;
-use tinybms_firmware::host_link::lines::{Hello, HostLine, Read};
+use tinybms_firmware::host_link::schema::{Hello, HostLine, Read};
 use tinybms_firmware::host_link::PROTOCOL_VERSION;
 
 use crate::profile::{find_setting, snake_name};

@@ -12,7 +12,7 @@ use std::io::Write;
 use std::time::{Duration, Instant};
 
 use serde_json::json;
-use tinybms_firmware::host_link::lines::{HostLine, Link, Read, Telemetry};
+use tinybms_firmware::host_link::schema::{HostLine, Link, Read, Telemetry};
 
 use super::client::{without_req, Client};
 pub use super::picture::*;

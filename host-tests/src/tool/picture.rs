@@ -7,7 +7,7 @@ use std::io::Write;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use serde_json::{json, Value};
-use tinybms_firmware::host_link::lines::{
+use tinybms_firmware::host_link::schema::{
     Battery, HostLine, Inverter, Link, Pack, Read, Snapshot, Telemetry,
 };
 

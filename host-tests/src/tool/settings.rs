@@ -3,7 +3,7 @@
 //! and the `NAME=VALUE` arguments of `set`.
 
 use protocol_core::settings::SettingId;
-use tinybms_firmware::host_link::lines::{Read, SettingLine};
+use tinybms_firmware::host_link::schema::{Read, SettingLine};
 
 use crate::profile::{find_setting, snake_name};
 
@@ -296,7 +296,7 @@ pub fn render_diff(changes: &[Change], unchanged: usize) -> String {
 mod tests {
     use super::*;
     use serde_json::{json, Value};
-    use tinybms_firmware::host_link::lines::HostLine;
+    use tinybms_firmware::host_link::schema::HostLine;
 
     /// A `setting` line as the tool reads it.
     fn setting(v: Value) -> SettingLine<Read> {

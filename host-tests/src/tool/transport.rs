@@ -4,7 +4,7 @@
 //!   --bridge-pty`) speaks the JSON Lines protocol itself.
 //! * [`super::direct::DirectLines`] — **direct**: a USB-UART adapter wired to
 //!   the TinyBMS; the firmware's bridge and host link run inside the tool
-//!   (`host_tests::realtime`), so everything above this layer is the same.
+//!   (`host_tests::real_time`), so everything above this layer is the same.
 //!
 //! [`open_port`] opens the port (with a helpful sentence for each way that
 //! fails); [`probe`] sends `{"cmd":"hello"}` and reports what answers, from
@@ -14,7 +14,7 @@ use std::io::{Read, Write};
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
-use tinybms_firmware::host_link::lines::{self, Hello, HostLine};
+use tinybms_firmware::host_link::schema::{self, Hello, HostLine};
 
 use super::{ToolError, ToolResult};
 
@@ -240,7 +240,7 @@ pub fn open_port(path: &str) -> ToolResult<Box<dyn serialport::SerialPort>> {
 #[derive(Debug, Default)]
 pub struct ProbeResult {
     /// The `hello` line, when a bridge answered.
-    pub hello: Option<Hello<lines::Read>>,
+    pub hello: Option<Hello<schema::Read>>,
     /// Bytes received in all.
     pub bytes: usize,
     /// Complete JSON objects received that were not a hello.

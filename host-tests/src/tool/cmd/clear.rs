@@ -3,7 +3,7 @@
 use std::time::Duration;
 
 use serde_json::json;
-use tinybms_firmware::host_link::lines::HostLine;
+use tinybms_firmware::host_link::schema::HostLine;
 
 use crate::tool::cli::Conn;
 use crate::tool::{confirm, connect_ready, ToolError, ToolResult};

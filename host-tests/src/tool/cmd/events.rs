@@ -1,7 +1,7 @@
 //! `tinybms events`: The BMS's event log, with wall-clock times from its lifetime counter.
 
 use serde_json::json;
-use tinybms_firmware::host_link::lines::HostLine;
+use tinybms_firmware::host_link::schema::HostLine;
 
 use crate::tool::cli::Conn;
 use crate::tool::{connect_ready, monitor, ToolResult};

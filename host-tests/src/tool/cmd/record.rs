@@ -4,7 +4,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use serde_json::json;
-use tinybms_firmware::host_link::lines::{HostLine, Raw, Read};
+use tinybms_firmware::host_link::schema::{HostLine, Raw, Read};
 
 use crate::capture::{parse_hex, CaptureWriter};
 use crate::tool::cli::Conn;

@@ -1,7 +1,7 @@
 //! `tinybms stats`, `tinybms version`: one block of the BMS's, as text or JSON.
 
 use serde_json::{json, Map, Value};
-use tinybms_firmware::host_link::lines::{Hello, HostLine, Read, StatisticsLine, Store};
+use tinybms_firmware::host_link::schema::{Hello, HostLine, Read, StatisticsLine, Store};
 
 use crate::tool::cli::Conn;
 use crate::tool::client::Received;

@@ -24,7 +24,7 @@
 //!
 //! The bridge's lines the page passes in (`current`, `telemetry`, a `link`
 //! line) are read through the host link's own types
-//! ([`tinybms_firmware::host_link::lines::HostLine`]), as the tool
+//! ([`tinybms_firmware::host_link::schema::HostLine`]), as the tool
 //! reads them; one that is not a line the bridge writes counts as none
 //! (left out of `current`; no `telemetry`; `link_quality` answers `{text: null}`).
 //!
@@ -37,7 +37,7 @@
 
 use serde_json::{json, Value};
 use tinybms_firmware::boards::BOARDS;
-use tinybms_firmware::host_link::lines::HostLine;
+use tinybms_firmware::host_link::schema::HostLine;
 
 /// Answers `name` with `arg` (JSON text); an unknown name or an argument
 /// that is not JSON gets `{"error": "…"}`. Never panics.

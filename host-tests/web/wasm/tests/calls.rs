@@ -43,7 +43,7 @@ fn a_good_change_gives_the_text_to_send_and_a_typo_a_suggestion() {
 
 #[test]
 fn settings_are_checked_against_each_other_as_the_tool_checks_them() {
-    // As the bridge writes them (`host_link::lines::SettingLine`).
+    // As the bridge writes them (`host_link::schema::SettingLine`).
     let setting = |name: &str, raw: i64, value: f64| {
         let address = tinybms_rules::settings::find_setting(name)
             .unwrap()
@@ -109,7 +109,7 @@ fn the_freshness_rule_is_the_firmwares() {
 
 #[test]
 fn the_link_quality_of_a_link_line_and_of_anything_else() {
-    // A `link` line as the bridge writes it (`host_link::lines::Link`).
+    // A `link` line as the bridge writes it (`host_link::schema::Link`).
     let link = json!({"type": "link", "requests": 200, "replies": 198, "timeouts": 2,
         "wakeup_resends": 1, "retries": 3, "crc_errors": 1, "framing_errors": 0,
         "invalid_replies": 0, "nacks_command": 0, "nacks_crc": 0, "nacks_other": 0,

@@ -225,8 +225,8 @@ pub struct Harness {
     /// Lines the host link wrote, collected after every pass when set.
     pub host_lines: Option<Vec<String>>,
     /// Or the host link's port as the chip's writer drives it, with a host
-    /// that drains it as it likes ([`crate::host_port`]).
-    pub host_port: Option<crate::host_port::HostPort>,
+    /// that drains it as it likes ([`crate::virtual_host_port`]).
+    pub host_port: Option<crate::virtual_host_port::HostPort>,
     /// For how long the port's writer kept the CPU (a spinning writer).
     port_busy_us: u64,
     /// [`Harness::run_until`] also does what the station wants done at the
@@ -470,7 +470,7 @@ impl Harness {
                         crate::trace::record_poll(
                             t,
                             self.now,
-                            &tinybms_firmware::Action::Transmit(tx),
+                            &tinybms_firmware::bridge::Action::Transmit(tx),
                         );
                     }
                     self.count_request(&bytes);
@@ -489,7 +489,7 @@ impl Harness {
                         crate::trace::record_poll(
                             tr,
                             self.now,
-                            &tinybms_firmware::Action::WaitUntil(t),
+                            &tinybms_firmware::bridge::Action::WaitUntil(t),
                         );
                     }
                     let t = t.clamp(self.now, end_us);

@@ -4,7 +4,7 @@
 # goal's measures applied: the panic handler of today's src/chip/panic.rs (it does not read
 # PanicInfo, so core::fmt is not linked) and esp-hal's switch tables in flash.
 #
-# Usage: firmware/size-filing-day.sh [COMMIT]   (default: 82114d9, main on the day)
+# Usage: firmware/size-goal.sh [COMMIT]   (default: 82114d9, main on the day)
 # Builds that tree for the ESP32-C3 (and the C6 with C6=1) in a temporary git
 # worktree with its own target directory (about a minute per chip on two cores),
 # prints size-report.sh's figures, removes the worktree.
@@ -18,7 +18,7 @@ set -euo pipefail
 
 commit=${1:-82114d9}
 if [[ ${C6:-0} == 1 && -n ${FEATURES:-} && -z ${C6_FEATURES:-} ]]; then
-    echo "size-filing-day: with FEATURES, C6=1 needs C6_FEATURES (the C6 board's features)" >&2
+    echo "size-goal: with FEATURES, C6=1 needs C6_FEATURES (the C6 board's features)" >&2
     exit 2
 fi
 here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
@@ -33,12 +33,12 @@ cleanup() {
 trap cleanup EXIT
 
 git -C "$repo" worktree add --detach "$work/tree" "$commit" >/dev/null 2>&1 || {
-    echo "size-filing-day: cannot check out $commit (a full clone is needed)" >&2; exit 2; }
+    echo "size-goal: cannot check out $commit (a full clone is needed)" >&2; exit 2; }
 fw=$work/tree/firmware
 
 # Today's panic handler, taken from this checkout's src/chip/panic.rs (attribute to closing brace).
 handler=$(awk '/^#\[panic_handler\]/{p=1} p{print} p&&/^}/{exit}' "$here/src/chip/panic.rs")
-[[ -n $handler ]] || { echo "size-filing-day: no panic handler in $here/src/chip/panic.rs" >&2; exit 2; }
+[[ -n $handler ]] || { echo "size-goal: no panic handler in $here/src/chip/panic.rs" >&2; exit 2; }
 
 if ! HANDLER=$handler python3 - "$fw" <<'EOF'
 
@@ -48,7 +48,7 @@ def edit(path, old, new):
     p = os.path.join(fw, path)
     s = open(p).read()
     if old not in s:
-        sys.exit(f"size-filing-day: {path}: expected text not found: {old!r}")
+        sys.exit(f"size-goal: {path}: expected text not found: {old!r}")
     open(p, "w").write(s.replace(old, new, 1))
 handler = os.environ["HANDLER"]
 main = os.path.join(fw, "src/main.rs")
@@ -59,12 +59,12 @@ if "#[panic_handler]" in s:
     # An own handler already (later trees): today's instead.
     s, n = re.subn(r"#\[panic_handler\]\n.*?\n}\n", lambda _: handler + "\n", s, count=1, flags=re.S)
     if n != 1:
-        sys.exit("size-filing-day: src/main.rs: the panic handler could not be replaced")
+        sys.exit("size-goal: src/main.rs: the panic handler could not be replaced")
 else:
     # esp-backtrace's formatting handler out, today's in.
     s, n = re.subn(r"use esp_backtrace as _;[^\n]*\n", lambda _: handler + "\n", s, count=1)
     if n != 1:
-        sys.exit("size-filing-day: src/main.rs: no panic handler found")
+        sys.exit("size-goal: src/main.rs: no panic handler found")
 open(main, "w").write(s)
 cargo = os.path.join(fw, "Cargo.toml")
 c = open(cargo).read()

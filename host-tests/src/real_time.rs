@@ -1,5 +1,5 @@
 //! The firmware's logic and the simulated BMS in **real time**, on real byte
-//! ports: the counterpart of [`crate::harness`] (virtual time) for the desktop
+//! ports: the counterpart of [`crate::virtual_time`] (virtual time) for the desktop
 //! tool and for `sim --pty` / `sim --bridge-pty`.
 //!
 //! * [`BytePort`] — anything that moves UART bytes: a `serialport` port (a
@@ -41,7 +41,7 @@ pub const MAX_SLICE: Duration = Duration::from_millis(10);
 
 /// The simulated BMS hands its output over in chunks of this much wire time
 /// (≈ 16 bytes, like a UART driver's FIFO threshold) instead of byte by byte.
-pub const SIM_CHUNK_US: u64 = crate::harness::RX_CHUNK_US;
+pub const SIM_CHUNK_US: u64 = crate::virtual_time::RX_CHUNK_US;
 
 /// Parses a duration: `250ms`, `10s`, `1.5m`, `2h`, `500us`; a bare number is
 /// seconds.
@@ -229,7 +229,7 @@ pub fn bridge_station(config: Timing, now: Instant) -> Station {
         inverter: None,
     };
     let loaded = Loaded {
-        config: crate::harness::bridge_only(),
+        config: crate::virtual_time::bridge_only(),
         source: Source::Empty,
     };
     Station::new(setup, loaded, now)

@@ -23,7 +23,7 @@ use tinybms_firmware::station::{Logged, Setup, Station};
 
 use crate::flash::SimFlash;
 use crate::pty::Pty;
-use crate::realtime::{BytePort, Driver, Happened, SimPort, MAX_SLICE};
+use crate::real_time::{BytePort, Driver, Happened, SimPort, MAX_SLICE};
 use crate::sim::SimBms;
 
 /// Where a simulated bridge's store lives: a 4 MiB chip with the default
@@ -113,7 +113,7 @@ impl<P: BytePort> Hosted<P> {
         wifi: bool,
         record: Option<Config>,
     ) -> Self {
-        let clock = crate::realtime::Clock::start();
+        let clock = crate::real_time::Clock::start();
         let mut store = crate::flash::store(flash);
         // The CAN output is built in, as in the ready-made images; a bus
         // with a simulated inverter is attached by `sim` (else nothing
@@ -611,7 +611,6 @@ impl HostSide for NoHost {
 
 #[cfg(test)]
 mod tests {
-    #![allow(clippy::unwrap_used)]
     use super::*;
     use std::io::Read;
 

@@ -18,8 +18,8 @@ use tinybms_firmware::station::{Setup, Station};
 use tinybms_firmware::{Bridge, MS, SECOND};
 
 use crate::flash::RamFlash;
-use crate::harness::{Harness, Saver};
 use crate::sim::{PackProfile, SimBms, SimConfig};
+use crate::virtual_time::{Harness, Saver};
 
 /// A station with a host link against the simulated BMS: the chip's wiring,
 /// driven by a host in virtual time.

@@ -1,0 +1,94 @@
+//! The maps a new maintainer reads first stay true to the tree: every file of
+//! the firmware's library is named in `docs/architecture.md`, and every module
+//! of the library is on its front page (`firmware/src/lib.rs`). A module added
+//! without its line in the map fails here.
+
+use std::path::Path;
+
+fn root() -> &'static Path {
+    Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/.."))
+}
+
+/// Every `.rs` file under `dir`, as paths relative to it.
+fn sources(dir: &Path, under: &Path, out: &mut Vec<String>) {
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            sources(&p, under, out);
+        } else if p.extension().is_some_and(|x| x == "rs") {
+            out.push(
+                p.strip_prefix(under)
+                    .unwrap()
+                    .to_string_lossy()
+                    .replace('\\', "/"),
+            );
+        }
+    }
+}
+
+/// How the map may name `file` (a path under `firmware/src`): its file name
+/// in backticks, its folder for a `mod.rs`, or its path.
+fn named(doc: &str, file: &str) -> bool {
+    let path = Path::new(file);
+    let name = path.file_name().unwrap().to_string_lossy();
+    let key = if name == "mod.rs" {
+        let folder = path
+            .parent()
+            .unwrap()
+            .file_name()
+            .unwrap()
+            .to_string_lossy();
+        format!("`{folder}/`")
+    } else {
+        format!("`{name}`")
+    };
+    doc.contains(&key) || doc.contains(file)
+}
+
+#[test]
+fn every_file_of_the_firmware_is_on_the_architecture_map() {
+    let doc = std::fs::read_to_string(root().join("docs/architecture.md")).unwrap();
+    let src = root().join("firmware/src");
+    let mut files = Vec::new();
+    sources(&src, &src, &mut files);
+    assert!(files.len() > 50, "the library's files: {}", files.len());
+    let missing: Vec<&String> = files.iter().filter(|f| !named(&doc, f)).collect();
+    assert!(
+        missing.is_empty(),
+        "docs/architecture.md does not name {missing:?}: add each to the table of the firmware's modules"
+    );
+}
+
+#[test]
+fn every_module_of_the_library_is_on_its_front_page() {
+    let lib = std::fs::read_to_string(root().join("firmware/src/lib.rs")).unwrap();
+    let front: String = lib
+        .lines()
+        .filter_map(|l| l.strip_prefix("//!"))
+        .collect::<Vec<_>>()
+        .join("\n");
+    let modules: Vec<&str> = lib
+        .lines()
+        .filter_map(|l| l.strip_prefix("pub mod "))
+        .map(|l| l.trim_end_matches(';'))
+        .collect();
+    assert!(modules.len() > 10, "{modules:?}");
+    let missing: Vec<&&str> = modules
+        .iter()
+        .filter(|m| !front.contains(&format!("[`{m}`]")))
+        .collect();
+    assert!(
+        missing.is_empty(),
+        "firmware/src/lib.rs's front page does not name {missing:?}"
+    );
+}
+
+/// The check itself: a file the map does not name is found.
+#[test]
+fn a_file_left_off_the_map_is_found() {
+    let doc = "| side | `bridge/` | the coordinator (`mod.rs`), jobs (`job.rs`) |";
+    assert!(named(doc, "bridge/job.rs"));
+    assert!(named(doc, "bridge/mod.rs"));
+    assert!(!named(doc, "bridge/writes.rs"));
+    assert!(!named(doc, "inverter/mod.rs"));
+}
