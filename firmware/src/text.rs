@@ -13,8 +13,9 @@
 
 use protocol_core::events::{EventId, OnlineStatus};
 use protocol_core::settings::Setting;
+use protocol_core::views::VersionInfo;
 
-use crate::bms::link::Failure;
+use crate::bms::link::{Failure, LinkStats};
 use crate::bridge::report::{permille, Report, SnapshotLine, WriteOutcome};
 use crate::inverter::{InverterReport, StaleMode};
 
@@ -139,22 +140,7 @@ pub fn report(r: &Report, out: &mut Line) {
         Report::Online => {
             out.push("BMS online; re-reading version and settings");
         }
-        Report::Version(v) => {
-            out.push("BMS hardware ")
-                .uint(u64::from(v.hardware))
-                .push(".")
-                .uint(u64::from(v.hardware_changes))
-                .push(", firmware ")
-                .uint(u64::from(v.firmware_public))
-                .push(" (internal ")
-                .uint(u64::from(v.firmware_internal))
-                .push("), bootloader ")
-                .uint(u64::from(v.bootloader))
-                .push(", profile ")
-                .uint(u64::from(v.profile))
-                .push(", serial ")
-                .hex_bytes(&v.serial);
-        }
+        Report::Version(v) => version(out, v),
         Report::Ready { series_cells } => {
             out.push("settings and limits read (")
                 .uint(u64::from(*series_cells))
@@ -168,67 +154,7 @@ pub fn report(r: &Report, out: &mut Line) {
             setting: s,
             outcome,
         } => {
-            out.push("write ");
-            if matches!(r, Report::WriteFollowUp { .. }) {
-                out.push("follow-up ");
-            }
-            setting(out, s);
-            out.push(": ").push(outcome.name());
-            match outcome {
-                WriteOutcome::Rejected(e) => {
-                    out.push(" (").push(e.reason());
-                    if let protocol_core::settings::SettingError::Contradicts {
-                        relation,
-                        other,
-                        ..
-                    } = e
-                    {
-                        let (low, high) = (relation.low.name(), relation.high.name());
-                        out.push(": ")
-                            .push(low)
-                            .push(if relation.gap > 0 {
-                                " must stay below "
-                            } else {
-                                " may not exceed "
-                            })
-                            .push(high)
-                            .push(", ")
-                            .push(if s.id == relation.low { high } else { low })
-                            .push(" is ")
-                            .int(i64::from(*other));
-                    }
-                    if let protocol_core::settings::SettingError::OutsideChemistry {
-                        chemistry,
-                        min,
-                        max,
-                        ..
-                    } = e
-                    {
-                        out.push(": ")
-                            .push(chemistry.name())
-                            .push(" takes ")
-                            .int(i64::from(*min))
-                            .push("..")
-                            .int(i64::from(*max))
-                            .push(" mV; force to write it anyway");
-                    }
-                    out.push(")");
-                }
-                WriteOutcome::Mismatch { read_back } => {
-                    out.push(" (read back ")
-                        .uint(u64::from(*read_back))
-                        .push(")");
-                }
-                WriteOutcome::Nacked(c) => {
-                    out.push(" (code ").hex(u32::from(c.to_u8())).push(")");
-                }
-                WriteOutcome::Failed(e)
-                | WriteOutcome::Unconfirmed(e)
-                | WriteOutcome::NotWritten(e) => {
-                    out.push(" (").push(e.name()).push(")");
-                }
-                WriteOutcome::Verified | WriteOutcome::Unchanged => {}
-            }
+            write(out, s, outcome, matches!(r, Report::WriteFollowUp { .. }));
         }
         Report::ResetDone { confirmed } => {
             out.push(if *confirmed {
@@ -242,43 +168,7 @@ pub fn report(r: &Report, out: &mut Line) {
                 .push(if *option == 1 { "events" } else { "statistics" })
                 .push(if *ok { ": ok" } else { ": failed" });
         }
-        Report::LinkStats(s) => {
-            out.push("link: requests ")
-                .uint(u64::from(s.requests))
-                .push(", replies ")
-                .uint(u64::from(s.replies))
-                .push(", timeouts ")
-                .uint(u64::from(s.timeouts))
-                .push(", wake-ups ")
-                .uint(u64::from(s.wakeup_resends))
-                .push(", retries ")
-                .uint(u64::from(s.retries))
-                .push(", CRC ")
-                .uint(u64::from(s.crc_errors))
-                .push(", framing ")
-                .uint(u64::from(s.framing_errors))
-                .push(", invalid ")
-                .uint(u64::from(s.invalid_replies))
-                .push(", NACK ")
-                .uint(u64::from(s.nacks_command))
-                .push("/")
-                .uint(u64::from(s.nacks_crc))
-                .push("/")
-                .uint(u64::from(s.nacks_other))
-                .push(", skipped bytes ")
-                .uint(u64::from(s.skipped_bytes))
-                .push(", unsolicited ")
-                .uint(u64::from(s.unsolicited))
-                .push(", failures ")
-                .uint(u64::from(s.failures))
-                .push(", latency ")
-                .fixed(i64::from(s.latency_min_us) / 100, 1)
-                .push("/")
-                .fixed(i64::from(s.latency_mean_us()) / 100, 1)
-                .push("/")
-                .fixed(i64::from(s.latency_max_us) / 100, 1)
-                .push(" ms");
-        }
+        Report::LinkStats(s) => link_stats(out, s),
         Report::Dropped(n) => {
             out.uint(u64::from(*n)).push(" log reports dropped");
         }
@@ -313,6 +203,124 @@ pub fn report(r: &Report, out: &mut Line) {
                 .push(" snapshots");
         }
     }
+}
+
+/// A write's outcome (`follow_up`: a later read settled it).
+fn write(out: &mut Line, s: &Setting, outcome: &WriteOutcome, follow_up: bool) {
+    out.push("write ");
+    if follow_up {
+        out.push("follow-up ");
+    }
+    setting(out, s);
+    out.push(": ").push(outcome.name());
+    match outcome {
+        WriteOutcome::Rejected(e) => {
+            out.push(" (").push(e.reason());
+            if let protocol_core::settings::SettingError::Contradicts {
+                relation, other, ..
+            } = e
+            {
+                let (low, high) = (relation.low.name(), relation.high.name());
+                out.push(": ")
+                    .push(low)
+                    .push(if relation.gap > 0 {
+                        " must stay below "
+                    } else {
+                        " may not exceed "
+                    })
+                    .push(high)
+                    .push(", ")
+                    .push(if s.id == relation.low { high } else { low })
+                    .push(" is ")
+                    .int(i64::from(*other));
+            }
+            if let protocol_core::settings::SettingError::OutsideChemistry {
+                chemistry,
+                min,
+                max,
+                ..
+            } = e
+            {
+                out.push(": ")
+                    .push(chemistry.name())
+                    .push(" takes ")
+                    .int(i64::from(*min))
+                    .push("..")
+                    .int(i64::from(*max))
+                    .push(" mV; force to write it anyway");
+            }
+            out.push(")");
+        }
+        WriteOutcome::Mismatch { read_back } => {
+            out.push(" (read back ")
+                .uint(u64::from(*read_back))
+                .push(")");
+        }
+        WriteOutcome::Nacked(c) => {
+            out.push(" (code ").hex(u32::from(c.to_u8())).push(")");
+        }
+        WriteOutcome::Failed(e) | WriteOutcome::Unconfirmed(e) | WriteOutcome::NotWritten(e) => {
+            out.push(" (").push(e.name()).push(")");
+        }
+        WriteOutcome::Verified | WriteOutcome::Unchanged => {}
+    }
+}
+
+/// The link's counters since the last such line.
+fn link_stats(out: &mut Line, s: &LinkStats) {
+    out.push("link: requests ")
+        .uint(u64::from(s.requests))
+        .push(", replies ")
+        .uint(u64::from(s.replies))
+        .push(", timeouts ")
+        .uint(u64::from(s.timeouts))
+        .push(", wake-ups ")
+        .uint(u64::from(s.wakeup_resends))
+        .push(", retries ")
+        .uint(u64::from(s.retries))
+        .push(", CRC ")
+        .uint(u64::from(s.crc_errors))
+        .push(", framing ")
+        .uint(u64::from(s.framing_errors))
+        .push(", invalid ")
+        .uint(u64::from(s.invalid_replies))
+        .push(", NACK ")
+        .uint(u64::from(s.nacks_command))
+        .push("/")
+        .uint(u64::from(s.nacks_crc))
+        .push("/")
+        .uint(u64::from(s.nacks_other))
+        .push(", skipped bytes ")
+        .uint(u64::from(s.skipped_bytes))
+        .push(", unsolicited ")
+        .uint(u64::from(s.unsolicited))
+        .push(", failures ")
+        .uint(u64::from(s.failures))
+        .push(", latency ")
+        .fixed(i64::from(s.latency_min_us) / 100, 1)
+        .push("/")
+        .fixed(i64::from(s.latency_mean_us()) / 100, 1)
+        .push("/")
+        .fixed(i64::from(s.latency_max_us) / 100, 1)
+        .push(" ms");
+}
+
+/// The BMS's version block.
+fn version(out: &mut Line, v: &VersionInfo) {
+    out.push("BMS hardware ")
+        .uint(u64::from(v.hardware))
+        .push(".")
+        .uint(u64::from(v.hardware_changes))
+        .push(", firmware ")
+        .uint(u64::from(v.firmware_public))
+        .push(" (internal ")
+        .uint(u64::from(v.firmware_internal))
+        .push("), bootloader ")
+        .uint(u64::from(v.bootloader))
+        .push(", profile ")
+        .uint(u64::from(v.profile))
+        .push(", serial ")
+        .hex_bytes(&v.serial);
 }
 
 /// Writes what an [`InverterReport`] says into `out` (appended).

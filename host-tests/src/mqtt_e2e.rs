@@ -362,6 +362,83 @@ fn json(s: &str) -> Result<Value, String> {
     serde_json::from_str(s).map_err(|e| format!("{e}: {s}"))
 }
 
+/// Every state in `got` against the registers the bridge published with its
+/// `seq`, decoded here (replay's decoder): how many were checked.
+fn check_states(bridge: &BridgeThread, got: &[Msg]) -> Result<usize, String> {
+    let published = bridge
+        .published
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .clone();
+    let mut states = 0;
+    for m in got.iter().filter(|x| x.topic.ends_with("/state")) {
+        let s = json(&m.payload)?;
+        let seq = s["seq"].as_u64().unwrap_or(0) as u32;
+        let regs = published
+            .get(&seq)
+            .ok_or_else(|| format!("a state of seq {seq}, which was never published"))?;
+        let truth = register_values(regs);
+        for k in [
+            "pack_voltage_v",
+            "pack_current_a",
+            "min_cell_voltage_v",
+            "max_cell_voltage_v",
+            "cell_voltages_v",
+            "soc_percent",
+            "soh_percent",
+            "internal_temperature_c",
+            "external_temperature_1_c",
+            "external_temperature_2_c",
+            "online_status",
+        ] {
+            ensure(s[k] == truth[k], || {
+                format!(
+                    "seq {seq}: {k} is {} in the state, {} in the registers",
+                    s[k], truth[k]
+                )
+            })?;
+        }
+        states += 1;
+    }
+    Ok(states)
+}
+
+/// The BMS link lost: offline (published, not the will), no state while
+/// stale, then online again.
+fn bms_silent(bridge: &BridgeThread, sub: &Sub, avail: &str) -> Result<(), String> {
+    let t = Instant::now();
+    bridge.silence(10);
+    let m = sub.wait(t, "offline while the BMS is silent", |m| {
+        m.iter().any(|x| x.topic == avail && x.payload == "offline")
+    })?;
+    let off_at = m
+        .iter()
+        .find(|x| x.topic == avail && x.payload == "offline")
+        .map(|x| x.at)
+        .unwrap_or(t);
+    let m = sub.wait(t, "online again after the BMS is back", |m| {
+        m.iter()
+            .any(|x| x.topic == avail && x.payload == "online" && x.at > off_at)
+    })?;
+    let on_at = m
+        .iter()
+        .rfind(|x| x.topic == avail && x.payload == "online")
+        .map(|x| x.at)
+        .unwrap_or(t);
+    let stale = m
+        .iter()
+        .filter(|x| {
+            x.topic.ends_with("/state")
+                && x.at > off_at + Duration::from_millis(200)
+                && x.at < on_at
+        })
+        .count();
+    ensure(stale == 0, || {
+        format!("{stale} states published while the BMS data was stale")
+    })?;
+    Ok(())
+}
+
 /// Runs the scenario on a broker at `ip:port`. `start_session` starts the
 /// firmware's MQTT session (fed by the bridge's [`Shared`], connecting to
 /// `ip:port`) and returns its kill switch and notes (or why it cannot). On success, a summary.
@@ -402,41 +479,7 @@ pub fn scenario(
     // State values are what the simulated BMS sent: each state is the snapshot
     // of its `seq`, decoded independently here (replay's decoder) from the
     // registers the bridge published with it.
-    let published = bridge
-        .published
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .clone();
-    let mut states = 0;
-    for m in got.iter().filter(|x| x.topic.ends_with("/state")) {
-        let s = json(&m.payload)?;
-        let seq = s["seq"].as_u64().unwrap_or(0) as u32;
-        let regs = published
-            .get(&seq)
-            .ok_or_else(|| format!("a state of seq {seq}, which was never published"))?;
-        let truth = register_values(regs);
-        for k in [
-            "pack_voltage_v",
-            "pack_current_a",
-            "min_cell_voltage_v",
-            "max_cell_voltage_v",
-            "cell_voltages_v",
-            "soc_percent",
-            "soh_percent",
-            "internal_temperature_c",
-            "external_temperature_1_c",
-            "external_temperature_2_c",
-            "online_status",
-        ] {
-            ensure(s[k] == truth[k], || {
-                format!(
-                    "seq {seq}: {k} is {} in the state, {} in the registers",
-                    s[k], truth[k]
-                )
-            })?;
-        }
-        states += 1;
-    }
+    let states = check_states(&bridge, &got)?;
     // A late subscriber gets the configs and the availability, retained.
     {
         let late = Sub::start(&broker)?;
@@ -474,38 +517,7 @@ pub fn scenario(
                 .any(|x| x.topic == avail && x.payload == "online")
         })
     })?;
-    // The BMS link lost: offline (published, not the will), no state while
-    // stale, then online again.
-    let t = Instant::now();
-    bridge.silence(10);
-    let m = sub.wait(t, "offline while the BMS is silent", |m| {
-        m.iter().any(|x| x.topic == avail && x.payload == "offline")
-    })?;
-    let off_at = m
-        .iter()
-        .find(|x| x.topic == avail && x.payload == "offline")
-        .map(|x| x.at)
-        .unwrap_or(t);
-    let m = sub.wait(t, "online again after the BMS is back", |m| {
-        m.iter()
-            .any(|x| x.topic == avail && x.payload == "online" && x.at > off_at)
-    })?;
-    let on_at = m
-        .iter()
-        .rfind(|x| x.topic == avail && x.payload == "online")
-        .map(|x| x.at)
-        .unwrap_or(t);
-    let stale = m
-        .iter()
-        .filter(|x| {
-            x.topic.ends_with("/state")
-                && x.at > off_at + Duration::from_millis(200)
-                && x.at < on_at
-        })
-        .count();
-    ensure(stale == 0, || {
-        format!("{stale} states published while the BMS data was stale")
-    })?;
+    bms_silent(&bridge, &sub, &avail)?;
     // The broker restarts: the session reconnects and announces again.
     drop(sub);
     drop(broker);

@@ -561,20 +561,8 @@ impl Request {
             return Err(RequestError::Crc { computed, received });
         }
         let c = body.get(1).copied().unwrap_or(0);
-        let p = body.get(2..).unwrap_or(&[]);
-        let le = |i: usize| -> u16 {
-            u16::from_le_bytes([
-                p.get(i).copied().unwrap_or(0),
-                p.get(i + 1).copied().unwrap_or(0),
-            ])
-        };
-        let be = |i: usize| -> u16 {
-            u16::from_be_bytes([
-                p.get(i).copied().unwrap_or(0),
-                p.get(i + 1).copied().unwrap_or(0),
-            ])
-        };
-        let byte = |i: usize| p.get(i).copied().unwrap_or(0);
+        let p = Payload(body.get(2..).unwrap_or(&[]));
+        let (le, be, byte) = (|i| p.le(i), |i| p.be(i), |i| p.byte(i));
         let req = match c {
             cmd::RESET_CLEAR => {
                 Self::ResetClear(ResetOption::from_u8(byte(0)).ok_or(RequestError::Malformed)?)
@@ -606,6 +594,42 @@ impl Request {
                 }
                 Self::ReadIndividual(a)
             }
+            cmd::WRITE_BLOCK | cmd::WRITE_INDIVIDUAL | cmd::WRITE_BLOCK_MODBUS => {
+                Self::parse_write(c, p)?
+            }
+            cmd::READ_SETTINGS => {
+                if byte(1) != 0 {
+                    return Err(RequestError::Malformed);
+                }
+                Self::ReadSettings {
+                    option: SettingsOption::from_u8(byte(0)).ok_or(RequestError::Malformed)?,
+                    count: byte(2),
+                }
+            }
+            cmd::READ_NEWEST_EVENTS => Self::ReadNewestEvents,
+            cmd::READ_ALL_EVENTS => Self::ReadAllEvents,
+            cmd::READ_PACK_VOLTAGE => Self::ReadPackVoltage,
+            cmd::READ_PACK_CURRENT => Self::ReadPackCurrent,
+            cmd::READ_MAX_CELL_VOLTAGE => Self::ReadMaxCellVoltage,
+            cmd::READ_MIN_CELL_VOLTAGE => Self::ReadMinCellVoltage,
+            cmd::READ_ONLINE_STATUS => Self::ReadOnlineStatus,
+            cmd::READ_LIFETIME => Self::ReadLifetime,
+            cmd::READ_SOC => Self::ReadSoc,
+            cmd::READ_TEMPERATURES => Self::ReadTemperatures,
+            cmd::READ_CELL_VOLTAGES => Self::ReadCellVoltages,
+            cmd::READ_VERSION => Self::ReadVersion,
+            cmd::READ_EXTENDED_VERSION => Self::ReadExtendedVersion,
+            cmd::READ_SPEED_DISTANCE_TIME => Self::ReadSpeedDistanceTime,
+            other => return Err(RequestError::UnknownCommand(other)),
+        };
+        req.validate()?;
+        Ok(req)
+    }
+
+    /// The body of a write request (0x0D, 0x0E, 0x10).
+    fn parse_write(c: u8, p: Payload<'_>) -> Result<Self, RequestError> {
+        let (le, be, byte) = (|i| p.le(i), |i| p.be(i), |i| p.byte(i));
+        Ok(match c {
             cmd::WRITE_BLOCK => {
                 let pl = byte(0) as usize;
                 if pl < 2 || !pl.is_multiple_of(2) {
@@ -660,33 +684,27 @@ impl Request {
                     values,
                 }
             }
-            cmd::READ_SETTINGS => {
-                if byte(1) != 0 {
-                    return Err(RequestError::Malformed);
-                }
-                Self::ReadSettings {
-                    option: SettingsOption::from_u8(byte(0)).ok_or(RequestError::Malformed)?,
-                    count: byte(2),
-                }
-            }
-            cmd::READ_NEWEST_EVENTS => Self::ReadNewestEvents,
-            cmd::READ_ALL_EVENTS => Self::ReadAllEvents,
-            cmd::READ_PACK_VOLTAGE => Self::ReadPackVoltage,
-            cmd::READ_PACK_CURRENT => Self::ReadPackCurrent,
-            cmd::READ_MAX_CELL_VOLTAGE => Self::ReadMaxCellVoltage,
-            cmd::READ_MIN_CELL_VOLTAGE => Self::ReadMinCellVoltage,
-            cmd::READ_ONLINE_STATUS => Self::ReadOnlineStatus,
-            cmd::READ_LIFETIME => Self::ReadLifetime,
-            cmd::READ_SOC => Self::ReadSoc,
-            cmd::READ_TEMPERATURES => Self::ReadTemperatures,
-            cmd::READ_CELL_VOLTAGES => Self::ReadCellVoltages,
-            cmd::READ_VERSION => Self::ReadVersion,
-            cmd::READ_EXTENDED_VERSION => Self::ReadExtendedVersion,
-            cmd::READ_SPEED_DISTANCE_TIME => Self::ReadSpeedDistanceTime,
             other => return Err(RequestError::UnknownCommand(other)),
-        };
-        req.validate()?;
-        Ok(req)
+        })
+    }
+}
+
+/// A request's bytes after its address and command; a byte past the end
+/// reads as 0 (the layout checks reject such a request).
+#[derive(Clone, Copy)]
+struct Payload<'a>(&'a [u8]);
+
+impl Payload<'_> {
+    fn byte(self, i: usize) -> u8 {
+        self.0.get(i).copied().unwrap_or(0)
+    }
+
+    fn le(self, i: usize) -> u16 {
+        u16::from_le_bytes([self.byte(i), self.byte(i + 1)])
+    }
+
+    fn be(self, i: usize) -> u16 {
+        u16::from_be_bytes([self.byte(i), self.byte(i + 1)])
     }
 }
 

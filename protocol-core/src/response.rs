@@ -424,34 +424,6 @@ impl Response {
         if request.expects_ack() {
             return Err(ResponseError::UnexpectedKind { command });
         }
-        let need = |n: usize| {
-            if payload.len() == n {
-                Ok(())
-            } else {
-                Err(ResponseError::Length {
-                    command,
-                    expected: n,
-                    actual: payload.len(),
-                })
-            }
-        };
-        let at_least = |n: usize| {
-            if payload.len() >= n {
-                Ok(())
-            } else {
-                Err(ResponseError::Length {
-                    command,
-                    expected: n,
-                    actual: payload.len(),
-                })
-            }
-        };
-        let words = |big: bool, start: u16, count: usize| -> Result<RegisterBlock, ResponseError> {
-            need(2 * count)?;
-            let mut values = Words::new();
-            fill_words(&mut values, payload, count, big, command)?;
-            Ok(RegisterBlock { start, values })
-        };
         // Register blocks (the live path) are filled in place in the value
         // returned: a 0x03 reply is not built on the stack and moved twice.
         if let Request::ReadRegisters { start, count }
@@ -459,7 +431,7 @@ impl Response {
         {
             let big = matches!(request, Request::ReadRegisters { .. });
             let count = usize::from(*count);
-            need(2 * count)?;
+            need(command, payload, 2 * count)?;
             let mut out = Ok(Response::Registers(RegisterBlock {
                 start: *start,
                 values: Words::new(),
@@ -469,151 +441,63 @@ impl Response {
             }
             return out;
         }
+        Self::decode_payload(request, command, payload)
+    }
+
+    /// A data reply's payload by the layout of its request's family.
+    fn decode_payload(
+        request: &Request,
+        command: u8,
+        payload: &[u8],
+    ) -> Result<Self, ResponseError> {
         Ok(match request {
-            // Handled above, in place.
+            // Handled by `decode_ref`, in place.
             Request::ReadRegisters { .. } | Request::ReadRegistersNative { .. } => {
                 return Err(ResponseError::UnexpectedKind { command })
             }
-            Request::ReadSettings { option, count } => Response::Settings {
-                option: *option,
-                values: words(false, cmd::SETTINGS_FIRST_REGISTER, *count as usize)?,
-            },
-            Request::ReadIndividual(addresses) => {
-                need(4 * addresses.len())?;
-                let mut pairs = heapless::Vec::new();
-                for (i, &a) in addresses.iter().enumerate() {
-                    let echo = le16(payload, 4 * i);
-                    if echo != a {
-                        return Err(ResponseError::EchoMismatch {
-                            command,
-                            expected: a,
-                            got: echo,
-                        });
-                    }
-                    let _within_capacity = pairs.push((a, le16(payload, 4 * i + 2)));
+            Request::ReadSettings { option, count } => {
+                let count = *count as usize;
+                need(command, payload, 2 * count)?;
+                let mut values = Words::new();
+                fill_words(&mut values, payload, count, false, command)?;
+                Response::Settings {
+                    option: *option,
+                    values: RegisterBlock {
+                        start: cmd::SETTINGS_FIRST_REGISTER,
+                        values,
+                    },
                 }
-                Response::Individual(pairs)
             }
+            Request::ReadIndividual(addresses) => individual(command, payload, addresses)?,
             Request::WriteRegisters { start, values } => {
-                need(4)?;
-                let echo_start = be16(payload, 0);
-                let echo_count = be16(payload, 2);
-                if echo_start != *start {
-                    return Err(ResponseError::EchoMismatch {
-                        command,
-                        expected: *start,
-                        got: echo_start,
-                    });
-                }
-                if echo_count != values.len() as u16 {
-                    return Err(ResponseError::EchoMismatch {
-                        command,
-                        expected: values.len() as u16,
-                        got: echo_count,
-                    });
-                }
-                Response::WriteEcho {
-                    start: echo_start,
-                    count: echo_count as u8,
-                }
+                write_echo(command, payload, *start, values.len())?
             }
-            Request::ReadNewestEvents | Request::ReadAllEvents => {
-                at_least(4)?;
-                if !(payload.len() - 4).is_multiple_of(4) || payload.len() > 4 + 4 * MAX_EVENTS {
-                    return Err(ResponseError::Length {
-                        command,
-                        expected: 4 + (payload.len() - 4) / 4 * 4,
-                        actual: payload.len(),
-                    });
-                }
-                let mut events = heapless::Vec::new();
-                for chunk in payload.get(4..).unwrap_or(&[]).chunks_exact(4) {
-                    let b = [
-                        byte(chunk, 0),
-                        byte(chunk, 1),
-                        byte(chunk, 2),
-                        byte(chunk, 3),
-                    ];
-                    let _within_capacity = events.push(Event::from_bytes(b));
-                }
-                Response::Events(EventList {
-                    bms_timestamp_s: le32(payload, 0),
-                    events,
-                })
-            }
-            Request::ReadPackVoltage => {
-                need(4)?;
-                Response::PackVoltage(f32::from_bits(le32(payload, 0)))
-            }
-            Request::ReadPackCurrent => {
-                need(4)?;
-                Response::PackCurrent(f32::from_bits(le32(payload, 0)))
-            }
-            Request::ReadMaxCellVoltage => {
-                need(2)?;
-                Response::MaxCellVoltage(le16(payload, 0))
-            }
-            Request::ReadMinCellVoltage => {
-                need(2)?;
-                Response::MinCellVoltage(le16(payload, 0))
-            }
-            Request::ReadOnlineStatus => {
-                need(2)?;
-                Response::OnlineStatus(OnlineStatus::from_raw(le16(payload, 0)))
-            }
-            Request::ReadLifetime => {
-                need(4)?;
-                Response::Lifetime(le32(payload, 0))
-            }
-            Request::ReadSoc => {
-                need(4)?;
-                Response::Soc(le32(payload, 0))
-            }
-            Request::ReadTemperatures => {
-                need(6)?;
-                Response::Temperatures(Temperatures {
-                    internal_dc: le16(payload, 0) as i16,
-                    external1_dc: sensor(le16(payload, 2) as i16),
-                    external2_dc: sensor(le16(payload, 4) as i16),
-                })
-            }
-            Request::ReadCellVoltages => {
-                if !payload.len().is_multiple_of(2) || payload.len() > 2 * MAX_CELLS {
-                    return Err(ResponseError::Length {
-                        command,
-                        expected: (payload.len() / 2).min(MAX_CELLS) * 2,
-                        actual: payload.len(),
-                    });
-                }
-                let mut cells = heapless::Vec::new();
-                for i in 0..payload.len() / 2 {
-                    let _within_capacity = cells.push(le16(payload, 2 * i));
-                }
-                Response::CellVoltages(cells)
-            }
+            Request::ReadNewestEvents | Request::ReadAllEvents => events(command, payload)?,
+            Request::ReadCellVoltages => cell_voltages(command, payload)?,
             Request::ReadVersion => {
-                at_least(5)?;
+                at_least(command, payload, 5)?;
                 Response::Version(version(payload))
             }
             Request::ReadExtendedVersion => {
-                at_least(7)?;
+                at_least(command, payload, 7)?;
                 Response::ExtendedVersion(ExtendedVersion {
                     version: version(payload),
                     bootloader: byte(payload, 5),
                     register_map: byte(payload, 6),
                 })
             }
-            Request::ReadSpeedDistanceTime => {
-                need(12)?;
-                Response::SpeedDistanceTime {
-                    speed_kmh: f32::from_bits(le32(payload, 0)),
-                    distance_left_km: le32(payload, 4),
-                    time_left_s: le32(payload, 8),
-                }
-            }
             Request::ResetClear(_)
             | Request::WriteRegistersNative { .. }
             | Request::WriteIndividual(_) => return Err(ResponseError::UnexpectedKind { command }),
+            Request::ReadPackVoltage
+            | Request::ReadPackCurrent
+            | Request::ReadMaxCellVoltage
+            | Request::ReadMinCellVoltage
+            | Request::ReadOnlineStatus
+            | Request::ReadLifetime
+            | Request::ReadSoc
+            | Request::ReadTemperatures
+            | Request::ReadSpeedDistanceTime => measurement(request, command, payload)?,
         })
     }
 
@@ -718,6 +602,174 @@ fn version(p: &[u8]) -> Version {
         firmware_public: byte(p, 2),
         firmware_internal: le16(p, 3),
     }
+}
+
+/// The payload is exactly `n` bytes.
+fn need(command: u8, payload: &[u8], n: usize) -> Result<(), ResponseError> {
+    if payload.len() == n {
+        Ok(())
+    } else {
+        Err(ResponseError::Length {
+            command,
+            expected: n,
+            actual: payload.len(),
+        })
+    }
+}
+
+/// The payload is at least `n` bytes.
+fn at_least(command: u8, payload: &[u8], n: usize) -> Result<(), ResponseError> {
+    if payload.len() >= n {
+        Ok(())
+    } else {
+        Err(ResponseError::Length {
+            command,
+            expected: n,
+            actual: payload.len(),
+        })
+    }
+}
+
+/// 0x09: (address, value) pairs, each address the one asked for.
+fn individual(command: u8, payload: &[u8], addresses: &[u16]) -> Result<Response, ResponseError> {
+    need(command, payload, 4 * addresses.len())?;
+    let mut pairs = heapless::Vec::new();
+    for (i, &a) in addresses.iter().enumerate() {
+        let echo = le16(payload, 4 * i);
+        if echo != a {
+            return Err(ResponseError::EchoMismatch {
+                command,
+                expected: a,
+                got: echo,
+            });
+        }
+        let _within_capacity = pairs.push((a, le16(payload, 4 * i + 2)));
+    }
+    Ok(Response::Individual(pairs))
+}
+
+/// 0x10: the start and count written, echoed (big-endian).
+fn write_echo(
+    command: u8,
+    payload: &[u8],
+    start: u16,
+    count: usize,
+) -> Result<Response, ResponseError> {
+    need(command, payload, 4)?;
+    let echo_start = be16(payload, 0);
+    let echo_count = be16(payload, 2);
+    if echo_start != start {
+        return Err(ResponseError::EchoMismatch {
+            command,
+            expected: start,
+            got: echo_start,
+        });
+    }
+    if echo_count != count as u16 {
+        return Err(ResponseError::EchoMismatch {
+            command,
+            expected: count as u16,
+            got: echo_count,
+        });
+    }
+    Ok(Response::WriteEcho {
+        start: echo_start,
+        count: echo_count as u8,
+    })
+}
+
+/// 0x11 / 0x12: the BMS's time, then 4 bytes per event.
+fn events(command: u8, payload: &[u8]) -> Result<Response, ResponseError> {
+    at_least(command, payload, 4)?;
+    if !(payload.len() - 4).is_multiple_of(4) || payload.len() > 4 + 4 * MAX_EVENTS {
+        return Err(ResponseError::Length {
+            command,
+            expected: 4 + (payload.len() - 4) / 4 * 4,
+            actual: payload.len(),
+        });
+    }
+    let mut events = heapless::Vec::new();
+    for chunk in payload.get(4..).unwrap_or(&[]).chunks_exact(4) {
+        let b = [
+            byte(chunk, 0),
+            byte(chunk, 1),
+            byte(chunk, 2),
+            byte(chunk, 3),
+        ];
+        let _within_capacity = events.push(Event::from_bytes(b));
+    }
+    Ok(Response::Events(EventList {
+        bms_timestamp_s: le32(payload, 0),
+        events,
+    }))
+}
+
+/// 0x1C: one 16-bit voltage per cell.
+fn cell_voltages(command: u8, payload: &[u8]) -> Result<Response, ResponseError> {
+    if !payload.len().is_multiple_of(2) || payload.len() > 2 * MAX_CELLS {
+        return Err(ResponseError::Length {
+            command,
+            expected: (payload.len() / 2).min(MAX_CELLS) * 2,
+            actual: payload.len(),
+        });
+    }
+    let mut cells = heapless::Vec::new();
+    for i in 0..payload.len() / 2 {
+        let _within_capacity = cells.push(le16(payload, 2 * i));
+    }
+    Ok(Response::CellVoltages(cells))
+}
+
+/// The single-measurement commands (0x14-0x1B, 0x20): fixed layouts.
+fn measurement(request: &Request, command: u8, payload: &[u8]) -> Result<Response, ResponseError> {
+    let need = |n| need(command, payload, n);
+    Ok(match request {
+        Request::ReadPackVoltage => {
+            need(4)?;
+            Response::PackVoltage(f32::from_bits(le32(payload, 0)))
+        }
+        Request::ReadPackCurrent => {
+            need(4)?;
+            Response::PackCurrent(f32::from_bits(le32(payload, 0)))
+        }
+        Request::ReadMaxCellVoltage => {
+            need(2)?;
+            Response::MaxCellVoltage(le16(payload, 0))
+        }
+        Request::ReadMinCellVoltage => {
+            need(2)?;
+            Response::MinCellVoltage(le16(payload, 0))
+        }
+        Request::ReadOnlineStatus => {
+            need(2)?;
+            Response::OnlineStatus(OnlineStatus::from_raw(le16(payload, 0)))
+        }
+        Request::ReadLifetime => {
+            need(4)?;
+            Response::Lifetime(le32(payload, 0))
+        }
+        Request::ReadSoc => {
+            need(4)?;
+            Response::Soc(le32(payload, 0))
+        }
+        Request::ReadTemperatures => {
+            need(6)?;
+            Response::Temperatures(Temperatures {
+                internal_dc: le16(payload, 0) as i16,
+                external1_dc: sensor(le16(payload, 2) as i16),
+                external2_dc: sensor(le16(payload, 4) as i16),
+            })
+        }
+        Request::ReadSpeedDistanceTime => {
+            need(12)?;
+            Response::SpeedDistanceTime {
+                speed_kmh: f32::from_bits(le32(payload, 0)),
+                distance_left_km: le32(payload, 4),
+                time_left_s: le32(payload, 8),
+            }
+        }
+        _ => return Err(ResponseError::UnexpectedKind { command }),
+    })
 }
 
 #[cfg(test)]

@@ -445,10 +445,8 @@ impl State {
         }
     }
 
-    /// A transaction finished: the link's state first, then the answer goes to
-    /// the part its request was for.
-    fn on_completion(&mut self, now: Instant, c: &CompletionRef<'_>) {
-        let online = self.link_online;
+    /// The link went offline or came back with this completion.
+    fn on_link_change(&mut self, now: Instant, c: &CompletionRef<'_>, online: bool) {
         if self.was_online && !online {
             self.out.push(Report::Offline {
                 failures: self.link_failures,
@@ -464,6 +462,13 @@ impl State {
             self.resync();
         }
         self.was_online = online;
+    }
+
+    /// A transaction finished: the link's state first, then the answer goes to
+    /// the part its request was for.
+    fn on_completion(&mut self, now: Instant, c: &CompletionRef<'_>) {
+        let online = self.link_online;
+        self.on_link_change(now, c, online);
         let block_read = matches!(
             self.purpose,
             Purpose::Live | Purpose::Aux(_) | Purpose::EventSlot

@@ -324,132 +324,155 @@ impl Writes {
                 }
                 effect
             }
-            Job::Write(w) => {
-                let item = w.items.get(w.index).copied()?;
-                let a = item.id.address();
-                match (w.step, &c.result) {
-                    (WriteStep::ReadCurrent, Ok(Response::Individual(pairs))) => {
-                        let (Some(first), second) = (pair(pairs, a), pair(pairs, a + 1)) else {
-                            let outcome = WriteOutcome::NotWritten(Failure::Timeout);
-                            self.finish_item(item, outcome, out);
-                            return None;
-                        };
-                        // Skip only on true equality (not on 323/328's 0xFFFF marker).
-                        if item.id.value_from_words(first, second) == Some(item.value) {
-                            self.finish_item(item, WriteOutcome::Unchanged, out);
-                        } else {
-                            w.current = Some((first, second));
-                            w.step = WriteStep::Write;
-                        }
-                        None
+            Job::Write(_) => self.on_write_reply(now, c, config, out),
+        }
+    }
+
+    /// The answer to a request of the running settings group.
+    fn on_write_reply(
+        &mut self,
+        now: Instant,
+        c: &CompletionRef<'_>,
+        config: &Timing,
+        out: &mut Reports,
+    ) -> Option<Effect> {
+        let Some(Job::Write(w)) = self.job.as_mut() else {
+            return None;
+        };
+        let item = w.items.get(w.index).copied()?;
+        let a = item.id.address();
+        match (w.step, &c.result) {
+            (WriteStep::ReadCurrent, Ok(Response::Individual(pairs))) => {
+                let (Some(first), second) = (pair(pairs, a), pair(pairs, a + 1)) else {
+                    let outcome = WriteOutcome::NotWritten(Failure::Timeout);
+                    self.finish_item(item, outcome, out);
+                    return None;
+                };
+                // Skip only on true equality (not on 323/328's 0xFFFF marker).
+                if item.id.value_from_words(first, second) == Some(item.value) {
+                    self.finish_item(item, WriteOutcome::Unchanged, out);
+                } else {
+                    w.current = Some((first, second));
+                    w.step = WriteStep::Write;
+                }
+                None
+            }
+            (WriteStep::ReadCurrent, Err(f)) => {
+                self.finish_item(item, WriteOutcome::NotWritten(*f), out);
+                None
+            }
+            (WriteStep::ReadCurrent, Ok(_)) => {
+                let outcome = WriteOutcome::NotWritten(Failure::Timeout);
+                self.finish_item(item, outcome, out);
+                None
+            }
+            (WriteStep::Write, result) => {
+                w.wrote_any = true;
+                match result {
+                    Ok(Response::WriteEcho { .. }) => {}
+                    // Refused at the first attempt: nothing was written.
+                    Err(Failure::Nack(code)) if c.sends <= 1 => {
+                        self.finish_item(item, WriteOutcome::Nacked(*code), out);
+                        return None;
                     }
-                    (WriteStep::ReadCurrent, Err(f)) => {
-                        self.finish_item(item, WriteOutcome::NotWritten(*f), out);
-                        None
-                    }
-                    (WriteStep::ReadCurrent, Ok(_)) => {
-                        let outcome = WriteOutcome::NotWritten(Failure::Timeout);
-                        self.finish_item(item, outcome, out);
-                        None
-                    }
-                    (WriteStep::Write, result) => {
-                        w.wrote_any = true;
-                        match result {
-                            Ok(Response::WriteEcho { .. }) => {}
-                            // Refused at the first attempt: nothing was written.
-                            Err(Failure::Nack(code)) if c.sends <= 1 => {
-                                self.finish_item(item, WriteOutcome::Nacked(*code), out);
-                                return None;
-                            }
-                            // No clear confirmation (lost, damaged, or a NACK after an
-                            // unanswered first attempt that may have been applied):
-                            // the read-back decides.
-                            Err(Failure::Silent) => w.unconfirmed = Some(Failure::Timeout),
-                            Err(f) => w.unconfirmed = Some(*f),
-                            Ok(_) => w.unconfirmed = Some(Failure::Timeout),
-                        }
-                        if item.id.restarts_bms() {
-                            w.readback_attempts = timing::REBOOT_READBACK_ATTEMPTS;
-                            w.step = WriteStep::ReadBack;
-                            Some(Effect::Hold(now.saturating_add(config.reboot_wait_us)))
-                        } else {
-                            w.readback_attempts = 1;
-                            w.step = WriteStep::Settle(now.saturating_add(config.write_settle_us));
-                            None
-                        }
-                    }
-                    (WriteStep::ReadBack, Ok(Response::Individual(pairs))) => {
-                        let Some(first) = pair(pairs, a) else {
-                            let old = w.current.map(|(f, _)| f);
-                            self.remember_unresolved(item, old);
-                            let outcome = WriteOutcome::Unconfirmed(Failure::Timeout);
-                            self.finish_item(item, outcome, out);
-                            return None;
-                        };
-                        let second = pair(pairs, a + 1);
-                        // 323/328 read 0xFFFF once a write is accepted; when they
-                        // already did before and the write was not confirmed, the
-                        // marker proves nothing.
-                        let marker_was_there = item.id.reads_back_marker()
-                            && w.current.map(|(f, _)| f) == Some(ACCEPTED_MARKER);
-                        let proof = item.matches_readback(first, second)
-                            && !(marker_was_there && w.unconfirmed.is_some());
-                        let old = w.current.map(|(f, _)| f);
-                        // What the BMS read back once it took the value (not
-                        // 323/328's marker: their copy waits for the next read).
-                        let read_back = (proof
-                            && !(item.id.reads_back_marker() && first == ACCEPTED_MARKER))
-                            .then_some(Effect::ReadBack {
-                                address: a,
-                                first,
-                                second,
-                            });
-                        let outcome = if proof {
-                            WriteOutcome::Verified
-                        } else if marker_was_there && item.matches_readback(first, second) {
-                            // 0xFFFF before and after an unconfirmed write: the
-                            // read-back proves nothing either way.
-                            let f = w.unconfirmed.unwrap_or(Failure::Timeout);
-                            self.remember_unresolved(item, old);
-                            WriteOutcome::Unconfirmed(f)
-                        } else {
-                            match w.unconfirmed {
-                                // The read-back shows the old value: not applied.
-                                Some(Failure::Nack(code)) if old == Some(first) => {
-                                    WriteOutcome::Nacked(code)
-                                }
-                                Some(f) if old == Some(first) => WriteOutcome::Failed(f),
-                                _ => WriteOutcome::Mismatch { read_back: first },
-                            }
-                        };
-                        self.finish_item(item, outcome, out);
-                        read_back
-                    }
-                    (WriteStep::ReadBack, Err(f)) => {
-                        if w.readback_attempts > 1 {
-                            w.readback_attempts -= 1;
-                            Some(Effect::Hold(
-                                now.saturating_add(config.live_period_us.saturating_mul(2)),
-                            ))
-                        } else {
-                            // Written, nothing read back: the settings read that
-                            // follows the group decides.
-                            let old = w.current.map(|(f, _)| f);
-                            self.remember_unresolved(item, old);
-                            self.finish_item(item, WriteOutcome::Unconfirmed(*f), out);
-                            None
-                        }
-                    }
-                    (WriteStep::ReadBack, Ok(_)) | (WriteStep::Settle(_), _) => {
-                        let old = w.current.map(|(f, _)| f);
-                        self.remember_unresolved(item, old);
-                        let outcome = WriteOutcome::Unconfirmed(Failure::Timeout);
-                        self.finish_item(item, outcome, out);
-                        None
-                    }
+                    // No clear confirmation (lost, damaged, or a NACK after an
+                    // unanswered first attempt that may have been applied):
+                    // the read-back decides.
+                    Err(Failure::Silent) => w.unconfirmed = Some(Failure::Timeout),
+                    Err(f) => w.unconfirmed = Some(*f),
+                    Ok(_) => w.unconfirmed = Some(Failure::Timeout),
+                }
+                if item.id.restarts_bms() {
+                    w.readback_attempts = timing::REBOOT_READBACK_ATTEMPTS;
+                    w.step = WriteStep::ReadBack;
+                    Some(Effect::Hold(now.saturating_add(config.reboot_wait_us)))
+                } else {
+                    w.readback_attempts = 1;
+                    w.step = WriteStep::Settle(now.saturating_add(config.write_settle_us));
+                    None
                 }
             }
+            (WriteStep::ReadBack, Ok(Response::Individual(pairs))) => {
+                self.on_readback(item, pairs, out)
+            }
+            (WriteStep::ReadBack, Err(f)) => {
+                if w.readback_attempts > 1 {
+                    w.readback_attempts -= 1;
+                    Some(Effect::Hold(
+                        now.saturating_add(config.live_period_us.saturating_mul(2)),
+                    ))
+                } else {
+                    // Written, nothing read back: the settings read that
+                    // follows the group decides.
+                    let old = w.current.map(|(f, _)| f);
+                    self.remember_unresolved(item, old);
+                    self.finish_item(item, WriteOutcome::Unconfirmed(*f), out);
+                    None
+                }
+            }
+            (WriteStep::ReadBack, Ok(_)) | (WriteStep::Settle(_), _) => {
+                let old = w.current.map(|(f, _)| f);
+                self.remember_unresolved(item, old);
+                let outcome = WriteOutcome::Unconfirmed(Failure::Timeout);
+                self.finish_item(item, outcome, out);
+                None
+            }
         }
+    }
+
+    /// The read-back after a write of `item`: verified, or what else it shows.
+    fn on_readback(
+        &mut self,
+        item: Setting,
+        pairs: &[(u16, u16)],
+        out: &mut Reports,
+    ) -> Option<Effect> {
+        let Some(Job::Write(w)) = self.job.as_mut() else {
+            return None;
+        };
+        let a = item.id.address();
+        let Some(first) = pair(pairs, a) else {
+            let old = w.current.map(|(f, _)| f);
+            self.remember_unresolved(item, old);
+            let outcome = WriteOutcome::Unconfirmed(Failure::Timeout);
+            self.finish_item(item, outcome, out);
+            return None;
+        };
+        let second = pair(pairs, a + 1);
+        // 323/328 read 0xFFFF once a write is accepted; when they
+        // already did before and the write was not confirmed, the
+        // marker proves nothing.
+        let marker_was_there =
+            item.id.reads_back_marker() && w.current.map(|(f, _)| f) == Some(ACCEPTED_MARKER);
+        let proof =
+            item.matches_readback(first, second) && !(marker_was_there && w.unconfirmed.is_some());
+        let old = w.current.map(|(f, _)| f);
+        // What the BMS read back once it took the value (not
+        // 323/328's marker: their copy waits for the next read).
+        let read_back = (proof && !(item.id.reads_back_marker() && first == ACCEPTED_MARKER))
+            .then_some(Effect::ReadBack {
+                address: a,
+                first,
+                second,
+            });
+        let outcome = if proof {
+            WriteOutcome::Verified
+        } else if marker_was_there && item.matches_readback(first, second) {
+            // 0xFFFF before and after an unconfirmed write: the
+            // read-back proves nothing either way.
+            let f = w.unconfirmed.unwrap_or(Failure::Timeout);
+            self.remember_unresolved(item, old);
+            WriteOutcome::Unconfirmed(f)
+        } else {
+            match w.unconfirmed {
+                // The read-back shows the old value: not applied.
+                Some(Failure::Nack(code)) if old == Some(first) => WriteOutcome::Nacked(code),
+                Some(f) if old == Some(first) => WriteOutcome::Failed(f),
+                _ => WriteOutcome::Mismatch { read_back: first },
+            }
+        };
+        self.finish_item(item, outcome, out);
+        read_back
     }
 }
 

@@ -356,12 +356,76 @@ fn what(s: &str) -> Option<What> {
 
 /// Parses one command line (without its `\n`). Never panics.
 pub fn parse(line: &[u8]) -> Result<Parsed<'_>, CommandError<'_>> {
-    let err = |req, code, detail, subject| CommandError {
+    let f = read_members(line)?;
+    let req = f.req;
+    let Some(cmd) = f.cmd else {
+        return Err(err(req, ErrorCode::MissingField, "missing member", "cmd"));
+    };
+    let Some(&(_, takes, build)) = COMMANDS.iter().find(|(name, ..)| *name == cmd) else {
+        return Err(err(req, ErrorCode::UnknownCommand, "unknown command", cmd));
+    };
+    if let Some(u) = f.unknown {
+        return Err(err(req, ErrorCode::UnknownField, "unknown member", u));
+    }
+    let given = [
+        ("what", f.what.is_some()),
+        ("values", f.values.is_some()),
+        ("raw", f.raw.is_some()),
+        ("period_ms", f.period_ms.is_some()),
+        ("on", f.on.is_some()),
+        ("fields", f.fields.is_some()),
+        ("force", f.force.is_some()),
+        ("chemistry", f.chemistry.is_some()),
+    ];
+    for (name, present) in given {
+        if present && !takes.contains(&name) {
+            return Err(err(
+                req,
+                ErrorCode::UnknownField,
+                "member not taken by this command",
+                name,
+            ));
+        }
+    }
+    let command = build(f)?;
+    Ok(Parsed { req, command })
+}
+
+/// An error line's content.
+fn err<'a>(
+    req: Option<u32>,
+    code: ErrorCode,
+    detail: &'static str,
+    subject: &'a str,
+) -> CommandError<'a> {
+    CommandError {
         req,
         code,
         detail,
         subject,
-    };
+    }
+}
+
+/// A command from its members.
+type Build = for<'a> fn(Fields<'a>) -> Result<HostCommand<'a>, CommandError<'a>>;
+
+/// Every command: its name, the members it takes besides `cmd` and `req`,
+/// and how it is built from them. One row per command: a command not here is
+/// unknown.
+const COMMANDS: &[(&str, &[&str], Build)] = &[
+    ("hello", &[], |_| Ok(HostCommand::Hello)),
+    ("reset", &[], |_| Ok(HostCommand::Reset)),
+    ("reset_config", &[], |_| Ok(HostCommand::ResetConfig)),
+    ("set_config", &["fields"], set_config),
+    ("get", &["what"], get),
+    ("clear", &["what"], clear),
+    ("set", &["values", "raw", "force", "chemistry"], set),
+    ("stream", &["period_ms"], stream),
+    ("capture", &["on"], capture),
+];
+
+/// The line's members, read as JSON (syntax, nesting, types, duplicates).
+fn read_members(line: &[u8]) -> Result<Fields<'_>, CommandError<'_>> {
     let first = line.iter().copied().find(|b| !b.is_ascii_whitespace());
     if first != Some(b'{') {
         return Err(err(
@@ -389,176 +453,149 @@ pub fn parse(line: &[u8]) -> Result<Parsed<'_>, CommandError<'_>> {
             e => err(f.req, ErrorCode::MalformedJson, syntax(e), ""),
         });
     }
-    let req = f.req;
     if let Some(m) = f.invalid {
         return Err(err(
-            req,
+            f.req,
             ErrorCode::InvalidValue,
             "not an unsigned 32-bit integer",
             m,
         ));
     }
     if let Some(d) = f.duplicate {
-        return Err(err(req, ErrorCode::MalformedJson, "member given twice", d));
+        return Err(err(
+            f.req,
+            ErrorCode::MalformedJson,
+            "member given twice",
+            d,
+        ));
     }
-    let Some(cmd) = f.cmd else {
-        return Err(err(req, ErrorCode::MissingField, "missing member", "cmd"));
-    };
-    // Members each command takes.
-    let takes: &[&str] = match cmd {
-        "hello" | "reset" | "reset_config" => &[],
-        "set_config" => &["fields"],
-        "get" | "clear" => &["what"],
-        "set" => &["values", "raw", "force", "chemistry"],
-        "stream" => &["period_ms"],
-        "capture" => &["on"],
-        _ => return Err(err(req, ErrorCode::UnknownCommand, "unknown command", cmd)),
-    };
-    if let Some(u) = f.unknown {
-        return Err(err(req, ErrorCode::UnknownField, "unknown member", u));
+    Ok(f)
+}
+
+fn set_config(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
+    let req = f.req;
+    let fields = f.fields.ok_or(err(
+        req,
+        ErrorCode::MissingField,
+        "missing member",
+        "fields",
+    ))?;
+    if f.too_many || fields.is_empty() {
+        return Err(err(
+            req,
+            ErrorCode::InvalidValue,
+            "1 to 12 fields per set_config",
+            "",
+        ));
     }
-    let given = [
-        ("what", f.what.is_some()),
-        ("values", f.values.is_some()),
-        ("raw", f.raw.is_some()),
-        ("period_ms", f.period_ms.is_some()),
-        ("on", f.on.is_some()),
-        ("fields", f.fields.is_some()),
-        ("force", f.force.is_some()),
-        ("chemistry", f.chemistry.is_some()),
-    ];
-    for (name, present) in given {
-        if present && !takes.contains(&name) {
+    Ok(HostCommand::SetConfig(fields))
+}
+
+fn get(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
+    let req = f.req;
+    let w = f
+        .what
+        .ok_or(err(req, ErrorCode::MissingField, "missing member", "what"))?;
+    Ok(HostCommand::Get(what(w).ok_or(err(
+        req,
+        ErrorCode::InvalidValue,
+        "what: snapshot, settings, statistics, events, version, link or config",
+        w,
+    ))?))
+}
+
+fn clear(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
+    let req = f.req;
+    let w = f
+        .what
+        .ok_or(err(req, ErrorCode::MissingField, "missing member", "what"))?;
+    Ok(HostCommand::Clear(match w {
+        "events" => ClearWhat::Events,
+        "statistics" => ClearWhat::Statistics,
+        _ => {
             return Err(err(
                 req,
-                ErrorCode::UnknownField,
-                "member not taken by this command",
-                name,
-            ));
+                ErrorCode::InvalidValue,
+                "what: events or statistics",
+                w,
+            ))
         }
-    }
-    let command = match cmd {
-        "hello" => HostCommand::Hello,
-        "reset" => HostCommand::Reset,
-        "reset_config" => HostCommand::ResetConfig,
-        "set_config" => {
-            let fields = f.fields.ok_or(err(
+    }))
+}
+
+fn set(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
+    let req = f.req;
+    let values = match (f.values, f.raw) {
+        (Some(v), None) => SetValues::Physical(v),
+        (None, Some(r)) => SetValues::Raw(r),
+        (None, None) => {
+            return Err(err(
                 req,
                 ErrorCode::MissingField,
                 "missing member",
-                "fields",
-            ))?;
-            if f.too_many || fields.is_empty() {
-                return Err(err(
-                    req,
-                    ErrorCode::InvalidValue,
-                    "1 to 12 fields per set_config",
-                    "",
-                ));
-            }
-            HostCommand::SetConfig(fields)
+                "values",
+            ))
         }
-        "get" => {
-            let w = f
-                .what
-                .ok_or(err(req, ErrorCode::MissingField, "missing member", "what"))?;
-            HostCommand::Get(what(w).ok_or(err(
+        (Some(_), Some(_)) => {
+            return Err(err(
                 req,
                 ErrorCode::InvalidValue,
-                "what: snapshot, settings, statistics, events, version, link or config",
-                w,
-            ))?)
-        }
-        "clear" => {
-            let w = f
-                .what
-                .ok_or(err(req, ErrorCode::MissingField, "missing member", "what"))?;
-            HostCommand::Clear(match w {
-                "events" => ClearWhat::Events,
-                "statistics" => ClearWhat::Statistics,
-                _ => {
-                    return Err(err(
-                        req,
-                        ErrorCode::InvalidValue,
-                        "what: events or statistics",
-                        w,
-                    ))
-                }
-            })
-        }
-        "set" => {
-            let values = match (f.values, f.raw) {
-                (Some(v), None) => SetValues::Physical(v),
-                (None, Some(r)) => SetValues::Raw(r),
-                (None, None) => {
-                    return Err(err(
-                        req,
-                        ErrorCode::MissingField,
-                        "missing member",
-                        "values",
-                    ))
-                }
-                (Some(_), Some(_)) => {
-                    return Err(err(
-                        req,
-                        ErrorCode::InvalidValue,
-                        "values and raw are exclusive",
-                        "raw",
-                    ))
-                }
-            };
-            let n = match &values {
-                SetValues::Physical(v) | SetValues::Raw(v) => v.len(),
-            };
-            if f.too_many || n == 0 {
-                return Err(err(
-                    req,
-                    ErrorCode::InvalidValue,
-                    "1 to 8 settings per set",
-                    "",
-                ));
-            }
-            // serde-json-core reads `null` as NaN: a value of the wrong type.
-            let (SetValues::Physical(v) | SetValues::Raw(v)) = &values;
-            if let Some(&(name, _)) = v.iter().find(|(_, x)| x.is_nan()) {
-                return Err(err(req, ErrorCode::InvalidValue, "not a number", name));
-            }
-            use protocol_core::settings::{Chemistry, ChemistryCheck};
-            let check = match (f.force, f.chemistry) {
-                (Some(true), _) => ChemistryCheck::Off,
-                (_, Some(c)) => ChemistryCheck::Given(Chemistry::from_key(c).ok_or(err(
-                    req,
-                    ErrorCode::InvalidValue,
-                    "chemistry: lifepo4, li-ion or lto",
-                    c,
-                ))?),
-                _ => ChemistryCheck::Inferred,
-            };
-            HostCommand::Set(values, check)
-        }
-        "stream" => {
-            let p = f.period_ms.ok_or(err(
-                req,
-                ErrorCode::MissingField,
-                "missing member",
-                "period_ms",
-            ))?;
-            if p != 0 && !(STREAM_PERIOD_MS.0..=STREAM_PERIOD_MS.1).contains(&p) {
-                return Err(err(
-                    req,
-                    ErrorCode::OutOfRange,
-                    "period_ms: 0 (off) or 100-60000",
-                    "period_ms",
-                ));
-            }
-            HostCommand::Stream(p)
-        }
-        _ => {
-            // "capture": the only command left in `takes`.
-            let on =
-                f.on.ok_or(err(req, ErrorCode::MissingField, "missing member", "on"))?;
-            HostCommand::Capture(on)
+                "values and raw are exclusive",
+                "raw",
+            ))
         }
     };
-    Ok(Parsed { req, command })
+    let n = match &values {
+        SetValues::Physical(v) | SetValues::Raw(v) => v.len(),
+    };
+    if f.too_many || n == 0 {
+        return Err(err(
+            req,
+            ErrorCode::InvalidValue,
+            "1 to 8 settings per set",
+            "",
+        ));
+    }
+    // serde-json-core reads `null` as NaN: a value of the wrong type.
+    let (SetValues::Physical(v) | SetValues::Raw(v)) = &values;
+    if let Some(&(name, _)) = v.iter().find(|(_, x)| x.is_nan()) {
+        return Err(err(req, ErrorCode::InvalidValue, "not a number", name));
+    }
+    use protocol_core::settings::{Chemistry, ChemistryCheck};
+    let check = match (f.force, f.chemistry) {
+        (Some(true), _) => ChemistryCheck::Off,
+        (_, Some(c)) => ChemistryCheck::Given(Chemistry::from_key(c).ok_or(err(
+            req,
+            ErrorCode::InvalidValue,
+            "chemistry: lifepo4, li-ion or lto",
+            c,
+        ))?),
+        _ => ChemistryCheck::Inferred,
+    };
+    Ok(HostCommand::Set(values, check))
+}
+
+fn stream(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
+    let req = f.req;
+    let p = f.period_ms.ok_or(err(
+        req,
+        ErrorCode::MissingField,
+        "missing member",
+        "period_ms",
+    ))?;
+    if p != 0 && !(STREAM_PERIOD_MS.0..=STREAM_PERIOD_MS.1).contains(&p) {
+        return Err(err(
+            req,
+            ErrorCode::OutOfRange,
+            "period_ms: 0 (off) or 100-60000",
+            "period_ms",
+        ));
+    }
+    Ok(HostCommand::Stream(p))
+}
+
+fn capture(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
+    let on =
+        f.on.ok_or(err(f.req, ErrorCode::MissingField, "missing member", "on"))?;
+    Ok(HostCommand::Capture(on))
 }

@@ -437,6 +437,68 @@ async fn connection<N: Network, C: Clock, F: Feed>(
     Ok((end, up_for))
 }
 
+/// Subscribes to Home Assistant's status topic: the one subscription.
+async fn subscribe_status<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock>(
+    client: &mut Mqtt<'_, N>,
+    clock: &C,
+    status_topic: &str,
+) -> Result<(), Failure> {
+    let Some(filter) = MqttString::from_str(status_topic)
+        .ok()
+        .and_then(TopicFilter::new)
+    else {
+        return Err(Failure::Protocol);
+    };
+    match timeout(
+        clock,
+        WRITE_TIMEOUT_US,
+        client.subscribe(filter, &SubscriptionOptions::new()),
+    )
+    .await
+    {
+        None => Err(Failure::Timeout),
+        Some(Err(_)) => Err(Failure::Connection),
+        Some(Ok(_)) => Ok(()),
+    }
+}
+
+/// Publishes everything the publisher has now (`topic` and `payload` are
+/// its buffers); when the last message went out, if one did.
+async fn publish_due<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock, F: Feed>(
+    client: &mut Mqtt<'_, N>,
+    clock: &C,
+    feed: &mut F,
+    publisher: &mut Publisher,
+    (topic, payload): (&mut String<TOPIC_MAX>, &mut alloc::vec::Vec<u8>),
+) -> Result<Option<Instant>, Failure> {
+    let mut last_sent = None;
+    loop {
+        let now = clock.now();
+        let msg = feed.with_view(now, |v| publisher.next(now, v, topic, payload));
+        let Some(m) = msg else { break };
+        let Some(t) = MqttString::from_str(topic).ok().and_then(TopicName::new) else {
+            continue;
+        };
+        let mut o = PublicationOptions::new(TopicReference::Name(t));
+        if m.retain {
+            o = o.retain();
+        }
+        let body = payload.get(..m.len).unwrap_or(&[]);
+        match timeout(
+            clock,
+            WRITE_TIMEOUT_US,
+            client.publish(&o, Bytes::from(body)),
+        )
+        .await
+        {
+            None => return Err(Failure::Timeout),
+            Some(Err(_)) => return Err(Failure::Connection),
+            Some(Ok(_)) => last_sent = Some(clock.now()),
+        }
+    }
+    Ok(last_sent)
+}
+
 /// A connected session until it fails.
 async fn serve<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock, F: Feed>(
     client: &mut Mqtt<'_, N>,
@@ -447,23 +509,8 @@ async fn serve<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock, 
     status_topic: &str,
     note: &mut dyn FnMut(Note),
 ) -> Failure {
-    // Home Assistant's status: the one subscription.
-    let Some(filter) = MqttString::from_str(status_topic)
-        .ok()
-        .and_then(TopicFilter::new)
-    else {
-        return Failure::Protocol;
-    };
-    match timeout(
-        clock,
-        WRITE_TIMEOUT_US,
-        client.subscribe(filter, &SubscriptionOptions::new()),
-    )
-    .await
-    {
-        None => return Failure::Timeout,
-        Some(Err(_)) => return Failure::Connection,
-        Some(Ok(_)) => {}
+    if let Err(f) = subscribe_status(client, clock, status_topic).await {
+        return f;
     }
     let mut topic = String::<TOPIC_MAX>::new();
     let mut payload = alloc::vec![0u8; PAYLOAD_MAX];
@@ -488,29 +535,10 @@ async fn serve<N: embedded_io_async::Read + embedded_io_async::Write, C: Clock, 
         if feed.with_view(now, |v| v.identity) != Some(identity) {
             return Failure::NewBms;
         }
-        loop {
-            let now = clock.now();
-            let msg = feed.with_view(now, |v| publisher.next(now, v, &mut topic, &mut payload));
-            let Some(m) = msg else { break };
-            let Some(t) = MqttString::from_str(&topic).ok().and_then(TopicName::new) else {
-                continue;
-            };
-            let mut o = PublicationOptions::new(TopicReference::Name(t));
-            if m.retain {
-                o = o.retain();
-            }
-            let body = payload.get(..m.len).unwrap_or(&[]);
-            match timeout(
-                clock,
-                WRITE_TIMEOUT_US,
-                client.publish(&o, Bytes::from(body)),
-            )
-            .await
-            {
-                None => return Failure::Timeout,
-                Some(Err(_)) => return Failure::Connection,
-                Some(Ok(_)) => last_sent = clock.now(),
-            }
+        match publish_due(client, clock, feed, publisher, (&mut topic, &mut payload)).await {
+            Err(f) => return f,
+            Ok(Some(t)) => last_sent = t,
+            Ok(None) => {}
         }
         // Keep-alive.
         let now = clock.now();

@@ -206,54 +206,13 @@ pub fn check_all(
             continue;
         }
         if let Err(e) = verdict {
-            let range = match (id.register().and_then(|r| r.range), bms) {
-                (Some((lo, hi)), Some((bl, bh))) => format!(
-                    "Rev D {}..{}, this BMS {}..{}",
-                    physical(id, i64::from(lo)),
-                    physical(id, i64::from(hi)),
-                    physical(id, i64::from(bl)),
-                    physical(id, i64::from(bh))
-                ),
-                (Some((lo, hi)), None) => format!(
-                    "Rev D {}..{}",
-                    physical(id, i64::from(lo)),
-                    physical(id, i64::from(hi))
-                ),
-                _ => String::new(),
-            };
-            let why = match e.reason() {
-                "out_of_rev_d_range" => "outside Rev D's range",
-                "outside_bms_limits" => "outside this BMS's own limits",
-                "not_an_option" => "not one of its values",
-                other => other,
-            };
-            let mut msg = format!(
-                "{name} = {}: {why}{}",
-                physical(id, i64::from(raw)),
-                if range.is_empty() {
-                    String::new()
-                } else {
-                    format!(" ({range})")
-                }
-            );
-            // A number meant in raw units? Say so when it would fit.
-            if bare.is_some_and(|b| b.contains(&id)) {
-                if let Some(shown) = line.and_then(|_| {
-                    let v = tinybms_firmware::units::physical(id, raw)?.as_f64();
-                    let as_raw = v.round() as i32;
-                    (f64::from(as_raw) == v
-                        && Setting::new(id, as_raw)
-                            .and_then(|s| s.validate_with(bms))
-                            .is_ok())
-                    .then(|| (as_raw, physical(id, i64::from(as_raw))))
-                }) {
-                    msg.push_str(&format!(
-                        "; did you mean the raw value {} ({})? add --raw, or give the unit",
-                        shown.0, shown.1
-                    ));
-                }
-            }
-            problems.push(msg);
+            problems.push(refusal(
+                id,
+                raw,
+                &e,
+                bms,
+                line.is_some() && bare.is_some_and(|b| b.contains(&id)),
+            ));
         }
     }
     if problems.is_empty() {
@@ -264,6 +223,69 @@ pub fn check_all(
             problems.join("\n  ")
         ))
     }
+}
+
+/// What a refused value of `id` says: why, the ranges it must keep, and —
+/// when it was a `bare` number the BMS has a line for — the raw value it
+/// may have meant.
+fn refusal(
+    id: SettingId,
+    raw: i32,
+    e: &protocol_core::settings::SettingError,
+    bms: Option<(i32, i32)>,
+    bare: bool,
+) -> String {
+    let name = snake_name(id);
+    let range = match (id.register().and_then(|r| r.range), bms) {
+        (Some((lo, hi)), Some((bl, bh))) => format!(
+            "Rev D {}..{}, this BMS {}..{}",
+            physical(id, i64::from(lo)),
+            physical(id, i64::from(hi)),
+            physical(id, i64::from(bl)),
+            physical(id, i64::from(bh))
+        ),
+        (Some((lo, hi)), None) => format!(
+            "Rev D {}..{}",
+            physical(id, i64::from(lo)),
+            physical(id, i64::from(hi))
+        ),
+        _ => String::new(),
+    };
+    let why = match e.reason() {
+        "out_of_rev_d_range" => "outside Rev D's range",
+        "outside_bms_limits" => "outside this BMS's own limits",
+        "not_an_option" => "not one of its values",
+        other => other,
+    };
+    let mut msg = format!(
+        "{name} = {}: {why}{}",
+        physical(id, i64::from(raw)),
+        if range.is_empty() {
+            String::new()
+        } else {
+            format!(" ({range})")
+        }
+    );
+    // A number meant in raw units? Say so when it would fit.
+    if let Some((as_raw, shown)) = bare.then(|| raw_meant(id, raw, bms)).flatten() {
+        msg.push_str(&format!(
+            "; did you mean the raw value {as_raw} ({shown})? add --raw, or give the unit"
+        ));
+    }
+    msg
+}
+
+/// The raw value a number `raw` (taken in the unit `settings` prints) would
+/// be, when that is a whole number `id` takes.
+fn raw_meant(id: SettingId, raw: i32, bms: Option<(i32, i32)>) -> Option<(i32, String)> {
+    use protocol_core::settings::Setting;
+    let v = tinybms_firmware::units::physical(id, raw)?.as_f64();
+    let as_raw = v.round() as i32;
+    (f64::from(as_raw) == v
+        && Setting::new(id, as_raw)
+            .and_then(|s| s.validate_with(bms))
+            .is_ok())
+    .then(|| (as_raw, physical(id, i64::from(as_raw))))
 }
 
 /// Parses one `set` argument: `NAME=VALUE`. With `raw`, VALUE is an integer in

@@ -184,6 +184,16 @@ impl Client {
     /// The next line answering `req` (others go to [`Client::pushed`]); an
     /// `error` line for it is returned as an error.
     pub fn recv_for(&mut self, req: u32, end: Instant, what: &str) -> ToolResult<Received> {
+        let r = self.answer_to(req, end, what)?;
+        if let HostLine::Error(e) = &r.line {
+            return Err(protocol_error(e));
+        }
+        Ok(r)
+    }
+
+    /// The line answering `req`, an `error` line too; lines of other
+    /// requests and pushed lines meanwhile are kept for later.
+    fn answer_to(&mut self, req: u32, end: Instant, what: &str) -> ToolResult<Received> {
         loop {
             let left = end.saturating_duration_since(Instant::now());
             if left.is_zero() {
@@ -193,12 +203,7 @@ impl Client {
             }
             match self.recv(left)? {
                 None => continue,
-                Some(r) if r.line.req() == Some(req) => {
-                    if let HostLine::Error(e) = &r.line {
-                        return Err(protocol_error(e));
-                    }
-                    return Ok(r);
-                }
+                Some(r) if r.line.req() == Some(req) => return Ok(r),
                 Some(v) => {
                     if self.pushed.len() >= 10_000 {
                         self.pushed.pop_front();
@@ -232,6 +237,24 @@ impl Client {
             }
             if last {
                 return Ok(out);
+            }
+        }
+    }
+
+    /// `get WHAT` for a single line the bridge reads only after it is ready
+    /// (statistics, the version): asked again every 200 ms while it answers
+    /// `not_ready`, until `timeout`.
+    pub fn get_one_read(&mut self, what: &str, timeout: Duration) -> ToolResult<Received> {
+        let end = Instant::now() + timeout;
+        loop {
+            let req = self.send(json!({"cmd": "get", "what": what}))?;
+            let r = self.answer_to(req, Instant::now() + GET_TIMEOUT, &format!("get {what}"))?;
+            match &r.line {
+                HostLine::Error(e) if e.error == "not_ready" && Instant::now() < end => {
+                    std::thread::sleep(Duration::from_millis(200));
+                }
+                HostLine::Error(e) => return Err(protocol_error(e)),
+                _ => return Ok(r),
             }
         }
     }

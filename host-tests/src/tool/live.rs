@@ -285,18 +285,7 @@ fn rows_for(text: &str, width: u16) -> u16 {
 pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
     let area = f.area();
     if area.width < MIN_SIZE.0 || area.height < MIN_SIZE.1 {
-        f.render_widget(
-            Paragraph::new(vec![
-                Line::raw(format!(
-                    "window too small: {}x{}, the live view needs {}x{}",
-                    area.width, area.height, MIN_SIZE.0, MIN_SIZE.1
-                )),
-                Line::raw("make it larger, or use `tinybms monitor PORT --plain`"),
-                Line::raw("q quits"),
-            ]),
-            area,
-        );
-        return;
+        return draw_too_small(f, area);
     }
     let fresh = freshness(
         s.telemetry.as_ref().map(|(t, _)| t),
@@ -341,6 +330,56 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
         Constraint::Length(rows.log),
     ])
     .areas(area);
+    draw_panes(f, s, &rows, battery_area, log_area);
+    let state = match fresh {
+        Freshness::Fresh(_) => {
+            Span::styled(" online ", Style::new().fg(Color::Black).bg(Color::Green))
+        }
+        Freshness::Offline(_) => Span::styled(" OFFLINE ", alarm),
+        Freshness::NoData(_) => Span::styled(" NO DATA ", alarm),
+    };
+    f.render_widget(
+        Paragraph::new(Line::from(vec![
+            Span::styled("TinyBMS ", Style::new().add_modifier(Modifier::BOLD)),
+            Span::raw(format!("{}  ", s.header)),
+            state,
+            Span::raw("   q quits"),
+        ])),
+        top,
+    );
+    let (Some((t, _)), Some(lines)) = (s.telemetry.as_ref(), lines) else {
+        f.render_widget(Paragraph::new("waiting for the first data..."), pack);
+        return;
+    };
+    let live = matches!(fresh, Freshness::Fresh(_));
+    f.render_widget(
+        Paragraph::new(lines)
+            .wrap(Wrap { trim: false })
+            .block(Block::new().borders(Borders::TOP)),
+        pack,
+    );
+    draw_cells(f, t, cells_area, live);
+    draw_charts(f, s, &rows, spark_area, live);
+    draw_foot(f, s, t, fresh, alarm, foot);
+}
+
+/// What a window too small for the view shows.
+fn draw_too_small(f: &mut Frame, area: Rect) {
+    f.render_widget(
+        Paragraph::new(vec![
+            Line::raw(format!(
+                "window too small: {}x{}, the live view needs {}x{}",
+                area.width, area.height, MIN_SIZE.0, MIN_SIZE.1
+            )),
+            Line::raw("make it larger, or use `tinybms monitor PORT --plain`"),
+            Line::raw("q quits"),
+        ]),
+        area,
+    );
+}
+
+/// The packs in parallel and the bridge's log, as many lines as `rows` gives them.
+fn draw_panes(f: &mut Frame, s: &LiveState, rows: &Rows, battery_area: Rect, log_area: Rect) {
     if rows.battery > 0 {
         let shown = usize::from(rows.battery - 1);
         let lines: Vec<Line> = s
@@ -372,34 +411,10 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
             log_area,
         );
     }
-    let state = match fresh {
-        Freshness::Fresh(_) => {
-            Span::styled(" online ", Style::new().fg(Color::Black).bg(Color::Green))
-        }
-        Freshness::Offline(_) => Span::styled(" OFFLINE ", alarm),
-        Freshness::NoData(_) => Span::styled(" NO DATA ", alarm),
-    };
-    f.render_widget(
-        Paragraph::new(Line::from(vec![
-            Span::styled("TinyBMS ", Style::new().add_modifier(Modifier::BOLD)),
-            Span::raw(format!("{}  ", s.header)),
-            state,
-            Span::raw("   q quits"),
-        ])),
-        top,
-    );
-    let (Some((t, _)), Some(lines)) = (s.telemetry.as_ref(), lines) else {
-        f.render_widget(Paragraph::new("waiting for the first data..."), pack);
-        return;
-    };
-    let live = matches!(fresh, Freshness::Fresh(_));
-    f.render_widget(
-        Paragraph::new(lines)
-            .wrap(Wrap { trim: false })
-            .block(Block::new().borders(Borders::TOP)),
-        pack,
-    );
-    draw_cells(f, t, cells_area, live);
+}
+
+/// The pack's voltage and current over the last minutes (greyed when not `live`).
+fn draw_charts(f: &mut Frame, s: &LiveState, rows: &Rows, spark_area: Rect, live: bool) {
     // Sparklines, when the window has room for them after the cells.
     let [vs, is] = Layout::horizontal([Constraint::Percentage(50), Constraint::Percentage(50)])
         .areas(spark_area);
@@ -436,14 +451,21 @@ pub fn draw(f: &mut Frame, s: &LiveState, now: Instant) {
                 .max(100)
                 // History stays on screen when the BMS goes silent, greyed
                 // like the cells: nothing drawn in colour is stale.
-                .style(Style::new().fg(if matches!(fresh, Freshness::Fresh(_)) {
-                    Color::Cyan
-                } else {
-                    Color::DarkGray
-                })),
+                .style(Style::new().fg(if live { Color::Cyan } else { Color::DarkGray })),
             area,
         );
     }
+}
+
+/// How fresh the data is, its sequence number and flag, and the link's quality.
+fn draw_foot(
+    f: &mut Frame,
+    s: &LiveState,
+    t: &Telemetry<Read>,
+    fresh: Freshness,
+    alarm: Style,
+    foot: Rect,
+) {
     // Freshness and link.
     let mut foot_lines = vec![Line::from(vec![
         Span::styled(

@@ -2,7 +2,12 @@
 
 use std::path::Path;
 
+use tinybms_firmware::config::value::Parsed;
+use tinybms_firmware::config::{Config, FieldId};
+
 use crate::tool::cli::Conn;
+use crate::tool::client::Client;
+use crate::tool::config::Shown;
 use crate::tool::{config, confirm, connect, monitor, ToolError, ToolResult};
 
 /// `tinybms config …` (see [`config`]).
@@ -15,6 +20,68 @@ pub fn run_config(
     reset: bool,
     yes: bool,
 ) -> ToolResult<()> {
+    // Everything that can be checked without the bridge is checked first.
+    let assignments = check_arguments(conn, args, load, dry_run)?;
+    let explain = match (&assignments, args.first()) {
+        (None, Some(name)) => Some(config::field_named(name)?),
+        _ => None,
+    };
+    let loaded = load.map(read_file).transpose()?;
+    if reset
+        && !yes
+        && !confirm("Set every field of the bridge's configuration back to its default")?
+    {
+        return Err(ToolError::failed("not confirmed: nothing changed"));
+    }
+    let mut c = connect(conn)?;
+    config::require_bridge(&c)?;
+    let (fields, end) = config::fetch(&mut c).map_err(config::fetch_error)?;
+    let current = config::record_of(&fields);
+    if let Some(changes) = assignments {
+        config::check_locally(&current, &changes)?;
+        if dry_run {
+            // Checked by the firmware's rules (each field, and the fields
+            // against each other): what would be written.
+            print_changes(&fields, &changes);
+            println!("dry run: checked, nothing changed");
+            return Ok(());
+        }
+        confirm_one_way(yes, &current, &changes)?;
+        return config::apply(&mut c, &changes);
+    }
+    if let (Some(path), Some(file)) = (load, loaded) {
+        let to = Target {
+            fields: &fields,
+            current: &current,
+        };
+        return apply_file(&mut c, to, path, file, dry_run, yes);
+    }
+    if reset {
+        return config::reset(&mut c, &fields);
+    }
+    if let Some(id) = explain {
+        let f = fields
+            .iter()
+            .find(|f| f.name == id.name())
+            .ok_or_else(|| ToolError::failed(format!("the bridge has no field `{}`", id.name())))?;
+        print!("{}", config::render_one(f));
+        return Ok(());
+    }
+    if let Some(path) = save {
+        return save_file(&c.port, &fields, path);
+    }
+    print!("{}", config::render(&fields, &end));
+    Ok(())
+}
+
+/// The arguments, checked before the bridge is asked anything: the changes
+/// they give (`NAME=VALUE...`), if any.
+fn check_arguments(
+    conn: &Conn,
+    args: &[String],
+    load: Option<&Path>,
+    dry_run: bool,
+) -> ToolResult<Option<Vec<(FieldId, Parsed)>>> {
     // Arguments in the wrong order: the port comes first.
     let looks_like_port = |a: &str| {
         a.starts_with("/dev/")
@@ -29,7 +96,6 @@ pub fn run_config(
             conn.port
         )));
     }
-    // Everything that can be checked without the bridge is checked first.
     let assignments = if args.iter().any(|x| x.contains('=')) {
         let mut out = Vec::new();
         for arg in args {
@@ -55,124 +121,109 @@ pub fn run_config(
     if dry_run && load.is_none() && assignments.is_none() {
         return Err(ToolError::usage("--dry-run goes with --load or NAME=VALUE"));
     }
-    let explain = match (&assignments, args.first()) {
-        (None, Some(name)) => Some(config::field_named(name)?),
-        _ => None,
-    };
-    // Secrets the saved bridge had set (the file names them, without values).
-    let mut secrets_in_file: Vec<String> = Vec::new();
-    let loaded = match load {
-        Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .map_err(|e| ToolError::failed(format!("cannot read `{}`: {e}", path.display())))?;
-            secrets_in_file = text
-                .lines()
-                .filter_map(|l| l.strip_prefix("# "))
-                .filter_map(|l| l.strip_suffix(": set (secrets are not saved)"))
-                .map(str::to_string)
-                .collect();
-            Some(
-                config::parse_file(&text)
-                    .map_err(|e| ToolError::usage(format!("{}: {e}", path.display())))?,
-            )
+    Ok(assignments)
+}
+
+/// A saved configuration: its record, and the secrets the saved bridge had
+/// set (the file names them, without values).
+struct SavedFile {
+    record: Vec<(FieldId, Parsed)>,
+    secrets: Vec<String>,
+}
+
+fn read_file(path: &Path) -> ToolResult<SavedFile> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| ToolError::failed(format!("cannot read `{}`: {e}", path.display())))?;
+    let secrets = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("# "))
+        .filter_map(|l| l.strip_suffix(": set (secrets are not saved)"))
+        .map(str::to_string)
+        .collect();
+    let record = config::parse_file(&text)
+        .map_err(|e| ToolError::usage(format!("{}: {e}", path.display())))?;
+    Ok(SavedFile { record, secrets })
+}
+
+/// The bridge's configuration as it answered.
+struct Target<'a> {
+    fields: &'a [Shown],
+    current: &'a Config,
+}
+
+/// `--load FILE`: the fields that differ from the bridge's, applied (or only
+/// shown with `--dry-run`); the secrets the file could not carry, named.
+fn apply_file(
+    c: &mut Client,
+    to: Target<'_>,
+    path: &Path,
+    file: SavedFile,
+    dry_run: bool,
+    yes: bool,
+) -> ToolResult<()> {
+    let (fields, current) = (to.fields, to.current);
+    let changes = config::diff(current, &file.record);
+    config::check_locally(current, &changes)?;
+    println!(
+        "{}: {} fields, {} differ from the bridge's",
+        path.display(),
+        file.record.len(),
+        changes.len()
+    );
+    print_changes(fields, &changes);
+    // Secrets are never in a file: say which the bridge now lacks, and how.
+    let missing: Vec<&String> = file
+        .secrets
+        .iter()
+        .filter(|name| {
+            fields
+                .iter()
+                .any(|f| f.name == **name && f.value == "unset")
+        })
+        .collect();
+    let say_missing = || {
+        if !missing.is_empty() {
+            let names: Vec<&str> = missing.iter().map(|s| s.as_str()).collect();
+            println!(
+                "not restored: {} (secrets are never saved in a file). Set {} again: {}",
+                names.join(", "),
+                if names.len() == 1 { "it" } else { "them" },
+                secrets_hint(&names)
+            );
         }
-        None => None,
     };
-    if reset
-        && !yes
-        && !confirm("Set every field of the bridge's configuration back to its default")?
-    {
-        return Err(ToolError::failed("not confirmed: nothing changed"));
-    }
-    let mut c = connect(conn)?;
-    config::require_bridge(&c)?;
-    let (fields, end) = config::fetch(&mut c).map_err(config::fetch_error)?;
-    let current = config::record_of(&fields);
-    if let Some(changes) = assignments {
-        config::check_locally(&current, &changes)?;
+    if dry_run || changes.is_empty() {
         if dry_run {
-            // Checked by the firmware's rules (each field, and the fields
-            // against each other): what would be written.
-            print_changes(&fields, &changes);
-            println!("dry run: checked, nothing changed");
-            return Ok(());
+            println!("dry run: nothing changed");
         }
-        confirm_one_way(yes, &current, &changes)?;
-        return config::apply(&mut c, &changes);
-    }
-    if let Some(wanted) = loaded {
-        let changes = config::diff(&current, &wanted);
-        config::check_locally(&current, &changes)?;
-        println!(
-            "{}: {} fields, {} differ from the bridge's",
-            load.map(|p| p.display().to_string()).unwrap_or_default(),
-            wanted.len(),
-            changes.len()
-        );
-        print_changes(&fields, &changes);
-        // Secrets are never in a file: say which the bridge now lacks, and how.
-        let missing: Vec<&String> = secrets_in_file
-            .iter()
-            .filter(|name| {
-                fields
-                    .iter()
-                    .any(|f| f.name == **name && f.value == "unset")
-            })
-            .collect();
-        let say_missing = || {
-            if !missing.is_empty() {
-                let names: Vec<&str> = missing.iter().map(|s| s.as_str()).collect();
-                println!(
-                    "not restored: {} (secrets are never saved in a file). Set {} again: {}",
-                    names.join(", "),
-                    if names.len() == 1 { "it" } else { "them" },
-                    secrets_hint(&names)
-                );
-            }
-        };
-        if dry_run || changes.is_empty() {
-            if dry_run {
-                println!("dry run: nothing changed");
-            }
-            say_missing();
-            return Ok(());
-        }
-        confirm_one_way(yes, &current, &changes)?;
-        config::apply(&mut c, &changes)?;
         say_missing();
         return Ok(());
     }
-    if reset {
-        return config::reset(&mut c, &fields);
-    }
-    if let Some(id) = explain {
-        let f = fields
-            .iter()
-            .find(|f| f.name == id.name())
-            .ok_or_else(|| ToolError::failed(format!("the bridge has no field `{}`", id.name())))?;
-        print!("{}", config::render_one(f));
-        return Ok(());
-    }
-    if let Some(path) = save {
-        let header = format!(
-            "saved by tinybms {} from {} at {}",
-            env!("CARGO_PKG_VERSION"),
-            c.port,
-            monitor::utc_now()
-        );
-        std::fs::write(path, config::file_text(&fields, &header))
-            .map_err(|e| ToolError::failed(format!("cannot write `{}`: {e}", path.display())))?;
-        let secrets = fields.iter().filter(|f| f.secret).count();
-        println!(
-            "saved {} fields to {} ({secrets} secrets left out)",
-            fields.len() - secrets,
-            path.display()
-        );
-        return Ok(());
-    }
-    print!("{}", config::render(&fields, &end));
+    confirm_one_way(yes, current, &changes)?;
+    config::apply(c, &changes)?;
+    say_missing();
     Ok(())
 }
+
+/// `--save FILE`: every field but the secrets, with a header saying whence.
+fn save_file(port: &str, fields: &[Shown], path: &Path) -> ToolResult<()> {
+    let header = format!(
+        "saved by tinybms {} from {} at {}",
+        env!("CARGO_PKG_VERSION"),
+        port,
+        monitor::utc_now()
+    );
+    std::fs::write(path, config::file_text(fields, &header))
+        .map_err(|e| ToolError::failed(format!("cannot write `{}`: {e}", path.display())))?;
+    let secrets = fields.iter().filter(|f| f.secret).count();
+    println!(
+        "saved {} fields to {} ({secrets} secrets left out)",
+        fields.len() - secrets,
+        path.display()
+    );
+    Ok(())
+}
+
 /// The commands that set the secrets `names` again.
 pub fn secrets_hint(names: &[&str]) -> String {
     let mut out = Vec::new();

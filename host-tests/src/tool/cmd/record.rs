@@ -81,43 +81,7 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
                 }
             }
             took = recorded();
-            let req = c.send(json!({"cmd": "capture", "on": false}))?;
-            // Raw lines still queued before the answer are part of the capture.
-            loop {
-                let Some(r) = c.recv(Duration::from_secs(5))? else {
-                    break;
-                };
-                if r.line.req() == Some(req) {
-                    break;
-                }
-                if let HostLine::Raw(v) = r.line {
-                    if let Ok(bytes) = parse_hex(&v.hex) {
-                        if is_tx(&v) {
-                            writer.tx(&bytes).map_err(werr)?;
-                        } else {
-                            writer.rx(&bytes).map_err(werr)?;
-                        }
-                    }
-                }
-            }
-            if let Some(dropped) = c.link().ok().map(|l| l.dropped_lines) {
-                if dropped > 0 {
-                    let _ = writer.comment(&format!(
-                        "the bridge dropped {dropped} output lines since it started (raw lines may be missing)"
-                    ));
-                }
-            }
-            let _ = writer.comment(&format!(
-                "recorded {:.1} s of the {:.1} s asked{}",
-                took.as_secs_f64(),
-                duration.as_secs_f64(),
-                if interrupted() {
-                    " (stopped by Ctrl-C)"
-                } else {
-                    ""
-                }
-            ));
-            writer.flush().map_err(werr)?;
+            finish_capture(&mut c, &mut writer, (took, duration), &path)?;
         }
         (Mode::Bridge, None) => return Err(ToolError::failed("internal: bridge without hello")),
     }
@@ -142,5 +106,54 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
     if interrupted() {
         return Err(crate::tool::interrupted_error());
     }
+    Ok(())
+}
+
+/// Capture off, the raw lines still queued before its answer written, and
+/// the recording's end said in the file (`took` of `asked`).
+fn finish_capture(
+    c: &mut Client,
+    writer: &mut CaptureWriter,
+    (took, duration): (Duration, Duration),
+    path: &str,
+) -> ToolResult<()> {
+    let werr = |e: std::io::Error| ToolError::failed(format!("writing `{path}`: {e}"));
+    let req = c.send(json!({"cmd": "capture", "on": false}))?;
+    // Raw lines still queued before the answer are part of the capture.
+    loop {
+        let Some(r) = c.recv(Duration::from_secs(5))? else {
+            break;
+        };
+        if r.line.req() == Some(req) {
+            break;
+        }
+        if let HostLine::Raw(v) = r.line {
+            if let Ok(bytes) = parse_hex(&v.hex) {
+                if is_tx(&v) {
+                    writer.tx(&bytes).map_err(werr)?;
+                } else {
+                    writer.rx(&bytes).map_err(werr)?;
+                }
+            }
+        }
+    }
+    if let Some(dropped) = c.link().ok().map(|l| l.dropped_lines) {
+        if dropped > 0 {
+            let _ = writer.comment(&format!(
+                "the bridge dropped {dropped} output lines since it started (raw lines may be missing)"
+            ));
+        }
+    }
+    let _ = writer.comment(&format!(
+        "recorded {:.1} s of the {:.1} s asked{}",
+        took.as_secs_f64(),
+        duration.as_secs_f64(),
+        if interrupted() {
+            " (stopped by Ctrl-C)"
+        } else {
+            ""
+        }
+    ));
+    writer.flush().map_err(werr)?;
     Ok(())
 }

@@ -10,7 +10,8 @@ use crate::tool::{connect_ready, ToolResult};
 
 pub fn show_one(conn: &Conn, what: &str, json: bool) -> ToolResult<()> {
     let mut c = connect_ready(conn)?;
-    let got = c.get_one(what)?;
+    // Read by the bridge after it is ready: may take a moment more.
+    let got = c.get_one_read(what, conn.timeout)?;
     if json {
         println!("{}", got.raw_without_req());
     } else if let HostLine::Statistics(s) = &got.line {
