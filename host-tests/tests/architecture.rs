@@ -1,6 +1,7 @@
 //! The maps a new maintainer reads first stay true to the tree: every file of
-//! the firmware's library is named in `docs/architecture.md`, and every module
-//! of the library is on its front page (`firmware/src/lib.rs`). A module added
+//! the firmware's library, of protocol-core and of the desktop side is named in
+//! `docs/architecture.md`, and every module of the firmware's library is on its
+//! front page (`firmware/src/lib.rs`). A module added
 //! without its line in the map fails here.
 
 use std::path::Path;
@@ -45,18 +46,39 @@ fn named(doc: &str, file: &str) -> bool {
     doc.contains(&key) || doc.contains(file)
 }
 
+/// The files of `dir` (under the repository) the map does not name.
+fn unnamed(doc: &str, dir: &str, at_least: usize) -> Vec<String> {
+    let src = root().join(dir);
+    let mut files = Vec::new();
+    sources(&src, &src, &mut files);
+    assert!(files.len() >= at_least, "{dir}: {} files", files.len());
+    files.into_iter().filter(|f| !named(doc, f)).collect()
+}
+
 #[test]
 fn every_file_of_the_firmware_is_on_the_architecture_map() {
     let doc = std::fs::read_to_string(root().join("docs/architecture.md")).unwrap();
-    let src = root().join("firmware/src");
-    let mut files = Vec::new();
-    sources(&src, &src, &mut files);
-    assert!(files.len() > 50, "the library's files: {}", files.len());
-    let missing: Vec<&String> = files.iter().filter(|f| !named(&doc, f)).collect();
+    let missing = unnamed(&doc, "firmware/src", 50);
     assert!(
         missing.is_empty(),
         "docs/architecture.md does not name {missing:?}: add each to the table of the firmware's modules"
     );
+}
+
+#[test]
+fn every_file_of_protocol_core_and_the_desktop_side_is_on_the_map() {
+    let doc = std::fs::read_to_string(root().join("docs/architecture.md")).unwrap();
+    for (dir, at_least) in [
+        ("protocol-core/src", 10),
+        ("host-tests/src", 50),
+        ("host-tests/rules/src", 5),
+    ] {
+        let missing = unnamed(&doc, dir, at_least);
+        assert!(
+            missing.is_empty(),
+            "docs/architecture.md does not name {missing:?} of {dir}: add each to the table of protocol-core's and the desktop side's modules"
+        );
+    }
 }
 
 #[test]

@@ -258,7 +258,7 @@ fn store_text(v: &Store<Read>) -> String {
 /// radio's start and its MQTT connection stand).
 pub fn version(conn: &Conn, json: bool) -> ToolResult<()> {
     let mut c = connect_ready(conn)?;
-    let got = c.get_one("version")?;
+    let got = c.get_one_read("version", conn.timeout)?;
     let bridge = (c.mode == crate::tool::transport::Mode::Bridge).then(|| bridge_of(&c.hello));
     if json {
         let mut v = got.raw_without_req();
