@@ -21,11 +21,10 @@ use std::time::Duration;
 
 use protocol_core::settings::{Setting, SettingId};
 use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
-use tinybms_firmware::config::store::{Loaded, Source, Store, StoreError};
-use tinybms_firmware::identity::{Features, Identity};
+use tinybms_firmware::config::store::{Store, StoreError};
 use tinybms_firmware::inverter::frames::CanFrame;
 use tinybms_firmware::inverter::TxResult;
-use tinybms_firmware::station::{Action, Logged, Setup, Station};
+use tinybms_firmware::station::{Action, Logged, Station};
 use tinybms_firmware::text::Line;
 use tinybms_firmware::{Instant, Report};
 
@@ -213,33 +212,11 @@ pub struct Driver<P: BytePort> {
     pub rx_bytes: u64,
 }
 
-/// A station with nothing but the BMS link at `now` (`chip` for the host
-/// link's hello when `host_link`).
-pub fn bridge_station(config: Timing, now: Instant) -> Station {
-    let setup = Setup {
-        timing: config,
-        identity: Identity::desktop(
-            "host",
-            Features {
-                can: false,
-                host_link: false,
-                ..Features::default()
-            },
-        ),
-        inverter: None,
-    };
-    let loaded = Loaded {
-        config: crate::virtual_time::bridge_only(),
-        source: Source::Empty,
-    };
-    Station::new(setup, loaded, now)
-}
-
 impl<P: BytePort> Driver<P> {
     /// A bridge alone (no consumer) whose time 0 is now.
     pub fn new(port: P, config: Timing) -> Self {
         let clock = Clock::start();
-        let station = bridge_station(config, clock.now());
+        let station = crate::virtual_time::bridge_station("host", config, clock.now());
         Self::with_station(port, station, clock)
     }
 

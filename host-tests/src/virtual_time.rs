@@ -245,23 +245,7 @@ impl Harness {
 
     /// A harness at time 0 with a bridge alone (no consumer: [`bridge_only`]).
     pub fn with_config(sim: SimBms, config: Timing) -> Self {
-        let setup = Setup {
-            timing: config,
-            identity: Identity::desktop(
-                "sim",
-                Features {
-                    can: false,
-                    host_link: false,
-                    ..Features::default()
-                },
-            ),
-            inverter: None,
-        };
-        let loaded = Loaded {
-            config: bridge_only(),
-            source: Source::Empty,
-        };
-        Self::with_station(sim, Station::new(setup, loaded, 0))
+        Self::with_station(sim, bridge_station("sim", config, 0))
     }
 
     /// A harness at time 0 around `station`.
@@ -796,4 +780,26 @@ pub fn record_clean(seed: u64, duration_us: u64) -> Option<Vec<u8>> {
     out.extend_from_slice(&body);
     out.push(b'E');
     Some(out)
+}
+
+/// A station with nothing but the BMS link (no consumer: [`bridge_only`]) at
+/// `now`; `chip` names it in the host link's hello.
+pub fn bridge_station(chip: &'static str, config: Timing, now: u64) -> Station {
+    let setup = Setup {
+        timing: config,
+        identity: Identity::desktop(
+            chip,
+            Features {
+                can: false,
+                host_link: false,
+                ..Features::default()
+            },
+        ),
+        inverter: None,
+    };
+    let loaded = Loaded {
+        config: bridge_only(),
+        source: Source::Empty,
+    };
+    Station::new(setup, loaded, now)
 }

@@ -606,20 +606,17 @@ fn version(p: &[u8]) -> Version {
 
 /// The payload is exactly `n` bytes.
 fn need(command: u8, payload: &[u8], n: usize) -> Result<(), ResponseError> {
-    if payload.len() == n {
-        Ok(())
-    } else {
-        Err(ResponseError::Length {
-            command,
-            expected: n,
-            actual: payload.len(),
-        })
-    }
+    length(command, payload, n, payload.len() == n)
 }
 
 /// The payload is at least `n` bytes.
 fn at_least(command: u8, payload: &[u8], n: usize) -> Result<(), ResponseError> {
-    if payload.len() >= n {
+    length(command, payload, n, payload.len() >= n)
+}
+
+/// A length error expecting `n` bytes, unless `ok`.
+fn length(command: u8, payload: &[u8], n: usize, ok: bool) -> Result<(), ResponseError> {
+    if ok {
         Ok(())
     } else {
         Err(ResponseError::Length {

@@ -31,11 +31,7 @@ pub const MAGIC: [u8; 2] = *b"TC";
 /// Longest encoded record, bytes (every text field at its longest: 586).
 pub const RECORD_MAX: usize = 640;
 
-/// The layout version that added the field stored under `tag` (version 2:
-/// `pack_node`; version 3: `pack_name`).
-pub const fn introduced(tag: u8) -> u8 {
-    super::introduced_in(tag)
-}
+pub use super::introduced;
 
 /// Why bytes are not a record.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

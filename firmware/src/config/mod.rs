@@ -185,7 +185,7 @@ pub use crate::freshness::StaleMode;
 /// member that holds it, with its type and default, then its sentence for
 /// an owner. From the rows come [`FieldId`], [`FIELDS`], [`Config`], its
 /// [`Default`], [`Config::get`], [`Config::set`] and
-/// [`codec::introduced`]: adding a field is one row (and its use).
+/// [`introduced`]: adding a field is one row (and its use).
 macro_rules! fields {
     (
         defaults($c:ident = $charge:expr, $i:ident = $inverter:expr);
@@ -245,8 +245,9 @@ macro_rules! fields {
         }
 
         /// The layout version that added the field stored under `tag`
-        /// (1 for a tag no field has).
-        const fn introduced_in(tag: u8) -> u8 {
+        /// (version 2: `pack_node`; version 3: `pack_name`; 1 for a tag no
+        /// field has). [`codec`] reads an older record by it.
+        pub const fn introduced(tag: u8) -> u8 {
             match tag {
                 $( $tag => $since, )*
                 _ => 1,

@@ -359,7 +359,7 @@ pub fn parse(line: &[u8]) -> Result<Parsed<'_>, CommandError<'_>> {
     let f = read_members(line)?;
     let req = f.req;
     let Some(cmd) = f.cmd else {
-        return Err(err(req, ErrorCode::MissingField, "missing member", "cmd"));
+        return Err(missing(req, "cmd"));
     };
     let Some(&(_, takes, build)) = COMMANDS.iter().find(|(name, ..)| *name == cmd) else {
         return Err(err(req, ErrorCode::UnknownCommand, "unknown command", cmd));
@@ -404,6 +404,11 @@ fn err<'a>(
         detail,
         subject,
     }
+}
+
+/// A member the command needs is not there.
+fn missing(req: Option<u32>, member: &'static str) -> CommandError<'static> {
+    err(req, ErrorCode::MissingField, "missing member", member)
 }
 
 /// A command from its members.
@@ -474,12 +479,7 @@ fn read_members(line: &[u8]) -> Result<Fields<'_>, CommandError<'_>> {
 
 fn set_config(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
     let req = f.req;
-    let fields = f.fields.ok_or(err(
-        req,
-        ErrorCode::MissingField,
-        "missing member",
-        "fields",
-    ))?;
+    let fields = f.fields.ok_or(missing(req, "fields"))?;
     if f.too_many || fields.is_empty() {
         return Err(err(
             req,
@@ -493,9 +493,7 @@ fn set_config(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
 
 fn get(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
     let req = f.req;
-    let w = f
-        .what
-        .ok_or(err(req, ErrorCode::MissingField, "missing member", "what"))?;
+    let w = f.what.ok_or(missing(req, "what"))?;
     Ok(HostCommand::Get(what(w).ok_or(err(
         req,
         ErrorCode::InvalidValue,
@@ -506,9 +504,7 @@ fn get(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
 
 fn clear(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
     let req = f.req;
-    let w = f
-        .what
-        .ok_or(err(req, ErrorCode::MissingField, "missing member", "what"))?;
+    let w = f.what.ok_or(missing(req, "what"))?;
     Ok(HostCommand::Clear(match w {
         "events" => ClearWhat::Events,
         "statistics" => ClearWhat::Statistics,
@@ -528,14 +524,7 @@ fn set(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
     let values = match (f.values, f.raw) {
         (Some(v), None) => SetValues::Physical(v),
         (None, Some(r)) => SetValues::Raw(r),
-        (None, None) => {
-            return Err(err(
-                req,
-                ErrorCode::MissingField,
-                "missing member",
-                "values",
-            ))
-        }
+        (None, None) => return Err(missing(req, "values")),
         (Some(_), Some(_)) => {
             return Err(err(
                 req,
@@ -577,12 +566,7 @@ fn set(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
 
 fn stream(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
     let req = f.req;
-    let p = f.period_ms.ok_or(err(
-        req,
-        ErrorCode::MissingField,
-        "missing member",
-        "period_ms",
-    ))?;
+    let p = f.period_ms.ok_or(missing(req, "period_ms"))?;
     if p != 0 && !(STREAM_PERIOD_MS.0..=STREAM_PERIOD_MS.1).contains(&p) {
         return Err(err(
             req,
@@ -595,7 +579,6 @@ fn stream(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
 }
 
 fn capture(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
-    let on =
-        f.on.ok_or(err(f.req, ErrorCode::MissingField, "missing member", "on"))?;
+    let on = f.on.ok_or(missing(f.req, "on"))?;
     Ok(HostCommand::Capture(on))
 }

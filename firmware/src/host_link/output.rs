@@ -172,11 +172,13 @@ fn telemetry(
     )
 }
 
-/// A listing's next line: another item (the listing stays at the front), or
-/// its end line (it is done).
+/// The front item's next line when it is a listing: another item (the
+/// listing stays at the front), or its end line (it is done).
 enum Listed {
     More(Option<usize>),
     Last(Option<usize>),
+    /// The front item is no listing.
+    Not,
 }
 
 impl State {
@@ -189,22 +191,21 @@ impl State {
         out: &mut [u8],
     ) -> Option<usize> {
         let n = match self.listing_line(bridge, config, out)? {
-            Some(Listed::More(n)) => return n,
-            Some(Listed::Last(n)) => n,
-            None => self.single_line(now, bridge, config, out),
+            Listed::More(n) => return n,
+            Listed::Last(n) => n,
+            Listed::Not => self.single_line(now, bridge, config, out),
         };
         self.queue.pop_front();
         n
     }
 
-    /// The front item's line when it is a listing (`Some(None)`: it is not
-    /// one; `None`: nothing waits).
+    /// The front item's line when it is a listing (`None`: nothing waits).
     fn listing_line(
         &mut self,
         bridge: &Bridge,
         config: &ConfigState,
         out: &mut [u8],
-    ) -> Option<Option<Listed>> {
+    ) -> Option<Listed> {
         let t = bridge.telemetry();
         let known = bridge.events();
         let first_seq = known.total().wrapping_sub(known.len() as u32);
@@ -220,9 +221,7 @@ impl State {
                             (Some(lo), Some(hi)) => id.limits(lo, hi),
                             _ => None,
                         };
-                        return Some(Some(Listed::More(encode::setting(
-                            out, *req, id, raw, limits,
-                        ))));
+                        return Some(Listed::More(encode::setting(out, *req, id, raw, limits)));
                     }
                     None => encode::end(out, "settings_end", *req, ids.len() as u32),
                 }
@@ -246,7 +245,7 @@ impl State {
                 if let Some(e) = e {
                     *next = next.wrapping_add(1);
                     *sent = sent.wrapping_add(1);
-                    return Some(Some(Listed::More(encode::event(out, *req, &e, true))));
+                    return Some(Listed::More(encode::event(out, *req, &e, true)));
                 }
                 encode::end(out, "events_end", *req, *sent)
             }
@@ -259,20 +258,20 @@ impl State {
                             .settings
                             .as_ref()
                             .and_then(crate::config::PackSettings::from_registers);
-                        return Some(Some(Listed::More(encode::config_field(
+                        return Some(Listed::More(encode::config_field(
                             out,
                             *req,
                             f,
                             config,
                             bms.as_ref(),
-                        ))));
+                        )));
                     }
                     None => encode::config_end(out, *req, config),
                 }
             }
-            _ => return Some(None),
+            _ => return Some(Listed::Not),
         };
-        Some(Some(Listed::Last(listed)))
+        Some(Listed::Last(listed))
     }
 
     /// The front item's line when it is not a listing.

@@ -47,8 +47,9 @@ fn pack(chip: &str, elf: &Path, merged: &Path, app: &Path) -> Result<usize, Stri
     };
     let data = std::fs::read(elf).map_err(|e| format!("cannot read: {e}"))?;
     check_idf_bootloader(&data).map_err(|e| format!("{e}"))?;
-    let merged_bytes = merge(image(&data, chip)?.flash_segments())?;
-    let ota = image(&data, chip)?.ota_segments();
+    let image = image(&data, chip)?;
+    let merged_bytes = merge(image.clone().flash_segments())?;
+    let ota = image.ota_segments();
     let [single] = ota.as_slice() else {
         return Err(format!("{} app segments, expected one", ota.len()));
     };
