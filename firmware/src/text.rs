@@ -335,7 +335,7 @@ pub fn inverter(r: &InverterReport, out: &mut Line) {
         InverterReport::Stale {
             age_ms,
             policy,
-            hold_us,
+            stale_hold_us,
         } => {
             out.push("CAN: BMS data ")
                 .fixed(i64::from(*age_ms) / 100, 1)
@@ -344,7 +344,7 @@ pub fn inverter(r: &InverterReport, out: &mut Line) {
                 StaleMode::Stop => out.push("sending stopped"),
                 StaleMode::Hold => out
                     .push("charge limit 0 A for at most ")
-                    .duration_s(hold_us / crate::SECOND),
+                    .duration_s(stale_hold_us / crate::SECOND),
             };
         }
         InverterReport::StaleHoldEnded => {

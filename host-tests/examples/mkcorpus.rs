@@ -14,6 +14,7 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
+use host_tests::sim::{CurrentSensor, PackModel, SimBms, SimConfig};
 use protocol_core::crc::crc16;
 use protocol_core::frame::{Frame, NackCode};
 use protocol_core::request::{Request, ResetOption, SettingsOption};
@@ -68,7 +69,7 @@ fn f32_le(x: f32) -> Vec<u8> {
 }
 
 fn hex(bytes: &[u8]) -> String {
-    host_tests::capture::hex(bytes)
+    tinybms_desk::capture::hex(bytes)
 }
 
 // ---------------------------------------------------------------------------
@@ -177,189 +178,60 @@ fn version_block() -> [u16; 10] {
     ]
 }
 
-/// Settings 300-343 for 0x1D: option -> 44 values.
+/// Settings 300-343 for 0x1D: option -> 44 values. Minimum, maximum and
+/// default are the simulated BMS's (one table of the TinyBMS's settings,
+/// `host-tests/src/sim/settings.rs`, Rev D §3.4's ranges), with the
+/// sensor-dependent ones (304, 305, 317, 318) as a unit with the internal
+/// HALL sensor reports them; the current values are this unit's own.
 fn settings(option: SettingsOption) -> [u16; 44] {
     let mut r = [0u16; 44];
-    let mut set = |a: usize, v: u16| r[a - 300] = v;
-    match option {
-        // Rev D §3.4 ranges; the sensor-dependent ones (304, 305, 317, 318) as this
-        // unit (internal HALL) reports them.
-        SettingsOption::Min => {
-            for (a, v) in [
-                (300, 1200),
-                (301, 1000),
-                (303, 1000),
-                (304, 100),
-                (305, 1),
-                (306, 10),
-                (307, 4),
-                (308, 15),
-                (310, 5),
-                (311, 0),
-                (312, 1),
-                (313, 0),
-                (314, 1),
-                (315, 1200),
-                (316, 800),
-                (317, 1),
-                (318, 1),
-                (319, 20),
-                (320, (-40i16) as u16),
-                (321, 60),
-                (322, 10),
-                (323, 0),
-                (328, 0),
-                (329, 0),
-                (330, 0x0001),
-                (331, 0),
-                (332, 1),
-                (333, 1),
-                (334, 0),
-                (335, 1),
-                (336, 0),
-                (337, 0),
-                (338, 0),
-                (339, 0),
-                (340, 0),
-                (341, 0),
-                (342, 0),
-                (343, 0),
-            ] {
-                set(a, v);
-            }
-        }
-        SettingsOption::Max => {
-            for (a, v) in [
-                (300, 4500),
-                (301, 3500),
-                (303, 4500),
-                (304, 5000),
-                (305, 750),
-                (306, 65500),
-                (307, 16),
-                (308, 100),
-                (310, 60),
-                (311, 60),
-                (312, 0x86A0), // 100000 = 0x000186A0, low word first
-                (313, 0x0001),
-                (314, 5),
-                (315, 4500),
-                (316, 3500),
-                (317, 750),
-                (318, 750),
-                (319, 90),
-                (320, 10),
-                (321, 95),
-                (322, 65000),
-                (323, 50000),
-                (328, 50000),
-                (329, 0b111),
-                (330, 0x1E02), // charger type 2, timeout 30 s
-                (331, 8),
-                (332, 30),
-                (333, 9),
-                (334, 6),
-                (335, 7),
-                (336, 2),
-                (337, 0x10),
-                (338, 7),
-                (339, 1),
-                (340, 1),
-                (341, 8),
-                (342, 7),
-                (343, 2),
-            ] {
-                set(a, v);
-            }
-        }
-        SettingsOption::Default => {
-            for (a, v) in [
-                (300, 3650),
-                (301, 2500),
-                (303, 3200),
-                (304, 1000),
-                (305, 100),
-                (306, 1000),
-                (307, 16),
-                (308, 15),
-                (310, 20),
-                (311, 5),
-                (312, 1),
-                (313, 0),
-                (314, 2),
-                (315, 3800),
-                (316, 2200),
-                (317, 60),
-                (318, 20),
-                (319, 60),
-                (320, 0),
-                (321, 90),
-                (322, 1000),
-                (323, 50000),
-                (328, 25000),
-                (329, 0),
-                (330, 0x0001),
-                (331, 0),
-                (332, 5),
-                (333, 1),
-                (334, 0),
-                (335, 1),
-                (336, 0),
-                (337, 0),
-                (338, 3),
-                (339, 0),
-                (340, 0),
-                (341, 0),
-                (342, 0),
-                (343, 0),
-            ] {
-                set(a, v);
-            }
-        }
-        SettingsOption::Current => {
-            for (a, v) in [
-                (300, 4150),
-                (301, 3000),
-                (303, 3900),
-                (304, 1000),
-                (305, 150),
-                (306, 2000), // 20.00 Ah
-                (307, 14),
-                (308, 15),
-                (310, 20),
-                (311, 5),
-                (312, 1000),
-                (313, 0),
-                (314, 2), // km
-                (315, 4200),
-                (316, 2800),
-                (317, 60),
-                (318, 20),
-                (319, 60),
-                (320, (-5i16) as u16),
-                (321, 90),
-                (322, 1000),
-                (323, 0xFFFF), // "0xFFFF when data internally accepted" (Rev D)
-                (328, 0xFFFF), // read back 0xFFFF on a real unit (HARDWARE-NOTES)
-                (329, 0b100),  // charger restart level enabled
-                (330, 0x0501), // CC/CV, discharge over-current timeout 5 s
-                (331, 0),
-                (332, 5),
-                (333, 1),
-                (334, 0),
-                (335, 1),
-                (336, 0),
-                (337, 0),
-                (338, 3),
-                (339, 0),
-                (340, 0),
-                (341, 0),
-                (342, 0x04), // broadcast every 1 s ...
-                (343, 0x01), // ... as ASCII (see ascii_broadcast.tbms)
-            ] {
-                set(a, v);
-            }
-        }
+    if option != SettingsOption::Current {
+        let config = SimConfig::default().with_current_sensor(CurrentSensor::InternalHall);
+        let sim = SimBms::new(PackModel::LiFePO4_16S, config, 1);
+        r.copy_from_slice(&sim.settings_values(option)[..44]);
+        return r;
+    }
+    for (a, v) in [
+        (300, 4150),
+        (301, 3000),
+        (303, 3900),
+        (304, 1000),
+        (305, 150),
+        (306, 2000), // 20.00 Ah
+        (307, 14),
+        (308, 15),
+        (310, 20),
+        (311, 5),
+        (312, 1000),
+        (313, 0),
+        (314, 2), // km
+        (315, 4200),
+        (316, 2800),
+        (317, 60),
+        (318, 20),
+        (319, 60),
+        (320, (-5i16) as u16),
+        (321, 90),
+        (322, 1000),
+        (323, 0xFFFF), // "0xFFFF when data internally accepted" (Rev D)
+        (328, 0xFFFF), // read back 0xFFFF on a real unit (HARDWARE-NOTES)
+        (329, 0b100),  // charger restart level enabled
+        (330, 0x0501), // CC/CV, discharge over-current timeout 5 s
+        (331, 0),
+        (332, 5),
+        (333, 1),
+        (334, 0),
+        (335, 1),
+        (336, 0),
+        (337, 0),
+        (338, 3),
+        (339, 0),
+        (340, 0),
+        (341, 0),
+        (342, 0x04), // broadcast every 1 s ...
+        (343, 0x01), // ... as ASCII (see ascii_broadcast.tbms)
+    ] {
+        r[a - 300] = v;
     }
     r
 }

@@ -15,10 +15,10 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
 use host_tests::closed_loop::{self, ClosedLoop};
-use host_tests::flash::RamFlash;
 use host_tests::multi_pack;
-use host_tests::sim::{FaultConfig, PackProfile, SimBms, SimConfig};
+use host_tests::sim::{FaultConfig, PackModel, SimBms, SimConfig};
 use host_tests::virtual_time::Harness;
+use tinybms_desk::flash::RamFlash;
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::inverter::{InverterConfig, Protocol};
 
@@ -83,7 +83,7 @@ fn main() {
     // host that asks for things and changes the configuration.
     {
         let can = Shared::default();
-        let mut l = ClosedLoop::from_flash(PackProfile::LiFePO4_16S, 3, RamFlash::new(), 100.0);
+        let mut l = ClosedLoop::from_flash(PackModel::LiFePO4_16S, 3, RamFlash::new(), 100.0);
         l.h.trace = Some(Vec::new());
         l.can_log = Some(Box::new(can.clone()));
         l.h.sim.set_soc_percent(40.0);
@@ -155,7 +155,7 @@ fn main() {
             faults: FaultConfig::all(0.05),
             ..SimConfig::default()
         };
-        let sim = SimBms::new(PackProfile::LiFePO4_16S, config, 7);
+        let sim = SimBms::new(PackModel::LiFePO4_16S, config, 7);
         let mut h = Harness::checked(sim, Timing::default());
         h.retain = false;
         h.trace = Some(Vec::new());

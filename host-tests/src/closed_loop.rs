@@ -23,9 +23,9 @@ use tinybms_firmware::inverter::frames::{self, CanFrame};
 use tinybms_firmware::inverter::{Inverter, InverterConfig, InverterReport};
 use tinybms_firmware::station::{Logged, Setup, Station};
 
-use crate::flash::RamFlash;
-use crate::sim::{PackProfile, SimBms, SimConfig};
+use crate::sim::{PackModel, SimBms, SimConfig};
 use crate::virtual_time::Harness;
+use tinybms_desk::flash::RamFlash;
 
 /// How often the loop advances, µs (the inverter model's control step).
 pub const STEP_US: u64 = 100_000;
@@ -186,7 +186,7 @@ impl ClosedLoop {
     /// A loop with a simulated 16S LiFePO4 pack (or `profile`) and a charger;
     /// the inverter output runs with `inverter` (not the record's settings).
     pub fn new(
-        profile: PackProfile,
+        profile: PackModel,
         seed: u64,
         inverter: InverterConfig,
         charger_max_a: f64,
@@ -197,7 +197,7 @@ impl ClosedLoop {
     /// As [`ClosedLoop::new`], with the station's host link built in or not
     /// (its port: [`Harness::host_port`] or [`Harness::host_lines`]).
     pub fn new_with(
-        profile: PackProfile,
+        profile: PackModel,
         seed: u64,
         inverter: InverterConfig,
         charger_max_a: f64,
@@ -222,13 +222,13 @@ impl ClosedLoop {
         Self::with_station(profile, seed, Station::new(setup, loaded, 0), charger_max_a)
     }
 
-    fn with_station(profile: PackProfile, seed: u64, station: Station, charger_max_a: f64) -> Self {
+    fn with_station(profile: PackModel, seed: u64, station: Station, charger_max_a: f64) -> Self {
         let mut sim = SimBms::new(profile, SimConfig::default(), seed);
         sim.set_external_current(Some(0.0));
         let cells = profile.cell_count() as f64;
         let r_cell = match profile {
-            PackProfile::LiFePO4_16S => 0.0003,
-            PackProfile::LiIon_14S => 0.0015,
+            PackModel::LiFePO4_16S => 0.0003,
+            PackModel::LiIon_14S => 0.0015,
         };
         let mut h = Harness::with_station(sim, station);
         h.retain = true;
@@ -253,13 +253,8 @@ impl ClosedLoop {
     /// none), and a host link takes configuration changes
     /// ([`ClosedLoop::host_line`]) that apply at once where they may and are
     /// saved to `flash` when the BMS link is quiet.
-    pub fn from_flash(
-        profile: PackProfile,
-        seed: u64,
-        flash: RamFlash,
-        charger_max_a: f64,
-    ) -> Self {
-        let loaded = block_on(crate::flash::store(flash.clone()).load());
+    pub fn from_flash(profile: PackModel, seed: u64, flash: RamFlash, charger_max_a: f64) -> Self {
+        let loaded = block_on(tinybms_desk::flash::store(flash.clone()).load());
         let setup = Setup {
             timing: Timing::default(),
             identity: Identity::desktop(
@@ -464,7 +459,7 @@ pub fn scenario_row(
             .settings
             .as_ref()
             .and_then(|b| b.get(OverVoltageCutoff.address()))
-            .map_or(0, |ov| ov.saturating_sub(config.charge.ov_margin_mv));
+            .map_or(0, |ov| ov.saturating_sub(config.charge.ceiling_margin_mv));
     let cells = l.h.sim.register(NumberOfSeriesCells.address()).max(1);
     let f = &l.figures;
     let cvl_ok = l.sent_limits.iter().all(|&(_, cvl, _, _)| {
@@ -511,7 +506,7 @@ pub fn run_scenario(
     inverter: InverterConfig,
     on_start: impl FnMut(&mut ClosedLoop),
 ) -> Option<(ClosedLoop, u64)> {
-    let l = ClosedLoop::new(PackProfile::LiFePO4_16S, 1, inverter, 100.0);
+    let l = ClosedLoop::new(PackModel::LiFePO4_16S, 1, inverter, 100.0);
     run_scenario_on(name, l, on_start)
 }
 

@@ -1,9 +1,13 @@
-//! Host-side test infrastructure for the TinyBMS firmware: the capture format and
-//! its replay, the simulated TinyBMS, and the virtual-time harness that runs the
-//! firmware's bridge logic against it.
+//! The TinyBMS firmware's test bench on the desktop: the simulated TinyBMS
+//! (with its faults and its ground truth), the virtual-time harness that runs
+//! the firmware's station against it, the same in real time on pseudo-terminals
+//! (`sim --pty`, `sim --bridge-pty`, `sim --mqtt`), `replay` of captures, and
+//! the fixtures the tests share. The desktop tool is its own crate
+//! (`host-tests/tool`), and the station on the desktop that the tool and `sim`
+//! share is `tinybms-desk` (`host-tests/desk`).
 
-pub mod capture;
 pub mod closed_loop;
+pub mod fixtures;
 pub mod flash;
 pub mod mqtt;
 pub mod mqtt_e2e;
@@ -21,13 +25,11 @@ pub mod replay;
 pub mod sim;
 pub mod sim_can;
 pub mod sim_wifi;
-pub mod tool;
 pub mod trace;
 pub mod truth;
 pub mod virtual_host_link;
 pub mod virtual_host_port;
 pub mod virtual_time;
-pub mod words;
 
 impl pty::Pty {
     /// Opens a new pair and writes its path to `out` as a first line (flushed):

@@ -27,8 +27,6 @@ use tinybms_firmware::mqtt::Settings;
 use tinybms_firmware::station::{Published, Station};
 use tinybms_firmware::Instant;
 
-use crate::real_time;
-
 /// Events kept for the session; beyond, the oldest are dropped.
 pub const EVENTS: usize = 16;
 
@@ -124,7 +122,7 @@ impl Feed for SharedFeed {
 
 /// The session's clock: the bridge's (µs since its start), timers from async-io.
 #[derive(Clone, Copy)]
-pub struct HostClock(pub real_time::Clock);
+pub struct HostClock(pub tinybms_desk::Clock);
 
 impl Clock for HostClock {
     fn now(&self) -> Instant {
@@ -277,7 +275,7 @@ pub fn spawn<N: Network + Send + 'static>(
     target: Target,
     (settings, bridge): (Settings, Identity),
     shared: Shared,
-    clock: real_time::Clock,
+    clock: tinybms_desk::Clock,
     net: N,
     log: bool,
 ) -> Notes {
@@ -296,7 +294,7 @@ pub fn spawn_with<N: Network + 'static>(
     target: Target,
     (settings, bridge): (Settings, Identity),
     shared: Shared,
-    clock: real_time::Clock,
+    clock: tinybms_desk::Clock,
     log: bool,
     make: impl FnOnce() -> (N, Beside) + Send + 'static,
 ) -> Notes {

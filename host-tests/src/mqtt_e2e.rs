@@ -22,12 +22,12 @@ use serde_json::Value;
 use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::mqtt::session::Note;
 
-use crate::flash::{RamFlash, SimFlash};
 use crate::mqtt::{Kill, Notes, Shared};
-use crate::real_time::{self, SimPort};
-use crate::real_time_station::{Hosted, NoHost};
+use crate::real_time::SimPort;
 use crate::replay::register_values;
-use crate::sim::{PackProfile, SimBms, SimConfig};
+use crate::sim::{PackModel, SimBms, SimConfig};
+use tinybms_desk::flash::{DeskFlash, RamFlash};
+use tinybms_desk::{Hosted, NoHost};
 
 /// The longest any one expectation may take (a bound, not a timing check).
 pub const WAIT: Duration = Duration::from_secs(30);
@@ -279,7 +279,7 @@ pub struct BridgeThread {
     pub published: Arc<Mutex<BTreeMap<u32, BTreeMap<u16, u16>>>>,
     join: Option<std::thread::JoinHandle<()>>,
     /// The bridge's clock.
-    pub clock: real_time::Clock,
+    pub clock: tinybms_desk::Clock,
     /// What the session reads.
     pub shared: Shared,
 }
@@ -299,14 +299,16 @@ impl BridgeThread {
         );
         let (tx, rx) = std::sync::mpsc::channel();
         let join = std::thread::spawn(move || {
-            let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 5);
+            let sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 5);
             let mut h = Hosted::new(
                 SimPort::new(sim),
                 Timing::default(),
-                SimFlash::Ram(RamFlash::new()),
+                DeskFlash::Ram(RamFlash::new()),
                 "sim",
             );
-            h.mqtt = Some(sh);
+            h.beside = Some(Box::new(crate::real_time_station::MqttBeside::new(
+                sh, None,
+            )));
             let _ = tx.send(h.driver.clock());
             let mut seen = 0;
             while !s.load(Ordering::Relaxed) {

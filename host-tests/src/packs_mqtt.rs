@@ -23,8 +23,9 @@ use tinybms_firmware::mqtt::Settings;
 
 use crate::mqtt::{Notes, Shared, TcpNet};
 use crate::multi_pack::{MultiLoop, PackSpec};
-use crate::real_time;
-use crate::real_time_station::{sim_client_id, HostSide, LINE_BUF};
+use crate::real_time_station::sim_client_id;
+use tinybms_desk::station::LINE_BUF;
+use tinybms_desk::HostSide;
 
 /// How often the loop catches up with the wall clock.
 const PACE: Duration = Duration::from_millis(50);
@@ -52,7 +53,7 @@ pub struct PacksOnMqtt {
     pub shared: Vec<Shared>,
     /// Each pack's session notes (none without a broker).
     pub notes: Vec<Notes>,
-    clock: real_time::Clock,
+    clock: tinybms_desk::Clock,
     input: Vec<u8>,
     line: Vec<u8>,
 }
@@ -71,7 +72,7 @@ impl PacksOnMqtt {
     ) -> Result<Self, String> {
         let specs = PackSpec::alike(n.clamp(2, 8), |k| 60.0 + 2.0 * k as f64);
         let mut packs = MultiLoop::with_packs_and_host(inverter, &specs, 100.0, seed, primary_host);
-        let clock = real_time::Clock::start();
+        let clock = tinybms_desk::Clock::start();
         let mut shared = Vec::new();
         let mut notes = Vec::new();
         for p in &mut packs.nodes {

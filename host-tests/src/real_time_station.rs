@@ -1,338 +1,60 @@
-//! The firmware's station in real time: what the ESP32 runs, on the desktop.
-//! Used by `sim --bridge-pty` (the host side on a pseudo-terminal, the BMS
-//! simulated), `sim --mqtt` and by `tinybms` in direct mode (the host side an
-//! in-process channel, the BMS on a USB-UART adapter).
-//!
-//! The loop is the chip's station task: the station does what it decides
-//! (requests, logs, saves), host bytes go in, and lines come out only when
-//! the host side can take them — otherwise they wait in the host link's
-//! bounded queue, which drops telemetry first.
+//! The desktop station ([`tinybms_desk::Hosted`]: the firmware's station in
+//! real time, shared with the tool) against the simulated BMS, CAN bus and
+//! Wi-Fi: what `sim --bridge-pty` and `sim --mqtt` run, with the host side on
+//! a pseudo-terminal ([`PtySide`]).
 
 use std::io::{self, Write};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc;
 use std::time::Duration;
 
-use embassy_futures::block_on;
 use protocol_core::settings::SettingId;
+use tinybms_desk::flash::{DeskFlash, FileFlash, RamFlash};
+use tinybms_desk::station::Beside;
+use tinybms_desk::{HostSide, Hosted, NoHost};
 use tinybms_firmware::bms::timing::Timing;
-use tinybms_firmware::config::state::Note;
-use tinybms_firmware::config::Config;
-use tinybms_firmware::identity::{Features, Identity};
-use tinybms_firmware::station::{Logged, Setup, Station};
+use tinybms_firmware::station::Station;
+use tinybms_firmware::Instant;
 
-use crate::flash::SimFlash;
 use crate::pty::Pty;
-use crate::real_time::{BytePort, Driver, Happened, SimPort, MAX_SLICE};
+use crate::real_time::SimPort;
 use crate::sim::SimBms;
 
-/// Where a simulated bridge's store lives: a 4 MiB chip with the default
-/// partition table's `nvs` partition (what the simulated flash stands for:
-/// [`crate::flash::PARTITION_BYTES`]); `hello` and `tinybms version` say it.
-pub const SIM_STORE_SITE: tinybms_firmware::config::store::StoreSite =
-    tinybms_firmware::config::store::StoreSite {
-        flash_bytes: 4 * 1024 * 1024,
-        partition: Some((0x9000, crate::flash::PARTITION_BYTES)),
-        lookup: None,
-    };
-
-/// Longest line the host link produces that this loop can carry.
-pub const LINE_BUF: usize = 4096;
-
-/// The host's end of the host link.
-pub trait HostSide {
-    /// Appends the bytes the host sent since the last call (never waits).
-    fn read(&mut self, into: &mut Vec<u8>) -> io::Result<()>;
-    /// True when a line can be written now without waiting.
-    fn can_take(&mut self) -> bool;
-    /// Writes one `\n`-terminated line.
-    fn write_line(&mut self, line: &[u8]) -> io::Result<()>;
+/// The MQTT output beside a desktop station, as the chip's MQTT task: the
+/// feed it publishes from, and the session's notes, whose latest state goes
+/// to the station (`hello`).
+pub struct MqttBeside {
+    /// The MQTT output's feed.
+    pub feed: crate::mqtt::Shared,
+    /// The MQTT session's notes, when a session runs.
+    pub notes: Option<crate::mqtt::Notes>,
+    noted: usize,
 }
 
-/// The station (bridge, host link, inverter output, configuration) on a byte
-/// port.
-pub struct Hosted<P: BytePort> {
-    /// What the station was built with (a restart builds it again).
-    pub setup: Setup,
-    /// The station on its port.
-    pub driver: Driver<P>,
-    /// The BOOT button: held from this time (µs) for this long, if ever
-    /// (`sim --bridge-pty --boot-button`).
-    pub boot_button: Option<(u64, u64)>,
-    /// The MQTT output's feed, when it runs (`sim --mqtt`).
-    pub mqtt: Option<crate::mqtt::Shared>,
-    /// The MQTT session's notes, when it runs: their latest state goes to
-    /// the station (`hello`), as the chip's MQTT task hands it on.
-    pub mqtt_notes: Option<crate::mqtt::Notes>,
-    mqtt_noted: usize,
-    /// Print every log line to stderr, as the device logs it.
-    pub log: bool,
-    /// The bridge's name on the network (Improv's device name).
-    pub network_name: Option<String>,
-    line: Vec<u8>,
-    input: Vec<u8>,
-    next_sample: u64,
+impl MqttBeside {
+    /// Beside a station whose feed is `feed` (and session's notes `notes`).
+    pub fn new(feed: crate::mqtt::Shared, notes: Option<crate::mqtt::Notes>) -> Self {
+        Self {
+            feed,
+            notes,
+            noted: 0,
+        }
+    }
 }
 
-impl<P: BytePort> Hosted<P> {
-    /// The station at time 0 (now), with the configuration record in `flash`
-    /// (the defaults when it holds none; `chip` names the host link's chip).
-    /// The host link has not seen a connection yet: call [`Hosted::connected`].
-    pub fn new(port: P, bridge: Timing, flash: SimFlash, chip: &'static str) -> Self {
-        Self::with_wifi(port, bridge, flash, chip, true)
-    }
-
-    /// [`Hosted::new`] standing for an image with or without Wi-Fi (what its
-    /// `hello` says is built in).
-    pub fn with_wifi(
-        port: P,
-        bridge: Timing,
-        flash: SimFlash,
-        chip: &'static str,
-        wifi: bool,
-    ) -> Self {
-        Self::build(port, bridge, flash, chip, wifi, None)
-    }
-
-    /// The tool's direct mode: a station that runs with `record`, chosen by
-    /// the tool itself (streaming off), in RAM. No bridge of its own is
-    /// configured, so its log says nothing about a configuration (it said
-    /// "config saved to flash" as if the owner had changed one).
-    /// It has no CAN output: the computer it runs on drives no inverter, so
-    /// neither the live view nor the log tells of one.
-    pub fn direct(port: P, bridge: Timing, record: Config, chip: &'static str) -> Self {
-        let flash = SimFlash::Ram(crate::flash::RamFlash::new());
-        Self::build(port, bridge, flash, chip, true, Some(record))
-    }
-
-    fn build(
-        port: P,
-        bridge: Timing,
-        flash: SimFlash,
-        chip: &'static str,
-        wifi: bool,
-        record: Option<Config>,
-    ) -> Self {
-        let clock = crate::real_time::Clock::start();
-        let mut store = crate::flash::store(flash);
-        // The CAN output is built in, as in the ready-made images; a bus
-        // with a simulated inverter is attached by `sim` (else nothing
-        // acknowledges a frame, as on a chip whose CAN is not wired). The
-        // tool's direct mode has none.
-        let direct = record.is_some();
-        let setup = Setup {
-            timing: bridge,
-            identity: Identity::desktop(
-                chip,
-                Features {
-                    host_link: true,
-                    store: true,
-                    wifi,
-                    can: !direct,
-                },
-            ),
-            inverter: None,
-        };
-        let station = match record {
-            Some(config) => Station::with_record(setup, config, clock.now()),
-            None => Station::new(setup, block_on(store.load()), clock.now()),
-        };
-        let mut driver = Driver::with_station(port, station, clock);
-        driver.store = Some(store);
-        let mut h = Self {
-            setup,
-            driver,
-            boot_button: None,
-            mqtt: None,
-            mqtt_notes: None,
-            mqtt_noted: 0,
-            log: false,
-            network_name: None,
-            line: vec![0; LINE_BUF],
-            input: Vec::new(),
-            next_sample: 0,
-        };
-        // The tool's own bridge of direct mode is no device: it has no boot
-        // and no flash.
-        if !direct {
-            h.boot_lines();
-        }
-        h
-    }
-
-    /// The lines the chip shell writes at boot, as a simulated bridge has
-    /// them (a simulated board, CAN bus and BMS): the host link keeps them
-    /// for every host, as on the chip.
-    fn boot_lines(&mut self) {
-        use tinybms_firmware::text::Boot;
-        self.driver.station.set_store_site(SIM_STORE_SITE);
-        let running = self.driver.station.config().running();
-        let inverter = running.inverter();
-        let mut lines = vec![Boot::Image { log: None }];
-        if self.setup.identity.features.can {
-            lines.push(if inverter.enabled {
-                Boot::Can {
-                    protocol: inverter.protocol,
-                    pins: None,
-                    node: inverter.node,
-                }
-            } else {
-                Boot::CanOff
-            });
-        }
-        lines.push(Boot::HostLink {
-            wire: None,
-            read_only: running.read_only,
-            stream_period_ms: running.stream_period_ms,
-        });
-        lines.push(Boot::Uart {
-            baud: 115_200,
-            pins: None,
-        });
-        for l in &lines {
-            self.driver.station.boot_line(l);
-        }
-    }
-
-    /// A restart of the chip: the station built again from what its store
-    /// holds (the port, the CAN bus and the clock stay). Call
-    /// [`Hosted::connected`] after it when a host is there.
-    pub fn restart(&mut self) {
-        let loaded = match self.driver.store.as_mut() {
-            Some(store) => block_on(store.load()),
-            None => return,
-        };
-        let now = self.driver.clock().now();
-        self.driver.station = Station::new(self.setup, loaded, now);
-        self.boot_lines();
-        self.boot_wifi();
-    }
-
-    /// The Wi-Fi side at a start: the stored network joined in the
-    /// background (as the chip's Wi-Fi task does), the name the installer
-    /// shows.
-    pub fn boot_wifi(&mut self) {
-        let now = self.driver.clock().now();
-        if let Some(name) = self.network_name.clone() {
-            self.driver.station.set_network_name(&name);
-        }
-        let record = self.driver.station.config().running().clone();
-        if let Some(w) = self.driver.wifi.as_mut() {
-            w.boot(now, &record);
-        }
-    }
-
-    /// The station.
-    pub fn station(&mut self) -> &mut Station {
-        &mut self.driver.station
-    }
-
-    /// The host opened its port (queues the hello).
-    pub fn connected(&mut self) {
-        let now = self.driver.clock().now();
-        self.driver.station.host_connected(now);
-    }
-
-    /// One round of the chip's station task: what the station wants done,
-    /// host bytes in, lines out while the host side takes them, then UART
-    /// bytes awaited until the next deadline (at most [`MAX_SLICE`]).
-    pub fn step(&mut self, side: &mut dyn HostSide) -> io::Result<()> {
-        let log = self.log;
-        let print = |h: Happened<'_>| {
-            if let (true, Happened::Log(at, _, text)) = (log, h) {
-                eprintln!("{:>10.3}s {text}", at as f64 / 1e6);
-            }
-        };
-        self.driver.service(print)?;
-        self.input.clear();
-        side.read(&mut self.input)?;
-        if !self.input.is_empty() {
-            let now = self.driver.clock().now();
-            self.driver.station.host_rx(now, &self.input);
-            // A submitted command may have something to send at once.
-            self.driver.service(print)?;
-        }
-        let now = self.driver.clock().now();
-        if let Some((from, long)) = self.boot_button {
-            if now >= self.next_sample {
-                self.next_sample = now + tinybms_firmware::config::button::SAMPLE_PERIOD_US;
-                let pressed = now >= from && now < from + long;
-                self.driver.station.button(now, pressed);
-            }
-        }
-        if let Some(m) = &self.mqtt {
-            // The Wi-Fi task's reading, as on a chip (this bridge's MQTT runs
-            // over the desktop's network: a simulated signal).
-            self.driver
-                .station
-                .wifi_rssi(Some(crate::mqtt::simulated_rssi(now, 0)));
-            m.update(&mut self.driver.station, now);
-        }
-        if let Some(notes) = &self.mqtt_notes {
+impl Beside for MqttBeside {
+    fn round(&mut self, station: &mut Station, now: Instant) {
+        // The Wi-Fi task's reading, as on a chip (this bridge's MQTT runs
+        // over the desktop's network: a simulated signal).
+        station.wifi_rssi(Some(crate::mqtt::simulated_rssi(now, 0)));
+        self.feed.update(station, now);
+        if let Some(notes) = &self.notes {
             let notes = notes.lock().unwrap_or_else(|e| e.into_inner());
-            if notes.len() > self.mqtt_noted {
-                self.mqtt_noted = notes.len();
+            if notes.len() > self.noted {
+                self.noted = notes.len();
                 if let Some(n) = notes.last() {
-                    self.driver.station.mqtt_state(n.state());
+                    station.mqtt_state(n.state());
                 }
             }
-        }
-        while side.can_take() {
-            match self.driver.station.next_host_line(now, &mut self.line) {
-                Some(n) => side.write_line(self.line.get(..n).unwrap_or(&[]))?,
-                None => break,
-            }
-        }
-        let mut wait = MAX_SLICE;
-        if self.boot_button.is_some() {
-            wait = wait.min(Duration::from_micros(
-                tinybms_firmware::config::button::SAMPLE_PERIOD_US,
-            ));
-        }
-        self.driver.receive(wait, |_| {})?;
-        Ok(())
-    }
-}
-
-impl<P: BytePort> Hosted<P> {
-    /// Changes the configuration record by name (text values, as `tinybms
-    /// config NAME=VALUE`) and stores it: the start-up options of `sim
-    /// --bridge-pty`. A refusal is an error naming the field.
-    pub fn change_config(&mut self, changes: &[(String, String)]) -> Result<(), String> {
-        use tinybms_firmware::config::state::Outcome;
-        use tinybms_firmware::config::{value, FieldId};
-        if changes.is_empty() {
-            return Ok(());
-        }
-        let mut parsed = Vec::new();
-        for (name, text) in changes {
-            let id = FieldId::from_name(name)
-                .ok_or_else(|| format!("no configuration field `{name}`"))?;
-            let v = value::parse(id.field(), text)
-                .map_err(|e| format!("{name} = {text}: {}", e.detail))?;
-            parsed.push((id, v));
-        }
-        let now = self.driver.clock().now();
-        for (id, o) in self.driver.station.change_config(now, &parsed) {
-            if let Outcome::Refused(e) = o {
-                return Err(format!("{}: {}", id.name(), e.detail));
-            }
-            if let Outcome::RuleBroken(d, _) = o {
-                return Err(format!("{}: {d}", id.name()));
-            }
-        }
-        // Before any request: the link is quiet, the save goes now.
-        let mut failed = None;
-        self.driver
-            .service(|h| {
-                if let Happened::Log(_, Logged::Config(Note::SaveFailed(e)), _) = h {
-                    failed = Some(e.reason());
-                }
-            })
-            .map_err(|e| e.to_string())?;
-        match failed {
-            Some(reason) => Err(format!("saving the configuration: {reason}")),
-            None => Ok(()),
         }
     }
 }
@@ -393,35 +115,6 @@ impl HostSide for PtySide<'_> {
     }
 }
 
-/// The host side as channels (the tool's direct mode): bytes in, lines out.
-pub struct ChannelSide {
-    /// Host bytes.
-    pub from_host: mpsc::Receiver<Vec<u8>>,
-    /// Lines to the host (without their newline).
-    pub to_host: mpsc::Sender<String>,
-}
-
-impl HostSide for ChannelSide {
-    fn read(&mut self, into: &mut Vec<u8>) -> io::Result<()> {
-        while let Ok(b) = self.from_host.try_recv() {
-            into.extend_from_slice(&b);
-        }
-        Ok(())
-    }
-
-    fn can_take(&mut self) -> bool {
-        true
-    }
-
-    fn write_line(&mut self, line: &[u8]) -> io::Result<()> {
-        let text = String::from_utf8_lossy(line);
-        let text = text.trim_end_matches(['\n', '\r']);
-        self.to_host
-            .send(text.to_string())
-            .map_err(|_| io::Error::new(io::ErrorKind::BrokenPipe, "the tool stopped listening"))
-    }
-}
-
 /// What `sim --bridge-pty` runs.
 #[derive(Debug, Clone)]
 pub struct BridgePtyOptions {
@@ -472,8 +165,8 @@ pub fn serve_bridge_pty(
     out: &mut dyn Write,
 ) -> io::Result<()> {
     let flash = match &o.flash {
-        Some(path) => SimFlash::File(crate::flash::FileFlash::open(path)?),
-        None => SimFlash::Ram(crate::flash::RamFlash::new()),
+        Some(path) => DeskFlash::File(FileFlash::open(path)?),
+        None => DeskFlash::Ram(RamFlash::new()),
     };
     let client_id = sim_client_id(&sim);
     let mut h = Hosted::with_wifi(SimPort::new(sim), o.bridge, flash, "sim", !o.no_wifi);
@@ -492,7 +185,9 @@ pub fn serve_bridge_pty(
     };
     h.driver.can = Some(Box::new(crate::sim_can::SimInverterBus::new(can_log)));
     if !o.no_wifi {
-        h.driver.wifi = Some(crate::sim_wifi::SimWifi::new(o.wifi_networks.clone()));
+        h.driver.wifi = Some(Box::new(crate::sim_wifi::SimWifi::new(
+            o.wifi_networks.clone(),
+        )));
     }
     h.network_name = Some(client_id.clone());
     h.boot_wifi();
@@ -518,7 +213,7 @@ pub fn serve_bridge_pty(
             .map_err(|_| io::Error::other("--mqtt: the host name is longer than 64 bytes"))?;
         target.port = *port;
         let shared = crate::mqtt::Shared::default();
-        h.mqtt_notes = Some(crate::mqtt::spawn(
+        let notes = crate::mqtt::spawn(
             target,
             (
                 tinybms_firmware::mqtt::Settings::from_config(&record),
@@ -528,8 +223,8 @@ pub fn serve_bridge_pty(
             clock,
             crate::mqtt::TcpNet::default(),
             o.log,
-        ));
-        h.mqtt = Some(shared);
+        );
+        h.beside = Some(Box::new(MqttBeside::new(shared, Some(notes))));
     }
     let pty = if o.pty {
         Some(Pty::open_announced(out)?)
@@ -594,25 +289,11 @@ pub fn sim_client_id(sim: &SimBms) -> String {
     format!("tinybms-sim-{:02X}{:02X}{:02X}", tail[0], tail[1], tail[2])
 }
 
-/// No host on the host link (`sim --mqtt` without `--bridge-pty`).
-pub struct NoHost;
-
-impl HostSide for NoHost {
-    fn read(&mut self, _: &mut Vec<u8>) -> io::Result<()> {
-        Ok(())
-    }
-    fn can_take(&mut self) -> bool {
-        true
-    }
-    fn write_line(&mut self, _: &[u8]) -> io::Result<()> {
-        Ok(())
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use std::io::Read;
+    use std::sync::mpsc;
 
     /// Nobody reads the pty for a while (no client, or one that stopped): the
     /// lines written meanwhile must never be cut. The pty takes ~18 KB, FIONREAD

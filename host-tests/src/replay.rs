@@ -49,7 +49,7 @@ use serde_json::{json, Map, Value};
 use tinybms_firmware::bms::profile::setting_key;
 use tinybms_firmware::host_link::{encode, schema};
 
-use crate::capture::{hex, parse_capture, Capture, CaptureError, Entry};
+use tinybms_desk::capture::{hex, parse_capture, Capture, CaptureError, Entry};
 
 /// Decimals printed for f32 quantities (pack voltage, current, speed).
 pub const FLOAT_DECIMALS: i32 = 4;

@@ -20,7 +20,7 @@ use tinybms_firmware::inverter::TxResult;
 use tinybms_firmware::Instant;
 
 use crate::closed_loop::candump_line;
-use crate::real_time::CanSide;
+use tinybms_desk::CanSide;
 
 /// How often the simulated inverter sends its keep-alive.
 pub const KEEPALIVE_EVERY: Duration = Duration::from_secs(1);

@@ -13,6 +13,7 @@
 
 use std::time::Duration;
 
+use tinybms_desk::WifiSide;
 use tinybms_firmware::config::Config;
 use tinybms_firmware::improv::{JoinFailure, Network, WifiLink, WifiRequest};
 use tinybms_firmware::station::Station;
@@ -140,12 +141,14 @@ impl SimWifi {
         let at = now + self.delay.as_micros() as Instant;
         self.pending.push((at, done));
     }
+}
 
+impl WifiSide for SimWifi {
     /// The station starts (boot or restart) with `record`: a stored network
     /// is joined in the background.
     /// The radio starts first, as on the chip (`starting`, then `up`, or
     /// `late` when it hangs).
-    pub fn boot(&mut self, now: Instant, record: &Config) {
+    fn boot(&mut self, now: Instant, record: &Config) {
         self.pending.clear();
         self.pending.push((now, Done::Radio(Radio::Starting)));
         if self.radio_hangs {
@@ -166,7 +169,7 @@ impl SimWifi {
     }
 
     /// The station asks at `now`.
-    pub fn request(&mut self, now: Instant, req: WifiRequest) {
+    fn request(&mut self, now: Instant, req: WifiRequest) {
         if self.radio_hangs {
             // Nobody takes the request (the chip's Wi-Fi task never started):
             // the station's own limits end it.
@@ -194,7 +197,7 @@ impl SimWifi {
     }
 
     /// Hands the station what is done by `now`.
-    pub fn deliver(&mut self, now: Instant, station: &mut Station) {
+    fn deliver(&mut self, now: Instant, station: &mut Station) {
         let mut i = 0;
         while i < self.pending.len() {
             if self.pending[i].0 > now {
@@ -211,7 +214,7 @@ impl SimWifi {
     }
 
     /// When something is next due.
-    pub fn next_due(&self) -> Option<Instant> {
+    fn next_due(&self) -> Option<Instant> {
         self.pending.iter().map(|(t, _)| *t).min()
     }
 }

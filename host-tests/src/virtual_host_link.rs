@@ -17,9 +17,9 @@ use tinybms_firmware::identity::{Features, Identity};
 use tinybms_firmware::station::{Setup, Station};
 use tinybms_firmware::{Bridge, MS, SECOND};
 
-use crate::flash::RamFlash;
-use crate::sim::{PackProfile, SimBms, SimConfig};
+use crate::sim::{PackModel, SimBms, SimConfig};
 use crate::virtual_time::{Harness, Saver};
+use tinybms_desk::flash::RamFlash;
 
 /// A station with a host link against the simulated BMS: the chip's wiring,
 /// driven by a host in virtual time.
@@ -53,7 +53,7 @@ pub fn config(read_only: bool, stream_period_ms: u32) -> HostLinkConfig {
 
 /// A saver that writes the record to a store on `flash` and counts the saves.
 pub fn ram_saver(flash: &RamFlash, saves: Rc<Cell<u64>>) -> Saver {
-    let mut store = crate::flash::store(flash.clone());
+    let mut store = tinybms_desk::flash::store(flash.clone());
     Box::new(move |record: &Config, _: &SimBms| {
         saves.set(saves.get() + 1);
         (block_on(store.save(record)), 0)
@@ -63,7 +63,7 @@ pub fn ram_saver(flash: &RamFlash, saves: Rc<Cell<u64>>) -> Saver {
 impl Rig {
     /// A 16S LiFePO4 simulated BMS, a fresh station with a host link at time 0.
     pub fn new(config: HostLinkConfig) -> Self {
-        let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 1);
+        let sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 1);
         let setup = Setup {
             timing: tinybms_firmware::bms::timing::Timing::default(),
             identity: Identity::desktop(

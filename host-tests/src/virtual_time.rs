@@ -15,16 +15,16 @@ use protocol_core::views::{LiveSnapshot, VersionInfo};
 use tinybms_firmware::bms::event_log::ts_newer;
 use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
 use tinybms_firmware::bridge::report::WriteOutcome;
-use tinybms_firmware::config::store::{Loaded, Saved, Source, StoreError};
+use tinybms_firmware::config::store::{Saved, StoreError};
 use tinybms_firmware::config::Config;
-use tinybms_firmware::identity::{Features, Identity};
 use tinybms_firmware::inverter::frames::CanFrame;
 use tinybms_firmware::inverter::TxResult;
-use tinybms_firmware::station::{Action, Logged, Setup, Station};
+use tinybms_firmware::station::{Action, Logged, Station};
 use tinybms_firmware::{Bridge, Level, Report};
 
-use crate::sim::{PackProfile, SimBms, SimConfig};
+use crate::sim::{PackModel, SimBms, SimConfig};
 use crate::truth;
+use tinybms_desk::driver::bridge_station;
 
 /// How long the simulator keeps the blocks it answered, for the ground-truth
 /// checks (a confirmed read on a bad line may take minutes).
@@ -162,15 +162,6 @@ pub struct CanPort {
 /// the CPU, µs.
 pub type Saver = Box<dyn FnMut(&Config, &SimBms) -> (Result<Saved, StoreError>, u64)>;
 
-/// The record of a bridge with nothing but the BMS link: the CAN output off
-/// (no inverter output), everything else at its default.
-pub fn bridge_only() -> Config {
-    Config {
-        can_output: false,
-        ..Config::default()
-    }
-}
-
 /// The station, the simulated BMS and the virtual clock.
 pub struct Harness {
     /// The firmware's station (the bridge and its consumers) under test.
@@ -243,7 +234,7 @@ impl Harness {
         Self::with_config(sim, Timing::default())
     }
 
-    /// A harness at time 0 with a bridge alone (no consumer: [`bridge_only`]).
+    /// A harness at time 0 with a bridge alone (no consumer: [`bridge_only`](tinybms_desk::driver::bridge_only)).
     pub fn with_config(sim: SimBms, config: Timing) -> Self {
         Self::with_station(sim, bridge_station("sim", config, 0))
     }
@@ -765,7 +756,7 @@ fn holds(sim: &SimBms, s: &Setting) -> bool {
 /// The benchmark's trace ([`crate::trace`]): runs the default bridge against a clean simulated BMS for `duration_us` and
 /// returns the trace (None if no live reply was ever sent).
 pub fn record_clean(seed: u64, duration_us: u64) -> Option<Vec<u8>> {
-    let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), seed);
+    let sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), seed);
     let mut h = Harness::new(sim);
     h.retain = false;
     h.trace = Some(Vec::new());
@@ -780,26 +771,4 @@ pub fn record_clean(seed: u64, duration_us: u64) -> Option<Vec<u8>> {
     out.extend_from_slice(&body);
     out.push(b'E');
     Some(out)
-}
-
-/// A station with nothing but the BMS link (no consumer: [`bridge_only`]) at
-/// `now`; `chip` names it in the host link's hello.
-pub fn bridge_station(chip: &'static str, config: Timing, now: u64) -> Station {
-    let setup = Setup {
-        timing: config,
-        identity: Identity::desktop(
-            chip,
-            Features {
-                can: false,
-                host_link: false,
-                ..Features::default()
-            },
-        ),
-        inverter: None,
-    };
-    let loaded = Loaded {
-        config: bridge_only(),
-        source: Source::Empty,
-    };
-    Station::new(setup, loaded, now)
 }

@@ -4,7 +4,7 @@
 //! the cells that result.
 
 use host_tests::closed_loop::ClosedLoop;
-use host_tests::sim::PackProfile;
+use host_tests::sim::PackModel;
 use protocol_core::events::EventId;
 use tinybms_firmware::inverter::control::Phase;
 use tinybms_firmware::inverter::{InverterConfig, InverterReport, Protocol, StaleMode};
@@ -28,7 +28,7 @@ fn ccl_max_da(l: &ClosedLoop) -> u16 {
 
 fn lfp(seed: u64, charger_a: f64) -> ClosedLoop {
     ClosedLoop::new(
-        PackProfile::LiFePO4_16S,
+        PackModel::LiFePO4_16S,
         seed,
         InverterConfig::default(),
         charger_a,
@@ -173,7 +173,7 @@ fn a_lost_uart_link_stops_the_frames_and_the_inverter() {
         stale_policy: StaleMode::Stop,
         ..InverterConfig::default()
     };
-    let mut l = ClosedLoop::new(PackProfile::LiFePO4_16S, 6, config, 100.0);
+    let mut l = ClosedLoop::new(PackModel::LiFePO4_16S, 6, config, 100.0);
     l.h.sim.set_soc_percent(40.0);
     l.run_until(5 * MIN);
     assert!(l.model.current_a > 40.0);
@@ -207,7 +207,7 @@ fn with_hold_charge_zero_the_inverter_keeps_discharging_for_a_bounded_time() {
         stale_hold_us: 60 * S,
         ..InverterConfig::default()
     };
-    let mut l = ClosedLoop::new(PackProfile::LiFePO4_16S, 7, config, 100.0);
+    let mut l = ClosedLoop::new(PackModel::LiFePO4_16S, 7, config, 100.0);
     l.h.sim.set_soc_percent(60.0);
     l.model.load_a = 30.0;
     l.run_until(5 * MIN);
@@ -239,7 +239,7 @@ fn after_a_hold_the_discharge_limit_is_not_cut_when_the_link_returns() {
         stale_hold_us: 10 * MIN,
         ..InverterConfig::default()
     };
-    let mut l = ClosedLoop::new(PackProfile::LiFePO4_16S, 7, config, 100.0);
+    let mut l = ClosedLoop::new(PackModel::LiFePO4_16S, 7, config, 100.0);
     l.h.sim.set_soc_percent(60.0);
     l.model.load_a = 30.0;
     l.run_until(5 * MIN);
@@ -262,7 +262,7 @@ fn sma_with_stale_telemetry_is_told_to_stop_at_once() {
         stale_policy: StaleMode::Stop,
         ..InverterConfig::default()
     };
-    let mut l = ClosedLoop::new(PackProfile::LiFePO4_16S, 10, config, 100.0);
+    let mut l = ClosedLoop::new(PackModel::LiFePO4_16S, 10, config, 100.0);
     l.h.sim.set_soc_percent(40.0);
     l.run_until(3 * MIN);
     assert!(l.model.current_a > 40.0);
@@ -305,7 +305,7 @@ fn sma_sunny_island_gets_its_frames() {
         protocol: Protocol::SmaSunnyIsland,
         ..InverterConfig::default()
     };
-    let mut l = ClosedLoop::new(PackProfile::LiFePO4_16S, 9, config, 100.0);
+    let mut l = ClosedLoop::new(PackModel::LiFePO4_16S, 9, config, 100.0);
     l.h.sim.set_soc_percent(40.0);
     l.run_until(2 * MIN);
     invariants(&l);

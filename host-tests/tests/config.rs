@@ -238,8 +238,8 @@ fn choices_switches_text_and_secrets() {
 #[test]
 fn rules_between_fields() {
     let mut c = Config::default();
-    c.absorption_mv = 3400;
-    c.float_mv = 3450;
+    c.absorption_voltage_mv = 3400;
+    c.float_voltage_mv = 3450;
     assert_eq!(c.validate().unwrap_err().field, field("float_voltage"));
     let mut c = Config::default();
     c.wifi_key.push_str(&"a".repeat(64)).unwrap();
@@ -251,22 +251,22 @@ fn rules_between_fields() {
     assert!(c.validate().is_ok());
     // Against the BMS: a cap above the cutoff it caps, a target past the cutoffs.
     let mut c = Config::default();
-    c.ccl_cap_da = 1001; // 100.1 A, the BMS allows 100 A
+    c.charge_current_cap_da = 1001; // 100.1 A, the BMS allows 100 A
     assert_eq!(
         c.validate_with_bms(&bms()).unwrap_err().field,
         field("charge_current_cap")
     );
-    c.ccl_cap_da = 1000;
+    c.charge_current_cap_da = 1000;
     assert!(c.validate_with_bms(&bms()).is_ok());
-    c.dcl_cap_da = 1501;
+    c.discharge_current_cap_da = 1501;
     assert!(c.validate_with_bms(&bms()).is_err());
     let mut c = Config::default();
-    c.absorption_mv = 3600; // 3650 - 100 margin = 3550 at most
+    c.absorption_voltage_mv = 3600; // 3650 - 100 margin = 3550 at most
     assert_eq!(
         c.validate_with_bms(&bms()).unwrap_err().field,
         field("absorption_voltage")
     );
-    c.absorption_mv = 2800; // at the under-voltage cutoff
+    c.absorption_voltage_mv = 2800; // at the under-voltage cutoff
     assert!(c.validate_with_bms(&bms()).is_err());
 }
 
@@ -292,15 +292,15 @@ fn fields_tied_by_a_rule_take_effect_together() {
 fn the_record_drives_the_inverter_and_the_host_link() {
     let mut c = Config::default();
     c.protocol = Protocol::SmaSunnyIsland;
-    c.ccl_cap_da = 500;
+    c.charge_current_cap_da = 500;
     c.stale_after_s = 8;
     c.stale_policy = StaleMode::Hold;
     c.stale_hold_s = 300;
     c.tail_current_da = 35;
     let i = c.inverter();
     assert_eq!(i.protocol, Protocol::SmaSunnyIsland);
-    assert_eq!(i.charge.ccl_cap_da, Some(500));
-    assert_eq!(i.charge.dcl_cap_da, None);
+    assert_eq!(i.charge.charge_current_cap_da, Some(500));
+    assert_eq!(i.charge.discharge_current_cap_da, None);
     assert_eq!(i.charge.tail_current_a, 3.5);
     assert_eq!(i.freshness.limit_us, 8 * SECOND);
     assert_eq!(i.stale_policy, StaleMode::Hold);
@@ -527,8 +527,8 @@ fn every_kind_of_damage_is_named() {
     assert!(codec::decode(&b).is_err());
     // Fields that break a rule between them.
     let mut c = Config::default();
-    c.absorption_mv = 3400;
-    c.float_mv = 3450;
+    c.absorption_voltage_mv = 3400;
+    c.float_voltage_mv = 3450;
     assert_eq!(
         codec::decode(&encoded(&c)),
         Err(DecodeError::Rule(field("float_voltage")))
@@ -632,7 +632,7 @@ fn a_change_gives_one_outcome_per_field_and_says_when_it_applies() {
             ("stale_after".into(), Outcome::Unchanged),
         ]
     );
-    assert_eq!(s.running().ccl_cap_da, 500);
+    assert_eq!(s.running().charge_current_cap_da, 500);
     assert_eq!(s.running().protocol, Protocol::Victron);
     assert_eq!(s.stored().protocol, Protocol::SmaSunnyIsland);
     assert!(s.restart_pending(field("inverter_protocol")));
@@ -716,7 +716,7 @@ fn a_failed_save_is_tried_again_then_reported() {
     );
     assert!(!s.save_due());
     // The change is kept in RAM.
-    assert_eq!(s.running().ccl_cap_da, 400);
+    assert_eq!(s.running().charge_current_cap_da, 400);
     change(&mut s, &[("charge_current_cap", "41")], None);
     assert_eq!(s.saved(Ok(Saved::Written)), Some(Ok(Saved::Written)));
 }

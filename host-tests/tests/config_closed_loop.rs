@@ -5,9 +5,9 @@
 //! flash across it.
 
 use host_tests::closed_loop::ClosedLoop;
-use host_tests::flash::RamFlash;
-use host_tests::sim::PackProfile;
+use host_tests::sim::PackModel;
 use serde_json::{json, Value};
+use tinybms_desk::flash::RamFlash;
 use tinybms_firmware::inverter::frames;
 use tinybms_firmware::inverter::Protocol;
 
@@ -25,7 +25,7 @@ fn lines_of<'a>(l: &'a ClosedLoop, ty: &str) -> Vec<&'a Value> {
 }
 
 fn charging_loop(flash: RamFlash) -> ClosedLoop {
-    let mut l = ClosedLoop::from_flash(PackProfile::LiFePO4_16S, 3, flash, 100.0);
+    let mut l = ClosedLoop::from_flash(PackModel::LiFePO4_16S, 3, flash, 100.0);
     l.h.sim.set_soc_percent(30.0);
     l
 }

@@ -17,7 +17,7 @@ use std::rc::Rc;
 
 use embassy_futures::block_on;
 use host_tests::flash::{Timed, ERASE_STALL_US};
-use host_tests::sim::{PackProfile, SimBms, SimConfig};
+use host_tests::sim::{PackModel, SimBms, SimConfig};
 use host_tests::virtual_time::Harness;
 use sequential_storage::mock_flash::{MockFlashBase, WriteCountCheck};
 use tinybms_firmware::bms::timing::Timing;
@@ -61,7 +61,7 @@ enum Placement {
 /// erases one. Gated, the station decides when to save (its `Save` action);
 /// ungated, the test writes a record of its own at the worst moments.
 fn run(seconds: u64, change_every_us: u64, placement: Placement, every_save_erases: bool) -> Run {
-    let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 7);
+    let sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 7);
     let mut h = Harness::checked(sim, Timing::default());
     h.retain = false;
     let (flash, stall): (Timed<Flash>, Rc<Cell<u64>>) =

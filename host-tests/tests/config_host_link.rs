@@ -52,12 +52,12 @@ fn in_flash(r: &Rig) -> Config {
 
 fn restart(r: &Rig) -> (Config, tinybms_firmware::config::store::Source) {
     // A copy of the flash, as the chip finds it after a restart.
-    let mut copy = host_tests::flash::store(clone_flash(r));
+    let mut copy = tinybms_desk::flash::store(clone_flash(r));
     let l = block_on(copy.load());
     (l.config, l.source)
 }
 
-fn clone_flash(r: &Rig) -> host_tests::flash::RamFlash {
+fn clone_flash(r: &Rig) -> tinybms_desk::flash::RamFlash {
     r.flash.copy()
 }
 
@@ -128,10 +128,10 @@ fn set_config_gives_one_outcome_per_field_then_saves() {
     assert_eq!(done[0]["restart_needed"], 1);
     assert_eq!(out.last().unwrap()["type"], "config_done");
     // It runs now where it may, and it is in flash.
-    assert_eq!(r.config().running().ccl_cap_da, 500);
+    assert_eq!(r.config().running().charge_current_cap_da, 500);
     assert_eq!(r.config().running().protocol, Protocol::Victron);
     let f = in_flash(&r);
-    assert_eq!(f.ccl_cap_da, 500);
+    assert_eq!(f.charge_current_cap_da, 500);
     assert_eq!(f.protocol, Protocol::SmaSunnyIsland);
     // get config shows the stored value and the pending restart.
     let out = get_config(&mut r);
@@ -355,8 +355,8 @@ fn a_new_stale_limit_reaches_the_telemetry_lines_the_desktop_reads() {
         tinybms_firmware::host_link::schema::Read,
     > = serde_json::from_value(old).unwrap();
     assert!(matches!(
-        host_tests::tool::monitor::freshness(Some(&old), std::time::Duration::ZERO),
-        host_tests::tool::monitor::Freshness::Fresh(_)
+        tinybms::monitor::freshness(Some(&old), std::time::Duration::ZERO),
+        tinybms::monitor::Freshness::Fresh(_)
     ));
 }
 
@@ -377,6 +377,6 @@ fn a_cap_of_zero_is_refused_not_read_as_no_cap() {
             "{out:?}"
         );
     }
-    assert_eq!(r.config().running().ccl_cap_da, 400);
-    assert_eq!(in_flash(&r).ccl_cap_da, 400);
+    assert_eq!(r.config().running().charge_current_cap_da, 400);
+    assert_eq!(in_flash(&r).charge_current_cap_da, 400);
 }

@@ -29,7 +29,7 @@ fn store(f: Flash) -> Store<Flash> {
 /// The `n`-th of a sequence of distinct valid records.
 fn record(n: u32) -> Config {
     let mut c = Config::default();
-    c.ccl_cap_da = 10 + (n % 7000) as u16;
+    c.charge_current_cap_da = 10 + (n % 7000) as u16;
     c.stale_after_s = 1 + (n % 60) as u16;
     c.protocol = if n.is_multiple_of(2) {
         Protocol::Victron

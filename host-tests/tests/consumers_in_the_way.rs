@@ -7,15 +7,13 @@
 //! is counted (the host link's `dropped_lines`, the inverter output's failed
 //! frames), not hidden. (The broker: `tests/mqtt_in_the_way.rs`.)
 
-use host_tests::sim::{FaultConfig, PackProfile, SimBms, SimConfig};
+use host_tests::sim::{FaultConfig, PackModel, SimBms, SimConfig};
 use host_tests::trace::{calls, Call, MAGIC};
 use host_tests::virtual_time::Harness;
 use protocol_core::views::LiveSnapshot;
-use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::bridge::Action;
-use tinybms_firmware::config::store::{Loaded, Source};
 use tinybms_firmware::config::Config;
-use tinybms_firmware::station::{Logged, Setup, Station};
+use tinybms_firmware::station::Logged;
 use tinybms_firmware::SECOND;
 
 /// How each consumer behaves.
@@ -46,13 +44,12 @@ struct Run {
 
 fn run(c: Consumers, faults: f64, seed: u64, duration_us: u64) -> Run {
     let sim = SimBms::new(
-        PackProfile::LiFePO4_16S,
+        PackModel::LiFePO4_16S,
         SimConfig::default().with_faults(FaultConfig::all(faults)),
         seed,
     );
-    let setup = Setup {
-        timing: Timing::default(),
-        identity: tinybms_firmware::identity::Identity::desktop(
+    let mut station = host_tests::fixtures::station(
+        tinybms_firmware::identity::Identity::desktop(
             "sim",
             tinybms_firmware::identity::Features {
                 can: true,
@@ -60,13 +57,8 @@ fn run(c: Consumers, faults: f64, seed: u64, duration_us: u64) -> Run {
                 ..Default::default()
             },
         ),
-        inverter: None,
-    };
-    let loaded = Loaded {
-        config: Config::default(),
-        source: Source::Empty,
-    };
-    let mut station = Station::new(setup, loaded, 0);
+        Config::default(),
+    );
     // A host opened the port (so `hello` and the telemetry stream are due).
     station.host_connected(0);
     let mut h = Harness::with_station(sim, station);
@@ -272,7 +264,7 @@ fn run_loop_with(
     port: impl FnOnce(&mut HostPort),
 ) -> LoopRun {
     let mut l = ClosedLoop::new_with(
-        PackProfile::LiFePO4_16S,
+        PackModel::LiFePO4_16S,
         1,
         InverterConfig::default(),
         charger_a,

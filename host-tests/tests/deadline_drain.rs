@@ -10,7 +10,7 @@
 //! answers twice, or a retry after a cut-off reply), so the tests fail if the
 //! order stops mattering or the drained bytes stop completing the transaction.
 
-use host_tests::sim::{PackProfile, SimBms, SimConfig};
+use host_tests::sim::{PackModel, SimBms, SimConfig};
 use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
 use tinybms_firmware::bridge::Action;
 use tinybms_firmware::{Bridge, Report};
@@ -32,7 +32,7 @@ fn first_request(bridge: &mut Bridge) -> (Vec<u8>, u64, u64) {
 
 /// What the simulated BMS answers to `req` (the whole reply, however long it takes).
 fn reply_to(req: &[u8]) -> Vec<u8> {
-    let mut sim = SimBms::new(PackProfile::LiIon_14S, SimConfig::default(), 11);
+    let mut sim = SimBms::new(PackModel::LiIon_14S, SimConfig::default(), 11);
     let end = sim.host_send(0, req);
     let mut out = Vec::new();
     sim.take_output(end + 1_000_000, &mut out);

@@ -3,7 +3,7 @@
 //! against the integral of what the simulated BMS sent, with a lost link in
 //! between that must count nothing.
 
-use host_tests::sim::{PackProfile, SimBms, SimConfig};
+use host_tests::sim::{PackModel, SimBms, SimConfig};
 use host_tests::virtual_time::Harness;
 use protocol_core::response::RegisterBlock;
 use protocol_core::views::LiveSnapshot;
@@ -68,7 +68,7 @@ fn reported(sim: &SimBms) -> (f64, f64) {
 
 #[test]
 fn the_station_counts_what_the_bms_sent_and_nothing_while_the_link_is_lost() {
-    let mut sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 3);
+    let mut sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 3);
     sim.set_external_current(Some(-40.0));
     let mut h = Harness::new(sim);
     h.retain = false;

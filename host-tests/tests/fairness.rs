@@ -2,7 +2,7 @@
 //! the event log and the statistics are still read at their own periods, and the
 //! snapshot latency figure measures the live read that produced each snapshot.
 
-use host_tests::sim::{PackProfile, SimBms, SimConfig};
+use host_tests::sim::{PackModel, SimBms, SimConfig};
 use host_tests::virtual_time::Harness;
 use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US, EVENTS_PERIOD_US, STATS_PERIOD_US};
 use tinybms_firmware::MS;
@@ -10,7 +10,7 @@ use tinybms_firmware::MS;
 const RUN_US: u64 = 5 * 60 * 1_000_000;
 
 fn run(live_period_us: u64) -> Harness {
-    let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 7);
+    let sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 7);
     let config = Timing {
         live_period_us,
         ..Timing::default()

@@ -1307,7 +1307,7 @@ fn log_lines_carry_the_bridges_log_latest_four_after_answers_before_telemetry() 
 /// Every line the simulated bridge writes to its host.
 struct Capture(Vec<Value>);
 
-impl host_tests::real_time_station::HostSide for Capture {
+impl tinybms_desk::HostSide for Capture {
     fn read(&mut self, _: &mut Vec<u8>) -> std::io::Result<()> {
         Ok(())
     }
@@ -1324,15 +1324,15 @@ impl host_tests::real_time_station::HostSide for Capture {
 fn the_bridges_reports_reach_the_host_as_log_lines_in_the_simulated_bridge() {
     // `sim --bridge-pty` hands every report's log line to the host link, as the
     // chip's log does: the start of a session has the sync and snapshot lines.
-    use host_tests::flash::{RamFlash, SimFlash};
     use host_tests::real_time::SimPort;
-    use host_tests::real_time_station::Hosted;
-    use host_tests::sim::{PackProfile, SimBms, SimConfig};
-    let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 3);
+    use host_tests::sim::{PackModel, SimBms, SimConfig};
+    use tinybms_desk::flash::{DeskFlash, RamFlash};
+    use tinybms_desk::Hosted;
+    let sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 3);
     let mut h = Hosted::new(
         SimPort::new(sim),
         tinybms_firmware::bms::timing::Timing::default(),
-        SimFlash::Ram(RamFlash::new()),
+        DeskFlash::Ram(RamFlash::new()),
         "sim",
     );
     let mut side = Capture(Vec::new());
@@ -1394,86 +1394,22 @@ fn get_settings_right_after_a_verified_write_shows_the_read_back_value() {
 /// line per pack, as the inverter output sees them.
 #[test]
 fn a_bridge_with_a_node_number_streams_the_battery_and_its_packs() {
-    use tinybms_firmware::inverter::control::{Conditions, Limits};
-    use tinybms_firmware::inverter::packs::{
-        aggregate, BatteryView, Member, PackPart, PackView, Summary,
-    };
-    let s = Summary {
-        voltage_cv: 5321,
-        current_da: -41,
-        soc_cpct: 6543,
-        soh_pct: 97,
-        min_cell_mv: 3301,
-        max_cell_mv: 3345,
-        min_temp_dc: 215,
-        max_temp_dc: 248,
-        age_ds: 7,
-        capacity_dah: 2800,
-        limits: Limits {
-            cvl_dv: 552,
-            ccl_da: 588,
-            dcl_da: 1176,
-            discharge_dv: 480,
-        },
-        conditions: Conditions::default(),
-        fault: false,
-        charge_blocked: false,
-        speaking: false,
-    };
+    use host_tests::fixtures::{self, pack_summary};
+    use tinybms_firmware::inverter::control::Limits;
+    use tinybms_firmware::inverter::packs::{BatteryView, PackPart, Summary};
+    let s = pack_summary();
     let me = Summary {
         speaking: true,
         ..s
     };
     let lost = Summary { age_ds: 2, ..s };
-    let members = [
-        Member {
-            summary: me,
-            alive: true,
-            heard_ago_us: 0,
-            closed_limits: None,
-        },
-        Member {
-            summary: s,
-            alive: true,
-            heard_ago_us: 0,
-            closed_limits: None,
-        },
-        Member {
-            summary: lost,
-            alive: false,
-            heard_ago_us: 0,
-            closed_limits: None,
-        },
-    ];
-    let battery = aggregate(
-        &members,
-        tinybms_firmware::freshness::Freshness::new(5 * SECOND),
-    )
-    .unwrap();
-    let sent = Limits {
-        ccl_da: 1000,
-        ..battery.limits
-    };
-    let mut packs = heapless::Vec::new();
-    for (node, m, part) in [
+    let packs = [
         (1, me, PackPart::Part),
         (2, s, PackPart::Part),
         (3, lost, PackPart::Lost),
-    ] {
-        packs
-            .push(PackView {
-                node,
-                summary: m,
-                part,
-            })
-            .unwrap();
-    }
-    let view = BatteryView {
-        node: 1,
-        speaking: true,
-        battery: Some((battery, sent)),
-        packs,
-    };
+    ];
+    let view = fixtures::battery_view(true, &packs, true, |l| Limits { ccl_da: 1000, ..l });
+    let battery = view.battery.expect("a battery").0;
     let mut r = Rig::ready(config(false, 1000));
     r.drain();
     r.link_mut().on_battery(Some(view.clone()));
@@ -1612,19 +1548,18 @@ fn a_host_that_connects_late_gets_the_boot_lines_right_after_hello() {
 #[test]
 fn the_longest_boot_lines_all_fit() {
     use tinybms_firmware::boards::{HostWire, LogPath, BOARDS};
-    use tinybms_firmware::config::store::{Loaded, Source};
+
     use tinybms_firmware::identity::{Features, Identity};
     use tinybms_firmware::inverter::protocol::Protocol;
-    use tinybms_firmware::station::{Setup, Station};
+
     use tinybms_firmware::text::Boot;
     let board = BOARDS
         .iter()
         .map(|b| b.name)
         .max_by_key(|n| n.len())
         .unwrap();
-    let setup = Setup {
-        timing: tinybms_firmware::bms::timing::Timing::default(),
-        identity: Identity {
+    let mut station = host_tests::fixtures::station(
+        Identity {
             chip: "esp32c6",
             board,
             features: Features {
@@ -1634,13 +1569,8 @@ fn the_longest_boot_lines_all_fit() {
                 store: true,
             },
         },
-        inverter: None,
-    };
-    let loaded = Loaded {
-        config: tinybms_firmware::config::Config::default(),
-        source: Source::Empty,
-    };
-    let mut station = Station::new(setup, loaded, 0);
+        tinybms_firmware::config::Config::default(),
+    );
     let lines = [
         Boot::Image {
             log: Some(LogPath::Uart0),

@@ -5,12 +5,12 @@
 
 use std::time::{Duration, Instant as Wall};
 
-use host_tests::flash::{RamFlash, SimFlash};
 use host_tests::real_time::SimPort;
-use host_tests::real_time_station::{HostSide, Hosted};
-use host_tests::sim::{PackProfile, SimBms, SimConfig};
+use host_tests::sim::{PackModel, SimBms, SimConfig};
 use host_tests::sim_wifi::{SimNetwork, SimWifi};
 use proptest::prelude::*;
+use tinybms_desk::flash::{DeskFlash, RamFlash};
+use tinybms_desk::{HostSide, Hosted};
 use tinybms_firmware::host_link::assembler::{LineAssembler, Piece};
 use tinybms_firmware::improv::psk::{PskDerivation, PskError, Start};
 use tinybms_firmware::improv::wire::{self, checksum, ErrorState, PacketError, Rpc, State};
@@ -343,11 +343,11 @@ struct Bridge {
 
 impl Bridge {
     fn new(wifi: bool) -> Self {
-        let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 5);
+        let sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 5);
         let mut h = Hosted::with_wifi(
             SimPort::new(sim),
             tinybms_firmware::bms::timing::Timing::default(),
-            SimFlash::Ram(RamFlash::new()),
+            DeskFlash::Ram(RamFlash::new()),
             "esp32c3",
             wifi,
         );
@@ -358,7 +358,7 @@ impl Bridge {
                 SimNetwork::parse("neighbour:whatever1:-80").unwrap(),
             ]);
             w.delay = Duration::from_millis(200);
-            h.driver.wifi = Some(w);
+            h.driver.wifi = Some(Box::new(w));
         }
         h.network_name = Some("tinybms-test".into());
         h.boot_wifi();
@@ -607,18 +607,18 @@ fn malformed_packets_are_refused_and_the_host_link_goes_on() {
 /// and `hello` says where the radio stands, `starting`, then `late`.
 #[test]
 fn a_radio_that_never_comes_up_holds_nothing_back() {
-    let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 5);
+    let sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 5);
     let mut h = Hosted::with_wifi(
         SimPort::new(sim),
         tinybms_firmware::bms::timing::Timing::default(),
-        SimFlash::Ram(RamFlash::new()),
+        DeskFlash::Ram(RamFlash::new()),
         "esp32c3",
         true,
     );
     let mut w = SimWifi::new(vec![SimNetwork::parse("home:correct horse:-48").unwrap()]);
     w.radio_hangs = true;
     w.late_after = 1_500 * tinybms_firmware::MS;
-    h.driver.wifi = Some(w);
+    h.driver.wifi = Some(Box::new(w));
     h.boot_wifi();
     h.connected();
     let mut b = Bridge {

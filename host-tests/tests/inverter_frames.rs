@@ -511,12 +511,12 @@ proptest! {
         // Any configuration, zero and negative widths included: the safety rules
         // hold whatever the user typed.
         let config = ChargeConfig {
-            ccl_cap_da: cap,
-            dcl_cap_da: cap,
-            ccl_taper_mv: ccl_taper,
-            dcl_taper_mv: dcl_taper,
-            temp_margin_c: temp_margin,
-            ov_margin_mv: ov_margin,
+            charge_current_cap_da: cap,
+            discharge_current_cap_da: cap,
+            charge_taper_mv: ccl_taper,
+            discharge_taper_mv: dcl_taper,
+            temperature_margin_c: temp_margin,
+            ceiling_margin_mv: ov_margin,
             ..ChargeConfig::default()
         };
         let mut c = ChargeControl::new(config);
@@ -536,7 +536,7 @@ proptest! {
                 prop_assert_eq!((l.ccl_da, l.dcl_da), (0, 0));
             }
             // The ceiling: a cell at or above 315 - margin gets no charge current.
-            if p.max_cell_mv + config.ov_margin_mv >= s.ov_cutoff_mv {
+            if p.max_cell_mv + config.ceiling_margin_mv >= s.ov_cutoff_mv {
                 prop_assert_eq!(l.ccl_da, 0);
             }
             if p.min_temp_c <= f32::from(s.low_temp_charge_c) || p.max_temp_c >= f32::from(s.overheat_c) {
@@ -546,7 +546,7 @@ proptest! {
                 prop_assert_eq!(l.dcl_da, 0);
             }
             // Discharge stops at or below 316 + margin.
-            if p.min_cell_mv <= s.uv_cutoff_mv + config.uv_margin_mv {
+            if p.min_cell_mv <= s.uv_cutoff_mv + config.discharge_margin_mv {
                 prop_assert_eq!(l.dcl_da, 0);
             }
         }
@@ -607,22 +607,9 @@ proptest! {
 fn the_pack_summary_dbc_describes_the_encoder() {
     use tinybms_firmware::inverter::packs::Summary;
     let s = Summary {
-        voltage_cv: 5321,
         current_da: -1234,
-        soc_cpct: 6543,
-        soh_pct: 97,
-        min_cell_mv: 3301,
-        max_cell_mv: 3345,
         min_temp_dc: -52,
         max_temp_dc: 318,
-        age_ds: 7,
-        capacity_dah: 2800,
-        limits: Limits {
-            cvl_dv: 552,
-            ccl_da: 588,
-            dcl_da: 1176,
-            discharge_dv: 480,
-        },
         conditions: Conditions {
             high_voltage: 1,
             low_temperature: 2,
@@ -632,8 +619,8 @@ fn the_pack_summary_dbc_describes_the_encoder() {
             ..Conditions::default()
         },
         fault: true,
-        charge_blocked: false,
         speaking: true,
+        ..host_tests::fixtures::pack_summary()
     };
     let expect = [
         ("Voltage", 53.21),

@@ -1,7 +1,7 @@
 //! The inverter output's scheduler through its sans-IO interface: what goes on
 //! the bus, when, and what is logged.
 
-use host_tests::sim::{PackProfile, SimBms, SimConfig};
+use host_tests::sim::{PackModel, SimBms, SimConfig};
 use protocol_core::response::RegisterBlock;
 use protocol_core::views::LiveSnapshot;
 use tinybms_firmware::inverter::control::PackSettings;
@@ -13,7 +13,7 @@ use tinybms_firmware::inverter::{
 const S: u64 = 1_000_000;
 
 fn inputs() -> (LiveSnapshot, PackSettings) {
-    let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 1);
+    let sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 1);
     let block = |first: u16, n: u16| RegisterBlock {
         start: first,
         values: (first..first + n).map(|a| sim.register(a)).collect(),
@@ -256,7 +256,7 @@ fn reconfigure_keeps_the_protocol_and_defers_a_stale_policy_change() {
     assert_eq!(inv.config().stale_hold_us, 600 * S);
     // A charge cap applies at once.
     let mut capped = *inv.config();
-    capped.charge.ccl_cap_da = Some(55);
+    capped.charge.charge_current_cap_da = Some(55);
     inv.reconfigure(capped);
     let after = frames_at(&mut inv, 40 * S, 45 * S, true);
     let ccl: Vec<u16> = after

@@ -7,9 +7,9 @@
 use serde_json::Value;
 
 use host_tests::closed_loop::ClosedLoop;
-use host_tests::flash::RamFlash;
 use host_tests::multi_pack;
-use host_tests::sim::PackProfile;
+use host_tests::sim::PackModel;
+use tinybms_desk::flash::RamFlash;
 use tinybms_firmware::host_link::encode;
 use tinybms_firmware::host_link::schema::HostLine;
 use tinybms_firmware::inverter::InverterConfig;
@@ -63,7 +63,7 @@ fn round_trip(v: &Value) -> String {
 
 #[test]
 fn every_line_of_a_host_session_reads_back_whole() {
-    let mut l = ClosedLoop::from_flash(PackProfile::LiFePO4_16S, 3, RamFlash::new(), 100.0);
+    let mut l = ClosedLoop::from_flash(PackModel::LiFePO4_16S, 3, RamFlash::new(), 100.0);
     l.h.sim.set_soc_percent(40.0);
     let script: [(u64, &str); 17] = [
         (1, r#"{"cmd":"hello","req":1}"#),

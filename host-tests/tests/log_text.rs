@@ -143,7 +143,7 @@ fn inverter_lines_read_in_volts_amps_and_seconds() {
     let s = InverterReport::Stale {
         age_ms: 5230,
         policy: StaleMode::Hold,
-        hold_us: 300 * SECOND,
+        stale_hold_us: 300 * SECOND,
     };
     assert_eq!(
         said_inverter(&s),

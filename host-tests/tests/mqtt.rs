@@ -5,7 +5,7 @@
 //! period and at once on a status change, stale data never published, events).
 
 use heapless::String;
-use host_tests::sim::{PackProfile, SimBms, SimConfig};
+use host_tests::sim::{PackModel, SimBms, SimConfig};
 use proptest::prelude::*;
 use protocol_core::events::{Event, EventId, OnlineStatus};
 use protocol_core::response::RegisterBlock;
@@ -18,7 +18,7 @@ use tinybms_firmware::mqtt::{Identity, Settings, PAYLOAD_MAX, TOPIC_MAX};
 use tinybms_firmware::SECOND;
 
 fn inputs() -> (LiveSnapshot, VersionInfo) {
-    let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 1);
+    let sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 1);
     let block = |first: u16, n: u16| RegisterBlock {
         start: first,
         values: (first..first + n).map(|a| sim.register(a)).collect(),
@@ -591,73 +591,25 @@ fn the_home_assistant_guide_lists_every_entity_as_the_firmware_announces_it() {
 
 mod the_battery_of_packs_in_parallel {
     use super::*;
-    use tinybms_firmware::inverter::control::{Conditions, Limits};
-    use tinybms_firmware::inverter::packs::{
-        aggregate, BatteryView, Member, PackPart, PackView, Summary,
-    };
+    use host_tests::fixtures::{self, pack_summary};
+    use tinybms_firmware::inverter::packs::{BatteryView, PackPart, Summary};
     use tinybms_firmware::mqtt::battery;
 
     fn battery_view(speaking: bool, with_battery: bool) -> BatteryView {
         let s = Summary {
-            voltage_cv: 5321,
-            current_da: -41,
-            soc_cpct: 6543,
-            soh_pct: 97,
-            min_cell_mv: 3301,
-            max_cell_mv: 3345,
-            min_temp_dc: 215,
-            max_temp_dc: 248,
-            age_ds: 7,
-            capacity_dah: 2800,
-            limits: Limits {
-                cvl_dv: 552,
-                ccl_da: 588,
-                dcl_da: 1176,
-                discharge_dv: 480,
-            },
-            conditions: Conditions::default(),
-            fault: false,
-            charge_blocked: false,
             speaking,
+            ..pack_summary()
         };
-        let members = [
-            Member {
-                summary: s,
-                alive: true,
-                heard_ago_us: 0,
-                closed_limits: None,
-            },
-            Member {
-                summary: Summary {
-                    speaking: false,
-                    ..s
-                },
-                alive: true,
-                heard_ago_us: 0,
-                closed_limits: None,
-            },
-        ];
-        let b = aggregate(
-            &members,
-            tinybms_firmware::freshness::Freshness::new(5 * SECOND),
-        )
-        .unwrap();
-        let mut packs = heapless::Vec::new();
-        for (node, m) in [(1, members[0]), (2, members[1])] {
-            packs
-                .push(PackView {
-                    node,
-                    summary: m.summary,
-                    part: PackPart::Part,
-                })
-                .unwrap();
-        }
-        BatteryView {
-            node: 1,
+        let other = Summary {
+            speaking: false,
+            ..s
+        };
+        fixtures::battery_view(
             speaking,
-            battery: with_battery.then_some((b, b.limits)),
-            packs,
-        }
+            &[(1, s, PackPart::Part), (2, other, PackPart::Part)],
+            with_battery,
+            |l| l,
+        )
     }
 
     fn with<'a>(snap: &'a LiveSnapshot, b: &'a BatteryView) -> View<'a> {
@@ -934,18 +886,7 @@ fn the_wifi_signal_is_a_diagnostic_and_null_when_unknown() {
 /// generation (published at once).
 #[test]
 fn the_station_publishes_the_wifi_signal_it_is_given() {
-    use tinybms_firmware::config::store::{Loaded, Source};
-    use tinybms_firmware::station::{Setup, Station};
-    let setup = Setup {
-        timing: tinybms_firmware::bms::timing::Timing::default(),
-        identity: bridge(),
-        inverter: None,
-    };
-    let loaded = Loaded {
-        config: Config::default(),
-        source: Source::Empty,
-    };
-    let mut st = Station::new(setup, loaded, 0);
+    let mut st = host_tests::fixtures::station(bridge(), Config::default());
     assert_eq!(st.published(0).wifi_rssi_dbm, None);
     let g = st.generation();
     st.wifi_rssi(Some(-67));

@@ -28,7 +28,7 @@ use std::time::{Duration, Instant as WallInstant};
 
 use host_tests::closed_loop::{ClosedLoop, STEP_US};
 use host_tests::mqtt::{Shared, SharedFeed};
-use host_tests::sim::PackProfile;
+use host_tests::sim::PackModel;
 use tinybms_firmware::config::Config;
 use tinybms_firmware::inverter::InverterConfig;
 use tinybms_firmware::mqtt::publisher::{Publisher, View};
@@ -398,12 +398,7 @@ struct SessionOutput {
 const RUN_US: u64 = 90 * 60 * 1_000_000;
 
 fn new_loop() -> ClosedLoop {
-    let mut l = ClosedLoop::new(
-        PackProfile::LiFePO4_16S,
-        11,
-        InverterConfig::default(),
-        40.0,
-    );
+    let mut l = ClosedLoop::new(PackModel::LiFePO4_16S, 11, InverterConfig::default(), 40.0);
     l.h.trace = Some(Vec::new());
     l
 }

@@ -23,7 +23,7 @@ fn run(name: &str, n: usize, protocol: Protocol) -> (MultiLoop, u64) {
     };
     let (l, end) = run_scenario(name, n, config, |_| {}).unwrap();
     println!("{}", table(name, &l, end));
-    let p = problems(&l, ChargeConfig::default().ov_margin_mv);
+    let p = problems(&l, ChargeConfig::default().ceiling_margin_mv);
     assert!(p.is_empty(), "{name}: {p:#?}");
     (l, end)
 }
@@ -127,7 +127,7 @@ fn a_pack_that_faults_at_full_load_leaves_at_once_and_comes_back_after_the_hold(
         .0;
     assert!(back < 12 * MIN + 10 * S, "{back}");
     let at_back = dcl_at(&l, back);
-    let hold = ChargeConfig::default().hold_us;
+    let hold = ChargeConfig::default().limit_hold_us;
     for e in l
         .sent_limits
         .iter()
@@ -256,7 +256,7 @@ fn a_fault_at_any_moment_keeps_the_others_within_their_cutoffs() {
             let at = Some(at_min * MIN);
             let (l, end) =
                 run_scenario_at("fault-charge", n, InverterConfig::default(), at, |_| {}).unwrap();
-            let p = problems(&l, ChargeConfig::default().ov_margin_mv);
+            let p = problems(&l, ChargeConfig::default().ceiling_margin_mv);
             assert!(
                 p.is_empty(),
                 "{n} packs, fault at {at_min} min: {p:#?}\n{}",
@@ -268,7 +268,7 @@ fn a_fault_at_any_moment_keeps_the_others_within_their_cutoffs() {
             let (l, end) =
                 run_scenario_at("fault-discharge", n, InverterConfig::default(), at, |_| {})
                     .unwrap();
-            let p = problems(&l, ChargeConfig::default().ov_margin_mv);
+            let p = problems(&l, ChargeConfig::default().ceiling_margin_mv);
             assert!(
                 p.is_empty(),
                 "{n} packs, faults at {at_min} min: {p:#?}\n{}",
@@ -337,7 +337,7 @@ fn a_lossy_bus_still_charges() {
 fn random_packs_and_events_never_push_a_pack_past_its_own_cutoffs() {
     for case in 0..10u64 {
         let (l, log) = random_case(case, 1);
-        let p = problems(&l, ChargeConfig::default().ov_margin_mv);
+        let p = problems(&l, ChargeConfig::default().ceiling_margin_mv);
         assert!(
             p.is_empty(),
             "case {case}: {log}\n{p:#?}\n{}",
@@ -355,7 +355,7 @@ fn the_truth_check_fails_when_the_bridges_are_misled() {
     let failing = (0..10u64)
         .filter(|case| {
             let (l, _) = random_case(*case, 2);
-            problems(&l, ChargeConfig::default().ov_margin_mv)
+            problems(&l, ChargeConfig::default().ceiling_margin_mv)
                 .iter()
                 .any(|p| p.contains("past its cutoff") || p.contains("opened its switch"))
         })

@@ -668,7 +668,7 @@ fn a_pack_leaving_drops_the_limits_at_once_and_they_come_back_after_the_hold() {
     )
     .unwrap();
     let l = ramp.step(S, &busy, 0b11, &c);
-    assert_eq!(l.ccl_da, 490 + c.ramp_da_per_s);
+    assert_eq!(l.ccl_da, 490 + c.ramp_rate_da_per_s);
     // Pack 2 is lost: at once its share goes.
     let one = aggregate(&[member(pack_summary(40.0, 50.0))], STALE).unwrap();
     let l = ramp.step(2 * S, &one, 0b01, &c);
@@ -676,13 +676,13 @@ fn a_pack_leaving_drops_the_limits_at_once_and_they_come_back_after_the_hold() {
     // Then nothing rises for the hold, whatever the target.
     // (the pack's own CCL rose to 80 A meanwhile)
     let light = aggregate(&[member(pack_summary(10.0, 80.0))], STALE).unwrap();
-    for t in 3..(2 + c.hold_us / S) {
+    for t in 3..(2 + c.limit_hold_us / S) {
         let l = ramp.step(t * S, &light, 0b01, &c);
         assert_eq!(l.ccl_da, 490, "at {t} s");
     }
-    let after = ramp.step(2 * S + c.hold_us, &light, 0b01, &c);
+    let after = ramp.step(2 * S + c.limit_hold_us, &light, 0b01, &c);
     assert!(after.ccl_da > 490, "{after:?}");
-    assert!(after.ccl_da <= 490 + c.ramp_da_per_s);
+    assert!(after.ccl_da <= 490 + c.ramp_rate_da_per_s);
     // A cut starts from 0.
     ramp.cut(100 * S);
     let l = ramp.step(101 * S, &light, 0b01, &c);
@@ -725,7 +725,7 @@ fn the_own_summary_rounds_and_carries_no_link_lost() {
 
 mod through_the_inverter_output {
     use super::S;
-    use host_tests::sim::{PackProfile, SimBms, SimConfig};
+    use host_tests::sim::{PackModel, SimBms, SimConfig};
     use protocol_core::response::RegisterBlock;
     use protocol_core::views::LiveSnapshot;
     use tinybms_firmware::inverter::control::PackSettings;
@@ -736,7 +736,7 @@ mod through_the_inverter_output {
     };
 
     fn inputs() -> (LiveSnapshot, PackSettings) {
-        let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 1);
+        let sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 1);
         let block = |first: u16, n: u16| RegisterBlock {
             start: first,
             values: (first..first + n).map(|a| sim.register(a)).collect(),

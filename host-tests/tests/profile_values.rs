@@ -5,8 +5,8 @@
 //! two register steps, an unknown name, a setting given twice.
 
 use host_tests::profile::{parse_profile, snake_name};
-use host_tests::tool::settings::physical;
 use protocol_core::settings::SettingId;
+use tinybms::settings::physical;
 use tinybms_firmware::bms::profile::{self as fw, parse_value, ProfileErrorKind as K};
 
 fn v(id: SettingId, text: &str) -> Result<i32, K> {

@@ -2,7 +2,7 @@
 //! scenarios of the firmware issue. Each runs the real `tinybms_firmware::Bridge`
 //! through `host_tests::virtual_time::Harness` (the same loop as the chip shell).
 
-use host_tests::sim::{CurrentSensor, FaultConfig, PackProfile, SimBms, SimConfig};
+use host_tests::sim::{CurrentSensor, FaultConfig, PackModel, SimBms, SimConfig};
 use host_tests::virtual_time::Harness;
 use protocol_core::events::{EventId, OnlineStatus};
 use protocol_core::settings::{Setting, SettingError, SettingId};
@@ -11,7 +11,7 @@ use tinybms_firmware::{Command, Level, Report};
 
 const S: u64 = 1_000_000;
 
-fn harness(profile: PackProfile, config: SimConfig, seed: u64) -> Harness {
+fn harness(profile: PackModel, config: SimConfig, seed: u64) -> Harness {
     let mut sim = SimBms::new(profile, config, seed);
     sim.record_frames(true);
     Harness::checked(sim, tinybms_firmware::bms::timing::Timing::default())
@@ -63,7 +63,7 @@ fn assert_published_are_genuine(h: &Harness) {
 #[test]
 fn cold_start_with_a_sleeping_bms() {
     let mut h = harness(
-        PackProfile::LiFePO4_16S,
+        PackModel::LiFePO4_16S,
         SimConfig::default().with_start_asleep(true),
         1,
     );
@@ -98,7 +98,7 @@ fn cold_start_with_a_sleeping_bms() {
 
 #[test]
 fn an_awake_bms_gets_every_request_exactly_once() {
-    let mut h = harness(PackProfile::LiIon_14S, SimConfig::default(), 2);
+    let mut h = harness(PackModel::LiIon_14S, SimConfig::default(), 2);
     h.run_until(60 * S);
     let s = h.bridge().link_stats();
     assert_eq!(u64::from(s.requests), h.sim.stats().requests);
@@ -139,7 +139,7 @@ fn hours_of_polling_with_1_percent_byte_corruption() {
         ..FaultConfig::NONE
     };
     let mut h = harness(
-        PackProfile::LiFePO4_16S,
+        PackModel::LiFePO4_16S,
         SimConfig::default().with_faults(faults),
         3,
     );
@@ -171,7 +171,7 @@ fn hours_of_polling_with_1_percent_byte_corruption() {
 
 #[test]
 fn bms_silent_for_10_s_then_back() {
-    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 4);
+    let mut h = harness(PackModel::LiFePO4_16S, SimConfig::default(), 4);
     h.run_until(10 * S);
     let before = h.published.len();
     let version_reads = h
@@ -237,7 +237,7 @@ fn bms_silent_for_10_s_then_back() {
 
 #[test]
 fn ascii_broadcasts_on() {
-    let mut h = harness(PackProfile::LiIon_14S, SimConfig::default(), 5);
+    let mut h = harness(PackModel::LiIon_14S, SimConfig::default(), 5);
     h.sim.set_register(342, 0x01); // every 0.1 s
     h.sim.set_register(343, 0x01); // ASCII
     h.run_until(60 * S);
@@ -260,7 +260,7 @@ fn r_level_warn(r: &Report) -> bool {
 
 #[test]
 fn a_settings_profile_is_applied_and_verified() {
-    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 6);
+    let mut h = harness(PackModel::LiFePO4_16S, SimConfig::default(), 6);
     // 330: charger type (low byte) and over-current timeout (high byte) share a register.
     h.sim.set_register(330, 0x0A01);
     let profile = [
@@ -305,7 +305,7 @@ fn a_settings_profile_is_applied_and_verified() {
 #[test]
 fn out_of_range_settings_are_rejected_before_any_byte() {
     let config = SimConfig::default().with_current_sensor(CurrentSensor::InternalResistor);
-    let mut h = harness(PackProfile::LiFePO4_16S, config, 7);
+    let mut h = harness(PackModel::LiFePO4_16S, config, 7);
     h.run_until(S);
     let before = h.sim.stats().requests;
     let tx_before = h.tx_bytes;
@@ -351,7 +351,7 @@ fn out_of_range_settings_are_rejected_before_any_byte() {
 
 #[test]
 fn a_read_back_mismatch_is_reported_as_such() {
-    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 8);
+    let mut h = harness(PackModel::LiFePO4_16S, SimConfig::default(), 8);
     h.sim.ignore_writes_to(308);
     let old = h.sim.register(308);
     h.bridge_mut()
@@ -378,7 +378,7 @@ fn a_nacked_write_is_reported_with_its_code() {
     // The bridge read the limits with an external sensor (max 750 A); the sensor
     // then changes and the BMS now refuses 200 A itself.
     let config = SimConfig::default().with_current_sensor(CurrentSensor::External);
-    let mut h = harness(PackProfile::LiFePO4_16S, config, 9);
+    let mut h = harness(PackModel::LiFePO4_16S, config, 9);
     h.run_until(S);
     h.sim.config_mut().current_sensor = CurrentSensor::InternalResistor;
     let old = h.sim.register(318);
@@ -403,7 +403,7 @@ fn a_nacked_write_is_reported_with_its_code() {
 
 #[test]
 fn a_write_to_340_waits_for_the_reboot_and_confirms() {
-    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 10);
+    let mut h = harness(PackModel::LiFePO4_16S, SimConfig::default(), 10);
     h.run_until(2 * S);
     let old = h.sim.register(340) & 0xFF;
     let new = if old == 0 { 1 } else { 0 };
@@ -435,7 +435,7 @@ fn a_write_to_340_waits_for_the_reboot_and_confirms() {
 
 #[test]
 fn a_reset_gets_no_ack_and_is_confirmed() {
-    let mut h = harness(PackProfile::LiIon_14S, SimConfig::default(), 11);
+    let mut h = harness(PackModel::LiIon_14S, SimConfig::default(), 11);
     h.run_until(2 * S);
     h.bridge_mut().submit(Command::ResetBms).unwrap();
     h.run_until(12 * S);
@@ -462,7 +462,7 @@ fn a_reset_gets_no_ack_and_is_confirmed() {
 
 #[test]
 fn clear_events_and_statistics() {
-    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 12);
+    let mut h = harness(PackModel::LiFePO4_16S, SimConfig::default(), 12);
     h.run_until(2 * S);
     h.bridge_mut().submit(Command::ClearEvents).unwrap();
     h.bridge_mut().submit(Command::ClearStatistics).unwrap();
@@ -476,7 +476,7 @@ fn clear_events_and_statistics() {
 
 #[test]
 fn faults_are_warnings_and_events_are_logged_once() {
-    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 13);
+    let mut h = harness(PackModel::LiFePO4_16S, SimConfig::default(), 13);
     h.run_until(10 * S);
     // The log's history at start-up is one info line, not a burst of old events.
     assert!(matches!(
@@ -551,7 +551,7 @@ fn faults_of_every_kind_never_publish_a_wrong_value() {
     let config = SimConfig::default()
         .with_faults(faults)
         .with_sleep_after_us(Some(20 * S));
-    let mut h = harness(PackProfile::LiIon_14S, config, 14);
+    let mut h = harness(PackModel::LiIon_14S, config, 14);
     h.sim.set_register(342, 0x03);
     h.sim.set_register(343, 0x01);
     h.bridge_mut()
@@ -590,7 +590,7 @@ fn faults_of_every_kind_never_publish_a_wrong_value() {
 fn a_lost_write_to_328_is_not_verified_by_its_marker() {
     // 328 already reads 0xFFFF before the write; the write (0x10) is lost on every
     // attempt, so the 0xFFFF read back afterwards proves nothing.
-    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 15);
+    let mut h = harness(PackModel::LiFePO4_16S, SimConfig::default(), 15);
     h.run_until(S);
     assert_eq!(h.sim.register(328), 0xFFFF);
     h.sim.drop_next_requests(0x10, 10);
@@ -621,7 +621,7 @@ fn a_lost_write_to_328_is_not_verified_by_its_marker() {
 
 #[test]
 fn a_write_whose_echo_was_lost_is_decided_by_the_read_back() {
-    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 16);
+    let mut h = harness(PackModel::LiFePO4_16S, SimConfig::default(), 16);
     h.run_until(S);
     // The first write request is lost: the retry is applied and echoed.
     h.sim.drop_next_requests(0x10, 1);
@@ -639,7 +639,7 @@ fn a_write_whose_echo_was_lost_is_decided_by_the_read_back() {
 
 #[test]
 fn a_lost_reset_is_not_confirmed() {
-    let mut h = harness(PackProfile::LiIon_14S, SimConfig::default(), 17);
+    let mut h = harness(PackModel::LiIon_14S, SimConfig::default(), 17);
     h.run_until(2 * S);
     // Register 114 already says "software reset" from an earlier restart.
     h.sim
@@ -665,7 +665,7 @@ fn a_lost_reset_is_not_confirmed() {
 
 #[test]
 fn a_bms_that_never_answers_0x1d_is_still_polled() {
-    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 18);
+    let mut h = harness(PackModel::LiFePO4_16S, SimConfig::default(), 18);
     h.sim.ignore_command(0x1D);
     h.run_until(30 * S);
     assert_eq!(count(&h, |r| matches!(r, Report::Ready { .. })), 1);
@@ -690,7 +690,7 @@ fn a_bms_that_never_answers_0x1d_is_still_polled() {
 
 #[test]
 fn a_long_group_does_not_stop_the_live_polling() {
-    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 19);
+    let mut h = harness(PackModel::LiFePO4_16S, SimConfig::default(), 19);
     h.run_until(S);
     let items: Vec<(SettingId, i32)> = (0..16)
         .map(|i| (SettingId::ChargerStartupDelay, 10 + i))
@@ -722,7 +722,7 @@ fn event_timestamps_wrap_after_24_bits() {
 /// BMS, and the outcome names both settings.
 #[test]
 fn a_setting_that_contradicts_another_is_never_written() {
-    let mut h = harness(PackProfile::LiFePO4_16S, SimConfig::default(), 3);
+    let mut h = harness(PackModel::LiFePO4_16S, SimConfig::default(), 3);
     h.run_until(5 * S);
     let uv = h.sim.register(316);
     let ov = h.sim.register(315);

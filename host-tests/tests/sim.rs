@@ -4,7 +4,7 @@
 //! time: nothing here depends on the machine's speed.
 
 use host_tests::sim::{
-    wire_time_us, CurrentSensor, FaultConfig, PackProfile, SimBms, SimConfig, LAST_REGISTER,
+    wire_time_us, CurrentSensor, FaultConfig, PackModel, SimBms, SimConfig, LAST_REGISTER,
 };
 use protocol_core::crc::crc16;
 use protocol_core::events::{EventId, OnlineStatus};
@@ -24,14 +24,14 @@ struct Bench {
 }
 
 impl Bench {
-    fn new(profile: PackProfile, config: SimConfig, seed: u64) -> Self {
+    fn new(profile: PackModel, config: SimConfig, seed: u64) -> Self {
         Self {
             sim: SimBms::new(profile, config, seed),
             now: 0,
         }
     }
     /// Live values frozen: registers change only by commands and `set_register`.
-    fn frozen(profile: PackProfile) -> Self {
+    fn frozen(profile: PackModel) -> Self {
         Self::new(profile, SimConfig::default().with_live(false), 1)
     }
     /// Sends `bytes` now and returns everything the BMS sends in the next 100 ms.
@@ -102,7 +102,7 @@ fn f32_at(sim: &SimBms, a: u16) -> f32 {
 
 #[test]
 fn rev_d_1_3_2_modbus_read_example() {
-    let mut b = Bench::frozen(PackProfile::LiFePO4_16S);
+    let mut b = Bench::frozen(PackModel::LiFePO4_16S);
     for (a, v) in (5..=9).zip([0x9740, 0x9740, 0x972C, 0x972C, 0x972C]) {
         b.sim.set_register(a, v);
     }
@@ -118,7 +118,7 @@ fn rev_d_1_3_2_modbus_read_example() {
 
 #[test]
 fn rev_d_1_3_3_temperatures_example() {
-    let mut b = Bench::frozen(PackProfile::LiFePO4_16S);
+    let mut b = Bench::frozen(PackModel::LiFePO4_16S);
     b.sim.set_register(48, 278);
     b.sim.set_register(42, 276);
     b.sim.set_register(43, 278);
@@ -131,7 +131,7 @@ fn rev_d_1_3_3_temperatures_example() {
 
 #[test]
 fn rev_d_1_3_1_modbus_write_example() {
-    let mut b = Bench::frozen(PackProfile::LiFePO4_16S);
+    let mut b = Bench::frozen(PackModel::LiFePO4_16S);
     b.sim.set_register(316, 2600);
     assert_eq!(b.sim.register(315), 3650);
     let reply = b.xfer(&[
@@ -147,7 +147,7 @@ fn rev_d_1_3_1_modbus_write_example() {
 
 #[test]
 fn every_command_is_answered_and_decodes() {
-    let mut b = Bench::frozen(PackProfile::LiIon_14S);
+    let mut b = Bench::frozen(PackModel::LiIon_14S);
     let mut seen = std::collections::BTreeSet::new();
     let mut check = |b: &mut Bench, req: Request| -> Response {
         seen.insert(req.command());
@@ -328,7 +328,7 @@ fn native_read_of_45_registers_is_split_63_plus_27() {
         let config = SimConfig::default()
             .with_live(false)
             .with_first_packet_id(first_id);
-        let mut b = Bench::new(PackProfile::LiFePO4_16S, config, 3);
+        let mut b = Bench::new(PackModel::LiFePO4_16S, config, 3);
         let req = Request::read_registers_native(0, 45).unwrap();
         let bytes = b.ask(&req);
         assert_eq!(bytes.len(), 90 + 2 * 5);
@@ -353,7 +353,7 @@ fn native_read_of_45_registers_is_split_63_plus_27() {
 
 #[test]
 fn corrupted_request_gets_nack_crc_error() {
-    let mut b = Bench::frozen(PackProfile::LiFePO4_16S);
+    let mut b = Bench::frozen(PackModel::LiFePO4_16S);
     let mut req = Request::ReadSoc.to_bytes().unwrap().to_vec();
     req[3] ^= 0x40;
     assert_eq!(b.xfer(&req), nack(0x1A, 0x01));
@@ -380,7 +380,7 @@ fn corrupted_request_gets_nack_crc_error() {
 
 #[test]
 fn command_errors_get_nack_0x00_and_change_nothing() {
-    let mut b = Bench::frozen(PackProfile::LiFePO4_16S);
+    let mut b = Bench::frozen(PackModel::LiFePO4_16S);
     let before = *b.sim.registers();
 
     // Unknown command bytes (with or without a plausible CRC after them).
@@ -463,7 +463,7 @@ fn w_of(_command: u8) -> Request {
 
 #[test]
 fn garbage_and_partial_requests_are_skipped() {
-    let mut b = Bench::frozen(PackProfile::LiFePO4_16S);
+    let mut b = Bench::frozen(PackModel::LiFePO4_16S);
     let req = Request::ReadSoc.to_bytes().unwrap();
     let mut noisy = b"\x00\x55junk\r\n".to_vec();
     noisy.extend_from_slice(&req);
@@ -487,7 +487,7 @@ fn garbage_and_partial_requests_are_skipped() {
 #[test]
 fn sleeping_bms_answers_only_the_second_request() {
     let config = SimConfig::default().with_start_asleep(true);
-    let mut b = Bench::new(PackProfile::LiIon_14S, config, 5);
+    let mut b = Bench::new(PackModel::LiIon_14S, config, 5);
     assert!(b.sim.is_asleep());
     assert!(b.ask(&Request::ReadSoc).is_empty());
     assert!(!b.sim.is_asleep());
@@ -503,7 +503,7 @@ fn sleeping_bms_answers_only_the_second_request() {
 #[test]
 fn bms_falls_asleep_after_idle_time_and_stays_awake_with_traffic() {
     let config = SimConfig::default().with_sleep_after_us(Some(2_000_000));
-    let mut b = Bench::new(PackProfile::LiFePO4_16S, config, 6);
+    let mut b = Bench::new(PackModel::LiFePO4_16S, config, 6);
     for _ in 0..10 {
         assert!(matches!(b.one(&Request::ReadSoc), Response::Soc(_)));
         b.wait(1_500_000); // less than the sleep delay: stays awake
@@ -518,7 +518,7 @@ fn bms_falls_asleep_after_idle_time_and_stays_awake_with_traffic() {
 
 #[test]
 fn soc_and_soh_settings_read_back_0xffff_and_take_effect() {
-    let mut b = Bench::frozen(PackProfile::LiIon_14S);
+    let mut b = Bench::frozen(PackModel::LiIon_14S);
     let w = Request::write_individual(&[(328, 25_000)]).unwrap();
     assert_eq!(b.one(&w), Response::Ack { command: 0x0D });
     let read = Request::read_registers(328, 1).unwrap();
@@ -552,7 +552,7 @@ fn soc_and_soh_settings_read_back_0xffff_and_take_effect() {
     assert_eq!(b.ask(&w), nack(0x0D, 0x00));
 
     // With live values the model continues from the SOC written.
-    let mut b = Bench::new(PackProfile::LiIon_14S, SimConfig::default(), 9);
+    let mut b = Bench::new(PackModel::LiIon_14S, SimConfig::default(), 9);
     let w = Request::write_individual(&[(328, 10_000)]).unwrap();
     assert_eq!(b.one(&w), Response::Ack { command: 0x0D });
     b.wait(10_000_000);
@@ -569,7 +569,7 @@ fn write_to_340_answers_then_reboots_and_logs_system_started() {
     .into_iter()
     .enumerate()
     {
-        let mut b = Bench::new(PackProfile::LiFePO4_16S, SimConfig::default(), 11);
+        let mut b = Bench::new(PackModel::LiFePO4_16S, SimConfig::default(), 11);
         b.wait(5_000_000);
         let reply = b.ask(&write);
         if i == 0 {
@@ -599,7 +599,7 @@ fn write_to_340_answers_then_reboots_and_logs_system_started() {
 
 #[test]
 fn reset_command_gets_no_ack_and_reboots() {
-    let mut b = Bench::new(PackProfile::LiIon_14S, SimConfig::default(), 12);
+    let mut b = Bench::new(PackModel::LiIon_14S, SimConfig::default(), 12);
     let events_before = b.sim.events().len();
     assert!(b
         .ask(&Request::ResetClear(ResetOption::ResetBms))
@@ -617,7 +617,7 @@ fn reset_command_gets_no_ack_and_reboots() {
 
 #[test]
 fn clear_events_and_statistics() {
-    let mut b = Bench::frozen(PackProfile::LiFePO4_16S);
+    let mut b = Bench::frozen(PackModel::LiFePO4_16S);
     assert_ne!(b.sim.register(111), 0);
     let clear = Request::ResetClear(ResetOption::ClearStatistics);
     assert_eq!(b.ask(&clear), ack(0x02));
@@ -657,7 +657,7 @@ fn newest_events_are_those_since_the_previous_request() {
     let config = SimConfig::default()
         .with_live(false)
         .with_newest_events_max(3);
-    let mut b = Bench::new(PackProfile::LiFePO4_16S, config, 13);
+    let mut b = Bench::new(PackModel::LiFePO4_16S, config, 13);
     let history = b.sim.events();
     let Response::Events(first) = b.one(&Request::ReadNewestEvents) else {
         panic!()
@@ -689,7 +689,7 @@ fn newest_events_are_those_since_the_previous_request() {
 
 #[test]
 fn event_log_registers_follow_rev_d_layout_and_0x12_splits() {
-    let mut b = Bench::frozen(PackProfile::LiFePO4_16S);
+    let mut b = Bench::frozen(PackModel::LiFePO4_16S);
     for _ in 0..60 {
         b.sim.inject_fault_event(EventId::ChargerConnected);
     }
@@ -716,7 +716,7 @@ fn event_log_registers_follow_rev_d_layout_and_0x12_splits() {
 
 #[test]
 fn profiles_lay_out_cells_as_real_units_and_sensor_sets_limits() {
-    let b = Bench::frozen(PackProfile::LiIon_14S);
+    let b = Bench::frozen(PackModel::LiIon_14S);
     let r = b.sim.registers();
     assert_eq!((r[0], r[1]), (0, 0));
     assert!(
@@ -728,7 +728,7 @@ fn profiles_lay_out_cells_as_real_units_and_sensor_sets_limits() {
         (r[53], r[307], r[315], r[316], r[43]),
         (14, 14, 4200, 3000, 0x8000)
     );
-    let b16 = Bench::frozen(PackProfile::LiFePO4_16S);
+    let b16 = Bench::frozen(PackModel::LiFePO4_16S);
     let r = b16.sim.registers();
     assert!(
         r[..16].iter().all(|&c| (32_500..33_800).contains(&c)),
@@ -749,7 +749,7 @@ fn profiles_lay_out_cells_as_real_units_and_sensor_sets_limits() {
         let config = SimConfig::default()
             .with_live(false)
             .with_current_sensor(sensor);
-        let mut b = Bench::new(PackProfile::LiFePO4_16S, config, 1);
+        let mut b = Bench::new(PackModel::LiFePO4_16S, config, 1);
         let Response::Settings { values, .. } =
             b.one(&Request::read_settings(SettingsOption::Max, 19).unwrap())
         else {
@@ -779,7 +779,7 @@ fn settings_write_settle_time_and_silence_are_honoured() {
     let config = SimConfig::default()
         .with_live(false)
         .with_settle_after_write_us(150_000);
-    let mut b = Bench::new(PackProfile::LiFePO4_16S, config, 1);
+    let mut b = Bench::new(PackModel::LiFePO4_16S, config, 1);
     let w = Request::write_individual(&[(300, 3600)]).unwrap();
     assert_eq!(b.ask(&w), ack(0x0D));
     assert!(b.ask(&Request::ReadSoc).is_empty(), "EEPROM busy");
@@ -838,7 +838,7 @@ fn walk(sim: &mut SimBms, until: u64) -> Vec<(u64, u8)> {
 
 #[test]
 fn ascii_broadcasts_come_at_the_interval_and_never_split_a_frame() {
-    let mut b = Bench::new(PackProfile::LiIon_14S, SimConfig::default(), 21);
+    let mut b = Bench::new(PackModel::LiIon_14S, SimConfig::default(), 21);
     // Read-modify-write of the low bytes: 343 = ASCII, 342 = 0x04 (1 s).
     let w = Request::write_individual(&[(343, 0x0001), (342, 0x0004)]).unwrap();
     assert_eq!(b.ask(&w), ack(0x0D));
@@ -916,7 +916,7 @@ fn ascii_broadcasts_come_at_the_interval_and_never_split_a_frame() {
 fn check_consistent(sim: &SimBms) {
     let r = sim.registers();
     let n = usize::from(r[53]);
-    let first = usize::from(sim.profile().first_cell_register());
+    let first = usize::from(sim.pack_model().first_cell_register());
     let cells = &r[first..first + n];
     assert!(r[..first].iter().all(|&c| c == 0));
     let sum: f64 = cells.iter().map(|&c| f64::from(c) / 10_000.0).sum();
@@ -938,7 +938,7 @@ fn check_consistent(sim: &SimBms) {
 
 #[test]
 fn live_values_move_and_stay_consistent() {
-    for profile in [PackProfile::LiFePO4_16S, PackProfile::LiIon_14S] {
+    for profile in [PackModel::LiFePO4_16S, PackModel::LiIon_14S] {
         let mut b = Bench::new(profile, SimConfig::default(), 31);
         check_consistent(&b.sim);
         let (soc0, life0, t0) = (u32_at(&b.sim, 46), u32_at(&b.sim, 32), b.sim.register(48));
@@ -978,8 +978,8 @@ fn live_values_move_and_stay_consistent() {
 #[test]
 fn balancing_bits_follow_the_early_balancing_threshold() {
     for (profile, all) in [
-        (PackProfile::LiFePO4_16S, 0xFFFF),
-        (PackProfile::LiIon_14S, 0x3FFF),
+        (PackModel::LiFePO4_16S, 0xFFFF),
+        (PackModel::LiIon_14S, 0x3FFF),
     ] {
         let mut b = Bench::new(profile, SimConfig::default(), 41);
         b.wait(2_000_000);
@@ -999,7 +999,7 @@ fn balancing_bits_follow_the_early_balancing_threshold() {
 
 #[test]
 fn reply_timing_matches_the_wire_and_next_output_at_is_a_lower_bound() {
-    let mut b = Bench::frozen(PackProfile::LiFePO4_16S);
+    let mut b = Bench::frozen(PackModel::LiFePO4_16S);
     let req = Request::read_registers(0, 40).unwrap().to_bytes().unwrap();
     for _ in 0..20 {
         let end = b.sim.host_send(b.now, &req);
@@ -1037,7 +1037,7 @@ const N: usize = 400;
 /// bytes received in its 300 ms window and the reply latency.
 fn run_faulty(faults: FaultConfig) -> (SimBms, Vec<Vec<u8>>, Vec<u64>) {
     let config = SimConfig::default().with_live(false).with_faults(faults);
-    let mut b = Bench::new(PackProfile::LiFePO4_16S, config, 77);
+    let mut b = Bench::new(PackModel::LiFePO4_16S, config, 77);
     let req = Request::ReadSoc.to_bytes().unwrap();
     let (mut windows, mut latencies) = (Vec::new(), Vec::new());
     for _ in 0..N {
@@ -1159,7 +1159,7 @@ fn scripted_session(seed: u64) -> Vec<(u64, Vec<u8>)> {
     let config = SimConfig::default()
         .with_faults(faults)
         .with_sleep_after_us(Some(3_000_000));
-    let mut b = Bench::new(PackProfile::LiFePO4_16S, config, seed);
+    let mut b = Bench::new(PackModel::LiFePO4_16S, config, seed);
     let script = [
         Request::read_registers(0, 56).unwrap(),
         Request::write_individual(&[(343, 1), (342, 3)]).unwrap(),
@@ -1201,7 +1201,7 @@ fn polled_session(poll_us: u64) -> Vec<u8> {
     let config = SimConfig::default()
         .with_faults(faults)
         .with_sleep_after_us(Some(2_500_000));
-    let mut sim = SimBms::new(PackProfile::LiIon_14S, config, 99);
+    let mut sim = SimBms::new(PackModel::LiIon_14S, config, 99);
     sim.set_register(343, 1);
     sim.set_register(342, 2);
     let reqs = [
@@ -1278,7 +1278,7 @@ fn random_input_never_panics() {
         delay_us: 50_000,
         ..FaultConfig::NONE
     };
-    for profile in [PackProfile::LiFePO4_16S, PackProfile::LiIon_14S] {
+    for profile in [PackModel::LiFePO4_16S, PackModel::LiIon_14S] {
         let config = SimConfig::default()
             .with_faults(faults)
             .with_sleep_after_us(Some(400_000))

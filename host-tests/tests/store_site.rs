@@ -12,7 +12,7 @@
 
 use embassy_futures::block_on;
 use esp_idf_part::PartitionTable;
-use host_tests::flash::RamFlash;
+use tinybms_desk::flash::RamFlash;
 use tinybms_firmware::config::site::{self, Opened};
 use tinybms_firmware::config::store::{Saved, SiteProblem, Source, StoreError};
 use tinybms_firmware::config::Config;
@@ -72,7 +72,7 @@ fn a_record_survives_a_restart_through_the_chips_lookup() {
         stream_period_ms: 2000,
         ..Config::default()
     };
-    record.ccl_cap_da = 500;
+    record.charge_current_cap_da = 500;
     let store = o.store.as_mut().unwrap();
     assert_eq!(block_on(store.save(&record)), Ok(Saved::Written));
     drop(o);

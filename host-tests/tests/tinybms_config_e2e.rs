@@ -260,22 +260,6 @@ fn a_corrupted_flash_file_gives_the_defaults_and_a_bridge_that_runs() {
 }
 
 #[test]
-fn wpa2_keys_are_the_ieee_802_11i_test_vectors() {
-    use host_tests::tool::config::wpa2_psk;
-    assert_eq!(
-        wpa2_psk("IEEE", "password").unwrap(),
-        "f42c6fc52df0ebef9ebb4b90b38a5f902e83fe1b135a70e23aed762e9710a12e"
-    );
-    assert_eq!(
-        wpa2_psk("ThisIsASSID", "ThisIsAPassword").unwrap(),
-        "0dc0d6eb90555ed6419756b9a15ec3e3209b63df707dd508d14581f8982721af"
-    );
-    assert!(wpa2_psk("IEEE", "short").is_err());
-    assert!(wpa2_psk("IEEE", &"x".repeat(64)).is_err());
-    assert!(wpa2_psk("", "password").is_err());
-}
-
-#[test]
 fn wifi_and_mqtt_store_the_key_and_the_broker_and_never_echo_a_secret() {
     let flash = tmp("config-flash-5.bin");
     let _ = std::fs::remove_file(&flash);
@@ -306,7 +290,7 @@ fn wifi_and_mqtt_store_the_key_and_the_broker_and_never_echo_a_secret() {
     for secret in [
         "correct horse",
         "s3cret-pass",
-        &host_tests::tool::config::wpa2_psk("Home Net", "correct horse battery").unwrap(),
+        &tinybms::config::wpa2_psk("Home Net", "correct horse battery").unwrap(),
     ] {
         assert!(!all.contains(secret), "a secret was shown: {secret}");
     }

@@ -16,21 +16,6 @@ use serde_json::Value;
 mod common;
 use common::*;
 
-#[test]
-fn missing_port_lists_the_ports() {
-    let o = tinybms(&["monitor", "/dev/tinybms-no-such-port"]);
-    assert_eq!(o.code, 3, "{o}");
-    assert!(
-        o.stderr
-            .contains("there is no serial port `/dev/tinybms-no-such-port`"),
-        "{o}"
-    );
-    assert!(
-        o.stderr.contains("Serial ports present") || o.stderr.contains("No serial port"),
-        "{o}"
-    );
-}
-
 /// A user without access to the port (here: `nobody`, through `setpriv`, on a
 /// pty slave that is `crw--w----` root:tty) gets the sentence on how to get it.
 /// Needs root to switch users; the CI machine runs as root.
@@ -50,7 +35,7 @@ fn can_run_as_nobody() -> bool {
 /// (one `nobody` may execute wherever the target directory is).
 fn version_as_nobody(copy: &str, port: &str) -> std::process::Output {
     let bin = tmp(copy);
-    std::fs::copy(env!("CARGO_BIN_EXE_tinybms"), &bin).unwrap();
+    std::fs::copy(tinybms_bin(), &bin).unwrap();
     Command::new("/usr/bin/setpriv")
         .args(["--reuid=65534", "--regid=65534", "--clear-groups"])
         .arg(&bin)
@@ -97,42 +82,6 @@ fn port_held_by_another_program_is_named() {
         stderr.contains(&format!("`{}` is in use by another program", sim.path)),
         "{stderr}"
     );
-}
-
-#[test]
-fn usage_errors_exit_2() {
-    let o = tinybms(&["frobnicate"]);
-    assert_eq!(o.code, 2, "{o}");
-    let o = tinybms(&["set", "/dev/null", "no_such_setting=1"]);
-    assert_eq!(o.code, 2, "{o}");
-    assert!(o.stderr.contains("no such setting"), "{o}");
-    let o = tinybms(&["--help"]);
-    assert_eq!(o.code, 0, "{o}");
-    assert!(o.stdout.contains("Record the raw UART exchange"), "{o}");
-    let o = tinybms(&["record", "--help"]);
-    assert_eq!(o.code, 0, "{o}");
-    assert!(o.stdout.contains("<PORT> <FILE.tbms>"), "{o}");
-}
-
-/// `set` naming one setting twice (by any of its names) is refused before
-/// anything is sent: the command object would keep one value, and the tool then
-/// waited for two outcomes and blamed the bridge ("no answer") after a write
-/// that went through.
-#[test]
-fn set_naming_one_setting_twice_is_a_usage_error() {
-    for args in [
-        [
-            "set",
-            "/dev/null",
-            "over_voltage_cutoff=3.6",
-            "over_voltage_cutoff=3.65",
-        ],
-        ["set", "/dev/null", "over_voltage_cutoff=3.6", "315=3.65"],
-    ] {
-        let o = tinybms(&args);
-        assert_eq!(o.code, 2, "{o}");
-        assert!(o.stderr.contains("twice"), "{o}");
-    }
 }
 
 #[test]

@@ -128,27 +128,6 @@ fn ctrl_c_ends_every_command_alike_and_a_question_at_once() {
     assert!(file.exists(), "the capture is kept");
 }
 
-/// Item 10: two styles of usage error (clap's `error: …` and the tool's own
-/// `tinybms: …` with another hint), and an errno's raw words for a file that
-/// is no serial port ("cannot open /dev/null: Not a typewriter").
-#[test]
-fn usage_errors_read_alike_and_a_non_port_is_named() {
-    let clap = tinybms(&["monitr", "/dev/null"]);
-    let own = tinybms(&["config", "/dev/null", "no_such_field=1"]);
-    for o in [&clap, &own] {
-        assert_eq!(o.code, 2, "{o}");
-        assert!(o.stderr.starts_with("error: "), "{o}");
-        assert!(
-            o.stderr.contains("For more information, try '--help'."),
-            "{o}"
-        );
-    }
-    let o = tinybms(&["version", "/dev/null"]);
-    assert_eq!(o.code, 3, "{o}");
-    assert!(o.stderr.contains("is not a serial port"), "{o}");
-    assert!(!o.stderr.contains("typewriter"), "{o}");
-}
-
 /// Item 8: refusals named registers and contradicted their own range
 /// ("above the BMS's charge over-current cutoff (318)); it takes 0.1 A to
 /// 750.0 A" for 70 A, the real limit 60 A never said); a float voltage above

@@ -3,7 +3,7 @@
 //! it knows about each write. Every test runs the firmware's bridge against the
 //! simulated TinyBMS with the ground-truth checks of `Harness::checked`.
 
-use host_tests::sim::{CurrentSensor, FaultConfig, PackProfile, SimBms, SimConfig};
+use host_tests::sim::{CurrentSensor, FaultConfig, PackModel, SimBms, SimConfig};
 use host_tests::virtual_time::Harness;
 use protocol_core::events::EventId;
 use protocol_core::registers;
@@ -19,7 +19,7 @@ use tinybms_firmware::{Command, Level, Report};
 const S: u64 = 1_000_000;
 const MIN: u64 = 60 * S;
 
-fn checked(profile: PackProfile, config: SimConfig, seed: u64) -> Harness {
+fn checked(profile: PackModel, config: SimConfig, seed: u64) -> Harness {
     Harness::checked(SimBms::new(profile, config, seed), Timing::default())
 }
 
@@ -78,7 +78,7 @@ fn forged_live_blocks_with_a_valid_crc_are_never_published() {
         ("shifted cell", Box::new(|r| r[5] = r[5].rotate_left(8))),
     ];
     for (name, edit) in forgeries {
-        let mut h = checked(PackProfile::LiFePO4_16S, SimConfig::default(), 21);
+        let mut h = checked(PackModel::LiFePO4_16S, SimConfig::default(), 21);
         h.run_until(3 * S);
         let before = h.published.len();
         assert!(before > 3, "{name}");
@@ -111,7 +111,7 @@ fn a_crc_collision_in_a_piece_is_never_published() {
     ];
     for (name, addr, edit) in forgeries {
         let mut h = checked(
-            PackProfile::LiFePO4_16S,
+            PackModel::LiFePO4_16S,
             SimConfig::default().with_faults(FaultConfig::all(0.05)),
             26,
         );
@@ -139,7 +139,7 @@ fn a_crc_collision_in_a_piece_is_never_published() {
 fn a_real_broken_sense_wire_is_published_flagged_once_confirmed() {
     // Cell 6 reads 0 V on every read: real, unusual. Each block fails the cell
     // check, the second read agrees: published, flagged, and said once at WARN.
-    let mut h = checked(PackProfile::LiFePO4_16S, SimConfig::default(), 22);
+    let mut h = checked(PackModel::LiFePO4_16S, SimConfig::default(), 22);
     h.run_until(3 * S);
     h.sim.pin_register(5, 0);
     h.run_until(20 * S);
@@ -160,7 +160,7 @@ fn a_real_broken_sense_wire_is_published_flagged_once_confirmed() {
 #[test]
 fn consistency_checks_name_what_failed() {
     use tinybms_firmware::bms::checks::{check_jump, check_live, Context};
-    let sim = SimBms::new(PackProfile::LiIon_14S, SimConfig::default(), 23);
+    let sim = SimBms::new(PackModel::LiIon_14S, SimConfig::default(), 23);
     let block = |edit: &dyn Fn(&mut [u16; 56])| {
         let mut regs = [0u16; 56];
         for (i, r) in regs.iter_mut().enumerate() {
@@ -252,7 +252,7 @@ fn new_fault_kinds_are_injected_and_counted() {
         ..FaultConfig::NONE
     };
     let mut h = checked(
-        PackProfile::LiFePO4_16S,
+        PackModel::LiFePO4_16S,
         SimConfig::default().with_faults(faults),
         24,
     );
@@ -279,7 +279,7 @@ fn a_noisy_line_never_goes_offline() {
     // 1 h at 5 % of every fault kind: the BMS is awake and wired, so the link
     // must never call it offline (today: 14-31 times per 6 h).
     let mut h = checked(
-        PackProfile::LiFePO4_16S,
+        PackModel::LiFePO4_16S,
         SimConfig::default().with_faults(FaultConfig::all(0.05)),
         25,
     );
@@ -366,7 +366,7 @@ fn a_corrupt_reply_then_silence_does_not_count_towards_offline() {
 
 fn longest_gap(rate: f64, minutes: u64, seed: u64) -> (Harness, u64) {
     let mut h = checked(
-        PackProfile::LiFePO4_16S,
+        PackModel::LiFePO4_16S,
         SimConfig::default().with_faults(FaultConfig::all(rate)),
         seed,
     );
@@ -401,7 +401,7 @@ fn at_10_percent_the_sync_completes_and_gaps_stay_under_30_s() {
 #[test]
 fn at_20_percent_the_line_quality_is_stated_not_flooded() {
     let mut h = checked(
-        PackProfile::LiFePO4_16S,
+        PackModel::LiFePO4_16S,
         SimConfig::default().with_faults(FaultConfig::all(0.20)),
         28,
     );
@@ -416,7 +416,7 @@ fn at_20_percent_the_line_quality_is_stated_not_flooded() {
 
 #[test]
 fn a_clean_line_reads_the_live_block_in_one_request() {
-    let mut h = checked(PackProfile::LiFePO4_16S, SimConfig::default(), 29);
+    let mut h = checked(PackModel::LiFePO4_16S, SimConfig::default(), 29);
     h.run_until(10 * S);
     genuine(&h);
     assert_eq!(h.bridge().telemetry().live.pieces, 1);
@@ -431,7 +431,7 @@ fn a_clean_line_reads_the_live_block_in_one_request() {
 
 fn events_soak(rate: f64, seed: u64) {
     let mut h = checked(
-        PackProfile::LiFePO4_16S,
+        PackModel::LiFePO4_16S,
         SimConfig::default().with_faults(FaultConfig::all(rate)),
         seed,
     );
@@ -470,7 +470,7 @@ fn every_event_is_reported_exactly_once_at_5_percent() {
 
 #[test]
 fn an_empty_log_at_start_up_is_history_once_and_later_faults_warn() {
-    let mut h = checked(PackProfile::LiFePO4_16S, SimConfig::default(), 32);
+    let mut h = checked(PackModel::LiFePO4_16S, SimConfig::default(), 32);
     h.sim.clear_event_log();
     h.run_until(20 * S);
     assert_eq!(
@@ -512,7 +512,7 @@ fn outcomes(h: &Harness) -> Vec<(bool, WriteOutcome)> {
 
 #[test]
 fn an_applied_write_whose_replies_were_lost_is_unconfirmed_then_verified() {
-    let mut h = checked(PackProfile::LiFePO4_16S, SimConfig::default(), 33);
+    let mut h = checked(PackModel::LiFePO4_16S, SimConfig::default(), 33);
     h.run_until(2 * S);
     // The write is applied but every echo is lost (so it is re-sent only while
     // nothing came back); every read-back is lost too.
@@ -543,7 +543,7 @@ fn a_lost_write_with_lost_read_backs_is_unconfirmed_then_failed() {
     // Nothing reaches the BMS and no read-back answers: "unconfirmed"; the
     // settings read after the group shows the old value: the follow-up says
     // "failed" (not applied) — never "verified".
-    let mut h = checked(PackProfile::LiFePO4_16S, SimConfig::default(), 41);
+    let mut h = checked(PackModel::LiFePO4_16S, SimConfig::default(), 41);
     h.run_until(2 * S);
     let old = h.sim.register(315);
     h.sim.drop_next_requests(0x10, 10);
@@ -570,7 +570,7 @@ fn a_lost_write_with_lost_read_backs_is_unconfirmed_then_failed() {
 
 #[test]
 fn a_lost_write_whose_read_back_shows_the_old_value_is_failed() {
-    let mut h = checked(PackProfile::LiFePO4_16S, SimConfig::default(), 34);
+    let mut h = checked(PackModel::LiFePO4_16S, SimConfig::default(), 34);
     h.run_until(2 * S);
     let old = h.sim.register(315);
     h.sim.drop_next_requests(0x10, 10);
@@ -589,7 +589,7 @@ fn a_lost_write_whose_read_back_shows_the_old_value_is_failed() {
 #[test]
 fn at_5_percent_no_write_is_reported_failed_that_was_applied() {
     let mut h = checked(
-        PackProfile::LiFePO4_16S,
+        PackModel::LiFePO4_16S,
         SimConfig::default().with_faults(FaultConfig::all(0.05)),
         35,
     );
@@ -621,7 +621,7 @@ fn at_5_percent_no_write_is_reported_failed_that_was_applied() {
 #[test]
 fn counters_near_the_wrap_point_do_not_panic() {
     let mut h = checked(
-        PackProfile::LiFePO4_16S,
+        PackModel::LiFePO4_16S,
         SimConfig::default().with_faults(FaultConfig::all(0.05)),
         36,
     );
@@ -653,7 +653,7 @@ fn counters_near_the_wrap_point_do_not_panic() {
 
 #[test]
 fn snapshot_log_period_0_logs_every_snapshot_without_catching_up() {
-    let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 37);
+    let sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 37);
     let config = Timing {
         snapshot_log_period_us: 0,
         ..Timing::default()
@@ -685,7 +685,7 @@ fn the_snapshot_log_grid_is_computed_not_walked() {
 
 #[test]
 fn snapshot_lines_keep_their_grid_after_a_long_silence() {
-    let mut h = checked(PackProfile::LiFePO4_16S, SimConfig::default(), 38);
+    let mut h = checked(PackModel::LiFePO4_16S, SimConfig::default(), 38);
     h.run_until(30 * S);
     h.sim.set_silent_until(h.now + 3600 * S);
     h.run_until(3600 * S + 120 * S);
@@ -709,7 +709,7 @@ fn a_sensor_dependent_setting_follows_the_bms_limits() {
     // An external sensor that allows 900 A on 317: Rev D's 750 A cap must not
     // refuse it when the BMS says so; above the BMS's own max is refused.
     let config = SimConfig::default().with_current_sensor(CurrentSensor::External);
-    let mut h = checked(PackProfile::LiFePO4_16S, config, 39);
+    let mut h = checked(PackModel::LiFePO4_16S, config, 39);
     h.sim.override_limits(317, 1, 1000);
     h.run_until(3 * S);
     h.bridge_mut()
@@ -728,7 +728,7 @@ fn a_sensor_dependent_setting_follows_the_bms_limits() {
 
 #[test]
 fn register_337_accepts_0x0a() {
-    let mut h = checked(PackProfile::LiFePO4_16S, SimConfig::default(), 40);
+    let mut h = checked(PackModel::LiFePO4_16S, SimConfig::default(), 40);
     h.run_until(3 * S);
     h.bridge_mut()
         .submit(group(SettingId::PrechargePin, 0x0A))
@@ -828,7 +828,7 @@ proptest::proptest! {
         assembled in proptest::prelude::any::<bool>(),
     ) {
         use tinybms_firmware::bms::checks::{check_live, Context};
-        let sim = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 5);
+        let sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 5);
         let mut regs = [0u16; 56];
         for (i, r) in regs.iter_mut().enumerate() {
             *r = sim.register(i as u16);

@@ -379,25 +379,25 @@ fields! {
         pack_node: u8 = i.node,
         "Packs in parallel, one bridge each, on one CAN bus: this bridge's number (1 = the primary, which speaks to the inverter); alone = this pack is the whole battery.";
     AbsorptionVoltage = 10 since 1, "absorption_voltage", "mV", Charge, Now, num_or(1000, 4500, 0, "bms"),
-        absorption_mv: u16 = c.absorption_mv.unwrap_or(0),
+        absorption_voltage_mv: u16 = c.absorption_voltage_mv.unwrap_or(0),
         "Charge target per cell; bms = the BMS's own fully charged voltage setting.";
     AbsorptionMargin = 11 since 1, "absorption_margin", "mV", Charge, Now, num(20, 500, 0),
         absorption_margin_mv: u16 = c.absorption_margin_mv,
         "The charge target stays at least this far below the BMS's over-voltage cutoff.";
     FloatVoltage = 12 since 1, "float_voltage", "mV", Charge, Now, num_or(1000, 4500, 0, "auto"),
-        float_mv: u16 = c.float_mv.unwrap_or(0),
+        float_voltage_mv: u16 = c.float_voltage_mv.unwrap_or(0),
         "Float target per cell after a full charge; auto = 15/16 of the charge target.";
     CeilingMargin = 13 since 1, "ceiling_margin", "mV", Charge, Now, num(20, 500, 0),
-        ceiling_margin_mv: u16 = c.ov_margin_mv,
+        ceiling_margin_mv: u16 = c.ceiling_margin_mv,
         "No cell is charged closer than this to the over-voltage cutoff (the charge limit is 0 there).";
     DischargeMargin = 14 since 1, "discharge_margin", "mV", Charge, Now, num(0, 1000, 0),
-        discharge_margin_mv: u16 = c.uv_margin_mv,
+        discharge_margin_mv: u16 = c.discharge_margin_mv,
         "Discharge stops this far above the BMS's under-voltage cutoff.";
     ChargeTaper = 15 since 1, "charge_taper", "mV", Charge, Now, num(10, 1000, 0),
-        charge_taper_mv: u16 = c.ccl_taper_mv,
+        charge_taper_mv: u16 = c.charge_taper_mv,
         "The charge limit falls from full to 0 over this window below the ceiling.";
     DischargeTaper = 16 since 1, "discharge_taper", "mV", Charge, Now, num(10, 1000, 0),
-        discharge_taper_mv: u16 = c.dcl_taper_mv,
+        discharge_taper_mv: u16 = c.discharge_taper_mv,
         "The discharge limit falls from full to 0 over this window above the discharge stop.";
     RunnerTolerance = 17 since 1, "runner_tolerance", "mV", Charge, Now, num(0, 200, 0),
         runner_tolerance_mv: u16 = c.runner_tolerance_mv,
@@ -412,19 +412,19 @@ fields! {
         rebulk_soc_pct: u8 = c.rebulk_soc_pct as u8,
         "Below this state of charge float ends and charging starts again.";
     ChargeCurrentCap = 21 since 1, "charge_current_cap", "A", Charge, Now, num_or(1, 7500, 1, "none"),
-        ccl_cap_da: u16 = c.ccl_cap_da.unwrap_or(0),
+        charge_current_cap_da: u16 = c.charge_current_cap_da.unwrap_or(0),
         "Most charge current ever asked for; none = the BMS's charge over-current cutoff (a cap above it is refused).";
     DischargeCurrentCap = 22 since 1, "discharge_current_cap", "A", Charge, Now, num_or(1, 7500, 1, "none"),
-        dcl_cap_da: u16 = c.dcl_cap_da.unwrap_or(0),
+        discharge_current_cap_da: u16 = c.discharge_current_cap_da.unwrap_or(0),
         "Most discharge current ever allowed; none = the BMS's discharge over-current cutoff (a cap above it is refused).";
     TemperatureMargin = 23 since 1, "temperature_margin", "°C", Charge, Now, num(1, 20, 0),
-        temperature_margin_c: u8 = c.temp_margin_c as u8,
+        temperature_margin_c: u8 = c.temperature_margin_c as u8,
         "Current limits are derated over this window inside each temperature cutoff.";
     LimitHold = 24 since 1, "limit_hold", "s", Charge, Now, num(0, 600, 0),
-        limit_hold_s: u16 = (c.hold_us / SECOND) as u16,
+        limit_hold_s: u16 = (c.limit_hold_us / SECOND) as u16,
         "After a limit was cut to 0 for a cause in the BMS's data (a fault, a cell at its cutoff, a temperature), how long before it may rise again (a lost link is no such cause).";
     RampRate = 25 since 1, "ramp_rate", "A/s", Charge, Now, num(1, 1000, 1),
-        ramp_da_per_s: u16 = c.ramp_da_per_s,
+        ramp_rate_da_per_s: u16 = c.ramp_rate_da_per_s,
         "How fast a current limit may rise.";
     CvlRaiseInterval = 26 since 1, "cvl_raise_interval", "s", Charge, Now, num(5, 600, 0),
         cvl_raise_interval_s: u16 = (c.cvl_raise_interval_us / SECOND) as u16,
@@ -563,7 +563,7 @@ impl Config {
     /// The rules between fields. A record that breaks one is never stored nor
     /// run with.
     pub fn validate(&self) -> Result<(), RuleError> {
-        if self.float_mv != 0 && self.absorption_mv != 0 && self.float_mv > self.absorption_mv {
+        if self.float_voltage_mv != 0 && self.absorption_voltage_mv != 0 && self.float_voltage_mv > self.absorption_voltage_mv {
             return Err(RuleError::between_fields(
                 FieldId::FloatVoltage,
                 "the float voltage is above the absorption voltage",
@@ -607,7 +607,7 @@ impl Config {
         };
         if let Some(e) = cap(
             FieldId::ChargeCurrentCap,
-            self.ccl_cap_da,
+            self.charge_current_cap_da,
             bms.charge_cutoff_a,
             "above the BMS's charge over-current cutoff, which it could never lower",
         ) {
@@ -615,7 +615,7 @@ impl Config {
         }
         if let Some(e) = cap(
             FieldId::DischargeCurrentCap,
-            self.dcl_cap_da,
+            self.discharge_current_cap_da,
             bms.discharge_cutoff_a,
             "above the BMS's discharge over-current cutoff, which it could never lower",
         ) {
@@ -624,8 +624,8 @@ impl Config {
         let top = bms.ov_cutoff_mv.saturating_sub(self.absorption_margin_mv);
         let allowed = Some((i32::from(bms.uv_cutoff_mv) + 1, i32::from(top)));
         for (field, v) in [
-            (FieldId::AbsorptionVoltage, self.absorption_mv),
-            (FieldId::FloatVoltage, self.float_mv),
+            (FieldId::AbsorptionVoltage, self.absorption_voltage_mv),
+            (FieldId::FloatVoltage, self.float_voltage_mv),
         ] {
             if v != 0 && v > top {
                 return Err(RuleError {
@@ -648,22 +648,22 @@ impl Config {
     /// Charge control's settings.
     pub fn charge(&self) -> ChargeConfig {
         ChargeConfig {
-            absorption_mv: opt(self.absorption_mv),
+            absorption_voltage_mv: opt(self.absorption_voltage_mv),
             absorption_margin_mv: self.absorption_margin_mv,
-            float_mv: opt(self.float_mv),
-            ov_margin_mv: self.ceiling_margin_mv,
-            uv_margin_mv: self.discharge_margin_mv,
-            ccl_taper_mv: self.charge_taper_mv,
-            dcl_taper_mv: self.discharge_taper_mv,
+            float_voltage_mv: opt(self.float_voltage_mv),
+            ceiling_margin_mv: self.ceiling_margin_mv,
+            discharge_margin_mv: self.discharge_margin_mv,
+            charge_taper_mv: self.charge_taper_mv,
+            discharge_taper_mv: self.discharge_taper_mv,
             runner_tolerance_mv: self.runner_tolerance_mv,
             tail_current_a: f32::from(self.tail_current_da) / 10.0,
             full_hold_us: Instant::from(self.full_hold_s) * SECOND,
             rebulk_soc_pct: f32::from(self.rebulk_soc_pct),
-            ccl_cap_da: opt(self.ccl_cap_da),
-            dcl_cap_da: opt(self.dcl_cap_da),
-            temp_margin_c: i16::from(self.temperature_margin_c),
-            hold_us: Instant::from(self.limit_hold_s) * SECOND,
-            ramp_da_per_s: self.ramp_da_per_s,
+            charge_current_cap_da: opt(self.charge_current_cap_da),
+            discharge_current_cap_da: opt(self.discharge_current_cap_da),
+            temperature_margin_c: i16::from(self.temperature_margin_c),
+            limit_hold_us: Instant::from(self.limit_hold_s) * SECOND,
+            ramp_rate_da_per_s: self.ramp_rate_da_per_s,
             cvl_raise_interval_us: Instant::from(self.cvl_raise_interval_s) * SECOND,
             warn_margin_mv: self.warning_margin_mv,
             warn_current_pct: self.warning_current_pct,

@@ -681,16 +681,16 @@ fn effective(
     let (absorption, float) =
         crate::inverter::control::ChargeControl::new(c.charge()).targets_mv(b);
     match id {
-        FieldId::AbsorptionVoltage if c.absorption_mv == 0 => {
+        FieldId::AbsorptionVoltage if c.absorption_voltage_mv == 0 => {
             out.uint(u64::from(absorption)).push(" mV");
         }
-        FieldId::FloatVoltage if c.float_mv == 0 => {
+        FieldId::FloatVoltage if c.float_voltage_mv == 0 => {
             out.uint(u64::from(float)).push(" mV");
         }
-        FieldId::ChargeCurrentCap if c.ccl_cap_da == 0 => {
+        FieldId::ChargeCurrentCap if c.charge_current_cap_da == 0 => {
             out.uint(u64::from(b.charge_cutoff_a)).push(".0 A");
         }
-        FieldId::DischargeCurrentCap if c.dcl_cap_da == 0 => {
+        FieldId::DischargeCurrentCap if c.discharge_current_cap_da == 0 => {
             out.uint(u64::from(b.discharge_cutoff_a)).push(".0 A");
         }
         _ => return false,

@@ -9,7 +9,7 @@
 //!   "fully charged voltage" (300), kept [`ChargeConfig::absorption_margin_mv`]
 //!   below the over-voltage cutoff (315); the float target is configurable
 //!   (default 15/16 of absorption). No cell is ever pushed above the *ceiling*,
-//!   315 − [`ChargeConfig::ov_margin_mv`].
+//!   315 − [`ChargeConfig::ceiling_margin_mv`].
 //! * **Absorption → float** once the highest cell is at the target and the current
 //!   has tapered below [`ChargeConfig::tail_current_a`] for
 //!   [`ChargeConfig::full_hold_us`]; back to absorption below
@@ -23,18 +23,18 @@
 //! * **CCL** from the charge over-current cutoff (318), capped by configuration;
 //!   **DCL** from 317. Never from the statistics registers 102/103 (peaks seen).
 //! * **Tapers:** CCL goes linearly to 0 as the highest cell climbs through the
-//!   [`ChargeConfig::ccl_taper_mv`] window below the ceiling (so a cell at the
+//!   [`ChargeConfig::charge_taper_mv`] window below the ceiling (so a cell at the
 //!   ceiling gets no current at all); DCL to 0 as the lowest cell falls through
-//!   [`ChargeConfig::dcl_taper_mv`] above 316 + [`ChargeConfig::uv_margin_mv`].
+//!   [`ChargeConfig::discharge_taper_mv`] above 316 + [`ChargeConfig::discharge_margin_mv`].
 //! * **Temperature:** no charge at or below the low-temperature charge cutoff
 //!   (320) nor at or above over-heat (319), linear in between over
-//!   [`ChargeConfig::temp_margin_c`]; DCL derated the same way near over-heat.
+//!   [`ChargeConfig::temperature_margin_c`]; DCL derated the same way near over-heat.
 //! * **Faults:** BMS status "fault" → CCL 0 and DCL 0 (the BMS has opened its
 //!   switches: nothing to ask of the inverter); a charge-side fault event (over-
 //!   voltage, charge over-current, low temperature) → CCL 0 until it recovers.
 //! * **Hold and ramp:** after a cut (a limit forced to 0: fault, temperature,
-//!   a cell at the ceiling), the limit comes back only [`ChargeConfig::hold_us`]
-//!   after the cause ended, and then rises at most [`ChargeConfig::ramp_da_per_s`];
+//!   a cell at the ceiling), the limit comes back only [`ChargeConfig::limit_hold_us`]
+//!   after the cause ended, and then rises at most [`ChargeConfig::ramp_rate_da_per_s`];
 //!   lowering is always immediate. A loss of the BMS's data is no such cause:
 //!   when fresh data from a healthy battery is back, the discharge limit is
 //!   back at once and the charge limit ramps from 0 without the hold
@@ -55,21 +55,21 @@ pub struct ChargeConfig {
     /// Absorption target per cell, mV; `None` = the BMS's "fully charged
     /// voltage" (300). Always kept [`ChargeConfig::absorption_margin_mv`] below
     /// 315.
-    pub absorption_mv: Option<u16>,
+    pub absorption_voltage_mv: Option<u16>,
     /// How far below the over-voltage cutoff (315) the absorption target stays
     /// at least, mV.
     pub absorption_margin_mv: u16,
     /// Float target per cell, mV; `None` = 15/16 of the absorption target.
-    pub float_mv: Option<u16>,
+    pub float_voltage_mv: Option<u16>,
     /// The ceiling: how far below the over-voltage cutoff (315) the highest cell
     /// is always kept (CCL is 0 there), mV.
-    pub ov_margin_mv: u16,
+    pub ceiling_margin_mv: u16,
     /// How far above the under-voltage cutoff (316) discharge stops, mV.
-    pub uv_margin_mv: u16,
+    pub discharge_margin_mv: u16,
     /// CCL goes from full to 0 over this window below (315 − margin), mV.
-    pub ccl_taper_mv: u16,
+    pub charge_taper_mv: u16,
     /// DCL goes from full to 0 over this window above (316 + margin), mV.
-    pub dcl_taper_mv: u16,
+    pub discharge_taper_mv: u16,
     /// The highest cell may sit this far above the target before CVL is lowered
     /// for it (the ordinary spread of a balanced pack), mV.
     pub runner_tolerance_mv: u16,
@@ -80,15 +80,15 @@ pub struct ChargeConfig {
     /// Below this SOC the float phase ends, %.
     pub rebulk_soc_pct: f32,
     /// Cap on CCL, 0.1 A (`None` = 318 alone).
-    pub ccl_cap_da: Option<u16>,
+    pub charge_current_cap_da: Option<u16>,
     /// Cap on DCL, 0.1 A (`None` = 317 alone).
-    pub dcl_cap_da: Option<u16>,
+    pub discharge_current_cap_da: Option<u16>,
     /// Temperature derating window inside each cutoff, °C.
-    pub temp_margin_c: i16,
+    pub temperature_margin_c: i16,
     /// After a limit was lowered, how long before it may rise again, µs.
-    pub hold_us: Instant,
+    pub limit_hold_us: Instant,
     /// How fast a limit may rise, 0.1 A per second.
-    pub ramp_da_per_s: u16,
+    pub ramp_rate_da_per_s: u16,
     /// CVL is raised at most this often, µs (lowering is immediate).
     pub cvl_raise_interval_us: Instant,
     /// Warnings start this far inside a voltage cutoff, mV.
@@ -100,22 +100,22 @@ pub struct ChargeConfig {
 impl Default for ChargeConfig {
     fn default() -> Self {
         Self {
-            absorption_mv: None,
+            absorption_voltage_mv: None,
             absorption_margin_mv: 100,
-            float_mv: None,
-            ov_margin_mv: 50,
-            uv_margin_mv: 100,
-            ccl_taper_mv: 100,
-            dcl_taper_mv: 200,
+            float_voltage_mv: None,
+            ceiling_margin_mv: 50,
+            discharge_margin_mv: 100,
+            charge_taper_mv: 100,
+            discharge_taper_mv: 200,
             runner_tolerance_mv: 10,
             tail_current_a: 5.0,
             full_hold_us: 120 * crate::SECOND,
             rebulk_soc_pct: 90.0,
-            ccl_cap_da: None,
-            dcl_cap_da: None,
-            temp_margin_c: 5,
-            hold_us: 30 * crate::SECOND,
-            ramp_da_per_s: 20,
+            charge_current_cap_da: None,
+            discharge_current_cap_da: None,
+            temperature_margin_c: 5,
+            limit_hold_us: 30 * crate::SECOND,
+            ramp_rate_da_per_s: 20,
             cvl_raise_interval_us: 20 * crate::SECOND,
             warn_margin_mv: 50,
             warn_current_pct: 90,
@@ -451,9 +451,9 @@ impl Ramp {
         } else if target > self.value_da {
             let held = self
                 .cut_at
-                .is_none_or(|t| now.saturating_sub(t) >= c.hold_us);
+                .is_none_or(|t| now.saturating_sub(t) >= c.limit_hold_us);
             if held {
-                let step = (u64::from(c.ramp_da_per_s) * dt_us / crate::SECOND).max(1);
+                let step = (u64::from(c.ramp_rate_da_per_s) * dt_us / crate::SECOND).max(1);
                 let step = step.min(u64::from(u16::MAX)) as u16;
                 self.value_da = self.value_da.saturating_add(step).min(target);
             }
@@ -549,18 +549,18 @@ impl ChargeControl {
             .saturating_sub(
                 self.config
                     .absorption_margin_mv
-                    .max(self.config.ov_margin_mv),
+                    .max(self.config.ceiling_margin_mv),
             )
             .max(s.uv_cutoff_mv);
         let absorption = self
             .config
-            .absorption_mv
+            .absorption_voltage_mv
             .unwrap_or(s.fully_charged_mv)
             .max(s.uv_cutoff_mv)
             .min(top);
         let float = self
             .config
-            .float_mv
+            .float_voltage_mv
             .unwrap_or(
                 (u32::from(absorption) * FLOAT_OF_ABSORPTION.0 / FLOAT_OF_ABSORPTION.1) as u16,
             )
@@ -747,7 +747,7 @@ struct Temperatures {
     cold: i32,
     /// The over-heat cutoff (319).
     hot: i32,
-    /// The derating window inside each cutoff ([`ChargeConfig::temp_margin_c`],
+    /// The derating window inside each cutoff ([`ChargeConfig::temperature_margin_c`],
     /// at least 1 °C).
     margin: i32,
 }
@@ -760,7 +760,7 @@ impl Temperatures {
             max: dc(p.max_temp_c),
             cold: i32::from(s.low_temp_charge_c) * DC_PER_C,
             hot: i32::from(s.overheat_c) * DC_PER_C,
-            margin: i32::from(c.temp_margin_c.max(1)) * DC_PER_C,
+            margin: i32::from(c.temperature_margin_c.max(1)) * DC_PER_C,
         }
     }
 }
@@ -789,15 +789,15 @@ fn current_targets(
     p: &PackState,
     t: Temperatures,
 ) -> (u16, u16) {
-    let ccl_max = capped_da(s.charge_cutoff_a, c.ccl_cap_da);
-    let dcl_max = capped_da(s.discharge_cutoff_a, c.dcl_cap_da);
+    let ccl_max = capped_da(s.charge_cutoff_a, c.charge_current_cap_da);
+    let dcl_max = capped_da(s.discharge_cutoff_a, c.discharge_current_cap_da);
     // Tapers by cell voltage.
-    let stop_mv = i32::from(s.ov_cutoff_mv) - i32::from(c.ov_margin_mv);
-    let ccl_v = falling_permille(i32::from(p.max_cell_mv), stop_mv, i32::from(c.ccl_taper_mv));
+    let stop_mv = i32::from(s.ov_cutoff_mv) - i32::from(c.ceiling_margin_mv);
+    let ccl_v = falling_permille(i32::from(p.max_cell_mv), stop_mv, i32::from(c.charge_taper_mv));
     let dcl_v = rising_permille(
         i32::from(p.min_cell_mv),
         discharge_stop_mv(c, s),
-        i32::from(c.dcl_taper_mv),
+        i32::from(c.discharge_taper_mv),
     );
     // Tapers by temperature.
     let ccl_cold = rising_permille(t.min, t.cold, t.margin);
@@ -818,9 +818,9 @@ fn current_targets(
     (ccl_target, dcl_target)
 }
 
-/// The cell voltage at which discharge stops: 316 + [`ChargeConfig::uv_margin_mv`], mV.
+/// The cell voltage at which discharge stops: 316 + [`ChargeConfig::discharge_margin_mv`], mV.
 fn discharge_stop_mv(c: &ChargeConfig, s: &PackSettings) -> i32 {
-    i32::from(s.uv_cutoff_mv) + i32::from(c.uv_margin_mv)
+    i32::from(s.uv_cutoff_mv) + i32::from(c.discharge_margin_mv)
 }
 
 /// The discharge voltage sent with the limits: cells × the discharge stop,

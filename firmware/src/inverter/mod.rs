@@ -172,7 +172,7 @@ pub enum InverterReport {
         /// The policy applied.
         policy: StaleMode,
         /// With [`StaleMode::Hold`], for how long, µs.
-        hold_us: Instant,
+        stale_hold_us: Instant,
     },
     /// Hold-charge-zero time is up: sending stopped.
     StaleHoldEnded,
@@ -725,7 +725,7 @@ impl Inverter {
         self.reports.push(InverterReport::Stale {
             age_ms: (age / crate::MS).min(u64::from(u32::MAX)) as u32,
             policy: self.config.stale_policy,
-            hold_us: self.config.stale_hold_us,
+            stale_hold_us: self.config.stale_hold_us,
         });
     }
 

@@ -8,13 +8,13 @@
 use std::io::{self, Read, Write};
 use std::process::ExitCode;
 
-use host_tests::capture::parse_capture_bytes;
 use host_tests::replay::replay;
+use tinybms_desk::capture::parse_capture_bytes;
 
 const USAGE: &str = "usage: replay FILE   (FILE = a .tbms capture, or - for standard input)";
 
 fn main() -> ExitCode {
-    host_tests::tool::end_quietly_on_a_closed_pipe();
+    tinybms_desk::end_quietly_on_a_closed_pipe();
     let args: Vec<String> = std::env::args().skip(1).collect();
     let path = match args.as_slice() {
         [a] if a == "-h" || a == "--help" => {

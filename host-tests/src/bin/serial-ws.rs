@@ -41,7 +41,7 @@ fn main() {
             "--listen" => listen = args.next().unwrap_or_else(|| usage()),
             "--max-time" => {
                 let v = args.next().unwrap_or_else(|| usage());
-                max = host_tests::real_time::parse_duration(&v).unwrap_or_else(|e| {
+                max = tinybms_desk::parse_duration(&v).unwrap_or_else(|e| {
                     eprintln!("serial-ws: --max-time {v}: {e}");
                     std::process::exit(2)
                 });

@@ -47,7 +47,7 @@ use tinybms_firmware::inverter::packs::Summary;
 
 use crate::closed_loop::{candump_line, frame_bits, InverterModel, STEP_US};
 use crate::sim::rng::Rng;
-use crate::sim::{PackProfile, SimBms, SimConfig};
+use crate::sim::{PackModel, SimBms, SimConfig};
 use crate::virtual_time::Harness;
 
 mod scenarios;
@@ -365,7 +365,7 @@ impl MultiLoop {
             .enumerate()
             .map(|(k, spec)| {
                 let mut sim = SimBms::new(
-                    PackProfile::LiFePO4_16S,
+                    PackModel::LiFePO4_16S,
                     SimConfig::default(),
                     seed + k as u64,
                 );
@@ -494,7 +494,7 @@ impl MultiLoop {
                 f.highest_discharge_a = f.highest_discharge_a.max(-i);
                 f.charged_ah += i.max(0.0) * dt_h;
                 f.discharged_ah += (-i).max(0.0) * dt_h;
-                let first = usize::from(PackProfile::LiFePO4_16S.first_cell_register());
+                let first = usize::from(PackModel::LiFePO4_16S.first_cell_register());
                 let regs = p.h.sim.registers();
                 let (mut lo, mut hi) = (u16::MAX, 0u16);
                 for r in regs.iter().skip(first).take(16) {

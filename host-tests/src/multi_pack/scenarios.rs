@@ -161,7 +161,7 @@ pub fn run_scenario_at(
 
 /// Everything a multi-pack run must hold to; one line per failure (empty: ok).
 /// `ceiling_margin_mv`: how far below its over-voltage cutoff every cell must
-/// stay (charge control's `ov_margin_mv`).
+/// stay (charge control's `ceiling_margin_mv`).
 pub fn problems(l: &MultiLoop, ceiling_margin_mv: u16) -> Vec<String> {
     let mut out = Vec::new();
     for p in &l.nodes {

@@ -266,7 +266,7 @@ impl SimBms {
     pub(super) fn cells(&self) -> heapless::Vec<u16, { protocol_core::registers::MAX_CELLS }> {
         let max = protocol_core::registers::MAX_CELLS;
         let n = usize::from(self.register(53)).min(max);
-        let first = usize::from(self.profile.first_cell_register()).min(max - n);
+        let first = usize::from(self.model.first_cell_register()).min(max - n);
         let mut cells = heapless::Vec::new();
         for &c in self.regs.iter().skip(first).take(n) {
             if cells.push(c).is_err() {

@@ -1,11 +1,11 @@
-//! Configuration of the simulated BMS: pack profile, current sensor, timing,
+//! Configuration of the simulated BMS: pack model, current sensor, timing,
 //! sleep, fault injection. Builder style (`SimConfig::default().with_..(..)`).
 
 /// Which pack the simulated BMS manages. Sets the cell count and layout, the
 /// chemistry (open-circuit voltage curve), the capacity and the settings values.
 #[allow(non_camel_case_types)] // the names say chemistry and series count, as on the label
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum PackProfile {
+pub enum PackModel {
     /// 16 LiFePO4 cells (~3.30 V), 280 Ah, cells in registers 0-15, both
     /// external temperature sensors connected.
     LiFePO4_16S,
@@ -15,7 +15,7 @@ pub enum PackProfile {
     LiIon_14S,
 }
 
-impl PackProfile {
+impl PackModel {
     /// Cells in series (register 53, setting 307).
     pub const fn cell_count(self) -> usize {
         match self {

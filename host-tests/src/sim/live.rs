@@ -1,4 +1,4 @@
-//! The live pack model: a slow current profile (discharge / idle / charge
+//! The live pack model: a slow current model (discharge / idle / charge
 //! phases), SOC integrated over the capacity, cell voltages from an
 //! open-circuit-voltage curve plus I·R, fixed per-cell offsets and noise,
 //! temperatures that drift and warm with current, balancing bits, statistics
@@ -6,7 +6,7 @@
 //! stream, so the values depend on the seed and the virtual time only (not on
 //! how often the caller polls, nor on the protocol traffic).
 
-use super::config::PackProfile;
+use super::config::PackModel;
 use super::rng::Rng;
 use protocol_core::events::EventId;
 
@@ -141,15 +141,10 @@ pub(crate) struct Live {
 }
 
 impl Live {
-    pub(crate) fn new(
-        profile: PackProfile,
-        mut rng: Rng,
-        capacity_ah: f64,
-        lifetime_s: u32,
-    ) -> Self {
-        let (curve, r_cell, soc, ambient) = match profile {
-            PackProfile::LiFePO4_16S => (OCV_LFP, 0.0003, 65.0, 24.0),
-            PackProfile::LiIon_14S => (OCV_NMC, 0.0015, 62.0, 22.0),
+    pub(crate) fn new(model: PackModel, mut rng: Rng, capacity_ah: f64, lifetime_s: u32) -> Self {
+        let (curve, r_cell, soc, ambient) = match model {
+            PackModel::LiFePO4_16S => (OCV_LFP, 0.0003, 65.0, 24.0),
+            PackModel::LiIon_14S => (OCV_NMC, 0.0015, 62.0, 22.0),
         };
         let mut offsets_v = [0.0; 16];
         for o in offsets_v.iter_mut() {
@@ -159,8 +154,8 @@ impl Live {
         let phase_left_s = rng.range_u64(900, 1800) as u32;
         let mut live = Self {
             curve,
-            cells: profile.cell_count(),
-            first_reg: usize::from(profile.first_cell_register()),
+            cells: model.cell_count(),
+            first_reg: usize::from(model.first_cell_register()),
             r_cell,
             soc,
             current: -amplitude,
@@ -173,7 +168,7 @@ impl Live {
             ambient,
             t_int: ambient + 3.0,
             t_ext1: ambient + 0.5,
-            ext2_connected: profile == PackProfile::LiFePO4_16S,
+            ext2_connected: model == PackModel::LiFePO4_16S,
             lifetime_s,
             rng,
             forced_current: None,
@@ -517,7 +512,7 @@ mod tests {
     #[test]
     fn a_charge_ends_with_charging_done_and_fully_charged() {
         let p = params();
-        let mut live = Live::new(PackProfile::LiIon_14S, Rng::new(3), 50.0, 1000);
+        let mut live = Live::new(PackModel::LiIon_14S, Rng::new(3), 50.0, 1000);
         live.set_soc(96.0);
         let mut events = Vec::new();
         live.start_phase(Phase::Charge, &p, &mut events);
@@ -548,7 +543,7 @@ mod tests {
     fn a_latched_fault_stops_the_current() {
         let mut p = params();
         p.fault = true;
-        let mut live = Live::new(PackProfile::LiIon_14S, Rng::new(4), 50.0, 1000);
+        let mut live = Live::new(PackModel::LiIon_14S, Rng::new(4), 50.0, 1000);
         let mut events = Vec::new();
         for _ in 0..60 {
             live.step(&p, &mut events);
@@ -565,7 +560,7 @@ mod tests {
                 capacity_ah,
                 ..params()
             };
-            let mut live = Live::new(PackProfile::LiFePO4_16S, Rng::new(5), 280.0, 1000);
+            let mut live = Live::new(PackModel::LiFePO4_16S, Rng::new(5), 280.0, 1000);
             live.set_soc(100.0);
             live.forced_current = Some(20.0);
             let v0 = live.open_circuit_v();

@@ -15,9 +15,9 @@
 //! ## What it models
 //!
 //! * **A register file** of 600 `u16` (0-599, Rev D chapter 3), initialised from
-//!   a [`PackProfile`]: cells, pack voltage/current as f32 and lifetime/SOC as u32
+//!   a [`PackModel`]: cells, pack voltage/current as f32 and lifetime/SOC as u32
 //!   with the low word at the lower address (HARDWARE-NOTES), temperatures
-//!   (external sensor 2 disconnected = -32768 on the 14S profile), status,
+//!   (external sensor 2 disconnected = -32768 on the 14S model), status,
 //!   balancing bits, statistics 100-117, the event log 200-297 (§3.3 layout),
 //!   settings 300-343, version 500-509 with a seeded serial number.
 //! * **Every command** of Rev D chapter 1, answered byte-exactly: 0x02, 0x03,
@@ -41,7 +41,7 @@
 //!   transmission); a reply starts 1-2 ms (seeded) after the last request byte
 //!   arrived, and never overlaps another transmission.
 //! * **Live values** that move with virtual time (see `live.rs`): a current
-//!   profile of discharge / idle / charge phases, SOC integrated over the
+//!   model of discharge / idle / charge phases, SOC integrated over the
 //!   capacity (register 306), cells from an OCV curve + I·R + per-cell offsets +
 //!   noise, registers 40/41 = min/max cell rounded to the mV, pack voltage = sum
 //!   of the cells, drifting temperatures, status from the current sign (0x91 /
@@ -52,7 +52,7 @@
 //!   bytes, truncated / duplicated / delayed replies, lost requests; counted by
 //!   kind in [`SimStats::faults`].
 //!
-//! Determinism: the same profile, config, seed and sequence of calls give the
+//! Determinism: the same model, config, seed and sequence of calls give the
 //! same bytes at the same times. The live model, the reply latencies and the
 //! faults draw from separate streams derived from the seed, so switching a fault
 //! on does not change the pack's values.
@@ -93,8 +93,8 @@
 //!   bytes checked (charger type 0-2, timeout 0-30 s). 312-313 are checked as
 //!   one u32 (1-100000) after the whole request is applied. 0x1D reports
 //!   reserved registers as 0 in the min / max / default tables.
-//! * **0x1C** returns register 53's count of cells starting at the profile's
-//!   first cell register (2 on the 14S profile).
+//! * **0x1C** returns register 53's count of cells starting at the model's
+//!   first cell register (2 on the 14S model).
 //! * **Unknown command byte**: NACK 0x00 right after `AA <cmd>`; the bytes that
 //!   follow are skipped as garbage until the next 0xAA. A frame with a bad CRC is
 //!   dropped whole (its length is known from the command) and answered NACK
@@ -119,10 +119,10 @@
 //!
 //! ## Example
 //! ```
-//! use host_tests::sim::{PackProfile, SimBms, SimConfig};
+//! use host_tests::sim::{PackModel, SimBms, SimConfig};
 //! use protocol_core::{Decoder, Request, Response};
 //!
-//! let mut bms = SimBms::new(PackProfile::LiIon_14S, SimConfig::default(), 42);
+//! let mut bms = SimBms::new(PackModel::LiIon_14S, SimConfig::default(), 42);
 //! let req = Request::ReadPackVoltage;
 //! let sent = bms.host_send(0, &req.to_bytes()?);
 //! let mut rx = Vec::new();
@@ -148,15 +148,15 @@ mod config;
 mod event_loop;
 mod events;
 mod live;
-mod profile;
 mod receive;
+mod register_file;
 pub(crate) mod rng;
 mod settings;
 mod stats;
 mod transmit;
 
-pub use config::{CurrentSensor, FaultConfig, PackProfile, SimConfig};
-pub use profile::REGISTER_COUNT;
+pub use config::{CurrentSensor, FaultConfig, PackModel, SimConfig};
+pub use register_file::REGISTER_COUNT;
 pub use stats::{FaultCounts, SimStats};
 
 use std::collections::VecDeque;
@@ -225,7 +225,7 @@ pub struct TrueRead {
 /// The simulated TinyBMS. See the [module documentation](self).
 #[derive(Debug, Clone)]
 pub struct SimBms {
-    profile: PackProfile,
+    model: PackModel,
     config: SimConfig,
     regs: [u16; REGISTER_COUNT],
     now: u64,
@@ -284,23 +284,27 @@ pub struct SimBms {
 }
 
 impl SimBms {
-    /// A BMS managing `profile`, configured by `config`; every random choice
+    /// A BMS managing `model`, configured by `config`; every random choice
     /// (serial number, live values, latencies, faults) derives from `seed`.
-    pub fn new(profile: PackProfile, config: SimConfig, seed: u64) -> Self {
+    pub fn new(model: PackModel, config: SimConfig, seed: u64) -> Self {
         let mut master = Rng::new(seed);
         let mut rng_serial = master.fork();
         let rng_live = master.fork();
         let rng_faults = master.fork();
         let rng_latency = master.fork();
-        let lifetime = profile::initial_lifetime_s(profile);
-        let mut regs =
-            profile::initial_registers(profile, config.current_sensor, lifetime, &mut rng_serial);
+        let lifetime = register_file::initial_lifetime_s(model);
+        let mut regs = register_file::initial_registers(
+            model,
+            config.current_sensor,
+            lifetime,
+            &mut rng_serial,
+        );
         let params = Params::from_registers(&regs, false);
-        let live = Live::new(profile, rng_live, params.capacity_ah, lifetime);
+        let live = Live::new(model, rng_live, params.capacity_ah, lifetime);
         live.publish(&mut regs, &params);
         let asleep = config.start_asleep;
         let mut sim = Self {
-            profile,
+            model,
             config,
             regs,
             now: 0,
@@ -343,7 +347,7 @@ impl SimBms {
             pinned: Vec::new(),
             limit_overrides: Vec::new(),
         };
-        for &(ago, id) in profile::HISTORY {
+        for &(ago, id) in register_file::HISTORY {
             sim.push_event(Event {
                 timestamp_s: lifetime.saturating_sub(ago) & Event::MAX_TIMESTAMP,
                 id,
@@ -562,7 +566,7 @@ impl SimBms {
     }
 
     /// Closed loop: the pack current is imposed by an inverter model from now on
-    /// (`None` gives it back to the built-in load/charge profile), A, positive =
+    /// (`None` gives it back to the built-in load/charge model), A, positive =
     /// charging. The BMS's switches still cut it while a fault is latched.
     pub fn set_external_current(&mut self, amps: Option<f64>) {
         self.live.forced_current = amps;
@@ -746,9 +750,9 @@ impl SimBms {
             .map(|&(_, lo, hi)| (lo, hi))
     }
 
-    /// The pack profile.
-    pub fn profile(&self) -> PackProfile {
-        self.profile
+    /// The model of the simulated pack.
+    pub fn pack_model(&self) -> PackModel {
+        self.model
     }
 
     /// The configuration.

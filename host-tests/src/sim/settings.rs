@@ -5,7 +5,7 @@
 //! (depends on the current sensor: 304, 305, 317, 318) the values below are this
 //! simulator's choice, documented on [`sensor_limits`].
 
-use super::config::{CurrentSensor, PackProfile};
+use super::config::{CurrentSensor, PackModel};
 
 /// How a settings register is checked on write.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -164,10 +164,10 @@ pub(crate) fn check(addr: u16, regs: &[u16], sensor: CurrentSensor) -> Result<()
     }
 }
 
-/// The settings values (300-343) of a profile before clamping to the sensor's
+/// The settings values (300-343) of a model before clamping to the sensor's
 /// limits. 323 and 328 read 0xFFFF as on the real unit (HARDWARE-NOTES).
-pub(crate) fn profile_values(profile: PackProfile) -> [(u16, u16); 39] {
-    let lfp = profile == PackProfile::LiFePO4_16S;
+pub(crate) fn model_values(model: PackModel) -> [(u16, u16); 39] {
+    let lfp = model == PackModel::LiFePO4_16S;
     let pick = |a: u16, b: u16| if lfp { a } else { b };
     [
         (300, pick(3650, 4150)),
@@ -176,7 +176,7 @@ pub(crate) fn profile_values(profile: PackProfile) -> [(u16, u16); 39] {
         (304, pick(5000, 1000)),
         (305, pick(120, 80)),
         (306, pick(28000, 5000)),
-        (307, profile.cell_count() as u16),
+        (307, model.cell_count() as u16),
         (308, pick(15, 20)),
         (310, 20),
         (311, 5),
@@ -212,7 +212,7 @@ pub(crate) fn profile_values(profile: PackProfile) -> [(u16, u16); 39] {
     ]
 }
 
-/// Clamps a profile value into the sensor's limits (sensor-dependent settings only).
+/// Clamps a model value into the sensor's limits (sensor-dependent settings only).
 pub(crate) fn clamp_to_sensor(addr: u16, v: u16, sensor: CurrentSensor) -> u16 {
     match sensor_limits(addr, sensor) {
         Some((min, max, _)) => v.clamp(min, max),
@@ -226,7 +226,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn defaults_and_profiles_pass_their_own_checks() {
+    fn defaults_and_models_pass_their_own_checks() {
         for sensor in [
             CurrentSensor::InternalResistor,
             CurrentSensor::InternalHall,
@@ -241,13 +241,13 @@ mod tests {
                     assert_eq!(check(a, &regs, sensor), Ok(()), "default {a}");
                 }
             }
-            for profile in [PackProfile::LiFePO4_16S, PackProfile::LiIon_14S] {
-                for (a, v) in profile_values(profile) {
+            for model in [PackModel::LiFePO4_16S, PackModel::LiIon_14S] {
+                for (a, v) in model_values(model) {
                     regs[a as usize] = clamp_to_sensor(a, v, sensor);
                 }
-                for (a, _) in profile_values(profile) {
+                for (a, _) in model_values(model) {
                     if a != 302 {
-                        assert_eq!(check(a, &regs, sensor), Ok(()), "{profile:?} {a}");
+                        assert_eq!(check(a, &regs, sensor), Ok(()), "{model:?} {a}");
                     }
                 }
             }

@@ -73,10 +73,55 @@ impl std::fmt::Display for Out {
     }
 }
 
-/// The `tinybms` binary under test: this build's, or `TINYBMS_BIN` (to show
-/// that a test fails on an older build).
+/// The `tinybms` binary under test: `TINYBMS_BIN` (to show that a test
+/// fails on an older build), or the one the workspace's `cargo test` builds
+/// beside `sim` (the tool is its own crate, `host-tests/tool`; its own tests
+/// make cargo build it). A missing binary, or one older than a source it is
+/// built from, fails the test with the command that makes it.
 pub fn tinybms_bin() -> String {
-    std::env::var("TINYBMS_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_tinybms").to_string())
+    if let Ok(bin) = std::env::var("TINYBMS_BIN") {
+        return bin;
+    }
+    let bin = std::path::Path::new(env!("CARGO_BIN_EXE_sim"))
+        .with_file_name(format!("tinybms{}", std::env::consts::EXE_SUFFIX));
+    let build = "cargo build -p tinybms (the workspace's `cargo test` builds it)";
+    let built = std::fs::metadata(&bin)
+        .and_then(|m| m.modified())
+        .unwrap_or_else(|e| panic!("{}: {e}: {build}", bin.display()));
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let sources = [
+        "tool/src",
+        "desk/src",
+        "rules/src",
+        "../firmware/src",
+        "../protocol-core/src",
+    ];
+    if let Some(newer) = sources
+        .iter()
+        .find_map(|d| newer_than(&root.join(d), built))
+    {
+        panic!(
+            "{} is older than {}: {build}",
+            bin.display(),
+            newer.display()
+        );
+    }
+    bin.display().to_string()
+}
+
+/// A file under `dir` modified after `t`, if any.
+fn newer_than(dir: &std::path::Path, t: std::time::SystemTime) -> Option<std::path::PathBuf> {
+    for e in std::fs::read_dir(dir).ok()?.flatten() {
+        let path = e.path();
+        if path.is_dir() {
+            if let Some(p) = newer_than(&path, t) {
+                return Some(p);
+            }
+        } else if e.metadata().and_then(|m| m.modified()).is_ok_and(|m| m > t) {
+            return Some(path);
+        }
+    }
+    None
 }
 
 /// Runs `tinybms args`, with `input` on stdin, killed after [`RUN_LIMIT`].

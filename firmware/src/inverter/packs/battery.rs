@@ -319,8 +319,8 @@ fn limit_of(
 }
 
 /// The battery's limits after the single pack's hold and ramp: they fall at
-/// once, rise at most `ramp_da_per_s`, and after a pack left (or a cut) a rise
-/// waits `hold_us`.
+/// once, rise at most `ramp_rate_da_per_s`, and after a pack left (or a cut) a rise
+/// waits `limit_hold_us`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct BatteryLimits {
     ccl: Ramp,

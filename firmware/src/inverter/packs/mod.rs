@@ -31,8 +31,8 @@
 //!   a moment ago.
 //! * Those limits then go through the single pack's hold and ramp
 //!   ([`super::control`]): they fall at once; they rise at most
-//!   `ramp_da_per_s`; when a pack leaves the sums or comes (back) into them,
-//!   a rise waits `hold_us` first (a pack that comes and goes without data
+//!   `ramp_rate_da_per_s`; when a pack leaves the sums or comes (back) into them,
+//!   a rise waits `limit_hold_us` first (a pack that comes and goes without data
 //!   never left them). They start once the bridge has listened for
 //!   [`LISTEN_US`] (it knows every pack then).
 //! * SOC and SOH weighted by capacity; capacity, current summed; voltage the

@@ -6,7 +6,7 @@ use clap::error::ErrorKind;
 use clap::{ArgGroup, ArgMatches, CommandFactory, FromArgMatches, Parser, ValueEnum};
 use host_tests::closed_loop::SCENARIOS;
 use host_tests::profile::{parse_assignment, parse_profile};
-use host_tests::sim::PackProfile;
+use host_tests::sim::PackModel;
 use host_tests::sim_wifi::SimNetwork;
 use protocol_core::settings::SettingId;
 use tinybms_firmware::inverter::{InverterConfig, Protocol, StaleMode};
@@ -227,10 +227,9 @@ pub(crate) enum StalePolicy {
 #[derive(Clone)]
 pub(crate) struct ProfileFile(Vec<(SettingId, i32)>);
 
-/// A duration in µs (the syntax of [`host_tests::real_time::parse_duration`]).
+/// A duration in µs (the syntax of [`tinybms_desk::parse_duration`]).
 pub(crate) fn duration_us(s: &str) -> Result<u64, String> {
-    host_tests::real_time::parse_duration(s)
-        .map(|d| u64::try_from(d.as_micros()).unwrap_or(u64::MAX))
+    tinybms_desk::parse_duration(s).map(|d| u64::try_from(d.as_micros()).unwrap_or(u64::MAX))
 }
 
 pub(crate) fn above_0(s: &str) -> Result<u64, String> {
@@ -323,7 +322,7 @@ pub(crate) struct Options {
     pub(crate) duration_us: u64,
     pub(crate) fault_rate: f64,
     pub(crate) profile: Vec<(SettingId, i32)>,
-    pub(crate) pack: PackProfile,
+    pub(crate) pack: PackModel,
     pub(crate) seeds: (u64, u64),
     pub(crate) asleep: bool,
     pub(crate) snapshot_every_us: u64,
@@ -442,8 +441,8 @@ impl Cli {
             fault_rate: self.fault_rate,
             profile: profile.into_iter().flat_map(|p| p.1).collect(),
             pack: match self.pack {
-                PackArg::Lifepo4_16s => PackProfile::LiFePO4_16S,
-                PackArg::Liion14s => PackProfile::LiIon_14S,
+                PackArg::Lifepo4_16s => PackModel::LiFePO4_16S,
+                PackArg::Liion14s => PackModel::LiIon_14S,
             },
             seeds,
             asleep: self.asleep,

@@ -289,7 +289,7 @@ fn print_link(h: &Harness) {
 }
 
 fn main() -> ExitCode {
-    host_tests::tool::end_quietly_on_a_closed_pipe();
+    tinybms_desk::end_quietly_on_a_closed_pipe();
     let o = parse_args();
     if let Some(n) = o.packs.filter(|_| o.mqtt.is_some() || o.bridge_pty) {
         return run_packs_live(&o, n);
@@ -503,9 +503,7 @@ fn run_packs_live(o: &Options, n: usize) -> ExitCode {
         .duration_given
         .then(|| std::time::Duration::from_micros(o.duration_us));
     let stop = std::sync::atomic::AtomicBool::new(false);
-    let host = side
-        .as_mut()
-        .map(|s| s as &mut dyn host_tests::real_time_station::HostSide);
+    let host = side.as_mut().map(|s| s as &mut dyn tinybms_desk::HostSide);
     match packs.run(duration, &stop, host) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -565,7 +563,7 @@ fn run_packs(o: &Options, protocol: Protocol, n: usize) -> ExitCode {
             return ExitCode::from(2);
         };
         print!("{}", multi_pack::table(&name, &l, end));
-        let problems = multi_pack::problems(&l, config.charge.ov_margin_mv);
+        let problems = multi_pack::problems(&l, config.charge.ceiling_margin_mv);
         for p in &problems {
             println!("  FAIL: {p}");
         }

@@ -158,8 +158,8 @@ fn anything_else_is_an_error_never_a_panic() {
 
 #[test]
 fn direct_mode_runs_the_station_against_a_bms() {
-    use host_tests::sim::{PackProfile, SimBms, SimConfig};
-    let mut bms = SimBms::new(PackProfile::LiFePO4_16S, SimConfig::default(), 3);
+    use host_tests::sim::{PackModel, SimBms, SimConfig};
+    let mut bms = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 3);
     assert_eq!(ask("direct_start", json!({"now_ms": 0.0})), json!({}));
     let mut now_ms = 0.0f64;
     let mut rx: Vec<u8> = Vec::new();

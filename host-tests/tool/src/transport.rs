@@ -4,7 +4,7 @@
 //!   --bridge-pty`) speaks the JSON Lines protocol itself.
 //! * [`super::direct::DirectLines`] — **direct**: a USB-UART adapter wired to
 //!   the TinyBMS; the firmware's bridge and host link run inside the tool
-//!   (`host_tests::real_time`), so everything above this layer is the same.
+//!   (`tinybms_desk::Driver`), so everything above this layer is the same.
 //!
 //! [`open_port`] opens the port (with a helpful sentence for each way that
 //! fails); [`probe`] sends `{"cmd":"hello"}` and reports what answers, from

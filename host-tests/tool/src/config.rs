@@ -590,3 +590,23 @@ pub fn ask_secret(prompt: &str) -> ToolResult<String> {
     };
     Ok(text)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::wpa2_psk;
+
+    #[test]
+    fn wpa2_keys_are_the_ieee_802_11i_test_vectors() {
+        assert_eq!(
+            wpa2_psk("IEEE", "password").unwrap(),
+            "f42c6fc52df0ebef9ebb4b90b38a5f902e83fe1b135a70e23aed762e9710a12e"
+        );
+        assert_eq!(
+            wpa2_psk("ThisIsASSID", "ThisIsAPassword").unwrap(),
+            "0dc0d6eb90555ed6419756b9a15ec3e3209b63df707dd508d14581f8982721af"
+        );
+        assert!(wpa2_psk("IEEE", "short").is_err());
+        assert!(wpa2_psk("IEEE", &"x".repeat(64)).is_err());
+        assert!(wpa2_psk("", "password").is_err());
+    }
+}

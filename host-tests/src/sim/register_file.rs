@@ -1,7 +1,7 @@
-//! Initial register file of each [`PackProfile`]: settings, statistics,
+//! Initial register file of each [`PackModel`]: settings, statistics,
 //! version block with a serial number, event history.
 
-use super::config::{CurrentSensor, PackProfile};
+use super::config::{CurrentSensor, PackModel};
 use super::rng::Rng;
 use super::settings;
 use protocol_core::events::EventId;
@@ -10,30 +10,30 @@ use protocol_core::events::EventId;
 pub const REGISTER_COUNT: usize = 600;
 
 /// BMS lifetime counter at start, s (registers 32-33; also the event clock).
-pub(crate) const fn initial_lifetime_s(profile: PackProfile) -> u32 {
-    match profile {
-        PackProfile::LiFePO4_16S => 3_877_000,
-        PackProfile::LiIon_14S => 9_876_543,
+pub(crate) const fn initial_lifetime_s(model: PackModel) -> u32 {
+    match model {
+        PackModel::LiFePO4_16S => 3_877_000,
+        PackModel::LiIon_14S => 9_876_543,
     }
 }
 
-/// Registers the live model does not own, for `profile`. The live model then
+/// Registers the live model does not own, for `model`. The live model then
 /// writes 0-55 on top.
 pub(crate) fn initial_registers(
-    profile: PackProfile,
+    model: PackModel,
     sensor: CurrentSensor,
     lifetime_s: u32,
     rng: &mut Rng,
 ) -> [u16; REGISTER_COUNT] {
     let mut r = [0u16; REGISTER_COUNT];
-    let lfp = profile == PackProfile::LiFePO4_16S;
+    let lfp = model == PackModel::LiFePO4_16S;
     let mut set = |a: u16, v: u16| {
         if let Some(x) = r.get_mut(usize::from(a)) {
             *x = v;
         }
     };
     // Settings (Rev D §3.4), clamped into the fitted sensor's limits.
-    for (a, v) in settings::profile_values(profile) {
+    for (a, v) in settings::model_values(model) {
         set(a, settings::clamp_to_sensor(a, v, sensor));
     }
     // SOH, 0.002 % (Rev D §3.1 register 45).
@@ -57,7 +57,7 @@ pub(crate) fn initial_registers(
     let cleared = lifetime_s.saturating_sub(2_000_000);
     set(116, cleared as u16);
     set(117, (cleared >> 16) as u16);
-    // Version (Rev D §3.5): HW 1.0, FW 20 / internal 58, bootloader 2, profile 5;
+    // Version (Rev D §3.5): HW 1.0, FW 20 / internal 58, bootloader 2, model 5;
     // 501 high byte: BPT (bit 0) = low power, BCS (bits 1-2) = the sensor.
     set(500, 0x0001);
     set(501, 0x14 | ((sensor.bcs() << 1) << 8));

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 
-use crate::real_time::parse_duration;
+use tinybms_desk::parse_duration;
 
 fn duration(s: &str) -> Result<Duration, String> {
     parse_duration(s)

@@ -3,10 +3,10 @@
 use serde_json::{json, Map, Value};
 use tinybms_firmware::host_link::schema::{Hello, HostLine, Read, StatisticsLine, Store};
 
-use crate::tool::cli::Conn;
-use crate::tool::client::Received;
-use crate::tool::picture::json_number;
-use crate::tool::{connect_ready, ToolResult};
+use crate::cli::Conn;
+use crate::client::Received;
+use crate::picture::json_number;
+use crate::{connect_ready, ToolResult};
 
 pub fn show_one(conn: &Conn, what: &str, json: bool) -> ToolResult<()> {
     let mut c = connect_ready(conn)?;
@@ -259,7 +259,7 @@ fn store_text(v: &Store<Read>) -> String {
 pub fn version(conn: &Conn, json: bool) -> ToolResult<()> {
     let mut c = connect_ready(conn)?;
     let got = c.get_one_read("version", conn.timeout)?;
-    let bridge = (c.mode == crate::tool::transport::Mode::Bridge).then(|| bridge_of(&c.hello));
+    let bridge = (c.mode == crate::transport::Mode::Bridge).then(|| bridge_of(&c.hello));
     if json {
         let mut v = got.raw_without_req();
         if let (Some(m), Some(b)) = (v.as_object_mut(), bridge) {

@@ -3,8 +3,8 @@
 use serde_json::json;
 use tinybms_firmware::host_link::schema::HostLine;
 
-use crate::tool::cli::Conn;
-use crate::tool::{connect_ready, monitor, ToolResult};
+use crate::cli::Conn;
+use crate::{connect_ready, monitor, ToolResult};
 
 /// Runs `tinybms events`.
 pub fn run(conn: Conn, json: bool) -> ToolResult<()> {

@@ -1,6 +1,6 @@
 //! `tinybms ports`: The serial ports there are.
 
-use crate::tool::{transport, ToolResult};
+use crate::{transport, ToolResult};
 
 /// Runs `tinybms ports`.
 pub fn run() -> ToolResult<()> {

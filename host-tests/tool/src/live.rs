@@ -664,7 +664,7 @@ mod tests {
     use ratatui::Terminal;
     use serde_json::{json, Value};
 
-    use crate::tool::client::fixtures::{line, telemetry_line as decoded};
+    use crate::client::fixtures::{line, telemetry_line as decoded};
 
     fn screen(s: &LiveState, now: Instant) -> String {
         let mut term = Terminal::new(TestBackend::new(100, 40)).unwrap();

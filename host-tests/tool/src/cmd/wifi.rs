@@ -1,7 +1,7 @@
 //! `tinybms wifi`: The Wi-Fi network: its name and the WPA2 key derived from the passphrase.
 
-use crate::tool::cli::Conn;
-use crate::tool::{config, connect, ToolError, ToolResult};
+use crate::cli::Conn;
+use crate::{config, connect, ToolError, ToolResult};
 
 /// Runs `tinybms wifi`.
 pub fn run(conn: Conn, ssid: String) -> ToolResult<()> {

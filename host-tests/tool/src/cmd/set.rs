@@ -2,11 +2,9 @@
 
 use protocol_core::settings::{ChemistryCheck, SettingId};
 
-use crate::profile::snake_name;
-use crate::tool::cli::Conn;
-use crate::tool::{
-    confirm_restart, connect_ready, settings, write_settings, ToolError, ToolResult,
-};
+use crate::cli::Conn;
+use crate::{confirm_restart, connect_ready, settings, write_settings, ToolError, ToolResult};
+use tinybms_rules::profile::snake_name;
 
 /// Runs `tinybms set`.
 pub fn run(

@@ -4,9 +4,9 @@ use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::time::Duration;
 
-use crate::tool::cli::{Conn, FormatArg};
-use crate::tool::monitor::{self, LogFormat, MonitorOptions, View};
-use crate::tool::{connect, ToolError, ToolResult};
+use crate::cli::{Conn, FormatArg};
+use crate::monitor::{self, LogFormat, MonitorOptions, View};
+use crate::{connect, ToolError, ToolResult};
 
 /// Runs `tinybms monitor`.
 #[allow(clippy::too_many_arguments)]

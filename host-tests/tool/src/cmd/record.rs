@@ -6,12 +6,12 @@ use std::time::{Duration, Instant};
 use serde_json::json;
 use tinybms_firmware::host_link::schema::{HostLine, Raw, Read};
 
-use crate::capture::{parse_hex, CaptureWriter};
-use crate::tool::cli::Conn;
-use crate::tool::client::{self, Client};
-use crate::tool::transport::Mode;
-use crate::tool::transport::SerialLines;
-use crate::tool::{choice, direct, interrupted, monitor, open_and_probe, ToolError, ToolResult};
+use crate::cli::Conn;
+use crate::client::{self, Client};
+use crate::transport::Mode;
+use crate::transport::SerialLines;
+use crate::{choice, direct, interrupted, monitor, open_and_probe, ToolError, ToolResult};
+use tinybms_desk::capture::{parse_hex, CaptureWriter};
 
 /// A `raw` line's bytes went to the BMS (else they came from it).
 fn is_tx(r: &Raw<Read>) -> bool {
@@ -104,7 +104,7 @@ pub fn record(conn: &Conn, file: &Path, duration: Duration) -> ToolResult<()> {
     // The capture is kept and said; Ctrl-C ends the command as it ends
     // every other (status 130).
     if interrupted() {
-        return Err(crate::tool::interrupted_error());
+        return Err(crate::interrupted_error());
     }
     Ok(())
 }

@@ -1,7 +1,7 @@
 //! `tinybms`, the desktop tool: talks to a TinyBMS through the ESP32 bridge's
 //! USB port, or directly over a USB-UART adapter (then the firmware's own bridge
 //! and host link run inside the tool, so both ways speak the same protocol,
-//! firmware/src/host_link/PROTOCOL.md). `src/bin/tinybms.rs` only calls [`main`].
+//! firmware/src/host_link/PROTOCOL.md). `src/main.rs` only calls [`main`].
 //!
 //! * [`transport`] — opening the port, the hello probe, lines over a serial port.
 //! * [`direct`] — the in-process bridge for direct mode.
@@ -30,9 +30,11 @@ use protocol_core::settings::SettingId;
 use tinybms_firmware::host_link::schema::{Hello, HostLine, Read};
 use tinybms_firmware::host_link::PROTOCOL_VERSION;
 
-use crate::profile::{find_setting, snake_name};
+use tinybms_rules::profile::{find_setting, snake_name};
+
 use cli::{Cli, Command, Conn, ModeArg};
 use client::Client;
+pub use tinybms_desk::end_quietly_on_a_closed_pipe;
 use transport::{Mode, ModeChoice, SerialLines};
 
 /// What went wrong, in a sentence for the user, and the exit status.
@@ -89,19 +91,6 @@ pub fn interrupted_error() -> ToolError {
     ToolError {
         message: "interrupted".into(),
         status: 130,
-    }
-}
-
-/// A program whose output goes into a pipe that closes first (`tinybms
-/// settings PORT | head`) ends quietly, as `cat` does, instead of panicking
-/// on its next `println!`: the default action of SIGPIPE, which Rust's
-/// runtime sets to ignored. Called first by the desktop programs' `main`.
-pub fn end_quietly_on_a_closed_pipe() {
-    #[cfg(unix)]
-    // SAFETY: sets a signal's disposition to the system default, at the start
-    // of `main`, before any other thread exists.
-    unsafe {
-        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }
 
@@ -253,7 +242,7 @@ fn read_profile(file: &Path, port: &str) -> ToolResult<String> {
         .map_err(|e| ToolError::failed(format!("cannot read `{shown}`: {e}")))
 }
 
-pub use crate::words::suggest;
+pub use tinybms_rules::words::suggest;
 
 fn serial_suffix(c: &mut Client) -> String {
     match c.get_one("version").map(|r| r.line) {

@@ -2,10 +2,10 @@
 
 use std::path::PathBuf;
 
-use crate::tool::cli::Conn;
-use crate::tool::client::setting_lines;
-use crate::tool::transport::Mode;
-use crate::tool::{connect_ready, monitor, serial_suffix, settings, ToolError, ToolResult};
+use crate::cli::Conn;
+use crate::client::setting_lines;
+use crate::transport::Mode;
+use crate::{connect_ready, monitor, serial_suffix, settings, ToolError, ToolResult};
 
 /// Runs `tinybms settings`.
 pub fn run(conn: Conn, save: Option<PathBuf>, json: bool) -> ToolResult<()> {

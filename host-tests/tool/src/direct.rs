@@ -1,5 +1,5 @@
 //! Direct mode: a TinyBMS on a USB-UART adapter. The firmware's bridge and
-//! host link run in a thread of the tool ([`crate::real_time_station::Hosted`]) on the
+//! host link run in a thread of the tool ([`tinybms_desk::Hosted`]) on the
 //! serial port; the rest of the tool talks to them through channels with the
 //! same JSON lines as to a real bridge.
 
@@ -15,8 +15,8 @@ use tinybms_firmware::host_link::schema::HostLine;
 use super::client::{Client, Received};
 use super::transport::{Lines, Mode};
 use super::{ToolError, ToolResult};
-use crate::capture::CaptureWriter;
-use crate::real_time_station::{ChannelSide, Hosted};
+use tinybms_desk::capture::CaptureWriter;
+use tinybms_desk::{ChannelSide, Hosted};
 
 /// The in-process bridge thread.
 struct Worker {

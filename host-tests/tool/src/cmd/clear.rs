@@ -5,8 +5,8 @@ use std::time::Duration;
 use serde_json::json;
 use tinybms_firmware::host_link::schema::HostLine;
 
-use crate::tool::cli::Conn;
-use crate::tool::{confirm, connect_ready, ToolError, ToolResult};
+use crate::cli::Conn;
+use crate::{confirm, connect_ready, ToolError, ToolResult};
 
 pub fn clear_or_reset(conn: &Conn, yes: bool, what: &str) -> ToolResult<()> {
     let reset = what == "reset";

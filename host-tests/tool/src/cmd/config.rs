@@ -5,10 +5,10 @@ use std::path::Path;
 use tinybms_firmware::config::value::Parsed;
 use tinybms_firmware::config::{Config, FieldId};
 
-use crate::tool::cli::Conn;
-use crate::tool::client::Client;
-use crate::tool::config::Shown;
-use crate::tool::{config, confirm, connect, monitor, ToolError, ToolResult};
+use crate::cli::Conn;
+use crate::client::Client;
+use crate::config::Shown;
+use crate::{config, confirm, connect, monitor, ToolError, ToolResult};
 
 /// `tinybms config …` (see [`config`]).
 pub fn run_config(

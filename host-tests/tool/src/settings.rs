@@ -1,14 +1,14 @@
 //! `settings`, `apply`, `set`: the settings table, the profile writer (the
-//! text format `host_tests::profile` reads), the difference before an apply,
+//! text format `tinybms_rules::profile` reads), the difference before an apply,
 //! and the `NAME=VALUE` arguments of `set`.
 
 use protocol_core::settings::SettingId;
 use tinybms_firmware::host_link::schema::{Read, SettingLine};
 
-use crate::profile::{find_setting, snake_name};
+use tinybms_rules::profile::{find_setting, snake_name};
 
-pub use crate::words::short;
 pub use tinybms_rules::settings::{check_all, parse_set_arg, physical, Chem};
+pub use tinybms_rules::words::short;
 
 /// The chemistry `set`/`apply` check against
 /// ([`tinybms_rules::settings::chemistry_of`]), said on stdout when a cell
@@ -210,7 +210,7 @@ pub fn render_groups(lines: &[SettingLine<Read>]) -> String {
 }
 
 /// A profile of the settings read (`name = raw  # physical`), readable by
-/// `host_tests::profile::parse_profile` (and so by `apply` and `sim --profile`).
+/// `tinybms_rules::profile::parse_profile` (and so by `apply` and `sim --profile`).
 /// Settings that read back a marker instead of their value are left as
 /// comments.
 pub fn profile_text(lines: &[SettingLine<Read>], header: &str) -> (String, usize) {
@@ -327,7 +327,7 @@ mod tests {
             text.contains("over_voltage_cutoff = 3650  # 3.65 V"),
             "{text}"
         );
-        let p = crate::profile::parse_profile(&text).unwrap();
+        let p = tinybms_rules::profile::parse_profile(&text).unwrap();
         assert_eq!(
             p,
             vec![

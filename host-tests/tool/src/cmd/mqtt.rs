@@ -1,7 +1,7 @@
 //! `tinybms mqtt`: The MQTT broker the bridge publishes to.
 
-use crate::tool::cli::Conn;
-use crate::tool::{config, connect, ToolResult};
+use crate::cli::Conn;
+use crate::{config, connect, ToolResult};
 
 /// Runs `tinybms mqtt`.
 pub fn run(conn: Conn, host: String, tcp_port: u16, user: Option<String>) -> ToolResult<()> {

@@ -249,7 +249,7 @@ mod tests {
     use serde_json::json;
     use std::time::Duration;
 
-    use crate::tool::client::fixtures::{line, telemetry_line as telemetry};
+    use crate::client::fixtures::{line, telemetry_line as telemetry};
 
     #[test]
     fn the_monitor_goes_stale_by_the_bridge_s_limit() {

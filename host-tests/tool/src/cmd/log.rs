@@ -2,8 +2,8 @@
 
 use std::time::Duration;
 
-use crate::tool::cli::Conn;
-use crate::tool::{connect, monitor, ToolResult};
+use crate::cli::Conn;
+use crate::{connect, monitor, ToolResult};
 
 /// Runs `tinybms log`.
 pub fn run(conn: Conn, duration: Option<Duration>) -> ToolResult<()> {

@@ -4,11 +4,11 @@ use std::path::PathBuf;
 
 use protocol_core::settings::{ChemistryCheck, SettingId};
 
-use crate::profile::parse_profile;
-use crate::tool::cli::Conn;
-use crate::tool::{
+use crate::cli::Conn;
+use crate::{
     confirm_restart, connect_ready, read_profile, settings, write_settings, ToolError, ToolResult,
 };
+use tinybms_rules::profile::parse_profile;
 
 /// Runs `tinybms apply`.
 pub fn run(
