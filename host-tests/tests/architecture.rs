@@ -116,3 +116,59 @@ fn a_file_left_off_the_map_is_found() {
     assert!(!named(doc, "bridge/writes.rs"));
     assert!(!named(doc, "inverter/mod.rs"));
 }
+
+/// The path dependencies of the `[dependencies]` tables (the target-specific
+/// ones too) of the manifest at `path`, as written (`"../desk"`).
+fn path_dependencies(manifest: &str) -> Vec<String> {
+    let mut out = Vec::new();
+    let mut in_deps = false;
+    for line in manifest.lines() {
+        let line = line.trim();
+        if line.starts_with('[') {
+            in_deps = line == "[dependencies]"
+                || (line.starts_with("[target.") && line.ends_with(".dependencies]"));
+            continue;
+        }
+        if !in_deps {
+            continue;
+        }
+        if let Some(i) = line.find("path = \"") {
+            let rest = &line[i + 8..];
+            out.push(rest[..rest.find('"').unwrap_or(rest.len())].to_string());
+        }
+    }
+    out
+}
+
+/// The path dependencies `manifest` (under `dir` of the repository) has
+/// that reach the simulator's crate (`host-tests` itself).
+fn reaches_the_simulator(dir: &str, manifest: &str) -> Vec<String> {
+    path_dependencies(manifest)
+        .into_iter()
+        .filter(|p| {
+            let target = root().join(dir).join(p);
+            target.canonicalize().ok() == root().join("host-tests").canonicalize().ok()
+        })
+        .collect()
+}
+
+/// The desktop tool installs alone: neither it nor the desktop station it
+/// runs in direct mode depends on `host-tests` (the simulator).
+#[test]
+fn the_tool_and_the_desktop_station_never_depend_on_the_simulator() {
+    for dir in ["host-tests/tool", "host-tests/desk"] {
+        let manifest = std::fs::read_to_string(root().join(dir).join("Cargo.toml")).unwrap();
+        assert!(
+            !path_dependencies(&manifest).is_empty(),
+            "{dir}: no path dependency read"
+        );
+        let bad = reaches_the_simulator(dir, &manifest);
+        assert!(
+            bad.is_empty(),
+            "{dir}/Cargo.toml depends on the simulator: {bad:?}"
+        );
+    }
+    // The check itself: a manifest with host-tests among its dependencies.
+    let broken = "[dependencies]\nhost-tests = { path = \"..\" }\n";
+    assert_eq!(reaches_the_simulator("host-tests/tool", broken), [".."]);
+}
