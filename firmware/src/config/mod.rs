@@ -563,7 +563,10 @@ impl Config {
     /// The rules between fields. A record that breaks one is never stored nor
     /// run with.
     pub fn validate(&self) -> Result<(), RuleError> {
-        if self.float_voltage_mv != 0 && self.absorption_voltage_mv != 0 && self.float_voltage_mv > self.absorption_voltage_mv {
+        if self.float_voltage_mv != 0
+            && self.absorption_voltage_mv != 0
+            && self.float_voltage_mv > self.absorption_voltage_mv
+        {
             return Err(RuleError::between_fields(
                 FieldId::FloatVoltage,
                 "the float voltage is above the absorption voltage",

@@ -793,7 +793,11 @@ fn current_targets(
     let dcl_max = capped_da(s.discharge_cutoff_a, c.discharge_current_cap_da);
     // Tapers by cell voltage.
     let stop_mv = i32::from(s.ov_cutoff_mv) - i32::from(c.ceiling_margin_mv);
-    let ccl_v = falling_permille(i32::from(p.max_cell_mv), stop_mv, i32::from(c.charge_taper_mv));
+    let ccl_v = falling_permille(
+        i32::from(p.max_cell_mv),
+        stop_mv,
+        i32::from(c.charge_taper_mv),
+    );
     let dcl_v = rising_permille(
         i32::from(p.min_cell_mv),
         discharge_stop_mv(c, s),
