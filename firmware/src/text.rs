@@ -407,7 +407,35 @@ pub fn inverter(r: &InverterReport, out: &mut Line) {
                 .push(e.reason())
                 .push("): it counts nowhere");
         }
+        InverterReport::Protection(stops) => protection(stops, out),
+        InverterReport::ShutdownAsked(true) => {
+            out.push("CAN: the inverter asks the battery to shut down (0x300): charge and discharge stopped while it asks (the BMS is not switched off)");
+        }
+        InverterReport::ShutdownAsked(false) => {
+            out.push("CAN: the inverter no longer asks the battery to shut down");
+        }
     }
+}
+
+/// "protection active: why", for an inverter that may ignore a current
+/// limit of 0 A: each stop with its cause and the measures taken.
+fn protection(stops: &crate::inverter::pylon::Stops, out: &mut Line) {
+    if stops.none() {
+        out.push("CAN protection: none active (charge and discharge enabled)");
+        return;
+    }
+    out.push("CAN protection active:");
+    if let Some(why) = stops.charge {
+        out.push(" charge stopped (")
+            .push(why.text())
+            .push("): charge enable clear, charge current 0, charge voltage at most the pack's;");
+    }
+    if let Some(why) = stops.discharge {
+        out.push(" discharge stopped (")
+            .push(why.text())
+            .push("): discharge enable clear, discharge current 0;");
+    }
+    out.push(" SOC 100 % / 0 % with stop_by_soc");
 }
 
 fn limits(l: &crate::inverter::control::Limits, out: &mut Line) {
@@ -594,7 +622,6 @@ impl Boot {
 /// Writes a boot line of the bridge `id` into `out` (appended).
 pub fn boot(b: &Boot, id: &crate::identity::Identity, out: &mut Line) {
     use crate::boards::LogPath;
-    use crate::inverter::protocol::Protocol;
     match *b {
         Boot::Image { log } => {
             out.push("tinybms-firmware ")
@@ -621,10 +648,7 @@ pub fn boot(b: &Boot, id: &crate::identity::Identity, out: &mut Line) {
             node,
         } => {
             out.push("CAN to the inverter: ")
-                .push(match protocol {
-                    Protocol::Victron => "Victron",
-                    Protocol::SmaSunnyIsland => "SMA Sunny Island",
-                })
+                .push(protocol.title())
                 .push(", 500 kbit/s, ");
             match pins {
                 Some((tx, rx)) => {

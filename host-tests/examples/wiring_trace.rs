@@ -50,10 +50,7 @@ fn main() {
     std::fs::create_dir_all(&dir).unwrap();
 
     for protocol in [Protocol::Victron, Protocol::SmaSunnyIsland] {
-        let tag = match protocol {
-            Protocol::Victron => "victron",
-            Protocol::SmaSunnyIsland => "sma",
-        };
+        let tag = protocol.key();
         for name in closed_loop::SCENARIOS {
             let can = Shared::default();
             let inverter = InverterConfig {

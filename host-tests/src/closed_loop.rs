@@ -20,7 +20,7 @@ use tinybms_firmware::config::store::{Loaded, Source};
 use tinybms_firmware::config::Config;
 use tinybms_firmware::identity::{Features, Identity};
 use tinybms_firmware::inverter::frames::{self, CanFrame};
-use tinybms_firmware::inverter::{Inverter, InverterConfig, InverterReport};
+use tinybms_firmware::inverter::{Inverter, InverterConfig, InverterReport, Protocol};
 use tinybms_firmware::station::{Logged, Setup, Station};
 
 use crate::sim::{PackModel, SimBms, SimConfig};
@@ -30,7 +30,12 @@ use tinybms_desk::flash::RamFlash;
 /// How often the loop advances, µs (the inverter model's control step).
 pub const STEP_US: u64 = 100_000;
 
-/// A Victron-like inverter/charger.
+/// An inverter/charger speaking one of the firmware's protocols. With
+/// `ignores_zero`, it is a Deye-like 48 V hybrid inverter: it ignores a
+/// current limit of 0 A and the enable bits (it keeps charging at
+/// [`IGNORED_CHARGE_A`], keeps its load), and obeys only what the sources say
+/// such inverters obey — the charge voltage (its constant-voltage stage) and
+/// the SOC told (no charge at 100 %, no discharge at 0 %).
 #[derive(Debug, Clone)]
 pub struct InverterModel {
     /// Largest charge current the charger can deliver, A.
@@ -39,21 +44,48 @@ pub struct InverterModel {
     pub load_a: f64,
     /// Pack resistance it assumes for its constant-voltage stage, Ω.
     pub r_pack: f64,
-    /// Last 0x351: (CVL V, CCL A, DCL A) and when it came.
+    /// Last limits: (CVL V, CCL A, DCL A) and when they came.
     pub last_limits: Option<(f64, f64, f64, u64)>,
     /// The current it draws now, A (positive = charging the pack).
     pub current_a: f64,
+    /// The protocol it speaks.
+    pub dialect: Protocol,
+    /// Deye-like: ignores current limits of 0 A and the enable bits.
+    pub ignores_zero: bool,
+    /// The enable bits last told (charge, discharge).
+    pub enabled: (bool, bool),
+    /// The SOC last told, %.
+    pub told_soc: Option<f64>,
+    /// Sends nothing (no heartbeat, no query): an inverter switched off, or
+    /// not wired.
+    pub silent: bool,
+    /// Energy into the pack so far, Wh.
+    pub charged_wh: f64,
+    /// Energy out of the pack so far, Wh.
+    pub discharged_wh: f64,
+    /// When the battery's last data came (the heartbeat answers it).
+    heard_at: Option<u64>,
+    /// When it last sent its heartbeat or query.
+    sent_at: Option<u64>,
 }
 
 /// Gain of the model's constant-voltage regulator, A per volt of error per
 /// second.
 pub const CV_GAIN_A_PER_V_S: f64 = 40.0;
 
-/// A GX stops charging and discharging when 0x351 is missing this long, µs.
+/// A GX stops charging and discharging when 0x351 is missing this long, µs
+/// (the other models do the same).
 pub const GX_LIMITS_TIMEOUT_US: u64 = 3_000_000;
 
+/// What a Deye-like inverter charges with while told a charge current limit
+/// of 0 A (diyBMS #216 saw 1.4 A; more is harder on the bridge), A.
+pub const IGNORED_CHARGE_A: f64 = 10.0;
+
+/// The heartbeat (0x305) and Growatt's query (0x301) come this often, µs.
+pub const HEARTBEAT_US: u64 = 1_000_000;
+
 impl InverterModel {
-    /// A charger of `charger_max_a` with no load.
+    /// A Victron-like charger of `charger_max_a` with no load.
     pub fn new(charger_max_a: f64, r_pack: f64) -> Self {
         Self {
             charger_max_a,
@@ -61,18 +93,75 @@ impl InverterModel {
             r_pack,
             last_limits: None,
             current_a: 0.0,
+            dialect: Protocol::Victron,
+            ignores_zero: false,
+            enabled: (true, true),
+            told_soc: None,
+            silent: false,
+            charged_wh: 0.0,
+            discharged_wh: 0.0,
+            heard_at: None,
+            sent_at: None,
+        }
+    }
+
+    /// The limits a frame of `dialect` tells, read by the model from the
+    /// spec's layout (not the firmware's decoder): (CVL V, CCL A, DCL A).
+    pub fn limits_in(dialect: Protocol, f: &CanFrame) -> Option<(f64, f64, f64)> {
+        let d = f.data;
+        let le = |i: usize| [d[i], d[i + 1]];
+        match dialect {
+            Protocol::Growatt if f.id == 0x311 && f.len >= 6 => Some((
+                f64::from(u16::from_be_bytes([d[0], d[1]])) * 0.1,
+                f64::from(u16::from_be_bytes([d[2], d[3]])) * 0.1,
+                f64::from(u16::from_be_bytes([d[4], d[5]])) * 0.1,
+            )),
+            Protocol::Growatt => None,
+            _ if f.id == frames::ID_LIMITS && f.len >= 6 => Some((
+                f64::from(u16::from_le_bytes(le(0))) * 0.1,
+                f64::from(i16::from_le_bytes(le(2))).max(0.0) * 0.1,
+                f64::from(i16::from_le_bytes(le(4))).max(0.0) * 0.1,
+            )),
+            _ => None,
         }
     }
 
     /// A frame the bridge sent.
     pub fn on_frame(&mut self, now: u64, f: &CanFrame) {
-        if f.id == frames::ID_LIMITS && f.len >= 6 {
-            let d = f.data;
-            let cvl = f64::from(u16::from_le_bytes([d[0], d[1]])) * 0.1;
-            let ccl = f64::from(i16::from_le_bytes([d[2], d[3]])) * 0.1;
-            let dcl = f64::from(i16::from_le_bytes([d[4], d[5]])) * 0.1;
-            self.last_limits = Some((cvl, ccl.max(0.0), dcl.max(0.0), now));
+        if let Some((cvl, ccl, dcl)) = Self::limits_in(self.dialect, f) {
+            self.last_limits = Some((cvl, ccl, dcl, now));
+            self.heard_at = Some(now);
         }
+        let d = f.data;
+        match (self.dialect, f.id) {
+            (Protocol::Pylon | Protocol::SolArk | Protocol::Luxpower, 0x35C)
+            | (Protocol::Growatt, 0x319) => {
+                self.enabled = (d[0] & 0x80 != 0, d[0] & 0x40 != 0);
+            }
+            (Protocol::Pylon | Protocol::SolArk | Protocol::Luxpower, 0x355) => {
+                self.told_soc = Some(f64::from(u16::from_le_bytes([d[0], d[1]])));
+            }
+            (Protocol::Growatt, 0x313) => self.told_soc = Some(f64::from(d[6])),
+            _ => {}
+        }
+    }
+
+    /// What the inverter sends at `now`: the Pylontech family's heartbeat
+    /// (0x305, while the battery's data comes), Growatt's query (0x301,
+    /// always: the battery answers it); nothing for Victron and SMA (their
+    /// loops do not model the keep-alive).
+    pub fn outgoing(&mut self, now: u64) -> Option<(u16, [u8; 8])> {
+        if self.silent || self.sent_at.is_some_and(|t| now < t + HEARTBEAT_US) {
+            return None;
+        }
+        let frame = match self.dialect {
+            Protocol::Victron | Protocol::SmaSunnyIsland => return None,
+            Protocol::Growatt => (0x301, [0x11, 0x22, 0x33, 0x44, 0x55, 0x66, 0x77, 0x88]),
+            _ if self.heard_at.is_some_and(|t| now < t + 3 * HEARTBEAT_US) => (0x305, [0; 8]),
+            _ => return None,
+        };
+        self.sent_at = Some(now);
+        Some(frame)
     }
 
     /// The current for the next step, given the pack voltage the inverter
@@ -86,17 +175,37 @@ impl InverterModel {
             self.current_a = 0.0;
             return 0.0;
         }
-        let i = if self.load_a > 0.0 {
-            -self.load_a.min(dcl)
+        let (charge_on, discharge_on, ccl, dcl) = if self.ignores_zero {
+            let soc = self.told_soc.unwrap_or(50.0);
+            let ccl = if ccl > 0.0 { ccl } else { IGNORED_CHARGE_A };
+            let dcl = if dcl > 0.0 { dcl } else { self.load_a };
+            (soc < 100.0, soc > 0.0, ccl, dcl)
         } else {
+            (self.enabled.0, self.enabled.1, ccl, dcl)
+        };
+        let i = if self.load_a > 0.0 {
+            if discharge_on {
+                -self.load_a.min(dcl)
+            } else {
+                0.0
+            }
+        } else if charge_on {
             // Constant current up to CVL, then constant voltage: an integrating
             // voltage regulator (as a charger's CV stage), bounded by CCL and the
             // charger's maximum.
             let dt_s = STEP_US as f64 / 1e6;
             let next = self.current_a.max(0.0) + CV_GAIN_A_PER_V_S * (cvl - pack_v) * dt_s;
             next.clamp(0.0, self.charger_max_a.min(ccl))
+        } else {
+            0.0
         };
         self.current_a = i;
+        let wh = i.abs() * pack_v * STEP_US as f64 / 3.6e9;
+        if i > 0.0 {
+            self.charged_wh += wh;
+        } else {
+            self.discharged_wh += wh;
+        }
         i
     }
 }
@@ -124,6 +233,28 @@ pub struct LoopFigures {
     pub stale_frames: u64,
     /// Reports of the inverter output.
     pub reports: Vec<(u64, InverterReport)>,
+    /// The simulated pack's truth, each step: its highest and lowest cell,
+    /// mV, and its largest charge and discharge current, A.
+    pub truth: Truth,
+}
+
+/// What the simulated pack really went through (its registers each step,
+/// not what the bridge published).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Truth {
+    /// Highest cell, mV.
+    pub max_cell_mv: u16,
+    /// Lowest cell, mV (`u16::MAX` before the first step).
+    pub min_cell_mv: Option<u16>,
+    /// Largest charge current, A.
+    pub max_charge_a: f64,
+    /// Largest discharge current, A.
+    pub max_discharge_a: f64,
+    /// Longest charge (above [`NOISE_A`]) while a sensor was at or past a
+    /// charge temperature cutoff (below 320, at or above 319), µs.
+    pub charge_out_of_temperature_us: u64,
+    /// The one going on, since when.
+    out_of_temperature_since: Option<u64>,
 }
 
 impl LoopFigures {
@@ -230,13 +361,18 @@ impl ClosedLoop {
             PackModel::LiFePO4_16S => 0.0003,
             PackModel::LiIon_14S => 0.0015,
         };
+        let dialect = station
+            .inverter()
+            .map_or(Protocol::Victron, |i| i.config().protocol);
         let mut h = Harness::with_station(sim, station);
         h.retain = true;
         h.can.attached = true;
         h.finish_at_end = true;
+        let mut model = InverterModel::new(charger_max_a, (cells * r_cell).max(0.001));
+        model.dialect = dialect;
         Self {
             h,
-            model: InverterModel::new(charger_max_a, (cells * r_cell).max(0.001)),
+            model,
             figures: LoopFigures::default(),
             sent_limits: Vec::new(),
             sent_ids: Vec::new(),
@@ -315,6 +451,50 @@ impl ClosedLoop {
             );
             let i = self.model.step(t, pack_v);
             self.h.sim.set_external_current(Some(i));
+            self.note_truth(i);
+            if let Some((id, data)) = self.model.outgoing(t) {
+                if let Some(w) = self.can_log.as_mut() {
+                    let f = CanFrame { id, len: 8, data };
+                    let _ = writeln!(w, "{}", candump_line(t, &f));
+                }
+                self.h.station.can_received(t, id, &data);
+            }
+        }
+    }
+
+    /// The pack's truth after a step with current `i`.
+    fn note_truth(&mut self, i: f64) {
+        let model = self.h.sim.pack_model();
+        let first = model.first_cell_register();
+        let t = &mut self.figures.truth;
+        for k in 0..model.cell_count() as u16 {
+            let mv = cell_mv(self.h.sim.register(first + k));
+            t.max_cell_mv = t.max_cell_mv.max(mv);
+            t.min_cell_mv = Some(t.min_cell_mv.map_or(mv, |m| m.min(mv)));
+        }
+        if i > 0.0 {
+            t.max_charge_a = t.max_charge_a.max(i);
+        } else {
+            t.max_discharge_a = t.max_discharge_a.max(-i);
+        }
+        // The sensors (42, 43: 0.1 °C; 0x8000 = none) against the charge
+        // cutoffs: the BMS opens its charge switch there.
+        let reg = |a: u16| self.h.sim.register(a);
+        let (hot, cold) = (reg(319) as i16, reg(320) as i16);
+        let out = [42, 43]
+            .into_iter()
+            .map(reg)
+            .filter(|r| *r != 0x8000)
+            .any(|r| {
+                let c = f64::from(r as i16) / 10.0;
+                c < f64::from(cold) || c >= f64::from(hot)
+            });
+        let now = self.h.now;
+        if out && i > NOISE_A {
+            let since = *t.out_of_temperature_since.get_or_insert(now);
+            t.charge_out_of_temperature_us = t.charge_out_of_temperature_us.max(now - since);
+        } else {
+            t.out_of_temperature_since = None;
         }
     }
 
@@ -385,7 +565,7 @@ impl ClosedLoop {
         self.figures.bits += frame_bits(f.len);
         self.sent_ids.push((now, f.id));
         self.model.on_frame(now, f);
-        if let Some(l) = frames::limits_of(f) {
+        if let Some(l) = self.model.dialect.limits_of(f) {
             let (cvl, ccl, dcl) = (l.cvl_dv, l.ccl_da, l.dcl_da);
             self.sent_limits.push((now, cvl, ccl, dcl));
             self.figures.min_cvl_dv = Some(self.figures.min_cvl_dv.map_or(cvl, |m| m.min(cvl)));
@@ -499,6 +679,77 @@ pub const SCENARIOS: [&str; 7] = [
     "bus-off",
 ];
 
+/// The scenarios every protocol of a 48 V hybrid inverter runs, with the
+/// safety table ([`safety_row`]): [`SCENARIOS`] and a deep discharge (a
+/// 100 A load from 25 % SOC for 3 h, the BMS's SOC reading 15 % high).
+pub const SAFETY_SCENARIOS: [&str; 8] = [
+    "full-charge",
+    "runner",
+    "cold-morning",
+    "hot-pack",
+    "bms-fault",
+    "uart-lost",
+    "bus-off",
+    "deep-discharge",
+];
+
+/// The head of the safety table (`sim --inverter pylon|solark|luxpower|growatt
+/// --scenario all`).
+pub const SAFETY_HEADER: &str =
+    "scenario        max cell OV cutoff  min cell UV cutoff  charge A   disch A   in kWh  out kWh     ok";
+
+/// A current below this is the sensor's noise, not a charge, A.
+pub const NOISE_A: f64 = 1.0;
+
+/// How long a charge may go on after a sensor passed a charge temperature
+/// cutoff before the BMS counts as tripped: the bridge sees the temperature
+/// with the next snapshot and the inverter the stop with the next period
+/// (the TinyBMS itself waits a few seconds too), µs.
+pub const TEMPERATURE_GRACE_US: u64 = 5_000_000;
+
+/// One row of the safety table for the loop `l` run until `end`, µs, against
+/// the simulated pack's truth: no cell at or past the BMS's over-voltage
+/// (315) or under-voltage (316) cutoff, no current past its cutoff (318,
+/// 317), no charge for longer than [`TEMPERATURE_GRACE_US`] while a sensor
+/// is past a charge temperature cutoff (319, 320) — the BMS would trip — and
+/// every CVL sent within cells × [316, 315].
+pub fn safety_row(name: &str, l: &ClosedLoop, _end: u64) -> (String, bool) {
+    use protocol_core::settings::SettingId::{
+        ChargeOverCurrentCutoff, DischargeOverCurrentCutoff, NumberOfSeriesCells,
+        OverVoltageCutoff, UnderVoltageCutoff,
+    };
+    let reg = |id: protocol_core::settings::SettingId| l.h.sim.register(id.address());
+    let (ov, uv) = (reg(OverVoltageCutoff), reg(UnderVoltageCutoff));
+    let cells = u32::from(reg(NumberOfSeriesCells).max(1));
+    let t = &l.figures.truth;
+    let min_cell = t.min_cell_mv.unwrap_or(0);
+    let cvl_ok = l.sent_limits.iter().all(|&(_, cvl, _, _)| {
+        let mv = u32::from(cvl) * 100;
+        mv + 100 > cells * u32::from(uv) && mv <= cells * u32::from(ov)
+    });
+    let ok = t.max_cell_mv < ov
+        && min_cell > uv
+        && t.charge_out_of_temperature_us <= TEMPERATURE_GRACE_US
+        && t.max_charge_a <= f64::from(reg(ChargeOverCurrentCutoff))
+        && t.max_discharge_a <= f64::from(reg(DischargeOverCurrentCutoff))
+        && cvl_ok
+        && !l.sent_limits.is_empty();
+    let row = format!(
+        "{:<14} {:>6} mV {:>6} mV {:>6} mV {:>6} mV {:>7.1} {:>9.1} {:>8.2} {:>8.2} {:>6}",
+        name,
+        t.max_cell_mv,
+        ov,
+        min_cell,
+        uv,
+        t.max_charge_a,
+        t.max_discharge_a,
+        l.model.charged_wh / 1000.0,
+        l.model.discharged_wh / 1000.0,
+        if ok { "yes" } else { "NO" }
+    );
+    (row, ok)
+}
+
 /// Runs one named scenario (see [`SCENARIOS`]) to its end and returns the loop
 /// and its duration, µs. `None` for an unknown name.
 pub fn run_scenario(
@@ -575,6 +826,15 @@ pub fn run_scenario_on(
             l.bus_off(10 * S);
             l.run_until(10 * MIN);
             10 * MIN
+        }
+        "deep-discharge" => {
+            // The BMS's SOC reads 15 % high (not fully charged for long): an
+            // inverter that stops at SOC 0 would run the pack past empty.
+            l.h.sim.set_soc_bias(15.0);
+            l.h.sim.set_soc_percent(25.0);
+            l.model.load_a = 100.0;
+            l.run_until(3 * H);
+            3 * H
         }
         _ => return None,
     };

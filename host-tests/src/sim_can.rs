@@ -6,8 +6,11 @@
 //! hardware.
 //!
 //! The simulated inverter acknowledges every frame (it is the other node on
-//! the bus), keeps the last limits it was told, and sends the GX keep-alive
-//! (0x305) once a second, as a Victron GX does. A candump log of what the
+//! the bus), keeps the last limits it was told (0x351; Growatt's 0x311), and
+//! once a second sends 0x305 — the GX keep-alive, the heartbeat of the
+//! Pylontech family — and 0x301, Growatt's query, which the other
+//! protocols ignore: one inverter for every `inverter_protocol`, which a
+//! restart may change. A candump log of what the
 //! bridge sent can be written (`--can-log`), readable by can-utils and
 //! cantools.
 
@@ -39,10 +42,14 @@ pub struct SimInverterBus {
     seen: Arc<Mutex<Seen>>,
     log: Option<Box<dyn Write + Send>>,
     next_keepalive: WallInstant,
+    pending: Vec<(u16, Vec<u8>)>,
     /// Keep-alives on (an inverter that is there); off: a bus with only a
     /// listener that acknowledges.
     pub keepalive: bool,
 }
+
+/// Growatt's query, as its spec prints it.
+const GROWATT_QUERY: (u16, [u8; 8]) = (0x301, [0x11, 0x22, 0x33, 0x44, 0x55, 0x66, 0x77, 0x88]);
 
 impl SimInverterBus {
     /// A bus with an inverter that sends its keep-alive; `log` gets every
@@ -52,6 +59,7 @@ impl SimInverterBus {
             seen: Arc::default(),
             log,
             next_keepalive: WallInstant::now(),
+            pending: Vec::new(),
             keepalive: true,
         }
     }
@@ -66,9 +74,13 @@ impl CanSide for SimInverterBus {
     fn send(&mut self, now: Instant, frame: &CanFrame) -> TxResult {
         let mut seen = self.seen.lock().unwrap_or_else(|e| e.into_inner());
         seen.frames += 1;
+        let d = frame.data;
         if frame.id == 0x351 && frame.len >= 6 {
-            let d = frame.data;
             let word = |i: usize| u16::from_le_bytes([d[i], d[i + 1]]);
+            seen.limits = Some((word(0), word(2), word(4)));
+        }
+        if frame.id == 0x311 && frame.len >= 6 {
+            let word = |i: usize| u16::from_be_bytes([d[i], d[i + 1]]);
             seen.limits = Some((word(0), word(2), word(4)));
         }
         if let Some(w) = self.log.as_mut() {
@@ -83,11 +95,13 @@ impl CanSide for SimInverterBus {
     }
 
     fn receive(&mut self) -> Option<(u16, Vec<u8>)> {
-        if !self.keepalive || WallInstant::now() < self.next_keepalive {
-            return None;
+        if self.keepalive && WallInstant::now() >= self.next_keepalive {
+            self.next_keepalive = WallInstant::now() + KEEPALIVE_EVERY;
+            self.pending
+                .push((GROWATT_QUERY.0, GROWATT_QUERY.1.to_vec()));
+            self.pending.push((ID_GX_KEEPALIVE, vec![0; 8]));
         }
-        self.next_keepalive = WallInstant::now() + KEEPALIVE_EVERY;
-        Some((ID_GX_KEEPALIVE, vec![0; 8]))
+        self.pending.pop()
     }
 }
 
@@ -120,8 +134,10 @@ mod tests {
         assert_eq!(seen.limits, Some((556, 500, 600)));
         let text = String::from_utf8(log.lock().unwrap().clone()).unwrap();
         assert!(text.ends_with(" can0 351#2C02F40158020000\n"), "{text}");
-        // The keep-alive at once, then not before a second has passed.
+        // The keep-alive and the query at once, then not before a second has
+        // passed.
         assert_eq!(bus.receive().map(|(id, _)| id), Some(ID_GX_KEEPALIVE));
+        assert_eq!(bus.receive().map(|(id, _)| id), Some(0x301));
         assert_eq!(bus.receive(), None);
         bus.keepalive = false;
         bus.next_keepalive = WallInstant::now();

@@ -338,6 +338,18 @@ fn full_record() -> Config {
     c.discovery_prefix.push_str(&"d".repeat(32)).unwrap();
     c.pack_node = 3;
     c.pack_name.push_str(&"n".repeat(24)).unwrap();
+    c.inverter_name.clear();
+    c.inverter_name.push_str("GOODWE").unwrap();
+    c.stop_by_soc = true;
+    c
+}
+
+/// `c` as a record of an older layout holds it: the fields added in
+/// version 4 (`inverter_name`, `stop_by_soc`) at their defaults.
+fn before_version_4(mut c: Config) -> Config {
+    let d = Config::default();
+    c.inverter_name = d.inverter_name;
+    c.stop_by_soc = d.stop_by_soc;
     c
 }
 
@@ -381,12 +393,12 @@ fn record_of_version(c: &Config, version: u8) -> Vec<u8> {
 
 #[test]
 fn a_version_1_record_keeps_the_owners_configuration_and_pack_node_defaults() {
-    let mut c = full_record();
+    let mut c = before_version_4(full_record());
     c.pack_node = 0;
     c.pack_name.clear();
     let v1 = v1_record(&c);
     assert_eq!(v1[2], 1);
-    assert_eq!(usize::from(v1[3]), FIELDS.len() - 2);
+    assert_eq!(usize::from(v1[3]), FIELDS.len() - 4);
     assert_eq!(codec::decode(&v1).unwrap(), c);
     // A field a version-1 record cannot hold is refused in one.
     let mut with_node = v1.clone();
@@ -412,10 +424,10 @@ fn a_version_1_record_keeps_the_owners_configuration_and_pack_node_defaults() {
 /// record cannot.
 #[test]
 fn a_version_2_record_keeps_the_owners_configuration_and_no_pack_name() {
-    let mut c = full_record();
+    let mut c = before_version_4(full_record());
     c.pack_name.clear();
     let v2 = record_of_version(&c, 2);
-    assert_eq!(usize::from(v2[3]), FIELDS.len() - 1);
+    assert_eq!(usize::from(v2[3]), FIELDS.len() - 3);
     assert_eq!(codec::decode(&v2).unwrap(), c);
     let tag = field("pack_name").field().tag;
     assert_eq!(codec::introduced(tag), 3);
@@ -434,6 +446,39 @@ fn a_version_2_record_keeps_the_owners_configuration_and_no_pack_name() {
         codec::decode(&short),
         Err(DecodeError::Missing(FieldId::PackName))
     );
+}
+
+/// Issue 40: `inverter_name` and `stop_by_soc` came with layout version 4.
+/// A version-3 record (what the bridge stored before) keeps the owner's
+/// configuration with the name PYLON and stop_by_soc off; a version-4
+/// record must hold both; a version-3 record cannot.
+#[test]
+fn a_version_3_record_keeps_the_owners_configuration_and_the_hybrid_defaults() {
+    let full = full_record();
+    let c = before_version_4(full.clone());
+    let v3 = record_of_version(&full, 3);
+    assert_eq!(v3[2], 3);
+    assert_eq!(usize::from(v3[3]), FIELDS.len() - 2);
+    let got = codec::decode(&v3).unwrap();
+    assert_eq!(got, c);
+    assert_eq!(got.inverter_name.as_str(), "PYLON");
+    assert!(!got.stop_by_soc);
+    for name in ["inverter_name", "stop_by_soc"] {
+        assert_eq!(codec::introduced(field(name).field().tag), 4, "{name}");
+    }
+    // A version-3 record cannot hold the new fields; a version-4 one must.
+    let tag = field("stop_by_soc").field().tag;
+    let mut with = v3.clone();
+    with[3] += 1;
+    with.extend_from_slice(&[tag, 1, 1]);
+    assert_eq!(codec::decode(&with), Err(DecodeError::UnknownTag(tag)));
+    let mut short = v3;
+    short[2] = 4;
+    assert!(matches!(
+        codec::decode(&short),
+        Err(DecodeError::Missing(_))
+    ));
+    assert_eq!(codec::decode(&encoded(&full)).unwrap(), full);
 }
 
 /// `pack_name`: printable text, at most 24 bytes, empty by default.

@@ -104,6 +104,33 @@ fn the_scenario_table_of_the_simulator_guide() {
     }
 }
 
+/// docs/simulator.md's safety table of a 48 V hybrid inverter's protocol
+/// behind a Deye-like inverter (it ignores a limit of 0 A) with the bridge's
+/// stop_by_soc on: each row is what `safety_row` makes of that run, and every
+/// row holds.
+#[test]
+fn the_safety_table_of_the_simulator_guide() {
+    use host_tests::closed_loop::{safety_row, SAFETY_HEADER, SAFETY_SCENARIOS};
+    let text = doc("simulator.md");
+    let rows = sample(
+        &text,
+        "cargo run --release -p host-tests --bin sim -- --inverter pylon --scenario all --quiet --ignores-zero --stop-by-soc",
+    );
+    assert_eq!(rows.first().copied(), Some(SAFETY_HEADER));
+    assert_eq!(rows.len(), SAFETY_SCENARIOS.len() + 1, "{rows:#?}");
+    let config = InverterConfig {
+        protocol: Protocol::Pylon,
+        stop_by_soc: true,
+        ..InverterConfig::default()
+    };
+    for (name, want) in SAFETY_SCENARIOS.iter().zip(&rows[1..]) {
+        let (l, end) = run_scenario(name, config, |l| l.model.ignores_zero = true).unwrap();
+        let (row, ok) = safety_row(name, &l, end);
+        assert!(ok, "{row}");
+        assert_eq!(&row, want, "docs/simulator.md's row of {name}");
+    }
+}
+
 /// docs/desktop-tool.md's monitor samples, in both modes: the lines, their
 /// words and their order are what `tinybms monitor --count 1` prints.
 #[test]

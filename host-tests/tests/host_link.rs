@@ -882,10 +882,11 @@ fn longest_telemetry_line_fits() {
         ready: true,
         // The longest inverter member.
         inverter: Some(encode::InverterState {
-            protocol: "victron",
+            protocol: "luxpower",
             can: "waiting",
             heard: false,
             limits: Some((u16::MAX, u16::MAX, u16::MAX)),
+            stops: Some(("inverter_asked", "inverter_asked")),
         }),
     };
     let n = encode::telemetry(

@@ -8,6 +8,7 @@ use tinybms_firmware::inverter::control::{
     ChargeConfig, ChargeControl, Conditions, Limits, PackSettings, PackState,
 };
 use tinybms_firmware::inverter::frames::{self, CanFrame};
+use tinybms_firmware::inverter::Protocol;
 
 const S: u64 = 1_000_000;
 
@@ -244,12 +245,40 @@ struct Signal {
     name: String,
     start: u32,
     len: u32,
+    /// Motorola (big-endian, `@0`): `start` is the most significant bit, in
+    /// the DBC's numbering (byte × 8 + bit, bit 7 the byte's highest).
+    big_endian: bool,
     signed: bool,
     factor: f64,
     offset: f64,
 }
 
-fn parse_dbc(text: &str) -> BTreeMap<u16, (u8, Vec<Signal>)> {
+impl Signal {
+    /// The bits of the signal, most significant first, as indexes into the
+    /// little-endian 64-bit word of the data (byte × 8 + bit).
+    fn bits(&self) -> Vec<u32> {
+        if !self.big_endian {
+            return (0..self.len).rev().map(|i| self.start + i).collect();
+        }
+        let mut out = Vec::new();
+        let mut at = self.start;
+        for _ in 0..self.len {
+            out.push(at);
+            // Down the byte, then to the next byte's highest bit.
+            at = if at.is_multiple_of(8) {
+                at + 15
+            } else {
+                at - 1
+            };
+        }
+        out
+    }
+}
+
+/// A DBC's messages: id → (length, sender, signals).
+type Dbc = BTreeMap<u16, (u8, String, Vec<Signal>)>;
+
+fn parse_dbc(text: &str) -> Dbc {
     let mut out = BTreeMap::new();
     let mut current: Option<u16> = None;
     for line in text.lines() {
@@ -258,20 +287,23 @@ fn parse_dbc(text: &str) -> BTreeMap<u16, (u8, Vec<Signal>)> {
             let mut it = rest.split_whitespace();
             let id: u16 = it.next().unwrap().parse().unwrap();
             let dlc: u8 = it.nth(1).unwrap().parse().unwrap();
-            out.insert(id, (dlc, Vec::new()));
+            let sender = it.next().unwrap_or("").to_string();
+            out.insert(id, (dlc, sender, Vec::new()));
             current = Some(id);
         } else if let Some(rest) = t.strip_prefix("SG_ ") {
             let (name, def) = rest.split_once(" : ").unwrap();
             let (pos, rest) = def.split_once('@').unwrap();
             let (start, len) = pos.split_once('|').unwrap();
-            assert!(rest.starts_with('1'), "little-endian only: {t}");
+            let big_endian = rest.starts_with('0');
+            assert!(big_endian || rest.starts_with('1'), "byte order: {t}");
             let signed = rest[1..].starts_with('-');
             let scale = &rest[rest.find('(').unwrap() + 1..rest.find(')').unwrap()];
             let (factor, offset) = scale.split_once(',').unwrap();
-            out.get_mut(&current.unwrap()).unwrap().1.push(Signal {
+            out.get_mut(&current.unwrap()).unwrap().2.push(Signal {
                 name: name.trim().to_string(),
                 start: start.parse().unwrap(),
                 len: len.parse().unwrap(),
+                big_endian,
                 signed,
                 factor: factor.parse().unwrap(),
                 offset: offset.parse().unwrap(),
@@ -285,12 +317,10 @@ fn parse_dbc(text: &str) -> BTreeMap<u16, (u8, Vec<Signal>)> {
 
 fn decode(f: &CanFrame, s: &Signal) -> f64 {
     let raw = u64::from_le_bytes(f.data);
-    let mask = if s.len == 64 {
-        u64::MAX
-    } else {
-        (1u64 << s.len) - 1
-    };
-    let v = (raw >> s.start) & mask;
+    let v = s
+        .bits()
+        .iter()
+        .fold(0u64, |acc, &b| (acc << 1) | ((raw >> b) & 1));
     let v = if s.signed && v >> (s.len - 1) & 1 == 1 {
         v as i64 - (1i64 << s.len)
     } else {
@@ -299,24 +329,44 @@ fn decode(f: &CanFrame, s: &Signal) -> f64 {
     v as f64 * s.factor + s.offset
 }
 
+/// The DBC's Motorola walk, checked on Growatt's own layout: 0x311's charge
+/// voltage (start bit 7, 16 bits) is bytes 0-1, high byte first.
+#[test]
+fn a_big_endian_signal_reads_high_byte_first() {
+    let s = Signal {
+        name: "ChargeVoltageLimit".into(),
+        start: 7,
+        len: 16,
+        big_endian: true,
+        signed: false,
+        factor: 0.1,
+        offset: 0.0,
+    };
+    let f = CanFrame {
+        id: 0x311,
+        len: 8,
+        data: [0x02, 0x28, 0, 0, 0, 0, 0, 0],
+    };
+    assert!((decode(&f, &s) - 55.2).abs() < 1e-9);
+    assert_eq!(s.bits()[..3], [7, 6, 5]);
+    assert_eq!(s.bits()[8], 15);
+}
+
 fn check_dbc(path: &str, sent: &[CanFrame], expect: &[(&str, f64)]) {
     let text = std::fs::read_to_string(path).unwrap();
     let dbc = parse_dbc(&text);
     let mut seen = Vec::new();
     for f in sent {
-        let (dlc, signals) = dbc
+        let (dlc, _, signals) = dbc
             .get(&f.id)
             .unwrap_or_else(|| panic!("{:03X} not in {path}", f.id));
         assert_eq!(*dlc, f.len, "{:03X} length in {path}", f.id);
         // Every bit the encoder may set is described by some signal.
         let mut covered = 0u64;
         for s in signals {
-            let mask = if s.len == 64 {
-                u64::MAX
-            } else {
-                ((1u64 << s.len) - 1) << s.start
-            };
-            covered |= mask;
+            for b in s.bits() {
+                covered |= 1 << b;
+            }
         }
         let used = u64::from_le_bytes(f.data);
         assert_eq!(
@@ -340,10 +390,11 @@ fn check_dbc(path: &str, sent: &[CanFrame], expect: &[(&str, f64)]) {
             "{name}: {got} != {want} ({path})"
         );
     }
-    // No message of the DBC that the encoder never sends.
-    for id in dbc.keys() {
+    // No message of the DBC that the encoder never sends (the inverter's
+    // own are the inverter's).
+    for (id, (_, sender, _)) in &dbc {
         assert!(
-            sent.iter().any(|f| f.id == *id),
+            sender == "INVERTER" || sent.iter().any(|f| f.id == *id),
             "{id:03X} unused in {path}"
         );
     }
@@ -383,6 +434,157 @@ fn frames_for(protocol: &str) -> Vec<CanFrame> {
             frames::sma_info(1, 280, 20),
         ],
     }
+}
+
+/// The frames of one period of a 48 V hybrid inverter's protocol, as the
+/// output builds them (with a full-charge request, two packs, 16 cells).
+fn lv_frames(p: Protocol) -> Vec<CanFrame> {
+    use tinybms_firmware::inverter::protocol::Period;
+    use tinybms_firmware::inverter::pylon::Extras;
+    let l = Limits {
+        cvl_dv: 568,
+        ccl_da: 600,
+        dcl_da: 1500,
+        discharge_dv: 416,
+    };
+    let c = Conditions {
+        high_voltage: 2,
+        cell_imbalance: 1,
+        ..Conditions::default()
+    };
+    let s = state();
+    let settings = PackSettings {
+        fully_charged_mv: 3650,
+        capacity_cah: 28_000,
+        cells: 16,
+        allowed_disbalance_mv: 15,
+        ov_cutoff_mv: 3650,
+        uv_cutoff_mv: 2800,
+        discharge_cutoff_a: 200,
+        charge_cutoff_a: 150,
+        overheat_c: 60,
+        low_temp_charge_c: 0,
+    };
+    let period = Period {
+        limits: &l,
+        state: &s,
+        conditions: &c,
+        capacity_ah: 280,
+        modules: (2, 0, 0, 0),
+        firmware: 20,
+        hardware: 1,
+        slow: true,
+        lv: Extras {
+            full_charge: true,
+            ..Extras::default()
+        },
+        settings: Some(&settings),
+    };
+    let mut out = Vec::new();
+    p.period_frames(&period, &mut |f| out.push(f));
+    out
+}
+
+/// The values every Pylontech-family DBC decodes from [`lv_frames`].
+const PYLON_FAMILY: [(&str, f64); 12] = [
+    ("ChargeVoltageLimit", 56.8),
+    ("ChargeCurrentLimit", 60.0),
+    ("DischargeCurrentLimit", 150.0),
+    ("StateOfCharge", 65.0),
+    ("StateOfHealth", 97.0),
+    ("BatteryCurrent", -25.5),
+    ("ProtectionOverVoltage", 1.0),
+    ("AlarmHighVoltage", 1.0),
+    ("ModuleCount", 2.0),
+    ("FullChargeRequest", 1.0),
+    ("ChargeEnable", 1.0),
+    ("DischargeEnable", 1.0),
+];
+
+#[test]
+fn the_pylon_dbc_and_the_encoder_agree() {
+    let mut want = PYLON_FAMILY.to_vec();
+    // 52.91 V in 0.01 V; the mean of 24.5 and 27.0 °C.
+    want.extend([("BatteryVoltage", 52.91), ("BatteryTemperature", 25.8)]);
+    check_dbc(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/can/tinybms-pylon.dbc"),
+        &lv_frames(Protocol::Pylon),
+        &want,
+    );
+}
+
+#[test]
+fn the_solark_dbc_and_the_encoder_agree() {
+    let mut want = PYLON_FAMILY.to_vec();
+    // The voltage in 0.1 V; the discharge voltage in 0x351; the bank.
+    want.extend([
+        ("BatteryVoltage", 52.9),
+        ("DischargeVoltage", 41.6),
+        ("BankCapacity", 280.0),
+    ]);
+    check_dbc(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/can/tinybms-solark.dbc"),
+        &lv_frames(Protocol::SolArk),
+        &want,
+    );
+}
+
+#[test]
+fn the_luxpower_dbc_and_the_encoder_agree() {
+    let mut want = PYLON_FAMILY.to_vec();
+    want.extend([
+        ("BatteryVoltage", 52.91),
+        ("DischargeVoltage", 41.6),
+        ("MaxCellVoltage", 3312.0),
+        ("MinCellVoltage", 3301.0),
+        ("MaxCellTemperature", 27.0),
+        ("MinCellTemperature", 24.5),
+        ("Capacity", 280.0),
+        ("CycleCount", 0.0),
+    ]);
+    check_dbc(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/can/tinybms-luxpower.dbc"),
+        &lv_frames(Protocol::Luxpower),
+        &want,
+    );
+}
+
+#[test]
+fn the_growatt_dbc_and_the_encoder_agree() {
+    check_dbc(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/can/tinybms-growatt.dbc"),
+        &lv_frames(Protocol::Growatt),
+        &[
+            ("ChargeVoltageLimit", 56.8),
+            ("ChargeCurrentLimit", 60.0),
+            ("DischargeCurrentLimit", 150.0),
+            ("State", 3.0),
+            ("ErrorBytesValid", 1.0),
+            ("CellBalance", 0.0),
+            ("ChargeEnabled", 1.0),
+            ("DischargeEnabled", 1.0),
+            ("BoxMode", 1.0),
+            ("ProtectionCellOverVoltage", 1.0),
+            ("AlarmCellOverVoltage", 1.0),
+            ("AlarmCellImbalance", 1.0),
+            ("PackCount", 2.0),
+            ("TotalCellCount", 32.0),
+            ("BatteryVoltage", 52.91),
+            ("BatteryCurrent", -25.5),
+            ("MaxCellTemperature", 27.0),
+            ("StateOfCharge", 65.0),
+            ("StateOfHealth", 97.0),
+            ("FullChargeCapacity", 280.0),
+            ("RemainingCapacity", 183.12),
+            ("CellVoltageDelta", 11.0),
+            ("MaxCellVoltage", 3312.0),
+            ("MinCellVoltage", 3301.0),
+            ("ChargeEnable", 1.0),
+            ("BatteryType", 0.0),
+            ("HardwareVersion", 1.0),
+            ("UpdateStatus", 0.0),
+        ],
+    );
 }
 
 #[test]

@@ -54,6 +54,7 @@ fn view<'a>(snap: &'a LiveSnapshot, age_s: u64) -> View<'a> {
             protocol: "victron",
             can: tinybms_firmware::inverter::CanState::Running,
             heard: true,
+            stops: None,
         }),
         wifi_rssi_dbm: Some(-61),
     }
@@ -196,6 +197,8 @@ fn discovery_configs_are_what_home_assistant_accepts() {
                 .collect();
             let want = if uid.ends_with("_status") {
                 STATUS_OPTIONS
+            } else if uid.ends_with("_stop") {
+                discovery::STOP_CAUSES
             } else {
                 discovery::CAN_STATES
             };
@@ -897,4 +900,24 @@ fn the_station_publishes_the_wifi_signal_it_is_given() {
     assert_eq!(st.generation(), g, "the same reading changes nothing");
     st.wifi_rssi(None);
     assert_eq!(st.published(0).wifi_rssi_dbm, None);
+}
+
+/// Issue 40: Home Assistant's "Charge stopped by" and "Discharge stopped by"
+/// offer every cause the bridge can give, and `none`.
+#[test]
+fn every_stop_cause_is_an_option_of_home_assistant() {
+    use tinybms_firmware::inverter::pylon::{stop_key, StopWhy};
+    let all = [
+        StopWhy::Fault,
+        StopWhy::CellHigh,
+        StopWhy::CellLow,
+        StopWhy::Temperature,
+        StopWhy::Current,
+        StopWhy::LinkLost,
+        StopWhy::InverterAsked,
+        StopWhy::Limit,
+    ];
+    let mut keys: Vec<&str> = all.iter().map(|w| stop_key(Some(*w))).collect();
+    keys.insert(0, stop_key(None));
+    assert_eq!(keys, discovery::STOP_CAUSES);
 }

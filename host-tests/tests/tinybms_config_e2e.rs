@@ -430,3 +430,68 @@ fn dry_run_swapped_arguments_and_a_clamped_period_are_said() {
         "{m}"
     );
 }
+
+/// Issue 40, as a Deye owner does it: `inverter_protocol=pylon
+/// inverter_name=DEYE` is taken (the protocol at the next restart, the name
+/// at once), survives a restart, and `monitor` then shows the dialect, the
+/// inverter's heartbeat heard (the simulated inverter's 0x305) and the
+/// limits it is told, with what the protection stops.
+#[test]
+fn a_hybrid_inverter_protocol_and_its_name_survive_a_restart_and_show_in_monitor() {
+    let flash = tmp("config-flash-pylon.bin");
+    let _ = std::fs::remove_file(&flash);
+    let sim = bridge(&flash, &[]);
+    let set = tinybms(&[
+        "config",
+        &sim.path,
+        "inverter_protocol=pylon",
+        "inverter_name=DEYE",
+        "stop_by_soc=on",
+    ]);
+    assert_eq!(set.code, 0, "{set}");
+    assert!(
+        set.stdout
+            .contains("inverter_protocol = pylon: stored, applies at the next restart"),
+        "{set}"
+    );
+    assert!(
+        set.stdout.contains("inverter_name = DEYE: applied"),
+        "{set}"
+    );
+    assert!(set.stdout.contains("saved to the bridge's flash"), "{set}");
+    drop(sim);
+    let sim = bridge(&flash, &[]);
+    for (name, want) in [
+        ("inverter_protocol", "value    pylon"),
+        ("inverter_name", "value    DEYE"),
+        ("stop_by_soc", "value    on"),
+    ] {
+        let one = tinybms(&["config", &sim.path, name]);
+        assert_eq!(one.code, 0, "{one}");
+        assert!(one.stdout.contains(want), "{name}: {one}");
+    }
+    let text = tinybms(&["monitor", &sim.path, "--count", "3", "--plain"]);
+    assert_eq!(text.code, 0, "{text}");
+    assert!(
+        text.stdout
+            .contains("Inverter pylon: CAN running, inverter heard   CVL "),
+        "{text}"
+    );
+    assert!(text.stdout.contains("protection"), "{text}");
+    let json = tinybms(&["monitor", &sim.path, "--count", "2", "--json"]);
+    let last: serde_json::Value =
+        serde_json::from_str(json.stdout.lines().last().unwrap()).unwrap();
+    let inv = &last["inverter"];
+    assert_eq!(inv["protocol"], "pylon", "{last}");
+    assert_eq!(inv["heard"], true, "{last}");
+    assert!(inv["cvl_v"].as_f64().unwrap() > 40.0, "{last}");
+    assert!(inv["charge_stop"].is_string(), "{last}");
+    assert!(inv["discharge_stop"].is_string(), "{last}");
+    // The log says the protocol by its name.
+    let log = tinybms(&["log", &sim.path, "--duration", "2s"]);
+    assert!(
+        log.stdout
+            .contains("CAN to the inverter: Pylontech LV (V1.2)"),
+        "{log}"
+    );
+}

@@ -2,7 +2,7 @@
 //!
 //! ```text
 //! 0   2   'T' 'C'           magic
-//! 2   1   VERSION           layout version (super::VERSION; 1 and 2 are read too)
+//! 2   1   VERSION           layout version (super::VERSION; 1, 2 and 3 are read too)
 //! 3   1   N                 fields that follow
 //! 4   ..  N × (tag, len, value)
 //!           tag   1         the field's stable number (Field::tag)
@@ -15,7 +15,7 @@
 //! given once, every length right for its kind, every value within its field's
 //! range, every field of the version present, nothing after the last, and the
 //! rules between fields ([`Config::validate`]). A record of an older version
-//! (1, 2) holds the fields of that version only; those added since
+//! (1, 2, 3) holds the fields of that version only; those added since
 //! ([`introduced`]) take their defaults, so an update keeps the owner's
 //! configuration. Any of these failing is a
 //! [`DecodeError`] and the bridge runs with the defaults. (`sequential-storage`
@@ -28,7 +28,7 @@ use super::{Config, FieldId, Kind, FIELDS, VERSION};
 /// The record's first two bytes.
 pub const MAGIC: [u8; 2] = *b"TC";
 
-/// Longest encoded record, bytes (every text field at its longest: 586).
+/// Longest encoded record, bytes (every text field at its longest: 599).
 pub const RECORD_MAX: usize = 640;
 
 pub use super::introduced;

@@ -45,12 +45,6 @@ use crate::{Instant, SECOND};
 pub use host::{HostLinkConfig, DEFAULT_STREAM_PERIOD_MS};
 pub use value::{FieldError, Value};
 
-/// Version of the record's layout in flash ([`codec`]). A record of an older
-/// version is read with the fields added since at their defaults
-/// ([`codec::introduced`]); one of a newer version is not read: the bridge
-/// runs with the defaults and says so.
-pub const VERSION: u8 = 3;
-
 /// When a change of a field takes effect.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -244,8 +238,27 @@ macro_rules! fields {
             }
         }
 
+        /// Version of the record's layout in flash ([`codec`]): the newest
+        /// `since` of the table, so a field added with the next version
+        /// makes it (one row, nothing else). A record of an older version
+        /// is read with the fields added since at their defaults
+        /// ([`codec::introduced`]); one of a newer version is not read: the
+        /// bridge runs with the defaults and says so.
+        pub const VERSION: u8 = {
+            let mut newest = 1;
+            let mut rest: &[u8] = &[$($since),*];
+            while let [first, tail @ ..] = rest {
+                if *first > newest {
+                    newest = *first;
+                }
+                rest = tail;
+            }
+            newest
+        };
+
         /// The layout version that added the field stored under `tag`
-        /// (version 2: `pack_node`; version 3: `pack_name`; 1 for a tag no
+        /// (version 2: `pack_node`; version 3: `pack_name`; version 4:
+        /// `inverter_name`, `stop_by_soc`; 1 for a tag no
         /// field has). [`codec`] reads an older record by it.
         pub const fn introduced(tag: u8) -> u8 {
             match tag {
@@ -328,11 +341,28 @@ macro_rules! choice_member {
         }
     };
 }
-choice_member!(Protocol: Protocol::Victron, Protocol::SmaSunnyIsland);
 choice_member!(StaleMode: StaleMode::Stop, StaleMode::Hold);
 
-/// Choices of `inverter_protocol`.
-pub const PROTOCOLS: &[&str] = &["victron", "sma"];
+/// A protocol is held as its place in [`PROTOCOLS`] (the order of
+/// [`crate::inverter::protocol::PROTOCOLS`]: the record stores the index).
+impl Member for Protocol {
+    fn get(&self) -> Value<'_> {
+        Value::Choice(self.index())
+    }
+    fn put(&mut self, v: Value<'_>) -> Result<(), FieldError> {
+        match v {
+            Value::Choice(c) => {
+                *self = Protocol::from_index(c).ok_or(FieldError::WRONG_KIND)?;
+                Ok(())
+            }
+            _ => Err(FieldError::WRONG_KIND),
+        }
+    }
+}
+
+/// Choices of `inverter_protocol`, in the order of
+/// [`crate::inverter::protocol::PROTOCOLS`].
+pub const PROTOCOLS: &[&str] = &["victron", "sma", "pylon", "solark", "luxpower", "growatt"];
 /// Choices of `stale_policy`.
 pub const STALE_MODES: &[&str] = &["stop", "hold"];
 
@@ -365,7 +395,7 @@ fields! {
         "Send the battery's limits and state to the inverter over CAN.";
     InverterProtocol = 2 since 1, "inverter_protocol", "", Inverter, Restart, Kind::Choice(PROTOCOLS),
         protocol: Protocol = Protocol::Victron,
-        "The inverter's CAN protocol: victron (a GX, \"CAN-bus BMS 500 kbit/s\") or sma (Sunny Island).";
+        "The inverter's CAN protocol: victron (a GX, \"CAN-bus BMS 500 kbit/s\"), sma (Sunny Island), or a 48 V hybrid inverter's: pylon (Pylontech LV V1.2: Deye, Sunsynk, Sofar, Growatt SPF, EG4 \"Lithium 2\", GoodWe, Solis \"Pylon LV\", MidNite…), solark (Sol-Ark LV V1.3), luxpower (Luxpower V04.2, EG4 \"Lithium 6\"), growatt (Growatt LV V1.04, answers the inverter's queries only).";
     StaleAfter = 3 since 1, "stale_after", "s", Inverter, Now, num(1, 60, 0),
         stale_after_s: u16 = (i.freshness.limit_us / SECOND) as u16,
         "BMS data older than this is stale: the stale policy applies.";
@@ -375,6 +405,12 @@ fields! {
     StaleHold = 5 since 1, "stale_hold", "s", Inverter, Now, num(10, 3600, 0),
         stale_hold_s: u16 = (i.stale_hold_us / SECOND) as u16,
         "With stale_policy hold: how long the inverter may keep discharging on stale data.";
+    InverterName = 7 since 4, "inverter_name", "", Inverter, Now, text(8, TextRule::Printable),
+        inverter_name: String<8> = fixed_text("PYLON"),
+        "What 0x35E says in the protocols pylon, solark and luxpower (at most 8 characters): PYLON for most inverters (Deye, Sunsynk, Sofar, Growatt SPF, EG4, MidNite), GOODWE for a GoodWe, DEYE as Deye's copy of the spec prints it; inverters key their behaviour on this name.";
+    StopBySoc = 8 since 4, "stop_by_soc", "", Inverter, Now, Kind::Bool,
+        stop_by_soc: bool = false,
+        "For an inverter that ignores a current limit of 0 A (Deye, Solis), in the protocols pylon, solark, luxpower and growatt: report SOC 100 % while charging must stop and 0 % while discharging must (the real SOC stays in the monitor and Home Assistant).";
     PackNode = 6 since 2, "pack_node", "", Inverter, Restart, num_or(1, 8, 0, "alone"),
         pack_node: u8 = i.node,
         "Packs in parallel, one bridge each, on one CAN bus: this bridge's number (1 = the primary, which speaks to the inverter); alone = this pack is the whole battery.";
@@ -690,6 +726,8 @@ impl Config {
             stale_policy: self.stale_policy,
             stale_hold_us: Instant::from(self.stale_hold_s) * SECOND,
             node: self.pack_node,
+            name: crate::inverter::pylon::name_bytes(&self.inverter_name),
+            stop_by_soc: self.stop_by_soc,
             ..InverterConfig::default()
         }
     }

@@ -159,6 +159,9 @@ pub struct StateExtras<'a> {
     pub can_state: Option<&'static str>,
     /// The inverter is heard, when the CAN output is built in.
     pub inverter_heard: Option<bool>,
+    /// The Pylontech family: what stops charging and discharging (`None`:
+    /// another protocol, published as null).
+    pub stops: Option<(&'static str, &'static str)>,
     /// The Wi-Fi signal, dBm (`None`: unknown, published as null).
     pub wifi_rssi_dbm: Option<i8>,
 }
@@ -196,6 +199,9 @@ pub struct InverterState {
     /// What it is told now: CVL 0.1 V, CCL 0.1 A, DCL 0.1 A (`None`: nothing
     /// sent, e.g. no fresh data).
     pub limits: Option<(u16, u16, u16)>,
+    /// The Pylontech family: what stops charging and discharging
+    /// ([`crate::inverter::pylon::stop_key`]; `None` for another protocol).
+    pub stops: Option<(&'static str, &'static str)>,
 }
 
 /// The `inverter` member of a `telemetry` line.
@@ -209,6 +215,8 @@ fn inverter_member<'a>(s: &InverterState) -> schema::Inverter<Wire<'a>> {
         cvl_v: l(|x| x.0),
         ccl_a: l(|x| x.1),
         dcl_a: l(|x| x.2),
+        charge_stop: s.stops.map(|x| x.0),
+        discharge_stop: s.stops.map(|x| x.1),
     }
 }
 
@@ -305,6 +313,8 @@ fn extras_members<'a>(
         bridge_firmware: e.bridge_firmware,
         can_state: e.can_state,
         inverter_heard: e.inverter_heard,
+        charge_stop: e.stops.map(|x| x.0),
+        discharge_stop: e.stops.map(|x| x.1),
         wifi_rssi_dbm: e.wifi_rssi_dbm,
     }
 }

@@ -361,6 +361,7 @@ impl Inverter {
             self.membership
                 .aggregate(&gathered, &shares, freshness, &mut self.reports)
         else {
+            self.forget_answer();
             let stop_frame = speaking && self.config.protocol.obeys_last_limits();
             self.membership
                 .lose_battery(now, stop_frame, &mut self.queue, &mut self.reports);
@@ -371,9 +372,11 @@ impl Inverter {
             return;
         };
         if speaking {
-            self.speak_for_battery(&battery, limits, slow);
+            self.speak_for_battery(now, &battery, limits, slow);
         } else {
             self.membership.logged_battery = None;
+            // Not the speaker: no answer to Growatt's query either.
+            self.forget_answer();
         }
     }
 
@@ -428,7 +431,7 @@ impl Inverter {
 
     /// As the speaker: the battery's limits (logged when they change, kept for
     /// the stop frames of a lost battery) and its inverter frames.
-    fn speak_for_battery(&mut self, battery: &Battery, limits: Limits, slow: bool) {
+    fn speak_for_battery(&mut self, now: Instant, battery: &Battery, limits: Limits, slow: bool) {
         self.membership.speaks(limits, &mut self.reports);
         let capacity_ah = (battery.capacity_dah / DAH_PER_AH).min(u32::from(u16::MAX)) as u16;
         let modules = (
@@ -438,6 +441,7 @@ impl Inverter {
             u16::from(battery.offline),
         );
         self.push_inverter_frames(
+            now,
             &limits,
             &battery.state,
             &battery.conditions,

@@ -3,8 +3,11 @@
 //! TWAI controller; the host runs it against a simulated pack and inverter.
 //!
 //! * [`control`] — the charge limits and alarms (the part that protects cells).
-//! * [`frames`] — the Victron and SMA Sunny Island frame layouts;
-//!   [`protocol`] — which frames each protocol sends.
+//! * [`frames`] — the Victron and SMA Sunny Island frame layouts; [`pylon`]
+//!   — the Pylontech LV family's (Pylon, Sol-Ark, Luxpower) and what such
+//!   inverters obey when charging or discharging must stop; [`growatt`] —
+//!   Growatt's, sent only when asked; [`protocol`] — which frames each
+//!   protocol sends.
 //! * [`bus`] — the CAN port's health (no ACK, bus-off, the inverter heard).
 //! * [`stale`] — a stale episode, its hold and a policy given meanwhile.
 //! * [`membership`] and [`packs`] — several packs on one bus: this bridge's
@@ -37,10 +40,12 @@
 pub mod bus;
 pub mod control;
 pub mod frames;
+pub mod growatt;
 pub mod membership;
 pub mod packs;
 pub mod port;
 pub mod protocol;
+pub mod pylon;
 pub mod stale;
 
 use heapless::Deque;
@@ -52,6 +57,7 @@ use self::control::{ChargeConfig, ChargeControl, Conditions, Limits, PackSetting
 use self::frames::CanFrame;
 use self::membership::Membership;
 use self::packs::{Battery, BatteryView, Packs, Shares, Summary};
+use self::pylon::{Extras, Stops};
 use self::stale::StaleEpisode;
 use crate::Instant;
 
@@ -86,6 +92,12 @@ pub struct InverterConfig {
     /// Node number among bridges of packs in parallel on one bus (1..=8, see
     /// [`packs`]); 0 = this bridge's pack is the whole battery.
     pub node: u8,
+    /// The Pylontech family's 0x35E (`inverter_name`), padded with spaces.
+    pub name: [u8; 8],
+    /// The Pylontech family: report SOC 100 % (0 %) while charging
+    /// (discharging) must stop (`stop_by_soc`), for an inverter that ignores
+    /// a current limit of 0 A.
+    pub stop_by_soc: bool,
 }
 
 impl Default for InverterConfig {
@@ -102,6 +114,8 @@ impl Default for InverterConfig {
             inverter_timeout_us: 5 * crate::SECOND,
             bus_off_backoff_us: crate::SECOND,
             node: 0,
+            name: pylon::DEFAULT_NAME,
+            stop_by_soc: false,
         }
     }
 }
@@ -209,6 +223,13 @@ pub enum InverterReport {
     /// No pack takes part: the speaker sends nothing (Victron) or stops the
     /// inverter (SMA: CCL 0, DCL 0).
     BatteryLost,
+    /// The Pylontech family: what must stop now and why — said every way
+    /// such inverters obey (logged when it changes).
+    Protection(Stops),
+    /// A Luxpower inverter asks the battery to shut down (0x300), or no
+    /// longer does: charge and discharge stop meanwhile; the BMS itself is
+    /// never switched off.
+    ShutdownAsked(bool),
     /// Another bridge sends summaries with this bridge's node number.
     DuplicateNode(u8),
     /// A summary of this node was refused (once until one of it is taken
@@ -227,9 +248,11 @@ impl InverterReport {
             | Self::BatteryLimits(_)
             | Self::Speaker(_)
             | Self::Packs { .. } => crate::Level::Info,
-            Self::BatteryLost | Self::DuplicateNode(_) | Self::SummaryRefused(..) => {
-                crate::Level::Warn
-            }
+            Self::BatteryLost
+            | Self::DuplicateNode(_)
+            | Self::SummaryRefused(..)
+            | Self::Protection(_)
+            | Self::ShutdownAsked(_) => crate::Level::Warn,
             Self::InverterLost
             | Self::Stale { .. }
             | Self::StaleHoldEnded
@@ -283,6 +306,10 @@ fn limits_log_due(
 /// Frames in one burst at most (a summary and a slow period of the battery's).
 const QUEUE: usize = 16;
 
+/// A Luxpower inverter's shutdown request holds this long after its last
+/// 0x300, µs.
+pub const SHUTDOWN_HOLD_US: Instant = 10 * crate::SECOND;
+
 /// What the inverter output has to log, oldest first; when full, the oldest
 /// is dropped.
 #[derive(Debug, Clone, Default)]
@@ -328,6 +355,17 @@ pub struct Inverter {
     membership: Membership,
     /// The last 0x351 handed out, and when.
     told: Option<(Limits, Instant)>,
+    /// The Pylontech family: what must stop, as last reported.
+    stops: Stops,
+    /// When SOC was last at least 97 % (or the data first came): the
+    /// full-charge request's 30 days run from it.
+    full_at: Option<Instant>,
+    /// The last shutdown request of a Luxpower inverter.
+    shutdown_at: Option<Instant>,
+    /// Growatt: the frames of the last period, for the next query, and when
+    /// they were made.
+    answer: heapless::Vec<CanFrame, 8>,
+    answer_at: Option<Instant>,
 }
 
 impl Inverter {
@@ -355,6 +393,11 @@ impl Inverter {
             reports: Reports::default(),
             membership: Membership::new(config.node, now),
             told: None,
+            stops: Stops::default(),
+            full_at: None,
+            shutdown_at: None,
+            answer: heapless::Vec::new(),
+            answer_at: None,
         }
     }
 
@@ -430,6 +473,12 @@ impl Inverter {
         self.conditions
     }
 
+    /// The Pylontech family: what must stop now and why, as the inverter is
+    /// told (`None` for another protocol or with the output off).
+    pub fn protection(&self) -> Option<Stops> {
+        (self.config.enabled && self.config.protocol.low_voltage_family()).then_some(self.stops)
+    }
+
     /// Absorption or float.
     pub fn phase(&self) -> control::Phase {
         self.control.phase()
@@ -500,14 +549,108 @@ impl Inverter {
         }
     }
 
-    /// A frame from the bus (the GX keep-alive, other packs' summaries).
+    /// A frame from the bus (the inverter's heartbeat or query, a Luxpower
+    /// inverter's shutdown request, other packs' summaries).
     pub fn on_received(&mut self, now: Instant, id: u16, data: &[u8]) {
         if !self.config.enabled {
             return; // output off: the bus is none of our business
         }
         self.membership.on_frame(now, id, data, &mut self.reports);
-        if id == frames::ID_GX_KEEPALIVE || id == frames::ID_GX_KEEPALIVE_2 {
+        let protocol = self.config.protocol;
+        if protocol.heartbeat(id) {
             self.bus.keepalive(now, &mut self.reports);
+        }
+        if protocol.answers_only() && growatt::is_query(id) {
+            self.answer_query(now);
+        }
+        if protocol == Protocol::Luxpower && pylon::shutdown_asked(id, data) {
+            if self.shutdown_at.is_none() {
+                self.reports.push(InverterReport::ShutdownAsked(true));
+            }
+            self.shutdown_at = Some(now);
+        }
+    }
+
+    /// Growatt's query: the frames of the last period, when they are recent
+    /// (two periods); nothing otherwise (no data yet, or stale with "stop").
+    fn answer_query(&mut self, now: Instant) {
+        let fresh = self
+            .answer_at
+            .is_some_and(|t| now.saturating_sub(t) <= 2 * self.config.fast_period_us);
+        if fresh {
+            for f in self.answer.iter() {
+                let _ = self.queue.push_back(*f);
+            }
+        }
+    }
+
+    /// The Pylontech family's extras at `now` for these limits: what must
+    /// stop (reported when it changes), the name, the full-charge request.
+    fn extras(
+        &mut self,
+        now: Instant,
+        limits: &Limits,
+        state: Option<&PackState>,
+        c: &Conditions,
+    ) -> Extras {
+        if self
+            .shutdown_at
+            .is_some_and(|t| now.saturating_sub(t) > SHUTDOWN_HOLD_US)
+        {
+            self.shutdown_at = None;
+            self.reports.push(InverterReport::ShutdownAsked(false));
+        }
+        let stops = if self.shutdown_at.is_some() {
+            Stops::shutdown()
+        } else {
+            match state {
+                Some(s) => Stops::of(limits, s, c),
+                None => Stops {
+                    charge: Some(pylon::StopWhy::LinkLost),
+                    discharge: (limits.dcl_da == 0).then_some(pylon::StopWhy::LinkLost),
+                },
+            }
+        };
+        if self.config.protocol.low_voltage_family() && stops != self.stops {
+            self.stops = stops;
+            self.reports.push(InverterReport::Protection(stops));
+        }
+        if let Some(s) = state {
+            if s.soc_pct >= pylon::FULL_SOC_PCT || self.full_at.is_none() {
+                self.full_at = Some(now);
+            }
+        }
+        let full_charge = self
+            .full_at
+            .is_some_and(|t| now.saturating_sub(t) >= pylon::FULL_CHARGE_AFTER_US);
+        Extras {
+            name: self.config.name,
+            stops,
+            by_soc: self.config.stop_by_soc,
+            full_charge,
+        }
+    }
+
+    /// No answer to the next query (this bridge no longer speaks for the
+    /// battery, or has no battery).
+    fn forget_answer(&mut self) {
+        self.answer.clear();
+        self.answer_at = None;
+    }
+
+    /// Queues `frames` to be sent now, or — for a protocol that answers
+    /// only — keeps them for the next query.
+    fn queue_frames(&mut self, now: Instant, frames: &[CanFrame]) {
+        if self.config.protocol.answers_only() {
+            self.answer.clear();
+            for f in frames {
+                let _ = self.answer.push(*f);
+            }
+            self.answer_at = Some(now);
+        } else {
+            for f in frames {
+                let _ = self.queue.push_back(*f);
+            }
         }
     }
 
@@ -586,7 +729,7 @@ impl Inverter {
     }
 
     fn send(&mut self, now: Instant, f: CanFrame) -> InverterAction {
-        if let Some(l) = frames::limits_of(&f) {
+        if let Some(l) = self.config.protocol.limits_of(&f) {
             self.told = Some((l, now));
         }
         InverterAction::Send(f)
@@ -625,7 +768,15 @@ impl Inverter {
             u16::from(limits.dcl_da == 0),
             0,
         );
-        self.push_inverter_frames(&limits, &state, &conditions, capacity_ah, modules, slow);
+        self.push_inverter_frames(
+            now,
+            &limits,
+            &state,
+            &conditions,
+            capacity_ah,
+            modules,
+            slow,
+        );
     }
 
     /// A bridge alone whose newest data is `age` old, stale: what its
@@ -640,12 +791,12 @@ impl Inverter {
             // missing for 60 s: tell it to stop at once (CCL 0, DCL 0, no
             // measurement frames, so it goes to standby after 60 s as well).
             StaleMode::Stop if self.config.protocol.obeys_last_limits() => {
-                self.queue_stale(true);
+                self.queue_stale(now, true);
             }
             StaleMode::Stop => {}
             StaleMode::Hold => {
                 if now.saturating_sub(since) <= self.config.stale_hold_us {
-                    self.queue_stale(false);
+                    self.queue_stale(now, false);
                 } else if self.stale.hold_ends() {
                     self.reports.push(InverterReport::StaleHoldEnded);
                 }
@@ -682,8 +833,10 @@ impl Inverter {
     }
 
     /// The frames of the inverter protocol for a battery in this state.
+    #[allow(clippy::too_many_arguments)]
     fn push_inverter_frames(
         &mut self,
+        now: Instant,
         limits: &Limits,
         state: &PackState,
         conditions: &Conditions,
@@ -691,23 +844,27 @@ impl Inverter {
         modules: (u16, u16, u16, u16),
         slow: bool,
     ) {
-        let (firmware, hardware) = (self.firmware, self.hardware);
-        let mut push = |f: CanFrame| {
-            let _ = self.queue.push_back(f);
-        };
-        push(frames::limits(limits));
+        let lv = self.extras(now, limits, Some(state), conditions);
+        let settings = self.settings;
+        let mut out: heapless::Vec<CanFrame, QUEUE> = heapless::Vec::new();
         self.config.protocol.period_frames(
             &protocol::Period {
+                limits,
                 state,
                 conditions,
                 capacity_ah,
                 modules,
-                firmware,
-                hardware,
+                firmware: self.firmware,
+                hardware: self.hardware,
                 slow,
+                lv,
+                settings: settings.as_ref(),
             },
-            &mut push,
+            &mut |f| {
+                let _ = out.push(f);
+            },
         );
+        self.queue_frames(now, &out);
     }
 
     /// What this bridge has learnt of how the battery's current splits.
@@ -734,7 +891,7 @@ impl Inverter {
     /// No measurement frame: those would be stale values sent as fresh. Used by
     /// the hold policy (CCL 0 only) and by "stop sending" towards a Sunny
     /// Island (both 0), which would otherwise obey the last limits for 60 s.
-    fn queue_stale(&mut self, stop_discharge: bool) {
+    fn queue_stale(&mut self, now: Instant, stop_discharge: bool) {
         let Some(last) = self.limits else {
             return;
         };
@@ -749,7 +906,13 @@ impl Inverter {
         }
         let mut c = self.conditions;
         c.link_lost = 1;
-        let _ = self.queue.push_back(frames::limits(&stale));
-        let _ = self.queue.push_back(self.config.protocol.alarms(&c));
+        let lv = self.extras(now, &stale, None, &c);
+        let mut out: heapless::Vec<CanFrame, QUEUE> = heapless::Vec::new();
+        self.config
+            .protocol
+            .stale_frames(&stale, &c, &lv, &mut |f| {
+                let _ = out.push(f);
+            });
+        self.queue_frames(now, &out);
     }
 }

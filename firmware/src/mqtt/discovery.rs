@@ -109,6 +109,20 @@ pub const STATUS_OPTIONS: &[&str] = &[
 /// The values the CAN output's entity takes ([`crate::inverter::CanState`]).
 pub const CAN_STATES: &[&str] = &["off", "waiting", "running", "no_ack", "bus_off"];
 
+/// What stops charging or discharging, with a 48 V hybrid inverter's
+/// protocol ([`crate::inverter::pylon::StopWhy::key`], or `none`).
+pub const STOP_CAUSES: &[&str] = &[
+    "none",
+    "fault",
+    "cell_high",
+    "cell_low",
+    "temperature",
+    "current",
+    "link_lost",
+    "inverter_asked",
+    "limit",
+];
+
 /// The event types of the event entity: the events' severities (the event's
 /// name, id and time are its attributes).
 pub const EVENT_TYPES: &[&str] = &["fault", "warning", "info", "unknown"];
@@ -378,6 +392,20 @@ pub const ENTITIES: &[Entity] = &[
         category: None,
         options: None,
     }),
+    diagnostic(plain(
+        "charge_stop",
+        "Charge stopped by",
+        Some("enum"),
+        Read::Nullable("charge_stop"),
+        Some(STOP_CAUSES),
+    )),
+    diagnostic(plain(
+        "discharge_stop",
+        "Discharge stopped by",
+        Some("enum"),
+        Read::Nullable("discharge_stop"),
+        Some(STOP_CAUSES),
+    )),
     diagnostic(sensor(
         "wifi_signal",
         "Wi-Fi signal",

@@ -56,6 +56,8 @@ pub struct InverterStatus {
     pub can: CanState,
     /// The inverter's keep-alive is heard.
     pub heard: bool,
+    /// The Pylontech family: what must stop (`None`: another protocol).
+    pub stops: Option<crate::inverter::pylon::Stops>,
 }
 
 impl Published {

@@ -545,6 +545,10 @@ impl Publisher {
             bridge_firmware: &self.bridge_text,
             can_state: view.inverter.map(|i| i.can.key()),
             inverter_heard: view.inverter.map(|i| i.heard),
+            stops: view.inverter.and_then(|i| i.stops).map(|s| {
+                use crate::inverter::pylon::stop_key;
+                (stop_key(s.charge), stop_key(s.discharge))
+            }),
             wifi_rssi_dbm: view.wifi_rssi_dbm,
         };
         let head = TelemetryHead {

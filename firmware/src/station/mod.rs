@@ -395,6 +395,10 @@ impl Station {
             can: i.can_state().key(),
             heard: i.inverter_heard(),
             limits: i.limits_sent(now).map(|l| (l.cvl_dv, l.ccl_da, l.dcl_da)),
+            stops: i.protection().map(|s| {
+                use crate::inverter::pylon::stop_key;
+                (stop_key(s.charge), stop_key(s.discharge))
+            }),
         });
         let h = self.host.as_mut()?;
         h.on_inverter(inverter);
@@ -599,6 +603,7 @@ impl Station {
                 protocol: i.config().protocol.key(),
                 can: i.can_state(),
                 heard: i.inverter_heard(),
+                stops: i.protection(),
             }),
             wifi_rssi_dbm: self.wifi_rssi,
         }

@@ -154,6 +154,9 @@ impl NoOutput {
     pub fn inverter_heard(&self) -> bool {
         match *self {}
     }
+    pub fn protection(&self) -> Option<crate::inverter::pylon::Stops> {
+        match *self {}
+    }
     pub fn next_report(&mut self) -> Option<crate::inverter::InverterReport> {
         match *self {}
     }

@@ -424,9 +424,11 @@ impl MultiLoop {
             })
             .collect::<Vec<_>>();
         let r_pack = 0.016 * 0.0003 + 0.005;
+        let mut model = InverterModel::new(charger_max_a, r_pack / n.max(1) as f64);
+        model.dialect = inverter.protocol;
         let mut l = Self {
             nodes,
-            model: InverterModel::new(charger_max_a, r_pack / n.max(1) as f64),
+            model,
             figures: BatteryFigures::default(),
             bus_v: 0.0,
             can_log: None,
@@ -483,6 +485,16 @@ impl MultiLoop {
             }
             self.pump_can(t);
             let total = self.model.step(t, self.bus_v);
+            if let Some((id, data)) = self.model.outgoing(t) {
+                // The inverter's heartbeat or query: every bridge on the bus
+                // hears it.
+                for p in self.nodes.iter_mut().filter(|p| p.bridge_on) {
+                    p.h.station.can_received(t, id, &data);
+                }
+                if let Some(w) = self.can_log.as_mut() {
+                    let _ = writeln!(w, "{}", candump_line(t, &CanFrame { id, len: 8, data }));
+                }
+            }
             let (v, currents) = self.split(total);
             self.bus_v = v;
             let dt_h = (t - self.now) as f64 / 3.6e9;
@@ -622,9 +634,9 @@ impl MultiLoop {
                 continue; // the ghost
             }
             let node = self.nodes[*from].node;
-            if f.id == frames::ID_LIMITS {
-                self.model.on_frame(*at, f);
-                self.limits_heard(*at, node, f);
+            self.model.on_frame(*at, f);
+            if let Some(l) = self.model.dialect.limits_of(f) {
+                self.limits_heard(*at, node, l);
             }
             let (byte, bit) = frames::VICTRON_SYSTEM_STATUS;
             let offline = (f.data[usize::from(byte)] >> bit) & 3 == frames::VICTRON_ACTIVE;
@@ -681,14 +693,7 @@ impl MultiLoop {
         }
     }
 
-    fn limits_heard(&mut self, now: u64, node: u8, f: &CanFrame) {
-        let d = f.data;
-        let limits = Limits {
-            cvl_dv: u16::from_le_bytes([d[0], d[1]]),
-            ccl_da: u16::from_le_bytes([d[2], d[3]]),
-            dcl_da: u16::from_le_bytes([d[4], d[5]]),
-            discharge_dv: u16::from_le_bytes([d[6], d[7]]),
-        };
+    fn limits_heard(&mut self, now: u64, node: u8, limits: Limits) {
         if limits.ccl_da == 0 && limits.dcl_da == 0 {
             self.figures.zero_limits_frames += 1;
         }

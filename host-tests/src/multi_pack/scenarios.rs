@@ -222,9 +222,16 @@ pub fn problems(l: &MultiLoop, ceiling_margin_mv: u16) -> Vec<String> {
             b.zero_limits_frames
         ));
     }
-    if b.longest_without_limits_us > 2_500_000 {
+    // A protocol that answers queries (Growatt's, once a second) waits one
+    // query more after a handover.
+    let query_us = if l.model.dialect.answers_only() {
+        crate::closed_loop::HEARTBEAT_US
+    } else {
+        0
+    };
+    if b.longest_without_limits_us > 2_500_000 + query_us {
         out.push(format!(
-            "the inverter went {:.1} s without 0x351 (a GX stops after 3 s)",
+            "the inverter went {:.1} s without limits (a GX stops after 3 s)",
             b.longest_without_limits_us as f64 / 1e6
         ));
     }

@@ -137,6 +137,11 @@ pub(crate) struct Live {
     pub(crate) forced_temp: Option<f64>,
     /// Charge pushed in past 100 % SOC, Ah: the voltage knee of a full cell.
     over_ah: f64,
+    /// Charge drawn out past 0 % SOC, Ah: the voltage knee of an empty cell
+    /// (closed loop only: an inverter that keeps discharging).
+    under_ah: f64,
+    /// What the BMS's SOC reads above the truth, % (its estimate drifted).
+    pub(crate) soc_bias: f64,
     capacity_ah: f64,
 }
 
@@ -174,6 +179,8 @@ impl Live {
             forced_current: None,
             forced_temp: None,
             over_ah: 0.0,
+            under_ah: 0.0,
+            soc_bias: 0.0,
             capacity_ah,
         };
         live.compute_cells(0.0);
@@ -189,15 +196,21 @@ impl Live {
     /// Open-circuit voltage of the pack now (the cells' OCV at this SOC, the
     /// knee of a full cell and the fixed offsets, no I·R), V.
     pub(crate) fn open_circuit_v(&self) -> f64 {
-        let knee = if self.capacity_ah > 0.0 {
-            (self.over_ah / self.capacity_ah * 1000.0 * 0.15).min(1.5)
-        } else {
-            0.0
-        };
-        let base = ocv(self.curve, self.soc) + knee;
+        let base = ocv(self.curve, self.soc) + self.knees();
         (0..self.cells.min(16))
             .map(|i| base + self.offsets_v.get(i).copied().unwrap_or(0.0))
             .sum()
+    }
+
+    /// The knees of a full and of an empty cell, V: +0.15 V per 0.1 % of
+    /// capacity pushed in past full (at most 1.5 V), −0.05 V per 0.1 %
+    /// drawn out past empty (at most 2.5 V).
+    fn knees(&self) -> f64 {
+        if self.capacity_ah <= 0.0 {
+            return 0.0;
+        }
+        let per_mille = |ah: f64| ah / self.capacity_ah * 1000.0;
+        (per_mille(self.over_ah) * 0.15).min(1.5) - (per_mille(self.under_ah) * 0.05).min(2.5)
     }
 
     /// Internal resistance of the pack (cells in series), Ω.
@@ -221,12 +234,7 @@ impl Live {
     fn compute_cells(&mut self, noise_v: f64) {
         // A full cell's voltage climbs steeply with every Ah pushed past 100 %
         // (the knee at the top of the OCV curve): 0.15 V per 0.1 % of capacity.
-        let knee = if self.capacity_ah > 0.0 {
-            (self.over_ah / self.capacity_ah * 1000.0 * 0.15).min(1.5)
-        } else {
-            0.0
-        };
-        let base = ocv(self.curve, self.soc) + knee + self.current * self.r_cell;
+        let base = ocv(self.curve, self.soc) + self.knees() + self.current * self.r_cell;
         for i in 0..self.cells.min(16) {
             let noise = if noise_v > 0.0 {
                 self.rng.range_f64(-noise_v, noise_v)
@@ -341,6 +349,11 @@ impl Live {
             } else if self.current < 0.0 {
                 self.over_ah = (self.over_ah + self.current * dt / 3600.0).max(0.0);
             }
+            if soc < 0.0 {
+                self.under_ah -= soc / 100.0 * p.capacity_ah;
+            } else if self.current > 0.0 {
+                self.under_ah = (self.under_ah - self.current * dt / 3600.0).max(0.0);
+            }
             if self.current <= 0.05 {
                 // Relaxation of the knee at rest, a few minutes.
                 self.over_ah *= 0.995;
@@ -413,7 +426,8 @@ impl Live {
         set32(regs, 34, time_left);
         set32(regs, 36, pack_v.to_bits());
         set32(regs, 38, (self.current as f32).to_bits());
-        set32(regs, 46, (self.soc * 1_000_000.0).round() as u32);
+        let reading = (self.soc + self.soc_bias).clamp(0.0, 100.0);
+        set32(regs, 46, (reading * 1_000_000.0).round() as u32);
         set32(regs, 54, 0f32.to_bits());
         // Registers 40/41 are in mV, the cells in 0.1 mV: rounded to the nearest mV.
         set_in(regs, 40, raw_to_mv(min_raw));

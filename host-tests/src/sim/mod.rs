@@ -598,6 +598,12 @@ impl SimBms {
         self.live.set_cell_resistance(ohm);
     }
 
+    /// The BMS's SOC reads `bias` % above the truth from now on (its
+    /// estimate drifted: it has not been fully charged for long).
+    pub fn set_soc_bias(&mut self, bias: f64) {
+        self.live.soc_bias = bias;
+    }
+
     /// Sets the state of charge, %.
     pub fn set_soc_percent(&mut self, soc: f64) {
         self.live.set_soc(soc);

@@ -272,9 +272,35 @@ pub fn inverter_text(t: &Telemetry<Read>) -> Option<String> {
         _ => "no limits sent".to_string(),
     };
     Some(format!(
-        "Inverter {}: CAN {can}, {heard}   {told}",
-        inv.protocol
+        "Inverter {}: CAN {can}, {heard}   {told}{}",
+        inv.protocol,
+        protection_text(inv)
     ))
+}
+
+/// A 48 V hybrid inverter's protocol: what the bridge stops, said every way
+/// such inverters obey (`  protection: charge stopped (cell_high)`); empty
+/// for another protocol.
+fn protection_text(inv: &Inverter<Read>) -> String {
+    let stopped = |side: &str, why: &Option<String>| match why.as_deref() {
+        Some(w) if w != "none" => Some(format!("{side} stopped ({w})")),
+        _ => None,
+    };
+    if inv.charge_stop.is_none() && inv.discharge_stop.is_none() {
+        return String::new();
+    }
+    let parts: Vec<String> = [
+        stopped("charge", &inv.charge_stop),
+        stopped("discharge", &inv.discharge_stop),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
+    if parts.is_empty() {
+        "   protection: none active".into()
+    } else {
+        format!("   protection active: {}", parts.join(", "))
+    }
 }
 
 /// Packs in parallel: one line of text for a `battery` or `pack` line of a

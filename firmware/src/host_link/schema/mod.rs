@@ -347,6 +347,13 @@ line_type! {
         pub ccl_a: Option<F::Number>,
         /// Discharge current limit told, A.
         pub dcl_a: Option<F::Number>,
+        /// The Pylontech family: what stops charging (a cause, or `none`;
+        /// absent for another protocol).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub charge_stop: Option<F::Text>,
+        /// What stops discharging.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub discharge_stop: Option<F::Text>,
     }
 }
 
@@ -372,6 +379,8 @@ line_type! {
         pub bridge_firmware: F::Text,
         pub can_state: Option<F::Text>,
         pub inverter_heard: Option<bool>,
+        pub charge_stop: Option<F::Text>,
+        pub discharge_stop: Option<F::Text>,
         pub wifi_rssi_dbm: Option<i8>,
     }
 }

@@ -97,7 +97,17 @@ impl Packs {
     pub fn on_frame(&mut self, now: Instant, id: u16, data: &[u8]) -> Received {
         {
             use crate::inverter::frames::{ID_ALARMS, ID_LIMITS, ID_MEASUREMENTS, ID_SOC};
-            if [ID_LIMITS, ID_SOC, ID_MEASUREMENTS, ID_ALARMS].contains(&id) && self.node != 0 {
+            use crate::inverter::{growatt, pylon};
+            const SPEAKERS: [u16; 7] = [
+                ID_LIMITS,
+                ID_SOC,
+                ID_MEASUREMENTS,
+                ID_ALARMS,
+                pylon::ID_ALARMS,
+                growatt::ID_LIMITS,
+                growatt::ID_MEASUREMENTS,
+            ];
+            if SPEAKERS.contains(&id) && self.node != 0 {
                 // A frame only a speaker sends, from another bridge:
                 // somebody speaks.
                 self.limits_at = Some(now);
@@ -226,9 +236,10 @@ impl Packs {
         })
     }
 
-    /// Another bridge's inverter frame (0x351, 0x355, 0x356, 0x35A: only a
-    /// speaker sends them) was heard within `us`: a speaker is there,
-    /// whichever node it is.
+    /// Another bridge's inverter frame (0x351, 0x355, 0x356, 0x35A; the
+    /// Pylontech family's 0x359; Growatt's 0x311, 0x313: only a speaker
+    /// sends them) was heard within `us`: a speaker is there, whichever node
+    /// it is.
     pub fn limits_heard_within(&self, now: Instant, us: Instant) -> bool {
         self.limits_at.is_some_and(|t| now.saturating_sub(t) <= us)
     }

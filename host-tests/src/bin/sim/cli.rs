@@ -4,7 +4,6 @@
 use crate::free_seed;
 use clap::error::ErrorKind;
 use clap::{ArgGroup, ArgMatches, CommandFactory, FromArgMatches, Parser, ValueEnum};
-use host_tests::closed_loop::SCENARIOS;
 use host_tests::profile::{parse_assignment, parse_profile};
 use host_tests::sim::PackModel;
 use host_tests::sim_wifi::SimNetwork;
@@ -158,12 +157,24 @@ pub(crate) struct Cli {
     #[arg(long, value_name = "HOST:PORT", value_parser = host_port, help_heading = REAL_TIME, conflicts_with = "pty")]
     mqtt: Option<(String, u16)>,
 
-    /// Victron (default) or SMA; runs the closed loop instead of the soak (16S
-    /// LiFePO4 from 20 % SOC, 100 A charger)
+    /// Victron (default), SMA, or a 48 V hybrid inverter's protocol (pylon,
+    /// solark, luxpower, growatt); runs the closed loop instead of the soak
+    /// (16S LiFePO4 from 20 % SOC, 100 A charger). The hybrid inverters'
+    /// scenarios print the safety table (cells and currents against the BMS's
+    /// cutoffs, energy moved)
     #[arg(long, value_name = "P", value_enum, help_heading = INVERTER)]
     inverter: Option<InverterArg>,
+    /// The simulated inverter ignores a current limit of 0 A and the enable
+    /// bits, as Deye and Solis do; it obeys only the charge voltage and the
+    /// SOC told (with --inverter pylon|solark|luxpower|growatt)
+    #[arg(long, help_heading = INVERTER)]
+    ignores_zero: bool,
+    /// The bridge reports SOC 100 % (0 %) while charging (discharging) must
+    /// stop (the configuration's stop_by_soc)
+    #[arg(long, help_heading = INVERTER)]
+    stop_by_soc: bool,
     /// One of full-charge, runner, cold-morning, hot-pack, bms-fault,
-    /// uart-lost, bus-off, or all (prints a table)
+    /// uart-lost, bus-off, deep-discharge, or all (prints a table)
     #[arg(long, value_name = "NAME", value_parser = scenario, help_heading = INVERTER)]
     scenario: Option<String>,
     /// Every frame the inverter output sends, in candump log format. With
@@ -213,6 +224,10 @@ pub(crate) enum PackArg {
 pub(crate) enum InverterArg {
     Victron,
     Sma,
+    Pylon,
+    Solark,
+    Luxpower,
+    Growatt,
 }
 
 /// `--stale-policy`.
@@ -295,7 +310,10 @@ pub(crate) fn host_port(s: &str) -> Result<(String, u16), String> {
 }
 
 pub(crate) fn scenario(s: &str) -> Result<String, String> {
-    if s == "all" || SCENARIOS.contains(&s) || host_tests::multi_pack::SCENARIOS.contains(&s) {
+    if s == "all"
+        || host_tests::closed_loop::SAFETY_SCENARIOS.contains(&s)
+        || host_tests::multi_pack::SCENARIOS.contains(&s)
+    {
         Ok(s.to_string())
     } else {
         Err("unknown scenario (see --scenario and --packs in --help)".into())
@@ -331,6 +349,10 @@ pub(crate) struct Options {
     pub(crate) forge_every_us: Option<u64>,
     pub(crate) quiet: bool,
     pub(crate) inverter: Option<Protocol>,
+    /// The simulated inverter ignores a current limit of 0 A (Deye-like).
+    pub(crate) ignores_zero: bool,
+    /// The bridge's stop_by_soc.
+    pub(crate) stop_by_soc: bool,
     pub(crate) scenario: Option<String>,
     pub(crate) can_log: Option<String>,
     pub(crate) json: Option<String>,
@@ -419,6 +441,10 @@ impl Cli {
         let inverter = match self.inverter {
             Some(InverterArg::Victron) => Some(Protocol::Victron),
             Some(InverterArg::Sma) => Some(Protocol::SmaSunnyIsland),
+            Some(InverterArg::Pylon) => Some(Protocol::Pylon),
+            Some(InverterArg::Solark) => Some(Protocol::SolArk),
+            Some(InverterArg::Luxpower) => Some(Protocol::Luxpower),
+            Some(InverterArg::Growatt) => Some(Protocol::Growatt),
             None => closed_loop.then_some(Protocol::Victron),
         };
         let seeds = match (self.seed, self.seeds) {
@@ -454,6 +480,8 @@ impl Cli {
             forge_every_us: self.forge_every,
             quiet: self.quiet,
             inverter,
+            ignores_zero: self.ignores_zero,
+            stop_by_soc: self.stop_by_soc,
             scenario: self.scenario,
             can_log: self.can_log,
             json: self.json,

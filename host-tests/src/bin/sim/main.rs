@@ -7,7 +7,10 @@
 
 use std::process::ExitCode;
 
-use host_tests::closed_loop::{run_scenario, scenario_row, ClosedLoop, SCENARIOS, SCENARIO_HEADER};
+use host_tests::closed_loop::{
+    run_scenario, safety_row, scenario_row, ClosedLoop, SAFETY_HEADER, SAFETY_SCENARIOS, SCENARIOS,
+    SCENARIO_HEADER,
+};
 use host_tests::real_time::{serve_sim_pty, SimOptions};
 use host_tests::real_time_station::{serve_bridge_pty, BridgePtyOptions};
 use host_tests::sim::{FaultConfig, SimBms, SimConfig};
@@ -531,6 +534,7 @@ fn run_packs(o: &Options, protocol: Protocol, n: usize) -> ExitCode {
         protocol,
         stale_policy: o.stale_policy.0,
         stale_hold_us: o.stale_policy.1,
+        stop_by_soc: o.stop_by_soc,
         ..InverterConfig::default()
     };
     let names: Vec<String> = match &o.scenario {
@@ -557,7 +561,10 @@ fn run_packs(o: &Options, protocol: Protocol, n: usize) -> ExitCode {
     };
     let mut all_ok = true;
     for name in names {
-        let start = |l: &mut multi_pack::MultiLoop| l.can_log = can_log.take();
+        let start = |l: &mut multi_pack::MultiLoop| {
+            l.can_log = can_log.take();
+            l.model.ignores_zero = o.ignores_zero;
+        };
         let Some((mut l, end)) = multi_pack::run_scenario(&name, n, config, start) else {
             eprintln!("sim: unknown scenario `{name}`");
             return ExitCode::from(2);
@@ -588,10 +595,19 @@ fn run_inverter(o: &Options, protocol: Protocol) -> ExitCode {
         protocol,
         stale_policy: o.stale_policy.0,
         stale_hold_us: o.stale_policy.1,
+        stop_by_soc: o.stop_by_soc,
         ..InverterConfig::default()
     };
+    // A 48 V hybrid inverter's protocol: the safety table, with the deep
+    // discharge, against the pack's truth.
+    let safety = protocol.low_voltage_family() || o.ignores_zero;
+    let all: &[&str] = if safety {
+        &SAFETY_SCENARIOS
+    } else {
+        &SCENARIOS
+    };
     let names: Vec<String> = match &o.scenario {
-        Some(s) if s == "all" => SCENARIOS.iter().map(|s| s.to_string()).collect(),
+        Some(s) if s == "all" => all.iter().map(|s| s.to_string()).collect(),
         Some(s) => vec![s.clone()],
         None => vec![String::new()],
     };
@@ -604,13 +620,21 @@ fn run_inverter(o: &Options, protocol: Protocol) -> ExitCode {
     };
     let mut can_log = can_log;
     let mut json_log = json_log;
-    println!("{SCENARIO_HEADER}");
+    println!(
+        "{}",
+        if safety {
+            SAFETY_HEADER
+        } else {
+            SCENARIO_HEADER
+        }
+    );
     let mut all_ok = true;
     for name in names {
         let mut start = |l: &mut ClosedLoop| {
             l.can_log = can_log.take();
             l.json_log = json_log.take();
             l.h.echo = !o.quiet;
+            l.model.ignores_zero = o.ignores_zero;
         };
         let (mut l, end) = if name.is_empty() {
             let mut l = ClosedLoop::new(o.pack, o.seeds.0, config, 100.0);
@@ -627,16 +651,16 @@ fn run_inverter(o: &Options, protocol: Protocol) -> ExitCode {
                 }
             }
         };
-        let (row, ok) = scenario_row(
-            if name.is_empty() {
-                "charge"
-            } else {
-                name.as_str()
-            },
-            &l,
-            end,
-            config,
-        );
+        let label = if name.is_empty() {
+            "charge"
+        } else {
+            name.as_str()
+        };
+        let (row, ok) = if safety {
+            safety_row(label, &l, end)
+        } else {
+            scenario_row(label, &l, end, config)
+        };
         all_ok &= ok;
         println!("{row}");
         can_log = l.can_log.take();
@@ -651,7 +675,14 @@ fn run_inverter(o: &Options, protocol: Protocol) -> ExitCode {
     if all_ok {
         ExitCode::SUCCESS
     } else {
-        println!("FAIL: a cell above the ceiling, or a CVL of 0 or per-cell size");
+        println!(
+            "{}",
+            if safety {
+                "FAIL: a cell or a current past the BMS's cutoff (the BMS would trip), or a CVL outside the cells' cutoffs"
+            } else {
+                "FAIL: a cell above the ceiling, or a CVL of 0 or per-cell size"
+            },
+        );
         ExitCode::from(1)
     }
 }
