@@ -436,8 +436,14 @@ def entities_of(ha, serial, obj):
 def may_be_unavailable(entity_id):
     """Entities unavailable by design while their value is absent: an
     external temperature sensor a pack may not have (the simulated packs of
-    some seeds have none), the event entity until a first event."""
-    return "_temperature_" in entity_id or entity_id.startswith("event.")
+    some seeds have none), the event entity until a first event, and what
+    stops charging or discharging, which only a 48 V hybrid inverter's
+    protocol reports (null with Victron, the simulator's default)."""
+    return (
+        "_temperature_" in entity_id
+        or entity_id.startswith("event.")
+        or entity_id.endswith(("_stopped_by", "_charge_stop", "_discharge_stop"))
+    )
 
 
 def ours(states, serial):
