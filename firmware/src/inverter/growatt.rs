@@ -18,7 +18,7 @@
 use super::control::{Conditions, Limits, PackSettings, PackState};
 use super::frames::CanFrame;
 use super::protocol::Period;
-use super::pylon::{self, Extras};
+use super::pylon::Extras;
 
 /// From the inverter, every second: the query (its bytes are not relied on:
 /// the spec's example is 11-22-33-44-55-66-77-88, and real inverters send
@@ -291,28 +291,11 @@ pub fn is_query(id: u16) -> bool {
     id == ID_QUERY
 }
 
-/// Re-exported for the tests of the answer: the Pylontech family's stops.
-pub use pylon::Stops;
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use pylon::StopWhy;
-
-    fn state() -> PackState {
-        PackState {
-            min_cell_mv: 3301,
-            max_cell_mv: 3345,
-            pack_v: 53.21,
-            current_a: -12.3,
-            soc_pct: 65.4,
-            soh_pct: 97.0,
-            min_temp_c: 21.5,
-            max_temp_c: 24.9,
-            fault: false,
-            charge_blocked: false,
-        }
-    }
+    use crate::inverter::pylon::tests::state;
+    use crate::inverter::pylon::{StopWhy, Stops};
 
     /// 0x311 (p.4): "Battery charge voltage … 0.1V", "Charge current limit
     /// … 0.1A", "Discharge current limit … 0.1A", big-endian; status bits

@@ -538,10 +538,12 @@ pub fn shutdown_asked(id: u16, data: &[u8]) -> bool {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn state() -> PackState {
+    /// A 16S pack at 53.21 V, discharging 12.3 A, 65.4 %, its cells
+    /// 3.301-3.345 V and its sensors 21.5-24.9 °C (the Growatt tests too).
+    pub(crate) fn state() -> PackState {
         PackState {
             min_cell_mv: 3301,
             max_cell_mv: 3345,
