@@ -152,13 +152,24 @@ fn frame(id: u16, bytes: &[u8]) -> CanFrame {
 }
 
 fn put16(out: &mut [u8; 8], at: usize, v: u16) {
-    let [lo, hi] = v.to_le_bytes();
+    put2(out, at, v.to_le_bytes());
+}
+
+/// Two bytes into a frame's data at `at` (nothing past byte 7).
+pub(super) fn put2(out: &mut [u8; 8], at: usize, bytes: [u8; 2]) {
     if let Some(s) = out.get_mut(at..at + 2) {
-        s.copy_from_slice(&[lo, hi]);
+        s.copy_from_slice(&bytes);
     }
 }
 
-fn clamp_i16(v: f32) -> i16 {
+/// Rounded half away from zero and saturated to a u16 (NaN: 0).
+pub(super) fn clamp_u16(v: f32) -> u16 {
+    // A NaN or a negative value saturates to 0 in the cast.
+    (v + 0.5).clamp(0.0, f32::from(u16::MAX)) as u16
+}
+
+/// Rounded half away from zero and saturated to an i16 (NaN: 0).
+pub(super) fn clamp_i16(v: f32) -> i16 {
     if v.is_nan() {
         0
     } else {

@@ -77,25 +77,23 @@ fn frame(id: u16, d: [u8; 8]) -> CanFrame {
     }
 }
 
-fn put(d: &mut [u8; 8], at: usize, v: [u8; 2]) {
-    if let Some(s) = d.get_mut(at..at + 2) {
-        s.copy_from_slice(&v);
-    }
-}
+use super::frames::put2 as put;
 
+/// Rounded and saturated to an i16, big-endian.
 fn s16(v: f32) -> [u8; 2] {
-    let r = if v >= 0.0 { v + 0.5 } else { v - 0.5 };
-    (r.clamp(f32::from(i16::MIN), f32::from(i16::MAX)) as i16).to_be_bytes()
+    super::frames::clamp_i16(v).to_be_bytes()
 }
 
+/// Rounded and saturated to a u16, big-endian.
 fn u16be(v: f32) -> [u8; 2] {
-    ((v + 0.5).clamp(0.0, f32::from(u16::MAX)) as u16).to_be_bytes()
+    super::frames::clamp_u16(v).to_be_bytes()
 }
 
-/// 0x311: the limits told and the status word.
+/// 0x311: the limits told and the status word (`current_a`: the pack's
+/// current, positive charging).
 pub fn limits_frame(
     l: &Limits,
-    s: &PackState,
+    current_a: f32,
     c: &Conditions,
     x: &Extras,
     parallel: bool,
@@ -104,9 +102,9 @@ pub fn limits_frame(
     put(&mut d, 0, l.cvl_dv.to_be_bytes());
     put(&mut d, 2, l.ccl_da.to_be_bytes());
     put(&mut d, 4, l.dcl_da.to_be_bytes());
-    let mut status = if s.current_a > REST_A {
+    let mut status = if current_a > REST_A {
         STATE_CHARGING
-    } else if s.current_a < -REST_A {
+    } else if current_a < -REST_A {
         STATE_DISCHARGING
     } else {
         STATE_STANDBY
@@ -242,7 +240,7 @@ pub fn answer_frames(p: &Period<'_>, push: &mut impl FnMut(CanFrame)) {
     let cells = p.settings.map_or(0, |s| s.cells.saturating_mul(packs));
     push(limits_frame(
         &x.limits(p.limits, p.state),
-        p.state,
+        p.state.current_a,
         p.conditions,
         x,
         packs > 1,
@@ -263,26 +261,8 @@ pub fn answer_frames(p: &Period<'_>, push: &mut impl FnMut(CanFrame)) {
 /// Stale data, as the answer to a query: 0x311 with `limits` (stopped as
 /// `x` says) and 0x312 with `c` (the link lost flagged); no measurement.
 pub fn stale_frames(limits: &Limits, c: &Conditions, x: &Extras, push: &mut impl FnMut(CanFrame)) {
-    let mut l = *limits;
-    if x.stops.charge.is_some() {
-        l.ccl_da = 0;
-    }
-    if x.stops.discharge.is_some() {
-        l.dcl_da = 0;
-    }
-    let rest = PackState {
-        min_cell_mv: 0,
-        max_cell_mv: 0,
-        pack_v: 0.0,
-        current_a: 0.0,
-        soc_pct: 0.0,
-        soh_pct: 0.0,
-        min_temp_c: 0.0,
-        max_temp_c: 0.0,
-        fault: false,
-        charge_blocked: false,
-    };
-    push(limits_frame(&l, &rest, c, x, false));
+    // No current of now is known: the status says standby.
+    push(limits_frame(&x.stopped(limits), 0.0, c, x, false));
     push(alarms_frame(c, 1, 0));
 }
 
@@ -312,7 +292,7 @@ mod tests {
         };
         let f = limits_frame(
             &l,
-            &state(),
+            state().current_a,
             &Conditions::default(),
             &Extras::default(),
             false,
@@ -336,7 +316,7 @@ mod tests {
             },
             ..Extras::default()
         };
-        let f = limits_frame(&l, &state(), &Conditions::default(), &x, true);
+        let f = limits_frame(&l, state().current_a, &Conditions::default(), &x, true);
         // Charge disabled, parallel (bits 8-9 = 01).
         assert_eq!(&f.bytes()[6..], [0x01, 0x2B]);
     }

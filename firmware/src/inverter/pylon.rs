@@ -181,6 +181,11 @@ impl Stops {
         }
     }
 
+    /// The keys of both sides for the host link and MQTT ([`stop_key`]).
+    pub const fn keys(&self) -> (&'static str, &'static str) {
+        (stop_key(self.charge), stop_key(self.discharge))
+    }
+
     /// Nothing must stop.
     pub const fn none(&self) -> bool {
         self.charge.is_none() && self.discharge.is_none()
@@ -273,13 +278,22 @@ impl Extras {
     /// stop, so an inverter that ignores a charge current limit of 0 still
     /// stops: it is already past its charge voltage.
     pub fn limits(&self, l: &Limits, state: &PackState) -> Limits {
-        let mut out = *l;
+        let mut out = self.stopped(l);
         if self.stops.charge.is_some() {
-            out.ccl_da = 0;
             let pack_dv = (state.pack_v * 10.0).max(0.0) as u16;
             if pack_dv > BELOW_PACK_DV {
                 out.cvl_dv = out.cvl_dv.min(pack_dv - BELOW_PACK_DV);
             }
+        }
+        out
+    }
+
+    /// `l` with the current limit of each side that must stop at 0 (the
+    /// charge voltage as it is: with stale data no voltage of now is known).
+    pub fn stopped(&self, l: &Limits) -> Limits {
+        let mut out = *l;
+        if self.stops.charge.is_some() {
+            out.ccl_da = 0;
         }
         if self.stops.discharge.is_some() {
             out.dcl_da = 0;
@@ -327,21 +341,16 @@ fn frame(id: u16, len: u8, data: [u8; 8]) -> CanFrame {
     CanFrame { id, len, data }
 }
 
-fn put(d: &mut [u8; 8], at: usize, v: [u8; 2]) {
-    if let Some(s) = d.get_mut(at..at + 2) {
-        s.copy_from_slice(&v);
-    }
-}
+use super::frames::put2 as put;
 
-/// Rounded and saturated to an i16.
+/// Rounded and saturated to an i16, little-endian.
 fn s16(v: f32) -> [u8; 2] {
-    let r = if v >= 0.0 { v + 0.5 } else { v - 0.5 };
-    (r.clamp(f32::from(i16::MIN), f32::from(i16::MAX)) as i16).to_le_bytes()
+    super::frames::clamp_i16(v).to_le_bytes()
 }
 
-/// Rounded and saturated to a u16.
+/// Rounded and saturated to a u16, little-endian.
 fn u16le(v: f32) -> [u8; 2] {
-    ((v + 0.5).clamp(0.0, f32::from(u16::MAX)) as u16).to_le_bytes()
+    super::frames::clamp_u16(v).to_le_bytes()
 }
 
 /// The length of `p`'s frames: Sol-Ark and Luxpower always 8; Pylon as
@@ -520,14 +529,7 @@ pub fn stale_frames(
     x: &Extras,
     push: &mut impl FnMut(CanFrame),
 ) {
-    let mut l = *limits;
-    if x.stops.charge.is_some() {
-        l.ccl_da = 0;
-    }
-    if x.stops.discharge.is_some() {
-        l.dcl_da = 0;
-    }
-    push(limits_frame(p, &l));
+    push(limits_frame(p, &x.stopped(limits)));
     push(alarms_frame(p, c, 1, 0));
     push(flags_frame(p, c, x));
 }

@@ -545,10 +545,7 @@ impl Publisher {
             bridge_firmware: &self.bridge_text,
             can_state: view.inverter.map(|i| i.can.key()),
             inverter_heard: view.inverter.map(|i| i.heard),
-            stops: view.inverter.and_then(|i| i.stops).map(|s| {
-                use crate::inverter::pylon::stop_key;
-                (stop_key(s.charge), stop_key(s.discharge))
-            }),
+            stops: view.inverter.and_then(|i| i.stops).map(|s| s.keys()),
             wifi_rssi_dbm: view.wifi_rssi_dbm,
         };
         let head = TelemetryHead {

@@ -395,10 +395,7 @@ impl Station {
             can: i.can_state().key(),
             heard: i.inverter_heard(),
             limits: i.limits_sent(now).map(|l| (l.cvl_dv, l.ccl_da, l.dcl_da)),
-            stops: i.protection().map(|s| {
-                use crate::inverter::pylon::stop_key;
-                (stop_key(s.charge), stop_key(s.discharge))
-            }),
+            stops: i.protection().map(|s| s.keys()),
         });
         let h = self.host.as_mut()?;
         h.on_inverter(inverter);

@@ -525,18 +525,24 @@ fn open_log(path: &Option<String>) -> Result<Option<Box<dyn std::io::Write>>, St
     }
 }
 
-/// Packs in parallel: one scenario or all of them with `n` packs. Prints each
-/// pack's figures; exits 1 if any pack went past its own cutoffs, two bridges
-/// spoke, or the inverter was without limits too long.
-fn run_packs(o: &Options, protocol: Protocol, n: usize) -> ExitCode {
-    use host_tests::multi_pack;
-    let config = InverterConfig {
+/// The inverter output of the closed loops: `protocol`, the stale policy and
+/// stop_by_soc as given, the rest at the defaults.
+fn inverter_config(o: &Options, protocol: Protocol) -> InverterConfig {
+    InverterConfig {
         protocol,
         stale_policy: o.stale_policy.0,
         stale_hold_us: o.stale_policy.1,
         stop_by_soc: o.stop_by_soc,
         ..InverterConfig::default()
-    };
+    }
+}
+
+/// Packs in parallel: one scenario or all of them with `n` packs. Prints each
+/// pack's figures; exits 1 if any pack went past its own cutoffs, two bridges
+/// spoke, or the inverter was without limits too long.
+fn run_packs(o: &Options, protocol: Protocol, n: usize) -> ExitCode {
+    use host_tests::multi_pack;
+    let config = inverter_config(o, protocol);
     let names: Vec<String> = match &o.scenario {
         None => vec!["full-charge".to_string()],
         Some(s) if s == "all" => multi_pack::SCENARIOS
@@ -591,13 +597,7 @@ fn run_packs(o: &Options, protocol: Protocol, n: usize) -> ExitCode {
 /// `--duration`. Prints the figures; exits 1 if a cell went over the ceiling or
 /// a CVL was 0 or per-cell-sized.
 fn run_inverter(o: &Options, protocol: Protocol) -> ExitCode {
-    let config = InverterConfig {
-        protocol,
-        stale_policy: o.stale_policy.0,
-        stale_hold_us: o.stale_policy.1,
-        stop_by_soc: o.stop_by_soc,
-        ..InverterConfig::default()
-    };
+    let config = inverter_config(o, protocol);
     // A 48 V hybrid inverter's protocol: the safety table, with the deep
     // discharge, against the pack's truth.
     let safety = protocol.low_voltage_family() || o.ignores_zero;
