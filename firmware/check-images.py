@@ -5,23 +5,29 @@ to a board is what it should be.
 Usage: check-images.py [DIR]   (default: target/images)
 
 For every tinybms-<board>[-suffix].bin (merged) and its -app.bin:
-  * the bootloader at 0x0 and the app at the factory partition are ESP images of
-    the board's chip whose checksum and SHA-256 esptool finds valid
-    (`esptool image-info`);
-  * the partition table at 0x8000 is espflash's default: nvs (data/nvs) at 0x9000,
-    0x6000 bytes — the partition the configuration store uses — and the factory
-    app at 0x10000;
-  * the app fits its partition;
-  * the -app.bin is byte for byte the app inside the merged image, and the
+  * the bootloader at 0x0 and the app in ota_0 are ESP images of the board's
+    chip whose checksum and SHA-256 esptool finds valid (`esptool image-info`);
+  * the partition table at 0x8000 is partitions.csv's: nvs (data/nvs) at
+    0x9000, 0x6000 bytes — the partition the configuration store uses, where
+    it has always been —, otadata at 0x10000 (0x2000 bytes), the app slots
+    ota_0 at 0x20000 and ota_1 at 0x210000 (0x1f0000 bytes each);
+  * the app fits its slot;
+  * the -app.bin is byte for byte the app inside the merged image, the
     -boot.bin its first 0x9000 bytes (bootloader and partition table, ending
-    where the nvs partition starts);
-  * SHA256SUMS lists every image with its right checksum;
+    where the nvs partition starts), and the -otadata.bin 0x2000 bytes of FF;
+  * the update file tinybms-<board>[-suffix].tbu: its header names the chip,
+    the board, the version of the manifest and the features of the image
+    (wifi with -wifi), its image is the -app.bin, its SHA-256 the one signed,
+    and its Ed25519 signature verifies with the key in update-key.pub (the one
+    built into the images; openssl checks it);
+  * SHA256SUMS lists every image and update file with its right checksum;
   * every manifest-<board>[-suffix].json (ESP Web Tools, the browser
     installer) names the firmware as the firmware names itself (PRODUCT in
-    src/improv/mod.rs), the chip family of the board's chip, and exactly two
-    parts: the -boot.bin at 0 and the -app.bin at the factory partition's
-    offset, both files present here — so the installer writes what these
-    checks checked and never the nvs partition (the stored configuration).
+    src/improv/mod.rs), the chip family of the board's chip, and exactly three
+    parts: the -boot.bin at 0, the -otadata.bin at 0x10000 and the -app.bin
+    at ota_0's offset, all present here — so the installer writes what these
+    checks checked, boots ota_0, and never touches the nvs partition (the
+    stored configuration).
 Exit status 0 when all hold; 1 otherwise (each problem printed).
 """
 import hashlib
@@ -34,7 +40,11 @@ import sys
 
 PARTITION_TABLE = 0x8000
 NVS = (0x9000, 0x6000)
-FACTORY = 0x10000
+OTADATA = (0x10000, 0x2000)
+OTA_0 = (0x20000, 0x1F0000)
+OTA_1 = (0x210000, 0x1F0000)
+HEADER = 256
+SIGNED = 192
 
 
 def chip_of(board):
@@ -117,7 +127,8 @@ def check_manifest(dirname, merged_name, chip, app_offset, problems):
         problems.append(f"{what}: want one build for {family}: {builds}")
         return
     parts = builds[0].get("parts") or []
-    want = [(f"tinybms-{stem}-boot.bin", 0), (f"tinybms-{stem}-app.bin", app_offset)]
+    want = [(f"tinybms-{stem}-boot.bin", 0), (f"tinybms-{stem}-otadata.bin", OTADATA[0]),
+            (f"tinybms-{stem}-app.bin", app_offset)]
     got = [(p.get("path"), p.get("offset")) for p in parts]
     if got != want:
         problems.append(f"{what}: parts {got}, want {want}")
@@ -128,13 +139,78 @@ def check_manifest(dirname, merged_name, chip, app_offset, problems):
     if os.path.exists(boot) and os.path.getsize(boot) > NVS[0]:
         problems.append(f"{what}: the part at 0 reaches into the nvs partition")
     if not [x for x in problems if x.startswith(what)]:
-        print(f"{what}: {family}, boot at 0x0 + app at {app_offset:#x}, nvs untouched: ok")
+        print(f"{what}: {family}, boot at 0x0 + otadata erased + app at {app_offset:#x}, "
+              f"nvs untouched: ok")
+
+
+def text_field(header, start, end):
+    raw = header[start:end]
+    return raw.split(b"\0", 1)[0].decode("ascii", "replace")
+
+
+def verify_ed25519(public_hex, message, signature):
+    """True when openssl verifies the Ed25519 `signature` of `message`."""
+    import tempfile
+    der = bytes.fromhex("302a300506032b6570032100") + bytes.fromhex(public_hex)
+    with tempfile.TemporaryDirectory() as d:
+        paths = {n: os.path.join(d, n) for n in ("pub.der", "msg", "sig")}
+        for n, data in (("pub.der", der), ("msg", message), ("sig", signature)):
+            with open(paths[n], "wb") as f:
+                f.write(data)
+        r = subprocess.run(["openssl", "pkeyutl", "-verify", "-pubin", "-keyform", "DER",
+                            "-inkey", paths["pub.der"], "-rawin", "-in", paths["msg"],
+                            "-sigfile", paths["sig"]], capture_output=True, text=True)
+        return r.returncode == 0
+
+
+def check_update(dirname, n, chip, app, problems):
+    """The signed update file of the merged image `n`."""
+    stem = n[len("tinybms-"):-len(".bin")]
+    path = os.path.join(dirname, f"tinybms-{stem}.tbu")
+    what = os.path.basename(path)
+    if not os.path.exists(path):
+        problems.append(f"{n}: {what} missing")
+        return
+    data = open(path, "rb").read()
+    header, image = data[:HEADER], data[HEADER:]
+    board = stem[:-len("-wifi")] if stem.endswith("-wifi") else stem
+    if header[:8] != b"TBMSUPD1":
+        problems.append(f"{what}: no TBMSUPD1 header")
+        return
+    length = struct.unpack("<I", header[8:12])[0]
+    if length != len(image):
+        problems.append(f"{what}: the header says {length} bytes of image, {len(image)} follow")
+    if image != app:
+        problems.append(f"{what}: its image is not the -app.bin")
+    if header[12:44] != hashlib.sha256(image).digest():
+        problems.append(f"{what}: the image's SHA-256 is not the signed one")
+    fields = {"chip": text_field(header, 44, 60), "board": text_field(header, 60, 84),
+              "features": text_field(header, 84, 124), "version": text_field(header, 124, 148)}
+    if fields["chip"] != chip or fields["board"] != board:
+        problems.append(f"{what}: for {fields['chip']} {fields['board']}, not {chip} {board}")
+    features = fields["features"].split(",")
+    if ("wifi" in features) != stem.endswith("-wifi") or "host-link" not in features:
+        problems.append(f"{what}: features {fields['features']!r} are not the image's")
+    manifest = os.path.join(dirname, f"manifest-{stem}.json")
+    if os.path.exists(manifest):
+        want = json.load(open(manifest)).get("version", "").split("+")[0]
+        if fields["version"] != want:
+            problems.append(f"{what}: version {fields['version']!r}, the manifest says {want!r}")
+    pub_path = os.path.join(dirname, "update-key.pub")
+    if not os.path.exists(pub_path):
+        problems.append("update-key.pub missing: no key to check the signatures with")
+    elif not verify_ed25519(open(pub_path).read().strip(), header[:SIGNED], header[SIGNED:HEADER]):
+        problems.append(f"{what}: the signature does not verify with update-key.pub")
+    if not [p for p in problems if p.startswith(what)]:
+        print(f"{what}: {chip} {board} {fields['version']} ({fields['features']}), "
+              f"{len(image)} bytes, SHA-256 and Ed25519 signature verified: ok")
 
 
 def check(dirname):
     problems = []
-    names = sorted(n for n in os.listdir(dirname) if n.endswith(".bin"))
-    merged = [n for n in names if not n.endswith("-app.bin") and not n.endswith("-boot.bin")]
+    names = sorted(n for n in os.listdir(dirname) if n.endswith(".bin") or n.endswith(".tbu"))
+    parts_of = ("-app.bin", "-boot.bin", "-otadata.bin")
+    merged = [n for n in names if n.endswith(".bin") and not n.endswith(parts_of)]
     if not merged:
         return [f"{dirname}: no images"]
     sums = {}
@@ -162,18 +238,32 @@ def check(dirname):
         nvs = [p for p in parts if p[0] == 1 and p[1] == 2 and p[4] == "nvs"]
         if not nvs or (nvs[0][2], nvs[0][3]) != NVS:
             problems.append(f"{n}: no nvs partition at 0x9000 of 0x6000 bytes: {parts}")
-        factory = [p for p in parts if p[0] == 0 and p[1] == 0]
-        if not factory or factory[0][2] != FACTORY:
-            problems.append(f"{n}: no factory app at 0x10000: {parts}")
-        app = image[FACTORY:]
+        otadata = [p for p in parts if p[0] == 1 and p[1] == 0]
+        slots = [[p for p in parts if p[0] == 0 and p[1] == 0x10 + i] for i in (0, 1)]
+        if not otadata or (otadata[0][2], otadata[0][3]) != OTADATA:
+            problems.append(f"{n}: no otadata at 0x10000 of 0x2000 bytes: {parts}")
+        for i, want in ((0, OTA_0), (1, OTA_1)):
+            if not slots[i] or (slots[i][0][2], slots[i][0][3]) != want:
+                problems.append(f"{n}: no ota_{i} at {want[0]:#x} of {want[1]:#x} bytes: {parts}")
+        if [p for p in parts if p[0] == 0 and p[1] == 0]:
+            problems.append(f"{n}: a factory app besides the two slots: {parts}")
+        ends = sorted((p[2], p[2] + p[3], p[4]) for p in parts)
+        for (a0, a1, la), (b0, b1, lb) in zip(ends, ends[1:]):
+            if a1 > b0:
+                problems.append(f"{n}: {la} overlaps {lb}")
+        if ends and ends[-1][1] > 0x400000:
+            problems.append(f"{n}: {ends[-1][2]} reaches past 4 MiB")
+        app = image[OTA_0[0]:]
+        if image[OTADATA[0]:OTADATA[0] + OTADATA[1]].strip(b"\xff"):
+            problems.append(f"{n}: otadata is not erased in the merged image")
         if not app or app[0] != 0xE9:
-            problems.append(f"{n}: no app image at 0x10000")
+            problems.append(f"{n}: no app image at {OTA_0[0]:#x}")
             continue
         if struct.unpack("<H", app[12:14])[0] != chip_id:
             problems.append(f"{n}: the app is not for {chip}")
-        if factory and len(app) > factory[0][3]:
-            problems.append(f"{n}: the app ({len(app)} bytes) does not fit the factory "
-                            f"partition ({factory[0][3]} bytes)")
+        if len(app) > OTA_0[1]:
+            problems.append(f"{n}: the app ({len(app)} bytes) does not fit its slot "
+                            f"({OTA_0[1]} bytes)")
         info = image_info(chip, app, f"{n} app", problems) or ""
         app_path = os.path.join(dirname, n[:-len(".bin")] + "-app.bin")
         if not os.path.exists(app_path):
@@ -185,9 +275,16 @@ def check(dirname):
             problems.append(f"{n}: {os.path.basename(boot_path)} missing")
         elif open(boot_path, "rb").read() != image[:NVS[0]]:
             problems.append(f"{os.path.basename(boot_path)}: not the first 0x9000 bytes of {n}")
-        check_manifest(dirname, n, chip, factory[0][2] if factory else FACTORY, problems)
+        ota_path = os.path.join(dirname, n[:-len(".bin")] + "-otadata.bin")
+        if not os.path.exists(ota_path):
+            problems.append(f"{n}: {os.path.basename(ota_path)} missing")
+        elif open(ota_path, "rb").read() != b"\xff" * OTADATA[1]:
+            problems.append(f"{os.path.basename(ota_path)}: not 0x2000 bytes of FF")
+        check_manifest(dirname, n, chip, OTA_0[0], problems)
+        check_update(dirname, n, chip, app, problems)
         size = re.search(r"Image size: (\d+)", info)
-        print(f"{n}: {chip}, bootloader + partition table (nvs 0x9000+0x6000, factory 0x10000) "
+        print(f"{n}: {chip}, bootloader + partition table (nvs 0x9000+0x6000, otadata "
+              f"0x10000, ota_0 0x20000, ota_1 0x210000) "
               f"+ app of {size.group(1) if size else '?'} bytes: ok"
               if not [p for p in problems if p.startswith(n)] else f"{n}: PROBLEMS")
     return problems

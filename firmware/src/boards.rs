@@ -618,6 +618,16 @@ pub const XIAO_ESP32C6: Board = Board {
     labels: ["D5", "D4", "D2", "D3"],
 };
 
+/// A board's short key (its feature without `board-`: `c3-supermini`) from
+/// its name in the table (`ESP32-C3 SuperMini`); a name the table does not
+/// hold (the desktop's `simulated`) is its own key. Update files name
+/// boards by key.
+pub fn key_of(name: &str) -> &str {
+    BOARDS.iter().find(|b| b.name == name).map_or(name, |b| {
+        b.feature.strip_prefix("board-").unwrap_or(b.feature)
+    })
+}
+
 /// Every supported board.
 pub const BOARDS: &[Board] = &[
     C3_DEVKITM_1,

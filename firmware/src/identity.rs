@@ -57,6 +57,8 @@ pub struct Identity {
     pub board: &'static str,
     /// What is built in.
     pub features: Features,
+    /// The firmware's version ([`FIRMWARE`]; on the desk, the image booted).
+    pub firmware: &'static str,
 }
 
 impl Identity {
@@ -66,6 +68,7 @@ impl Identity {
             chip,
             board: "simulated",
             features,
+            firmware: FIRMWARE,
         }
     }
 }

@@ -22,6 +22,7 @@
 //! | this installation | [`config`] | the bridge's own configuration: the record, its checks, its store in flash |
 //! | | [`boards`] | the supported boards' pins and log paths, checked at compile time |
 //! | | [`partitions`] | the ESP-IDF partition table, read from its bytes |
+//! | | [`update`] | updates without a cable: signed update files, the transfer into the other app slot, the trial boot that rolls itself back |
 //! | | [`identity`], [`energy`] | who the bridge is (firmware, build, chip, board, features); energy into and out of the pack |
 //! | all of it | [`station`] | **the entry point**: one bridge with everything it feeds, wired together — what the chip runs and every desktop runner runs |
 //! | shared | [`freshness`] | the one freshness rule and the one stale choice |
@@ -68,6 +69,7 @@ pub mod partitions;
 pub mod station;
 pub mod text;
 pub mod units;
+pub mod update;
 pub mod wifi;
 
 pub use bms::link::{LinkStats, Transmit};

@@ -142,6 +142,9 @@ pub struct BridgePtyOptions {
     pub freeze: Option<(Duration, Duration)>,
     /// Stand for an image without Wi-Fi (`--no-wifi`: its `hello` says so).
     pub no_wifi: bool,
+    /// Stand for this board's image (`--board`): its chip and name in
+    /// `hello`, what an update file must name.
+    pub board: Option<String>,
     /// Write what the bridge sends on CAN here, as a candump log (`--can-log`).
     pub can_log: Option<std::path::PathBuf>,
     /// (at, for): the simulated BMS answers nothing then, while the bridge
@@ -170,11 +173,20 @@ pub fn serve_bridge_pty(
     };
     let client_id = sim_client_id(&sim);
     let mut h = Hosted::with_wifi(SimPort::new(sim), o.bridge, flash, "sim", !o.no_wifi);
+    let board = o.board.as_deref().and_then(|n| {
+        tinybms_firmware::boards::BOARDS
+            .iter()
+            .find(|b| b.name == n)
+    });
+    if let Some(b) = board {
+        h.setup.identity.board = b.name;
+        h.setup.identity.chip = b.chip.name();
+    }
     h.change_config(&o.config).map_err(io::Error::other)?;
     // Start-up options are what the bridge boots with: the changes stored,
     // then a restart, so those that apply at the next restart (the MQTT
     // topics, discovery, the inverter protocol) apply now.
-    if !o.config.is_empty() {
+    if !o.config.is_empty() || board.is_some() {
         h.restart();
     }
     let can_log = match &o.can_log {

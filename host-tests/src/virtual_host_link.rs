@@ -237,7 +237,13 @@ pub fn fuzz_one(data: &[u8]) {
     let mut now = 0;
     for piece in input.chunks(chunk.max(1)) {
         now += 10 * MS;
-        link.handle_rx(now, piece, &mut bridge, &mut cfg);
+        link.handle_rx(
+            now,
+            piece,
+            &mut bridge,
+            &mut cfg,
+            &mut tinybms_firmware::update::Ota::default(),
+        );
         link.poll(now, &bridge);
         while let Some(n) = link.next_line(now, &bridge, &cfg, &mut buf) {
             let line = check_line(buf.get(..n).unwrap_or(&[]));

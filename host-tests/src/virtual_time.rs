@@ -226,6 +226,16 @@ pub struct Harness {
     /// inverter model). Off: it returns at the end time, as a plain
     /// `while now < end` loop.
     pub finish_at_end: bool,
+    /// The chip's flash for updates (`None`: an update's flash work fails).
+    pub ota: Option<tinybms_desk::ota::ChipFlash>,
+    /// How long an update's erase, program and `otadata` write stop the
+    /// CPU, µs (the boards' flash: about 45, 15 and 45 ms).
+    pub flash_stall_us: (u64, u64, u64),
+    /// Every update flash operation: its time and its name.
+    pub flash_ops: Vec<(u64, &'static str)>,
+    /// The station asked for a restart (an update installed): the run
+    /// stopped there.
+    pub restart_requested: bool,
 }
 
 impl Harness {
@@ -267,6 +277,10 @@ impl Harness {
             host_port: None,
             port_busy_us: 0,
             finish_at_end: false,
+            ota: None,
+            flash_stall_us: (45_000, 15_000, 45_000),
+            flash_ops: Vec::new(),
+            restart_requested: false,
         }
     }
 
@@ -424,6 +438,30 @@ impl Harness {
                     }
                     self.station.can_recovered(self.now, ok);
                     continue;
+                }
+                Action::Flash(op) => {
+                    use tinybms_firmware::update::transfer::Op;
+                    let layout = self.station.ota().layout().copied();
+                    let bytes = self.station.program_bytes().to_vec();
+                    let ok = self.ota.as_mut().is_some_and(|f| {
+                        tinybms_firmware::update::flash::run(f, layout.as_ref(), op, &bytes)
+                    });
+                    let (erase, program, otadata) = self.flash_stall_us;
+                    let stall = match op {
+                        Op::Erase(_) => erase,
+                        Op::Program(_) => program,
+                        Op::Otadata(_) => otadata,
+                    };
+                    self.flash_ops
+                        .push((self.now, tinybms_firmware::station::ota::op_name(&op)));
+                    self.station.flashed(self.now, ok);
+                    self.stall(stall);
+                    self.drain();
+                    continue;
+                }
+                Action::Restart => {
+                    self.restart_requested = true;
+                    break;
                 }
                 Action::Save => {
                     let (result, stall) = match self.saver.as_mut() {

@@ -341,15 +341,24 @@ fn full_record() -> Config {
     c.inverter_name.clear();
     c.inverter_name.push_str("GOODWE").unwrap();
     c.stop_by_soc = true;
+    c.update_key.clear();
+    c.update_key.push_str(&"ab".repeat(32)).unwrap();
     c
 }
 
 /// `c` as a record of an older layout holds it: the fields added in
-/// version 4 (`inverter_name`, `stop_by_soc`) at their defaults.
+/// version 4 (`inverter_name`, `stop_by_soc`) and 5 (`update_key`) at their
+/// defaults.
 fn before_version_4(mut c: Config) -> Config {
     let d = Config::default();
     c.inverter_name = d.inverter_name;
     c.stop_by_soc = d.stop_by_soc;
+    before_version_5(c)
+}
+
+/// `c` as a version-4 record holds it: `update_key` (version 5) empty.
+fn before_version_5(mut c: Config) -> Config {
+    c.update_key = Config::default().update_key;
     c
 }
 
@@ -398,7 +407,7 @@ fn a_version_1_record_keeps_the_owners_configuration_and_pack_node_defaults() {
     c.pack_name.clear();
     let v1 = v1_record(&c);
     assert_eq!(v1[2], 1);
-    assert_eq!(usize::from(v1[3]), FIELDS.len() - 4);
+    assert_eq!(usize::from(v1[3]), FIELDS.len() - 5);
     assert_eq!(codec::decode(&v1).unwrap(), c);
     // A field a version-1 record cannot hold is refused in one.
     let mut with_node = v1.clone();
@@ -427,7 +436,7 @@ fn a_version_2_record_keeps_the_owners_configuration_and_no_pack_name() {
     let mut c = before_version_4(full_record());
     c.pack_name.clear();
     let v2 = record_of_version(&c, 2);
-    assert_eq!(usize::from(v2[3]), FIELDS.len() - 3);
+    assert_eq!(usize::from(v2[3]), FIELDS.len() - 4);
     assert_eq!(codec::decode(&v2).unwrap(), c);
     let tag = field("pack_name").field().tag;
     assert_eq!(codec::introduced(tag), 3);
@@ -448,6 +457,22 @@ fn a_version_2_record_keeps_the_owners_configuration_and_no_pack_name() {
     );
 }
 
+/// Issue 41: `update_key` came with layout version 5. A version-4 record
+/// keeps the owner's configuration with no key of the owner's: only the key
+/// built into the image is trusted.
+#[test]
+fn a_version_4_record_keeps_the_owners_configuration_and_no_update_key() {
+    let full = full_record();
+    let v4 = record_of_version(&full, 4);
+    assert_eq!(v4[2], 4);
+    assert_eq!(usize::from(v4[3]), FIELDS.len() - 1);
+    let got = codec::decode(&v4).unwrap();
+    assert_eq!(got, before_version_5(full.clone()));
+    assert!(got.update_key.is_empty() && got.update_key().is_none());
+    assert_eq!(codec::introduced(field("update_key").field().tag), 5);
+    assert!(full.update_key().is_some());
+}
+
 /// Issue 40: `inverter_name` and `stop_by_soc` came with layout version 4.
 /// A version-3 record (what the bridge stored before) keeps the owner's
 /// configuration with the name PYLON and stop_by_soc off; a version-4
@@ -458,7 +483,7 @@ fn a_version_3_record_keeps_the_owners_configuration_and_the_hybrid_defaults() {
     let c = before_version_4(full.clone());
     let v3 = record_of_version(&full, 3);
     assert_eq!(v3[2], 3);
-    assert_eq!(usize::from(v3[3]), FIELDS.len() - 2);
+    assert_eq!(usize::from(v3[3]), FIELDS.len() - 3);
     let got = codec::decode(&v3).unwrap();
     assert_eq!(got, c);
     assert_eq!(got.inverter_name.as_str(), "PYLON");

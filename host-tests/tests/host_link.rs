@@ -1563,6 +1563,7 @@ fn the_longest_boot_lines_all_fit() {
         Identity {
             chip: "esp32c6",
             board,
+            firmware: tinybms_firmware::identity::FIRMWARE,
             features: Features {
                 can: true,
                 host_link: true,

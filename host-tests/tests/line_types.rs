@@ -29,6 +29,7 @@ fn written_back(line: &HostLine) -> Value {
         HostLine::Accepted(l) => serde_json::to_value(l),
         HostLine::Outcome(l) => serde_json::to_value(l),
         HostLine::ResetDone(l) => serde_json::to_value(l),
+        HostLine::Update(l) => serde_json::to_value(l),
         HostLine::Cleared(l) => serde_json::to_value(l),
         HostLine::Raw(l) => serde_json::to_value(l),
         HostLine::Error(l) => serde_json::to_value(l),
@@ -65,7 +66,7 @@ fn round_trip(v: &Value) -> String {
 fn every_line_of_a_host_session_reads_back_whole() {
     let mut l = ClosedLoop::from_flash(PackModel::LiFePO4_16S, 3, RamFlash::new(), 100.0);
     l.h.sim.set_soc_percent(40.0);
-    let script: [(u64, &str); 17] = [
+    let script: [(u64, &str); 19] = [
         (1, r#"{"cmd":"hello","req":1}"#),
         (5, r#"{"cmd":"stream","period_ms":500,"req":2}"#),
         (30, r#"{"cmd":"get","what":"settings","req":3}"#),
@@ -95,6 +96,8 @@ fn every_line_of_a_host_session_reads_back_whole() {
         (300, r#"{"cmd":"capture","on":true,"req":15}"#),
         (302, r#"{"cmd":"capture","on":false,"req":16}"#),
         (310, r#"{"cmd":"reset","req":17}"#),
+        (320, r#"{"cmd":"update_status","req":18}"#),
+        (321, r#"{"cmd":"update_begin","size":100,"req":19}"#),
     ];
     for (at_s, line) in script {
         l.run_until(at_s * 1_000_000);
@@ -127,6 +130,7 @@ fn every_line_of_a_host_session_reads_back_whole() {
         "raw",
         "log",
         "reset_done",
+        "update",
     ];
     let missing: Vec<_> = want.iter().filter(|t| !seen.contains(**t)).collect();
     assert!(

@@ -13,6 +13,7 @@
 //! | [`store`] | — | the configuration record in the `nvs` flash partition |
 //! | [`log`] | — | log lines → defmt (the words come from the library) |
 //! | [`wires`] | — | every static the tasks share, each with its role |
+//! | [`ota`] | — | updates: `otadata` at boot, the slot's flash work, the restart |
 //! | [`panic`] | — | the panic handler: backtrace, then reset |
 //!
 //! The station task owns the `Station` and does what it says; the other tasks
@@ -52,6 +53,7 @@ mod can;
 mod log;
 #[cfg(feature = "wifi")]
 mod network;
+mod ota;
 mod panic;
 mod station;
 mod store;
@@ -120,6 +122,7 @@ const MAIN_PRIORITY: usize = 31;
 const IDENTITY: tinybms_firmware::identity::Identity = tinybms_firmware::identity::Identity {
     chip: BOARD.chip.name(),
     board: BOARD.name,
+    firmware: tinybms_firmware::identity::FIRMWARE,
     features: tinybms_firmware::identity::Features {
         can: cfg!(feature = "can"),
         host_link: cfg!(feature = "host-link"),
@@ -149,6 +152,9 @@ async fn main(spawner: Spawner) {
     esp_rtos::start(timg0.timer0, p.FROM_CPU_INTR0);
     esp_rtos::CurrentThreadHandle::get().set_priority(MAIN_PRIORITY);
 
+    // Updates: otadata, the trial's mark or the rollback (which restarts
+    // here), before anything runs.
+    let (chip_ota, ota) = ota::boot();
     // The configuration record, before any task that runs with it. (Reading
     // flash stops the CPU only for microseconds; nothing runs yet anyway.)
     let (store, loaded, site) = store::open(p.FLASH);
@@ -165,6 +171,7 @@ async fn main(spawner: Spawner) {
     station.set_store_site(site);
     #[cfg(not(feature = "store"))]
     let _ = site;
+    station.set_ota(ota);
     // The boot lines go to defmt and stay in the host link for every host
     // (`tinybms log PORT` shows them however late it connects).
     log::boot(
@@ -196,7 +203,7 @@ async fn main(spawner: Spawner) {
     if let Some(name) = name {
         station.set_network_name(&name);
     }
-    station::start(spawner, p.UART1, wdt, station, store);
+    station::start(spawner, p.UART1, wdt, station, store, chip_ota);
 }
 
 /// Spawns a task. A pool without a free slot is a bug in this shell: it panics

@@ -24,7 +24,7 @@ use tinybms_firmware::text::Boot;
 #[cfg(feature = "can")]
 use tinybms_firmware::inverter::port::{CanCommand, CanDone};
 
-use crate::{log, now_us, spawn, store, wires, BOARD};
+use crate::{log, now_us, ota, spawn, store, wires, BOARD};
 
 /// UART1 to the TinyBMS on the board's pins, and the station task on it.
 pub fn start(
@@ -33,6 +33,7 @@ pub fn start(
     wdt: Wdt<TIMG0<'static>>,
     station: &'static mut Station,
     store: Option<store::ChipStore>,
+    chip_ota: ota::ChipOta,
 ) {
     // SAFETY: `AnyPin::steal` hands out a second handle to a GPIO. These two GPIOs
     // are used nowhere else: the shell never touches `p.GPIOn`, and the board
@@ -57,7 +58,7 @@ pub fn start(
     );
     // Before the task's first poll: the profile's boot line is kept too.
     submit_profile(station);
-    spawn(spawner, station_task(rx, tx, wdt, station, store));
+    spawn(spawner, station_task(rx, tx, wdt, station, store, chip_ota));
 }
 
 /// Logs the receive error the library's rule says is due (its words are
@@ -83,6 +84,7 @@ async fn station_task(
     mut wdt: Wdt<TIMG0<'static>>,
     station: &'static mut Station,
     mut store: Option<store::ChipStore>,
+    mut chip_ota: ota::ChipOta,
 ) {
     let mut rx_errors = RxErrors::new();
     let mut pumps = Pumps::new();
@@ -116,6 +118,11 @@ async fn station_task(
                 let result = store::save(&mut store, station.record());
                 station.saved(result);
             }
+            Action::Flash(op) => {
+                let ok = chip_ota.run(station.ota(), op, station.program_bytes());
+                station.flashed(now_us(), ok);
+            }
+            Action::Restart => esp_hal::system::software_reset(),
             #[cfg(feature = "can")]
             Action::Can(frame) => {
                 if wires::CAN_COMMAND

@@ -102,6 +102,8 @@ pub enum TextRule {
     /// An MQTT topic prefix: letters, digits, `-`, `_` and `/` between levels
     /// (no wildcard, no empty level, no `/` at either end).
     Topic,
+    /// An Ed25519 public key: 64 hex digits, or empty (none).
+    Key,
 }
 
 /// What kind of value a field holds.
@@ -477,6 +479,9 @@ fields! {
     StreamPeriod = 41 since 1, "stream_period", "ms", Host, Now, num_or(100, 60_000, 0, "off"),
         stream_period_ms: u32 = DEFAULT_STREAM_PERIOD_MS,
         "How often telemetry is pushed to the computer.";
+    UpdateKey = 42 since 5, "update_key", "", Host, Now, text(64, TextRule::Key),
+        update_key: String<64> = String::new(),
+        "The owner's update key (64 hex digits, `tinybms keygen`): updates signed with it are taken besides the release key's; empty = none. Set over USB only.";
     WifiSsid = 60 since 1, "wifi_ssid", "", Network, Restart, text(32, TextRule::Printable),
         wifi_ssid: String<32> = String::new(),
         "The Wi-Fi network's name; empty = no Wi-Fi.";
@@ -732,12 +737,17 @@ impl Config {
         }
     }
 
+    /// The owner's update key, when one is set.
+    pub fn update_key(&self) -> Option<crate::update::file::Key> {
+        crate::update::parse_key(self.update_key.as_bytes())
+    }
+
     /// The host link's settings, with this firmware's version and the chip's name.
     pub fn host_link(&self, who: &crate::identity::Identity) -> HostLinkConfig {
         HostLinkConfig {
             read_only: self.read_only,
             stream_period_ms: self.stream_period_ms,
-            firmware: crate::identity::FIRMWARE,
+            firmware: who.firmware,
             chip: who.chip,
             board: who.board,
             features: who.features,

@@ -186,6 +186,15 @@ fn check_text(rule: TextRule, s: &str) -> Result<(), FieldError> {
                 Ok(())
             }
         }
+        TextRule::Key => {
+            if s.is_empty() || crate::update::parse_key(s.as_bytes()).is_some() {
+                Ok(())
+            } else {
+                Err(FieldError::invalid(
+                    "not an update key: 64 hex digits (tinybms keygen), or empty",
+                ))
+            }
+        }
         TextRule::Topic => {
             let ok = s
                 .bytes()

@@ -84,6 +84,27 @@ pub enum HostCommand<'a> {
     SetConfig(Vec<(&'a str, EscapedStr<'a>), MAX_SET_CONFIG>),
     /// `reset_config`: every field back to its default.
     ResetConfig,
+    /// `update_begin`: an update file of `size` bytes comes (`check`: its
+    /// header only, to hear whether it would be taken).
+    UpdateBegin {
+        /// The file's length.
+        size: u32,
+        /// An older version is wanted.
+        downgrade: bool,
+        /// Only check the header.
+        check: bool,
+    },
+    /// `update_chunk`: bytes of the file at an offset, base64 as sent.
+    UpdateChunk {
+        /// The file offset.
+        at: u32,
+        /// The bytes, base64.
+        data: &'a str,
+    },
+    /// `update_cancel`.
+    UpdateCancel,
+    /// `update_status`.
+    UpdateStatus,
 }
 
 /// A command line that parsed, with its request id.
@@ -123,6 +144,11 @@ struct Fields<'a> {
     fields: Option<Vec<(&'a str, EscapedStr<'a>), MAX_SET_CONFIG>>,
     force: Option<bool>,
     chemistry: Option<&'a str>,
+    size: Option<u32>,
+    at: Option<u32>,
+    data: Option<&'a str>,
+    downgrade: Option<bool>,
+    check: Option<bool>,
     /// The first member no command has.
     unknown: Option<&'a str>,
     /// A member given twice.
@@ -200,6 +226,35 @@ impl<'de, 'f> Visitor<'de> for Top<'f, 'de> {
                     f.current = "on";
                     let v = map.next_value()?;
                     put(&mut f.on, v, "on", &mut f.duplicate);
+                }
+                "size" | "at" => {
+                    let name = if key == "at" { "at" } else { "size" };
+                    f.current = name;
+                    match whole(map.next_value()?) {
+                        Some(v) => {
+                            let slot = if key == "at" { &mut f.at } else { &mut f.size };
+                            put(slot, v, name, &mut f.duplicate);
+                        }
+                        None => {
+                            f.invalid.get_or_insert(name);
+                        }
+                    }
+                }
+                "data" => {
+                    f.current = "data";
+                    let v = map.next_value()?;
+                    put(&mut f.data, v, "data", &mut f.duplicate);
+                }
+                "downgrade" | "check" => {
+                    let name = if key == "check" { "check" } else { "downgrade" };
+                    f.current = name;
+                    let v = map.next_value()?;
+                    let slot = if key == "check" {
+                        &mut f.check
+                    } else {
+                        &mut f.downgrade
+                    };
+                    put(slot, v, name, &mut f.duplicate);
                 }
                 "force" => {
                     f.current = "force";
@@ -376,6 +431,11 @@ pub fn parse(line: &[u8]) -> Result<Parsed<'_>, CommandError<'_>> {
         ("fields", f.fields.is_some()),
         ("force", f.force.is_some()),
         ("chemistry", f.chemistry.is_some()),
+        ("size", f.size.is_some()),
+        ("at", f.at.is_some()),
+        ("data", f.data.is_some()),
+        ("downgrade", f.downgrade.is_some()),
+        ("check", f.check.is_some()),
     ];
     for (name, present) in given {
         if present && !takes.contains(&name) {
@@ -427,7 +487,30 @@ const COMMANDS: &[(&str, &[&str], Build)] = &[
     ("set", &["values", "raw", "force", "chemistry"], set),
     ("stream", &["period_ms"], stream),
     ("capture", &["on"], capture),
+    (
+        "update_begin",
+        &["size", "downgrade", "check"],
+        update_begin,
+    ),
+    ("update_chunk", &["at", "data"], update_chunk),
+    ("update_cancel", &[], |_| Ok(HostCommand::UpdateCancel)),
+    ("update_status", &[], |_| Ok(HostCommand::UpdateStatus)),
 ];
+
+fn update_begin(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
+    Ok(HostCommand::UpdateBegin {
+        size: f.size.ok_or(missing(f.req, "size"))?,
+        downgrade: f.downgrade.unwrap_or(false),
+        check: f.check.unwrap_or(false),
+    })
+}
+
+fn update_chunk(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
+    Ok(HostCommand::UpdateChunk {
+        at: f.at.ok_or(missing(f.req, "at"))?,
+        data: f.data.ok_or(missing(f.req, "data"))?,
+    })
+}
 
 /// The line's members, read as JSON (syntax, nesting, types, duplicates).
 fn read_members(line: &[u8]) -> Result<Fields<'_>, CommandError<'_>> {

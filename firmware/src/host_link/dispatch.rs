@@ -20,6 +20,7 @@ impl State {
         line: &[u8],
         bridge: &mut Bridge,
         config: &mut ConfigState,
+        ota: &mut crate::update::Ota,
     ) {
         if self.queue.len() >= ANSWERS_MAX {
             // The host sends without reading: its answer could not be queued, so
@@ -41,6 +42,8 @@ impl State {
                 | HostCommand::Clear(_)
                 | HostCommand::SetConfig(_)
                 | HostCommand::ResetConfig
+                | HostCommand::UpdateBegin { .. }
+                | HostCommand::UpdateChunk { .. }
         );
         if writes && self.config.read_only {
             return self.error(req, ErrorCode::ReadOnly, "host writes are switched off", "");
@@ -95,6 +98,13 @@ impl State {
                 let changed = config.reset().len() as u8;
                 self.push(Out::Accepted(req, "reset_config"));
                 self.config_changed(now, req, changed, config);
+            }
+            HostCommand::UpdateBegin { .. }
+            | HostCommand::UpdateChunk { .. }
+            | HostCommand::UpdateCancel
+            | HostCommand::UpdateStatus => {
+                let l = self.update(now, &parsed.command, ota);
+                self.push(Out::Update(req, l));
             }
         }
     }

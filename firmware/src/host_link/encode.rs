@@ -93,6 +93,8 @@ pub struct HelloFields<'a> {
     pub radio: Option<&'static str>,
     /// The Wi-Fi link (images with Wi-Fi).
     pub wifi: Option<crate::improv::WifiLink>,
+    /// "update to X rolled back: reason", after a rollback.
+    pub rolled_back: Option<&'a str>,
 }
 
 /// Writes a `hello` line.
@@ -128,6 +130,7 @@ pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<us
                 state: w.key(),
                 ip: (!ip.as_str().is_empty()).then_some(ip.as_str()),
             }),
+            rolled_back: f.rolled_back,
         },
         out,
     )
@@ -566,6 +569,11 @@ pub fn outcome(
         },
         out,
     )
+}
+
+/// Writes an `update` line.
+pub fn update(out: &mut [u8], l: &schema::Update<Wire<'_>>) -> Option<usize> {
+    line(l, out)
 }
 
 /// Writes a `reset_done` line.

@@ -35,6 +35,8 @@ mod configure;
 mod dispatch;
 pub mod encode;
 mod output;
+mod update;
+pub use update::{rolled_back_text, RolledBack};
 pub mod panic;
 pub mod queue;
 pub mod schema;
@@ -201,6 +203,8 @@ struct State {
     /// The Wi-Fi link (`hello`, images with Wi-Fi).
     wifi: crate::improv::WifiLink,
     capture: bool,
+    /// "update to X rolled back: reason" (`hello`, `update` lines).
+    rolled_back: Option<update::RolledBack>,
     queue: Deque<Out, QUEUE>,
     raw: Deque<(Dir, Vec<u8, RAW_CHUNK>), RAW_QUEUE>,
     logs: Deque<(crate::Level, String<{ crate::text::LINE_MAX }>), LOG_QUEUE>,
@@ -250,6 +254,7 @@ impl HostLink {
             lines: LineAssembler::new(),
             last_rx: now,
             improv: Improv::new(&crate::identity::Identity {
+                firmware: config.firmware,
                 chip: config.chip,
                 board: config.board,
                 features: config.features,
@@ -266,6 +271,7 @@ impl HostLink {
                 radio: None,
                 wifi: crate::improv::WifiLink::Off,
                 capture: false,
+                rolled_back: None,
                 queue: Deque::new(),
                 raw: Deque::new(),
                 logs: Deque::new(),
@@ -289,6 +295,12 @@ impl HostLink {
         if self.s.queue.push_front(Out::Hello(None)).is_err() {
             self.s.stats.dropped_lines = self.s.stats.dropped_lines.wrapping_add(1);
         }
+    }
+
+    /// "update to X rolled back: reason" for `hello` and the `update` lines
+    /// (the station says it at boot).
+    pub fn set_rolled_back(&mut self, text: Option<RolledBack>) {
+        self.s.rolled_back = text;
     }
 
     /// Improv Wi-Fi on this port.
@@ -384,6 +396,7 @@ impl HostLink {
         bytes: &[u8],
         bridge: &mut Bridge,
         config: &mut ConfigState,
+        ota: &mut crate::update::Ota,
     ) {
         if self.lines.is_improv()
             && now.saturating_sub(self.last_rx) > IMPROV_GAP
@@ -402,7 +415,7 @@ impl HostLink {
                         // Blank lines (keep-alives) are ignored.
                     } else {
                         self.s.stats.lines_in = self.s.stats.lines_in.wrapping_add(1);
-                        self.s.dispatch(now, l, bridge, config);
+                        self.s.dispatch(now, l, bridge, config, ota);
                     }
                 }
                 Some(Piece::TooLong) => {

@@ -72,6 +72,8 @@ pub(super) enum Out {
     },
     /// The end of a `set_config` or `reset_config`.
     ConfigDone(ConfigDone),
+    /// The answer to an `update_…` command.
+    Update(Option<u32>, super::update::UpdateLine),
 }
 
 impl HostLink {
@@ -303,6 +305,7 @@ impl State {
                         mqtt: self.mqtt,
                         radio: self.radio.map(crate::wifi::Radio::key),
                         wifi: self.config.features.wifi.then_some(self.wifi),
+                        rolled_back: self.rolled_back.as_deref(),
                     },
                 )
             }
@@ -314,6 +317,7 @@ impl State {
                 subject,
             } => encode::error(out, *req, code.name(), detail, subject.as_str()),
             Out::Accepted(req, cmd) => encode::accepted(out, *req, cmd),
+            Out::Update(req, l) => l.encode(*req, self.rolled_back.as_deref(), out),
             Out::Outcome {
                 req,
                 setting,

@@ -68,6 +68,7 @@ use crate::Instant;
 pub use crate::mqtt::published::{InverterStatus, Published};
 use crate::mqtt::MqttState;
 
+pub mod ota;
 mod parts;
 pub mod pumps;
 
@@ -112,6 +113,8 @@ pub enum Logged {
     Improv(crate::improv::Note),
     /// The radio's start (images with Wi-Fi).
     Radio(crate::wifi::Radio),
+    /// Updates: a transfer, the trial, a rollback.
+    Update(ota::UpdateNote),
 }
 
 impl Logged {
@@ -125,6 +128,7 @@ impl Logged {
             Self::Improv(n) => text::improv_level(n),
             Self::Radio(r) if r.warns() => Level::Warn,
             Self::Radio(_) => Level::Info,
+            Self::Update(n) => n.level(),
         }
     }
 }
@@ -148,6 +152,12 @@ pub enum Action {
     /// Ask the Wi-Fi side this (Improv Wi-Fi); report with
     /// [`Station::wifi_joined`] or [`Station::wifi_scanned`].
     Wifi(WifiRequest),
+    /// Do this flash operation of an update ([`Station::program_bytes`] for
+    /// a program), read it back, and report with [`Station::flashed`]; send
+    /// nothing to the BMS before.
+    Flash(crate::update::transfer::Op),
+    /// Restart the chip (an update is installed).
+    Restart,
     /// Nothing before this time, unless an input arrives.
     WaitUntil(Instant),
 }
@@ -197,6 +207,12 @@ pub struct Station {
     wifi_rssi: Option<i8>,
     /// The MQTT session's state as `hello` says it (see [`Station::mqtt_state`]).
     mqtt: Option<MqttState>,
+    /// Updates: the slots, `otadata`, the trial, the transfer.
+    ota: crate::update::Ota,
+    /// What the log still has to say of updates.
+    ota_notes: Deque<ota::UpdateNote, 4>,
+    /// An installed update restarts the bridge at this time.
+    restart_at: Option<Instant>,
 }
 
 impl Station {
@@ -254,6 +270,9 @@ impl Station {
             energy: Energy::new(),
             wifi_rssi: None,
             mqtt: None,
+            ota: crate::update::Ota::default(),
+            ota_notes: Deque::new(),
+            restart_at: None,
         }
     }
 
@@ -381,7 +400,13 @@ impl Station {
     /// Bytes from the host at `now`.
     pub fn host_rx(&mut self, now: Instant, bytes: &[u8]) {
         if let Some(h) = self.host.as_mut() {
-            h.handle_rx(now, bytes, &mut self.bridge, &mut self.config);
+            h.handle_rx(
+                now,
+                bytes,
+                &mut self.bridge,
+                &mut self.config,
+                &mut self.ota,
+            );
         }
         self.apply_running(now);
     }
@@ -652,6 +677,7 @@ impl Station {
             Logged::Radio(r) => {
                 out.push(r.text());
             }
+            Logged::Update(n) => n.text(out),
         }
     }
 
@@ -709,6 +735,12 @@ impl Station {
                     if let Some(item) = self.next_logged(now) {
                         return Action::Log(item);
                     }
+                    // An update's flash work only in a gap the BMS poll and
+                    // the CAN output leave long enough for it; a restart
+                    // into an installed update.
+                    if let Some(a) = self.ota_action(now, t.min(wake)) {
+                        return a;
+                    }
                 }
                 if let Some(h) = self.host.as_mut() {
                     wake = wake.min(h.poll(now, &self.bridge));
@@ -717,6 +749,7 @@ impl Station {
                 if self.node() != 0 {
                     wake = wake.min(self.next_view);
                 }
+                wake = wake.min(self.ota_wake(now));
                 Action::WaitUntil(t.min(wake))
             }
         }
@@ -772,6 +805,8 @@ impl Station {
             Logged::Improv(n)
         } else if let Some(r) = self.radio_to_log.take() {
             Logged::Radio(r)
+        } else if let Some(n) = self.next_update_note() {
+            n
         } else {
             return None;
         };
@@ -830,6 +865,7 @@ impl Station {
             if let Some(i) = self.inverter.as_mut() {
                 i.reconfigure(c.inverter());
             }
+            self.ota.set_owner_key(c.update_key());
         }
     }
 

@@ -39,6 +39,7 @@ impl NoHost {
         _: &[u8],
         _: &mut crate::Bridge,
         _: &mut crate::config::state::ConfigState,
+        _: &mut crate::update::Ota,
     ) {
         match *self {}
     }

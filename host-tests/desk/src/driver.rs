@@ -147,6 +147,17 @@ pub struct Driver<P: BytePort> {
     /// The Wi-Fi side (`None`: every join fails, as on a chip whose radio
     /// did not start).
     pub wifi: Option<Box<dyn WifiSide>>,
+    /// The chip's flash for updates (`None`: every update's flash work
+    /// fails, as on a chip whose table has no slots).
+    pub ota: Option<crate::ota::ChipFlash>,
+    /// The station asked for a restart ([`Action::Restart`]); the owner of
+    /// the driver restarts it.
+    pub restart_due: bool,
+    /// The image running stands for one that panics before it confirms
+    /// itself ([`crate::ota::PANICS`]): its confirmation is a panic instead.
+    pub panics_before_confirm: bool,
+    /// It did: the owner restarts the driver after a panic.
+    pub panicked: bool,
     clock: Clock,
     capture: Option<CaptureWriter>,
     rx: Vec<u8>,
@@ -173,6 +184,10 @@ impl<P: BytePort> Driver<P> {
             store: None,
             can: None,
             wifi: None,
+            ota: None,
+            restart_due: false,
+            panics_before_confirm: false,
+            panicked: false,
             clock,
             capture: None,
             rx: vec![0; 512],
@@ -249,6 +264,28 @@ impl<P: BytePort> Driver<P> {
                         None => Err(StoreError::Partition),
                     };
                     self.station.saved(r);
+                }
+                Action::Flash(tinybms_firmware::update::transfer::Op::Otadata(_))
+                    if self.panics_before_confirm
+                        && self.station.ota().trial()
+                            == tinybms_firmware::update::Trial::OnTrial =>
+                {
+                    self.panicked = true;
+                    self.deadline = now;
+                    break;
+                }
+                Action::Flash(op) => {
+                    let layout = self.station.ota().layout().copied();
+                    let bytes = self.station.program_bytes().to_vec();
+                    let ok = self.ota.as_mut().is_some_and(|f| {
+                        tinybms_firmware::update::flash::run(f, layout.as_ref(), op, &bytes)
+                    });
+                    self.station.flashed(now, ok);
+                }
+                Action::Restart => {
+                    self.restart_due = true;
+                    self.deadline = now;
+                    break;
                 }
                 Action::WaitUntil(t) => {
                     self.deadline = t;

@@ -12,6 +12,7 @@ use std::time::Duration;
 pub mod capture;
 pub mod driver;
 pub mod flash;
+pub mod ota;
 pub mod station;
 
 pub use driver::{BytePort, CanSide, Clock, Driver, Happened, WifiSide};

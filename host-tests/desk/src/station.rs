@@ -14,6 +14,7 @@ use tinybms_firmware::config::state::Note;
 use tinybms_firmware::config::Config;
 use tinybms_firmware::identity::{Features, Identity};
 use tinybms_firmware::station::{Logged, Setup, Station};
+use tinybms_firmware::update::otadata::Cause;
 use tinybms_firmware::Instant;
 
 use crate::driver::{BytePort, Clock, Driver, Happened};
@@ -117,7 +118,7 @@ impl<P: BytePort> Hosted<P> {
         // acknowledges a frame, as on a chip whose CAN is not wired). The
         // tool's direct mode has none.
         let direct = record.is_some();
-        let setup = Setup {
+        let mut setup = Setup {
             timing: bridge,
             identity: Identity::desktop(
                 chip,
@@ -130,12 +131,24 @@ impl<P: BytePort> Hosted<P> {
             ),
             inverter: None,
         };
-        let station = match record {
+        // A device has a chip flash with two app slots (the tool's own
+        // bridge of direct mode is none).
+        let chip = (!direct).then(|| crate::ota::ChipFlash(crate::ota::chip_flash()));
+        let image = chip
+            .as_ref()
+            .map(|c| boot_image(&c.0, &mut setup, Cause::PowerCut));
+        let mut station = match record {
             Some(config) => Station::with_record(setup, config, clock.now()),
             None => Station::new(setup, block_on(store.load()), clock.now()),
         };
+        let panics = image.as_ref().is_some_and(|(_, p)| *p);
+        if let Some((ota, _)) = image {
+            station.set_ota(ota);
+        }
         let mut driver = Driver::with_station(port, station, clock);
+        driver.panics_before_confirm = panics;
         driver.store = Some(store);
+        driver.ota = chip;
         let mut h = Self {
             setup,
             driver,
@@ -193,12 +206,29 @@ impl<P: BytePort> Hosted<P> {
     /// holds (the port, the CAN bus and the clock stay). Call
     /// [`Hosted::connected`] after it when a host is there.
     pub fn restart(&mut self) {
+        self.restart_after(Cause::Reset);
+    }
+
+    /// [`Hosted::restart`] after `cause` (what the next boot's trial reads).
+    pub fn restart_after(&mut self, cause: Cause) {
         let loaded = match self.driver.store.as_mut() {
             Some(store) => block_on(store.load()),
             None => return,
         };
         let now = self.driver.clock().now();
+        // The image booted names the station (its version).
+        let image = self
+            .driver
+            .ota
+            .as_ref()
+            .map(|c| boot_image(&c.0, &mut self.setup, cause));
         self.driver.station = Station::new(self.setup, loaded, now);
+        self.driver.panics_before_confirm = image.as_ref().is_some_and(|(_, p)| *p);
+        self.driver.panicked = false;
+        if let Some((ota, _)) = image {
+            self.driver.station.set_ota(ota);
+        }
+        self.driver.restart_due = false;
         self.boot_lines();
         self.boot_wifi();
     }
@@ -239,6 +269,24 @@ impl<P: BytePort> Hosted<P> {
             }
         };
         self.driver.service(print)?;
+        // An installed update restarts the chip; an image that "panics"
+        // resets it before it confirms itself.
+        let now = self.driver.clock().now();
+        if self.driver.restart_due {
+            self.restart_after(Cause::Reset);
+            if self.log {
+                eprintln!(
+                    "{:>10.3}s restarted ({})",
+                    now as f64 / 1e6,
+                    self.setup.identity.firmware
+                );
+            }
+        } else if self.driver.panicked {
+            if self.log {
+                eprintln!("{:>10.3}s the image panicked (simulated)", now as f64 / 1e6);
+            }
+            self.restart_after(Cause::Panic);
+        }
         self.input.clear();
         side.read(&mut self.input)?;
         if !self.input.is_empty() {
@@ -316,6 +364,26 @@ impl<P: BytePort> Hosted<P> {
             None => Ok(()),
         }
     }
+}
+
+/// A boot of the chip flash: the update side for the station, and whether
+/// the image booted "panics" (see [`crate::ota`]). `setup` takes the
+/// image's version.
+fn boot_image(
+    flash: &crate::flash::RamFlash,
+    setup: &mut Setup,
+    cause: Cause,
+) -> (tinybms_firmware::update::Ota, bool) {
+    let image = crate::ota::boot(flash, cause);
+    let version = image
+        .version
+        .as_deref()
+        .unwrap_or(tinybms_firmware::identity::FIRMWARE);
+    if setup.identity.firmware != version {
+        // One string per image booted, kept for the program's life.
+        setup.identity.firmware = Box::leak(version.to_string().into_boxed_str());
+    }
+    (image.ota, image.panics)
 }
 
 /// The host side as channels (the tool's direct mode): bytes in, lines out.

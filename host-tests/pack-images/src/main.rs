@@ -1,14 +1,18 @@
-//! `pack-images CHIP ELF MERGED APP`: the two images of one firmware ELF.
+//! `pack-images CHIP ELF MERGED APP [PARTITIONS_CSV]`: the two images of one
+//! firmware ELF.
 //!
 //! * `MERGED`: the second-stage bootloader at 0x0, the partition table at
-//!   0x8000 and the app at 0x10000, the gaps filled with 0xFF and nothing after
-//!   the app (`espflash save-image --chip CHIP --merge --skip-padding`);
-//! * `APP`: the app image alone, for 0x10000 (`espflash save-image --chip CHIP`).
+//!   0x8000 and the app in the first app partition (0x20000 with the
+//!   firmware's `partitions.csv`), the gaps filled with 0xFF and nothing after
+//!   the app (`espflash save-image --chip CHIP --merge --skip-padding
+//!   --partition-table CSV`);
+//! * `APP`: the app image alone, for that partition (`espflash save-image
+//!   --chip CHIP`).
 //!
-//! Both with espflash's defaults: its bootloader for the chip, its default
-//! partition table, 4 MiB of flash, the chip's usual crystal, minimum chip
-//! revision 0.0. An ELF without an ESP-IDF app descriptor is refused, as
-//! espflash refuses it.
+//! Both with espflash's defaults otherwise: its bootloader for the chip, 4 MiB
+//! of flash, the chip's usual crystal, minimum chip revision 0.0; without a
+//! CSV, its default partition table. An ELF without an ESP-IDF app descriptor
+//! is refused, as espflash refuses it.
 
 use std::path::Path;
 use std::process::ExitCode;
@@ -18,15 +22,25 @@ use espflash::image_format::idf::{check_idf_bootloader, IdfBootloaderFormat};
 use espflash::image_format::ImageFormat;
 use espflash::target::Chip;
 
-const USAGE: &str = "usage: pack-images esp32c3|esp32c6 ELF MERGED_BIN APP_BIN";
+const USAGE: &str = "usage: pack-images esp32c3|esp32c6 ELF MERGED_BIN APP_BIN [PARTITIONS_CSV]";
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let [chip, elf, merged, app] = args.as_slice() else {
-        eprintln!("{USAGE}");
-        return ExitCode::from(2);
+    let (chip, elf, merged, app, table) = match args.as_slice() {
+        [c, e, m, a] => (c, e, m, a, None),
+        [c, e, m, a, t] => (c, e, m, a, Some(Path::new(t))),
+        _ => {
+            eprintln!("{USAGE}");
+            return ExitCode::from(2);
+        }
     };
-    match pack(chip, Path::new(elf), Path::new(merged), Path::new(app)) {
+    match pack(
+        chip,
+        Path::new(elf),
+        Path::new(merged),
+        Path::new(app),
+        table,
+    ) {
         Ok(size) => {
             println!("{elf}: app {size} bytes");
             ExitCode::SUCCESS
@@ -38,8 +52,15 @@ fn main() -> ExitCode {
     }
 }
 
-/// Writes both images of `elf`; the app's size in bytes.
-fn pack(chip: &str, elf: &Path, merged: &Path, app: &Path) -> Result<usize, String> {
+/// Writes both images of `elf` (with the partition table `table`, else
+/// espflash's default); the app's size in bytes.
+fn pack(
+    chip: &str,
+    elf: &Path,
+    merged: &Path,
+    app: &Path,
+    table: Option<&Path>,
+) -> Result<usize, String> {
     let chip: Chip = match chip {
         "esp32c3" => Chip::Esp32c3,
         "esp32c6" => Chip::Esp32c6,
@@ -47,7 +68,7 @@ fn pack(chip: &str, elf: &Path, merged: &Path, app: &Path) -> Result<usize, Stri
     };
     let data = std::fs::read(elf).map_err(|e| format!("cannot read: {e}"))?;
     check_idf_bootloader(&data).map_err(|e| format!("{e}"))?;
-    let image = image(&data, chip)?;
+    let image = image(&data, chip, table)?;
     let merged_bytes = merge(image.clone().flash_segments())?;
     let ota = image.ota_segments();
     let [single] = ota.as_slice() else {
@@ -58,11 +79,11 @@ fn pack(chip: &str, elf: &Path, merged: &Path, app: &Path) -> Result<usize, Stri
     Ok(single.data.len())
 }
 
-/// espflash's image of `elf` for `chip`, with its defaults.
-fn image(elf: &[u8], chip: Chip) -> Result<ImageFormat<'_>, String> {
+/// espflash's image of `elf` for `chip`, with its defaults and `table`.
+fn image<'a>(elf: &'a [u8], chip: Chip, table: Option<&Path>) -> Result<ImageFormat<'a>, String> {
     let settings = FlashSettings::new(None, Some(FlashSize::default()), None);
     let flash = FlashData::new(settings, 0, None, chip, chip.default_xtal_frequency());
-    IdfBootloaderFormat::new(elf, &flash, None, None, None, None)
+    IdfBootloaderFormat::new(elf, &flash, table, None, None, None)
         .map(ImageFormat::from)
         .map_err(|e| format!("{e}"))
 }
@@ -108,11 +129,11 @@ mod tests {
         let elf = dir.join("not.elf");
         std::fs::write(&elf, b"not an ELF at all").unwrap();
         let (m, a) = (dir.join("m.bin"), dir.join("a.bin"));
-        assert!(pack("esp32", &elf, &m, &a)
+        assert!(pack("esp32", &elf, &m, &a, None)
             .unwrap_err()
             .contains("esp32c3 or esp32c6"));
-        assert!(pack("esp32c3", &elf, &m, &a).is_err());
-        assert!(pack("esp32c3", &dir.join("missing.elf"), &m, &a)
+        assert!(pack("esp32c3", &elf, &m, &a, None).is_err());
+        assert!(pack("esp32c3", &dir.join("missing.elf"), &m, &a, None)
             .unwrap_err()
             .contains("cannot read"));
         assert!(

@@ -275,6 +275,67 @@ pub enum Command {
         #[arg(long, value_name = "U")]
         user: Option<String>,
     },
+    /// Update the bridge's firmware without a cable: the update file is
+    /// checked by the bridge (chip, board, version, signature), written to its
+    /// other app slot while it keeps working, and booted on trial; a new image
+    /// that fails before it confirms itself is rolled back by the bridge.
+    Update {
+        /// The bridge: its serial port, or its address on the network
+        /// (HOST or HOST:PORT; its update port is 8232).
+        #[arg(value_name = "PORT|HOST")]
+        target: String,
+        /// The update file (`tinybms-BOARD.tbu` of a release, or `tinybms sign`'s).
+        #[arg(value_name = "FILE")]
+        file: PathBuf,
+        /// Take a version older than the running one.
+        #[arg(long)]
+        downgrade: bool,
+        /// Only ask the bridge whether it would take the file (nothing is written).
+        #[arg(long)]
+        check: bool,
+        /// Do not ask for confirmation.
+        #[arg(long, short)]
+        yes: bool,
+    },
+    /// A new signing key for updates: FILE (private) and FILE.pub.
+    Keygen {
+        /// Where to write the private key (never overwritten).
+        #[arg(value_name = "FILE")]
+        out: PathBuf,
+    },
+    /// The public key of a signing key (what a bridge is told to trust).
+    PublicKey {
+        /// The private key's file.
+        #[arg(value_name = "KEY")]
+        key: PathBuf,
+    },
+    /// Make an update file: an app image, what it is for, signed.
+    Sign {
+        /// The private key's file (`tinybms keygen`).
+        #[arg(long, value_name = "KEY")]
+        key: PathBuf,
+        /// esp32c3 or esp32c6.
+        #[arg(long)]
+        chip: String,
+        /// The board (its name in `tinybms version`'s hello: c3-supermini, …).
+        #[arg(long)]
+        board: String,
+        /// The version the image reports.
+        #[arg(long)]
+        version: String,
+        /// What is built in, comma-separated (can,host-link,wifi,store).
+        #[arg(long, default_value = "")]
+        features: String,
+        /// What it was built from.
+        #[arg(long, default_value = "")]
+        build: String,
+        /// The app image (`tinybms-BOARD-app.bin`).
+        #[arg(value_name = "APP.bin")]
+        image: PathBuf,
+        /// The update file to write.
+        #[arg(long, short, value_name = "OUT.tbu")]
+        out: PathBuf,
+    },
     /// Shell completions: `tinybms completions bash > /etc/bash_completion.d/tinybms`.
     Completions {
         /// bash, zsh, fish, elvish or powershell.
@@ -287,7 +348,12 @@ impl Command {
     /// The connection options, for the commands that have a PORT.
     pub fn conn(&self) -> Option<&Conn> {
         match self {
-            Command::Ports | Command::Completions { .. } => None,
+            Command::Ports
+            | Command::Completions { .. }
+            | Command::Update { .. }
+            | Command::Keygen { .. }
+            | Command::PublicKey { .. }
+            | Command::Sign { .. } => None,
             Command::Monitor { conn, .. }
             | Command::Log { conn, .. }
             | Command::Settings { conn, .. }

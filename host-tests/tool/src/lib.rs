@@ -212,6 +212,34 @@ fn run(cli: Cli) -> ToolResult<()> {
             yes,
         ),
         Command::Wifi { conn, ssid } => cmd::wifi::run(conn, ssid),
+        Command::Update {
+            target,
+            file,
+            downgrade,
+            check,
+            yes,
+        } => update(&target, &file, downgrade, check, yes),
+        Command::Keygen { out } => cmd::update::keygen(&out),
+        Command::PublicKey { key } => cmd::update::public_key(&key),
+        Command::Sign {
+            key,
+            chip,
+            board,
+            version,
+            features,
+            build,
+            image,
+            out,
+        } => cmd::update::sign(&cmd::update::SignArgs {
+            key,
+            image,
+            out,
+            chip,
+            board,
+            version,
+            features,
+            build,
+        }),
         Command::Mqtt {
             conn,
             host,
@@ -435,6 +463,86 @@ fn connect_ready(conn: &Conn) -> ToolResult<Client> {
     let mut c = connect(conn)?;
     c.wait_ready(conn.timeout)?;
     Ok(c)
+}
+
+/// `tinybms update PORT|HOST FILE`: a serial port (a path that exists, or
+/// COMn), else a bridge on the network at its update port.
+fn update(target: &str, file: &Path, downgrade: bool, check: bool, yes: bool) -> ToolResult<()> {
+    let (bytes, header) = cmd::update::read_update(file)?;
+    let serial = Path::new(target).exists() || target.to_ascii_uppercase().starts_with("COM");
+    let mut c = if serial {
+        let conn = Conn {
+            port: target.to_string(),
+            mode: ModeArg::Bridge,
+            timeout: Duration::from_secs(15),
+        };
+        let c = connect(&conn)?;
+        config::require_bridge(&c)?;
+        c
+    } else {
+        let addr = tcp_address(target)?;
+        status(&format!("connecting to {addr}…"));
+        let mut lines = transport::TcpLines::connect(&addr, Duration::from_secs(5))?;
+        let hello = transport::hello_over(&mut lines, Duration::from_secs(5))?;
+        Client::new(Box::new(lines), Mode::Bridge, hello, addr.to_string())
+    };
+    let h = &c.hello;
+    println!(
+        "bridge: {} {} on {}, firmware {}",
+        h.chip, h.board, c.port, h.firmware
+    );
+    println!(
+        "update: {} {} {} ({} KiB, built from {}, with {})",
+        header.chip(),
+        header.board(),
+        header.version(),
+        header.image_len / 1024,
+        if header.build().is_empty() {
+            "?"
+        } else {
+            header.build()
+        },
+        if header.features().is_empty() {
+            "?"
+        } else {
+            header.features()
+        },
+    );
+    if check {
+        cmd::update::send(&mut c, &bytes, downgrade, true, true)?;
+        println!("the bridge would take it (nothing was sent beyond the header)");
+        return Ok(());
+    }
+    if !yes && !confirm("Update the bridge (it restarts into the new firmware, on trial)")? {
+        return Err(ToolError::failed("not confirmed: nothing sent"));
+    }
+    let v = cmd::update::send(&mut c, &bytes, downgrade, false, false)?;
+    println!(
+        "installed {v}: the bridge restarts into it on trial; it confirms itself once BMS data \
+         and the inverter output run, else the bridge goes back to {} by itself \
+         (`tinybms version PORT` or its hello says which runs)",
+        c.hello.firmware
+    );
+    Ok(())
+}
+
+/// HOST or HOST:PORT, resolved (the update port by default).
+fn tcp_address(target: &str) -> ToolResult<std::net::SocketAddr> {
+    use std::net::ToSocketAddrs;
+    let with_port = if target.contains(':') {
+        target.to_string()
+    } else {
+        format!("{target}:{}", cmd::update::TCP_PORT)
+    };
+    with_port
+        .to_socket_addrs()
+        .ok()
+        .and_then(|mut a| a.next())
+        .ok_or_else(|| {
+            ToolError::usage(format!(
+                "`{target}` is neither a serial port nor a host name or address"
+            ))
+        })
 }
 
 /// Opens the port, detects the mode and returns a client speaking the protocol.

@@ -155,6 +155,78 @@ impl Lines for SerialLines {
     }
 }
 
+/// Lines over TCP (a bridge's update port on the network).
+pub struct TcpLines {
+    stream: std::net::TcpStream,
+    split: LineSplitter,
+}
+
+impl TcpLines {
+    /// Connects to `addr` within `timeout`.
+    pub fn connect(addr: &std::net::SocketAddr, timeout: Duration) -> ToolResult<Self> {
+        let stream = std::net::TcpStream::connect_timeout(addr, timeout)
+            .map_err(|e| ToolError::connect(format!("cannot reach the bridge at {addr}: {e}")))?;
+        let _ = stream.set_nodelay(true);
+        Ok(Self {
+            stream,
+            split: LineSplitter::default(),
+        })
+    }
+}
+
+impl Lines for TcpLines {
+    fn send_line(&mut self, line: &str) -> ToolResult<()> {
+        let mut bytes = Vec::with_capacity(line.len() + 1);
+        bytes.extend_from_slice(line.as_bytes());
+        bytes.push(b'\n');
+        self.stream
+            .write_all(&bytes)
+            .map_err(|e| ToolError::failed(format!("writing to the bridge: {e}")))
+    }
+
+    fn recv_line(&mut self, timeout: Duration) -> ToolResult<Option<String>> {
+        let end = Instant::now() + timeout;
+        let mut buf = [0u8; 1024];
+        loop {
+            if let Some(l) = self.split.next_line() {
+                return Ok(Some(l));
+            }
+            let left = end.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Ok(None);
+            }
+            let _ = self
+                .stream
+                .set_read_timeout(Some(left.max(Duration::from_millis(1))));
+            match self.stream.read(&mut buf) {
+                Ok(0) => return Err(ToolError::failed("the bridge closed the connection")),
+                Ok(n) => self.split.push(&buf[..n]),
+                Err(e) if quiet(&e) || e.kind() == std::io::ErrorKind::WouldBlock => {}
+                Err(e) => return Err(ToolError::failed(format!("reading from the bridge: {e}"))),
+            }
+        }
+    }
+}
+
+/// Sends `hello` on `lines` and waits up to `time` for the bridge's.
+pub fn hello_over(lines: &mut dyn Lines, time: Duration) -> ToolResult<Hello<schema::Read>> {
+    lines.send_line(r#"{"cmd":"hello"}"#)?;
+    let end = Instant::now() + time;
+    loop {
+        let left = end.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Err(ToolError::connect(
+                "no hello from the bridge (not its update port?)",
+            ));
+        }
+        if let Some(l) = lines.recv_line(left)? {
+            if let Ok(HostLine::Hello(h)) = serde_json::from_str::<HostLine>(&l) {
+                return Ok(h);
+            }
+        }
+    }
+}
+
 /// Every serial port the system lists, as `path  description` lines.
 pub fn port_list() -> Vec<String> {
     let mut out = Vec::new();

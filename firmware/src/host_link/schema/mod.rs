@@ -131,6 +131,10 @@ line_type! {
         /// The Wi-Fi link (images with Wi-Fi).
         #[serde(skip_serializing_if = "Option::is_none")]
         pub wifi: Option<Wifi<F>>,
+        /// "update to X rolled back: reason", when this image came back from
+        /// an update that failed its trial.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        pub rolled_back: Option<F::Text>,
     }
 }
 
@@ -561,6 +565,32 @@ line_type! {
         /// A value written because another one was (the follow-up of a pair).
         #[serde(skip_serializing_if = "core::ops::Not::not", default)]
         pub follow_up: bool,
+    }
+}
+
+line_type! {
+    /// `update`: the answer to every `update_…` command.
+    pub struct Update<F: Form> answer {
+        /// What the command met: `next`, `busy`, `acceptable`, `ended`,
+        /// `bad_chunk`, `not_started` or `status`.
+        pub state: F::Text,
+        /// The file offset to send next.
+        pub at: Option<u32>,
+        /// `idle`, `receiving`, `finishing` or `installed`.
+        pub phase: F::Text,
+        /// The file's size, while one is received.
+        pub size: Option<u32>,
+        /// The version being received or installed.
+        pub version: Option<F::Text>,
+        /// How the last transfer ended without an update (a key).
+        pub ended: Option<F::Text>,
+        /// Its words.
+        pub detail: Option<F::Text>,
+        /// The running image: `confirmed` or `on_trial`.
+        pub trial: F::Text,
+        /// "update to X rolled back: reason", when the running image came
+        /// back from one.
+        pub rolled_back: Option<F::Text>,
     }
 }
 

@@ -116,6 +116,11 @@ pub(crate) struct Cli {
     /// images): its hello says so
     #[arg(long, help_heading = REAL_TIME)]
     no_wifi: bool,
+    /// (--bridge-pty) Stand for this board's image (c3-supermini, …): the
+    /// hello's chip and board, what an update file must name; default a
+    /// simulated board of the chip `sim`
+    #[arg(long, value_name = "NAME", value_parser = board_name, help_heading = REAL_TIME, requires = "one_bridge")]
+    board: Option<String>,
     /// (--bridge-pty) A network the simulated radio finds (repeatable): Improv
     /// Wi-Fi (the browser installer) scans it and joins it only with its
     /// passphrase; without any, every join finds no network
@@ -362,6 +367,7 @@ pub(crate) struct Options {
     pub(crate) pty: bool,
     pub(crate) bridge_pty: bool,
     pub(crate) no_wifi: bool,
+    pub(crate) board: Option<String>,
     pub(crate) wifi_networks: Vec<SimNetwork>,
     pub(crate) config: Vec<(String, String)>,
     pub(crate) flash: Option<String>,
@@ -492,6 +498,7 @@ impl Cli {
             pty: self.pty,
             bridge_pty: self.bridge_pty,
             no_wifi: self.no_wifi,
+            board: self.board,
             wifi_networks: self.wifi_network,
             config: config.into_iter().map(|c| c.1).collect(),
             flash: self.flash,
@@ -502,5 +509,21 @@ impl Cli {
             mqtt: self.mqtt,
             packs: self.packs,
         }
+    }
+}
+
+/// A board of the firmware's table.
+fn board_name(s: &str) -> Result<String, String> {
+    use tinybms_firmware::boards::{key_of, BOARDS};
+    match BOARDS.iter().find(|b| b.name == s || key_of(b.name) == s) {
+        Some(b) => Ok(b.name.to_string()),
+        None => Err(format!(
+            "`{s}`: one of {}",
+            BOARDS
+                .iter()
+                .map(|b| key_of(b.name))
+                .collect::<Vec<_>>()
+                .join(", ")
+        )),
     }
 }

@@ -16,4 +16,5 @@ pub mod record;
 pub mod set;
 pub mod settings;
 pub mod show;
+pub mod update;
 pub mod wifi;

@@ -263,6 +263,7 @@ mod direct {
             identity: Identity {
                 chip: "browser",
                 board: "the console's direct mode",
+                firmware: tinybms_firmware::identity::FIRMWARE,
                 features: Features {
                     host_link: true,
                     ..Features::default()
@@ -310,6 +311,10 @@ mod direct {
                     Action::Can(_) => station.can_sent(now, TxResult::Failed),
                     Action::CanRecover => station.can_recovered(now, false),
                     Action::Wifi(req) => station.wifi_unavailable(now, &req),
+                    // No flash in the page: an update has nowhere to go (it is
+                    // refused before any flash work: no second slot).
+                    Action::Flash(_) => station.flashed(now, false),
+                    Action::Restart => break,
                     Action::WaitUntil(t) => {
                         wake = t;
                         break;

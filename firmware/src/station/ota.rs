@@ -1,0 +1,189 @@
+//! The station's side of updates ([`crate::update`]): the flash work of a
+//! transfer and of the trial's confirmation, each done only while no BMS
+//! reply can be on its way (like a save of the record), the trial's watch,
+//! the restart into an installed image, and what the log says of them.
+
+use super::{Action, Logged, Station};
+use crate::inverter::CanState;
+use crate::text::Line;
+use crate::update::otadata::Cause;
+use crate::update::transfer::{Ended, Op, Version};
+use crate::update::{Done, Ota, Trial};
+use crate::{Instant, Level};
+
+/// After an update is installed, the bridge restarts this much later (the
+/// host link's answer goes out first).
+pub const RESTART_DELAY_US: Instant = crate::SECOND;
+
+/// An update's flash operation waits for a gap this long before the BMS
+/// poll's next request and the CAN output's next frame: a sector's erase
+/// (about 45 ms on the boards' flash) or program (about 15 ms) stops the CPU,
+/// and in such a gap it delays neither.
+pub const FLASH_WINDOW_US: Instant = 100 * crate::MS;
+
+/// What the log says of updates.
+#[derive(Debug, Clone, PartialEq)]
+pub enum UpdateNote {
+    /// This image came back from an update that failed its trial.
+    RolledBack(Version, Cause),
+    /// This image runs on trial.
+    OnTrial,
+    /// It confirmed itself.
+    Confirmed,
+    /// The confirmation could not be written (tried again at the next boot).
+    ConfirmFailed,
+    /// A transfer ended without an update.
+    Ended(Ended),
+    /// An update is installed: the bridge restarts into it.
+    Installed(Version),
+}
+
+impl UpdateNote {
+    /// The level it is logged at.
+    pub fn level(&self) -> Level {
+        match self {
+            Self::OnTrial | Self::Confirmed | Self::Installed(_) => Level::Info,
+            Self::Ended(Ended::Cancelled) => Level::Info,
+            _ => Level::Warn,
+        }
+    }
+
+    /// The words.
+    pub fn text(&self, out: &mut Line) {
+        match self {
+            Self::RolledBack(v, c) => {
+                out.push("update to ")
+                    .push(v)
+                    .push(" rolled back: ")
+                    .push(c.words());
+            }
+            Self::OnTrial => {
+                out.push(
+                    "update: this image runs on trial; it confirms itself once BMS data and the \
+                     inverter output run (at the latest after 10 min without a reset)",
+                );
+            }
+            Self::Confirmed => {
+                out.push("update: this image confirmed itself");
+            }
+            Self::ConfirmFailed => {
+                out.push("update: the confirmation could not be written to otadata");
+            }
+            Self::Ended(e) => {
+                out.push("update abandoned: ").push(e.words());
+            }
+            Self::Installed(v) => {
+                out.push("update to ")
+                    .push(v)
+                    .push(" installed: restarting into it (on trial)");
+            }
+        }
+    }
+}
+
+impl Station {
+    /// Where the slots are and what `otadata` says, after the boot's own
+    /// write ([`crate::update::start`]); the owner's key comes from the
+    /// record.
+    pub fn set_ota(&mut self, mut ota: Ota) {
+        ota.set_owner_key(self.config.running().update_key());
+        if let Some((v, c)) = ota.rolled_back() {
+            let mut s = Version::new();
+            let _ = s.push_str(v);
+            let _ = self.ota_notes.push_back(UpdateNote::RolledBack(s, c));
+        }
+        if ota.trial() == Trial::OnTrial {
+            let _ = self.ota_notes.push_back(UpdateNote::OnTrial);
+        }
+        #[cfg(feature = "host-link")]
+        if let Some(h) = self.host.as_mut() {
+            h.set_rolled_back(crate::host_link::rolled_back_text(&ota));
+        }
+        self.ota = ota;
+    }
+
+    /// The update side.
+    pub fn ota(&self) -> &Ota {
+        &self.ota
+    }
+
+    /// The bytes of an [`Op::Program`].
+    pub fn program_bytes(&self) -> &[u8] {
+        self.ota.transfer().program_bytes()
+    }
+
+    /// The shell did [`Action::Flash`]: `ok` when it worked and read back
+    /// the same.
+    pub fn flashed(&mut self, now: Instant, ok: bool) {
+        let note = match self.ota.op_done(ok) {
+            Done::Nothing => None,
+            Done::Confirmed => Some(UpdateNote::Confirmed),
+            Done::ConfirmFailed => Some(UpdateNote::ConfirmFailed),
+            Done::Ended(e) => Some(UpdateNote::Ended(e)),
+            Done::Installed => {
+                self.restart_at = Some(now + RESTART_DELAY_US);
+                let mut v = Version::new();
+                let _ = v.push_str(self.ota.transfer().version().unwrap_or("?"));
+                Some(UpdateNote::Installed(v))
+            }
+        };
+        if let Some(n) = note {
+            self.generation = self.generation.wrapping_add(1);
+            let _ = self.ota_notes.push_back(n);
+        }
+    }
+
+    /// The update's work in [`Station::poll`] while the BMS link is quiet
+    /// and nothing else is due before `free_until`: a restart that is due, a
+    /// flash operation when the gap is [`FLASH_WINDOW_US`] long.
+    pub(super) fn ota_action(&mut self, now: Instant, free_until: Instant) -> Option<Action> {
+        if let Some(e) = self.ota.transfer_mut().poll(now) {
+            let _ = self.ota_notes.push_back(UpdateNote::Ended(e));
+        }
+        let t = self.bridge.telemetry();
+        let worked = t.snapshot_seq > 0
+            && self
+                .inverter
+                .as_ref()
+                .is_none_or(|i| matches!(i.can_state(), CanState::Running | CanState::Off));
+        self.ota.tick(now, worked);
+        if self.restart_at.is_some_and(|t| now >= t) {
+            return Some(Action::Restart);
+        }
+        if free_until >= now.saturating_add(FLASH_WINDOW_US) {
+            if let Some(op) = self.ota.next_op() {
+                return Some(Action::Flash(op));
+            }
+        }
+        None
+    }
+
+    /// When the update side wants to be polled again.
+    pub(super) fn ota_wake(&self, now: Instant) -> Instant {
+        let mut wake = self.restart_at.unwrap_or(Instant::MAX);
+        if self.ota.trial() == Trial::OnTrial || self.ota.next_op().is_some() {
+            wake = wake.min(now + crate::SECOND);
+        }
+        if !matches!(
+            self.ota.transfer().phase(),
+            crate::update::transfer::Phase::Idle
+        ) {
+            wake = wake.min(now + crate::SECOND);
+        }
+        wake
+    }
+
+    /// The next update note to log.
+    pub(super) fn next_update_note(&mut self) -> Option<Logged> {
+        self.ota_notes.pop_front().map(Logged::Update)
+    }
+}
+
+/// An [`Op`] as the log and tests name it.
+pub fn op_name(op: &Op) -> &'static str {
+    match op {
+        Op::Erase(_) => "erase",
+        Op::Program(_) => "program",
+        Op::Otadata(_) => "otadata",
+    }
+}

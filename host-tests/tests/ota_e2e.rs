@@ -1,0 +1,449 @@
+//! End to end: updates through `sim --bridge-pty` (the firmware's station,
+//! host link and update side on the desktop's chip flash with the real
+//! partition table), with the built `tinybms` (`keygen`, `sign`, `update`)
+//! and with a host of the test's own that loses, repeats and reorders
+//! chunks and goes away in the middle. An image that panics before it
+//! confirms itself is rolled back by the bridge, which says so in `hello`.
+
+mod common;
+use common::*;
+
+use std::io::{Read, Write};
+use std::time::{Duration, Instant};
+
+use base64::Engine as _;
+use serde_json::{json, Value};
+
+/// An app image as the bridge checks its start: magic, ESP32-C3's chip id,
+/// the app descriptor with `version` and `project`.
+fn image(len: usize, version: &str, project: &str) -> Vec<u8> {
+    let mut v: Vec<u8> = (0..len).map(|i| (i * 13 + i / 253) as u8).collect();
+    v[0] = 0xE9;
+    v[12..14].copy_from_slice(&5u16.to_le_bytes());
+    v[32..36].copy_from_slice(&0xABCD_5432u32.to_le_bytes());
+    v[48..112].fill(0);
+    v[48..48 + version.len()].copy_from_slice(version.as_bytes());
+    v[80..80 + project.len()].copy_from_slice(project.as_bytes());
+    v
+}
+
+struct Keys {
+    key: std::path::PathBuf,
+    public: String,
+}
+
+fn keygen(name: &str) -> Keys {
+    let key = tmp(name);
+    let _ = std::fs::remove_file(&key);
+    let _ = std::fs::remove_file(key.with_extension("pub"));
+    let out = tinybms(&["keygen", key.to_str().unwrap()]);
+    assert_eq!(out.code, 0, "{out}");
+    let public = std::fs::read_to_string(format!("{}.pub", key.display()))
+        .unwrap()
+        .trim()
+        .to_string();
+    assert_eq!(public.len(), 64);
+    assert!(out.stdout.contains(&public), "{out}");
+    Keys { key, public }
+}
+
+/// `tinybms sign` of `img` for `board` and `version`: the file's path.
+fn sign(k: &Keys, img: &[u8], board: &str, version: &str, name: &str) -> std::path::PathBuf {
+    let bin = tmp(&format!("{name}.bin"));
+    std::fs::write(&bin, img).unwrap();
+    let out_path = tmp(&format!("{name}.tbu"));
+    let out = tinybms(&[
+        "sign",
+        "--key",
+        k.key.to_str().unwrap(),
+        "--chip",
+        "esp32c3",
+        "--board",
+        board,
+        "--version",
+        version,
+        "--features",
+        "can,host-link",
+        bin.to_str().unwrap(),
+        "-o",
+        out_path.to_str().unwrap(),
+    ]);
+    assert_eq!(out.code, 0, "{out}");
+    out_path
+}
+
+/// The host link of the pty, line by line.
+struct Host {
+    port: Box<dyn serialport::SerialPort>,
+    buf: Vec<u8>,
+    req: u32,
+}
+
+impl Host {
+    fn open(path: &str) -> Self {
+        let port = serialport::new(path, 115_200)
+            .timeout(Duration::from_millis(20))
+            .open()
+            .expect("the pty");
+        let mut h = Self {
+            port,
+            buf: Vec::new(),
+            req: 1000,
+        };
+        h.port.write_all(b"\n").unwrap();
+        h
+    }
+
+    fn send(&mut self, mut cmd: Value) -> u32 {
+        self.req += 1;
+        cmd["req"] = json!(self.req);
+        let mut line = cmd.to_string().into_bytes();
+        line.push(b'\n');
+        self.port.write_all(&line).unwrap();
+        self.req
+    }
+
+    fn next_line(&mut self, until: Instant) -> Option<Value> {
+        loop {
+            if let Some(i) = self.buf.iter().position(|&b| b == b'\n') {
+                let line: Vec<u8> = self.buf.drain(..=i).collect();
+                if let Ok(v) = serde_json::from_slice::<Value>(&line) {
+                    return Some(v);
+                }
+                continue;
+            }
+            if Instant::now() >= until {
+                return None;
+            }
+            let mut b = [0u8; 4096];
+            match self.port.read(&mut b) {
+                Ok(n) => self.buf.extend_from_slice(&b[..n]),
+                Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
+                Err(e) => panic!("reading the pty: {e}"),
+            }
+        }
+    }
+
+    /// The answer to `req` within 5 s (other lines are skipped; telemetry
+    /// lines are counted).
+    fn answer(&mut self, req: u32, telemetry: &mut u32) -> Value {
+        let until = Instant::now() + Duration::from_secs(5);
+        while let Some(v) = self.next_line(until) {
+            if v["type"] == "telemetry" {
+                *telemetry += 1;
+            }
+            if v["req"] == json!(req) {
+                return v;
+            }
+        }
+        panic!("no answer to request {req}");
+    }
+
+    fn ask(&mut self, cmd: Value) -> Value {
+        let req = self.send(cmd);
+        self.answer(req, &mut 0)
+    }
+}
+
+fn chunk(file: &[u8], at: usize) -> Value {
+    let end = (at + 128).min(file.len());
+    json!({"cmd": "update_chunk", "at": at, "data": base64::engine::general_purpose::STANDARD.encode(&file[at..end])})
+}
+
+/// Waits for the bridge to come back after its restart and for its hello to
+/// say `firmware` (and the rest of it).
+fn hello_until(h: &mut Host, firmware: &str) -> Value {
+    let until = Instant::now() + Duration::from_secs(20);
+    while Instant::now() < until {
+        let v = h.ask(json!({"cmd": "hello"}));
+        if v["firmware"] == firmware {
+            return v;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    panic!("the bridge never said firmware {firmware}");
+}
+
+#[test]
+fn lost_repeated_and_reordered_chunks_then_a_rollback() {
+    let k = keygen("e2e-key");
+    let good = std::fs::read(sign(
+        &k,
+        &image(40_000, "0.9.0", "tinybms-firmware"),
+        "c3-supermini",
+        "0.9.0",
+        "good",
+    ))
+    .unwrap();
+    let sim = Sim::start(&[
+        "--bridge-pty",
+        "--board",
+        "c3-supermini",
+        "--stream-period",
+        "500ms",
+        "--config",
+        &format!("update_key={}", k.public),
+    ]);
+    let mut h = Host::open(&sim.path);
+    let v = h.ask(json!({"cmd": "hello"}));
+    assert_eq!(v["board"], "ESP32-C3 SuperMini", "{v}");
+    let first = v["firmware"].as_str().unwrap().to_string();
+    assert!(v.get("rolled_back").is_none(), "{v}");
+
+    // Chunks lost (every 7th never sent), repeated (every 5th twice), one
+    // sent ahead of its turn; the bridge's answers say where to go on. The
+    // BMS keeps being polled: telemetry lines keep coming.
+    let a = h.ask(json!({"cmd": "update_begin", "size": good.len()}));
+    assert_eq!(
+        (a["state"].as_str(), a["at"].as_u64()),
+        (Some("next"), Some(0)),
+        "{a}"
+    );
+    let mut at = 0usize;
+    let (mut sent, mut lost, mut repeated, mut busy, mut telemetry) =
+        (0u32, 0u32, 0u32, 0u32, 0u32);
+    let started = Instant::now();
+    while at < good.len() {
+        sent += 1;
+        if sent % 7 == 0 {
+            lost += 1;
+            // Lost on the way: the next one arrives after a gap.
+            let ahead = (at + 128).min(good.len().saturating_sub(1));
+            let req = h.send(chunk(&good, ahead));
+            let r = h.answer(req, &mut telemetry);
+            assert_eq!(
+                r["at"].as_u64(),
+                Some(at as u64),
+                "a gap changes nothing: {r}"
+            );
+            continue;
+        }
+        let req = h.send(chunk(&good, at));
+        let r = h.answer(req, &mut telemetry);
+        if sent % 5 == 0 && r["state"] == "next" {
+            repeated += 1;
+            let req = h.send(chunk(&good, at));
+            let d = h.answer(req, &mut telemetry);
+            assert_eq!(d["at"], r["at"], "a repeat changes nothing: {d}");
+        }
+        match r["state"].as_str() {
+            Some("next") => at = r["at"].as_u64().unwrap() as usize,
+            Some("busy") => {
+                busy += 1;
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            _ => panic!("{r}"),
+        }
+    }
+    let took = started.elapsed();
+    eprintln!(
+        "{} bytes in {:.1} s: {sent} chunks, {lost} lost, {repeated} repeated, {busy} busy, {telemetry} telemetry lines meanwhile",
+        good.len(),
+        took.as_secs_f64()
+    );
+    assert!(lost > 10 && repeated > 10);
+    assert!(
+        u64::from(telemetry) * 500 >= took.as_millis() as u64 / 2,
+        "the telemetry stream (every 500 ms) went on: {telemetry} lines in {took:?}"
+    );
+    // Installed, then the restart into it on trial, then confirmed.
+    let until = Instant::now() + Duration::from_secs(10);
+    loop {
+        let s = h.ask(json!({"cmd": "update_status"}));
+        if s["phase"] == "installed" || s["phase"] == "idle" && s["trial"] == "on_trial" {
+            break;
+        }
+        assert!(Instant::now() < until, "never installed: {s}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let v = hello_until(&mut h, "0.9.0");
+    assert!(v.get("rolled_back").is_none(), "{v}");
+    let until = Instant::now() + Duration::from_secs(20);
+    while h.ask(json!({"cmd": "update_status"}))["trial"] != "confirmed" {
+        assert!(
+            Instant::now() < until,
+            "the new image never confirmed itself"
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+
+    // An image that panics before it confirms itself: back to 0.9.0, said.
+    let bad = sign(
+        &k,
+        &image(20_000, "0.9.1", "tinybms-panics"),
+        "c3-supermini",
+        "0.9.1",
+        "panics",
+    );
+    // The port is the tool's while it runs (serial ports are opened alone).
+    drop(h);
+    let out = tinybms(&["update", &sim.path, bad.to_str().unwrap(), "-y"]);
+    assert_eq!(out.code, 0, "{out}");
+    assert!(out.stdout.contains("installed 0.9.1"), "{out}");
+    let mut h = Host::open(&sim.path);
+    let until = Instant::now() + Duration::from_secs(20);
+    let v = loop {
+        let v = h.ask(json!({"cmd": "hello"}));
+        if v.get("rolled_back").is_some() {
+            break v;
+        }
+        assert!(Instant::now() < until, "no rollback said: {v}");
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    assert_eq!(v["firmware"], "0.9.0", "{v}");
+    assert_eq!(
+        v["rolled_back"], "update to 0.9.1 rolled back: it panicked before confirming itself",
+        "{v}"
+    );
+    let s = h.ask(json!({"cmd": "update_status"}));
+    assert_eq!(s["trial"], "confirmed", "{s}");
+    assert_ne!(first, "0.9.0");
+}
+
+#[test]
+fn every_refused_file_is_refused_with_its_reason_by_the_tool() {
+    let k = keygen("e2e-key-2");
+    let stranger = keygen("e2e-stranger");
+    let img = image(9_000, "0.9.0", "tinybms-firmware");
+    let good = sign(&k, &img, "c3-supermini", "0.9.0", "r-good");
+    let sim = Sim::start(&[
+        "--bridge-pty",
+        "--board",
+        "c3-supermini",
+        "--config",
+        &format!("update_key={}", k.public),
+    ]);
+    let bytes = std::fs::read(&good).unwrap();
+    let truncated = tmp("r-truncated.tbu");
+    std::fs::write(&truncated, &bytes[..bytes.len() - 1]).unwrap();
+    let padded = tmp("r-padded.tbu");
+    std::fs::write(&padded, [&bytes[..], &[0u8; 16]].concat()).unwrap();
+    let cases = [
+        (
+            sign(&k, &img, "c3-devkitm-1", "0.9.0", "r-board"),
+            "for another board",
+        ),
+        (
+            sign(&stranger, &img, "c3-supermini", "0.9.0", "r-stranger"),
+            "not from a key this bridge trusts",
+        ),
+        (
+            sign(
+                &k,
+                &image(9_000, "0.0.1", "x"),
+                "c3-supermini",
+                "0.0.1",
+                "r-older",
+            ),
+            "older than the running firmware",
+        ),
+        (truncated, "shorter than its header says"),
+        (padded, "longer than its header says"),
+    ];
+    for (file, why) in &cases {
+        for check in [true, false] {
+            let mut args = vec!["update", &sim.path, file.to_str().unwrap(), "-y"];
+            if check {
+                args.push("--check");
+            }
+            let out = tinybms(&args);
+            assert_eq!(out.code, 1, "{why}: {out}");
+            assert!(out.stderr.contains(why), "{why}: {out}");
+        }
+    }
+    // The older one with --downgrade, checked only: acceptable.
+    let older = &cases[2].0;
+    let out = tinybms(&[
+        "update",
+        &sim.path,
+        older.to_str().unwrap(),
+        "--check",
+        "--downgrade",
+    ]);
+    assert_eq!(out.code, 0, "{out}");
+    assert!(out.stdout.contains("would take it"), "{out}");
+    // Nothing changed: the same firmware, no transfer, no rollback.
+    let mut h = Host::open(&sim.path);
+    let v = h.ask(json!({"cmd": "hello"}));
+    assert!(v.get("rolled_back").is_none(), "{v}");
+    let s = h.ask(json!({"cmd": "update_status"}));
+    assert_eq!(
+        (s["phase"].as_str(), s["trial"].as_str()),
+        (Some("idle"), Some("confirmed")),
+        "{s}"
+    );
+    // A file that is no update at all is refused by the tool itself.
+    let out = tinybms(&[
+        "update",
+        &sim.path,
+        tmp("r-board.bin").to_str().unwrap(),
+        "-y",
+    ]);
+    assert_eq!(out.code, 2, "{out}");
+    assert!(out.stderr.contains("not an update file"), "{out}");
+}
+
+#[test]
+fn a_host_that_goes_away_mid_transfer_is_given_up_after_30_s() {
+    let k = keygen("e2e-key-3");
+    let good = std::fs::read(sign(
+        &k,
+        &image(30_000, "0.9.0", "tinybms-firmware"),
+        "c3-supermini",
+        "0.9.0",
+        "stall",
+    ))
+    .unwrap();
+    let sim = Sim::start(&[
+        "--bridge-pty",
+        "--board",
+        "c3-supermini",
+        "--stream-period",
+        "1s",
+        "--config",
+        &format!("update_key={}", k.public),
+    ]);
+    let mut h = Host::open(&sim.path);
+    h.ask(json!({"cmd": "update_begin", "size": good.len()}));
+    let mut at = 0;
+    while at < 8_000 {
+        let r = h.ask(chunk(&good, at));
+        at = r["at"].as_u64().unwrap() as usize;
+    }
+    // The host stops sending; the bridge keeps working and gives up.
+    let started = Instant::now();
+    let mut telemetry = 0;
+    let s = loop {
+        let req = h.send(json!({"cmd": "update_status"}));
+        let s = h.answer(req, &mut telemetry);
+        if s["phase"] == "idle" {
+            break s;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(45),
+            "never given up: {s}"
+        );
+        std::thread::sleep(Duration::from_secs(1));
+    };
+    assert_eq!(s["ended"], "stalled", "{s}");
+    assert!(
+        started.elapsed() >= Duration::from_secs(25),
+        "{:?}",
+        started.elapsed()
+    );
+    assert!(
+        telemetry >= 20,
+        "the bridge went on meanwhile: {telemetry} telemetry lines"
+    );
+    // Nothing boots differently, and a new transfer goes through.
+    drop(h);
+    let out = tinybms(&[
+        "update",
+        &sim.path,
+        tmp("stall.tbu").to_str().unwrap(),
+        "-y",
+    ]);
+    assert_eq!(out.code, 0, "{out}");
+    let mut h = Host::open(&sim.path);
+    hello_until(&mut h, "0.9.0");
+}
