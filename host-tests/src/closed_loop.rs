@@ -390,17 +390,30 @@ impl ClosedLoop {
     /// ([`ClosedLoop::host_line`]) that apply at once where they may and are
     /// saved to `flash` when the BMS link is quiet.
     pub fn from_flash(profile: PackModel, seed: u64, flash: RamFlash, charger_max_a: f64) -> Self {
+        let identity = Identity::desktop(
+            "sim",
+            Features {
+                can: true,
+                host_link: true,
+                ..Features::default()
+            },
+        );
+        Self::from_flash_as(profile, seed, flash, charger_max_a, identity)
+    }
+
+    /// [`ClosedLoop::from_flash`] with a bridge standing for `identity`
+    /// (a chip and board an update file can name).
+    pub fn from_flash_as(
+        profile: PackModel,
+        seed: u64,
+        flash: RamFlash,
+        charger_max_a: f64,
+        identity: Identity,
+    ) -> Self {
         let loaded = block_on(tinybms_desk::flash::store(flash.clone()).load());
         let setup = Setup {
             timing: Timing::default(),
-            identity: Identity::desktop(
-                "sim",
-                Features {
-                    can: true,
-                    host_link: true,
-                    ..Features::default()
-                },
-            ),
+            identity,
             inverter: None,
         };
         let station = Station::new(setup, loaded, 0);

@@ -145,6 +145,8 @@ pub struct BridgePtyOptions {
     /// Stand for this board's image (`--board`): its chip and name in
     /// `hello`, what an update file must name.
     pub board: Option<String>,
+    /// The update port on the network at this address (`--update-port`).
+    pub update_port: Option<std::net::SocketAddr>,
     /// Write what the bridge sends on CAN here, as a candump log (`--can-log`).
     pub can_log: Option<std::path::PathBuf>,
     /// (at, for): the simulated BMS answers nothing then, while the bridge
@@ -200,6 +202,13 @@ pub fn serve_bridge_pty(
         h.driver.wifi = Some(Box::new(crate::sim_wifi::SimWifi::new(
             o.wifi_networks.clone(),
         )));
+    }
+    if let Some(addr) = o.update_port {
+        let port = tinybms_desk::update_port::UpdatePort::bind(addr)?;
+        if o.log {
+            eprintln!("update port: {}", port.local_addr()?);
+        }
+        h.update_port = Some(port);
     }
     h.network_name = Some(client_id.clone());
     h.boot_wifi();

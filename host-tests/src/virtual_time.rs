@@ -233,9 +233,14 @@ pub struct Harness {
     pub flash_stall_us: (u64, u64, u64),
     /// Every update flash operation: its time and its name.
     pub flash_ops: Vec<(u64, &'static str)>,
-    /// The station asked for a restart (an update installed): the run
-    /// stopped there.
+    /// The station asked for a restart (an update installed): the station
+    /// does nothing more (each run after it only moves the clock to its
+    /// end).
     pub restart_requested: bool,
+    /// When it asked for it.
+    pub restarted_at: Option<u64>,
+    /// When set, every request to the BMS: its time and bytes.
+    pub tx_log: Option<Vec<(u64, Vec<u8>)>>,
 }
 
 impl Harness {
@@ -281,6 +286,8 @@ impl Harness {
             flash_stall_us: (45_000, 15_000, 45_000),
             flash_ops: Vec::new(),
             restart_requested: false,
+            restarted_at: None,
+            tx_log: None,
         }
     }
 
@@ -460,7 +467,13 @@ impl Harness {
                     continue;
                 }
                 Action::Restart => {
+                    // The chip restarts into the update: this station's run
+                    // ends (the clock goes on to the end).
+                    if !self.restart_requested {
+                        self.restarted_at = Some(self.now);
+                    }
                     self.restart_requested = true;
+                    self.now = self.now.max(end_us);
                     break;
                 }
                 Action::Save => {
@@ -487,6 +500,9 @@ impl Harness {
                         );
                     }
                     self.count_request(&bytes);
+                    if let Some(log) = self.tx_log.as_mut() {
+                        log.push((self.now, bytes.clone()));
+                    }
                     self.sim.host_send(self.now, &bytes);
                     self.tx_bytes += bytes.len() as u64;
                     // write + flush: the task resumes when the last byte left.

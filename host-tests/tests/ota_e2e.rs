@@ -447,3 +447,73 @@ fn a_host_that_goes_away_mid_transfer_is_given_up_after_30_s() {
     let mut h = Host::open(&sim.path);
     hello_until(&mut h, "0.9.0");
 }
+
+/// The update port on the network (loopback): the same update with
+/// `tinybms update HOST:PORT FILE`, and nothing but `hello` and the
+/// `update_…` commands taken there.
+#[test]
+fn over_tcp_on_the_update_port() {
+    let k = keygen("e2e-key-4");
+    let file = sign(
+        &k,
+        &image(25_000, "0.9.0", "tinybms-firmware"),
+        "c3-supermini",
+        "0.9.0",
+        "tcp",
+    );
+    let port = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().port()
+    };
+    let addr = format!("127.0.0.1:{port}");
+    let sim = Sim::start(&[
+        "--bridge-pty",
+        "--board",
+        "c3-supermini",
+        "--update-port",
+        &addr,
+        "--config",
+        &format!("update_key={}", k.public),
+    ]);
+    // Only hello and the update commands.
+    let mut s = std::net::TcpStream::connect(&addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_millis(200)))
+        .unwrap();
+    s.write_all(b"{\"cmd\":\"get\",\"what\":\"settings\",\"req\":1}\n{\"cmd\":\"update_status\",\"req\":2}\n")
+        .unwrap();
+    let mut got = String::new();
+    let until = Instant::now() + Duration::from_secs(5);
+    while Instant::now() < until && !got.contains("\"req\":2") {
+        let mut b = [0u8; 4096];
+        if let Ok(n) = s.read(&mut b) {
+            got.push_str(&String::from_utf8_lossy(&b[..n]));
+        }
+    }
+    let lines = json_lines(&got);
+    assert_eq!(lines[0]["type"], "hello", "{got}");
+    let refused = lines
+        .iter()
+        .find(|v| v["req"] == 1)
+        .expect("an answer to get");
+    assert_eq!(refused["error"], "unknown_command", "{refused}");
+    let status = lines
+        .iter()
+        .find(|v| v["req"] == 2)
+        .expect("an answer to update_status");
+    assert_eq!(status["phase"], "idle", "{status}");
+    assert!(
+        !lines.iter().any(|v| v["type"] == "telemetry"),
+        "the update port streams nothing: {got}"
+    );
+    drop(s);
+    let out = tinybms(&["update", &addr, file.to_str().unwrap(), "-y"]);
+    assert_eq!(out.code, 0, "{out}");
+    assert!(
+        out.stdout
+            .contains("bridge: esp32c3 ESP32-C3 SuperMini on 127.0.0.1"),
+        "{out}"
+    );
+    assert!(out.stdout.contains("installed 0.9.0"), "{out}");
+    let mut h = Host::open(&sim.path);
+    hello_until(&mut h, "0.9.0");
+}

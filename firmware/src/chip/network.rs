@@ -290,7 +290,8 @@ async fn radio_task(spawner: Spawner, plan: Plan) {
     // The true RNG is on once the controller runs.
     let rng = Rng::new();
     let seed = (u64::from(rng.random()) << 32) | u64::from(rng.random());
-    static RESOURCES: StaticCell<StackResources<3>> = StaticCell::new();
+    // DHCP, DNS, the MQTT session's socket and the update port's.
+    static RESOURCES: StaticCell<StackResources<4>> = StaticCell::new();
     let (stack, runner) = embassy_net::new(
         iface,
         embassy_net::Config::dhcpv4(dhcp),
@@ -303,7 +304,66 @@ async fn radio_task(spawner: Spawner, plan: Plan) {
         say(Said::MqttTo(target.host.as_str(), target.port));
         spawn(spawner, mqtt_task(stack, target, settings, bridge));
     }
+    spawn(spawner, update_port_task(stack));
     spawn(spawner, heap_task());
+}
+
+/// The update port (`tinybms_firmware::update::TCP_PORT`): one connection at
+/// a time, its bytes to the station task and the station's lines back
+/// (`hello` and the `update_…` commands: the station's update-port link).
+/// A connection silent for 60 s is closed; the transfer's own stall rule
+/// (30 s) has abandoned it by then.
+#[embassy_executor::task]
+async fn update_port_task(stack: Stack<'static>) {
+    use embassy_net::tcp::TcpSocket;
+    use embedded_io_async::Write as _;
+    let mut rx = [0u8; 1024];
+    let mut tx = [0u8; 2048];
+    let mut inbox = [0u8; 256];
+    let mut outbox = [0u8; 512];
+    loop {
+        stack.wait_config_up().await;
+        let mut socket = TcpSocket::new(stack, &mut rx, &mut tx);
+        socket.set_timeout(Some(Duration::from_secs(60)));
+        if socket
+            .accept(tinybms_firmware::update::TCP_PORT)
+            .await
+            .is_err()
+        {
+            Timer::after(Duration::from_secs(1)).await;
+            continue;
+        }
+        info!("update port: a connection");
+        wires::UPDATE_TX.clear();
+        wires::UPDATE_CONNECTION.signal(true);
+        wires::WAKE.signal(());
+        loop {
+            match select(socket.read(&mut inbox), wires::UPDATE_TX.read(&mut outbox)).await {
+                Either::First(Ok(0) | Err(_)) => break,
+                Either::First(Ok(n)) => {
+                    wires::UPDATE_RX
+                        .write_all(inbox.get(..n).unwrap_or(&[]))
+                        .await;
+                    wires::WAKE.signal(());
+                }
+                Either::Second(n) => {
+                    if socket
+                        .write_all(outbox.get(..n).unwrap_or(&[]))
+                        .await
+                        .is_err()
+                    {
+                        break;
+                    }
+                }
+            }
+        }
+        socket.close();
+        let _ = socket.flush().await;
+        socket.abort();
+        wires::UPDATE_CONNECTION.signal(false);
+        wires::WAKE.signal(());
+        info!("update port: the connection closed");
+    }
 }
 
 /// How often the heap's use is logged (the library's).

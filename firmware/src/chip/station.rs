@@ -257,6 +257,18 @@ impl Pumps {
                 station.wifi_rssi(rssi);
             }
             #[cfg(feature = "wifi")]
+            {
+                match wires::UPDATE_CONNECTION.try_take() {
+                    Some(true) => station.update_port_connected(now_us()),
+                    Some(false) => station.update_port_closed(),
+                    None => {}
+                }
+                let mut buf = [0u8; 256];
+                while let Ok(n) = wires::UPDATE_RX.try_read(&mut buf) {
+                    station.update_port_rx(now_us(), buf.get(..n).unwrap_or(&[]));
+                }
+            }
+            #[cfg(feature = "wifi")]
             if let Some(r) = wires::RADIO.try_take() {
                 station.radio(r);
             }
@@ -274,6 +286,7 @@ impl Pumps {
         station.hand_out_host_lines(now_us(), &mut &wires::HOST_TX, &mut self.line);
         #[cfg(feature = "wifi")]
         {
+            station.hand_out_update_port_lines(now_us(), &mut &wires::UPDATE_TX, &mut self.line);
             // A copy into the Watch, no I/O: only when it changed.
             if self.generation != Some(station.generation()) {
                 self.generation = Some(station.generation());

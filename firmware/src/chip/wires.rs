@@ -137,6 +137,20 @@ mod mqtt {
     /// publishes; latest wins.
     pub static WIFI_RSSI: embassy_sync::signal::Signal<Raw, Option<i8>> =
         embassy_sync::signal::Signal::new();
+
+    /// Bytes from the update port's connection (its task → the station task);
+    /// when full, the task waits and TCP makes the sender wait.
+    pub static UPDATE_RX: embassy_sync::pipe::Pipe<Raw, 512> = embassy_sync::pipe::Pipe::new();
+    /// Whole lines for the update port's connection (the station task → its
+    /// task).
+    pub static UPDATE_TX: embassy_sync::pipe::Pipe<
+        Raw,
+        { 2 * tinybms_firmware::host_link::OUT_LINE_MAX },
+    > = embassy_sync::pipe::Pipe::new();
+    /// A connection to the update port came (`true`) or closed (`false`);
+    /// latest wins.
+    pub static UPDATE_CONNECTION: embassy_sync::signal::Signal<Raw, bool> =
+        embassy_sync::signal::Signal::new();
 }
 
 /// Lines for the host the writer dropped on the wire since the station last

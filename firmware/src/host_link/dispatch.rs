@@ -33,6 +33,23 @@ impl State {
             Err(e) => return self.error(e.req, e.code, e.detail, e.subject),
         };
         let req = parsed.req;
+        if self.update_only
+            && !matches!(
+                parsed.command,
+                HostCommand::Hello
+                    | HostCommand::UpdateBegin { .. }
+                    | HostCommand::UpdateChunk { .. }
+                    | HostCommand::UpdateCancel
+                    | HostCommand::UpdateStatus
+            )
+        {
+            return self.error(
+                req,
+                ErrorCode::UnknownCommand,
+                "only hello and the update_… commands on the update port",
+                "",
+            );
+        }
         // The running record decides read-only (the BOOT button may have lifted it).
         self.apply_config(now, config.running());
         let writes = matches!(

@@ -205,6 +205,9 @@ struct State {
     capture: bool,
     /// "update to X rolled back: reason" (`hello`, `update` lines).
     rolled_back: Option<update::RolledBack>,
+    /// The update port on the network: `hello` and the `update_…` commands
+    /// only ([`HostLink::update_port`]).
+    update_only: bool,
     queue: Deque<Out, QUEUE>,
     raw: Deque<(Dir, Vec<u8, RAW_CHUNK>), RAW_QUEUE>,
     logs: Deque<(crate::Level, String<{ crate::text::LINE_MAX }>), LOG_QUEUE>,
@@ -272,6 +275,7 @@ impl HostLink {
                 wifi: crate::improv::WifiLink::Off,
                 capture: false,
                 rolled_back: None,
+                update_only: false,
                 queue: Deque::new(),
                 raw: Deque::new(),
                 logs: Deque::new(),
@@ -295,6 +299,21 @@ impl HostLink {
         if self.s.queue.push_front(Out::Hello(None)).is_err() {
             self.s.stats.dropped_lines = self.s.stats.dropped_lines.wrapping_add(1);
         }
+    }
+
+    /// The link of the update port on the network (`update::TCP_PORT`): the
+    /// same lines, but only `hello` and the `update_…` commands are taken,
+    /// and nothing is streamed.
+    pub fn update_port(config: HostLinkConfig, now: Instant) -> Self {
+        let mut link = Self::new(
+            HostLinkConfig {
+                stream_period_ms: 0,
+                ..config
+            },
+            now,
+        );
+        link.s.update_only = true;
+        link
     }
 
     /// "update to X rolled back: reason" for `hello` and the `update` lines
@@ -575,7 +594,8 @@ impl State {
     fn apply_config(&mut self, now: Instant, running: &Config) {
         self.config.read_only = running.read_only;
         self.config.freshness = running.freshness();
-        if self.config.stream_period_ms != running.stream_period_ms {
+        // The update port streams nothing.
+        if !self.update_only && self.config.stream_period_ms != running.stream_period_ms {
             self.config.stream_period_ms = running.stream_period_ms;
             self.set_stream(now, configured_period(&self.config));
         }

@@ -213,6 +213,8 @@ pub struct Station {
     ota_notes: Deque<ota::UpdateNote, 4>,
     /// An installed update restarts the bridge at this time.
     restart_at: Option<Instant>,
+    /// The link of a connection to the update port on the network.
+    update_port: Option<parts::Host>,
 }
 
 impl Station {
@@ -273,6 +275,7 @@ impl Station {
             ota: crate::update::Ota::default(),
             ota_notes: Deque::new(),
             restart_at: None,
+            update_port: None,
         }
     }
 
@@ -805,10 +808,8 @@ impl Station {
             Logged::Improv(n)
         } else if let Some(r) = self.radio_to_log.take() {
             Logged::Radio(r)
-        } else if let Some(n) = self.next_update_note() {
-            n
         } else {
-            return None;
+            self.next_update_note()?
         };
         let _ = now;
         if self.host.is_some() {

@@ -173,6 +173,69 @@ impl Station {
         wake
     }
 
+    /// A connection came to the update port on the network
+    /// ([`crate::update::TCP_PORT`]; images with Wi-Fi): a link of its own,
+    /// which takes `hello` and the `update_…` commands only. A second
+    /// connection replaces the first.
+    pub fn update_port_connected(&mut self, now: Instant) {
+        #[cfg(feature = "host-link")]
+        {
+            let config = self.config.running().host_link(&self.identity);
+            let mut link = crate::host_link::HostLink::update_port(config, now);
+            link.set_rolled_back(crate::host_link::rolled_back_text(&self.ota));
+            link.connected(now);
+            self.update_port = Some(link);
+        }
+        #[cfg(not(feature = "host-link"))]
+        let _ = now;
+    }
+
+    /// The connection to the update port closed.
+    pub fn update_port_closed(&mut self) {
+        self.update_port = None;
+    }
+
+    /// Bytes from the update port's connection.
+    pub fn update_port_rx(&mut self, now: Instant, bytes: &[u8]) {
+        if let Some(l) = self.update_port.as_mut() {
+            l.handle_rx(
+                now,
+                bytes,
+                &mut self.bridge,
+                &mut self.config,
+                &mut self.ota,
+            );
+        }
+    }
+
+    /// The next line for the update port's connection (`\n`-terminated).
+    pub fn next_update_port_line(&mut self, now: Instant, out: &mut [u8]) -> Option<usize> {
+        let l = self.update_port.as_mut()?;
+        l.next_line(now, &self.bridge, &self.config, out)
+    }
+
+    /// Hands the update port's writer every line there is room for, each
+    /// whole (as [`Station::hand_out_host_lines`]); a line that does not fit
+    /// whole is dropped (the sender asks again). Returns the lines handed.
+    pub fn hand_out_update_port_lines(
+        &mut self,
+        now: Instant,
+        queue: &mut impl crate::host_link::queue::ByteQueue,
+        buf: &mut [u8; crate::host_link::OUT_LINE_MAX],
+    ) -> u32 {
+        use crate::host_link::queue::{hand_off, HandOff};
+        let mut lines = 0;
+        while queue.free() >= buf.len() {
+            let Some(n) = self.next_update_port_line(now, buf) else {
+                break;
+            };
+            if hand_off(queue, buf.get(..n).unwrap_or(&[])) == HandOff::Whole {
+                lines += 1;
+            }
+        }
+        lines
+    }
+
     /// The next update note to log.
     pub(super) fn next_update_note(&mut self) -> Option<Logged> {
         self.ota_notes.pop_front().map(Logged::Update)

@@ -14,6 +14,7 @@ pub mod driver;
 pub mod flash;
 pub mod ota;
 pub mod station;
+pub mod update_port;
 
 pub use driver::{BytePort, CanSide, Clock, Driver, Happened, WifiSide};
 pub use station::{ChannelSide, HostSide, Hosted, NoHost};

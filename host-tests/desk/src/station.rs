@@ -67,6 +67,8 @@ pub struct Hosted<P: BytePort> {
     pub log: bool,
     /// The bridge's name on the network (Improv's device name).
     pub network_name: Option<String>,
+    /// The update port on the network (`sim --bridge-pty --update-port`).
+    pub update_port: Option<crate::update_port::UpdatePort>,
     line: Vec<u8>,
     input: Vec<u8>,
     next_sample: u64,
@@ -156,6 +158,7 @@ impl<P: BytePort> Hosted<P> {
             beside: None,
             log: false,
             network_name: None,
+            update_port: None,
             line: vec![0; LINE_BUF],
             input: Vec::new(),
             next_sample: 0,
@@ -229,6 +232,9 @@ impl<P: BytePort> Hosted<P> {
             self.driver.station.set_ota(ota);
         }
         self.driver.restart_due = false;
+        if let Some(u) = self.update_port.as_mut() {
+            u.drop_connection();
+        }
         self.boot_lines();
         self.boot_wifi();
     }
@@ -305,6 +311,9 @@ impl<P: BytePort> Hosted<P> {
         }
         if let Some(b) = self.beside.as_mut() {
             b.round(&mut self.driver.station, now);
+        }
+        if let Some(u) = self.update_port.as_mut() {
+            u.round(&mut self.driver.station, now);
         }
         while side.can_take() {
             match self.driver.station.next_host_line(now, &mut self.line) {

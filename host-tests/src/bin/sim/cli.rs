@@ -121,6 +121,11 @@ pub(crate) struct Cli {
     /// simulated board of the chip `sim`
     #[arg(long, value_name = "NAME", value_parser = board_name, help_heading = REAL_TIME, requires = "one_bridge")]
     board: Option<String>,
+    /// (--bridge-pty) The bridge's update port on the network at ADDR
+    /// (127.0.0.1:8232): `tinybms update ADDR FILE` (an image with Wi-Fi
+    /// listens on TCP port 8232)
+    #[arg(long, value_name = "ADDR", help_heading = REAL_TIME, requires = "one_bridge")]
+    update_port: Option<std::net::SocketAddr>,
     /// (--bridge-pty) A network the simulated radio finds (repeatable): Improv
     /// Wi-Fi (the browser installer) scans it and joins it only with its
     /// passphrase; without any, every join finds no network
@@ -368,6 +373,7 @@ pub(crate) struct Options {
     pub(crate) bridge_pty: bool,
     pub(crate) no_wifi: bool,
     pub(crate) board: Option<String>,
+    pub(crate) update_port: Option<std::net::SocketAddr>,
     pub(crate) wifi_networks: Vec<SimNetwork>,
     pub(crate) config: Vec<(String, String)>,
     pub(crate) flash: Option<String>,
@@ -499,6 +505,7 @@ impl Cli {
             bridge_pty: self.bridge_pty,
             no_wifi: self.no_wifi,
             board: self.board,
+            update_port: self.update_port,
             wifi_networks: self.wifi_network,
             config: config.into_iter().map(|c| c.1).collect(),
             flash: self.flash,

@@ -417,6 +417,7 @@ fn run_realtime(o: &Options) -> ExitCode {
                 pty: o.bridge_pty,
                 no_wifi: o.no_wifi,
                 board: o.board.clone(),
+                update_port: o.update_port,
                 wifi_networks: o.wifi_networks.clone(),
                 bms_silent: o.bms_silent.map(|(a, f)| {
                     (
