@@ -86,7 +86,7 @@ fi
 # The signing key and its public key (built into every image).
 key_file=${TINYBMS_SIGNING_KEY_FILE:-}
 if [[ -z $key_file ]]; then
-    key_file=${CARGO_TARGET_DIR:-target}/update-signing-key.hex
+    key_file=target/update-signing-key.hex
     if [[ ! -s $key_file ]]; then
         mkdir -p "$(dirname "$key_file")"
         (umask 077 && openssl rand -hex 32 > "$key_file")

@@ -356,6 +356,9 @@ def expected_value(row, state):
             return "unavailable"
         on = v > 0 if "> 0" in member else bool(v)
         return "on" if on else "off"
+    if platform == "update":
+        # The installed version is the latest: up to date.
+        return "unavailable" if v is None else "off"
     if v is None:
         return "unavailable"
     return v
@@ -421,6 +424,13 @@ def compare_values(ha, entities, serial, pack_rows, last_state):
         e = entities[f"tinybms_{serial}_{row[0]}"]
         got = states[e["entity_id"]]["state"]
         want = expected_value(row, last_state)
+        if row[2] == "update":
+            # The versions it shows are the bridge's firmware as published.
+            a = states[e["entity_id"]]["attributes"]
+            for k in ("installed_version", "latest_version"):
+                if a.get(k) != last_state.get("bridge_firmware"):
+                    wrong.append(f"{row[0]}: {k} {a.get(k)!r}, published "
+                                 f"{last_state.get('bridge_firmware')!r}")
         compared += 1
         if not same(got, want):
             wrong.append(f"{row[0]}: Home Assistant {got!r}, published {want!r}")
@@ -515,7 +525,10 @@ def main():
                     k
                     for k, v in s.items()
                     if v["state"] != "unavailable"
-                    and not (override_will and k.startswith("event."))
+                    # The event and the firmware's update entity have no
+                    # expiry (Home Assistant's MQTT event and update take
+                    # none): only the will makes them unavailable.
+                    and not (override_will and k.startswith(("event.", "update.")))
                 ]
                 done = not live and len(s) >= len(pack_rows)
                 if override_will and seen:

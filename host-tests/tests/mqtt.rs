@@ -57,6 +57,7 @@ fn view<'a>(snap: &'a LiveSnapshot, age_s: u64) -> View<'a> {
             stops: None,
         }),
         wifi_rssi_dbm: Some(-61),
+        update_rolled_back: None,
     }
 }
 
@@ -100,7 +101,7 @@ fn units_for(class: &str) -> &'static [&'static str] {
         "duration" => &["d", "h", "min", "s", "ms"],
         "energy" => &["Wh", "kWh", "MWh"],
         "signal_strength" => &["dB", "dBm"],
-        "enum" | "connectivity" => &[],
+        "enum" | "connectivity" | "firmware" => &[],
         other => panic!("device class {other} not in the test's table"),
     }
 }
@@ -131,7 +132,7 @@ fn discovery_configs_are_what_home_assistant_accepts() {
         assert_eq!(parts.len(), 5, "{topic}");
         assert_eq!(parts[0], "homeassistant");
         assert!(
-            ["sensor", "binary_sensor", "event"].contains(&parts[1]),
+            ["sensor", "binary_sensor", "event", "update"].contains(&parts[1]),
             "{topic}"
         );
         assert!(is_id(parts[2]) && is_id(parts[3]), "{topic}");
@@ -249,6 +250,13 @@ fn every_template_reads_a_member_the_state_has() {
             Read::NonZero(_) => assert!(s[member].is_number()),
             Read::Flag(_) => assert!(s[member].is_boolean(), "{}: {member}", e.object),
             Read::Event => unreachable!("the event entity reads the event topic"),
+            Read::Update => {
+                assert!(s[member].is_string(), "{}: {member}", e.object);
+                assert!(
+                    s.get("update_rolled_back").is_some_and(|v| v.is_null()),
+                    "{s}"
+                );
+            }
         }
         if e.component == Component::BinarySensor {
             assert!(matches!(e.read, Read::NonZero(_) | Read::Flag(_)));
@@ -533,6 +541,7 @@ fn guide_row(e: &discovery::Entity) -> std::string::String {
         Read::NonZero(m) => format!("`{m}` > 0"),
         Read::Flag(m) => format!("`{m}` (unavailable while null)"),
         Read::Event => "the event topic: each event's `severity`".to_string(),
+        Read::Update => "`bridge_firmware` as the installed version (and the latest: install is not offered, updates come from `tinybms update`), `update_rolled_back` as the release summary after a rollback".to_string(),
     };
     format!(
         "| `{}` | {} | {} | {} | {} | {} | {}{} |",
@@ -576,7 +585,8 @@ fn the_home_assistant_guide_lists_every_entity_as_the_firmware_announces_it() {
             l.starts_with("| `")
                 && (l.contains(" | sensor | ")
                     || l.contains(" | binary_sensor | ")
-                    || l.contains(" | event | "))
+                    || l.contains(" | event | ")
+                    || l.contains(" | update | "))
         })
         .count();
     assert_eq!(
@@ -798,6 +808,10 @@ fn every_entity_expires_and_a_silent_connection_is_noticed_as_soon() {
             if topic.contains("/event/") {
                 assert!(c.get("expire_after").is_none(), "{topic}");
                 assert_eq!(c["event_types"][0], "fault");
+            } else if topic.contains("/update/") {
+                // A version does not go stale.
+                assert!(c.get("expire_after").is_none(), "{topic}");
+                assert_eq!(c["device_class"], "firmware");
             } else {
                 assert_eq!(c["expire_after"], expire, "{topic}");
             }

@@ -263,6 +263,7 @@ fn every_merged_image_ci_makes_carries_a_table_the_chip_finds_its_store_in() {
             && name.ends_with(".bin")
             && !name.ends_with("-app.bin")
             && !name.ends_with("-boot.bin")
+            && !name.ends_with("-otadata.bin")
         {
             merged.push(path);
         }

@@ -52,7 +52,9 @@ if (existsSync(images)) {
     const manifest = JSON.parse(readFileSync(join(images, m), "utf8"));
     const parts = manifest.builds.flatMap((b) => b.parts.map((p) => p.path));
     const merged = parts[0].replace(/-boot\.bin$/, ".bin");
-    const files = [merged, ...parts];
+    // The signed update file beside them (`tinybms update`), when there is one.
+    const update = merged.replace(/\.bin$/, ".tbu");
+    const files = [merged, ...parts, ...(existsSync(join(images, update)) ? [update] : [])];
     for (const f of [m, ...files]) copyFileSync(join(images, f), join(out, "firmware", f));
     index.push({ manifest: m, board: manifest.board, wifi: manifest.wifi, version: manifest.version, files });
   }

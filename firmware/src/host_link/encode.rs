@@ -167,6 +167,8 @@ pub struct StateExtras<'a> {
     pub stops: Option<(&'static str, &'static str)>,
     /// The Wi-Fi signal, dBm (`None`: unknown, published as null).
     pub wifi_rssi_dbm: Option<i8>,
+    /// "update to X rolled back: reason" (`None`: none, published as null).
+    pub update_rolled_back: Option<&'a str>,
 }
 
 /// What a `telemetry` line says besides the snapshot.
@@ -319,6 +321,7 @@ fn extras_members<'a>(
         charge_stop: e.stops.map(|x| x.0),
         discharge_stop: e.stops.map(|x| x.1),
         wifi_rssi_dbm: e.wifi_rssi_dbm,
+        update_rolled_back: e.update_rolled_back,
     }
 }
 

@@ -26,6 +26,9 @@ pub enum Component {
     BinarySensor,
     /// `event`: the BMS's events, from the event topic.
     Event,
+    /// `update`: the bridge's firmware (installed version; install is not
+    /// offered: updates come from `tinybms update`).
+    Update,
 }
 
 impl Component {
@@ -35,6 +38,7 @@ impl Component {
             Self::Sensor => "sensor",
             Self::BinarySensor => "binary_sensor",
             Self::Event => "event",
+            Self::Update => "update",
         }
     }
 }
@@ -55,6 +59,10 @@ pub enum Read {
     Flag(&'static str),
     /// An event line on the event topic: its `severity` is the event type.
     Event,
+    /// The update entity's JSON: the installed version (`bridge_firmware`,
+    /// also the latest: nothing newer is announced) and, after a rollback,
+    /// its words as the release summary (`update_rolled_back`).
+    Update,
 }
 
 impl Read {
@@ -64,6 +72,7 @@ impl Read {
             Self::Member(m) | Self::Nullable(m) | Self::NonZero(m) | Self::Flag(m) => m,
             Self::Cell(_) => "cell_voltages_v",
             Self::Event => "severity",
+            Self::Update => "bridge_firmware",
         }
     }
 }
@@ -406,6 +415,18 @@ pub const ENTITIES: &[Entity] = &[
         Read::Nullable("discharge_stop"),
         Some(STOP_CAUSES),
     )),
+    diagnostic(Entity {
+        object: "firmware_update",
+        name: "Bridge firmware update",
+        component: Component::Update,
+        device_class: Some("firmware"),
+        state_class: None,
+        unit: None,
+        read: Read::Update,
+        precision: None,
+        category: None,
+        options: None,
+    }),
     diagnostic(sensor(
         "wifi_signal",
         "Wi-Fi signal",
@@ -679,6 +700,10 @@ pub fn value_template(r: Read) -> String<192> {
             "{{ {'event_type': value_json.severity, 'name': value_json.name, \
              'id': value_json.id, 'timestamp_s': value_json.timestamp_s} | to_json }}",
         ),
+        Read::Update => push(
+            "{{ {'installed_version': value_json.bridge_firmware, 'latest_version': \
+             value_json.bridge_firmware, 'release_summary': value_json.update_rolled_back} | to_json }}",
+        ),
     }
     t
 }
@@ -746,7 +771,8 @@ pub fn write(
         entity_category: e.category,
         options: e.options.filter(|_| !event).map(Strs),
         event_types: e.options.filter(|_| event).map(Strs),
-        expire_after: (!event).then_some(expire_after_s),
+        // An update entity's version does not go stale (it has no expiry).
+        expire_after: (!event && e.component != Component::Update).then_some(expire_after_s),
         availability: &conditions,
         availability_mode: (conditions.len() > 1).then_some("all"),
         device,

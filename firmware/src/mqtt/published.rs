@@ -45,6 +45,9 @@ pub struct Published {
     /// The Wi-Fi signal of the access point, dBm, while joined (the chip's
     /// Wi-Fi task reads it; `None`: unknown).
     pub wifi_rssi_dbm: Option<i8>,
+    /// "update to X rolled back: reason", when the running image came back
+    /// from an update that failed its trial (the update entity's summary).
+    pub update_rolled_back: Option<crate::host_link::RolledBack>,
 }
 
 /// The inverter output as the MQTT diagnostics show it.

@@ -67,6 +67,8 @@ pub struct View<'a> {
     pub inverter: Option<InverterStatus>,
     /// The Wi-Fi signal, dBm (`None`: unknown).
     pub wifi_rssi_dbm: Option<i8>,
+    /// An update that was rolled back, in words.
+    pub update_rolled_back: Option<&'a str>,
 }
 
 impl<'a> View<'a> {
@@ -87,6 +89,7 @@ impl<'a> View<'a> {
             capacity_cah: p.capacity_cah,
             inverter: p.inverter,
             wifi_rssi_dbm: p.wifi_rssi_dbm,
+            update_rolled_back: p.update_rolled_back.as_deref(),
         }
     }
 
@@ -547,6 +550,7 @@ impl Publisher {
             inverter_heard: view.inverter.map(|i| i.heard),
             stops: view.inverter.and_then(|i| i.stops).map(|s| s.keys()),
             wifi_rssi_dbm: view.wifi_rssi_dbm,
+            update_rolled_back: view.update_rolled_back,
         };
         let head = TelemetryHead {
             req: None,

@@ -214,7 +214,7 @@ pub struct Station {
     /// An installed update restarts the bridge at this time.
     restart_at: Option<Instant>,
     /// The link of a connection to the update port on the network.
-    update_port: Option<parts::Host>,
+    update_port: Option<parts::UpdatePort>,
 }
 
 impl Station {
@@ -631,6 +631,7 @@ impl Station {
                 stops: i.protection(),
             }),
             wifi_rssi_dbm: self.wifi_rssi,
+            update_rolled_back: crate::host_link::rolled_back_text(&self.ota),
         }
     }
 

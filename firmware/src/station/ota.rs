@@ -178,7 +178,7 @@ impl Station {
     /// which takes `hello` and the `update_…` commands only. A second
     /// connection replaces the first.
     pub fn update_port_connected(&mut self, now: Instant) {
-        #[cfg(feature = "host-link")]
+        #[cfg(all(feature = "host-link", feature = "net"))]
         {
             let config = self.config.running().host_link(&self.identity);
             let mut link = crate::host_link::HostLink::update_port(config, now);
@@ -186,7 +186,7 @@ impl Station {
             link.connected(now);
             self.update_port = Some(link);
         }
-        #[cfg(not(feature = "host-link"))]
+        #[cfg(not(all(feature = "host-link", feature = "net")))]
         let _ = now;
     }
 

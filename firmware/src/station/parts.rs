@@ -5,7 +5,7 @@
 //! memory, and the compiler removes every call on it (the bridge-only image
 //! links neither part, as before the station).
 
-#[cfg(not(all(feature = "host-link", feature = "can")))]
+#[cfg(not(all(feature = "host-link", feature = "can", feature = "net")))]
 use crate::Instant;
 
 /// The host link's slot.
@@ -21,6 +21,42 @@ pub type Output = crate::inverter::Inverter;
 /// The inverter output's slot: none in this image.
 #[cfg(not(feature = "can"))]
 pub type Output = NoOutput;
+
+/// The update port's link (images with Wi-Fi: feature `net`; the desktop).
+#[cfg(all(feature = "host-link", feature = "net"))]
+pub type UpdatePort = crate::host_link::HostLink;
+/// The update port's slot: none in this image (no network).
+#[cfg(not(all(feature = "host-link", feature = "net")))]
+pub type UpdatePort = NoPort;
+
+/// No update port: a type without values.
+#[cfg(not(all(feature = "host-link", feature = "net")))]
+#[derive(Debug, Clone)]
+pub enum NoPort {}
+
+#[cfg(not(all(feature = "host-link", feature = "net")))]
+#[allow(clippy::unused_self, missing_docs)]
+impl NoPort {
+    pub fn handle_rx(
+        &mut self,
+        _: Instant,
+        _: &[u8],
+        _: &mut crate::Bridge,
+        _: &mut crate::config::state::ConfigState,
+        _: &mut crate::update::Ota,
+    ) {
+        match *self {}
+    }
+    pub fn next_line(
+        &mut self,
+        _: Instant,
+        _: &crate::Bridge,
+        _: &crate::config::state::ConfigState,
+        _: &mut [u8],
+    ) -> Option<usize> {
+        match *self {}
+    }
+}
 
 /// No host link: a type without values.
 #[cfg(not(feature = "host-link"))]

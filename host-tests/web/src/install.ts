@@ -105,7 +105,16 @@ async function main(): Promise<void> {
       i.files.forEach((f, n) => {
         const a = document.createElement("a");
         a.href = `firmware/${f}`;
-        a.textContent = n === 0 ? "merged (0x0)" : f.endsWith("-boot.bin") ? "boot (0x0)" : "app (0x10000)";
+        a.textContent =
+          n === 0
+            ? "merged (0x0)"
+            : f.endsWith("-boot.bin")
+              ? "boot (0x0)"
+              : f.endsWith("-otadata.bin")
+                ? "otadata (0x10000)"
+                : f.endsWith(".tbu")
+                  ? "update file"
+                  : "app (0x20000)";
         a.title = f;
         li.append(n > 0 ? ", " : "", a);
       });

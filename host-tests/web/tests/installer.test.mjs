@@ -65,7 +65,7 @@ test("every board is offered, and every manifest names the files make-images.sh 
       const parts = m.builds[0].parts;
       assert.deepEqual(
         parts.map((p) => p.offset),
-        [0, 0x10000],
+        [0, 0x10000, 0x20000],
         entry.manifest,
       );
       for (const p of parts) {
@@ -93,7 +93,7 @@ test("every board is offered, and every manifest names the files make-images.sh 
     const downloads = await page.locator("#files li").allTextContents();
     assert.equal(downloads.length, boards.length, downloads.join("\n"));
     for (const line of downloads) {
-      for (const part of [/without Wi-Fi merged/, /with Wi-Fi merged/, /boot \(0x0\)/, /app \(0x10000\)/]) {
+      for (const part of [/without Wi-Fi merged/, /with Wi-Fi merged/, /boot \(0x0\)/, /otadata \(0x10000\)/, /app \(0x20000\)/, /update file/]) {
         assert.match(line, part, line);
       }
     }
@@ -299,10 +299,11 @@ test("a first install: ESP Web Tools erases the board, writes each part where th
     const app = part("tinybms-c3-supermini-wifi-app.bin");
     assert.deepEqual(
       rom.writes.map((w) => w.offset),
-      [0, 0x10000],
+      [0, 0x10000, 0x20000],
     );
     assert.ok((await flashAt(page, 0, boot.length)).equals(boot), "the bootloader and partition table at 0x0");
-    assert.ok((await flashAt(page, 0x10000, app.length)).equals(app), "the firmware at 0x10000");
+    assert.ok((await flashAt(page, 0x10000, 0x2000)).every((x) => x === 0xff), "otadata erased: the bootloader boots ota_0");
+    assert.ok((await flashAt(page, 0x20000, app.length)).equals(app), "the firmware in ota_0 at 0x20000");
     assert.ok((await flashAt(page, 0x9000, 0x6000)).every((x) => x === 0xff), "the old configuration is gone");
     // The board resets into the firmware it was given; the installer finds it
     // over Improv and asks for the network.
@@ -334,7 +335,8 @@ test("an update writes the new firmware and leaves the stored configuration alon
     const boot = part("tinybms-c3-supermini-boot.bin");
     const app = part("tinybms-c3-supermini-app.bin");
     assert.ok((await flashAt(page, 0, boot.length)).equals(boot));
-    assert.ok((await flashAt(page, 0x10000, app.length)).equals(app));
+    assert.ok((await flashAt(page, 0x10000, 0x2000)).every((x) => x === 0xff), "otadata erased");
+    assert.ok((await flashAt(page, 0x20000, app.length)).equals(app));
     assert.ok((await flashAt(page, 0x9000, 0x6000)).every((x) => x === 0xa5), "the configuration is kept");
     assert.deepEqual(errors, []);
   } finally {

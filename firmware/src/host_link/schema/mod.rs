@@ -386,6 +386,7 @@ line_type! {
         pub charge_stop: Option<F::Text>,
         pub discharge_stop: Option<F::Text>,
         pub wifi_rssi_dbm: Option<i8>,
+        pub update_rolled_back: Option<F::Text>,
     }
 }
 

@@ -310,6 +310,9 @@ fn bridge_of(h: &Hello<Read>) -> Vec<(&'static str, Value, String)> {
     if let Some(m) = &h.mqtt {
         b.push(("mqtt", json!(m), mqtt_text(m)));
     }
+    if let Some(r) = &h.rolled_back {
+        b.push(("rolled_back", json!(r), r.clone()));
+    }
     b
 }
 
