@@ -223,6 +223,82 @@ function fieldRow(f: Line): HTMLTableRowElement {
   return tr;
 }
 
+/** An update file's bytes as base64 (the `update_chunk` data). */
+function base64(bytes: Uint8Array): string {
+  let s = "";
+  for (const b of bytes) s += String.fromCharCode(b);
+  return btoa(s);
+}
+
+/** The file's header, as the bridge reads it (docs/updates.md). */
+function updateHeader(bytes: Uint8Array): { version: string; board: string; chip: string } | undefined {
+  const text = (a: number, b: number) => new TextDecoder().decode(bytes.subarray(a, b)).replace(/\0.*$/s, "");
+  if (bytes.length < 256 || text(0, 8) !== "TBMSUPD1") return undefined;
+  return { chip: text(44, 60), board: text(60, 84), version: text(124, 148) };
+}
+
+/**
+ * Sends the chosen update file in chunks of 128 bytes, each answered with the
+ * offset the bridge wants next (`update_…`, the protocol's update commands),
+ * as `tinybms update` does.
+ */
+async function sendUpdate(): Promise<void> {
+  const s = session;
+  if (!s) return;
+  const file = ($("update-file") as HTMLInputElement).files?.[0];
+  if (!file) {
+    say("update-messages", ["choose an update file (.tbu) first"], "error");
+    return;
+  }
+  const bytes = new Uint8Array(await file.arrayBuffer());
+  const h = updateHeader(bytes);
+  if (!h) {
+    say("update-messages", [`${file.name} is not an update file (no TBMSUPD1 header)`], "error");
+    return;
+  }
+  const progress = $("update-progress") as HTMLProgressElement;
+  const ask = async (cmd: Record<string, unknown>): Promise<Line> => {
+    for (let tries = 0; ; tries++) {
+      try {
+        const lines = await s.link.request(cmd, (l) => l.type === "update", 3000);
+        const err = errorOf(lines);
+        if (err) throw new Error(err);
+        return lines[lines.length - 1];
+      } catch (e) {
+        if (tries >= 9) throw e;
+      }
+    }
+  };
+  const downgrade = ($("update-downgrade") as HTMLInputElement).checked;
+  say("update-messages", [`sending ${h.chip} ${h.board} ${h.version} (${Math.round(bytes.length / 1024)} KiB)…`], "ok");
+  progress.hidden = false;
+  let a = await ask({ cmd: "update_begin", size: bytes.length, downgrade });
+  for (;;) {
+    if (a.state === "ended") throw new Error(`the bridge refused the update: ${a.detail}`);
+    if (a.state !== "next" && a.state !== "busy") throw new Error(`the bridge answered ${a.state}`);
+    const at = a.at as number;
+    progress.value = at / bytes.length;
+    if (at >= bytes.length) break;
+    if (a.state === "busy") await new Promise((r) => window.setTimeout(r, 10));
+    // Within the header, or within one 4 KiB sector of the image.
+    const boundary = at < 256 ? 256 : 256 + (Math.floor((at - 256) / 4096) + 1) * 4096;
+    const end = Math.min(at + 128, bytes.length, boundary);
+    a = await ask({ cmd: "update_chunk", at, data: base64(bytes.subarray(at, end)) });
+  }
+  for (let i = 0; i < 300; i++) {
+    const st = await ask({ cmd: "update_status" });
+    if (st.phase === "installed") {
+      say("update-messages", [
+        `installed ${st.version}: the bridge restarts into it on trial; it confirms itself once BMS data and the inverter output run, else it goes back to ${s.hello.firmware} by itself`,
+      ], "ok");
+      return;
+    }
+    if (st.phase === "idle") throw new Error(`the bridge refused the update: ${st.detail ?? st.ended}`);
+    await new Promise((r) => window.setTimeout(r, 100));
+  }
+  throw new Error("the bridge did not finish the update in 30 s");
+}
+
 async function fetchConfig(s: Session): Promise<void> {
   const lines = await s.link.request({ cmd: "get", what: "config" }, (l) => l.type === "config_end");
   const err = errorOf(lines);
@@ -442,6 +518,7 @@ function showIdentity(h: Line, direct = session?.direct ?? false): void {
   if (h.wifi) parts.push(`Wi-Fi ${words(h.wifi.state)}${h.wifi.ip ? " " + h.wifi.ip : ""}`);
   if (h.mqtt) parts.push(`MQTT ${words(h.mqtt)}`);
   if (h.read_only) parts.push("read-only");
+  if (h.rolled_back) parts.push(h.rolled_back);
   text("identity", parts.join(" · "));
 }
 
@@ -513,6 +590,7 @@ async function connect(): Promise<void> {
   timer = window.setInterval(tick, 250);
   tick();
   if (!direct) {
+    $("update-section").hidden = false;
     try {
       await fetchConfig(s);
     } catch (e) {
@@ -550,6 +628,7 @@ async function main(): Promise<void> {
   $("connect").addEventListener("click", () => void connect());
   $("disconnect").addEventListener("click", () => void disconnect());
   $("config-apply").addEventListener("click", () => void applyConfig().catch((e) => say("config-messages", [String(e.message ?? e)], "error")));
+  $("update-send").addEventListener("click", () => void sendUpdate().catch((e) => say("update-messages", [String(e.message ?? e)], "error")));
   $("settings-read").addEventListener("click", () => void readSettings(false).catch((e) => say("settings-messages", [String(e.message ?? e)], "error")));
   $("settings-apply").addEventListener("click", () => void applySettings().catch((e) => say("settings-messages", [String(e.message ?? e)], "error")));
   document.body.dataset.ready = "true";

@@ -3,7 +3,7 @@
 // browser's serial port. What an owner sees must be what the bridge sent;
 // what an owner types is refused as `tinybms` refuses it.
 import assert from "node:assert/strict";
-import { mkdtempSync } from "node:fs";
+import { mkdtempSync, readFileSync, writeFileSync } from "node:fs";
 import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { after, before, test } from "node:test";
@@ -275,5 +275,51 @@ test("a TinyBMS behind a USB-UART adapter: the firmware's station runs in the pa
   } finally {
     await context.close();
     await a.stop();
+  }
+});
+
+/** An app image as the bridge checks its start (ESP32-C3, version `v`). */
+function appImage(len, v) {
+  const b = Buffer.alloc(len);
+  for (let i = 0; i < len; i++) b[i] = (i * 13 + (i >> 8)) & 0xff;
+  b[0] = 0xe9;
+  b.writeUInt16LE(5, 12);
+  b.writeUInt32LE(0xabcd5432, 32);
+  b.fill(0, 48, 112);
+  b.write(v, 48, "latin1");
+  b.write("tinybms-firmware", 80, "latin1");
+  return b;
+}
+
+test("a firmware update from the page: refused with the bridge's reason, then sent and installed", async () => {
+  const dir = mkdtempSync(join(tmpdir(), "tinybms-update-"));
+  const key = join(dir, "k");
+  const stranger = join(dir, "s");
+  for (const k of [key, stranger]) assert.equal((await tinybms(["keygen", k])).code, 0);
+  const pub = readFileSync(`${key}.pub`, "utf8").trim();
+  const app = join(dir, "app.bin");
+  writeFileSync(app, appImage(12000, "0.9.0"));
+  const sign = async (k, out) => {
+    const r = await tinybms(["sign", "--key", k, "--chip", "esp32c3", "--board", "c3-supermini", "--version", "0.9.0", app, "-o", out]);
+    assert.equal(r.code, 0, r.out);
+  };
+  await sign(key, join(dir, "good.tbu"));
+  await sign(stranger, join(dir, "stranger.tbu"));
+  const b = await bridge(["--board", "c3-supermini", "--config", `update_key=${pub}`]);
+  const { page, context, errors } = await pageFor(chromium, b);
+  try {
+    await connect(page);
+    assert.equal(await page.isHidden("#update-section"), false);
+    await page.setInputFiles("#update-file", join(dir, "stranger.tbu"));
+    await page.click("#update-send");
+    await until("refused", async () => /not from a key this bridge trusts/.test(await page.textContent("#update-messages")), 30000);
+    await page.setInputFiles("#update-file", join(dir, "good.tbu"));
+    await page.click("#update-send");
+    await until("installed", async () => /installed 0\.9\.0: the bridge restarts into it on trial/.test(await page.textContent("#update-messages")), 120000);
+    await page.screenshot({ path: shotPath("console-update.png") });
+    assert.deepEqual(errors, []);
+  } finally {
+    await context.close();
+    await b.stop();
   }
 });
