@@ -168,7 +168,8 @@ for entry in $boards; do
     [[ ,${IMAGE_FEATURES:-}, == *,wifi,* ]] && features+=,wifi
     features+=,store
     "$TINYBMS" sign --key "$key_file" --chip "$chip" --board "$board" --version "$version" \
-        --features "$features" --build "$TINYBMS_BUILD" "$out/$name-app.bin" -o "$out/$name.tbu" >/dev/null    case $chip in
+        --features "$features" --build "$TINYBMS_BUILD" "$out/$name-app.bin" -o "$out/$name.tbu" >/dev/null
+    case $chip in
         esp32c3) family=ESP32-C3 ;;
         esp32c6) family=ESP32-C6 ;;
     esac
