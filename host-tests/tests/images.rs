@@ -15,7 +15,8 @@ use common::git;
 /// fresh folder, and stand-ins on PATH: `cargo`
 /// writes the TINYBMS_BUILD it was run with to `builds.txt` and an empty
 /// ELF where the alias puts it; `pack-images` (PACK_IMAGES) writes the two
-/// images it is asked for.
+/// images it is asked for; `tinybms` (TINYBMS) writes the update file its
+/// `sign -o` names.
 fn scratch(name: &str) -> PathBuf {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware");
     let dir = std::env::temp_dir().join(format!("tinybms-images-{name}-{}", std::process::id()));
@@ -46,6 +47,10 @@ for a in "$@"; do case $a in riscv32imac-unknown-none-elf) target=$a ;; esac; do
 mkdir -p "target/$target/release" && : > "target/$target/release/tinybms-firmware""#,
     );
     stub("pack-images", r#": > "$3"; : > "$4""#);
+    stub(
+        "tinybms",
+        r#"while (($#)); do [[ $1 == -o ]] && : > "$2"; shift; done"#,
+    );
     dir
 }
 
@@ -63,6 +68,8 @@ fn run(dir: &Path, env: &[(&str, &str)]) -> Vec<String> {
         .env("PATH", path)
         .env("STUB_LOG", &log)
         .env("PACK_IMAGES", dir.join("bin/pack-images"))
+        .env("TINYBMS", dir.join("bin/tinybms"))
+        .env_remove("TINYBMS_SIGNING_KEY_FILE")
         .env_remove("TINYBMS_BUILD")
         // Never a repository above the scratch folder.
         .env("GIT_CEILING_DIRECTORIES", dir.parent().unwrap());
