@@ -59,6 +59,8 @@ if (existsSync(images)) {
     index.push({ manifest: m, board: manifest.board, wifi: manifest.wifi, version: manifest.version, files });
   }
   if (existsSync(join(images, "SHA256SUMS"))) copyFileSync(join(images, "SHA256SUMS"), join(out, "firmware/SHA256SUMS"));
+  // The public key the images trust for updates (the update files' check).
+  if (existsSync(join(images, "update-key.pub"))) copyFileSync(join(images, "update-key.pub"), join(out, "firmware/update-key.pub"));
 }
 if (!index.length) {
   const say = `build: no manifests in ${images} (firmware/make-images.sh writes them)`;
