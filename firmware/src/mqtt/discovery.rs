@@ -61,7 +61,8 @@ pub enum Read {
     Event,
     /// The update entity's JSON: the installed version (`bridge_firmware`,
     /// also the latest: nothing newer is announced) and, after a rollback,
-    /// its words as the release summary (`update_rolled_back`).
+    /// its words as the release summary (`update_rolled_back`; empty
+    /// otherwise: Home Assistant refuses a null summary).
     Update,
 }
 
@@ -702,7 +703,7 @@ pub fn value_template(r: Read) -> String<192> {
         ),
         Read::Update => push(
             "{{ {'installed_version': value_json.bridge_firmware, 'latest_version': \
-             value_json.bridge_firmware, 'release_summary': value_json.update_rolled_back} | to_json }}",
+             value_json.bridge_firmware, 'release_summary': value_json.update_rolled_back or ''} | to_json }}",
         ),
     }
     t

@@ -1,4 +1,4 @@
-//! Updates without a cable: signed update files ([`file`]) received into the
+//! Updates without a cable: signed update files ([`file`](mod@file)) received into the
 //! inactive app slot ([`transfer`]) and booted on trial, confirmed once the
 //! new image has worked or rolled back by the application ([`otadata`]).
 //!
