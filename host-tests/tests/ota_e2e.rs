@@ -72,6 +72,15 @@ fn sign(k: &Keys, img: &[u8], board: &str, version: &str, name: &str) -> std::pa
     out_path
 }
 
+/// `sim --bridge-pty` standing for a SuperMini's image that trusts `k`
+/// (registered as the owner's `update_key`), with `extra` arguments.
+fn bridge_trusting(k: &Keys, extra: &[&str]) -> Sim {
+    let key = format!("update_key={}", k.public);
+    let mut args = vec!["--bridge-pty", "--board", "c3-supermini", "--config", &key];
+    args.extend_from_slice(extra);
+    Sim::start(&args)
+}
+
 /// The host link of the pty, line by line.
 struct Host {
     port: Box<dyn serialport::SerialPort>,
@@ -175,15 +184,7 @@ fn lost_repeated_and_reordered_chunks_then_a_rollback() {
         "good",
     ))
     .unwrap();
-    let sim = Sim::start(&[
-        "--bridge-pty",
-        "--board",
-        "c3-supermini",
-        "--stream-period",
-        "500ms",
-        "--config",
-        &format!("update_key={}", k.public),
-    ]);
+    let sim = bridge_trusting(&k, &["--stream-period", "500ms"]);
     let mut h = Host::open(&sim.path);
     let v = h.ask(json!({"cmd": "hello"}));
     assert_eq!(v["board"], "ESP32-C3 SuperMini", "{v}");
@@ -306,13 +307,7 @@ fn every_refused_file_is_refused_with_its_reason_by_the_tool() {
     let stranger = keygen("e2e-stranger");
     let img = image(9_000, "0.9.0", "tinybms-firmware");
     let good = sign(&k, &img, "c3-supermini", "0.9.0", "r-good");
-    let sim = Sim::start(&[
-        "--bridge-pty",
-        "--board",
-        "c3-supermini",
-        "--config",
-        &format!("update_key={}", k.public),
-    ]);
+    let sim = bridge_trusting(&k, &[]);
     let bytes = std::fs::read(&good).unwrap();
     let truncated = tmp("r-truncated.tbu");
     std::fs::write(&truncated, &bytes[..bytes.len() - 1]).unwrap();
@@ -394,15 +389,7 @@ fn a_host_that_goes_away_mid_transfer_is_given_up_after_30_s() {
         "stall",
     ))
     .unwrap();
-    let sim = Sim::start(&[
-        "--bridge-pty",
-        "--board",
-        "c3-supermini",
-        "--stream-period",
-        "1s",
-        "--config",
-        &format!("update_key={}", k.public),
-    ]);
+    let sim = bridge_trusting(&k, &["--stream-period", "1s"]);
     let mut h = Host::open(&sim.path);
     h.ask(json!({"cmd": "update_begin", "size": good.len()}));
     let mut at = 0;
@@ -466,15 +453,7 @@ fn over_tcp_on_the_update_port() {
         l.local_addr().unwrap().port()
     };
     let addr = format!("127.0.0.1:{port}");
-    let sim = Sim::start(&[
-        "--bridge-pty",
-        "--board",
-        "c3-supermini",
-        "--update-port",
-        &addr,
-        "--config",
-        &format!("update_key={}", k.public),
-    ]);
+    let sim = bridge_trusting(&k, &["--update-port", &addr]);
     // Only hello and the update commands.
     let mut s = std::net::TcpStream::connect(&addr).unwrap();
     s.set_read_timeout(Some(Duration::from_millis(200)))

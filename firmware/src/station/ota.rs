@@ -223,17 +223,7 @@ impl Station {
         queue: &mut impl crate::host_link::queue::ByteQueue,
         buf: &mut [u8; crate::host_link::OUT_LINE_MAX],
     ) -> u32 {
-        use crate::host_link::queue::{hand_off, HandOff};
-        let mut lines = 0;
-        while queue.free() >= buf.len() {
-            let Some(n) = self.next_update_port_line(now, buf) else {
-                break;
-            };
-            if hand_off(queue, buf.get(..n).unwrap_or(&[])) == HandOff::Whole {
-                lines += 1;
-            }
-        }
-        lines
+        super::pumps::hand_out(queue, buf, |b| self.next_update_port_line(now, b)).0
     }
 
     /// The next update note to log.

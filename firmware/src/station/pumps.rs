@@ -20,6 +20,28 @@ pub const WATCHDOG_US: Instant = 4 * SECOND;
 /// watchdog), whatever the station's own wake time.
 pub const MAX_WAIT_US: Instant = 500 * MS;
 
+/// Hands `queue` every line `next` gives while the longest fits, each whole
+/// (`buf` holds one line); the lines handed over and those the queue did
+/// not take whole (dropped).
+pub(super) fn hand_out(
+    queue: &mut impl ByteQueue,
+    buf: &mut [u8; OUT_LINE_MAX],
+    mut next: impl FnMut(&mut [u8]) -> Option<usize>,
+) -> (u32, u32) {
+    let (mut lines, mut dropped) = (0, 0);
+    // A line is taken from the link only when the longest fits.
+    while queue.free() >= buf.len() {
+        let Some(n) = next(buf) else {
+            break;
+        };
+        match hand_off(queue, buf.get(..n).unwrap_or(&[])) {
+            HandOff::Whole => lines += 1,
+            HandOff::NoRoom | HandOff::Cut { .. } => dropped += 1,
+        }
+    }
+    (lines, dropped)
+}
+
 /// When to wake: the station's time, but never later than [`MAX_WAIT_US`]
 /// from now.
 pub const fn bounded_wait(until: Instant, now: Instant) -> Instant {
@@ -41,16 +63,9 @@ impl Station {
         queue: &mut impl ByteQueue,
         buf: &mut [u8; OUT_LINE_MAX],
     ) -> u32 {
-        let mut lines = 0;
-        // A line is taken from the host link only when the longest fits.
-        while queue.free() >= buf.len() {
-            let Some(n) = self.next_host_line(now, buf) else {
-                break;
-            };
-            match hand_off(queue, buf.get(..n).unwrap_or(&[])) {
-                HandOff::Whole => lines += 1,
-                HandOff::NoRoom | HandOff::Cut { .. } => self.host_lines_dropped(1),
-            }
+        let (lines, dropped) = hand_out(queue, buf, |b| self.next_host_line(now, b));
+        if dropped > 0 {
+            self.host_lines_dropped(dropped);
         }
         lines
     }

@@ -106,10 +106,8 @@ pub enum Trial {
 pub struct Ota {
     layout: Option<Layout>,
     otadata: Both,
-    trial: Trial,
     confirm_due: bool,
     transfer: Transfer,
-    rolled_back: Option<(transfer::Version, Cause)>,
     owner_key: Option<Key>,
 }
 
@@ -144,22 +142,11 @@ impl Ota {
     /// After the boot: where the slots are, `otadata` as it now is (the
     /// boot's own write done).
     pub fn new(layout: Option<Layout>, otadata: Both) -> Self {
-        let rolled_back = otadata::rolled_back(&otadata).map(|(v, c)| {
-            let mut s = transfer::Version::new();
-            let _ = s.push_str(v);
-            (s, c)
-        });
         Self {
             layout,
-            trial: if otadata::on_trial(&otadata) {
-                Trial::OnTrial
-            } else {
-                Trial::Confirmed
-            },
             otadata,
             confirm_due: false,
             transfer: Transfer::new(),
-            rolled_back,
             owner_key: None,
         }
     }
@@ -179,14 +166,18 @@ impl Ota {
         &self.otadata
     }
 
-    /// The trial.
+    /// The trial (what `otadata` says of the running image).
     pub fn trial(&self) -> Trial {
-        self.trial
+        if otadata::on_trial(&self.otadata) {
+            Trial::OnTrial
+        } else {
+            Trial::Confirmed
+        }
     }
 
     /// An update that was rolled back: its version and why.
     pub fn rolled_back(&self) -> Option<(&str, Cause)> {
-        self.rolled_back.as_ref().map(|(v, c)| (v.as_str(), *c))
+        otadata::rolled_back(&self.otadata)
     }
 
     /// The transfer.
@@ -217,7 +208,9 @@ impl Ota {
     /// and the inverter output runs (or has nothing to run). True when the
     /// confirmation became due.
     pub fn tick(&mut self, now: Instant, worked: bool) -> bool {
-        if self.trial == Trial::OnTrial && !self.confirm_due && (worked || now >= CONFIRM_AFTER_US)
+        if self.trial() == Trial::OnTrial
+            && !self.confirm_due
+            && (worked || now >= CONFIRM_AFTER_US)
         {
             self.confirm_due = true;
             return true;
@@ -244,7 +237,6 @@ impl Ota {
                 if let Some(w) = otadata::confirm(&self.otadata) {
                     otadata::apply(&mut self.otadata, &w);
                 }
-                self.trial = Trial::Confirmed;
                 return Done::Confirmed;
             }
             // Tried again at the next boot's trial (still pending).

@@ -7,6 +7,7 @@
 //! an image whose project name is [`PANICS`] stands for one that panics
 //! when it has run long enough to confirm itself, before it does).
 
+use embedded_storage_async::nor_flash::{NorFlash, ReadNorFlash};
 use md5::{Digest, Md5};
 use tinybms_firmware::update::flash::{self, Booted, OtaFlash};
 use tinybms_firmware::update::otadata::{self, Cause};
@@ -88,36 +89,14 @@ pub struct ChipFlash(pub RamFlash);
 
 impl OtaFlash for ChipFlash {
     fn read(&mut self, at: u32, buf: &mut [u8]) -> bool {
-        let data = self.0.lock();
-        match data.get(at as usize..at as usize + buf.len()) {
-            Some(s) => {
-                buf.copy_from_slice(s);
-                true
-            }
-            None => false,
-        }
+        embassy_futures::block_on(self.0.read(at, buf)).is_ok()
     }
     fn erase_sector(&mut self, at: u32) -> bool {
-        let mut data = self.0.lock();
-        match data.get_mut(at as usize..at as usize + flash::ERASE as usize) {
-            Some(s) if at.is_multiple_of(flash::ERASE) => {
-                s.fill(0xFF);
-                true
-            }
-            _ => false,
-        }
+        embassy_futures::block_on(self.0.erase(at, at + flash::ERASE)).is_ok()
     }
     fn program(&mut self, at: u32, bytes: &[u8]) -> bool {
-        let mut data = self.0.lock();
-        match data.get_mut(at as usize..at as usize + bytes.len()) {
-            Some(s) if at.is_multiple_of(4) && bytes.len().is_multiple_of(4) => {
-                for (o, b) in s.iter_mut().zip(bytes) {
-                    *o &= b;
-                }
-                true
-            }
-            _ => false,
-        }
+        // The flash's own NOR write (a program only clears bits).
+        embassy_futures::block_on(self.0.write(at, bytes)).is_ok()
     }
 }
 
@@ -131,8 +110,6 @@ pub struct Image {
     pub version: Option<String>,
     /// It stands for an image that panics before it confirms itself.
     pub panics: bool,
-    /// The rollbacks this boot went through first.
-    pub rollbacks: u32,
 }
 
 /// The descriptor's text at `at..at + 32` of an app image.
@@ -169,7 +146,6 @@ pub fn boot(flash: &RamFlash, mut cause: Cause) -> Image {
                     ota: Ota::default(),
                     version: None,
                     panics: false,
-                    rollbacks,
                 }
             }
             Booted::Run(ota) => {
@@ -179,7 +155,6 @@ pub fn boot(flash: &RamFlash, mut cause: Cause) -> Image {
                     panics: found.as_ref().is_some_and(|(_, p)| p == PANICS),
                     version: found.map(|(v, _)| v),
                     ota,
-                    rollbacks,
                 };
             }
         }

@@ -101,6 +101,28 @@ impl LineSplitter {
     pub fn next_line(&mut self) -> Option<String> {
         self.lines.pop_front()
     }
+
+    /// The next line within `timeout`, reading with `read(buf, time left)`:
+    /// the bytes it got (0: none yet). `None` when no line came in time.
+    pub fn next_within(
+        &mut self,
+        timeout: Duration,
+        mut read: impl FnMut(&mut [u8], Duration) -> ToolResult<usize>,
+    ) -> ToolResult<Option<String>> {
+        let end = Instant::now() + timeout;
+        let mut buf = [0u8; 1024];
+        loop {
+            if let Some(l) = self.next_line() {
+                return Ok(Some(l));
+            }
+            let left = end.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Ok(None);
+            }
+            let n = read(&mut buf, left)?;
+            self.push(buf.get(..n).unwrap_or(&[]));
+        }
+    }
 }
 
 /// Lines over a serial port (through the bridge).
@@ -134,24 +156,19 @@ impl Lines for SerialLines {
     }
 
     fn recv_line(&mut self, timeout: Duration) -> ToolResult<Option<String>> {
-        let end = Instant::now() + timeout;
-        let mut buf = [0u8; 1024];
-        loop {
-            if let Some(l) = self.split.next_line() {
-                return Ok(Some(l));
+        let port = &mut self.port;
+        self.split.next_within(timeout, |buf, left| {
+            let _ = port.set_timeout(left.max(Duration::from_millis(1)));
+            match port.read(buf) {
+                Ok(0) => {
+                    std::thread::sleep(Duration::from_millis(5));
+                    Ok(0)
+                }
+                Ok(n) => Ok(n),
+                Err(e) if quiet(&e) => Ok(0),
+                Err(e) => Err(io_error("reading from the port", e)),
             }
-            let left = end.saturating_duration_since(Instant::now());
-            if left.is_zero() {
-                return Ok(None);
-            }
-            let _ = self.port.set_timeout(left.max(Duration::from_millis(1)));
-            match self.port.read(&mut buf) {
-                Ok(0) => std::thread::sleep(Duration::from_millis(5)),
-                Ok(n) => self.split.push(&buf[..n]),
-                Err(e) if quiet(&e) => {}
-                Err(e) => return Err(io_error("reading from the port", e)),
-            }
-        }
+        })
     }
 }
 
@@ -185,26 +202,16 @@ impl Lines for TcpLines {
     }
 
     fn recv_line(&mut self, timeout: Duration) -> ToolResult<Option<String>> {
-        let end = Instant::now() + timeout;
-        let mut buf = [0u8; 1024];
-        loop {
-            if let Some(l) = self.split.next_line() {
-                return Ok(Some(l));
+        let stream = &mut self.stream;
+        self.split.next_within(timeout, |buf, left| {
+            let _ = stream.set_read_timeout(Some(left.max(Duration::from_millis(1))));
+            match stream.read(buf) {
+                Ok(0) => Err(ToolError::failed("the bridge closed the connection")),
+                Ok(n) => Ok(n),
+                Err(e) if quiet(&e) || e.kind() == std::io::ErrorKind::WouldBlock => Ok(0),
+                Err(e) => Err(ToolError::failed(format!("reading from the bridge: {e}"))),
             }
-            let left = end.saturating_duration_since(Instant::now());
-            if left.is_zero() {
-                return Ok(None);
-            }
-            let _ = self
-                .stream
-                .set_read_timeout(Some(left.max(Duration::from_millis(1))));
-            match self.stream.read(&mut buf) {
-                Ok(0) => return Err(ToolError::failed("the bridge closed the connection")),
-                Ok(n) => self.split.push(&buf[..n]),
-                Err(e) if quiet(&e) || e.kind() == std::io::ErrorKind::WouldBlock => {}
-                Err(e) => return Err(ToolError::failed(format!("reading from the bridge: {e}"))),
-            }
-        }
+        })
     }
 }
 
