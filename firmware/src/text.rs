@@ -335,20 +335,38 @@ pub fn inverter(r: &InverterReport, out: &mut Line) {
         InverterReport::Stale {
             age_ms,
             policy,
-            stale_hold_us,
+            hold,
         } => {
             out.push("CAN: BMS data ")
                 .fixed(i64::from(*age_ms) / 100, 1)
                 .push(" s old: ");
-            match policy {
-                StaleMode::Stop => out.push("sending stopped"),
-                StaleMode::Hold => out
-                    .push("charge limit 0 A for at most ")
-                    .duration_s(stale_hold_us / crate::SECOND),
+            match (policy, hold) {
+                (_, None) => out.push("this pack leaves the battery"),
+                (StaleMode::Stop, _) => {
+                    out.push("charge and discharge stopped (stale_policy stop)")
+                }
+                (StaleMode::Hold, Some(h)) if h.spend_us == 0 => {
+                    out.push("charge and discharge stopped (the last data proves no charge above the discharge stop)")
+                }
+                (StaleMode::Hold, Some(h)) => out
+                    .push("charge stopped; discharge for at most ")
+                    .duration_s(h.spend_us / crate::SECOND)
+                    .push(", its limit falling to 0 (the last data proves ")
+                    .fixed(h.budget_mah.min(u64::from(u32::MAX)) as i64 / 10, 2)
+                    .push(" Ah above the discharge stop)"),
             };
         }
-        InverterReport::StaleHoldEnded => {
-            out.push("CAN: hold time over, sending stopped");
+        InverterReport::StaleHoldEnded(on_silence) => {
+            out.push("CAN: hold over: charge and discharge stopped, said every way ");
+            match on_silence {
+                crate::inverter::dialect::OnSilence::Stops => out
+                    .push("for ")
+                    .uint(u64::from(crate::inverter::dialect::STOP_BEFORE_QUIET))
+                    .push(" s, then nothing (the inverter stops on silence)"),
+                crate::inverter::dialect::OnSilence::RunsOn => {
+                    out.push("every second until the BMS data is back")
+                }
+            };
         }
         InverterReport::Fresh => {
             out.push("CAN: BMS data fresh again, sending");
@@ -407,7 +425,16 @@ pub fn inverter(r: &InverterReport, out: &mut Line) {
                 .push(e.reason())
                 .push("): it counts nowhere");
         }
-        InverterReport::Protection(stops) => protection(stops, out),
+        InverterReport::Protection { stops, told } => protection(stops, told, out),
+        InverterReport::IgnoresStop(e) => {
+            out.push("CAN: the inverter ignores the ")
+                .push(e.side.text())
+                .push(" stop: ")
+                .fixed(i64::from(e.current_da), 1)
+                .push(" A for ")
+                .uint(u64::from(e.for_s))
+                .push(" s; every stop now goes out with every signal (SOC, charge voltage, protection bits)");
+        }
         InverterReport::ShutdownAsked(true) => {
             out.push("CAN: the inverter asks the battery to shut down (0x300): charge and discharge stopped while it asks (the BMS is not switched off)");
         }
@@ -417,25 +444,53 @@ pub fn inverter(r: &InverterReport, out: &mut Line) {
     }
 }
 
-/// "protection active: why", for an inverter that may ignore a current
-/// limit of 0 A: each stop with its cause and the measures taken.
-fn protection(stops: &crate::inverter::pylon::Stops, out: &mut Line) {
+/// "protection active: why: what was told", each stop with its cause and
+/// what the frames sent tell the inverter, read back from their bytes.
+fn protection(
+    stops: &crate::inverter::dialect::Stops,
+    told: &crate::inverter::dialect::Told,
+    out: &mut Line,
+) {
     if stops.none() {
-        out.push("CAN protection: none active (charge and discharge enabled)");
-        return;
+        out.push("CAN protection: none active");
+    } else {
+        out.push("CAN protection active:");
+        if let Some(why) = stops.charge {
+            out.push(" charge stopped (").push(why.text()).push(")");
+        }
+        if let Some(why) = stops.discharge {
+            out.push(if stops.charge.is_some() { "," } else { "" })
+                .push(" discharge stopped (")
+                .push(why.text())
+                .push(")");
+        }
     }
-    out.push("CAN protection active:");
-    if let Some(why) = stops.charge {
-        out.push(" charge stopped (")
-            .push(why.text())
-            .push("): charge enable clear, charge current 0, charge voltage at most the pack's;");
+    out.push("; told:");
+    if let Some(l) = told.limits {
+        out.push(" charge current ")
+            .fixed(i64::from(l.ccl_da), 1)
+            .push(" A, discharge current ")
+            .fixed(i64::from(l.dcl_da), 1)
+            .push(" A, charge voltage ")
+            .fixed(i64::from(l.cvl_dv), 1)
+            .push(" V");
     }
-    if let Some(why) = stops.discharge {
-        out.push(" discharge stopped (")
-            .push(why.text())
-            .push("): discharge enable clear, discharge current 0;");
+    let on_off = |b: bool| if b { "on" } else { "off" };
+    if let Some(c) = told.charge_enabled {
+        out.push(", charge enable ").push(on_off(c));
     }
-    out.push(" SOC 100 % / 0 % with stop_by_soc");
+    if let Some(d) = told.discharge_enabled {
+        out.push(", discharge enable ").push(on_off(d));
+    }
+    if let Some(soc) = told.soc_pct {
+        out.push(", SOC ").uint(u64::from(soc)).push(" %");
+    }
+    if told.protection == Some(true) {
+        out.push(", protection flagged");
+    }
+    if told.link_lost == Some(true) {
+        out.push(", BMS data lost flagged");
+    }
 }
 
 fn limits(l: &crate::inverter::control::Limits, out: &mut Line) {
@@ -577,7 +632,7 @@ pub enum Boot {
     /// The CAN output runs.
     Can {
         /// Its protocol.
-        protocol: crate::inverter::protocol::Protocol,
+        protocol: crate::inverter::Protocol,
         /// (TX, RX) GPIOs; `None`: a simulated bus.
         pins: Option<(u8, u8)>,
         /// The pack node among packs in parallel (0: this pack alone).

@@ -12,6 +12,7 @@
 use std::collections::BTreeMap;
 use std::io::Write;
 
+use protocol_core::events::EventId;
 use protocol_core::views::cell_mv;
 
 use embassy_futures::block_on;
@@ -19,7 +20,7 @@ use tinybms_firmware::bms::timing::Timing;
 use tinybms_firmware::config::store::{Loaded, Source};
 use tinybms_firmware::config::Config;
 use tinybms_firmware::identity::{Features, Identity};
-use tinybms_firmware::inverter::frames::{self, CanFrame};
+use tinybms_firmware::inverter::dialect::{victron, CanFrame};
 use tinybms_firmware::inverter::{Inverter, InverterConfig, InverterReport, Protocol};
 use tinybms_firmware::station::{Logged, Setup, Station};
 
@@ -30,12 +31,26 @@ use tinybms_desk::flash::RamFlash;
 /// How often the loop advances, µs (the inverter model's control step).
 pub const STEP_US: u64 = 100_000;
 
-/// An inverter/charger speaking one of the firmware's protocols. With
-/// `ignores_zero`, it is a Deye-like 48 V hybrid inverter: it ignores a
-/// current limit of 0 A and the enable bits (it keeps charging at
-/// [`IGNORED_CHARGE_A`], keeps its load), and obeys only what the sources say
-/// such inverters obey — the charge voltage (its constant-voltage stage) and
-/// the SOC told (no charge at 100 %, no discharge at 0 %).
+/// An inverter/charger speaking one of the firmware's protocols, as harsh as
+/// real ones can be (each behaviour a field; [`crate::harsh::HARSH`] names
+/// the combinations the safety sweeps run):
+///
+/// * it charges at min(CCL, charger maximum) up to CVL, then holds CVL with a
+///   tapering current (a constant-voltage stage); a load discharges within
+///   DCL; the enable bits of the Pylontech family and Growatt stop it;
+/// * without a limits frame for 3 s it stops charging and discharging (what
+///   a GX does on a lost battery) — unless it `runs_on`;
+/// * `ignores_zero` (Deye, Solis): a current limit of 0 A and the enable bits
+///   are ignored (it charges at [`IGNORED_CHARGE_A`], keeps its load); it
+///   obeys the charge voltage and the SOC told (no charge at 100 %, no
+///   discharge at 0 %);
+/// * `soc_only` (an off-grid Deye): obeys nothing but the SOC told; it
+///   charges to its own charge voltage ([`OWN_CELL_V`] a cell) and keeps
+///   within its own current limits ([`OWN_MAX_A`]);
+/// * `overshoot`: every current it makes within a limit overshoots it by
+///   this share (real ones: up to 20 %);
+/// * `heartbeat_after_measurements` (Deye): its 0x305 answers a 0x356, not
+///   any frame.
 #[derive(Debug, Clone)]
 pub struct InverterModel {
     /// Largest charge current the charger can deliver, A.
@@ -52,6 +67,16 @@ pub struct InverterModel {
     pub dialect: Protocol,
     /// Deye-like: ignores current limits of 0 A and the enable bits.
     pub ignores_zero: bool,
+    /// Obeys only the SOC told (an off-grid Deye).
+    pub soc_only: bool,
+    /// Keeps its last limits when the frames stop.
+    pub runs_on: bool,
+    /// Overshoots every limit it follows by this share (0.2 = 20 %).
+    pub overshoot: f64,
+    /// Sends its heartbeat only after a 0x356 (Deye).
+    pub heartbeat_after_measurements: bool,
+    /// Cells in series (its own charge voltage with `soc_only`).
+    pub cells: f64,
     /// The enable bits last told (charge, discharge).
     pub enabled: (bool, bool),
     /// The SOC last told, %.
@@ -74,12 +99,21 @@ pub struct InverterModel {
 pub const CV_GAIN_A_PER_V_S: f64 = 40.0;
 
 /// A GX stops charging and discharging when 0x351 is missing this long, µs
-/// (the other models do the same).
+/// (the other models do the same, unless they run on).
 pub const GX_LIMITS_TIMEOUT_US: u64 = 3_000_000;
 
 /// What a Deye-like inverter charges with while told a charge current limit
 /// of 0 A (diyBMS #216 saw 1.4 A; more is harder on the bridge), A.
 pub const IGNORED_CHARGE_A: f64 = 10.0;
+
+/// The charge voltage an inverter that obeys only the SOC charges to, V a
+/// cell (its owner's setting: 56.8 V for 16 LiFePO4 cells).
+pub const OWN_CELL_V: f64 = 3.55;
+
+/// The battery current an inverter that obeys only the SOC keeps within,
+/// charging and discharging, A (its owner's setting, below the battery's
+/// rating: the BMS's cutoffs are 60 A in the simulated pack).
+pub const OWN_MAX_A: f64 = 40.0;
 
 /// The heartbeat (0x305) and Growatt's query (0x301) come this often, µs.
 pub const HEARTBEAT_US: u64 = 1_000_000;
@@ -95,6 +129,11 @@ impl InverterModel {
             current_a: 0.0,
             dialect: Protocol::Victron,
             ignores_zero: false,
+            soc_only: false,
+            runs_on: false,
+            overshoot: 0.0,
+            heartbeat_after_measurements: false,
+            cells: 16.0,
             enabled: (true, true),
             told_soc: None,
             silent: false,
@@ -117,7 +156,7 @@ impl InverterModel {
                 f64::from(u16::from_be_bytes([d[4], d[5]])) * 0.1,
             )),
             Protocol::Growatt => None,
-            _ if f.id == frames::ID_LIMITS && f.len >= 6 => Some((
+            _ if f.id == victron::ID_LIMITS && f.len >= 6 => Some((
                 f64::from(u16::from_le_bytes(le(0))) * 0.1,
                 f64::from(i16::from_le_bytes(le(2))).max(0.0) * 0.1,
                 f64::from(i16::from_le_bytes(le(4))).max(0.0) * 0.1,
@@ -130,7 +169,9 @@ impl InverterModel {
     pub fn on_frame(&mut self, now: u64, f: &CanFrame) {
         if let Some((cvl, ccl, dcl)) = Self::limits_in(self.dialect, f) {
             self.last_limits = Some((cvl, ccl, dcl, now));
-            self.heard_at = Some(now);
+            if !self.heartbeat_after_measurements {
+                self.heard_at = Some(now);
+            }
         }
         let d = f.data;
         match (self.dialect, f.id) {
@@ -138,10 +179,11 @@ impl InverterModel {
             | (Protocol::Growatt, 0x319) => {
                 self.enabled = (d[0] & 0x80 != 0, d[0] & 0x40 != 0);
             }
-            (Protocol::Pylon | Protocol::SolArk | Protocol::Luxpower, 0x355) => {
-                self.told_soc = Some(f64::from(u16::from_le_bytes([d[0], d[1]])));
-            }
             (Protocol::Growatt, 0x313) => self.told_soc = Some(f64::from(d[6])),
+            (Protocol::Growatt, _) => {}
+            // Victron's, SMA's and the Pylontech family's 0x355: SOC u16 1 %.
+            (_, 0x355) => self.told_soc = Some(f64::from(u16::from_le_bytes([d[0], d[1]]))),
+            (_, 0x356) => self.heard_at = Some(now),
             _ => {}
         }
     }
@@ -165,27 +207,31 @@ impl InverterModel {
     }
 
     /// The current for the next step, given the pack voltage the inverter
-    /// measures (it uses its own readings, like a real one).
+    /// measures at its terminals (its own reading, like a real one).
     pub fn step(&mut self, now: u64, pack_v: f64) -> f64 {
         let Some((cvl, ccl, dcl, at)) = self.last_limits else {
             self.current_a = 0.0;
             return 0.0;
         };
-        if now.saturating_sub(at) > GX_LIMITS_TIMEOUT_US {
+        if !self.runs_on && now.saturating_sub(at) > GX_LIMITS_TIMEOUT_US {
             self.current_a = 0.0;
             return 0.0;
         }
-        let (charge_on, discharge_on, ccl, dcl) = if self.ignores_zero {
-            let soc = self.told_soc.unwrap_or(50.0);
+        let soc = self.told_soc.unwrap_or(50.0);
+        let (charge_on, discharge_on, cvl, ccl, dcl) = if self.soc_only {
+            let own = OWN_CELL_V * self.cells;
+            (soc < 100.0, soc > 0.0, own, OWN_MAX_A, OWN_MAX_A)
+        } else if self.ignores_zero {
             let ccl = if ccl > 0.0 { ccl } else { IGNORED_CHARGE_A };
             let dcl = if dcl > 0.0 { dcl } else { self.load_a };
-            (soc < 100.0, soc > 0.0, ccl, dcl)
+            (soc < 100.0, soc > 0.0, cvl, ccl, dcl)
         } else {
-            (self.enabled.0, self.enabled.1, ccl, dcl)
+            (self.enabled.0, self.enabled.1, cvl, ccl, dcl)
         };
+        let over = 1.0 + self.overshoot;
         let i = if self.load_a > 0.0 {
             if discharge_on {
-                -self.load_a.min(dcl)
+                -self.load_a.min(dcl * over)
             } else {
                 0.0
             }
@@ -195,7 +241,7 @@ impl InverterModel {
             // charger's maximum.
             let dt_s = STEP_US as f64 / 1e6;
             let next = self.current_a.max(0.0) + CV_GAIN_A_PER_V_S * (cvl - pack_v) * dt_s;
-            next.clamp(0.0, self.charger_max_a.min(ccl))
+            next.clamp(0.0, self.charger_max_a.min(ccl * over))
         } else {
             0.0
         };
@@ -255,6 +301,11 @@ pub struct Truth {
     pub charge_out_of_temperature_us: u64,
     /// The one going on, since when.
     out_of_temperature_since: Option<u64>,
+    /// Longest discharge past the discharge over-current cutoff (317), µs
+    /// (the TinyBMS trips after its timeout, register 330's high byte).
+    pub discharge_over_current_us: u64,
+    /// The one going on, since when.
+    over_current_since: Option<u64>,
 }
 
 impl LoopFigures {
@@ -291,6 +342,8 @@ pub struct ClosedLoop {
     pub sent_limits: Vec<(u64, u16, u16, u16)>,
     /// Every frame's (time, id) as sent.
     pub sent_ids: Vec<(u64, u16)>,
+    /// Every frame as sent, when kept (`Some`).
+    pub sent_frames: Option<Vec<(u64, CanFrame)>>,
     /// A candump log being written (`--can-log`).
     pub can_log: Option<Box<dyn Write>>,
     /// A JSON Lines log being written (`--json`).
@@ -298,8 +351,30 @@ pub struct ClosedLoop {
     /// The host side, when the loop runs with a host link and the record in
     /// flash ([`ClosedLoop::from_flash`]).
     pub host: Option<LoopHost>,
+    /// The simulated TinyBMS has its own switch (a contactor or MOSFETs):
+    /// at a cutoff it opens it (no current) and closes it again
+    /// [`TRIP_RECOVERY_US`] later. Without one it only reports.
+    pub bms_switch: bool,
+    /// Every trip of the BMS at its own cutoff: (time, why).
+    pub trips: Vec<(u64, EventId)>,
+    /// When the BMS's switch closes again.
+    recover_at: Option<u64>,
+    /// The BMS's silences ([`ClosedLoop::bms_silent`]): (from, to), µs.
+    pub gaps: Vec<(u64, u64)>,
+    /// Energy moved during the silences and until the data was fresh again:
+    /// into the pack, out of it, Wh.
+    pub gap_wh: (f64, f64),
     seen_seq: u32,
     last_cvl: Option<u16>,
+}
+
+/// A BMS with its own switch closes it again this long after a trip, µs.
+pub const TRIP_RECOVERY_US: u64 = 60_000_000;
+
+/// How long the BMS lets a discharge past its over-current cutoff (317) go
+/// on before it trips: register 330's high byte, s (Rev D: 0-30 s).
+pub fn discharge_over_current_timeout_us(sim: &SimBms) -> u64 {
+    u64::from(sim.register(330) >> 8) * 1_000_000
 }
 
 /// The host side of a [`ClosedLoop`] made by [`ClosedLoop::from_flash`].
@@ -376,12 +451,57 @@ impl ClosedLoop {
             figures: LoopFigures::default(),
             sent_limits: Vec::new(),
             sent_ids: Vec::new(),
+            sent_frames: None,
             can_log: None,
             json_log: None,
             host: None,
+            bms_switch: false,
+            trips: Vec::new(),
+            recover_at: None,
+            gaps: Vec::new(),
+            gap_wh: (0.0, 0.0),
             seen_seq: 0,
             last_cvl: None,
         }
+    }
+
+    /// A copy of this loop as it is now, to run on by itself (a sweep's
+    /// branch): no logs written, no host.
+    pub fn fork(&self) -> ClosedLoop {
+        ClosedLoop {
+            h: self.h.fork(),
+            model: self.model.clone(),
+            figures: self.figures.clone(),
+            sent_limits: Vec::new(),
+            sent_ids: Vec::new(),
+            sent_frames: None,
+            can_log: None,
+            json_log: None,
+            host: None,
+            bms_switch: self.bms_switch,
+            trips: self.trips.clone(),
+            recover_at: self.recover_at,
+            gaps: self.gaps.clone(),
+            gap_wh: self.gap_wh,
+            seen_seq: self.seen_seq,
+            last_cvl: self.last_cvl,
+        }
+    }
+
+    /// The BMS answers nothing from now on for `len_us` (a cut UART wire, a
+    /// BMS that restarts): the pack lives on, the bridge sees nothing.
+    pub fn bms_silent(&mut self, len_us: u64) {
+        let now = self.h.now;
+        self.h.sim.set_silent_until(now + len_us);
+        self.gaps.push((now, now + len_us));
+    }
+
+    /// The pack's voltage at its terminals now, V (the simulated BMS's
+    /// registers 36-37: what an inverter measures, fresh or not).
+    pub fn true_pack_v(&self) -> f64 {
+        let lo = self.h.sim.register(36);
+        let hi = self.h.sim.register(37);
+        f64::from(f32::from_bits(u32::from(lo) | (u32::from(hi) << 16)))
     }
 
     /// A loop as a bridge with its configuration record in `flash` starts it:
@@ -454,17 +574,17 @@ impl ClosedLoop {
             let t = (self.h.now + STEP_US).min(end_us);
             self.h.run_until(t);
             self.after_step(t);
-            let pack_v = f64::from(
-                self.h
-                    .bridge()
-                    .telemetry()
-                    .snapshot
-                    .as_ref()
-                    .map_or(0.0, |s| s.pack_voltage_v),
-            );
-            let i = self.model.step(t, pack_v);
+            let pack_v = self.true_pack_v();
+            let mut i = self.model.step(t, pack_v);
+            if self.h.sim.fault().is_some() {
+                i = 0.0; // the BMS's switch is open
+            }
             self.h.sim.set_external_current(Some(i));
             self.note_truth(i);
+            self.note_gap(t, i, pack_v);
+            if self.bms_switch {
+                self.trip_at_cutoffs(t, i);
+            }
             if let Some((id, data)) = self.model.outgoing(t) {
                 if let Some(w) = self.can_log.as_mut() {
                     let f = CanFrame { id, len: 8, data };
@@ -472,6 +592,68 @@ impl ClosedLoop {
                 }
                 self.h.station.can_received(t, id, &data);
             }
+        }
+    }
+
+    /// Energy moved in a step with current `i` at `pack_v`, counted while a
+    /// silence lasts and until the bridge's data is fresh again.
+    fn note_gap(&mut self, t: u64, i: f64, pack_v: f64) {
+        let in_gap = self.gaps.iter().any(|(from, to)| t > *from && t <= *to)
+            || (self.gaps.iter().any(|(from, _)| t > *from)
+                && self
+                    .h
+                    .bridge()
+                    .telemetry()
+                    .snapshot_age_us(t)
+                    .is_none_or(|a| a > self.inverter().config().freshness.limit_us));
+        if in_gap {
+            let wh = i.abs() * pack_v * STEP_US as f64 / 3.6e9;
+            if i > 0.0 {
+                self.gap_wh.0 += wh;
+            } else {
+                self.gap_wh.1 += wh;
+            }
+        }
+    }
+
+    /// A BMS with its own switch at its own cutoffs, as a real one: it
+    /// opens the switch (no current from the next step on), logs why, and
+    /// closes it again [`TRIP_RECOVERY_US`] later.
+    fn trip_at_cutoffs(&mut self, t: u64, i: f64) {
+        use protocol_core::settings::SettingId as S;
+        let reg = |id: S| self.h.sim.register(id.address());
+        if self.h.sim.fault().is_none() {
+            let model = self.h.sim.pack_model();
+            let first = model.first_cell_register();
+            let cells =
+                (0..model.cell_count() as u16).map(|k| cell_mv(self.h.sim.register(first + k)));
+            let (lo, hi) = cells.fold((u16::MAX, 0), |(lo, hi), v| (lo.min(v), hi.max(v)));
+            let doc_for = self
+                .figures
+                .truth
+                .over_current_since
+                .map_or(0, |since| t - since);
+            let why = if i > f64::from(reg(S::ChargeOverCurrentCutoff)) {
+                Some(EventId::ChargingOverCurrentCutoff)
+            } else if -i > f64::from(reg(S::DischargeOverCurrentCutoff))
+                && doc_for >= discharge_over_current_timeout_us(&self.h.sim)
+            {
+                Some(EventId::DischargingOverCurrentCutoff)
+            } else if hi >= reg(S::OverVoltageCutoff) {
+                Some(EventId::OverVoltageCutoff)
+            } else if lo <= reg(S::UnderVoltageCutoff) {
+                Some(EventId::UnderVoltageCutoff)
+            } else {
+                None
+            };
+            if let Some(why) = why {
+                self.h.sim.inject_fault_event(why);
+                self.trips.push((t, why));
+                self.recover_at = Some(t + TRIP_RECOVERY_US);
+            }
+        } else if self.recover_at.is_some_and(|at| t >= at) {
+            self.recover_at = None;
+            self.h.sim.clear_fault();
         }
     }
 
@@ -503,6 +685,12 @@ impl ClosedLoop {
                 c < f64::from(cold) || c >= f64::from(hot)
             });
         let now = self.h.now;
+        if -i > f64::from(reg(317)) {
+            let since = *t.over_current_since.get_or_insert(now);
+            t.discharge_over_current_us = t.discharge_over_current_us.max(now - since);
+        } else {
+            t.over_current_since = None;
+        }
         if out && i > NOISE_A {
             let since = *t.out_of_temperature_since.get_or_insert(now);
             t.charge_out_of_temperature_us = t.charge_out_of_temperature_us.max(now - since);
@@ -577,6 +765,9 @@ impl ClosedLoop {
         self.figures.frames += 1;
         self.figures.bits += frame_bits(f.len);
         self.sent_ids.push((now, f.id));
+        if let Some(v) = self.sent_frames.as_mut() {
+            v.push((now, *f));
+        }
         self.model.on_frame(now, f);
         if let Some(l) = self.model.dialect.limits_of(f) {
             let (cvl, ccl, dcl) = (l.cvl_dv, l.ccl_da, l.dcl_da);
@@ -721,8 +912,10 @@ pub const TEMPERATURE_GRACE_US: u64 = 5_000_000;
 
 /// One row of the safety table for the loop `l` run until `end`, µs, against
 /// the simulated pack's truth: no cell at or past the BMS's over-voltage
-/// (315) or under-voltage (316) cutoff, no current past its cutoff (318,
-/// 317), no charge for longer than [`TEMPERATURE_GRACE_US`] while a sensor
+/// (315) or under-voltage (316) cutoff, no charge current past its cutoff
+/// (318), no discharge past 317 for as long as the BMS waits before it trips
+/// (register 330's high byte), no charge for longer than
+/// [`TEMPERATURE_GRACE_US`] while a sensor
 /// is past a charge temperature cutoff (319, 320) — the BMS would trip — and
 /// every CVL sent within cells × [316, 315].
 pub fn safety_row(name: &str, l: &ClosedLoop, _end: u64) -> (String, bool) {
@@ -743,7 +936,8 @@ pub fn safety_row(name: &str, l: &ClosedLoop, _end: u64) -> (String, bool) {
         && min_cell > uv
         && t.charge_out_of_temperature_us <= TEMPERATURE_GRACE_US
         && t.max_charge_a <= f64::from(reg(ChargeOverCurrentCutoff))
-        && t.max_discharge_a <= f64::from(reg(DischargeOverCurrentCutoff))
+        && (t.max_discharge_a <= f64::from(reg(DischargeOverCurrentCutoff))
+            || t.discharge_over_current_us < discharge_over_current_timeout_us(&l.h.sim))
         && cvl_ok
         && !l.sent_limits.is_empty();
     let row = format!(

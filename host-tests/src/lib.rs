@@ -9,6 +9,7 @@
 pub mod closed_loop;
 pub mod fixtures;
 pub mod flash;
+pub mod harsh;
 pub mod mqtt;
 pub mod mqtt_e2e;
 pub mod multi_pack;

@@ -173,6 +173,7 @@ pub fn register_values(regs: &Regs) -> Map<String, Value> {
                 online: true,
                 ready: true,
                 inverter: None,
+                restart_pending: 0,
             };
             let line = written(|out| encode::telemetry(out, head, Some(&s), None, None));
             for (member, ranges) in schema::SNAPSHOT_REGISTERS {

@@ -18,7 +18,7 @@ use std::io::Write;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant as WallInstant};
 
-use tinybms_firmware::inverter::frames::{CanFrame, ID_GX_KEEPALIVE};
+use tinybms_firmware::inverter::dialect::{victron::ID_GX_KEEPALIVE, CanFrame};
 use tinybms_firmware::inverter::TxResult;
 use tinybms_firmware::Instant;
 

@@ -17,7 +17,7 @@ use tinybms_firmware::bms::timing::{Timing, BYTE_TIME_US};
 use tinybms_firmware::bridge::report::WriteOutcome;
 use tinybms_firmware::config::store::{Saved, StoreError};
 use tinybms_firmware::config::Config;
-use tinybms_firmware::inverter::frames::CanFrame;
+use tinybms_firmware::inverter::dialect::CanFrame;
 use tinybms_firmware::inverter::TxResult;
 use tinybms_firmware::station::{Action, Logged, Station};
 use tinybms_firmware::{Bridge, Level, Report};
@@ -244,6 +244,21 @@ pub struct Harness {
 }
 
 impl Harness {
+    /// A copy of this harness as it is now — the station, the simulated BMS,
+    /// the clock and the CAN controller — to run on from here on its own (a
+    /// sweep's branch): no log kept, no host, no store, no trace, no update
+    /// flash.
+    pub fn fork(&self) -> Harness {
+        let mut h = Harness::with_station(self.sim.clone(), self.station.clone());
+        h.now = self.now;
+        h.seen_seq = self.seen_seq;
+        h.can = self.can.clone();
+        h.retain = false;
+        h.finish_at_end = self.finish_at_end;
+        h.flash_stall_us = self.flash_stall_us;
+        h
+    }
+
     /// A harness at time 0 with the default bridge configuration.
     pub fn new(sim: SimBms) -> Self {
         Self::with_config(sim, Timing::default())

@@ -22,8 +22,10 @@ const CELLS: u16 = 16;
 const CVL_ABSORPTION_DV: u16 = 568;
 const CVL_FLOAT_DV: u16 = 532;
 
+/// The largest CCL: the charge over-current cutoff less the default
+/// current margin (20 %).
 fn ccl_max_da(l: &ClosedLoop) -> u16 {
-    l.h.sim.register(318) * 10
+    l.h.sim.register(318) * 10 * 80 / 100
 }
 
 fn lfp(seed: u64, charger_a: f64) -> ClosedLoop {
@@ -180,8 +182,17 @@ fn a_lost_uart_link_stops_the_frames_and_the_inverter() {
     let lost_at = l.h.now;
     l.h.sim.set_silent_until(lost_at + 30 * S);
     l.run_until(lost_at + 25 * S);
-    // Nothing sent on stale data; the inverter stopped after 3 s without 0x351.
-    assert_eq!(l.figures.stale_frames, 0);
+    // On stale data a GX hears the stop (CCL 0, DCL 0) for a few periods,
+    // then nothing (it stops on silence); the inverter stopped.
+    assert_eq!(
+        l.figures.stale_frames,
+        u64::from(tinybms_firmware::inverter::dialect::STOP_BEFORE_QUIET)
+    );
+    assert!(l
+        .sent_limits
+        .iter()
+        .filter(|s| s.0 > lost_at + 6 * S)
+        .all(|s| s.2 == 0 && s.3 == 0));
     assert_eq!(l.model.current_a, 0.0);
     assert!(l.figures.reports.iter().any(|(_, r)| matches!(
         r,
@@ -215,21 +226,25 @@ fn with_hold_charge_zero_the_inverter_keeps_discharging_for_a_bounded_time() {
     let lost_at = l.h.now;
     l.h.sim.set_silent_until(lost_at + 10 * MIN);
     l.run_until(lost_at + 40 * S);
-    // Still discharging, never charging; CCL 0 in every frame meanwhile.
-    assert!(l.model.current_a < -25.0);
-    assert!(l
+    // Still discharging within the falling limit, never charging; CCL 0 in
+    // every frame meanwhile, DCL never rising.
+    assert!(l.model.current_a < -10.0, "{}", l.model.current_a);
+    let held: Vec<_> = l
         .sent_limits
         .iter()
         .filter(|s| s.0 > lost_at + 6 * S)
-        .all(|s| s.2 == 0));
+        .collect();
+    assert!(held.iter().all(|s| s.2 == 0));
+    assert!(held.windows(2).all(|w| w[1].3 <= w[0].3), "{held:?}");
+    assert!(-l.model.current_a <= f64::from(held.last().unwrap().3) / 10.0 + 0.1);
     l.run_until(lost_at + 3 * MIN);
-    // After the bounded hold: nothing sent, the inverter stopped.
+    // After the bounded hold: the stop said, the inverter stopped.
     assert_eq!(l.model.current_a, 0.0);
     assert!(l
         .figures
         .reports
         .iter()
-        .any(|(_, r)| *r == InverterReport::StaleHoldEnded));
+        .any(|(_, r)| matches!(r, InverterReport::StaleHoldEnded(_))));
 }
 
 #[test]

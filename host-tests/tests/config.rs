@@ -347,18 +347,26 @@ fn full_record() -> Config {
 }
 
 /// `c` as a record of an older layout holds it: the fields added in
-/// version 4 (`inverter_name`, `stop_by_soc`) and 5 (`update_key`) at their
-/// defaults.
+/// version 4 (`inverter_name`), 5 (`update_key`) and 6 (`stop_by_soc` on
+/// by default, `current_margin`) at their defaults.
 fn before_version_4(mut c: Config) -> Config {
-    let d = Config::default();
-    c.inverter_name = d.inverter_name;
-    c.stop_by_soc = d.stop_by_soc;
+    c.inverter_name = Config::default().inverter_name;
     before_version_5(c)
 }
 
 /// `c` as a version-4 record holds it: `update_key` (version 5) empty.
 fn before_version_5(mut c: Config) -> Config {
     c.update_key = Config::default().update_key;
+    before_version_6(c)
+}
+
+/// `c` as a version-5 record holds it: `stop_by_soc` and `current_margin`
+/// (version 6) at their defaults, whatever the old record said of the
+/// retired `stop_by_soc` (tag 8).
+fn before_version_6(mut c: Config) -> Config {
+    let d = Config::default();
+    c.stop_by_soc = d.stop_by_soc;
+    c.current_margin_pct = d.current_margin_pct;
     c
 }
 
@@ -383,6 +391,12 @@ fn v1_record(c: &Config) -> Vec<u8> {
 /// A record of an older `version`: as that firmware wrote it (the fields
 /// of that version only).
 fn record_of_version(c: &Config, version: u8) -> Vec<u8> {
+    record_with_retired(c, version, false)
+}
+
+/// [`record_of_version`], with the retired `stop_by_soc` (tag 8, versions
+/// 4-5) saying `old_stop_by_soc`.
+fn record_with_retired(c: &Config, version: u8, old_stop_by_soc: bool) -> Vec<u8> {
     let now = encoded(c);
     let mut out = vec![b'T', b'C', version, 0];
     let mut rest = &now[4..];
@@ -396,6 +410,12 @@ fn record_of_version(c: &Config, version: u8) -> Vec<u8> {
         }
         rest = after;
     }
+    for &(tag, from, until, _) in tinybms_firmware::config::RETIRED {
+        if (from..until).contains(&version) {
+            out.extend_from_slice(&[tag, 1, u8::from(old_stop_by_soc)]);
+            n += 1;
+        }
+    }
     out[3] = n;
     out
 }
@@ -407,7 +427,7 @@ fn a_version_1_record_keeps_the_owners_configuration_and_pack_node_defaults() {
     c.pack_name.clear();
     let v1 = v1_record(&c);
     assert_eq!(v1[2], 1);
-    assert_eq!(usize::from(v1[3]), FIELDS.len() - 5);
+    assert_eq!(usize::from(v1[3]), FIELDS.len() - 6);
     assert_eq!(codec::decode(&v1).unwrap(), c);
     // A field a version-1 record cannot hold is refused in one.
     let mut with_node = v1.clone();
@@ -436,7 +456,7 @@ fn a_version_2_record_keeps_the_owners_configuration_and_no_pack_name() {
     let mut c = before_version_4(full_record());
     c.pack_name.clear();
     let v2 = record_of_version(&c, 2);
-    assert_eq!(usize::from(v2[3]), FIELDS.len() - 4);
+    assert_eq!(usize::from(v2[3]), FIELDS.len() - 5);
     assert_eq!(codec::decode(&v2).unwrap(), c);
     let tag = field("pack_name").field().tag;
     assert_eq!(codec::introduced(tag), 3);
@@ -465,7 +485,9 @@ fn a_version_4_record_keeps_the_owners_configuration_and_no_update_key() {
     let full = full_record();
     let v4 = record_of_version(&full, 4);
     assert_eq!(v4[2], 4);
-    assert_eq!(usize::from(v4[3]), FIELDS.len() - 1);
+    // Its fields less update_key, stop_by_soc and current_margin, and the
+    // retired stop_by_soc.
+    assert_eq!(usize::from(v4[3]), FIELDS.len() - 2);
     let got = codec::decode(&v4).unwrap();
     assert_eq!(got, before_version_5(full.clone()));
     assert!(got.update_key.is_empty() && got.update_key().is_none());
@@ -473,30 +495,29 @@ fn a_version_4_record_keeps_the_owners_configuration_and_no_update_key() {
     assert!(full.update_key().is_some());
 }
 
-/// Issue 40: `inverter_name` and `stop_by_soc` came with layout version 4.
-/// A version-3 record (what the bridge stored before) keeps the owner's
-/// configuration with the name PYLON and stop_by_soc off; a version-4
-/// record must hold both; a version-3 record cannot.
+/// Issue 40: `inverter_name` came with layout version 4 (with the first
+/// `stop_by_soc`, retired in version 6). A version-3 record (what the
+/// bridge stored before) keeps the owner's configuration with the name PYLON
+/// and stop_by_soc at today's default; a version-4 record must hold the name;
+/// a version-3 record cannot.
 #[test]
 fn a_version_3_record_keeps_the_owners_configuration_and_the_hybrid_defaults() {
     let full = full_record();
     let c = before_version_4(full.clone());
     let v3 = record_of_version(&full, 3);
     assert_eq!(v3[2], 3);
-    assert_eq!(usize::from(v3[3]), FIELDS.len() - 3);
+    assert_eq!(usize::from(v3[3]), FIELDS.len() - 4);
     let got = codec::decode(&v3).unwrap();
     assert_eq!(got, c);
     assert_eq!(got.inverter_name.as_str(), "PYLON");
-    assert!(!got.stop_by_soc);
-    for name in ["inverter_name", "stop_by_soc"] {
-        assert_eq!(codec::introduced(field(name).field().tag), 4, "{name}");
-    }
-    // A version-3 record cannot hold the new fields; a version-4 one must.
-    let tag = field("stop_by_soc").field().tag;
+    assert!(got.stop_by_soc);
+    assert_eq!(codec::introduced(field("inverter_name").field().tag), 4);
+    // A version-3 record cannot hold the retired stop_by_soc (tag 8); a
+    // version-4 one must hold the name.
     let mut with = v3.clone();
     with[3] += 1;
-    with.extend_from_slice(&[tag, 1, 1]);
-    assert_eq!(codec::decode(&with), Err(DecodeError::UnknownTag(tag)));
+    with.extend_from_slice(&[8, 1, 1]);
+    assert_eq!(codec::decode(&with), Err(DecodeError::UnknownTag(8)));
     let mut short = v3;
     short[2] = 4;
     assert!(matches!(
@@ -504,6 +525,56 @@ fn a_version_3_record_keeps_the_owners_configuration_and_the_hybrid_defaults() {
         Err(DecodeError::Missing(_))
     ));
     assert_eq!(codec::decode(&encoded(&full)).unwrap(), full);
+}
+
+/// Issue 50: `stop_by_soc` is on by default since layout version 6 (a new
+/// tag, 9) and `current_margin` came with it. A version-4 or -5 record said
+/// the old `stop_by_soc` (tag 8), off by default then and not to be told
+/// from an owner's choice: it is read as today's default, on — whatever it
+/// said — with `current_margin` 20 %. A version-6 record must hold both new
+/// fields and cannot hold tag 8.
+#[test]
+fn a_version_5_record_reads_stop_by_soc_as_on_and_the_current_margin_at_its_default() {
+    let mut full = full_record();
+    full.stop_by_soc = false;
+    full.current_margin_pct = 35;
+    for version in [4, 5] {
+        for old in [false, true] {
+            let rec = record_with_retired(&full, version, old);
+            let got = codec::decode(&rec).unwrap();
+            assert!(got.stop_by_soc, "version {version}, old {old}");
+            assert_eq!(got.current_margin_pct, 20);
+        }
+    }
+    // A retired field of the wrong length is refused, as an unknown tag.
+    let mut bad = record_with_retired(&full, 5, false);
+    let n = bad.len();
+    bad[n - 2] = 2;
+    bad.push(0);
+    assert_eq!(codec::decode(&bad), Err(DecodeError::UnknownTag(8)));
+    for name in ["stop_by_soc", "current_margin"] {
+        assert_eq!(codec::introduced(field(name).field().tag), 6, "{name}");
+    }
+    assert_eq!(field("stop_by_soc").field().tag, 9);
+    // Version 6: tag 8 is unknown; the new fields must be there.
+    let v6 = encoded(&full);
+    assert_eq!(v6[2], 6);
+    assert_eq!(codec::decode(&v6).unwrap(), full);
+    let mut with8 = v6.clone();
+    with8[3] += 1;
+    with8.extend_from_slice(&[8, 1, 0]);
+    assert_eq!(codec::decode(&with8), Err(DecodeError::UnknownTag(8)));
+    let v5_as_6 = {
+        let mut r = record_of_version(&full, 5);
+        r[2] = 6;
+        r
+    };
+    assert!(
+        codec::decode(&v5_as_6).is_err(),
+        "a version-5 record is no version 6"
+    );
+    assert!(Config::default().stop_by_soc);
+    assert_eq!(Config::default().current_margin_pct, 20);
 }
 
 /// `pack_name`: printable text, at most 24 bytes, empty by default.

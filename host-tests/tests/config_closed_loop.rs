@@ -8,7 +8,7 @@ use host_tests::closed_loop::ClosedLoop;
 use host_tests::sim::PackModel;
 use serde_json::{json, Value};
 use tinybms_desk::flash::RamFlash;
-use tinybms_firmware::inverter::frames;
+use tinybms_firmware::inverter::dialect::victron as frames;
 use tinybms_firmware::inverter::Protocol;
 
 const S: u64 = 1_000_000;

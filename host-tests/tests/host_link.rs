@@ -887,7 +887,20 @@ fn longest_telemetry_line_fits() {
             heard: false,
             limits: Some((u16::MAX, u16::MAX, u16::MAX)),
             stops: Some(("inverter_asked", "inverter_asked")),
+            told: tinybms_firmware::inverter::dialect::Told {
+                soc_pct: Some(100),
+                charge_enabled: Some(false),
+                discharge_enabled: Some(false),
+                name: Some(*b"ABCDEFGH"),
+                ..Default::default()
+            },
+            ignored: Some(tinybms_firmware::inverter::ignored::Ignored {
+                side: tinybms_firmware::inverter::ignored::Side::Discharge,
+                current_da: u16::MAX,
+                for_s: u16::MAX,
+            }),
         }),
+        restart_pending: u32::MAX,
     };
     let n = encode::telemetry(
         &mut buf,
@@ -900,7 +913,9 @@ fn longest_telemetry_line_fits() {
     // A margin of a fifth of the buffer (the freshness limit, 25 bytes, took
     // the line from 764 to 789 bytes: past the three quarters it kept before;
     // the inverter member, 107 bytes, to 896, and the buffer from 1024 to
-    // 1280 bytes).
+    // 1280 bytes; what the inverter is told — the SOC, the enable bits, the
+    // name, an ignored stop — and the changes waiting for a restart, 221
+    // bytes, to 1117, and the buffer to 1408 bytes).
     assert!(n < OUT_LINE_MAX * 4 / 5, "{n}");
     check_line(&buf[..n]);
 }
@@ -1210,7 +1225,7 @@ proptest! {
         let replay = register_values(&regs);
         let block = RegisterBlock { start: 0, values: regs.values().copied().collect() };
         let s = protocol_core::views::LiveSnapshot::from_registers(&block).unwrap();
-        let head = encode::TelemetryHead { req: None, seq: 1, age_ms: Some(0), stale_after_ms: None, online: true, ready: true, inverter: None };
+        let head = encode::TelemetryHead { req: None, seq: 1, age_ms: Some(0), stale_after_ms: None, online: true, ready: true, inverter: None, restart_pending: 0 };
         let mut out = [0u8; OUT_LINE_MAX];
         let n = encode::telemetry(&mut out, head, Some(&s), None, None).unwrap();
         let line: Value = serde_json::from_str(&check_line(&out[..n])).unwrap();
@@ -1463,7 +1478,7 @@ fn a_bridge_with_a_node_number_streams_the_battery_and_its_packs() {
 /// The chip's boot lines, as its shell hands them in.
 fn chip_boot_lines() -> Vec<tinybms_firmware::text::Boot> {
     use tinybms_firmware::boards::{HostWire, LogPath};
-    use tinybms_firmware::inverter::protocol::Protocol;
+    use tinybms_firmware::inverter::Protocol;
     use tinybms_firmware::text::Boot;
     vec![
         Boot::Image {
@@ -1551,7 +1566,7 @@ fn the_longest_boot_lines_all_fit() {
     use tinybms_firmware::boards::{HostWire, LogPath, BOARDS};
 
     use tinybms_firmware::identity::{Features, Identity};
-    use tinybms_firmware::inverter::protocol::Protocol;
+    use tinybms_firmware::inverter::Protocol;
 
     use tinybms_firmware::text::Boot;
     let board = BOARDS

@@ -7,7 +7,7 @@
 //! chargers and a drifted SOC.
 
 use proptest::prelude::*;
-use tinybms_firmware::inverter::pylon::{StopWhy, Stops};
+use tinybms_firmware::inverter::dialect::{StopWhy, Stops};
 use tinybms_firmware::inverter::{InverterConfig, InverterReport, Protocol};
 
 use host_tests::closed_loop::{safety_row, ClosedLoop};
@@ -139,7 +139,7 @@ fn a_luxpower_shutdown_request_stops_charge_and_discharge_while_it_lasts() {
         .figures
         .reports
         .iter()
-        .any(|(_, r)| *r == InverterReport::Protection(Stops::shutdown())));
+        .any(|(_, r)| matches!(r, InverterReport::Protection { stops, .. } if *stops == Stops::shutdown())));
     assert_eq!(
         l.h.sim.registers()[300..344],
         settings_before[..],
@@ -175,7 +175,7 @@ fn a_charge_stop_is_said_every_way_and_a_deye_stops() {
     l.h.sim.force_temperature(Some(-5.0));
     l.run_until(10 * MIN);
     assert!(l.figures.reports.iter().any(|(_, r)| {
-        matches!(r, InverterReport::Protection(s) if s.charge == Some(StopWhy::Temperature))
+        matches!(r, InverterReport::Protection { stops, .. } if stops.charge == Some(StopWhy::Temperature))
     }));
     assert!(!l.model.enabled.0, "charge enable still set");
     assert!(l.model.enabled.1, "discharge stays enabled");
@@ -206,7 +206,7 @@ fn a_charge_stop_is_said_every_way_and_a_deye_stops() {
         .figures
         .reports
         .iter()
-        .any(|(_, r)| *r == InverterReport::Protection(Stops::default())));
+        .any(|(_, r)| matches!(r, InverterReport::Protection { stops, .. } if stops.none())));
 }
 
 proptest! {

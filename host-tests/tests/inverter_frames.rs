@@ -7,7 +7,7 @@ use proptest::prelude::*;
 use tinybms_firmware::inverter::control::{
     ChargeConfig, ChargeControl, Conditions, Limits, PackSettings, PackState,
 };
-use tinybms_firmware::inverter::frames::{self, CanFrame};
+use tinybms_firmware::inverter::dialect::{sma, victron, CanFrame, Period, Protected, Say};
 use tinybms_firmware::inverter::Protocol;
 
 const S: u64 = 1_000_000;
@@ -50,7 +50,7 @@ fn state() -> PackState {
 fn frame_0x351_limits() {
     // CVL 56.8 V = 568 = 0x0238; CCL 60.0 A = 600 = 0x0258; DCL 150.0 A =
     // 1500 = 0x05DC; discharge voltage 41.6 V = 416 = 0x01A0.
-    let f = frames::limits(&Limits {
+    let f = victron::limits(&Limits {
         cvl_dv: 568,
         ccl_da: 600,
         dcl_da: 1500,
@@ -63,7 +63,7 @@ fn frame_0x351_limits() {
 #[test]
 fn frame_0x355_soc() {
     // SOC 65 % (65.4 rounded down), SOH 97 %, SOC 65.40 % = 6540 = 0x198C.
-    let f = frames::soc(&state());
+    let f = victron::soc(state().soc_pct, state().soh_pct);
     assert_eq!((f.id, f.len), (0x355, 6));
     assert_eq!(f.bytes(), &[0x41, 0x00, 0x61, 0x00, 0x8C, 0x19]);
 }
@@ -71,7 +71,7 @@ fn frame_0x355_soc() {
 #[test]
 fn frame_0x356_measurements() {
     // 52.91 V = 5291 = 0x14AB; -25.5 A = -255 = 0xFF01; 27.0 °C = 270 = 0x010E.
-    let f = frames::measurements(&state());
+    let f = victron::measurements(&state(), 1.0);
     assert_eq!((f.id, f.len), (0x356, 6));
     assert_eq!(f.bytes(), &[0xAB, 0x14, 0x01, 0xFF, 0x0E, 0x01]);
 }
@@ -82,7 +82,7 @@ fn frame_0x35a_victron_all_ok() {
     // supported (0b00); system status OK: byte 0 = 10 10 10 10 = 0xAA, byte 1 =
     // 0xAA, byte 2 = 10 00 00 10 = 0x82, byte 3 = 0x02; warnings the same, and
     // byte 7 also has the system-status OK (bits 2-3 = 10): 0x0A.
-    let f = frames::victron_alarms(&Conditions::default());
+    let f = victron::alarms(&Conditions::default(), &Protected::default(), false);
     assert_eq!((f.id, f.len), (0x35A, 8));
     assert_eq!(f.bytes(), &[0xAA, 0xAA, 0x82, 0x02, 0xAA, 0xAA, 0x82, 0x0A]);
 }
@@ -92,10 +92,9 @@ fn frame_0x35a_victron_high_voltage_alarm_and_imbalance_warning() {
     let c = Conditions {
         high_voltage: 2,
         cell_imbalance: 1,
-        link_lost: 1,
         ..Conditions::default()
     };
-    let f = frames::victron_alarms(&c);
+    let f = victron::alarms(&c, &Protected::default(), true);
     // Byte 0: general active (01), high voltage active (01 << 2), low voltage
     // OK (10 << 4), high temperature OK (10 << 6) = 0b10_10_01_01 = 0xA5.
     // Byte 3: imbalance alarm OK = 0x02; byte 7: imbalance warning active (01),
@@ -114,10 +113,10 @@ fn frame_0x35a_sma_flags_only_real_faults_as_alarms() {
         high_charge_current: 2,
         ..Conditions::default()
     };
-    let f = frames::sma_alarms(&c);
+    let f = sma::alarms(&c, &Protected::default());
     assert_eq!((f.id, f.len), (0x35A, 8));
     assert_eq!(f.bytes(), &[0x41, 0x00, 0x00, 0x00, 0x41, 0x00, 0x01, 0x00]);
-    let ok = frames::sma_alarms(&Conditions::default());
+    let ok = sma::alarms(&Conditions::default(), &Protected::default());
     assert_eq!(ok.bytes(), &[0; 8]);
 }
 
@@ -125,10 +124,16 @@ fn frame_0x35a_sma_flags_only_real_faults_as_alarms() {
 fn frame_0x35a_sma_bms_fault_status_is_a_warning_not_an_alarm() {
     // The TinyBMS clears its own fault status after an over-current trip or a
     // cold-morning cutoff; a Sunny Island alarm would need a manual restart.
-    let f = frames::sma_alarms(&Conditions {
-        bms_internal: 2,
-        ..Conditions::default()
-    });
+    let f = sma::alarms(
+        &Conditions {
+            bms_internal: 2,
+            ..Conditions::default()
+        },
+        &Protected {
+            system: true,
+            ..Protected::default()
+        },
+    );
     assert_eq!(&f.bytes()[..4], &[0, 0, 0, 0], "no alarm flag");
     assert_eq!(&f.bytes()[4..], &[0x01, 0x00, 0x40, 0x00], "warnings");
 }
@@ -136,7 +141,7 @@ fn frame_0x35a_sma_bms_fault_status_is_a_warning_not_an_alarm() {
 #[test]
 fn frame_0x356_sma_current_is_positive_when_discharging() {
     // -25.5 A (discharging) is sent as +255 = 0x00FF to the Sunny Island.
-    let f = frames::sma_measurements(&state());
+    let f = victron::measurements(&state(), sma::CURRENT_SIGN);
     assert_eq!(f.bytes(), &[0xAB, 0x14, 0xFF, 0x00, 0x0E, 0x01]);
 }
 
@@ -183,7 +188,7 @@ fn a_cut_on_the_first_update_is_held_too() {
 
 #[test]
 fn frame_0x35e_name_is_not_pylon() {
-    let f = frames::name();
+    let f = victron::name();
     assert_eq!((f.id, f.len), (0x35E, 8));
     assert_eq!(f.bytes(), b"TINYBMS ");
 }
@@ -191,40 +196,34 @@ fn frame_0x35e_name_is_not_pylon() {
 #[test]
 fn frame_0x35f_victron_and_sma() {
     // Victron: model 0, firmware 20 = 0x0014, capacity 280 Ah = 0x0118.
-    let v = frames::victron_info(20, 280);
+    let v = victron::info(20, 280);
     assert_eq!((v.id, v.len), (0x35F, 6));
     assert_eq!(v.bytes(), &[0x00, 0x00, 0x14, 0x00, 0x18, 0x01]);
     // SMA: "Li", hardware 1.0 = 0x0001, 280 Ah, software 20.
-    let s = frames::sma_info(0x0001, 280, 20);
+    let s = sma::info(0x0001, 280, 20);
     assert_eq!((s.id, s.len), (0x35F, 8));
     assert_eq!(s.bytes(), &[b'L', b'i', 0x01, 0x00, 0x18, 0x01, 0x14, 0x00]);
 }
 
 #[test]
 fn frames_0x372_0x373_0x379() {
-    let l = Limits {
-        cvl_dv: 568,
-        ccl_da: 0,
-        dcl_da: 1500,
-        discharge_dv: 416,
-    };
     // One module online, blocking charge (CCL 0), not discharge, none offline.
-    let m = frames::modules(&l, true);
+    let m = victron::module_counts((1, 1, 0, 0));
     assert_eq!((m.id, m.len), (0x372, 8));
     assert_eq!(m.bytes(), &[1, 0, 1, 0, 0, 0, 0, 0]);
     // 3301 mV = 0x0CE5, 3312 mV = 0x0CF0, 24.5 °C = 297.65 K -> 298 = 0x012A,
     // 27.0 °C = 300.15 K -> 300 = 0x012C.
-    let c = frames::cell_extremes(&state());
+    let c = victron::cell_extremes(&state());
     assert_eq!((c.id, c.len), (0x373, 8));
     assert_eq!(c.bytes(), &[0xE5, 0x0C, 0xF0, 0x0C, 0x2A, 0x01, 0x2C, 0x01]);
-    let k = frames::capacity(280);
+    let k = victron::capacity(280);
     assert_eq!((k.id, k.len), (0x379, 2));
     assert_eq!(k.bytes(), &[0x18, 0x01]);
 }
 
 #[test]
 fn candump_lines_are_what_can_utils_write() {
-    let f = frames::limits(&Limits {
+    let f = victron::limits(&Limits {
         cvl_dv: 568,
         ccl_da: 600,
         dcl_da: 1500,
@@ -400,47 +399,11 @@ fn check_dbc(path: &str, sent: &[CanFrame], expect: &[(&str, f64)]) {
     }
 }
 
-fn frames_for(protocol: &str) -> Vec<CanFrame> {
-    let l = Limits {
-        cvl_dv: 568,
-        ccl_da: 600,
-        dcl_da: 1500,
-        discharge_dv: 416,
-    };
-    let c = Conditions {
-        high_voltage: 2,
-        cell_imbalance: 1,
-        ..Conditions::default()
-    };
-    let p = state();
-    match protocol {
-        "victron" => vec![
-            frames::limits(&l),
-            frames::soc(&p),
-            frames::measurements(&p),
-            frames::victron_alarms(&c),
-            frames::name(),
-            frames::victron_info(20, 280),
-            frames::modules(&l, true),
-            frames::cell_extremes(&p),
-            frames::capacity(280),
-        ],
-        _ => vec![
-            frames::limits(&l),
-            frames::soc(&p),
-            frames::measurements(&p),
-            frames::sma_alarms(&c),
-            frames::name(),
-            frames::sma_info(1, 280, 20),
-        ],
-    }
-}
-
-/// The frames of one period of a 48 V hybrid inverter's protocol, as the
-/// output builds them (with a full-charge request, two packs, 16 cells).
-fn lv_frames(p: Protocol) -> Vec<CanFrame> {
-    use tinybms_firmware::inverter::protocol::Period;
-    use tinybms_firmware::inverter::pylon::Extras;
+/// The frames of one slow period of `p`, as the dialect builds them for
+/// the output: a cell at its ceiling the BMS tripped on (an alarm and a
+/// protection), an imbalance warning, a full-charge request, two packs, 16
+/// cells each.
+fn period_frames(p: Protocol) -> Vec<CanFrame> {
     let l = Limits {
         cvl_dv: 568,
         ccl_da: 600,
@@ -465,8 +428,16 @@ fn lv_frames(p: Protocol) -> Vec<CanFrame> {
         overheat_c: 60,
         low_temp_charge_c: 0,
     };
+    let say = Say {
+        protected: Protected {
+            over_voltage: true,
+            ..Protected::default()
+        },
+        full_charge: true,
+        ..Say::plain(l, s.soc_pct)
+    };
     let period = Period {
-        limits: &l,
+        say: &say,
         state: &s,
         conditions: &c,
         capacity_ah: 280,
@@ -474,15 +445,17 @@ fn lv_frames(p: Protocol) -> Vec<CanFrame> {
         firmware: 20,
         hardware: 1,
         slow: true,
-        lv: Extras {
-            full_charge: true,
-            ..Extras::default()
-        },
         settings: Some(&settings),
     };
-    let mut out = Vec::new();
-    p.period_frames(&period, &mut |f| out.push(f));
-    out
+    p.frames(&period).to_vec()
+}
+
+fn lv_frames(p: Protocol) -> Vec<CanFrame> {
+    period_frames(p)
+}
+
+fn frames_for(protocol: &str) -> Vec<CanFrame> {
+    period_frames(Protocol::from_key(protocol).unwrap())
 }
 
 /// The values every Pylontech-family DBC decodes from [`lv_frames`].
@@ -504,8 +477,13 @@ const PYLON_FAMILY: [(&str, f64); 12] = [
 #[test]
 fn the_pylon_dbc_and_the_encoder_agree() {
     let mut want = PYLON_FAMILY.to_vec();
-    // 52.91 V in 0.01 V; the mean of 24.5 and 27.0 °C.
-    want.extend([("BatteryVoltage", 52.91), ("BatteryTemperature", 25.8)]);
+    // 52.91 V in 0.01 V; the mean of 24.5 and 27.0 °C; the discharge voltage
+    // in bytes 6-7 of 0x351, as real Pylontech packs send it.
+    want.extend([
+        ("BatteryVoltage", 52.91),
+        ("BatteryTemperature", 25.8),
+        ("DischargeVoltage", 41.6),
+    ]);
     check_dbc(
         concat!(env!("CARGO_MANIFEST_DIR"), "/can/tinybms-pylon.dbc"),
         &lv_frames(Protocol::Pylon),
@@ -560,6 +538,7 @@ fn the_growatt_dbc_and_the_encoder_agree() {
             ("DischargeCurrentLimit", 150.0),
             ("State", 3.0),
             ("ErrorBytesValid", 1.0),
+            // An imbalance warning: "unbalance" (table 1: 1 balance).
             ("CellBalance", 0.0),
             ("ChargeEnabled", 1.0),
             ("DischargeEnabled", 1.0),
@@ -582,6 +561,7 @@ fn the_growatt_dbc_and_the_encoder_agree() {
             ("ChargeEnable", 1.0),
             ("BatteryType", 0.0),
             ("HardwareVersion", 1.0),
+            ("DateTime", f64::from(0x6842_0000u32)),
             ("UpdateStatus", 0.0),
         ],
     );
@@ -611,7 +591,7 @@ fn the_victron_dbc_and_the_encoder_agree() {
             ("SystemOffline", 2.0),
             ("FirmwareVersion", 20.0),
             ("OnlineCapacity", 280.0),
-            ("ModulesOnline", 1.0),
+            ("ModulesOnline", 2.0),
             ("MinCellVoltage", 3.301),
             ("MaxCellVoltage", 3.312),
             ("MaxCellTemperature", 300.0 - 273.15),
@@ -629,7 +609,8 @@ fn the_sma_dbc_and_the_encoder_agree() {
             ("ChargeVoltageLimit", 56.8),
             ("ChargeCurrentLimit", 60.0),
             ("DischargeCurrentLimit", 150.0),
-            ("BatteryCurrent", -25.5),
+            // Discharging 25.5 A: positive to the Sunny Island.
+            ("BatteryCurrent", 25.5),
             ("AlarmHighVoltage", 1.0),
             ("AlarmGeneral", 1.0),
             ("WarningCellImbalance", 1.0),

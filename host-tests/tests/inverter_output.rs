@@ -5,7 +5,7 @@ use host_tests::sim::{PackModel, SimBms, SimConfig};
 use protocol_core::response::RegisterBlock;
 use protocol_core::views::LiveSnapshot;
 use tinybms_firmware::inverter::control::PackSettings;
-use tinybms_firmware::inverter::frames;
+use tinybms_firmware::inverter::dialect::victron as frames;
 use tinybms_firmware::inverter::{
     Inverter, InverterAction, InverterConfig, InverterReport, Protocol, TxResult,
 };

@@ -228,6 +228,7 @@ fn the_register_tables_name_exactly_the_members_a_line_writes() {
         online: true,
         ready: true,
         inverter: None,
+        restart_pending: 0,
     };
     let telemetry_head = ["type", "seq", "age_ms", "online", "ready", "flagged"];
     assert_eq!(

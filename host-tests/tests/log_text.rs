@@ -9,6 +9,9 @@ use protocol_core::settings::{Setting, SettingId};
 use tinybms_firmware::bms::link::{Failure, LinkStats};
 use tinybms_firmware::bridge::report::{SnapshotLine, WriteOutcome};
 use tinybms_firmware::inverter::control::Limits;
+use tinybms_firmware::inverter::dialect::{OnSilence, StopWhy, Stops, Told};
+use tinybms_firmware::inverter::hold::HoldBudget;
+use tinybms_firmware::inverter::ignored::{Ignored, Side};
 use tinybms_firmware::inverter::{InverterReport, StaleMode};
 use tinybms_firmware::text::{self, Line, LINE_MAX};
 use tinybms_firmware::{Level, Report, SECOND};
@@ -143,14 +146,96 @@ fn inverter_lines_read_in_volts_amps_and_seconds() {
     let s = InverterReport::Stale {
         age_ms: 5230,
         policy: StaleMode::Hold,
-        stale_hold_us: 300 * SECOND,
+        hold: Some(HoldBudget {
+            dcl_da: 480,
+            budget_mah: 3640,
+            spend_us: 120 * SECOND,
+        }),
     };
     assert_eq!(
         said_inverter(&s),
-        "CAN: BMS data 5.2 s old: charge limit 0 A for at most 5 min 0 s"
+        "CAN: BMS data 5.2 s old: charge stopped; discharge for at most 2 min 0 s, its limit falling to 0 (the last data proves 3.64 Ah above the discharge stop)"
     );
     assert_eq!(s.level(), Level::Warn);
     assert_eq!(InverterReport::Fresh.level(), Level::Info);
+    let none = InverterReport::Stale {
+        age_ms: 5230,
+        policy: StaleMode::Hold,
+        hold: Some(HoldBudget {
+            dcl_da: 0,
+            budget_mah: 0,
+            spend_us: 0,
+        }),
+    };
+    assert!(said_inverter(&none).ends_with(
+        "charge and discharge stopped (the last data proves no charge above the discharge stop)"
+    ));
+    assert_eq!(
+        said_inverter(&InverterReport::StaleHoldEnded(OnSilence::RunsOn)),
+        "CAN: hold over: charge and discharge stopped, said every way every second until the BMS data is back"
+    );
+    assert_eq!(
+        said_inverter(&InverterReport::StaleHoldEnded(OnSilence::Stops)),
+        "CAN: hold over: charge and discharge stopped, said every way for 5 s, then nothing (the inverter stops on silence)"
+    );
+}
+
+/// What the log says of a stop is what the frames told, read back.
+#[test]
+fn a_protection_line_says_what_was_told() {
+    let told = Told {
+        limits: Some(Limits {
+            cvl_dv: 521,
+            ccl_da: 0,
+            dcl_da: 480,
+            discharge_dv: 416,
+        }),
+        soc_pct: Some(100),
+        charge_enabled: Some(false),
+        discharge_enabled: Some(true),
+        protection: Some(false),
+        link_lost: Some(true),
+        name: Some(*b"PYLON   "),
+    };
+    let r = InverterReport::Protection {
+        stops: Stops {
+            charge: Some(StopWhy::Temperature),
+            discharge: None,
+        },
+        told,
+    };
+    assert_eq!(
+        said_inverter(&r),
+        "CAN protection active: charge stopped (temperature); told: charge current 0.0 A, discharge current 48.0 A, charge voltage 52.1 V, charge enable off, discharge enable on, SOC 100 %, BMS data lost flagged"
+    );
+    let e = InverterReport::IgnoresStop(Ignored {
+        side: Side::Charge,
+        current_da: 98,
+        for_s: 3,
+    });
+    assert_eq!(
+        said_inverter(&e),
+        "CAN: the inverter ignores the charge stop: 9.8 A for 3 s; every stop now goes out with every signal (SOC, charge voltage, protection bits)"
+    );
+    // The longest fits its line.
+    let every = InverterReport::Protection {
+        stops: Stops {
+            charge: Some(StopWhy::InverterAsked),
+            discharge: Some(StopWhy::InverterAsked),
+        },
+        told: Told {
+            limits: Some(Limits {
+                cvl_dv: u16::MAX,
+                ccl_da: u16::MAX,
+                dcl_da: u16::MAX,
+                discharge_dv: u16::MAX,
+            }),
+            protection: Some(true),
+            ..told
+        },
+    };
+    let line = said_inverter(&every);
+    assert!(!line.ends_with('…'), "cut: {line}");
 }
 
 #[test]

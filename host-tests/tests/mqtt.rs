@@ -55,6 +55,8 @@ fn view<'a>(snap: &'a LiveSnapshot, age_s: u64) -> View<'a> {
             can: tinybms_firmware::inverter::CanState::Running,
             heard: true,
             stops: None,
+            told: Default::default(),
+            ignored: None,
         }),
         wifi_rssi_dbm: Some(-61),
         update_rolled_back: None,
@@ -920,7 +922,7 @@ fn the_station_publishes_the_wifi_signal_it_is_given() {
 /// offer every cause the bridge can give, and `none`.
 #[test]
 fn every_stop_cause_is_an_option_of_home_assistant() {
-    use tinybms_firmware::inverter::pylon::{stop_key, StopWhy};
+    use tinybms_firmware::inverter::dialect::{shared::stop_key, StopWhy};
     let all = [
         StopWhy::Fault,
         StopWhy::CellHigh,

@@ -109,7 +109,7 @@ prop_compose! {
 fn feed(
     p: &mut Packs,
     now: u64,
-    frames: &[tinybms_firmware::inverter::frames::CanFrame],
+    frames: &[tinybms_firmware::inverter::dialect::CanFrame],
 ) -> Received {
     let mut last = Received::NotSummary;
     for f in frames {
@@ -729,7 +729,7 @@ mod through_the_inverter_output {
     use protocol_core::response::RegisterBlock;
     use protocol_core::views::LiveSnapshot;
     use tinybms_firmware::inverter::control::PackSettings;
-    use tinybms_firmware::inverter::frames::{CanFrame, ID_LIMITS};
+    use tinybms_firmware::inverter::dialect::{victron::ID_LIMITS, CanFrame};
     use tinybms_firmware::inverter::packs::from_id;
     use tinybms_firmware::inverter::{
         Inverter, InverterAction, InverterConfig, InverterReport, Protocol, TxResult,
@@ -845,26 +845,38 @@ mod through_the_inverter_output {
     }
 
     #[test]
-    fn when_no_pack_takes_part_a_gx_hears_nothing_and_a_sunny_island_is_stopped() {
+    fn when_no_pack_takes_part_the_stop_is_said_as_each_inverter_needs() {
         // Fresh until 10 s, stale after 15 s (5 s stale age).
         let [victron, _] = two(Protocol::Victron, 30, 10 * S);
-        let last = victron
+        let stale: Vec<_> = victron
             .iter()
-            .rev()
-            .find(|(_, f)| f.id == ID_LIMITS)
-            .unwrap()
-            .0;
-        assert!(last <= 16 * S, "limits sent on stale data at {last}");
+            .filter(|(t, f)| *t > 16 * S && f.id == ID_LIMITS)
+            .collect();
+        // A GX stops on silence: the stop (CCL 0, DCL 0) a few periods, then
+        // nothing.
+        assert!(
+            !stale.is_empty()
+                && stale.len()
+                    <= usize::from(tinybms_firmware::inverter::dialect::STOP_BEFORE_QUIET),
+            "{}",
+            stale.len()
+        );
+        for (_, f) in &stale {
+            assert_eq!(&f.data[2..6], &[0, 0, 0, 0], "CCL 0 and DCL 0");
+        }
+        let last = stale.last().unwrap().0;
+        assert!(last <= 23 * S, "limits sent on stale data at {last}");
+        // A Sunny Island obeys the last limits: the stop every period.
         let [sma, _] = two(Protocol::SmaSunnyIsland, 30, 10 * S);
         let late: Vec<_> = sma
             .iter()
             .filter(|(t, f)| *t > 17 * S && f.id == ID_LIMITS)
             .collect();
-        assert!(!late.is_empty());
+        assert!(late.len() > 10, "{}", late.len());
         for (_, f) in late {
             assert_eq!(&f.data[2..6], &[0, 0, 0, 0], "CCL 0 and DCL 0");
         }
-        // Only 0x351 (and the summaries): no measurement frames on stale data.
+        // No measurement frames on stale data.
         assert!(!sma.iter().any(|(t, f)| *t > 17 * S && f.id == 0x356));
     }
 
@@ -1370,7 +1382,7 @@ fn a_deaf_receiver_or_lost_summaries_never_make_a_second_speaker() {
         assert!(!e.update(t * S, &p, true));
     }
     for t in 5..60 {
-        let limits = tinybms_firmware::inverter::frames::ID_LIMITS;
+        let limits = tinybms_firmware::inverter::dialect::victron::ID_LIMITS;
         p.on_frame(t * S, limits, &[0; 8]);
         assert!(!e.update(t * S, &p, true), "took over at {t} s");
     }

@@ -472,12 +472,12 @@ fn a_hybrid_inverter_protocol_and_its_name_survive_a_restart_and_show_in_monitor
     }
     let text = tinybms(&["monitor", &sim.path, "--count", "3", "--plain"]);
     assert_eq!(text.code, 0, "{text}");
+    // The monitor names the protocol and the name 0x35E tells.
     assert!(
         text.stdout
-            .contains("Inverter pylon: CAN running, inverter heard   CVL "),
+            .contains("Inverter pylon (0x35E DEYE): CAN running, inverter heard   CVL "),
         "{text}"
     );
-    assert!(text.stdout.contains("protection"), "{text}");
     let json = tinybms(&["monitor", &sim.path, "--count", "2", "--json"]);
     let last: serde_json::Value =
         serde_json::from_str(json.stdout.lines().last().unwrap()).unwrap();
@@ -487,6 +487,11 @@ fn a_hybrid_inverter_protocol_and_its_name_survive_a_restart_and_show_in_monitor
     assert!(inv["cvl_v"].as_f64().unwrap() > 40.0, "{last}");
     assert!(inv["charge_stop"].is_string(), "{last}");
     assert!(inv["discharge_stop"].is_string(), "{last}");
+    // What the frames told, read back: the name, the enable bits, the SOC.
+    assert_eq!(inv["name"], "DEYE", "{last}");
+    assert_eq!(inv["charge_enabled"], true, "{last}");
+    assert_eq!(inv["discharge_enabled"], true, "{last}");
+    assert!(inv["soc_told"].as_u64().is_some(), "{last}");
     // The log says the protocol by its name.
     let log = tinybms(&["log", &sim.path, "--duration", "2s"]);
     assert!(

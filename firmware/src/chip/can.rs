@@ -20,7 +20,7 @@ use esp_hal::twai::{
     BaudRate, EspTwaiError, EspTwaiFrame, Id, StandardId, Twai, TwaiConfiguration, TwaiMode,
 };
 use esp_hal::Async;
-use tinybms_firmware::inverter::frames::CanFrame;
+use tinybms_firmware::inverter::dialect::CanFrame;
 use tinybms_firmware::inverter::port::{self, CanCommand, CanDone, Sent};
 use tinybms_firmware::inverter::{self, InverterConfig};
 use tinybms_firmware::text::Boot;

@@ -65,7 +65,7 @@ pub use can::*;
 #[cfg(feature = "can")]
 mod can {
     use embassy_sync::channel::Channel;
-    use tinybms_firmware::inverter::frames::CanFrame;
+    use tinybms_firmware::inverter::dialect::CanFrame;
     use tinybms_firmware::inverter::port::{CanCommand, CanDone};
 
     use super::Raw;

@@ -23,13 +23,13 @@
 //! a bug, a record written by something else.)
 
 use super::value::{check, Value};
-use super::{Config, FieldId, Kind, FIELDS, VERSION};
+use super::{Config, FieldId, Kind, FIELDS, RETIRED, VERSION};
 
 /// The record's first two bytes.
 pub const MAGIC: [u8; 2] = *b"TC";
 
-/// Longest encoded record, bytes (every text field at its longest: 599).
-pub const RECORD_MAX: usize = 640;
+/// Longest encoded record, bytes (every text field at its longest: 645).
+pub const RECORD_MAX: usize = 672;
 
 pub use super::introduced;
 
@@ -114,6 +114,14 @@ impl Writer<'_> {
     }
 }
 
+/// The kind of a retired tag a record of `version` may carry.
+fn retired(tag: u8, version: u8) -> Option<Kind> {
+    RETIRED
+        .iter()
+        .find(|(t, from, until, _)| *t == tag && *from <= version && version < *until)
+        .map(|r| r.3)
+}
+
 /// Reads a record. Never panics, whatever the bytes.
 pub fn decode(bytes: &[u8]) -> Result<Config, DecodeError> {
     let header = bytes.get(..4).ok_or(DecodeError::Truncated)?;
@@ -135,6 +143,20 @@ pub fn decode(bytes: &[u8]) -> Result<Config, DecodeError> {
             .get(..usize::from(len))
             .ok_or(DecodeError::Truncated)?;
         rest = after.get(usize::from(len)..).unwrap_or(&[]);
+        if let Some(kind) = retired(tag, version) {
+            // A field this layout no longer has: its value's length is
+            // checked, the value dropped (the field's successor takes its
+            // default).
+            let fits = match kind {
+                Kind::Bool | Kind::Choice(_) => value.len() == 1,
+                Kind::Number { .. } => value.len() == 4,
+                Kind::Text { .. } | Kind::Secret { .. } => true,
+            };
+            if !fits {
+                return Err(DecodeError::UnknownTag(tag));
+            }
+            continue;
+        }
         let id = FieldId::from_tag(tag)
             .filter(|_| introduced(tag) <= version)
             .ok_or(DecodeError::UnknownTag(tag))?;

@@ -260,7 +260,8 @@ macro_rules! fields {
 
         /// The layout version that added the field stored under `tag`
         /// (version 2: `pack_node`; version 3: `pack_name`; version 4:
-        /// `inverter_name`, `stop_by_soc`; 1 for a tag no
+        /// `inverter_name`; version 5: `update_key`; version 6:
+        /// `stop_by_soc` on by default, `current_margin`; 1 for a tag no
         /// field has). [`codec`] reads an older record by it.
         pub const fn introduced(tag: u8) -> u8 {
             match tag {
@@ -346,7 +347,7 @@ macro_rules! choice_member {
 choice_member!(StaleMode: StaleMode::Stop, StaleMode::Hold);
 
 /// A protocol is held as its place in [`PROTOCOLS`] (the order of
-/// [`crate::inverter::protocol::PROTOCOLS`]: the record stores the index).
+/// [`crate::inverter::dialect::DIALECTS`]: the record stores the index).
 impl Member for Protocol {
     fn get(&self) -> Value<'_> {
         Value::Choice(self.index())
@@ -362,9 +363,20 @@ impl Member for Protocol {
     }
 }
 
-/// Choices of `inverter_protocol`, in the order of
-/// [`crate::inverter::protocol::PROTOCOLS`].
-pub const PROTOCOLS: &[&str] = &["victron", "sma", "pylon", "solark", "luxpower", "growatt"];
+/// Choices of `inverter_protocol`: the dialects' keys, in the order of
+/// [`crate::inverter::dialect::DIALECTS`] (the record stores the index).
+pub const PROTOCOLS: &[&str] = &crate::inverter::dialect::KEYS;
+
+/// Tags a field of an older layout was stored under and no field has now:
+/// (tag, the version that added it, the version that retired it, kind). A
+/// record of a version that had it may carry it; [`codec`] reads its value's
+/// length by the kind and drops it, so the field takes its new default.
+///
+/// Tag 8, `stop_by_soc` of versions 4-5, was off by default: a record
+/// saved with the old default cannot be told from an owner's choice, so it
+/// is read as the new field (tag 9), on by default since version 6 — the
+/// safe side for the inverters it serves.
+pub const RETIRED: &[(u8, u8, u8, Kind)] = &[(8, 4, 6, Kind::Bool)];
 /// Choices of `stale_policy`.
 pub const STALE_MODES: &[&str] = &["stop", "hold"];
 
@@ -410,9 +422,9 @@ fields! {
     InverterName = 7 since 4, "inverter_name", "", Inverter, Now, text(8, TextRule::Printable),
         inverter_name: String<8> = fixed_text("PYLON"),
         "What 0x35E says in the protocols pylon, solark and luxpower (at most 8 characters): PYLON for most inverters (Deye, Sunsynk, Sofar, Growatt SPF, EG4, MidNite), GOODWE for a GoodWe, DEYE as Deye's copy of the spec prints it; inverters key their behaviour on this name.";
-    StopBySoc = 8 since 4, "stop_by_soc", "", Inverter, Now, Kind::Bool,
-        stop_by_soc: bool = false,
-        "For an inverter that ignores a current limit of 0 A (Deye, Solis), in the protocols pylon, solark, luxpower and growatt: report SOC 100 % while charging must stop and 0 % while discharging must (the real SOC stays in the monitor and Home Assistant).";
+    StopBySoc = 9 since 6, "stop_by_soc", "", Inverter, Now, Kind::Bool,
+        stop_by_soc: bool = i.stop_by_soc,
+        "In the protocols whose inverters are known to ignore a current limit of 0 A (pylon, solark, luxpower, growatt: Deye, Solis…): report SOC 100 % while charging must stop and 0 % while discharging must (the real SOC stays in the monitor and Home Assistant). On by default; an inverter seen ignoring a stop is told by SOC whatever this says.";
     PackNode = 6 since 2, "pack_node", "", Inverter, Restart, num_or(1, 8, 0, "alone"),
         pack_node: u8 = i.node,
         "Packs in parallel, one bridge each, on one CAN bus: this bridge's number (1 = the primary, which speaks to the inverter); alone = this pack is the whole battery.";
@@ -473,6 +485,9 @@ fields! {
     WarningCurrent = 28 since 1, "warning_current", "%", Charge, Now, num(50, 100, 0),
         warning_current_pct: u8 = c.warn_current_pct,
         "Current warnings start at this share of a current cutoff.";
+    CurrentMargin = 29 since 6, "current_margin", "%", Charge, Now, num(0, 50, 0),
+        current_margin_pct: u8 = c.current_margin_pct,
+        "The largest charge and discharge current limits stay this share below the BMS's over-current cutoffs (318, 317), so an inverter that overshoots a limit by as much never trips the BMS (real ones overshoot by up to 20 %).";
     ReadOnly = 40 since 1, "read_only", "", Host, Now, Kind::Bool,
         read_only: bool = false,
         "Refuse every write from the computer: BMS settings, resets, clears and this configuration.";
@@ -711,6 +726,7 @@ impl Config {
             cvl_raise_interval_us: Instant::from(self.cvl_raise_interval_s) * SECOND,
             warn_margin_mv: self.warning_margin_mv,
             warn_current_pct: self.warning_current_pct,
+            current_margin_pct: self.current_margin_pct,
         }
     }
 
@@ -731,7 +747,7 @@ impl Config {
             stale_policy: self.stale_policy,
             stale_hold_us: Instant::from(self.stale_hold_s) * SECOND,
             node: self.pack_node,
-            name: crate::inverter::pylon::name_bytes(&self.inverter_name),
+            name: crate::inverter::dialect::pylon::name_bytes(&self.inverter_name),
             stop_by_soc: self.stop_by_soc,
             ..InverterConfig::default()
         }

@@ -162,9 +162,14 @@ pub struct StateExtras<'a> {
     pub can_state: Option<&'static str>,
     /// The inverter is heard, when the CAN output is built in.
     pub inverter_heard: Option<bool>,
-    /// The Pylontech family: what stops charging and discharging (`None`:
-    /// another protocol, published as null).
+    /// What stops charging and discharging (`None`: the output off,
+    /// published as null).
     pub stops: Option<(&'static str, &'static str)>,
+    /// The SOC the frames tell the inverter, % (`None`: null).
+    pub soc_told: Option<u8>,
+    /// The last stop the inverter was seen ignoring, in words (`None`:
+    /// null).
+    pub ignored_stop: Option<&'a str>,
     /// The Wi-Fi signal, dBm (`None`: unknown, published as null).
     pub wifi_rssi_dbm: Option<i8>,
     /// "update to X rolled back: reason" (`None`: none, published as null).
@@ -190,6 +195,9 @@ pub struct TelemetryHead {
     /// The inverter output (host link only; `None` without CAN output and in
     /// the MQTT state, which has members of its own).
     pub inverter: Option<InverterState>,
+    /// Configuration fields changed that apply at the next restart (host
+    /// link only: 0 is not written).
+    pub restart_pending: u32,
 }
 
 /// The inverter output as a `telemetry` line's `inverter` member says it.
@@ -204,13 +212,23 @@ pub struct InverterState {
     /// What it is told now: CVL 0.1 V, CCL 0.1 A, DCL 0.1 A (`None`: nothing
     /// sent, e.g. no fresh data).
     pub limits: Option<(u16, u16, u16)>,
-    /// The Pylontech family: what stops charging and discharging
-    /// ([`crate::inverter::pylon::stop_key`]; `None` for another protocol).
+    /// What stops charging and discharging
+    /// ([`crate::inverter::dialect::shared::stop_key`]; `None` with the
+    /// output off).
     pub stops: Option<(&'static str, &'static str)>,
+    /// What the frames sent tell the inverter, read back from them.
+    pub told: crate::inverter::dialect::Told,
+    /// The last stop the inverter was seen ignoring.
+    pub ignored: Option<crate::inverter::ignored::Ignored>,
 }
 
-/// The `inverter` member of a `telemetry` line.
-fn inverter_member<'a>(s: &InverterState) -> schema::Inverter<Wire<'a>> {
+/// The `inverter` member of a `telemetry` line (`name`: 0x35E's, `ignored`:
+/// the last ignored stop, in words).
+fn inverter_member<'a>(
+    s: &InverterState,
+    name: Option<&'a str>,
+    ignored: Option<&'a str>,
+) -> schema::Inverter<Wire<'a>> {
     let l =
         |f: fn(&(u16, u16, u16)) -> u16| s.limits.as_ref().and_then(|x| fixed(i64::from(f(x)), 1));
     schema::Inverter {
@@ -222,7 +240,19 @@ fn inverter_member<'a>(s: &InverterState) -> schema::Inverter<Wire<'a>> {
         dcl_a: l(|x| x.2),
         charge_stop: s.stops.map(|x| x.0),
         discharge_stop: s.stops.map(|x| x.1),
+        soc_told: s.told.soc_pct,
+        charge_enabled: s.told.charge_enabled,
+        discharge_enabled: s.told.discharge_enabled,
+        name,
+        ignored,
     }
+}
+
+/// 0x35E's name as text (trailing spaces dropped; `None` when not ASCII).
+fn name_text(bytes: &[u8; 8]) -> Option<&str> {
+    core::str::from_utf8(bytes)
+        .ok()
+        .map(|t| t.trim_end_matches(' '))
 }
 
 /// Writes a `telemetry` line: the head, and the snapshot's fields when there is
@@ -238,6 +268,12 @@ pub fn telemetry(
     let balancing = snapshot
         .filter(|_| extras.is_some())
         .map(|s| balancing_cells(s.real_balancing_bits, s.cell_count));
+    let name = head.inverter.as_ref().and_then(|i| i.told.name);
+    let ignored = head
+        .inverter
+        .as_ref()
+        .and_then(|i| i.ignored)
+        .map(|e| e.text());
     line(
         &schema::Telemetry::<Wire> {
             head: schema::Head {
@@ -248,10 +284,13 @@ pub fn telemetry(
                 stale_after_ms: head.stale_after_ms,
                 online: head.online,
                 ready: head.ready,
+                restart_pending: (head.restart_pending > 0).then_some(head.restart_pending),
             },
             snapshot: snapshot.map(|s| snapshot_members(s, flagged)),
             told: schema::Told {
-                inverter: head.inverter.as_ref().map(inverter_member),
+                inverter: head.inverter.as_ref().map(|i| {
+                    inverter_member(i, name.as_ref().and_then(name_text), ignored.as_deref())
+                }),
             },
             extras: match (snapshot, extras, &balancing) {
                 (Some(s), Some(e), Some(b)) => Some(extras_members(s, e, b)),
@@ -320,6 +359,8 @@ fn extras_members<'a>(
         inverter_heard: e.inverter_heard,
         charge_stop: e.stops.map(|x| x.0),
         discharge_stop: e.stops.map(|x| x.1),
+        soc_told: e.soc_told,
+        ignored_stop: e.ignored_stop,
         wifi_rssi_dbm: e.wifi_rssi_dbm,
         update_rolled_back: e.update_rolled_back,
     }

@@ -63,10 +63,10 @@ pub use configure::{ConfigDone, PENDING_CONFIG};
 pub const PROTOCOL_VERSION: u32 = 1;
 
 /// Buffer size [`HostLink::next_line`] needs: the longest line it writes (a
-/// `telemetry` line with 16 cells, the inverter member and every value at its
-/// widest is about 900 bytes), `\n` included. A line that does not fit a
-/// smaller buffer is dropped and counted.
-pub const OUT_LINE_MAX: usize = 1280;
+/// `telemetry` line with 16 cells, the inverter member with what it told
+/// and every value at its widest is about 1120 bytes), `\n` included. A line
+/// that does not fit a smaller buffer is dropped and counted.
+pub const OUT_LINE_MAX: usize = 1408;
 
 /// Lines (or listings) waiting for the host: answers, outcomes and events.
 pub const QUEUE: usize = 32;
@@ -196,6 +196,8 @@ struct State {
     battery_lines: usize,
     /// The inverter output now (each telemetry line says it), when built in.
     inverter: Option<encode::InverterState>,
+    /// Configuration fields that wait for a restart.
+    restart_pending: u32,
     /// Where the MQTT connection stands (`hello`), once the session said.
     mqtt: Option<&'static str>,
     /// The radio's start (`hello`, images with Wi-Fi), once the shell said.
@@ -270,6 +272,7 @@ impl HostLink {
                 battery: None,
                 battery_lines: 0,
                 inverter: None,
+                restart_pending: 0,
                 mqtt: None,
                 radio: None,
                 wifi: crate::improv::WifiLink::Off,
@@ -485,6 +488,12 @@ impl HostLink {
     /// `telemetry` line carries it.
     pub fn on_inverter(&mut self, state: Option<encode::InverterState>) {
         self.s.inverter = state;
+    }
+
+    /// How many configuration fields changed that apply at the next restart
+    /// (each `telemetry` line says it).
+    pub fn on_restart_pending(&mut self, n: u32) {
+        self.s.restart_pending = n;
     }
 
     /// Where the MQTT connection stands now, as `hello` says it (the key of

@@ -164,6 +164,7 @@ fn telemetry(
         online: t.online,
         ready: t.ready,
         inverter: s.inverter,
+        restart_pending: s.restart_pending,
     };
     encode::telemetry(
         out,

@@ -20,8 +20,11 @@
 //!   settles at the target; released once the runner is 5 mV below the target
 //!   (and then only as fast as CVL may rise). A whole pack above a lower target
 //!   (float after absorption) is no runner: CVL stays cells × target.
-//! * **CCL** from the charge over-current cutoff (318), capped by configuration;
-//!   **DCL** from 317. Never from the statistics registers 102/103 (peaks seen).
+//! * **CCL** from the charge over-current cutoff (318), **DCL** from 317,
+//!   each [`ChargeConfig::current_margin_pct`] (20 %) below it — an inverter
+//!   that overshoots a limit (real ones do, by up to 20 %) must not trip the
+//!   BMS — and capped by configuration. Never from the statistics registers
+//!   102/103 (peaks seen).
 //! * **Tapers:** CCL goes linearly to 0 as the highest cell climbs through the
 //!   [`ChargeConfig::charge_taper_mv`] window below the ceiling (so a cell at the
 //!   ceiling gets no current at all); DCL to 0 as the lowest cell falls through
@@ -95,6 +98,10 @@ pub struct ChargeConfig {
     pub warn_margin_mv: u16,
     /// Warnings start at this fraction of a current cutoff, percent.
     pub warn_current_pct: u8,
+    /// The largest current limits stay this share below the BMS's
+    /// over-current cutoffs (318, 317), percent: an inverter that overshoots
+    /// a limit by as much never trips the BMS.
+    pub current_margin_pct: u8,
 }
 
 impl Default for ChargeConfig {
@@ -119,6 +126,7 @@ impl Default for ChargeConfig {
             cvl_raise_interval_us: 20 * crate::SECOND,
             warn_margin_mv: 50,
             warn_current_pct: 90,
+            current_margin_pct: 20,
         }
     }
 }
@@ -765,11 +773,12 @@ impl Temperatures {
     }
 }
 
-/// A current cutoff in A as a limit in 0.1 A (saturating at what a frame
-/// carries), under the configured cap if any.
-fn capped_da(cutoff_a: u16, cap: Option<u16>) -> u16 {
-    let da = u32::from(cutoff_a)
-        .saturating_mul(DA_PER_A)
+/// A current cutoff in A as the largest limit in 0.1 A: `margin_pct` below
+/// the cutoff (saturating at what a frame carries), under the configured
+/// cap if any.
+fn capped_da(cutoff_a: u16, margin_pct: u8, cap: Option<u16>) -> u16 {
+    let keep = PERCENT.saturating_sub(u32::from(margin_pct));
+    let da = (u32::from(cutoff_a).saturating_mul(DA_PER_A) * keep / PERCENT)
         .min(u32::from(u16::MAX)) as u16;
     cap.map_or(da, |c| c.min(da))
 }
@@ -789,8 +798,16 @@ fn current_targets(
     p: &PackState,
     t: Temperatures,
 ) -> (u16, u16) {
-    let ccl_max = capped_da(s.charge_cutoff_a, c.charge_current_cap_da);
-    let dcl_max = capped_da(s.discharge_cutoff_a, c.discharge_current_cap_da);
+    let ccl_max = capped_da(
+        s.charge_cutoff_a,
+        c.current_margin_pct,
+        c.charge_current_cap_da,
+    );
+    let dcl_max = capped_da(
+        s.discharge_cutoff_a,
+        c.current_margin_pct,
+        c.discharge_current_cap_da,
+    );
     // Tapers by cell voltage.
     let stop_mv = i32::from(s.ov_cutoff_mv) - i32::from(c.ceiling_margin_mv);
     let ccl_v = falling_permille(

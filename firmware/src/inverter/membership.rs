@@ -9,12 +9,13 @@
 use heapless::Deque;
 
 use super::control::{Conditions, Limits, PackSettings, PackState};
-use super::frames::{self, CanFrame};
+use super::dialect::{CanFrame, OnSilence, StopWhy, Stops};
 use super::packs::{
     self, Battery, BatteryLimits, BatteryView, Election, Member, PackPart, PackView, Packs,
     Received, Shares, Summary,
 };
-use super::{Freshness, Inverter, InverterReport, Reports, QUEUE};
+use super::say::Signals;
+use super::{Freshness, Inverter, InverterReport, Made, Reports, QUEUE};
 use crate::Instant;
 
 /// 0.1 Ah per Ah (the battery's capacity is summed in 0.1 Ah, sent in Ah).
@@ -32,9 +33,11 @@ pub struct Membership {
     logged_battery: Option<Limits>,
     logged_packs: Option<(u8, u8)>,
     battery_lost: bool,
-    /// The battery's limits last sent as the speaker (for the stop frames a
-    /// Sunny Island needs when the battery is lost).
-    sent_battery: Option<Limits>,
+    /// The battery last spoken for, with its limits (for the stop said
+    /// when the battery is lost).
+    sent_battery: Option<(Battery, Limits)>,
+    /// Periods of that stop said so far.
+    lost_periods: u8,
     duplicate_reported: bool,
     /// Nodes whose refused summary was reported (bit `node - 1`).
     refused_reported: u8,
@@ -58,6 +61,7 @@ impl Membership {
             // (its own data not read yet) says nothing until it had one.
             battery_lost: true,
             sent_battery: None,
+            lost_periods: 0,
             duplicate_reported: false,
             refused_reported: 0,
             seq: 0,
@@ -286,30 +290,29 @@ impl Membership {
     }
 
     /// No pack takes part: no battery, its limits cut (they come back after
-    /// the hold), reported once. A speaker towards an inverter that obeys the
-    /// last 0x351 (a Sunny Island, for 60 s) tells it to stop (CCL 0, DCL 0).
+    /// the hold), reported once. Returns the battery last spoken for while a
+    /// speaker is to say the stop this period (every period towards an
+    /// inverter that may run on, a few towards one that stops on silence).
     fn lose_battery(
         &mut self,
         now: Instant,
-        stop_frame: bool,
-        queue: &mut Deque<CanFrame, QUEUE>,
+        speaking: bool,
+        on_silence: OnSilence,
         reports: &mut Reports,
-    ) {
+    ) -> Option<(Battery, Limits)> {
         self.battery = None;
         self.battery_limits.cut(now);
         if !self.battery_lost {
             self.battery_lost = true;
             reports.push(InverterReport::BatteryLost);
         }
-        if stop_frame {
-            if let Some(last) = self.sent_battery {
-                let stop = Limits {
-                    ccl_da: 0,
-                    dcl_da: 0,
-                    ..last
-                };
-                let _ = queue.push_back(frames::limits(&stop));
-            }
+        let n = self.lost_periods;
+        self.lost_periods = n.saturating_add(1);
+        let quiet = on_silence == OnSilence::Stops && n >= super::dialect::STOP_BEFORE_QUIET;
+        if speaking && !quiet {
+            self.sent_battery
+        } else {
+            None
         }
     }
 
@@ -323,6 +326,7 @@ impl Membership {
         charge: &super::control::ChargeConfig,
     ) -> Option<Limits> {
         self.battery_lost = false;
+        self.lost_periods = 0;
         if !self.election.listened(now) {
             self.battery = None;
             return None;
@@ -333,13 +337,13 @@ impl Membership {
     }
 
     /// As the speaker: the battery's limits, logged when they change and kept
-    /// for the stop frames of a lost battery.
-    fn speaks(&mut self, limits: Limits, reports: &mut Reports) {
+    /// for the stop said when the battery is lost.
+    fn speaks(&mut self, battery: &Battery, limits: Limits, reports: &mut Reports) {
         if self.logged_battery != Some(limits) {
             self.logged_battery = Some(limits);
             reports.push(InverterReport::BatteryLimits(limits));
         }
-        self.sent_battery = Some(limits);
+        self.sent_battery = Some((*battery, limits));
     }
 }
 
@@ -362,9 +366,13 @@ impl Inverter {
                 .aggregate(&gathered, &shares, freshness, &mut self.reports)
         else {
             self.forget_answer();
-            let stop_frame = speaking && self.config.protocol.obeys_last_limits();
-            self.membership
-                .lose_battery(now, stop_frame, &mut self.queue, &mut self.reports);
+            let on_silence = self.config.protocol.on_silence();
+            if let Some((b, limits)) =
+                self.membership
+                    .lose_battery(now, speaking, on_silence, &mut self.reports)
+            {
+                self.tell_battery_lost(now, &b, limits);
+            }
             return;
         };
         let charge = self.config.charge;
@@ -419,7 +427,7 @@ impl Inverter {
     ) {
         if !self.config.freshness.young(Some(age)) {
             if self.stale.starts(now) {
-                self.report_stale(age);
+                self.report_stale(age, None);
             }
         } else {
             if self.stale.ends() {
@@ -430,26 +438,52 @@ impl Inverter {
     }
 
     /// As the speaker: the battery's limits (logged when they change, kept for
-    /// the stop frames of a lost battery) and its inverter frames.
+    /// the stop said when the battery is lost) and its inverter frames.
     fn speak_for_battery(&mut self, now: Instant, battery: &Battery, limits: Limits, slow: bool) {
-        self.membership.speaks(limits, &mut self.reports);
-        let capacity_ah = (battery.capacity_dah / DAH_PER_AH).min(u32::from(u16::MAX)) as u16;
-        let modules = (
-            u16::from(battery.online),
-            u16::from(battery.blocking_charge),
-            u16::from(battery.blocking_discharge),
-            u16::from(battery.offline),
-        );
-        self.push_inverter_frames(
-            now,
-            &limits,
-            &battery.state,
-            &battery.conditions,
-            capacity_ah,
-            modules,
+        self.membership.speaks(battery, limits, &mut self.reports);
+        self.watch_ignored(now, battery.state.current_a);
+        let made = Made {
+            state: &battery.state,
+            conditions: &battery.conditions,
+            capacity_ah: capacity_ah(battery),
+            modules: modules(battery),
             slow,
-        );
+        };
+        self.tell_fresh(now, &limits, &made);
     }
+
+    /// As the speaker, no pack takes part: both sides stop, said with every
+    /// signal, from the battery last spoken for.
+    fn tell_battery_lost(&mut self, now: Instant, battery: &Battery, limits: Limits) {
+        let made = Made {
+            state: &battery.state,
+            conditions: &battery.conditions,
+            capacity_ah: capacity_ah(battery),
+            modules: (0, 0, 0, u16::from(battery.online)),
+            slow: false,
+        };
+        let stops = Stops {
+            charge: Some(StopWhy::LinkLost),
+            discharge: Some(StopWhy::LinkLost),
+        };
+        self.tell(now, limits, stops, Signals::ALL, false, false, &made);
+    }
+}
+
+/// The battery's capacity, Ah.
+fn capacity_ah(battery: &Battery) -> u16 {
+    (battery.capacity_dah / DAH_PER_AH).min(u32::from(u16::MAX)) as u16
+}
+
+/// The battery's modules: online, blocking charge, blocking discharge,
+/// offline.
+fn modules(battery: &Battery) -> (u16, u16, u16, u16) {
+    (
+        u16::from(battery.online),
+        u16::from(battery.blocking_charge),
+        u16::from(battery.blocking_discharge),
+        u16::from(battery.offline),
+    )
 }
 
 /// This pack as it goes into the battery (with a node number).
@@ -533,12 +567,11 @@ mod tests {
     }
 
     #[test]
-    fn the_battery_lost_is_reported_once_and_a_sunny_island_is_told_to_stop() {
+    fn the_battery_lost_is_reported_once_and_its_stop_said_as_the_inverter_needs() {
         let mut s = Membership::new(1, 0);
-        let (mut q, mut r) = (Deque::new(), Reports::default());
-        s.lose_battery(0, true, &mut q, &mut r);
+        let mut r = Reports::default();
+        assert_eq!(s.lose_battery(0, true, OnSilence::RunsOn, &mut r), None);
         assert_eq!(r.pop(), None, "no battery yet is no battery lost");
-        assert!(q.is_empty(), "nothing sent yet: no stop frame");
         s.battery_lost = false;
         let sent = Limits {
             ccl_da: 500,
@@ -546,14 +579,49 @@ mod tests {
             cvl_dv: 560,
             discharge_dv: 480,
         };
-        s.speaks(sent, &mut r);
+        let state = PackState {
+            min_cell_mv: 3300,
+            max_cell_mv: 3310,
+            pack_v: 52.9,
+            current_a: -10.0,
+            soc_pct: 50.0,
+            soh_pct: 100.0,
+            min_temp_c: 20.0,
+            max_temp_c: 21.0,
+            fault: false,
+            charge_blocked: false,
+        };
+        let battery = Battery {
+            state,
+            limits: sent,
+            conditions: Conditions::default(),
+            capacity_dah: 2800,
+            online: 1,
+            offline: 0,
+            unknown: 0,
+            blocking_charge: 0,
+            blocking_discharge: 0,
+        };
+        s.speaks(&battery, sent, &mut r);
         assert_eq!(r.pop(), Some(InverterReport::BatteryLimits(sent)));
-        s.lose_battery(1, true, &mut q, &mut r);
-        s.lose_battery(2, false, &mut q, &mut r);
+        // An inverter that may run on: the stop every period.
+        for t in 1..20 {
+            let got = s.lose_battery(t, true, OnSilence::RunsOn, &mut r);
+            assert_eq!(got.map(|(_, l)| l), Some(sent), "{t}");
+        }
         assert_eq!(r.pop(), Some(InverterReport::BatteryLost));
-        assert_eq!(r.pop(), None);
-        let stop = frames::limits_of(&q.pop_front().unwrap()).unwrap();
-        assert_eq!((stop.ccl_da, stop.dcl_da, stop.cvl_dv), (0, 0, 560));
-        assert!(q.is_empty(), "the stop frame only when asked");
+        assert_eq!(r.pop(), None, "reported once");
+        // Not the speaker: nothing to say.
+        assert_eq!(s.lose_battery(21, false, OnSilence::RunsOn, &mut r), None);
+        // One that stops on silence: the stop a few periods, then quiet.
+        let mut s = Membership::new(1, 0);
+        s.speaks(&battery, sent, &mut r);
+        let said = (0..20)
+            .filter(|t| s.lose_battery(*t, true, OnSilence::Stops, &mut r).is_some())
+            .count();
+        assert_eq!(
+            said,
+            usize::from(crate::inverter::dialect::STOP_BEFORE_QUIET)
+        );
     }
 }

@@ -3,11 +3,14 @@
 //! TWAI controller; the host runs it against a simulated pack and inverter.
 //!
 //! * [`control`] — the charge limits and alarms (the part that protects cells).
-//! * [`frames`] — the Victron and SMA Sunny Island frame layouts; [`pylon`]
-//!   — the Pylontech LV family's (Pylon, Sol-Ark, Luxpower) and what such
-//!   inverters obey when charging or discharging must stop; [`growatt`] —
-//!   Growatt's, sent only when asked; [`protocol`] — which frames each
-//!   protocol sends.
+//! * [`say`] — what the inverter is told: the one decision of every period,
+//!   for every dialect: the limits, the stops and every signal they go out
+//!   with.
+//! * [`dialect`] — the dialects behind one seam (Victron, SMA Sunny Island,
+//!   the Pylontech LV family, Growatt), listed once; each puts what [`say`]
+//!   decided into its frames and reads them back.
+//! * [`hold`] — the hold the pack can afford while the BMS's data is stale.
+//! * [`ignored`] — an inverter seen ignoring a stop.
 //! * [`bus`] — the CAN port's health (no ACK, bus-off, the inverter heard).
 //! * [`stale`] — a stale episode, its hold and a policy given meanwhile.
 //! * [`membership`] and [`packs`] — several packs on one bus: this bridge's
@@ -21,31 +24,40 @@
 //! "recover the bus now" or "wake me at T", and [`Inverter::next_report`] says
 //! what to log.
 //!
-//! **Stale data is never sent as fresh.** When the newest snapshot is older than
-//! [`InverterConfig::freshness`] allows, the configured [`StaleMode`] applies.
-//! The default, [`StaleMode::Hold`], keeps the inverter running on the
-//! battery for a bounded time (`stale_hold`, 120 s): CCL 0, DCL and CVL as
-//! last computed, the alarm frame saying "BMS link lost", no measurement
-//! frames; then it stops too. A short loss of the BMS's data (a loose UART
-//! wire, a BMS restart) then never switches an island inverter off, while the
-//! BMS's own cutoffs still protect the pack and nothing charges it.
-//! [`StaleMode::Stop`] sends nothing more to a Victron GX: it stops charging
-//! and discharging 3 s after the last 0x351 (what Victron's own devices do on
-//! a lost battery). A Sunny Island would keep obeying the last 0x351 until
-//! 0x355 has been missing for 60 s, so with `stop` it gets 0x351 with CCL 0
-//! and DCL 0 (and no measurement frames: standby after 60 s). When the data
-//! is back, nothing waits a hold: DCL is what the data says at once, CCL
-//! ramps from 0 ([`control::ChargeControl::resume`]).
+//! **The rule every other rule serves: no cell past its cutoff and no charge
+//! outside its temperature window, whatever the inverter does with the
+//! limits and whenever the BMS's data stops.**
+//!
+//! * **A stop is a stop, fresh or stale.** A side that must stop goes out
+//!   with every signal the dialect's inverters are known to obey ([`say`]);
+//!   an inverter seen ignoring a stop gets every signal the dialect has,
+//!   from then on ([`ignored`]).
+//! * **Stale data is never sent as fresh.** When the newest snapshot is
+//!   older than [`InverterConfig::freshness`] allows, the charge stops at
+//!   once (CCL 0, the charge voltage at most the pack's last), and with the
+//!   default [`StaleMode::Hold`] the discharge goes on for at most
+//!   `stale_hold` (120 s) within what the last fresh data proves the pack can
+//!   afford ([`hold`]): the limit falls to 0 where that budget could be
+//!   spent. A short loss of the BMS's data (a loose UART wire, a BMS restart)
+//!   then never switches an island inverter off at once, and never runs a
+//!   cell past its cutoff. [`StaleMode::Stop`] skips the hold.
+//! * **Never silence where an inverter would run on.** Once the hold is over
+//!   (or with `stop`), both sides stop, said blind with every signal: a
+//!   dialect whose inverter stops on silence (a GX) hears the stop for a few
+//!   periods, then nothing; the others hear it every period until the data
+//!   is back ([`dialect::OnSilence`]).
+//! * When the data is back, nothing waits a hold: DCL is what the data says
+//!   at once, CCL ramps from 0 ([`control::ChargeControl::resume`]).
 
 pub mod bus;
 pub mod control;
-pub mod frames;
-pub mod growatt;
+pub mod dialect;
+pub mod hold;
+pub mod ignored;
 pub mod membership;
 pub mod packs;
 pub mod port;
-pub mod protocol;
-pub mod pylon;
+pub mod say;
 pub mod stale;
 
 use heapless::Deque;
@@ -54,14 +66,16 @@ use protocol_core::views::{LiveSnapshot, VersionInfo};
 
 use self::bus::BusHealth;
 use self::control::{ChargeConfig, ChargeControl, Conditions, Limits, PackSettings, PackState};
-use self::frames::CanFrame;
+use self::dialect::{pylon, CanFrame, Frames, OnSilence, Period, Protected, StopWhy, Stops, Told};
+use self::hold::HoldBudget;
+use self::ignored::{Ignored, IgnoredStops};
 use self::membership::Membership;
 use self::packs::{Battery, BatteryView, Packs, Shares, Summary};
-use self::pylon::{Extras, Stops};
+use self::say::Signals;
 use self::stale::StaleEpisode;
 use crate::Instant;
 
-pub use self::protocol::Protocol;
+pub use self::dialect::Protocol;
 pub use crate::freshness::{Freshness, StaleMode};
 
 /// Inverter output settings; [`Default`] gives the documented defaults.
@@ -94,9 +108,9 @@ pub struct InverterConfig {
     pub node: u8,
     /// The Pylontech family's 0x35E (`inverter_name`), padded with spaces.
     pub name: [u8; 8],
-    /// The Pylontech family: report SOC 100 % (0 %) while charging
-    /// (discharging) must stop (`stop_by_soc`), for an inverter that ignores
-    /// a current limit of 0 A.
+    /// In a dialect whose inverters are known to ignore a current limit of
+    /// 0 A (the Pylontech family, Growatt): report SOC 100 % (0 %) while
+    /// charging (discharging) must stop (`stop_by_soc`, on by default).
     pub stop_by_soc: bool,
 }
 
@@ -115,7 +129,7 @@ impl Default for InverterConfig {
             bus_off_backoff_us: crate::SECOND,
             node: 0,
             name: pylon::DEFAULT_NAME,
-            stop_by_soc: false,
+            stop_by_soc: true,
         }
     }
 }
@@ -185,11 +199,15 @@ pub enum InverterReport {
         age_ms: u32,
         /// The policy applied.
         policy: StaleMode,
-        /// With [`StaleMode::Hold`], for how long, µs.
-        stale_hold_us: Instant,
+        /// A bridge alone: the hold the pack can afford (see [`hold`]; a
+        /// spend time of 0: none); `None` for a pack of several, which
+        /// leaves the battery.
+        hold: Option<HoldBudget>,
     },
-    /// Hold-charge-zero time is up: sending stopped.
-    StaleHoldEnded,
+    /// The hold is over (its time, or its budget): both sides stop, said
+    /// with every signal; then quiet ([`OnSilence::Stops`]: the inverter
+    /// stops on silence) or every period until the data is back.
+    StaleHoldEnded(OnSilence),
     /// Fresh telemetry again: sending resumed.
     Fresh,
     /// Transmissions fail (no other node acknowledges: error-passive).
@@ -220,12 +238,21 @@ pub enum InverterReport {
         /// Known but not taking part (lost, stale, faulted).
         offline: u8,
     },
-    /// No pack takes part: the speaker sends nothing (Victron) or stops the
-    /// inverter (SMA: CCL 0, DCL 0).
+    /// No pack takes part: the speaker says a stop with every signal (then,
+    /// towards an inverter that stops on silence, nothing).
     BatteryLost,
-    /// The Pylontech family: what must stop now and why — said every way
-    /// such inverters obey (logged when it changes).
-    Protection(Stops),
+    /// What must stop now and why, and what the frames sent tell the
+    /// inverter about it, read back from their bytes (logged when it
+    /// changes).
+    Protection {
+        /// What must stop, and why.
+        stops: Stops,
+        /// What the frames tell.
+        told: Told,
+    },
+    /// The inverter was seen ignoring a stop: from now on every stop goes
+    /// out with every signal the dialect has.
+    IgnoresStop(Ignored),
     /// A Luxpower inverter asks the battery to shut down (0x300), or no
     /// longer does: charge and discharge stop meanwhile; the BMS itself is
     /// never switched off.
@@ -251,11 +278,12 @@ impl InverterReport {
             Self::BatteryLost
             | Self::DuplicateNode(_)
             | Self::SummaryRefused(..)
-            | Self::Protection(_)
+            | Self::Protection { .. }
+            | Self::IgnoresStop(_)
             | Self::ShutdownAsked(_) => crate::Level::Warn,
             Self::InverterLost
             | Self::Stale { .. }
-            | Self::StaleHoldEnded
+            | Self::StaleHoldEnded(_)
             | Self::NoAck { .. }
             | Self::BusOff { .. } => crate::Level::Warn,
         }
@@ -339,6 +367,7 @@ pub struct Inverter {
     state: Option<(PackState, Instant)>,
     firmware: u16,
     hardware: u16,
+    /// The limits last computed from fresh data.
     limits: Option<Limits>,
     logged_limits: Option<Limits>,
     /// When they were logged.
@@ -346,6 +375,8 @@ pub struct Inverter {
     conditions: Conditions,
     charge_blocked: Option<EventId>,
     fault_clear_since: Option<Instant>,
+    /// The last cutoff event of the BMS (what its fault status is about).
+    tripped: Option<EventId>,
     queue: Deque<CanFrame, QUEUE>,
     next_fast: Instant,
     next_slow: Instant,
@@ -353,10 +384,16 @@ pub struct Inverter {
     bus: BusHealth,
     reports: Reports,
     membership: Membership,
-    /// The last 0x351 handed out, and when.
+    /// The last limits frame handed out, and when.
     told: Option<(Limits, Instant)>,
-    /// The Pylontech family: what must stop, as last reported.
-    stops: Stops,
+    /// What the last period's frames tell, read back, and the stops they say.
+    said: (Stops, Told),
+    /// The stops of the last fresh period (a stale one keeps their causes).
+    fresh_stops: Stops,
+    /// Stops the inverter was seen ignoring.
+    ignored: IgnoredStops,
+    /// The snapshot the watch of ignored stops saw last.
+    watched_at: Option<Instant>,
     /// When SOC was last at least 97 % (or the data first came): the
     /// full-charge request's 30 days run from it.
     full_at: Option<Instant>,
@@ -366,6 +403,15 @@ pub struct Inverter {
     /// they were made.
     answer: heapless::Vec<CanFrame, 8>,
     answer_at: Option<Instant>,
+}
+
+/// What one period is made of, besides what is told.
+struct Made<'a> {
+    state: &'a PackState,
+    conditions: &'a Conditions,
+    capacity_ah: u16,
+    modules: (u16, u16, u16, u16),
+    slow: bool,
 }
 
 impl Inverter {
@@ -385,6 +431,7 @@ impl Inverter {
             conditions: Conditions::default(),
             charge_blocked: None,
             fault_clear_since: None,
+            tripped: None,
             queue: Deque::new(),
             next_fast: now,
             next_slow: now,
@@ -393,7 +440,10 @@ impl Inverter {
             reports: Reports::default(),
             membership: Membership::new(config.node, now),
             told: None,
-            stops: Stops::default(),
+            said: (Stops::default(), Told::default()),
+            fresh_stops: Stops::default(),
+            ignored: IgnoredStops::default(),
+            watched_at: None,
             full_at: None,
             shutdown_at: None,
             answer: heapless::Vec::new(),
@@ -453,16 +503,17 @@ impl Inverter {
         &self.config
     }
 
-    /// The limits last computed.
+    /// The limits last computed from fresh data.
     pub fn limits(&self) -> Option<Limits> {
         self.limits
     }
 
-    /// What the inverter is told at `now`: the limits of the last 0x351 this
-    /// output sent, while it sends them (one came within two fast periods) —
-    /// this pack's limits for a bridge alone, the battery's while this bridge
-    /// speaks for several packs; `None` when nothing is sent (output off, stale
-    /// data with "stop", a bridge of several packs that does not speak).
+    /// What the inverter is told at `now`: the limits of the last limits
+    /// frame this output sent, while it sends them (one came within two fast
+    /// periods) — this pack's limits for a bridge alone, the battery's while
+    /// this bridge speaks for several packs; `None` when nothing is sent
+    /// (output off, quiet after a stop, a bridge of several packs that does
+    /// not speak).
     pub fn limits_sent(&self, now: Instant) -> Option<Limits> {
         let (l, at) = self.told?;
         (now.saturating_sub(at) <= 2 * self.config.fast_period_us).then_some(l)
@@ -473,10 +524,21 @@ impl Inverter {
         self.conditions
     }
 
-    /// The Pylontech family: what must stop now and why, as the inverter is
-    /// told (`None` for another protocol or with the output off).
+    /// What must stop now and why, as the inverter is told (`None` with the
+    /// output off).
     pub fn protection(&self) -> Option<Stops> {
-        (self.config.enabled && self.config.protocol.low_voltage_family()).then_some(self.stops)
+        self.config.enabled.then_some(self.said.0)
+    }
+
+    /// What the last period's frames tell the inverter, read back from them
+    /// (`None` with the output off).
+    pub fn told(&self) -> Option<Told> {
+        self.config.enabled.then_some(self.said.1)
+    }
+
+    /// The last stop the inverter was seen ignoring, if any.
+    pub fn ignored(&self) -> Option<Ignored> {
+        self.ignored.last()
     }
 
     /// Absorption or float.
@@ -520,6 +582,10 @@ impl Inverter {
         }
         p.charge_blocked = self.charge_blocked.is_some();
         self.state = Some((p, taken_at));
+        if self.membership.node() == 0 && self.watch_ignored(taken_at, p.current_a) {
+            // Escalated: every signal goes out at once, not a period later.
+            self.next_fast = self.next_fast.min(taken_at);
+        }
         if let Some(v) = version {
             self.firmware = u16::from(v.firmware_public);
             self.hardware = u16::from_le_bytes([v.hardware, v.hardware_changes]);
@@ -528,7 +594,8 @@ impl Inverter {
 
     /// A BMS event: charge-side fault events block charging until the BMS
     /// reports the matching recovery (or, failing that, see
-    /// [`CHARGE_BLOCK_TIMEOUT_US`]).
+    /// [`CHARGE_BLOCK_TIMEOUT_US`]); a cutoff event says what the BMS's fault
+    /// status is about (its protection bits).
     pub fn on_event(&mut self, e: &Event) {
         let recovers = |blocked: EventId| match blocked {
             EventId::OverVoltageCutoff => EventId::RecoveredOverVoltage,
@@ -536,6 +603,9 @@ impl Inverter {
             EventId::LowTemperatureCutoff => EventId::RecoveredLowTemperatureFault,
             _ => EventId::RecoveredRegenerationOverCurrent,
         };
+        if tripped_protection(e.id).is_some() {
+            self.tripped = Some(e.id);
+        }
         match e.id {
             EventId::OverVoltageCutoff
             | EventId::ChargingOverCurrentCutoff
@@ -549,6 +619,21 @@ impl Inverter {
         }
     }
 
+    /// What the BMS itself protects against now: while its status says
+    /// "fault", the cutoff its last cutoff event named (a fault without one:
+    /// a system error).
+    fn bms_protected(&self, state: &PackState) -> Protected {
+        if !state.fault {
+            return Protected::default();
+        }
+        self.tripped
+            .and_then(tripped_protection)
+            .unwrap_or(Protected {
+                system: true,
+                ..Protected::default()
+            })
+    }
+
     /// A frame from the bus (the inverter's heartbeat or query, a Luxpower
     /// inverter's shutdown request, other packs' summaries).
     pub fn on_received(&mut self, now: Instant, id: u16, data: &[u8]) {
@@ -560,7 +645,7 @@ impl Inverter {
         if protocol.heartbeat(id) {
             self.bus.keepalive(now, &mut self.reports);
         }
-        if protocol.answers_only() && growatt::is_query(id) {
+        if protocol.answers_only() && dialect::growatt::is_query(id) {
             self.answer_query(now);
         }
         if protocol == Protocol::Luxpower && pylon::shutdown_asked(id, data) {
@@ -572,7 +657,7 @@ impl Inverter {
     }
 
     /// Growatt's query: the frames of the last period, when they are recent
-    /// (two periods); nothing otherwise (no data yet, or stale with "stop").
+    /// (two periods); nothing otherwise (no data yet, or quiet).
     fn answer_query(&mut self, now: Instant) {
         let fresh = self
             .answer_at
@@ -584,15 +669,21 @@ impl Inverter {
         }
     }
 
-    /// The Pylontech family's extras at `now` for these limits: what must
-    /// stop (reported when it changes), the name, the full-charge request.
-    fn extras(
-        &mut self,
-        now: Instant,
-        limits: &Limits,
-        state: Option<&PackState>,
-        c: &Conditions,
-    ) -> Extras {
+    /// The full-charge request at `now` (SOC not at 97 % for 30 days), from
+    /// the SOC of fresh data (`None`: stale).
+    fn full_charge(&mut self, now: Instant, soc_pct: Option<f32>) -> bool {
+        if let Some(soc) = soc_pct {
+            if soc >= pylon::FULL_SOC_PCT || self.full_at.is_none() {
+                self.full_at = Some(now);
+            }
+        }
+        self.full_at
+            .is_some_and(|t| now.saturating_sub(t) >= pylon::FULL_CHARGE_AFTER_US)
+    }
+
+    /// A Luxpower inverter's shutdown request is in force at `now` (its end
+    /// reported once).
+    fn shutdown_asked(&mut self, now: Instant) -> bool {
         if self
             .shutdown_at
             .is_some_and(|t| now.saturating_sub(t) > SHUTDOWN_HOLD_US)
@@ -600,34 +691,16 @@ impl Inverter {
             self.shutdown_at = None;
             self.reports.push(InverterReport::ShutdownAsked(false));
         }
-        let stops = if self.shutdown_at.is_some() {
-            Stops::shutdown()
+        self.shutdown_at.is_some()
+    }
+
+    /// The signals a stop goes out with now: every one once the inverter was
+    /// seen ignoring a stop, else what the dialect's inverters obey.
+    fn signals(&self) -> Signals {
+        if self.ignored.escalated() {
+            Signals::ALL
         } else {
-            match state {
-                Some(s) => Stops::of(limits, s, c),
-                None => Stops {
-                    charge: Some(pylon::StopWhy::LinkLost),
-                    discharge: (limits.dcl_da == 0).then_some(pylon::StopWhy::LinkLost),
-                },
-            }
-        };
-        if self.config.protocol.low_voltage_family() && stops != self.stops {
-            self.stops = stops;
-            self.reports.push(InverterReport::Protection(stops));
-        }
-        if let Some(s) = state {
-            if s.soc_pct >= pylon::FULL_SOC_PCT || self.full_at.is_none() {
-                self.full_at = Some(now);
-            }
-        }
-        let full_charge = self
-            .full_at
-            .is_some_and(|t| now.saturating_sub(t) >= pylon::FULL_CHARGE_AFTER_US);
-        Extras {
-            name: self.config.name,
-            stops,
-            by_soc: self.config.stop_by_soc,
-            full_charge,
+            Signals::ordinary(self.config.protocol.dialect(), self.config.stop_by_soc)
         }
     }
 
@@ -746,7 +819,7 @@ impl Inverter {
         };
         let age = now.saturating_sub(taken_at);
         if !self.config.freshness.young(Some(age)) {
-            self.fill_stale(now, age);
+            self.fill_stale(now, age, &settings, &state);
             return;
         }
         if self.stale.ends() {
@@ -768,40 +841,188 @@ impl Inverter {
             u16::from(limits.dcl_da == 0),
             0,
         );
-        self.push_inverter_frames(
-            now,
-            &limits,
-            &state,
-            &conditions,
+        let made = Made {
+            state: &state,
+            conditions: &conditions,
             capacity_ah,
             modules,
             slow,
-        );
+        };
+        self.tell_fresh(now, &limits, &made);
     }
 
-    /// A bridge alone whose newest data is `age` old, stale: what its
-    /// policy sends.
-    fn fill_stale(&mut self, now: Instant, age: Instant) {
+    /// A fresh current taken at `taken_at` (once each): flowing against the
+    /// stops last told, it escalates them (reported once). Returns whether an
+    /// escalation began.
+    fn watch_ignored(&mut self, taken_at: Instant, current_a: f32) -> bool {
+        if self.watched_at == Some(taken_at) {
+            return false;
+        }
+        self.watched_at = Some(taken_at);
+        let stops = self.said.0;
+        let e = self.ignored.on_fresh(
+            taken_at,
+            current_a,
+            stops.charge.is_some(),
+            stops.discharge.is_some(),
+        );
+        if let Some(e) = e {
+            self.reports.push(InverterReport::IgnoresStop(e));
+        }
+        e.is_some()
+    }
+
+    /// Fresh data: what must stop (the limits computed, a Luxpower's
+    /// shutdown request) and the frames that tell it.
+    fn tell_fresh(&mut self, now: Instant, limits: &Limits, m: &Made<'_>) {
+        let stops = if self.shutdown_asked(now) {
+            Stops::shutdown()
+        } else {
+            Stops::of(limits, m.state, m.conditions)
+        };
+        self.fresh_stops = stops;
+        let full_charge = self.full_charge(now, Some(m.state.soc_pct));
+        let signals = self.signals();
+        self.tell(now, *limits, stops, signals, true, full_charge, m);
+    }
+
+    /// The one decision of a period ([`say::decide`]), put into the
+    /// dialect's frames, read back for the log, and queued.
+    #[allow(clippy::too_many_arguments)]
+    fn tell(
+        &mut self,
+        now: Instant,
+        limits: Limits,
+        stops: Stops,
+        signals: Signals,
+        fresh: bool,
+        full_charge: bool,
+        m: &Made<'_>,
+    ) {
+        let floor_dv = self.settings.map_or(0, |s| {
+            (u32::from(s.cells) * u32::from(s.uv_cutoff_mv)).div_ceil(100) as u16
+        });
+        let say = say::decide(&say::Inputs {
+            limits,
+            state: m.state,
+            conditions: m.conditions,
+            stops,
+            fresh,
+            signals,
+            bms_protected: self.bms_protected(m.state),
+            floor_dv,
+            name: self.config.name,
+            full_charge,
+        });
+        let settings = self.settings;
+        let protocol = self.config.protocol;
+        let frames: Frames = protocol.frames(&Period {
+            say: &say,
+            state: m.state,
+            conditions: m.conditions,
+            capacity_ah: m.capacity_ah,
+            modules: m.modules,
+            firmware: self.firmware,
+            hardware: self.hardware,
+            slow: m.slow,
+            settings: settings.as_ref(),
+        });
+        let mut told = Told::default();
+        for f in &frames {
+            protocol.read_back(f, &mut told);
+        }
+        self.said_now(say.stops, told);
+        self.queue_frames(now, &frames);
+    }
+
+    /// What this period says, reported when the stops or the signals that
+    /// say them change.
+    fn said_now(&mut self, stops: Stops, told: Told) {
+        let key = |(s, t): &(Stops, Told)| {
+            let forced = t.soc_pct.filter(|v| !s.none() && (*v == 0 || *v == 100));
+            (
+                *s,
+                t.charge_enabled,
+                t.discharge_enabled,
+                t.protection,
+                t.link_lost,
+                forced,
+            )
+        };
+        let changed = key(&self.said) != key(&(stops, told));
+        self.said = (stops, told);
+        if changed {
+            self.reports
+                .push(InverterReport::Protection { stops, told });
+        }
+    }
+
+    /// A bridge alone whose newest data is `age` old, stale: the hold the
+    /// pack can afford, then the stop said blind (see the module
+    /// documentation).
+    fn fill_stale(
+        &mut self,
+        now: Instant,
+        age: Instant,
+        settings: &PackSettings,
+        state: &PackState,
+    ) {
         let since = self.stale.stale_at(now);
+        let hold_us = match self.config.stale_policy {
+            StaleMode::Hold => self.config.stale_hold_us,
+            StaleMode::Stop => 0,
+        };
+        let last = self.limits.unwrap_or(Limits {
+            cvl_dv: 0,
+            ccl_da: 0,
+            dcl_da: 0,
+            discharge_dv: 0,
+        });
+        let charge = self.config.charge;
+        let budget = self
+            .stale
+            .budget(|| HoldBudget::new(state, settings, &charge, last.dcl_da, hold_us));
         if since == now {
-            self.report_stale(age);
+            self.report_stale(age, Some(budget));
         }
-        match self.config.stale_policy {
-            // A Sunny Island keeps obeying the last 0x351 until 0x355 has been
-            // missing for 60 s: tell it to stop at once (CCL 0, DCL 0, no
-            // measurement frames, so it goes to standby after 60 s as well).
-            StaleMode::Stop if self.config.protocol.obeys_last_limits() => {
-                self.queue_stale(now, true);
-            }
-            StaleMode::Stop => {}
-            StaleMode::Hold => {
-                if now.saturating_sub(since) <= self.config.stale_hold_us {
-                    self.queue_stale(now, false);
-                } else if self.stale.hold_ends() {
-                    self.reports.push(InverterReport::StaleHoldEnded);
-                }
-            }
+        let elapsed = now.saturating_sub(since);
+        let conditions = self.conditions;
+        let made = Made {
+            state,
+            conditions: &conditions,
+            capacity_ah: settings.capacity_cah / 100,
+            modules: (1, 1, u16::from(budget.spent(elapsed)), 0),
+            slow: false,
+        };
+        let charge_why = self.fresh_stops.charge.unwrap_or(StopWhy::LinkLost);
+        if !budget.spent(elapsed) {
+            let limits = Limits {
+                ccl_da: 0,
+                dcl_da: budget.dcl_at(elapsed),
+                ..last
+            };
+            let stops = Stops {
+                charge: Some(charge_why),
+                discharge: None,
+            };
+            let signals = self.signals();
+            self.tell(now, limits, stops, signals, false, false, &made);
+            return;
         }
+        let on_silence = self.config.protocol.on_silence();
+        if self.stale.hold_ends() {
+            self.reports
+                .push(InverterReport::StaleHoldEnded(on_silence));
+        }
+        if on_silence == OnSilence::Stops && self.stale.stop_period() >= dialect::STOP_BEFORE_QUIET
+        {
+            return; // the stop was said: the inverter stops on silence
+        }
+        let stops = Stops {
+            charge: Some(charge_why),
+            discharge: Some(self.fresh_stops.discharge.unwrap_or(StopWhy::LinkLost)),
+        };
+        self.tell(now, last, stops, Signals::ALL, false, false, &made);
     }
 
     /// This pack's limits and conditions from fresh data: kept, and logged
@@ -832,41 +1053,6 @@ impl Inverter {
         (limits, conditions)
     }
 
-    /// The frames of the inverter protocol for a battery in this state.
-    #[allow(clippy::too_many_arguments)]
-    fn push_inverter_frames(
-        &mut self,
-        now: Instant,
-        limits: &Limits,
-        state: &PackState,
-        conditions: &Conditions,
-        capacity_ah: u16,
-        modules: (u16, u16, u16, u16),
-        slow: bool,
-    ) {
-        let lv = self.extras(now, limits, Some(state), conditions);
-        let settings = self.settings;
-        let mut out: heapless::Vec<CanFrame, QUEUE> = heapless::Vec::new();
-        self.config.protocol.period_frames(
-            &protocol::Period {
-                limits,
-                state,
-                conditions,
-                capacity_ah,
-                modules,
-                firmware: self.firmware,
-                hardware: self.hardware,
-                slow,
-                lv,
-                settings: settings.as_ref(),
-            },
-            &mut |f| {
-                let _ = out.push(f);
-            },
-        );
-        self.queue_frames(now, &out);
-    }
-
     /// What this bridge has learnt of how the battery's current splits.
     pub fn shares(&self) -> &Shares {
         self.membership.shares()
@@ -877,42 +1063,36 @@ impl Inverter {
         self.membership.own_summary()
     }
 
-    /// Stale telemetry, `age` old: what the configured policy does about it.
-    fn report_stale(&mut self, age: Instant) {
+    /// Stale telemetry, `age` old: what the configured policy does about it,
+    /// with the hold the pack can afford (a bridge alone).
+    fn report_stale(&mut self, age: Instant, hold: Option<HoldBudget>) {
         self.reports.push(InverterReport::Stale {
             age_ms: (age / crate::MS).min(u64::from(u32::MAX)) as u32,
             policy: self.config.stale_policy,
-            stale_hold_us: self.config.stale_hold_us,
+            hold,
         });
     }
+}
 
-    /// Stale: the limits frame with CCL 0 (and DCL 0 when `stop_discharge`),
-    /// the rest as last computed, and the alarm frame with "link lost" flagged.
-    /// No measurement frame: those would be stale values sent as fresh. Used by
-    /// the hold policy (CCL 0 only) and by "stop sending" towards a Sunny
-    /// Island (both 0), which would otherwise obey the last limits for 60 s.
-    fn queue_stale(&mut self, now: Instant, stop_discharge: bool) {
-        let Some(last) = self.limits else {
-            return;
-        };
-        let stale = Limits {
-            ccl_da: 0,
-            dcl_da: if stop_discharge { 0 } else { last.dcl_da },
-            ..last
-        };
-        if !stop_discharge {
-            // The hold keeps these limits (only CCL ramps back afterwards).
-            self.limits = Some(stale);
+/// The protection a cutoff event of the BMS stands for (`None`: not a
+/// cutoff).
+fn tripped_protection(id: EventId) -> Option<Protected> {
+    let mut p = Protected::default();
+    match id {
+        EventId::UnderVoltageCutoff | EventId::FullyDischargedCutoff => p.under_voltage = true,
+        EventId::OverVoltageCutoff => p.over_voltage = true,
+        EventId::OverTemperatureCutoff => p.over_temperature = true,
+        EventId::LowTemperatureCutoff | EventId::LowTemperatureChargingCutoff => {
+            p.under_temperature = true
         }
-        let mut c = self.conditions;
-        c.link_lost = 1;
-        let lv = self.extras(now, &stale, None, &c);
-        let mut out: heapless::Vec<CanFrame, QUEUE> = heapless::Vec::new();
-        self.config
-            .protocol
-            .stale_frames(&stale, &c, &lv, &mut |f| {
-                let _ = out.push(f);
-            });
-        self.queue_frames(now, &out);
+        EventId::DischargingOverCurrentCutoff => p.discharge_over_current = true,
+        EventId::ChargingOverCurrentCutoff | EventId::RegenerationOverCurrentCutoff => {
+            p.charge_over_current = true
+        }
+        EventId::ChargerSwitchError | EventId::LoadSwitchError | EventId::SinglePortSwitchError => {
+            p.system = true
+        }
+        _ => return None,
     }
+    Some(p)
 }

@@ -7,7 +7,7 @@
 //! [`super::CAN_TX_TIMEOUT_US`], [`super::BUS_RECOVERY_WAIT_US`] and
 //! [`super::BUS_RECOVERY_POLL_US`].
 
-use super::frames::CanFrame;
+use super::dialect::CanFrame;
 
 /// The bit rate of every inverter protocol here (Victron, SMA), bit/s.
 pub const BITRATE: u32 = 500_000;

@@ -1,9 +1,11 @@
 //! A stale episode of the inverter output: from the first period whose
 //! newest snapshot is too old (see [`super::InverterConfig::freshness`]) to
-//! the first fresh one again, with the end of a hold (`stale_hold`) noted
-//! once, and a stale policy given meanwhile kept for the next episode.
+//! the first fresh one again, with the hold's budget (see [`super::hold`]),
+//! the end of the hold noted once, the periods of the stop said blind
+//! counted, and a stale policy given meanwhile kept for the next episode.
 //! Sans-IO and time-free but for the instants given.
 
+use super::hold::HoldBudget;
 use super::StaleMode;
 use crate::Instant;
 
@@ -17,6 +19,10 @@ pub struct StaleEpisode {
     hold_ended: bool,
     /// A policy given during the episode: it applies from the next one.
     deferred: Option<Policy>,
+    /// The hold's budget, decided when the episode began.
+    budget: Option<HoldBudget>,
+    /// Periods of the stop said blind so far (saturating).
+    stop_periods: u8,
 }
 
 impl StaleEpisode {
@@ -41,7 +47,21 @@ impl StaleEpisode {
 
     /// Fresh again: `true` when this ends an episode.
     pub fn ends(&mut self) -> bool {
+        self.budget = None;
+        self.stop_periods = 0;
         self.since.take().is_some()
+    }
+
+    /// The hold's budget of this episode, decided by `make` the first time.
+    pub fn budget(&mut self, make: impl FnOnce() -> HoldBudget) -> HoldBudget {
+        *self.budget.get_or_insert_with(make)
+    }
+
+    /// One more period of the stop said blind: how many were said before.
+    pub fn stop_period(&mut self) -> u8 {
+        let n = self.stop_periods;
+        self.stop_periods = n.saturating_add(1);
+        n
     }
 
     /// The hold is over: `true` the first time in an episode.
@@ -91,6 +111,24 @@ mod tests {
         assert!(!s.ongoing());
         assert!(s.starts(40));
         assert_eq!(s.stale_at(50), 40);
+    }
+
+    #[test]
+    fn the_budget_and_the_stop_periods_belong_to_one_episode() {
+        let b = |mah| HoldBudget {
+            dcl_da: 100,
+            budget_mah: mah,
+            spend_us: 5,
+        };
+        let mut s = StaleEpisode::default();
+        s.stale_at(0);
+        assert_eq!(s.budget(|| b(7)).budget_mah, 7);
+        assert_eq!(s.budget(|| b(9)).budget_mah, 7, "decided once");
+        assert_eq!((s.stop_period(), s.stop_period()), (0, 1));
+        assert!(s.ends());
+        s.stale_at(10);
+        assert_eq!(s.budget(|| b(9)).budget_mah, 9);
+        assert_eq!(s.stop_period(), 0);
     }
 
     #[test]

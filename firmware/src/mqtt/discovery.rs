@@ -120,7 +120,7 @@ pub const STATUS_OPTIONS: &[&str] = &[
 pub const CAN_STATES: &[&str] = &["off", "waiting", "running", "no_ack", "bus_off"];
 
 /// What stops charging or discharging, with a 48 V hybrid inverter's
-/// protocol ([`crate::inverter::pylon::StopWhy::key`], or `none`).
+/// protocol ([`crate::inverter::dialect::StopWhy::key`], or `none`).
 pub const STOP_CAUSES: &[&str] = &[
     "none",
     "fault",
@@ -415,6 +415,25 @@ pub const ENTITIES: &[Entity] = &[
         Some("enum"),
         Read::Nullable("discharge_stop"),
         Some(STOP_CAUSES),
+    )),
+    diagnostic(Entity {
+        object: "soc_told",
+        name: "SOC told to the inverter",
+        component: Component::Sensor,
+        device_class: None,
+        state_class: Some("measurement"),
+        unit: Some("%"),
+        read: Read::Nullable("soc_told"),
+        precision: Some(0),
+        category: None,
+        options: None,
+    }),
+    diagnostic(plain(
+        "ignored_stop",
+        "Inverter ignored a stop",
+        None,
+        Read::Nullable("ignored_stop"),
+        None,
     )),
     diagnostic(Entity {
         object: "firmware_update",

@@ -59,8 +59,12 @@ pub struct InverterStatus {
     pub can: CanState,
     /// The inverter's keep-alive is heard.
     pub heard: bool,
-    /// The Pylontech family: what must stop (`None`: another protocol).
-    pub stops: Option<crate::inverter::pylon::Stops>,
+    /// What must stop (`None`: the output off).
+    pub stops: Option<crate::inverter::dialect::Stops>,
+    /// What the frames sent tell the inverter, read back from them.
+    pub told: crate::inverter::dialect::Told,
+    /// The last stop the inverter was seen ignoring.
+    pub ignored: Option<crate::inverter::ignored::Ignored>,
 }
 
 impl Published {

@@ -536,6 +536,7 @@ impl Publisher {
         let remaining_cah = view.capacity_cah.map(|c| {
             (u64::from(c) * u64::from(snapshot.soc_raw.min(100_000_000)) / 100_000_000) as u32
         });
+        let ignored = view.inverter.and_then(|i| i.ignored).map(|e| e.text());
         let extras = StateExtras {
             status: snapshot.status.key().unwrap_or("other"),
             status_name,
@@ -549,6 +550,8 @@ impl Publisher {
             can_state: view.inverter.map(|i| i.can.key()),
             inverter_heard: view.inverter.map(|i| i.heard),
             stops: view.inverter.and_then(|i| i.stops).map(|s| s.keys()),
+            soc_told: view.inverter.and_then(|i| i.told.soc_pct),
+            ignored_stop: ignored.as_deref(),
             wifi_rssi_dbm: view.wifi_rssi_dbm,
             update_rolled_back: view.update_rolled_back,
         };
@@ -560,6 +563,7 @@ impl Publisher {
             online: view.online,
             ready: true,
             inverter: None,
+            restart_pending: 0,
         };
         let n = encode::state(payload, head, Some(snapshot), view.flagged, Some(&extras));
         let Some(n) = n else {

@@ -57,7 +57,7 @@ use crate::host_link::encode::InverterState;
 use crate::host_link::HostLink;
 use crate::improv::{JoinFailure, Network, WifiLink, WifiRequest};
 use crate::inverter::control::{Limits, PackSettings};
-use crate::inverter::frames::CanFrame;
+use crate::inverter::dialect::CanFrame;
 use crate::inverter::packs::BatteryView;
 #[cfg(feature = "can")]
 use crate::inverter::Inverter;
@@ -424,9 +424,13 @@ impl Station {
             heard: i.inverter_heard(),
             limits: i.limits_sent(now).map(|l| (l.cvl_dv, l.ccl_da, l.dcl_da)),
             stops: i.protection().map(|s| s.keys()),
+            told: i.told().unwrap_or_default(),
+            ignored: i.ignored(),
         });
+        let pending = self.config.restarts_pending() as u32;
         let h = self.host.as_mut()?;
         h.on_inverter(inverter);
+        h.on_restart_pending(pending);
         h.next_line(now, &self.bridge, &self.config, out)
     }
 
@@ -629,6 +633,8 @@ impl Station {
                 can: i.can_state(),
                 heard: i.inverter_heard(),
                 stops: i.protection(),
+                told: i.told().unwrap_or_default(),
+                ignored: i.ignored(),
             }),
             wifi_rssi_dbm: self.wifi_rssi,
             update_rolled_back: crate::host_link::rolled_back_text(&self.ota),

@@ -191,7 +191,13 @@ impl NoOutput {
     pub fn inverter_heard(&self) -> bool {
         match *self {}
     }
-    pub fn protection(&self) -> Option<crate::inverter::pylon::Stops> {
+    pub fn protection(&self) -> Option<crate::inverter::dialect::Stops> {
+        match *self {}
+    }
+    pub fn told(&self) -> Option<crate::inverter::dialect::Told> {
+        match *self {}
+    }
+    pub fn ignored(&self) -> Option<crate::inverter::ignored::Ignored> {
         match *self {}
     }
     pub fn next_report(&mut self) -> Option<crate::inverter::InverterReport> {

@@ -13,7 +13,7 @@ use tinybms_firmware::config::store::{Store, StoreError};
 use tinybms_firmware::config::Config;
 use tinybms_firmware::identity::{Features, Identity};
 use tinybms_firmware::improv::WifiRequest;
-use tinybms_firmware::inverter::frames::CanFrame;
+use tinybms_firmware::inverter::dialect::CanFrame;
 use tinybms_firmware::inverter::TxResult;
 use tinybms_firmware::station::{Action, Logged, Setup, Station};
 use tinybms_firmware::text::Line;

@@ -38,7 +38,7 @@ use tinybms_firmware::config::store::{Loaded, Source};
 use tinybms_firmware::config::Config;
 use tinybms_firmware::identity::{Features, Identity};
 use tinybms_firmware::inverter::control::{Limits, Phase};
-use tinybms_firmware::inverter::frames::{self, CanFrame};
+use tinybms_firmware::inverter::dialect::{victron, CanFrame};
 use tinybms_firmware::inverter::{Inverter, InverterConfig, InverterReport};
 use tinybms_firmware::station::{Logged, Setup, Station};
 
@@ -638,11 +638,11 @@ impl MultiLoop {
             if let Some(l) = self.model.dialect.limits_of(f) {
                 self.limits_heard(*at, node, l);
             }
-            let (byte, bit) = frames::VICTRON_SYSTEM_STATUS;
-            let offline = (f.data[usize::from(byte)] >> bit) & 3 == frames::VICTRON_ACTIVE;
+            let (byte, bit) = victron::VICTRON_SYSTEM_STATUS;
+            let offline = (f.data[usize::from(byte)] >> bit) & 3 == victron::VICTRON_ACTIVE;
             let victron = self.nodes[*from].inverter().config().protocol
                 == tinybms_firmware::inverter::Protocol::Victron;
-            if f.id == frames::ID_ALARMS && victron && offline {
+            if f.id == victron::ID_ALARMS && victron && offline {
                 self.figures.offline_flags += 1;
             }
             if let Some(w) = self.can_log.as_mut() {

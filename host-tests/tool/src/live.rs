@@ -224,11 +224,13 @@ fn pack_lines(t: &Telemetry<Read>, live: bool, alarm: Style) -> Vec<Line<'static
     ];
     let mut lines = lines;
     if let Some(inv) = inverter_text(t) {
-        let trouble = inv.contains("NO ACK") || inv.contains("BUS OFF");
-        lines.push(Line::styled(
-            inv,
-            if trouble { alarm } else { Style::new() },
-        ));
+        for l in inv.lines() {
+            let trouble = l.contains("NO ACK") || l.contains("BUS OFF") || l.contains("ignored");
+            lines.push(Line::styled(
+                l.to_string(),
+                if trouble { alarm } else { Style::new() },
+            ));
+        }
     }
     lines
 }

@@ -222,7 +222,9 @@ pub fn render_text(
         }
     }
     if let Some(inv) = inverter_text(t) {
-        line(inv);
+        for l in inv.lines() {
+            line(l.to_string());
+        }
     }
     let flagged = match &sn.flagged {
         Some(fl) => format!("   flagged: {fl}"),
@@ -249,7 +251,10 @@ pub fn temperature(c: Option<f64>) -> String {
 
 /// What the inverter output does, from a `telemetry` line's `inverter`
 /// member: `Inverter victron: CAN running, inverter heard   CVL 56.8 V  CCL
-/// 60.0 A  DCL 60.0 A`. `None` for a bridge without CAN output.
+/// 60.0 A  DCL 60.0 A`, and below it, each on a line of its own when there
+/// is one, the stop in force with what the frames told of it, the stop the
+/// inverter was seen ignoring, and the configuration changes that wait for a
+/// restart. `None` for a bridge without CAN output.
 pub fn inverter_text(t: &Telemetry<Read>) -> Option<String> {
     let inv: &Inverter<Read> = t.told.inverter.as_ref()?;
     let can = match inv.can.as_str() {
@@ -271,24 +276,41 @@ pub fn inverter_text(t: &Telemetry<Read>) -> Option<String> {
         }
         _ => "no limits sent".to_string(),
     };
-    Some(format!(
-        "Inverter {}: CAN {can}, {heard}   {told}{}",
-        inv.protocol,
-        protection_text(inv)
-    ))
+    let name = match inv.name.as_deref() {
+        Some(n) if !n.is_empty() => format!(" (0x35E {n})"),
+        _ => String::new(),
+    };
+    let mut out = format!(
+        "Inverter {}{name}: CAN {can}, {heard}   {told}",
+        inv.protocol
+    );
+    if let Some(p) = protection_text(inv) {
+        out.push_str("\n  ");
+        out.push_str(&p);
+    }
+    if let Some(e) = inv.ignored.as_deref() {
+        out.push_str(&format!(
+            "\n  the inverter ignored a stop ({e}): every stop is told every way"
+        ));
+    }
+    match t.head.restart_pending {
+        Some(1) => out.push_str("\n  1 configuration change waits for a restart"),
+        Some(n) if n > 1 => {
+            out.push_str(&format!("\n  {n} configuration changes wait for a restart"))
+        }
+        _ => {}
+    }
+    Some(out)
 }
 
-/// A 48 V hybrid inverter's protocol: what the bridge stops, said every way
-/// such inverters obey (`  protection: charge stopped (cell_high)`); empty
-/// for another protocol.
-fn protection_text(inv: &Inverter<Read>) -> String {
+/// The stops in force and what the frames told of them (`protection
+/// active: charge stopped (temperature); told: charge enable off, SOC 100
+/// %`); `None` when nothing must stop.
+fn protection_text(inv: &Inverter<Read>) -> Option<String> {
     let stopped = |side: &str, why: &Option<String>| match why.as_deref() {
         Some(w) if w != "none" => Some(format!("{side} stopped ({w})")),
         _ => None,
     };
-    if inv.charge_stop.is_none() && inv.discharge_stop.is_none() {
-        return String::new();
-    }
     let parts: Vec<String> = [
         stopped("charge", &inv.charge_stop),
         stopped("discharge", &inv.discharge_stop),
@@ -297,10 +319,25 @@ fn protection_text(inv: &Inverter<Read>) -> String {
     .flatten()
     .collect();
     if parts.is_empty() {
-        "   protection: none active".into()
-    } else {
-        format!("   protection active: {}", parts.join(", "))
+        return None;
     }
+    let on_off = |b: bool| if b { "on" } else { "off" };
+    let mut told = Vec::new();
+    if let Some(c) = inv.charge_enabled {
+        told.push(format!("charge enable {}", on_off(c)));
+    }
+    if let Some(d) = inv.discharge_enabled {
+        told.push(format!("discharge enable {}", on_off(d)));
+    }
+    if let Some(soc) = inv.soc_told {
+        told.push(format!("SOC {soc} %"));
+    }
+    let told = if told.is_empty() {
+        String::new()
+    } else {
+        format!("; told: {}", told.join(", "))
+    };
+    Some(format!("protection active: {}{told}", parts.join(", ")))
 }
 
 /// Packs in parallel: one line of text for a `battery` or `pack` line of a

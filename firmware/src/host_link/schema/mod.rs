@@ -217,6 +217,10 @@ line_type! {
         pub online: bool,
         /// Settings and limits read.
         pub ready: bool,
+        /// Configuration fields changed that apply at the next restart
+        /// (absent: none).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub restart_pending: Option<u32>,
     }
 }
 
@@ -351,13 +355,29 @@ line_type! {
         pub ccl_a: Option<F::Number>,
         /// Discharge current limit told, A.
         pub dcl_a: Option<F::Number>,
-        /// The Pylontech family: what stops charging (a cause, or `none`;
-        /// absent for another protocol).
+        /// What stops charging (a cause, or `none`).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         pub charge_stop: Option<F::Text>,
         /// What stops discharging.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         pub discharge_stop: Option<F::Text>,
+        /// The SOC the frames tell the inverter, % (read back from them: 100
+        /// or 0 while a stop is said by the SOC).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub soc_told: Option<u8>,
+        /// The charge enable bit told (the dialects that have one).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub charge_enabled: Option<bool>,
+        /// The discharge enable bit told.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub discharge_enabled: Option<bool>,
+        /// The name 0x35E tells (the dialects that send one).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub name: Option<F::Text>,
+        /// The last stop the inverter was seen ignoring (`charge: 9.8 A for
+        /// 3 s`): every stop goes out with every signal since.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub ignored: Option<F::Text>,
     }
 }
 
@@ -385,6 +405,8 @@ line_type! {
         pub inverter_heard: Option<bool>,
         pub charge_stop: Option<F::Text>,
         pub discharge_stop: Option<F::Text>,
+        pub soc_told: Option<u8>,
+        pub ignored_stop: Option<F::Text>,
         pub wifi_rssi_dbm: Option<i8>,
         pub update_rolled_back: Option<F::Text>,
     }

@@ -96,8 +96,10 @@ impl Packs {
     /// A frame from the bus.
     pub fn on_frame(&mut self, now: Instant, id: u16, data: &[u8]) -> Received {
         {
-            use crate::inverter::frames::{ID_ALARMS, ID_LIMITS, ID_MEASUREMENTS, ID_SOC};
-            use crate::inverter::{growatt, pylon};
+            use crate::inverter::dialect::victron::{
+                ID_ALARMS, ID_LIMITS, ID_MEASUREMENTS, ID_SOC,
+            };
+            use crate::inverter::dialect::{growatt, pylon};
             const SPEAKERS: [u16; 7] = [
                 ID_LIMITS,
                 ID_SOC,

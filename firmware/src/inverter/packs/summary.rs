@@ -2,7 +2,7 @@
 //! 0x6A0-0x6BF) and its checks.
 
 use crate::inverter::control::{Conditions, Limits, PackState};
-use crate::inverter::frames::CanFrame;
+use crate::inverter::dialect::CanFrame;
 use crate::Instant;
 
 /// Identifier of node 1's first summary frame.

@@ -3,7 +3,9 @@
 
 use crate::free_seed;
 use clap::error::ErrorKind;
+use clap::parser::ValueSource;
 use clap::{ArgGroup, ArgMatches, CommandFactory, FromArgMatches, Parser, ValueEnum};
+use host_tests::harsh::Harsh;
 use host_tests::profile::{parse_assignment, parse_profile};
 use host_tests::sim::PackModel;
 use host_tests::sim_wifi::SimNetwork;
@@ -172,17 +174,36 @@ pub(crate) struct Cli {
     /// (16S LiFePO4 from 20 % SOC, 100 A charger). The hybrid inverters'
     /// scenarios print the safety table (cells and currents against the BMS's
     /// cutoffs, energy moved)
-    #[arg(long, value_name = "P", value_enum, help_heading = INVERTER)]
-    inverter: Option<InverterArg>,
-    /// The simulated inverter ignores a current limit of 0 A and the enable
-    /// bits, as Deye and Solis do; it obeys only the charge voltage and the
-    /// SOC told (with --inverter pylon|solark|luxpower|growatt)
-    #[arg(long, help_heading = INVERTER)]
+    #[arg(long, value_name = "P", value_parser = protocol, help_heading = INVERTER)]
+    inverter: Option<Protocol>,
+    /// The simulated inverter: obeys (default: a GX), ignores-zero (ignores a
+    /// current limit of 0 A and the enable bits, obeys the charge voltage and
+    /// the SOC: Deye, Solis), overshoots (20 % past every limit), runs-on
+    /// (keeps its last limits when the frames stop), soc-only (an off-grid
+    /// Deye: obeys only the SOC), deye (all of a Deye's: ignores 0 A,
+    /// overshoots, runs on, answers 0x305 only after 0x356)
+    #[arg(long, value_name = "M", value_parser = inverter_model, default_value = "obeys", help_heading = INVERTER)]
+    inverter_model: Harsh,
+    /// The same as --inverter-model ignores-zero
+    #[arg(long, help_heading = INVERTER, conflicts_with = "inverter_model")]
     ignores_zero: bool,
-    /// The bridge reports SOC 100 % (0 %) while charging (discharging) must
-    /// stop (the configuration's stop_by_soc)
+    /// The bridge's stop_by_soc (on by default: reports SOC 100 % / 0 % at a
+    /// stop in the protocols whose inverters ignore 0 A)
+    #[arg(long, value_name = "on|off", value_parser = on_off, help_heading = INVERTER)]
+    stop_by_soc: Option<bool>,
+    /// The simulated TinyBMS has its own switch (a contactor or MOSFETs): it
+    /// trips at its cutoffs (every trip a failure of the run); without it,
+    /// it only reports
     #[arg(long, help_heading = INVERTER)]
-    stop_by_soc: bool,
+    bms_switch: bool,
+    /// BMS silences of 110 s and 300 s started at evenly spaced points of a
+    /// full charge, a deep discharge and a cold pack, for --inverter (or
+    /// every protocol) against --inverter-model (or every simulated
+    /// inverter), with and without --bms-switch: the worst cell against its
+    /// cutoffs and the energy moved during the silences, per row; N points
+    /// per curve (default 12)
+    #[arg(long, value_name = "N", num_args = 0..=1, default_missing_value = "12", help_heading = INVERTER)]
+    sweep: Option<u32>,
     /// One of full-charge, runner, cold-morning, hot-pack, bms-fault,
     /// uart-lost, bus-off, deep-discharge, or all (prints a table)
     #[arg(long, value_name = "NAME", value_parser = scenario, help_heading = INVERTER)]
@@ -229,15 +250,37 @@ pub(crate) enum PackArg {
     Liion14s,
 }
 
-/// `--inverter`.
-#[derive(Clone, Copy, ValueEnum)]
-pub(crate) enum InverterArg {
-    Victron,
-    Sma,
-    Pylon,
-    Solark,
-    Luxpower,
-    Growatt,
+/// `--inverter`: a dialect's key (the firmware's one list).
+pub(crate) fn protocol(s: &str) -> Result<Protocol, String> {
+    Protocol::from_key(s).ok_or_else(|| {
+        format!(
+            "one of {}",
+            tinybms_firmware::inverter::dialect::KEYS.join(", ")
+        )
+    })
+}
+
+/// `--inverter-model`.
+pub(crate) fn inverter_model(s: &str) -> Result<Harsh, String> {
+    host_tests::harsh::harsh(s).ok_or_else(|| {
+        format!(
+            "one of {}",
+            host_tests::harsh::HARSH
+                .iter()
+                .map(|h| h.name)
+                .collect::<Vec<_>>()
+                .join(", ")
+        )
+    })
+}
+
+/// `on` or `off`.
+pub(crate) fn on_off(s: &str) -> Result<bool, String> {
+    match s {
+        "on" => Ok(true),
+        "off" => Ok(false),
+        _ => Err("on or off".into()),
+    }
 }
 
 /// `--stale-policy`.
@@ -359,10 +402,16 @@ pub(crate) struct Options {
     pub(crate) forge_every_us: Option<u64>,
     pub(crate) quiet: bool,
     pub(crate) inverter: Option<Protocol>,
-    /// The simulated inverter ignores a current limit of 0 A (Deye-like).
-    pub(crate) ignores_zero: bool,
-    /// The bridge's stop_by_soc.
-    pub(crate) stop_by_soc: bool,
+    /// The simulated inverter's behaviour; given or not.
+    pub(crate) harsh: (Harsh, bool),
+    /// The bridge's stop_by_soc (`None`: the default).
+    pub(crate) stop_by_soc: Option<bool>,
+    /// The simulated BMS has its own switch.
+    pub(crate) bms_switch: bool,
+    /// The sweep's points per curve.
+    pub(crate) sweep: Option<u32>,
+    /// `--inverter` as given (not the closed loops' Victron by default).
+    pub(crate) inverter_given: Option<Protocol>,
     pub(crate) scenario: Option<String>,
     pub(crate) can_log: Option<String>,
     pub(crate) json: Option<String>,
@@ -447,17 +496,15 @@ impl Cli {
         config.sort_by_key(|c| c.0);
         // A closed-loop option without --inverter: Victron's.
         let closed_loop = self.scenario.is_some()
+            || self.sweep.is_some()
             || self.packs.is_some()
             || self.can_log.is_some()
             || self.json.is_some();
-        let inverter = match self.inverter {
-            Some(InverterArg::Victron) => Some(Protocol::Victron),
-            Some(InverterArg::Sma) => Some(Protocol::SmaSunnyIsland),
-            Some(InverterArg::Pylon) => Some(Protocol::Pylon),
-            Some(InverterArg::Solark) => Some(Protocol::SolArk),
-            Some(InverterArg::Luxpower) => Some(Protocol::Luxpower),
-            Some(InverterArg::Growatt) => Some(Protocol::Growatt),
-            None => closed_loop.then_some(Protocol::Victron),
+        let inverter = self.inverter.or(closed_loop.then_some(Protocol::Victron));
+        let harsh = if self.ignores_zero {
+            host_tests::harsh::harsh("ignores-zero").unwrap_or(self.inverter_model)
+        } else {
+            self.inverter_model
         };
         let seeds = match (self.seed, self.seeds) {
             (Some(n), _) => (n, n),
@@ -492,8 +539,15 @@ impl Cli {
             forge_every_us: self.forge_every,
             quiet: self.quiet,
             inverter,
-            ignores_zero: self.ignores_zero,
+            harsh: (
+                harsh,
+                self.ignores_zero
+                    || m.value_source("inverter_model") == Some(ValueSource::CommandLine),
+            ),
             stop_by_soc: self.stop_by_soc,
+            bms_switch: self.bms_switch,
+            sweep: self.sweep,
+            inverter_given: self.inverter,
             scenario: self.scenario,
             can_log: self.can_log,
             json: self.json,

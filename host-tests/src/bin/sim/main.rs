@@ -303,6 +303,9 @@ fn main() -> ExitCode {
     if let (Some(protocol), Some(n)) = (o.inverter, o.packs) {
         return run_packs(&o, protocol, n);
     }
+    if let Some(points) = o.sweep {
+        return run_sweep(&o, points);
+    }
     if let Some(protocol) = o.inverter {
         return run_inverter(&o, protocol);
     }
@@ -530,12 +533,54 @@ fn open_log(path: &Option<String>) -> Result<Option<Box<dyn std::io::Write>>, St
 /// The inverter output of the closed loops: `protocol`, the stale policy and
 /// stop_by_soc as given, the rest at the defaults.
 fn inverter_config(o: &Options, protocol: Protocol) -> InverterConfig {
+    let d = InverterConfig::default();
     InverterConfig {
         protocol,
         stale_policy: o.stale_policy.0,
         stale_hold_us: o.stale_policy.1,
-        stop_by_soc: o.stop_by_soc,
-        ..InverterConfig::default()
+        stop_by_soc: o.stop_by_soc.unwrap_or(d.stop_by_soc),
+        ..d
+    }
+}
+
+/// `--sweep`: BMS silences started along each curve, for the dialects and
+/// simulated inverters given (or all), with and without the BMS's own
+/// switch. Exits 1 if any row broke the rule.
+fn run_sweep(o: &Options, points: u32) -> ExitCode {
+    use host_tests::harsh::{sweep, sweep_row, Curve, HARSH, SWEEP_HEADER};
+    use tinybms_firmware::inverter::dialect::PROTOCOLS;
+    let protocols: Vec<Protocol> = match o.inverter_given {
+        Some(p) => vec![p],
+        None => PROTOCOLS.to_vec(),
+    };
+    let harsh: Vec<_> = if o.harsh.1 {
+        vec![o.harsh.0]
+    } else {
+        HARSH.to_vec()
+    };
+    let switches: &[bool] = if o.bms_switch {
+        &[true]
+    } else {
+        &[false, true]
+    };
+    println!("{SWEEP_HEADER}");
+    let mut all_ok = true;
+    for p in &protocols {
+        for h in &harsh {
+            for &sw in switches {
+                let w = sweep(*p, h, sw, &Curve::ALL, points, o.seeds.0);
+                println!("{}", sweep_row(*p, h, sw, &w));
+                for f in &w.failures {
+                    println!("  FAIL: {f}");
+                }
+                all_ok &= w.ok();
+            }
+        }
+    }
+    if all_ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
     }
 }
 
@@ -571,7 +616,7 @@ fn run_packs(o: &Options, protocol: Protocol, n: usize) -> ExitCode {
     for name in names {
         let start = |l: &mut multi_pack::MultiLoop| {
             l.can_log = can_log.take();
-            l.model.ignores_zero = o.ignores_zero;
+            o.harsh.0.apply(&mut l.model);
         };
         let Some((mut l, end)) = multi_pack::run_scenario(&name, n, config, start) else {
             eprintln!("sim: unknown scenario `{name}`");
@@ -602,7 +647,7 @@ fn run_inverter(o: &Options, protocol: Protocol) -> ExitCode {
     let config = inverter_config(o, protocol);
     // A 48 V hybrid inverter's protocol: the safety table, with the deep
     // discharge, against the pack's truth.
-    let safety = protocol.low_voltage_family() || o.ignores_zero;
+    let safety = protocol.low_voltage_family() || o.harsh.1 || o.bms_switch;
     let all: &[&str] = if safety {
         &SAFETY_SCENARIOS
     } else {
@@ -636,7 +681,8 @@ fn run_inverter(o: &Options, protocol: Protocol) -> ExitCode {
             l.can_log = can_log.take();
             l.json_log = json_log.take();
             l.h.echo = !o.quiet;
-            l.model.ignores_zero = o.ignores_zero;
+            o.harsh.0.apply(&mut l.model);
+            l.bms_switch = o.bms_switch;
         };
         let (mut l, end) = if name.is_empty() {
             let mut l = ClosedLoop::new(o.pack, o.seeds.0, config, 100.0);
