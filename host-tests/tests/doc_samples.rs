@@ -105,29 +105,106 @@ fn the_scenario_table_of_the_simulator_guide() {
 }
 
 /// docs/simulator.md's safety table of a 48 V hybrid inverter's protocol
-/// behind a Deye-like inverter (it ignores a limit of 0 A) with the bridge's
-/// stop_by_soc on: each row is what `safety_row` makes of that run, and every
-/// row holds.
+/// behind an inverter with all of a Deye's habits (it ignores a limit of 0 A,
+/// overshoots, runs on), the bridge at its defaults: each row is what
+/// `safety_row` makes of that run, and every row holds.
 #[test]
 fn the_safety_table_of_the_simulator_guide() {
     use host_tests::closed_loop::{safety_row, SAFETY_HEADER, SAFETY_SCENARIOS};
     let text = doc("simulator.md");
     let rows = sample(
         &text,
-        "cargo run --release -p host-tests --bin sim -- --inverter pylon --scenario all --quiet --ignores-zero --stop-by-soc",
+        "cargo run --release -p host-tests --bin sim -- --inverter pylon --scenario all --quiet --inverter-model deye",
     );
     assert_eq!(rows.first().copied(), Some(SAFETY_HEADER));
     assert_eq!(rows.len(), SAFETY_SCENARIOS.len() + 1, "{rows:#?}");
     let config = InverterConfig {
         protocol: Protocol::Pylon,
-        stop_by_soc: true,
         ..InverterConfig::default()
     };
+    let deye = host_tests::harsh::harsh("deye").unwrap();
     for (name, want) in SAFETY_SCENARIOS.iter().zip(&rows[1..]) {
-        let (l, end) = run_scenario(name, config, |l| l.model.ignores_zero = true).unwrap();
+        let (l, end) = run_scenario(name, config, |l| deye.apply(&mut l.model)).unwrap();
         let (row, ok) = safety_row(name, &l, end);
         assert!(ok, "{row}");
         assert_eq!(&row, want, "docs/simulator.md's row of {name}");
+    }
+}
+
+/// docs/inverters.md's table of the dialects is the firmware's one list
+/// (`DIALECTS`): every dialect once, in order, with its specification, what
+/// its inverters are known to do and what the bridge does after a hold.
+#[test]
+fn the_dialects_table_of_the_inverter_guide_is_the_firmwares_list() {
+    use tinybms_firmware::inverter::dialect::{OnSilence, DIALECTS, STOP_BEFORE_QUIET};
+    let text = doc("inverters.md");
+    let start = text
+        .find("<!-- dialects:")
+        .expect("docs/inverters.md marks its table of the dialects");
+    let end = text[start..].find("<!-- end of dialects -->").unwrap() + start;
+    let rows: Vec<&str> = text[start..end]
+        .lines()
+        .filter(|l| l.starts_with("| `") && !l.starts_with("| `inverter_protocol`"))
+        .collect();
+    let want: Vec<String> = DIALECTS
+        .iter()
+        .map(|d| {
+            let after = match d.on_silence.0 {
+                OnSilence::Stops => format!(
+                    "the stop for {STOP_BEFORE_QUIET} s, then nothing (the GX then reports the BMS lost)"
+                ),
+                OnSilence::RunsOn => "the stop every second until the data is back".into(),
+            };
+            format!(
+                "| `{}` | {} | {} | {} | {after} |",
+                d.key,
+                d.spec,
+                if d.ignores_zero { "yes" } else { "no" },
+                d.on_silence.1
+            )
+        })
+        .collect();
+    assert_eq!(rows, want);
+}
+
+/// docs/inverters.md's sweep table is what `sim --sweep` prints: every
+/// dialect behind every simulated inverter, with and without the BMS's
+/// switch, every row held; two rows run again here to the byte.
+#[test]
+fn the_sweep_table_of_the_inverter_guide() {
+    use host_tests::harsh::{sweep, sweep_row, Curve, HARSH, SWEEP_HEADER};
+    use tinybms_firmware::inverter::dialect::PROTOCOLS;
+    let text = doc("inverters.md");
+    let rows = sample(
+        &text,
+        "cargo run --release -p host-tests --bin sim -- --sweep",
+    );
+    assert_eq!(rows.first().copied(), Some(SWEEP_HEADER));
+    assert_eq!(
+        rows.len(),
+        1 + PROTOCOLS.len() * HARSH.len() * 2,
+        "{rows:#?}"
+    );
+    for (k, row) in rows[1..].iter().enumerate() {
+        let p = PROTOCOLS[k / (HARSH.len() * 2)];
+        let h = &HARSH[k / 2 % HARSH.len()];
+        assert!(
+            row.starts_with(&format!("{:<9} {:<13}", p.key(), h.name)),
+            "{row}"
+        );
+        assert!(row.ends_with(" yes"), "{row}");
+    }
+    for (p, h, switch) in [
+        (Protocol::Pylon, "deye", false),
+        (Protocol::Victron, "ignores-zero", true),
+    ] {
+        let h = host_tests::harsh::harsh(h).unwrap();
+        let w = sweep(p, &h, switch, &Curve::ALL, 12, 1);
+        let row = sweep_row(p, &h, switch, &w);
+        assert!(
+            rows.contains(&row.as_str()),
+            "{row} not in docs/inverters.md"
+        );
     }
 }
 

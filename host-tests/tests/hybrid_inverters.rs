@@ -210,15 +210,17 @@ fn a_charge_stop_is_said_every_way_and_a_deye_stops() {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 12, ..ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: 24, ..ProptestConfig::default() })]
 
-    /// The safety property against an inverter that ignores a current limit
-    /// of 0 A and the enable bits (Deye, Solis), obeying only the charge
-    /// voltage and the SOC told: whatever its charger or load, the pack's
-    /// SOC, how far the BMS's SOC estimate drifted, and a cold spell below
-    /// the charger cutoff, no cell reaches its cutoff, no current passes its
-    /// cutoff and nothing charges a cold pack (the BMS never has to trip) —
-    /// with the owner's stop_by_soc on (what the docs tell a Deye owner).
+    /// The safety property against the harsh simulated inverters (one that
+    /// ignores a current limit of 0 A and the enable bits, one that
+    /// overshoots, one that runs on, one that obeys only the SOC, a Deye with
+    /// all of these), behind every dialect, with the bridge's defaults:
+    /// whatever the inverter's charger or load, the pack's SOC, how far the
+    /// BMS's SOC estimate drifted, and a cold spell below the charger cutoff,
+    /// no cell reaches its cutoff, no current passes its cutoff for as long
+    /// as the BMS waits, and nothing charges a cold pack (the BMS never has
+    /// to trip).
     #[test]
     fn a_limit_ignoring_inverter_never_takes_a_cell_past_its_cutoff(
         discharge in any::<bool>(),
@@ -228,17 +230,17 @@ proptest! {
         charger in 20.0f64..200.0,
         bias in 0.0f64..25.0,
         cold in any::<bool>(),
-        protocol in prop::sample::select(vec![
-            Protocol::Pylon, Protocol::SolArk, Protocol::Luxpower, Protocol::Growatt,
-        ]),
+        protocol in prop::sample::select(
+            tinybms_firmware::inverter::dialect::PROTOCOLS.to_vec()
+        ),
+        model in prop::sample::select(host_tests::harsh::HARSH[1..].to_vec()),
     ) {
         let config = InverterConfig {
             protocol,
-            stop_by_soc: true,
             ..InverterConfig::default()
         };
         let mut l = ClosedLoop::new(PackModel::LiFePO4_16S, 7, config, charger);
-        l.model.ignores_zero = true;
+        model.apply(&mut l.model);
         l.h.sim.set_soc_bias(bias);
         if discharge {
             l.h.sim.set_soc_percent(low_soc);
@@ -254,6 +256,6 @@ proptest! {
         l.h.sim.force_temperature(None);
         l.run_until(90 * MIN);
         let (row, ok) = safety_row("adversarial", &l, l.h.now);
-        prop_assert!(ok, "{protocol:?} {row}");
+        prop_assert!(ok, "{protocol:?} {} {row}", model.name);
     }
 }

@@ -55,7 +55,6 @@ fn arb_conditions() -> impl Strategy<Value = Conditions> {
         high_charge_current: v[7],
         bms_internal: v[8],
         cell_imbalance: v[9],
-        link_lost: 0,
     })
 }
 
@@ -472,8 +471,6 @@ fn the_battery_adds_up_its_packs() {
         assert_eq!((bat.online, bat.offline), (1, 1));
         assert_eq!(bat.limits.cvl_dv, 552);
         assert_eq!(bat.conditions.bms_internal, 1, "a warning");
-        // Never "link lost": a GX reads it as the whole battery offline.
-        assert_eq!(bat.conditions.link_lost, 0);
         assert_eq!(bat.conditions.low_voltage, 0, "b's alarm left with it");
     }
     assert_eq!(aggregate(&[silent, stale, faulted], STALE), None);
@@ -690,7 +687,7 @@ fn a_pack_leaving_drops_the_limits_at_once_and_they_come_back_after_the_hold() {
 }
 
 #[test]
-fn the_own_summary_rounds_and_carries_no_link_lost() {
+fn the_own_summary_rounds_and_carries_the_conditions() {
     let p = PackState {
         min_cell_mv: 3300,
         max_cell_mv: 3310,
@@ -704,7 +701,6 @@ fn the_own_summary_rounds_and_carries_no_link_lost() {
         charge_blocked: true,
     };
     let cond = Conditions {
-        link_lost: 2,
         high_voltage: 1,
         ..Conditions::default()
     };
@@ -716,8 +712,7 @@ fn the_own_summary_rounds_and_carries_no_link_lost() {
     assert_eq!((s.min_temp_dc, s.max_temp_dc), (-50, 250));
     assert_eq!(s.age_ds, 12);
     assert_eq!(s.capacity_dah, 2800);
-    assert_eq!(s.conditions.link_lost, 0);
-    assert_eq!(s.conditions.high_voltage, 1);
+    assert_eq!(s.conditions, cond);
     assert!(s.charge_blocked);
     let old = Summary::own(&p, 3_600 * S, &summary().limits, &cond, 28_000, false);
     assert_eq!(old.age_ds, 255);

@@ -164,8 +164,8 @@ fn a_normal_full_charge_sends_no_protection_bit() {
             })
             .count();
         assert_eq!(protection, 0, "{p:?}: frames with a protection bit");
-        let coc = u16::from(l.h.sim.register(318)) * 10;
-        let doc = u16::from(l.h.sim.register(317)) * 10;
+        let coc = l.h.sim.register(318) * 10;
+        let doc = l.h.sim.register(317) * 10;
         let (ccl, dcl) = l
             .sent_limits
             .iter()

@@ -459,6 +459,14 @@ fn a_hybrid_inverter_protocol_and_its_name_survive_a_restart_and_show_in_monitor
         "{set}"
     );
     assert!(set.stdout.contains("saved to the bridge's flash"), "{set}");
+    // Until the restart the monitor says a change waits for it.
+    let waiting = tinybms(&["monitor", &sim.path, "--count", "2", "--plain"]);
+    assert!(
+        waiting
+            .stdout
+            .contains("1 configuration change waits for a restart"),
+        "{waiting}"
+    );
     drop(sim);
     let sim = bridge(&flash, &[]);
     for (name, want) in [
@@ -478,6 +486,7 @@ fn a_hybrid_inverter_protocol_and_its_name_survive_a_restart_and_show_in_monitor
             .contains("Inverter pylon (0x35E DEYE): CAN running, inverter heard   CVL "),
         "{text}"
     );
+    assert!(!text.stdout.contains("waits for a restart"), "{text}");
     let json = tinybms(&["monitor", &sim.path, "--count", "2", "--json"]);
     let last: serde_json::Value =
         serde_json::from_str(json.stdout.lines().last().unwrap()).unwrap();

@@ -415,10 +415,10 @@ fields! {
         "BMS data older than this is stale: the stale policy applies.";
     StalePolicyField = 4 since 1, "stale_policy", "", Inverter, Now, Kind::Choice(STALE_MODES),
         stale_policy: StaleMode = StaleMode::Hold,
-        "On stale data: hold (charge limit 0, discharge allowed, for stale_hold: an island inverter keeps the house on through a short loss, the BMS's own cutoffs still protect the pack) or stop (stop sending: the inverter stops charging and discharging).";
+        "On stale data: hold (no charge; the discharge goes on for at most stale_hold within what the last data proves the pack holds above its discharge stop, its limit falling to 0: an island inverter keeps the house on through a short loss) or stop (both stop at once). Then the stop is said with every signal: once to an inverter that stops on silence (a GX), every second to the others until the data is back.";
     StaleHold = 5 since 1, "stale_hold", "s", Inverter, Now, num(10, 3600, 0),
         stale_hold_s: u16 = (i.stale_hold_us / SECOND) as u16,
-        "With stale_policy hold: how long the inverter may keep discharging on stale data.";
+        "With stale_policy hold: how long the inverter may keep discharging on stale data at most (less when the last data proves less charge above the discharge stop).";
     InverterName = 7 since 4, "inverter_name", "", Inverter, Now, text(8, TextRule::Printable),
         inverter_name: String<8> = fixed_text("PYLON"),
         "What 0x35E says in the protocols pylon, solark and luxpower (at most 8 characters): PYLON for most inverters (Deye, Sunsynk, Sofar, Growatt SPF, EG4, MidNite), GOODWE for a GoodWe, DEYE as Deye's copy of the spec prints it; inverters key their behaviour on this name.";

@@ -292,8 +292,6 @@ pub struct Conditions {
     pub bms_internal: u8,
     /// Spread of the cells vs 308.
     pub cell_imbalance: u8,
-    /// Telemetry stale (the BMS link is lost).
-    pub link_lost: u8,
 }
 
 impl Conditions {
@@ -306,7 +304,7 @@ impl Conditions {
         }
     }
     /// Every field, for "any alarm" / "any warning".
-    pub fn all(&self) -> [u8; 11] {
+    pub fn all(&self) -> [u8; 10] {
         [
             self.high_voltage,
             self.low_voltage,
@@ -318,7 +316,6 @@ impl Conditions {
             self.high_charge_current,
             self.bms_internal,
             self.cell_imbalance,
-            self.link_lost,
         ]
     }
     /// Highest level of any field.
@@ -896,6 +893,5 @@ fn conditions(c: &ChargeConfig, s: &PackSettings, p: &PackState, t: Temperatures
                     >= s.allowed_disbalance_mv
                         .saturating_mul(IMBALANCE_WARNING_OF_ALLOWED),
         ),
-        link_lost: 0,
     }
 }

@@ -1033,8 +1033,7 @@ impl Inverter {
         settings: &PackSettings,
         state: &PackState,
     ) -> (Limits, Conditions) {
-        let (limits, mut conditions) = self.control.update(now, settings, state);
-        conditions.link_lost = 0;
+        let (limits, conditions) = self.control.update(now, settings, state);
         self.limits = Some(limits);
         self.conditions = conditions;
         if self.logged_limits != Some(limits)

@@ -93,25 +93,20 @@ pub fn cold(c: &Conditions) -> bool {
 }
 
 /// When both sides must stop and an inverter obeys nothing but the SOC,
-/// which stop the SOC says: the charge's (100 %) only when it harms at once —
-/// a cell at its ceiling, a pack below its charge temperature — and the
-/// discharge stop is not for a harm the data showed (a cell at its
-/// discharge stop, a fault, a current, over-heat) but one decided blind (the
-/// BMS's data lost, a limit held, the inverter's request). Otherwise the
-/// discharge's (0 %): the SOC is the one signal such inverters obey for a
-/// discharge, while a charge is also stopped by its limit, its enable bit
-/// and the charge voltage below the pack's.
-pub fn charge_first(stops: Stops, cold: bool) -> bool {
-    let charge_harms = match stops.charge {
-        Some(StopWhy::CellHigh) => true,
-        Some(StopWhy::Temperature) => cold,
-        _ => false,
-    };
-    let discharge_known = matches!(
+/// which stop the SOC says: the charge's (100 %) when a charge would harm at
+/// once — a cell at its ceiling, a temperature outside the charge window —
+/// and the discharge stop is not for a harm of its own the data showed or
+/// kept (only the same temperature, the BMS's data lost, or the inverter's
+/// request); otherwise the discharge's (0 %): the SOC is the one signal such
+/// inverters obey for a discharge, while a charge is also stopped by its
+/// limit, its enable bit and the charge voltage below the pack's.
+pub fn charge_first(stops: Stops) -> bool {
+    let charge_harms = matches!(stops.charge, Some(StopWhy::CellHigh | StopWhy::Temperature));
+    let discharge_blind = matches!(
         stops.discharge,
-        Some(StopWhy::CellLow | StopWhy::Fault | StopWhy::Current | StopWhy::Temperature)
+        Some(StopWhy::Temperature | StopWhy::LinkLost | StopWhy::InverterAsked)
     );
-    charge_harms && !discharge_known
+    charge_harms && discharge_blind
 }
 
 /// The decision. See the module documentation.
@@ -133,7 +128,7 @@ pub fn decide(i: &Inputs<'_>) -> Say {
     }
     l.cvl_dv = l.cvl_dv.max(i.floor_dv).max(1);
     let cold = cold(i.conditions);
-    let charge_first = charge_first(stops, cold);
+    let charge_first = charge_first(stops);
     let soc_pct = if i.signals.soc {
         stops.soc_pct(i.state.soc_pct, charge_first)
     } else {
@@ -252,8 +247,8 @@ mod tests {
     }
 
     /// Both stop: SOC 0 % unless the charge stop harms at once (a cell at
-    /// its ceiling, a pack below its charge temperature) and the discharge
-    /// stop was decided blind.
+    /// its ceiling, a temperature outside the charge window) and the
+    /// discharge stop was decided blind or for the same temperature.
     #[test]
     fn both_stopped_the_soc_says_the_nearer_harm() {
         let s = state();
@@ -270,7 +265,22 @@ mod tests {
             decide(&inputs(&s, &cold, both, Signals::ALL)).soc_pct,
             100.0
         );
-        assert_eq!(decide(&inputs(&s, &warm, both, Signals::ALL)).soc_pct, 0.0);
+        // A charge held at 0 after a cut harms nothing at once: SOC 0 %.
+        let held = Stops {
+            charge: Some(StopWhy::Limit),
+            discharge: Some(StopWhy::LinkLost),
+        };
+        assert_eq!(decide(&inputs(&s, &warm, held, Signals::ALL)).soc_pct, 0.0);
+        // A cold pack whose discharge is held at 0 after a cut: the
+        // discharge is the stop the SOC says.
+        let held_cold = Stops {
+            charge: Some(StopWhy::Temperature),
+            discharge: Some(StopWhy::Limit),
+        };
+        assert_eq!(
+            decide(&inputs(&s, &cold, held_cold, Signals::ALL)).soc_pct,
+            0.0
+        );
         // A cold pack at its discharge stop: the discharge is the stop the
         // SOC says (the charge is stopped by its voltage, bit and limit).
         let empty_and_cold = Stops {

@@ -130,6 +130,9 @@ impl NoHost {
     pub fn on_inverter(&mut self, _: Option<crate::host_link::encode::InverterState>) {
         match *self {}
     }
+    pub fn on_restart_pending(&mut self, _: u32) {
+        match *self {}
+    }
     pub fn on_mqtt(&mut self, _: &'static str) {
         match *self {}
     }

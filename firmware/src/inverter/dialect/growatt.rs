@@ -399,7 +399,6 @@ mod tests {
             high_charge_current: 2,
             bms_internal: 2,
             cell_imbalance: 2,
-            link_lost: 2,
         };
         let every = Say {
             protected: Protected {

@@ -100,6 +100,9 @@ pub const DIALECTS: [Dialect; 6] = [
 ];
 
 /// Every protocol, in the order of [`DIALECTS`].
+// The index stays below the length of both arrays, and a constant is worked
+// out at build time: an index out of bounds would fail the build, never run.
+#[allow(clippy::indexing_slicing)]
 pub const PROTOCOLS: [Protocol; DIALECTS.len()] = {
     let mut out = [Protocol::Victron; DIALECTS.len()];
     let mut i = 0;
@@ -112,6 +115,8 @@ pub const PROTOCOLS: [Protocol; DIALECTS.len()] = {
 
 /// Every dialect's key, in the order of [`DIALECTS`] (the configuration's
 /// choices of `inverter_protocol`).
+// As PROTOCOLS: in bounds, and worked out at build time.
+#[allow(clippy::indexing_slicing)]
 pub const KEYS: [&str; DIALECTS.len()] = {
     let mut out = [""; DIALECTS.len()];
     let mut i = 0;

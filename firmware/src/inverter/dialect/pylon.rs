@@ -502,7 +502,6 @@ pub(crate) mod tests {
             high_charge_current: 2,
             bms_internal: 2,
             cell_imbalance: 2,
-            link_lost: 2,
         };
         let every = Protected {
             over_voltage: true,

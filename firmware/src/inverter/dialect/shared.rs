@@ -195,12 +195,10 @@ impl Stops {
     }
 }
 
-/// Why charging must stop, from the data: the link, a fault, a cell at the
-/// top, a temperature, a current; else charge control's own hold.
+/// Why charging must stop, from the data: a fault, a cell at the top, a
+/// temperature, a current; else charge control's own hold.
 fn charge_why(state: &PackState, c: &Conditions) -> StopWhy {
-    if c.link_lost > 0 {
-        StopWhy::LinkLost
-    } else if state.fault || c.bms_internal >= 2 || state.charge_blocked {
+    if state.fault || c.bms_internal >= 2 || state.charge_blocked {
         StopWhy::Fault
     } else if c.high_voltage > 0 {
         StopWhy::CellHigh
@@ -219,9 +217,7 @@ fn charge_why(state: &PackState, c: &Conditions) -> StopWhy {
 
 /// Why discharging must stop, from the data (as [`charge_why`]).
 fn discharge_why(state: &PackState, c: &Conditions) -> StopWhy {
-    if c.link_lost > 0 {
-        StopWhy::LinkLost
-    } else if state.fault || c.bms_internal >= 2 {
+    if state.fault || c.bms_internal >= 2 {
         StopWhy::Fault
     } else if c.low_voltage > 0 {
         StopWhy::CellLow

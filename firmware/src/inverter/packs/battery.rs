@@ -123,7 +123,7 @@ pub fn aggregate_with(
     let (mut cap, mut soc_w, mut soh_w, mut v_sum) = (0u64, 0u64, 0u64, 0u64);
     let (mut min_cell, mut max_cell) = (u16::MAX, 0u16);
     let (mut min_t, mut max_t) = (i16::MAX, i16::MIN);
-    let mut cond = [0u8; 11];
+    let mut cond = [0u8; 10];
     let (mut block_c, mut block_d) = (0u8, 0u8);
     for m in part() {
         let s = &m.summary;
@@ -182,7 +182,6 @@ pub fn aggregate_with(
         high_charge_current: cond[7],
         bms_internal: cond[8],
         cell_imbalance: cond[9],
-        link_lost: cond[10],
     };
     let charge_blocked = part().all(|m| m.summary.charge_blocked);
     Some(Battery {

@@ -43,7 +43,7 @@ pub struct Summary {
     pub capacity_dah: u16,
     /// The pack's own limits as its bridge computed them.
     pub limits: Limits,
-    /// The pack's alarms and warnings (`link_lost` is not carried: see `age_ds`).
+    /// The pack's alarms and warnings (its data's age is `age_ds`).
     pub conditions: Conditions,
     /// BMS status "fault" (its switch is open).
     pub fault: bool,
@@ -101,7 +101,7 @@ pub const CAPACITY_MAX_DAH: u16 = 6550;
 /// Temperatures a summary may report, 0.1 °C.
 pub const TEMP_RANGE_DC: (i16, i16) = (-550, 1500);
 
-/// The 10 conditions carried (all of [`Conditions`] but `link_lost`), 2 bits each.
+/// The 10 conditions carried (all of [`Conditions`]), 2 bits each.
 fn conditions_bits(c: &Conditions) -> u32 {
     let all = c.all();
     let mut bits = 0u32;
@@ -127,7 +127,6 @@ fn conditions_from(bits: u32) -> Option<Conditions> {
         high_charge_current: f(7)?,
         bms_internal: f(8)?,
         cell_imbalance: f(9)?,
-        link_lost: 0,
     })
 }
 
@@ -319,8 +318,7 @@ impl Summary {
         };
         let i16_of = |x: f32, k: f32| round(x, k).clamp(-32768.0, 32767.0) as i16;
         let (lo_t, hi_t) = (i16_of(p.min_temp_c, 10.0), i16_of(p.max_temp_c, 10.0));
-        let mut c = *conditions;
-        c.link_lost = 0;
+        let c = *conditions;
         Self {
             voltage_cv: round(p.pack_v.max(0.0), 100.0).min(65535.0) as u16,
             current_da: i16_of(p.current_a, 10.0),

@@ -188,8 +188,8 @@ pub(crate) struct Cli {
     #[arg(long, help_heading = INVERTER, conflicts_with = "inverter_model")]
     ignores_zero: bool,
     /// The bridge's stop_by_soc (on by default: reports SOC 100 % / 0 % at a
-    /// stop in the protocols whose inverters ignore 0 A)
-    #[arg(long, value_name = "on|off", value_parser = on_off, help_heading = INVERTER)]
+    /// stop in the protocols whose inverters ignore 0 A); without a value: on
+    #[arg(long, value_name = "on|off", value_parser = on_off, num_args = 0..=1, default_missing_value = "on", help_heading = INVERTER)]
     stop_by_soc: Option<bool>,
     /// The simulated TinyBMS has its own switch (a contactor or MOSFETs): it
     /// trips at its cutoffs (every trip a failure of the run); without it,
