@@ -47,6 +47,9 @@ pub const STEP_US: u64 = 100_000;
 /// * `soc_only` (an off-grid Deye): obeys nothing but the SOC told; it
 ///   charges to its own charge voltage ([`OWN_CELL_V`] a cell) and keeps
 ///   within its own current limits ([`OWN_MAX_A`]);
+/// * `island` (a Multi in island mode): a discharge limit other than 0 is
+///   ignored — it feeds its loads whatever DCL says — and 0 switches it off
+///   (Victron's guidance to BMS makers);
 /// * `overshoot`: every current it makes within a limit overshoots it by
 ///   this share (real ones: up to 20 %);
 /// * `heartbeat_after_measurements` (Deye): its 0x305 answers a 0x356, not
@@ -69,6 +72,8 @@ pub struct InverterModel {
     pub ignores_zero: bool,
     /// Obeys only the SOC told (an off-grid Deye).
     pub soc_only: bool,
+    /// Ignores a discharge limit other than 0 (a Multi in island mode).
+    pub island: bool,
     /// Keeps its last limits when the frames stop.
     pub runs_on: bool,
     /// Overshoots every limit it follows by this share (0.2 = 20 %).
@@ -130,6 +135,7 @@ impl InverterModel {
             dialect: Protocol::Victron,
             ignores_zero: false,
             soc_only: false,
+            island: false,
             runs_on: false,
             overshoot: 0.0,
             heartbeat_after_measurements: false,
@@ -227,6 +233,11 @@ impl InverterModel {
             (soc < 100.0, soc > 0.0, cvl, ccl, dcl)
         } else {
             (self.enabled.0, self.enabled.1, cvl, ccl, dcl)
+        };
+        let dcl = if self.island && dcl > 0.0 {
+            self.load_a
+        } else {
+            dcl
         };
         let over = 1.0 + self.overshoot;
         let i = if self.load_a > 0.0 {

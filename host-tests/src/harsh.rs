@@ -33,6 +33,8 @@ pub struct Harsh {
     pub ignores_zero: bool,
     /// Obeys only the SOC told.
     pub soc_only: bool,
+    /// Ignores a discharge limit other than 0.
+    pub island: bool,
     /// Keeps its last limits when the frames stop.
     pub runs_on: bool,
     /// Overshoots every limit by this share.
@@ -46,6 +48,7 @@ impl Harsh {
     pub fn apply(&self, m: &mut InverterModel) {
         m.ignores_zero = self.ignores_zero;
         m.soc_only = self.soc_only;
+        m.island = self.island;
         m.runs_on = self.runs_on;
         m.overshoot = self.overshoot;
         m.heartbeat_after_measurements = self.heartbeat_after_measurements;
@@ -57,14 +60,21 @@ const PLAIN: Harsh = Harsh {
     what: "obeys every limit and enable bit, stops 3 s after the frames stop (a GX)",
     ignores_zero: false,
     soc_only: false,
+    island: false,
     runs_on: false,
     overshoot: 0.0,
     heartbeat_after_measurements: false,
 };
 
 /// The simulated inverters, plain first.
-pub const HARSH: [Harsh; 6] = [
+pub const HARSH: [Harsh; 7] = [
     PLAIN,
+    Harsh {
+        name: "island",
+        what: "ignores a discharge limit other than 0, feeding its loads (a Multi in island mode)",
+        island: true,
+        ..PLAIN
+    },
     Harsh {
         name: "ignores-zero",
         what: "ignores a limit of 0 A and the enable bits; obeys the charge voltage and the SOC (Deye, Solis)",
@@ -115,8 +125,9 @@ pub const GAP_LENGTHS_S: [u64; 2] = [110, 300];
 pub enum Curve {
     /// A full charge from 20 % SOC with a 100 A charger, into float.
     Charge,
-    /// A 100 A load from 12 % SOC with the BMS's SOC reading 15 % high,
-    /// through the empty knee to the discharge stop and past it.
+    /// A 55 A load (within the BMS's 60 A cutoff, above the 48 A limit) from
+    /// 12 % SOC with the BMS's SOC reading 15 % high, through the empty knee
+    /// to the discharge stop and past it.
     Discharge,
     /// A pack at −5 °C at 50 % SOC that a 100 A charger wants to charge,
     /// with a small load coming and going.
@@ -140,7 +151,7 @@ impl Curve {
     pub const fn length_us(self) -> u64 {
         match self {
             Self::Charge => 6 * 60 * MIN,
-            Self::Discharge => 50 * MIN,
+            Self::Discharge => 80 * MIN,
             Self::Cold => 30 * MIN,
         }
     }
@@ -159,7 +170,7 @@ impl Curve {
             Self::Discharge => {
                 l.h.sim.set_soc_bias(15.0);
                 l.h.sim.set_soc_percent(12.0);
-                l.model.load_a = 100.0;
+                l.model.load_a = 55.0;
             }
             Self::Cold => {
                 l.h.sim.set_soc_percent(50.0);

@@ -15,15 +15,16 @@
 //! a lower bound wherever the cell is on its curve (on the plateau it holds
 //! far more), and one that needs no SOC, which drifts.
 //!
-//! The budget is spent at the worst draw the inverter could make: the
-//! larger of the discharge limit at the start and the current last measured,
-//! plus [`OVERSHOOT_PERCENT`] for an inverter that overshoots a limit (real
-//! ones overshoot by up to 20 %). The discharge limit then falls linearly
-//! from its last value to 0 over that time ([`HoldBudget::spend_us`], at most
-//! the hold itself): an inverter that obeys the falling limit takes half the
-//! budget, one that ignores every limit but 0 (a Multi in island mode) at
-//! most all of it, and 20 % more still stops short of the BMS's cutoff (the
-//! discharge stop is `discharge_margin` above it). When the limit reaches
+//! The budget is spent at the worst draw the BMS allows: its discharge
+//! over-current cutoff (317), or the current last measured if that was
+//! higher — an inverter that ignores the discharge limit (an off-grid one that
+//! obeys only the SOC, a Multi in island mode that ignores any limit but 0)
+//! draws at most that without tripping the BMS. The discharge limit then
+//! falls linearly from its last value to 0 over that time
+//! ([`HoldBudget::spend_us`], at most the hold itself): an inverter that obeys
+//! the falling limit, or overshoots it by 20 %, takes a fraction of the
+//! budget, one that ignores every limit at most all of it, and the discharge
+//! stop is `discharge_margin` above the cutoff besides. When the limit reaches
 //! 0 the hold is over: the stop goes out with every signal.
 
 use super::control::{ChargeConfig, PackSettings, PackState};
@@ -34,12 +35,8 @@ use crate::Instant;
 /// per mille per volt: 20 = 2 % of the capacity per volt.
 pub const KNEE_CAPACITY_PERMILLE_PER_V: u64 = 20;
 
-/// The draw the budget is spent at: this share of the larger of the
-/// discharge limit and the current last measured, percent.
-pub const OVERSHOOT_PERCENT: u64 = 120;
-
-/// mA per 0.1 A.
-const MA_PER_DA: u64 = 100;
+/// mA per A.
+const MA_PER_A: u64 = 1000;
 
 /// The hold's discharge: its limit at the start, and how long until it is
 /// spent. See the module documentation.
@@ -71,8 +68,8 @@ impl HoldBudget {
         let capacity_mah = u64::from(settings.capacity_cah) * 10 * soh / 1000;
         // mAh × mV × ‰/V: /1000 for the volts, /1000 for the per mille.
         let budget_mah = capacity_mah * above_mv * KNEE_CAPACITY_PERMILLE_PER_V / 1_000_000;
-        let measured_da = (state.current_a.min(0.0) * -10.0).clamp(0.0, 65_535.0) as u64;
-        let draw_ma = u64::from(dcl_da).max(measured_da) * MA_PER_DA * OVERSHOOT_PERCENT / 100;
+        let measured_ma = (state.current_a.min(0.0) * -1000.0).clamp(0.0, 1e9) as u64;
+        let draw_ma = (u64::from(settings.discharge_cutoff_a) * MA_PER_A).max(measured_ma);
         let spend_us = if dcl_da == 0 || draw_ma == 0 {
             0
         } else {
@@ -106,6 +103,8 @@ impl HoldBudget {
 mod tests {
     use super::*;
 
+    /// A 280 Ah, 16-cell pack with a 2.5 V cutoff and a 60 A discharge
+    /// over-current cutoff (the simulated pack's).
     fn settings() -> PackSettings {
         PackSettings {
             fully_charged_mv: 3550,
@@ -114,8 +113,8 @@ mod tests {
             allowed_disbalance_mv: 15,
             ov_cutoff_mv: 3650,
             uv_cutoff_mv: 2500,
-            discharge_cutoff_a: 150,
-            charge_cutoff_a: 100,
+            discharge_cutoff_a: 60,
+            charge_cutoff_a: 60,
             overheat_c: 60,
             low_temp_charge_c: 0,
         }
@@ -138,38 +137,43 @@ mod tests {
 
     const HOLD: Instant = 120 * crate::SECOND;
 
-    /// The case: a 100 A load from a lowest cell of 2.80 V (200 mV
-    /// above the discharge stop of 2.60 V), 280 Ah: 2 % × 0.2 × 280 Ah =
-    /// 1.12 Ah, spent at 120 A in 33.6 s — not the 120 s of the old hold.
+    /// The case: a lowest cell of 2.80 V (200 mV above the discharge
+    /// stop of 2.60 V), 280 Ah: 2 % × 0.2 × 280 Ah = 1.12 Ah, spent at the
+    /// 60 A the BMS allows in 67.2 s — not the 120 s of the old hold.
     #[test]
     fn a_low_cell_affords_a_short_hold() {
         let b = HoldBudget::new(
-            &state(2800, -100.0),
+            &state(2800, -40.0),
             &settings(),
             &ChargeConfig::default(),
-            1000,
+            480,
             HOLD,
         );
         assert_eq!(b.budget_mah, 1120);
-        assert_eq!(b.spend_us, 33_600_000);
-        assert_eq!(b.dcl_at(0), 1000);
-        assert_eq!(b.dcl_at(16_800_000), 500);
-        assert_eq!(b.dcl_at(33_600_000), 0);
-        assert!(b.spent(40 * crate::SECOND));
-        // The charge drawn at the falling limit, with a 20 % overshoot, is at
-        // most the budget.
-        let mut mas = 0u64;
+        assert_eq!(b.spend_us, 67_200_000);
+        assert_eq!(b.dcl_at(0), 480);
+        assert_eq!(b.dcl_at(33_600_000), 240);
+        assert_eq!(b.dcl_at(67_200_000), 0);
+        assert!(b.spent(70 * crate::SECOND));
+        // Drawn at the falling limit with a 20 % overshoot, or at the BMS's
+        // cutoff until the limit is 0 (an inverter that ignores it): at most
+        // the budget.
+        let (mut obeying, mut ignoring) = (0u64, 0u64);
         let step = 100_000;
         let mut t = 0;
         while t < HOLD {
-            mas += u64::from(b.dcl_at(t)) * 100 * 120 / 100 * step / crate::SECOND;
+            obeying += u64::from(b.dcl_at(t)) * 100 * 120 / 100 * step / crate::SECOND;
+            if !b.spent(t) {
+                ignoring += 60_000 * step / crate::SECOND;
+            }
             t += step;
         }
-        assert!(mas / 3600 <= b.budget_mah, "{} mAh", mas / 3600);
+        assert!(obeying / 3600 <= b.budget_mah, "{} mAh", obeying / 3600);
+        assert!(ignoring / 3600 <= b.budget_mah, "{} mAh", ignoring / 3600);
     }
 
     /// On the plateau (3.25 V, 650 mV above the stop) the whole hold is
-    /// afforded at a modest load; at or below the stop nothing is.
+    /// afforded; at or below the stop nothing is.
     #[test]
     fn the_plateau_affords_the_hold_and_the_stop_none() {
         let b = HoldBudget::new(
@@ -179,7 +183,8 @@ mod tests {
             300,
             HOLD,
         );
-        assert_eq!(b.spend_us, HOLD);
+        // 3.64 Ah at 60 A: 218 s, more than the hold.
+        assert_eq!((b.budget_mah, b.spend_us), (3640, HOLD));
         assert!(b.dcl_at(60 * crate::SECOND) > 100);
         for mv in [2600, 2550, 0] {
             let b = HoldBudget::new(
@@ -202,14 +207,14 @@ mod tests {
         assert_eq!(b.dcl_at(0), 0);
     }
 
-    /// A current measured above the limit (an inverter overshooting it) is
-    /// the draw the budget is spent at.
+    /// A current measured above the BMS's cutoff (an inverter already past
+    /// it) is the draw the budget is spent at.
     #[test]
-    fn the_larger_of_the_limit_and_the_current_spends_it() {
+    fn the_larger_of_the_cutoff_and_the_current_spends_it() {
         let s = settings();
         let c = ChargeConfig::default();
-        let at_limit = HoldBudget::new(&state(2800, -50.0), &s, &c, 500, HOLD);
-        let over = HoldBudget::new(&state(2800, -100.0), &s, &c, 500, HOLD);
-        assert_eq!(at_limit.spend_us, 2 * over.spend_us);
+        let within = HoldBudget::new(&state(2800, -50.0), &s, &c, 480, HOLD);
+        let past = HoldBudget::new(&state(2800, -120.0), &s, &c, 480, HOLD);
+        assert_eq!(within.spend_us, 2 * past.spend_us);
     }
 }
