@@ -9,10 +9,13 @@
 //! * [`dialect`] — the dialects behind one seam (Victron, SMA Sunny Island,
 //!   the Pylontech LV family, Growatt), listed once; each puts what [`say`]
 //!   decided into its frames and reads them back.
-//! * [`hold`] — the hold the pack can afford while the BMS's data is stale.
+//! * [`hold`] — the hold the pack can afford while the BMS's data is stale;
+//!   `gap.rs` — a bridge alone's periods while its data is stale: the hold,
+//!   then the stop said blind.
 //! * [`ignored`] — an inverter seen ignoring a stop.
 //! * [`bus`] — the CAN port's health (no ACK, bus-off, the inverter heard).
 //! * [`stale`] — a stale episode, its hold and a policy given meanwhile.
+//! * [`report`] — what the output tells the log.
 //! * [`membership`] and [`packs`] — several packs on one bus: this bridge's
 //!   part, and the wire and rules they share.
 //! * [`port`] — the controller's side, as the chip's CAN task pumps it.
@@ -52,11 +55,13 @@
 pub mod bus;
 pub mod control;
 pub mod dialect;
+mod gap;
 pub mod hold;
 pub mod ignored;
 pub mod membership;
 pub mod packs;
 pub mod port;
+pub mod report;
 pub mod say;
 pub mod stale;
 
@@ -66,8 +71,7 @@ use protocol_core::views::{LiveSnapshot, VersionInfo};
 
 use self::bus::BusHealth;
 use self::control::{ChargeConfig, ChargeControl, Conditions, Limits, PackSettings, PackState};
-use self::dialect::{pylon, CanFrame, Frames, OnSilence, Period, Protected, StopWhy, Stops, Told};
-use self::hold::HoldBudget;
+use self::dialect::{pylon, CanFrame, Frames, Period, Protected, Stops, Told};
 use self::ignored::{Ignored, IgnoredStops};
 use self::membership::Membership;
 use self::packs::{Battery, BatteryView, Packs, Shares, Summary};
@@ -76,6 +80,8 @@ use self::stale::StaleEpisode;
 use crate::Instant;
 
 pub use self::dialect::Protocol;
+use self::report::limits_log_due;
+pub use self::report::{InverterReport, Reports, LIMITS_LOG_PERIOD_US};
 pub use crate::freshness::{Freshness, StaleMode};
 
 /// Inverter output settings; [`Default`] gives the documented defaults.
@@ -185,111 +191,6 @@ impl CanState {
     }
 }
 
-/// What the inverter output tells the log.
-#[derive(Debug, Clone, Copy, PartialEq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum InverterReport {
-    /// The inverter's keep-alive is heard.
-    InverterSeen,
-    /// No keep-alive for the timeout.
-    InverterLost,
-    /// Telemetry stale: what is being done about it.
-    Stale {
-        /// Age of the newest snapshot, ms.
-        age_ms: u32,
-        /// The policy applied.
-        policy: StaleMode,
-        /// A bridge alone: the hold the pack can afford (see [`hold`]; a
-        /// spend time of 0: none); `None` for a pack of several, which
-        /// leaves the battery.
-        hold: Option<HoldBudget>,
-    },
-    /// The hold is over (its time, or its budget): both sides stop, said
-    /// with every signal; then quiet ([`OnSilence::Stops`]: the inverter
-    /// stops on silence) or every period until the data is back.
-    StaleHoldEnded(OnSilence),
-    /// Fresh telemetry again: sending resumed.
-    Fresh,
-    /// Transmissions fail (no other node acknowledges: error-passive).
-    NoAck {
-        /// Failed transmissions in a row.
-        failures: u32,
-    },
-    /// Transmissions succeed again.
-    BusOk,
-    /// The controller went bus-off; recovery is scheduled.
-    BusOff {
-        /// Bus-offs so far.
-        count: u32,
-        /// Pause before recovery, ms.
-        backoff_ms: u32,
-    },
-    /// New limits (logged when they change). With a node number: this pack's own.
-    Limits(Limits),
-    /// The battery's limits this bridge sends as the speaker (logged when
-    /// they change).
-    BatteryLimits(Limits),
-    /// This bridge started or stopped speaking to the inverter for the battery.
-    Speaker(bool),
-    /// The packs taking part in the battery changed.
-    Packs {
-        /// Taking part.
-        online: u8,
-        /// Known but not taking part (lost, stale, faulted).
-        offline: u8,
-    },
-    /// No pack takes part: the speaker says a stop with every signal (then,
-    /// towards an inverter that stops on silence, nothing).
-    BatteryLost,
-    /// What must stop now and why, and what the frames sent tell the
-    /// inverter about it, read back from their bytes (logged when it
-    /// changes).
-    Protection {
-        /// What must stop, and why.
-        stops: Stops,
-        /// What the frames tell.
-        told: Told,
-    },
-    /// The inverter was seen ignoring a stop: from now on every stop goes
-    /// out with every signal the dialect has.
-    IgnoresStop(Ignored),
-    /// A Luxpower inverter asks the battery to shut down (0x300), or no
-    /// longer does: charge and discharge stop meanwhile; the BMS itself is
-    /// never switched off.
-    ShutdownAsked(bool),
-    /// Another bridge sends summaries with this bridge's node number.
-    DuplicateNode(u8),
-    /// A summary of this node was refused (once until one of it is taken
-    /// again); it counts nowhere.
-    SummaryRefused(u8, packs::SummaryError),
-}
-
-impl InverterReport {
-    /// Log level: what needs attention is a warning.
-    pub fn level(&self) -> crate::Level {
-        match self {
-            Self::InverterSeen
-            | Self::Fresh
-            | Self::BusOk
-            | Self::Limits(_)
-            | Self::BatteryLimits(_)
-            | Self::Speaker(_)
-            | Self::Packs { .. } => crate::Level::Info,
-            Self::BatteryLost
-            | Self::DuplicateNode(_)
-            | Self::SummaryRefused(..)
-            | Self::Protection { .. }
-            | Self::IgnoresStop(_)
-            | Self::ShutdownAsked(_) => crate::Level::Warn,
-            Self::InverterLost
-            | Self::Stale { .. }
-            | Self::StaleHoldEnded(_)
-            | Self::NoAck { .. }
-            | Self::BusOff { .. } => crate::Level::Warn,
-        }
-    }
-}
-
 /// A charge block whose recovery event never arrived ends after the BMS has
 /// been out of "fault" this long, µs.
 pub const CHARGE_BLOCK_TIMEOUT_US: Instant = 5 * 60 * crate::SECOND;
@@ -305,58 +206,12 @@ pub const BUS_RECOVERY_WAIT_US: Instant = 500 * crate::MS;
 /// How often, meanwhile, it is asked whether it is back.
 pub const BUS_RECOVERY_POLL_US: Instant = 10 * crate::MS;
 
-/// While the current limits only rise on their way to their targets (a ramp),
-/// they are logged at most this often; a limit that falls, and the end of a
-/// ramp, are logged at once.
-pub const LIMITS_LOG_PERIOD_US: Instant = 10 * crate::SECOND;
-
-/// Whether limits that differ from the ones last logged (at `at`) are logged
-/// now: always when one fell or the ramp reached its `targets` (CCL, DCL);
-/// on the way up, once a [`LIMITS_LOG_PERIOD_US`].
-fn limits_log_due(
-    last: Option<Limits>,
-    at: Instant,
-    limits: &Limits,
-    targets: (u16, u16),
-    now: Instant,
-) -> bool {
-    let Some(l) = last else {
-        return true;
-    };
-    let rising = limits.ccl_da >= l.ccl_da
-        && limits.dcl_da >= l.dcl_da
-        && limits.cvl_dv == l.cvl_dv
-        && limits.discharge_dv == l.discharge_dv;
-    let ramping = limits.ccl_da < targets.0 || limits.dcl_da < targets.1;
-    !(rising && ramping) || now.saturating_sub(at) >= LIMITS_LOG_PERIOD_US
-}
-
 /// Frames in one burst at most (a summary and a slow period of the battery's).
 const QUEUE: usize = 16;
 
 /// A Luxpower inverter's shutdown request holds this long after its last
 /// 0x300, µs.
 pub const SHUTDOWN_HOLD_US: Instant = 10 * crate::SECOND;
-
-/// What the inverter output has to log, oldest first; when full, the oldest
-/// is dropped.
-#[derive(Debug, Clone, Default)]
-pub struct Reports(Deque<InverterReport, 8>);
-
-impl Reports {
-    /// Adds `r` (dropping the oldest when full).
-    pub fn push(&mut self, r: InverterReport) {
-        if self.0.is_full() {
-            let _ = self.0.pop_front();
-        }
-        let _ = self.0.push_back(r);
-    }
-
-    /// The oldest, taken.
-    pub fn pop(&mut self) -> Option<InverterReport> {
-        self.0.pop_front()
-    }
-}
 
 /// The inverter output. See the module documentation.
 #[derive(Debug, Clone)]
@@ -603,7 +458,7 @@ impl Inverter {
             EventId::LowTemperatureCutoff => EventId::RecoveredLowTemperatureFault,
             _ => EventId::RecoveredRegenerationOverCurrent,
         };
-        if tripped_protection(e.id).is_some() {
+        if Protected::of_event(e.id).is_some() {
             self.tripped = Some(e.id);
         }
         match e.id {
@@ -627,7 +482,7 @@ impl Inverter {
             return Protected::default();
         }
         self.tripped
-            .and_then(tripped_protection)
+            .and_then(Protected::of_event)
             .unwrap_or(Protected {
                 system: true,
                 ..Protected::default()
@@ -957,74 +812,6 @@ impl Inverter {
         }
     }
 
-    /// A bridge alone whose newest data is `age` old, stale: the hold the
-    /// pack can afford, then the stop said blind (see the module
-    /// documentation).
-    fn fill_stale(
-        &mut self,
-        now: Instant,
-        age: Instant,
-        settings: &PackSettings,
-        state: &PackState,
-    ) {
-        let since = self.stale.stale_at(now);
-        let hold_us = match self.config.stale_policy {
-            StaleMode::Hold => self.config.stale_hold_us,
-            StaleMode::Stop => 0,
-        };
-        let last = self.limits.unwrap_or(Limits {
-            cvl_dv: 0,
-            ccl_da: 0,
-            dcl_da: 0,
-            discharge_dv: 0,
-        });
-        let charge = self.config.charge;
-        let budget = self
-            .stale
-            .budget(|| HoldBudget::new(state, settings, &charge, last.dcl_da, hold_us));
-        if since == now {
-            self.report_stale(age, Some(budget));
-        }
-        let elapsed = now.saturating_sub(since);
-        let conditions = self.conditions;
-        let made = Made {
-            state,
-            conditions: &conditions,
-            capacity_ah: settings.capacity_cah / 100,
-            modules: (1, 1, u16::from(budget.spent(elapsed)), 0),
-            slow: false,
-        };
-        let charge_why = self.fresh_stops.charge.unwrap_or(StopWhy::LinkLost);
-        if !budget.spent(elapsed) {
-            let limits = Limits {
-                ccl_da: 0,
-                dcl_da: budget.dcl_at(elapsed),
-                ..last
-            };
-            let stops = Stops {
-                charge: Some(charge_why),
-                discharge: None,
-            };
-            let signals = self.signals();
-            self.tell(now, limits, stops, signals, false, false, &made);
-            return;
-        }
-        let on_silence = self.config.protocol.on_silence();
-        if self.stale.hold_ends() {
-            self.reports
-                .push(InverterReport::StaleHoldEnded(on_silence));
-        }
-        if on_silence == OnSilence::Stops && self.stale.stop_period() >= dialect::STOP_BEFORE_QUIET
-        {
-            return; // the stop was said: the inverter stops on silence
-        }
-        let stops = Stops {
-            charge: Some(charge_why),
-            discharge: Some(self.fresh_stops.discharge.unwrap_or(StopWhy::LinkLost)),
-        };
-        self.tell(now, last, stops, Signals::ALL, false, false, &made);
-    }
-
     /// This pack's limits and conditions from fresh data: kept, and logged
     /// when the limits change.
     fn update_own(
@@ -1061,37 +848,4 @@ impl Inverter {
     pub fn own_summary(&self) -> Option<Summary> {
         self.membership.own_summary()
     }
-
-    /// Stale telemetry, `age` old: what the configured policy does about it,
-    /// with the hold the pack can afford (a bridge alone).
-    fn report_stale(&mut self, age: Instant, hold: Option<HoldBudget>) {
-        self.reports.push(InverterReport::Stale {
-            age_ms: (age / crate::MS).min(u64::from(u32::MAX)) as u32,
-            policy: self.config.stale_policy,
-            hold,
-        });
-    }
-}
-
-/// The protection a cutoff event of the BMS stands for (`None`: not a
-/// cutoff).
-fn tripped_protection(id: EventId) -> Option<Protected> {
-    let mut p = Protected::default();
-    match id {
-        EventId::UnderVoltageCutoff | EventId::FullyDischargedCutoff => p.under_voltage = true,
-        EventId::OverVoltageCutoff => p.over_voltage = true,
-        EventId::OverTemperatureCutoff => p.over_temperature = true,
-        EventId::LowTemperatureCutoff | EventId::LowTemperatureChargingCutoff => {
-            p.under_temperature = true
-        }
-        EventId::DischargingOverCurrentCutoff => p.discharge_over_current = true,
-        EventId::ChargingOverCurrentCutoff | EventId::RegenerationOverCurrentCutoff => {
-            p.charge_over_current = true
-        }
-        EventId::ChargerSwitchError | EventId::LoadSwitchError | EventId::SinglePortSwitchError => {
-            p.system = true
-        }
-        _ => return None,
-    }
-    Some(p)
 }

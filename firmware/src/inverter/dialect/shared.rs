@@ -5,6 +5,7 @@
 //! dialect imports this module; it imports none of them.
 
 use crate::inverter::control::{Conditions, Limits, PackSettings, PackState};
+use protocol_core::events::EventId;
 
 /// One classic CAN frame with an 11-bit identifier.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -278,6 +279,29 @@ impl Protected {
             discharge_over_current: self.discharge_over_current || o.discharge_over_current,
             system: self.system || o.system,
         }
+    }
+
+    /// The protection a cutoff event of the BMS stands for (`None`: not a
+    /// cutoff).
+    pub fn of_event(id: EventId) -> Option<Self> {
+        let mut p = Self::default();
+        match id {
+            EventId::UnderVoltageCutoff | EventId::FullyDischargedCutoff => p.under_voltage = true,
+            EventId::OverVoltageCutoff => p.over_voltage = true,
+            EventId::OverTemperatureCutoff => p.over_temperature = true,
+            EventId::LowTemperatureCutoff | EventId::LowTemperatureChargingCutoff => {
+                p.under_temperature = true
+            }
+            EventId::DischargingOverCurrentCutoff => p.discharge_over_current = true,
+            EventId::ChargingOverCurrentCutoff | EventId::RegenerationOverCurrentCutoff => {
+                p.charge_over_current = true
+            }
+            EventId::ChargerSwitchError
+            | EventId::LoadSwitchError
+            | EventId::SinglePortSwitchError => p.system = true,
+            _ => return None,
+        }
+        Some(p)
     }
 
     /// The protection a stop of charging (`charge`) or discharging for `why`
