@@ -158,22 +158,8 @@ pub fn decide(i: &Inputs<'_>) -> Say {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::inverter::dialect::pylon::tests::state;
     use crate::inverter::dialect::{pylon, victron};
-
-    fn state() -> PackState {
-        PackState {
-            min_cell_mv: 3301,
-            max_cell_mv: 3345,
-            pack_v: 53.21,
-            current_a: -12.3,
-            soc_pct: 65.4,
-            soh_pct: 97.0,
-            min_temp_c: 21.5,
-            max_temp_c: 24.9,
-            fault: false,
-            charge_blocked: false,
-        }
-    }
 
     fn inputs<'a>(s: &'a PackState, c: &'a Conditions, stops: Stops, sig: Signals) -> Inputs<'a> {
         Inputs {
