@@ -1035,6 +1035,42 @@ mod what_review_found {
     }
 
     #[test]
+    fn a_faulted_pack_gone_silent_counts_with_what_it_takes_closed() {
+        // Two packs charging 10 A each; a third, last heard with its switch
+        // open (a fault: limits 0), has no fresh data now: it may have
+        // closed, and takes at most its limits from before the fault.
+        let charging = member(Summary {
+            current_da: 100,
+            ..summary()
+        });
+        let faulted = Summary {
+            fault: true,
+            age_ds: 200,
+            current_da: 0,
+            limits: Limits {
+                ccl_da: 0,
+                dcl_da: 0,
+                ..summary().limits
+            },
+            ..summary()
+        };
+        let silent = Member {
+            closed_limits: Some((400, 500)),
+            ..member(faulted)
+        };
+        let b = aggregate(&[charging, charging, silent], STALE).unwrap();
+        assert_eq!((b.online, b.offline, b.unknown), (2, 1, 1));
+        // Never the 0 of its fault: the DCL is its closed 50 A (usable 49 A),
+        // and the CCL is bounded by its closed 40 A beyond the others.
+        assert_eq!(b.limits.dcl_da, 490, "{:?}", b.limits);
+        assert!(b.limits.ccl_da > 0, "{:?}", b.limits);
+        // Without its closed limits (never seen closed), its 0 still counts.
+        let unknown_closed = member(faulted);
+        let b = aggregate(&[charging, charging, unknown_closed], STALE).unwrap();
+        assert_eq!(b.limits.dcl_da, 0);
+    }
+
+    #[test]
     fn a_bridge_that_sends_no_summary_never_speaks() {
         let p = Packs::new(1);
         let mut e = Election::new(0);

@@ -258,13 +258,21 @@ fn limit_of(
     let n = part().count() as i32;
     let x = |m: &Member| sign * i32::from(m.summary.current_da);
     let l = |m: &Member| usable(limit(&m.summary));
+    // A pack without data whose last data said its switch was open (a
+    // fault: limits 0) may have closed it meanwhile: it counts with what it
+    // takes closed, as a pack known open does — never with the 0 of its
+    // fault, which would stop the battery for a pack that is not there.
+    let lu = |m: &Member| match m.closed_limits {
+        Some((ccl, dcl)) if m.summary.fault => usable(if sign > 0 { ccl } else { dcl }),
+        _ => l(m),
+    };
     let total: i32 = part().map(|(_, m)| x(m)).sum();
     let pos = |v: i32| v.max(0);
     let alpha = |i: usize| shares.get(i).copied().flatten();
     let learnt = n >= 2 && unknown().next().is_none() && part().all(|(i, _)| alpha(i).is_some());
     let mut most: i32 = part()
         .map(|(_, m)| l(m))
-        .chain(unknown().map(l))
+        .chain(unknown().map(lu))
         .fold(0i32, i32::saturating_add);
     let over = |t: f32| t.clamp(i32::MIN as f32, i32::MAX as f32) as i32;
     for (k, mk) in part() {
@@ -304,7 +312,7 @@ fn limit_of(
     }
     let largest = part().map(|(_, m)| pos(x(m))).max().unwrap_or(0);
     for mu in unknown() {
-        most = most.min((pos(total) - largest).saturating_add(l(mu)));
+        most = most.min((pos(total) - largest).saturating_add(lu(mu)));
     }
     // A pack whose BMS opened its switch closes it again by itself (a
     // TinyBMS recovers from a cutoff) and takes its share of the total at
