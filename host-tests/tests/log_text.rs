@@ -208,6 +208,13 @@ fn a_protection_line_says_what_was_told() {
         said_inverter(&r),
         "CAN protection active: charge stopped (temperature); told: charge current 0.0 A, discharge current 48.0 A, charge voltage 52.1 V, charge enable off, discharge enable on, SOC 100 %, BMS data lost flagged"
     );
+    assert_eq!(r.level(), Level::Warn);
+    // The all-clear is news, not a warning.
+    let clear = InverterReport::Protection {
+        stops: Stops::default(),
+        told,
+    };
+    assert_eq!(clear.level(), Level::Info);
     let e = InverterReport::IgnoresStop(Ignored {
         side: Side::Charge,
         current_da: 98,

@@ -93,6 +93,8 @@ impl InverterReport {
     /// Log level: what needs attention is a warning.
     pub fn level(&self) -> crate::Level {
         match self {
+            // The all-clear after a stop (and at start) is news, not a warning.
+            Self::Protection { stops, .. } if stops.none() => crate::Level::Info,
             Self::InverterSeen
             | Self::Fresh
             | Self::BusOk
