@@ -41,6 +41,7 @@ fn bms() -> PackSettings {
         uv_cutoff_mv: 2800,
         discharge_cutoff_a: 150,
         charge_cutoff_a: 100,
+        discharge_cutoff_s: 5,
         overheat_c: 55,
         low_temp_charge_c: 2,
     }

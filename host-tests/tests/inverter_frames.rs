@@ -22,6 +22,7 @@ fn lfp_settings() -> PackSettings {
         uv_cutoff_mv: 2500,
         discharge_cutoff_a: 150,
         charge_cutoff_a: 90,
+        discharge_cutoff_s: 5,
         overheat_c: 60,
         low_temp_charge_c: 0,
     }
@@ -184,6 +185,68 @@ fn a_cut_on_the_first_update_is_held_too() {
     assert_eq!(c.update(20 * S, &s, &state()).0.ccl_da, 0);
     let after = c.update(32 * S, &s, &state()).0.ccl_da;
     assert!(after > 0 && after <= 20 * 12, "{after}");
+}
+
+/// A current past its cutoff: a discharge past 317 stops once it lasted
+/// 1 s (half the BMS's timeout when that is shorter; a shorter surge
+/// passes), a charge past 318 at once; a timeout of 0 leaves no patience;
+/// the limit comes back after the hold.
+#[test]
+fn a_current_past_its_cutoff_stops_that_direction_before_the_bms_trips() {
+    let s = lfp_settings(); // 317 = 150 A for 5 s, 318 = 90 A
+    let at = |a: f32| PackState {
+        current_a: a,
+        ..state()
+    };
+    let run = |s: &PackSettings, currents: &[(u64, f32)]| {
+        let mut c = ChargeControl::new(ChargeConfig::default());
+        let mut out = Vec::new();
+        for &(t, a) in currents {
+            let begins = c.watch_current(t, s, &at(a));
+            let (l, _) = c.update(t, s, &at(a));
+            out.push((begins, l.ccl_da, l.dcl_da));
+        }
+        out
+    };
+    // A 0.8 s surge to 160 A: nothing stops.
+    let surge: Vec<_> = (0..=4)
+        .map(|k| (k * S / 5, -160.0))
+        .chain([(S, -40.0)])
+        .collect();
+    assert!(run(&s, &surge).iter().all(|&(b, _, dcl)| !b && dcl > 0));
+    // 160 A on: DCL 0 from 1 s on, said once; CCL stays.
+    let on: Vec<_> = (0..=6).map(|k| (k * S / 2, -160.0)).collect();
+    let r = run(&s, &on);
+    let first = r.iter().position(|&(_, _, dcl)| dcl == 0).unwrap();
+    assert_eq!(first, 2, "{r:?}");
+    assert_eq!(r.iter().filter(|(b, ..)| *b).count(), 1);
+    assert!(r[first].0 && r[first].1 > 0);
+    // The load gone: still 0 for the hold, then back.
+    let mut c = ChargeControl::new(ChargeConfig::default());
+    for &(t, a) in &on {
+        c.watch_current(t, &s, &at(a));
+        c.update(t, &s, &at(a));
+    }
+    c.watch_current(4 * S, &s, &at(0.0));
+    assert_eq!(c.update(4 * S, &s, &at(0.0)).0.dcl_da, 0);
+    assert_eq!(c.update(30 * S, &s, &at(0.0)).0.dcl_da, 0);
+    assert!(c.update(40 * S, &s, &at(0.0)).0.dcl_da > 0);
+    // A stop seen by a snapshot is kept for the next update even when a
+    // later snapshot no longer shows the current.
+    let mut c = ChargeControl::new(ChargeConfig::default());
+    assert!(c.watch_current(0, &s, &at(95.0)));
+    c.watch_current(S / 10, &s, &at(10.0));
+    assert_eq!(c.update(S / 5, &s, &at(10.0)).0.ccl_da, 0);
+    // Timeout 1 s: the stop at 0.5 s (half of it); 0 s: at once.
+    for (timeout, when) in [(1u8, 1usize), (0, 0)] {
+        let t = PackSettings {
+            discharge_cutoff_s: timeout,
+            ..s
+        };
+        let r = run(&t, &on);
+        let first = r.iter().position(|&(_, _, dcl)| dcl == 0);
+        assert_eq!(first, Some(when), "timeout {timeout}: {r:?}");
+    }
 }
 
 #[test]
@@ -425,6 +488,7 @@ fn period_frames(p: Protocol) -> Vec<CanFrame> {
         uv_cutoff_mv: 2800,
         discharge_cutoff_a: 200,
         charge_cutoff_a: 150,
+        discharge_cutoff_s: 5,
         overheat_c: 60,
         low_temp_charge_c: 0,
     };
@@ -647,6 +711,7 @@ fn arb_settings() -> impl Strategy<Value = PackSettings> {
                 uv_cutoff_mv: uv,
                 discharge_cutoff_a: doc,
                 charge_cutoff_a: coc,
+                discharge_cutoff_s: 5,
                 overheat_c: hot,
                 low_temp_charge_c: cold,
             }

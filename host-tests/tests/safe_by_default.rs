@@ -155,6 +155,67 @@ fn the_hold_allows_only_what_the_pack_can_afford() {
     }
 }
 
+/// A Multi in island mode feeds its loads whatever the discharge limit but
+/// 0: a house drawing 111 A from a pack whose BMS trips past 60 A after 5 s
+/// used to run on until the BMS opened its switch. The bridge stops the
+/// discharge once the over-current lasted 1 s, behind every dialect, and
+/// gives the limit back after the hold; a shorter surge passes untouched.
+#[test]
+fn a_load_past_the_cutoff_is_stopped_before_the_bms_trips() {
+    for p in PROTOCOLS {
+        let mut l = lfp(p, 8);
+        l.bms_switch = true;
+        harsh("island").unwrap().apply(&mut l.model);
+        l.h.sim.set_soc_percent(60.0);
+        l.model.load_a = 30.0;
+        l.run_until(2 * MIN);
+        // A 0.6 s surge to 80 A: the BMS rides it out, so does the bridge.
+        l.model.load_a = 80.0;
+        l.run_until(2 * MIN + 3 * S / 5);
+        l.model.load_a = 30.0;
+        l.run_until(3 * MIN);
+        assert!(
+            l.sent_limits.iter().all(|&(_, _, _, dcl)| dcl > 0),
+            "{p:?}: a surge stopped the discharge"
+        );
+        let overload = l.h.now;
+        l.model.load_a = 111.0;
+        l.run_until(overload + 5 * MIN);
+        assert!(l.trips.is_empty(), "{p:?}: the BMS tripped: {:?}", l.trips);
+        let (row, ok) = safety_row("overload", &l, l.h.now);
+        assert!(ok, "{p:?}: {row}");
+        let t = &l.figures.truth;
+        assert!(
+            t.discharge_over_current_us <= 7 * S / 2,
+            "{p:?}: {} µs past 317",
+            t.discharge_over_current_us
+        );
+        let after: Vec<u16> = l
+            .sent_limits
+            .iter()
+            .filter(|(at, ..)| *at >= overload)
+            .map(|&(_, _, _, dcl)| dcl)
+            .collect();
+        println!(
+            "{p:?}: {:.1} s past 317 at most, {} of {} limits DCL 0, {} A at most",
+            t.discharge_over_current_us as f64 / 1e6,
+            after.iter().filter(|&&d| d == 0).count(),
+            after.len(),
+            t.max_discharge_a
+        );
+        let first_stop = after.iter().position(|&d| d == 0);
+        let first_stop = first_stop.unwrap_or_else(|| panic!("{p:?}: DCL never 0"));
+        assert!(
+            after[first_stop..].iter().any(|&d| d > 0),
+            "{p:?}: the discharge limit never came back"
+        );
+        assert!(l.figures.reports.iter().any(|(_, r)| matches!(
+            r,
+            InverterReport::Protection { stops, .. } if stops.discharge == Some(StopWhy::Current)
+        )));
+    }
+}
+
 /// Why 4: the largest CCL and DCL used to be the BMS's own over-current
 /// cutoffs, and the over-current protection bit was raised whenever the
 /// current reached them: 6 737 of 21 600 frames of a normal full charge. Now

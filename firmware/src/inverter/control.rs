@@ -35,6 +35,11 @@
 //! * **Faults:** BMS status "fault" → CCL 0 and DCL 0 (the BMS has opened its
 //!   switches: nothing to ask of the inverter); a charge-side fault event (over-
 //!   voltage, charge over-current, low temperature) → CCL 0 until it recovers.
+//! * **A current past its cutoff** (an inverter that ignores a limit other
+//!   than 0 — a Multi in island mode feeding its loads): CCL 0 at once past
+//!   318, DCL 0 once a discharge past 317 lasted a second (half the BMS's
+//!   timeout, 330's high byte, when that is shorter) — well before the BMS
+//!   would trip — then the hold and the ramp.
 //! * **Hold and ramp:** after a cut (a limit forced to 0: fault, temperature,
 //!   a cell at the ceiling), the limit comes back only [`ChargeConfig::limit_hold_us`]
 //!   after the cause ended, and then rises at most [`ChargeConfig::ramp_rate_da_per_s`];
@@ -151,6 +156,9 @@ pub struct PackSettings {
     pub discharge_cutoff_a: u16,
     /// 318: charge over-current cutoff, A.
     pub charge_cutoff_a: u16,
+    /// 330 high byte: how long a discharge past 317 lasts before the BMS
+    /// trips, s.
+    pub discharge_cutoff_s: u8,
     /// 319: over-heat cutoff, °C.
     pub overheat_c: i16,
     /// 320: low-temperature charger cutoff, °C.
@@ -173,6 +181,7 @@ impl PackSettings {
             uv_cutoff_mv: get(S::UnderVoltageCutoff)?,
             discharge_cutoff_a: get(S::DischargeOverCurrentCutoff)?,
             charge_cutoff_a: get(S::ChargeOverCurrentCutoff)?,
+            discharge_cutoff_s: u8::try_from(S::DischargeOverCurrentTimeout.read(b)?).ok()?,
             overheat_c: signed(S::OverHeatCutoff)?,
             low_temp_charge_c: signed(S::LowTemperatureChargerCutoff)?,
         };
@@ -404,6 +413,58 @@ pub struct ChargeControl {
     dcl: Ramp,
     last_update: Option<Instant>,
     targets: (u16, u16),
+    over_current: OverCurrent,
+}
+
+/// How long a discharge past 317 may last before the bridge stops it, at
+/// most, µs: a surge shorter than this passes, and the stop still has
+/// the rest of the BMS's timeout (5 s by default) to reach the inverter —
+/// through another bridge of the battery, too.
+const SURGE_US: Instant = crate::SECOND;
+
+/// A current past its cutoff (317, 318): an inverter that ignores a limit
+/// other than 0 (a Multi in island mode feeding its loads) draws what its
+/// loads take. The TinyBMS trips on a discharge past 317 once it lasted its
+/// timeout (330's high byte) and on a charge past 318; the bridge stops that
+/// direction first — a discharge once it lasted [`SURGE_US`] (half the
+/// timeout when that is shorter), a charge at once — and the
+/// limit comes back after the hold, ramping, as after any cut.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+struct OverCurrent {
+    /// Since when the discharge is past 317 (the snapshot's time).
+    since: Option<Instant>,
+    /// Past the cutoffs now (the discharge for half the timeout): charge, discharge.
+    now: (bool, bool),
+    /// A stop not yet seen by an update (so that a stop is never missed
+    /// between two snapshots).
+    pending: (bool, bool),
+}
+
+impl OverCurrent {
+    /// A fresh snapshot taken at `at`: returns whether a stop begins with it.
+    fn watch(&mut self, at: Instant, s: &PackSettings, p: &PackState) -> bool {
+        let charge = p.current_a >= f32::from(s.charge_cutoff_a);
+        let discharge = if -p.current_a >= f32::from(s.discharge_cutoff_a) {
+            let since = *self.since.get_or_insert(at);
+            let timeout = u64::from(s.discharge_cutoff_s) * crate::SECOND;
+            let patience = (timeout / 2).min(SURGE_US);
+            at.saturating_sub(since) >= patience
+        } else {
+            self.since = None;
+            false
+        };
+        let begins = (charge && !self.now.0) || (discharge && !self.now.1);
+        self.now = (charge, discharge);
+        self.pending = (self.pending.0 || charge, self.pending.1 || discharge);
+        begins
+    }
+
+    /// The stops for this update: charge, discharge.
+    fn take(&mut self) -> (bool, bool) {
+        let stops = self.pending;
+        self.pending = self.now;
+        stops
+    }
 }
 
 /// A limit that falls at once, rises at a bounded rate, and after being cut to
@@ -498,7 +559,20 @@ impl ChargeControl {
             dcl: Ramp::new(),
             last_update: None,
             targets: (0, 0),
+            over_current: OverCurrent {
+                since: None,
+                now: (false, false),
+                pending: (false, false),
+            },
         }
+    }
+
+    /// A fresh snapshot taken at `at` (each once): a current past its
+    /// cutoff stops that direction (see [`OverCurrent`]). Returns whether a
+    /// stop begins with it — the inverter is to hear it now, not a period
+    /// later.
+    pub fn watch_current(&mut self, at: Instant, s: &PackSettings, p: &PackState) -> bool {
+        self.over_current.watch(at, s, p)
     }
 
     /// The inverter was without limits (stale telemetry, a bus-off): treat it
@@ -590,7 +664,14 @@ impl ChargeControl {
         let target = self.advance_phase(now, s, p, n);
         let cvl_dv = self.charge_voltage_limit(now, p, n, target, bounds);
         let temps = Temperatures::of(&c, s, p);
-        let (ccl_target, dcl_target) = current_targets(&c, s, p, temps);
+        let (mut ccl_target, mut dcl_target) = current_targets(&c, s, p, temps);
+        let (charge_over, discharge_over) = self.over_current.take();
+        if charge_over {
+            ccl_target = 0;
+        }
+        if discharge_over {
+            dcl_target = 0;
+        }
         self.targets = (ccl_target, dcl_target);
         let ccl_da = self.ccl.step(now, ccl_target, dt_us, &c);
         let dcl_da = self.dcl.step(now, dcl_target, dt_us, &c);

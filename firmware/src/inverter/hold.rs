@@ -115,6 +115,7 @@ mod tests {
             uv_cutoff_mv: 2500,
             discharge_cutoff_a: 60,
             charge_cutoff_a: 60,
+            discharge_cutoff_s: 5,
             overheat_c: 60,
             low_temp_charge_c: 0,
         }

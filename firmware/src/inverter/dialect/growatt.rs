@@ -485,6 +485,7 @@ mod tests {
             uv_cutoff_mv: 2800,
             discharge_cutoff_a: 200,
             charge_cutoff_a: 150,
+            discharge_cutoff_s: 5,
             overheat_c: 60,
             low_temp_charge_c: 0,
         };

@@ -43,6 +43,10 @@ pub enum Received {
     Partial,
     /// The last frame of a summary: taken.
     Complete(u8),
+    /// The last frame of a summary: taken, and one of its current limits is
+    /// 0 where the node's last summary had it above 0 (a stop the speaker
+    /// passes on at once, not a period later).
+    Stops(u8),
     /// A summary from this bridge's own node number: another bridge is
     /// configured with the same number.
     DuplicateNode,
@@ -175,7 +179,13 @@ impl Packs {
                 Received::DuplicateNode
             }
             Ok(summary) => {
+                let mut stops = false;
                 if let Some(h) = self.heard.get_mut(i) {
+                    if let Some(last) = h.as_ref().map(|h| h.summary.limits) {
+                        let fell = |was: u16, is: u16| was > 0 && is == 0;
+                        stops = fell(last.ccl_da, summary.limits.ccl_da)
+                            || fell(last.dcl_da, summary.limits.dcl_da);
+                    }
                     let before = h.as_ref().and_then(|h| h.closed);
                     let closed = if summary.fault {
                         before
@@ -188,7 +198,11 @@ impl Packs {
                         closed,
                     });
                 }
-                Received::Complete(node)
+                if stops {
+                    Received::Stops(node)
+                } else {
+                    Received::Complete(node)
+                }
             }
             Err(e) => {
                 self.refused = self.refused.saturating_add(1);
