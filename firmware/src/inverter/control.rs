@@ -568,9 +568,9 @@ impl ChargeControl {
     }
 
     /// A fresh snapshot taken at `at` (each once): a current past its
-    /// cutoff stops that direction (see [`OverCurrent`]). Returns whether a
-    /// stop begins with it — the inverter is to hear it now, not a period
-    /// later.
+    /// cutoff stops that direction (the module's "a current past its
+    /// cutoff"). Returns whether a stop begins with it — the inverter is to
+    /// hear it now, not a period later.
     pub fn watch_current(&mut self, at: Instant, s: &PackSettings, p: &PackState) -> bool {
         self.over_current.watch(at, s, p)
     }
