@@ -191,6 +191,19 @@ def check_update(dirname, n, chip, app, problems):
     features = fields["features"].split(",")
     if ("wifi" in features) != stem.endswith("-wifi") or "host-link" not in features:
         problems.append(f"{what}: features {fields['features']!r} are not the image's")
+    # The header says what the image itself says: its descriptor's version
+    # (bytes 48..80) and build (80..112), the features it names in its bytes.
+    desc_version = app[48:80].split(b"\0")[0].decode("ascii", "replace")
+    desc_build = app[80:112].split(b"\0")[0].decode("ascii", "replace")
+    build = text_field(header, 148, 180)
+    if fields["version"] != desc_version or build != desc_build:
+        problems.append(f"{what}: header {fields['version']!r} built from {build!r}, the image "
+                        f"says {desc_version!r} built from {desc_build!r}")
+    mark = b"tinybms-features="
+    at = app.find(mark)
+    named = app[at + len(mark):].split(b"\0")[0].decode("ascii", "replace") if at >= 0 else None
+    if named != fields["features"]:
+        problems.append(f"{what}: header features {fields['features']!r}, the image names {named!r}")
     manifest = os.path.join(dirname, f"manifest-{stem}.json")
     if os.path.exists(manifest):
         want = json.load(open(manifest)).get("version", "").split("+")[0]

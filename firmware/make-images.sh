@@ -33,10 +33,12 @@
 #                               leaves the nvs partition (the configuration) alone
 # and SHA256SUMS over all of them. check-images.py checks their layout and
 # the update files' signatures.
-# The signing key: TINYBMS_SIGNING_KEY_FILE (64 hex digits, `tinybms keygen`;
-# the release workflow's secret); its public key is built into every image
-# (TINYBMS_UPDATE_KEY). Without one, a throwaway key is made once in the
-# target folder (openssl): those images trust it and no other bridge does.
+# The signing key: TINYBMS_SIGNING_KEY_FILE (a private key, 128 hex digits,
+# `tinybms keygen`; the release workflow's secret); its public key is built
+# into every image (TINYBMS_UPDATE_KEY). Without one, a throwaway key is made
+# once in the target folder (openssl): those images trust it and no other
+# bridge does (TINYBMS_SIGNING_KEY_MAKE=1: made at TINYBMS_SIGNING_KEY_FILE
+# when it is missing).
 # The update files are signed by `tinybms sign` (TINYBMS names the tool, else
 # it is built from this repository).
 # TINYBMS_VERSION (the release tag without its `v`; else the package's
@@ -44,6 +46,8 @@
 # MAKE_IMAGES_STEP: `build` builds every board's ELF into OUT_DIR, `pack` makes
 # the images, manifests and SHA256SUMS from those ELFs, `all` (the default)
 # both.
+# IMAGE_BOARDS="board …": only those boards (e.g. your own build of your board:
+# docs/updates.md, "From source").
 # IMAGE_LINT_BOARDS="board …": those boards' builds are also clippy's runs over
 # the firmware crate (-D warnings; CI).
 # Every image names what it was built from (`hello`'s `build`, `tinybms version`,
@@ -83,29 +87,53 @@ if [[ $phase != build ]]; then
     fi
 fi
 
-# The signing key and its public key (built into every image).
-key_file=${TINYBMS_SIGNING_KEY_FILE:-}
-if [[ -z $key_file ]]; then
-    key_file=target/update-signing-key.hex
-    if [[ ! -s $key_file ]]; then
-        mkdir -p "$(dirname "$key_file")"
-        (umask 077 && openssl rand -hex 32 > "$key_file")
-    fi
-    echo "== a throwaway signing key ($key_file): these images trust it, no other bridge does"
-fi
-[[ -s $key_file ]] || { echo "make-images: no signing key in $key_file" >&2; exit 2; }
-# Ed25519's public key of the seed, through openssl (a DER private key is a
-# fixed prefix and the 32-byte seed; the public key's DER ends in its 32 bytes).
+# The signing key and its public key (built into every image). A private key
+# file is 128 hex digits, the seed and then its public key, with # comment
+# lines (`tinybms keygen`'s format; docs/updates.md): its public half is
+# checked against the seed here (openssl: a DER private key is a fixed prefix
+# and the 32-byte seed; the public key's DER ends in its 32 bytes).
+key_file=${TINYBMS_SIGNING_KEY_FILE:-target/update-signing-key.hex}
 TINYBMS_UPDATE_KEY=$(python3 - "$key_file" <<'PY'
-import subprocess, sys
-seed = bytes.fromhex(open(sys.argv[1]).read().strip())
-assert len(seed) == 32, "the signing key is not 64 hex digits"
-der = bytes.fromhex("302e020100300506032b657004220420") + seed
-pub = subprocess.run(["openssl", "pkey", "-inform", "DER", "-pubout", "-outform", "DER"],
-                     input=der, capture_output=True, check=True).stdout
-print(pub[-32:].hex())
+import os, subprocess, sys
+path = sys.argv[1]
+prefix = bytes.fromhex("302e020100300506032b657004220420")
+def public_of(seed):
+    der = subprocess.run(["openssl", "pkey", "-inform", "DER", "-pubout", "-outform", "DER"],
+                         input=prefix + seed, capture_output=True, check=True).stdout
+    return der[-32:]
+if not os.path.exists(path) and (not os.environ.get("TINYBMS_SIGNING_KEY_FILE")
+                                 or os.environ.get("TINYBMS_SIGNING_KEY_MAKE")):
+    # No key given (or one to make where it is missing: CI's): a throwaway
+    # one, made once.
+    # Written whole, then linked into place: two builds at once make one key.
+    seed = os.urandom(32)
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    tmp = "%s.%d" % (path, os.getpid())
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write("# tinybms update signing key: PRIVATE (a throwaway one of make-images.sh)\n"
+                f"{seed.hex()}\n{public_of(seed).hex()}\n")
+    try:
+        os.link(tmp, path)
+        print("== a throwaway signing key (%s): these images trust it, no other bridge does"
+              % path, file=sys.stderr)
+    except FileExistsError:
+        pass
+    finally:
+        os.unlink(tmp)
+text = "".join(l.strip() for l in open(path) if not l.strip().startswith("#"))
+if len(text) == 64:
+    sys.exit("make-images: %s holds 64 hex digits: a public key (or a private key of an older "
+             "tinybms keygen); sign with a private key, 128 hex digits (tinybms keygen)" % path)
+if len(text) != 128:
+    sys.exit("make-images: %s is not a private key (128 hex digits, tinybms keygen)" % path)
+raw = bytes.fromhex(text)
+seed, public = raw[:32], raw[32:]
+if public_of(seed) != public:
+    sys.exit("make-images: %s is damaged: its public half is not its seed's" % path)
+print(public.hex())
 PY
-) || { echo "make-images: cannot read the signing key" >&2; exit 2; }
+) || { echo "make-images: cannot read the signing key $key_file" >&2; exit 2; }
 export TINYBMS_UPDATE_KEY
 echo "== images trust the update key $TINYBMS_UPDATE_KEY"
 
@@ -118,6 +146,19 @@ product=$(sed -n 's/^pub const PRODUCT: &str = "\(.*\)";$/\1/p' src/improv/mod.r
 
 boards=$(sed -n 's/^board-\([a-z0-9-]*\) = \["\(esp32c[36]\)"\]$/\1:\2/p' Cargo.toml)
 [[ -n $boards ]] || { echo "make-images: no board features in Cargo.toml" >&2; exit 2; }
+# IMAGE_BOARDS="board …": only those (an owner's own build for their board).
+if [[ -n ${IMAGE_BOARDS:-} ]]; then
+    chosen=""
+    for b in $IMAGE_BOARDS; do
+        entry=$(printf '%s\n' $boards | grep "^$b:" || true)
+        [[ -n $entry ]] || {
+            echo "make-images: no board $b (the boards: $(printf '%s ' $boards | sed 's/:[a-z0-9]*//g'))" >&2
+            exit 2
+        }
+        chosen="$chosen $entry"
+    done
+    boards=$chosen
+fi
 
 for entry in $boards; do
     board=${entry%%:*}

@@ -48,6 +48,81 @@ impl Features {
     }
 }
 
+/// What precedes the features' names in an image ([`Features::tag`]), so
+/// that `tinybms sign` finds them in the image's bytes.
+pub const FEATURES_MARK: &[u8] = b"tinybms-features=";
+
+/// The length of [`Features::tag`].
+pub const FEATURES_TAG_LEN: usize = 48;
+
+impl Features {
+    /// The bits of `crate::update::file::FEATURE_NAMES` built in.
+    pub const fn bits(self) -> u8 {
+        (self.can as u8)
+            | (self.host_link as u8) << 1
+            | (self.wifi as u8) << 2
+            | (self.store as u8) << 3
+    }
+
+    /// `tinybms-features=can,host-link,wifi,store` (the names built in), then
+    /// zeros: kept in the image so that an update file's header names the
+    /// image's own features.
+    // A const fn cannot use `get`: every index is below the array's length
+    // (the mark and the longest list, 41 bytes, fit in 48).
+    #[allow(clippy::indexing_slicing)]
+    pub const fn tag(self) -> [u8; FEATURES_TAG_LEN] {
+        let mut out = [0u8; FEATURES_TAG_LEN];
+        let mut n = 0;
+        let mut i = 0;
+        while i < FEATURES_MARK.len() {
+            out[n] = FEATURES_MARK[i];
+            n += 1;
+            i += 1;
+        }
+        let all: [(bool, &[u8]); 4] = [
+            (self.can, b"can"),
+            (self.host_link, b"host-link"),
+            (self.wifi, b"wifi"),
+            (self.store, b"store"),
+        ];
+        let mut first = true;
+        let mut k = 0;
+        while k < all.len() {
+            let (on, name) = all[k];
+            if on {
+                if !first {
+                    out[n] = b',';
+                    n += 1;
+                }
+                first = false;
+                let mut j = 0;
+                while j < name.len() {
+                    out[n] = name[j];
+                    n += 1;
+                    j += 1;
+                }
+            }
+            k += 1;
+        }
+        out
+    }
+}
+
+/// The features an image names in its bytes ([`Features::tag`]), if it
+/// names them: the names after the mark, up to the first zero.
+pub fn features_in_image(image: &[u8]) -> Option<&str> {
+    let at = image
+        .windows(FEATURES_MARK.len())
+        .position(|w| w == FEATURES_MARK)?;
+    let rest = image.get(at + FEATURES_MARK.len()..)?;
+    let end = rest.iter().position(|&b| b == 0)?;
+    let names = core::str::from_utf8(rest.get(..end)?).ok()?;
+    names
+        .bytes()
+        .all(|b| b.is_ascii_lowercase() || b == b'-' || b == b',')
+        .then_some(names)
+}
+
 /// The bridge's identity.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Identity {
@@ -70,5 +145,29 @@ impl Identity {
             features,
             firmware: FIRMWARE,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_image_names_its_features_in_its_bytes() {
+        let all = Features {
+            can: true,
+            host_link: true,
+            wifi: true,
+            store: true,
+        };
+        let mut image = [0xAAu8; 200];
+        image[77..77 + FEATURES_TAG_LEN].copy_from_slice(&all.tag());
+        assert_eq!(features_in_image(&image), Some("can,host-link,wifi,store"));
+        let none = Features::default().tag();
+        image[77..77 + FEATURES_TAG_LEN].copy_from_slice(&none);
+        assert_eq!(features_in_image(&image), Some(""));
+        assert_eq!(features_in_image(&[0u8; 100]), None);
+        // The mark without its end (a cut image) names nothing.
+        assert_eq!(features_in_image(b"..tinybms-features=can,wi"), None);
     }
 }

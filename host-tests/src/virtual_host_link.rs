@@ -51,6 +51,13 @@ pub fn config(read_only: bool, stream_period_ms: u32) -> HostLinkConfig {
     }
 }
 
+/// [`config`] for an image with Wi-Fi (its network fields are taken).
+pub fn config_with_wifi(read_only: bool, stream_period_ms: u32) -> HostLinkConfig {
+    let mut c = config(read_only, stream_period_ms);
+    c.features.wifi = true;
+    c
+}
+
 /// A saver that writes the record to a store on `flash` and counts the saves.
 pub fn ram_saver(flash: &RamFlash, saves: Rc<Cell<u64>>) -> Saver {
     let mut store = tinybms_desk::flash::store(flash.clone());
@@ -71,7 +78,7 @@ impl Rig {
                 Features {
                     can: false,
                     host_link: true,
-                    ..Features::default()
+                    ..config.features
                 },
             ),
             inverter: None,

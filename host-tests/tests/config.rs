@@ -1113,3 +1113,33 @@ fn a_local_mdns_name_is_refused_and_only_that() {
         assert!(parse("mqtt_host", taken).is_ok(), "{taken}");
     }
 }
+
+/// Issue 51, item 7: 0x35E's name goes out byte for byte: ASCII only (a
+/// name with an accent was "applied" and went out cut, `DEYÉ` as `DEY`).
+#[test]
+fn the_inverter_name_is_ascii_only() {
+    let f = field("inverter_name").field();
+    for good in ["PYLON", "GOODWE", "DEYE", "SHEnergy", "A B-C.1"] {
+        assert!(value::parse(f, good).is_ok(), "{good}");
+    }
+    for bad in ["DEYÉ", "PYLON\u{7f}", "ÄÖ"] {
+        let e = value::parse(f, bad).unwrap_err();
+        assert!(e.detail.contains("ASCII"), "{bad}: {}", e.detail);
+    }
+}
+
+/// Issue 51, item 1: `update_key` takes a public key (64 hex digits) and
+/// refuses a private one (128, as `tinybms keygen` writes it) with words
+/// that say which is which, before any "too long".
+#[test]
+fn update_key_refuses_a_private_key_by_name() {
+    let f = field("update_key").field();
+    let public = "ab".repeat(32);
+    assert!(value::parse(f, &public).is_ok());
+    assert!(value::parse(f, "").is_ok());
+    let private = format!("{}{public}", "cd".repeat(32));
+    let e = value::parse(f, &private).unwrap_err();
+    assert!(e.detail.contains("PRIVATE key"), "{}", e.detail);
+    let e = value::parse(f, &public[1..]).unwrap_err();
+    assert!(e.detail.contains("64 hex digits"), "{}", e.detail);
+}

@@ -4,14 +4,14 @@
 //! the simulated BMS, in virtual time, with the store on a flash in RAM.
 
 use embassy_futures::block_on;
-use host_tests::virtual_host_link::{config, Rig};
+use host_tests::virtual_host_link::{config, config_with_wifi, Rig};
 use serde_json::{json, Value};
 use tinybms_firmware::config::{Config, FIELDS};
 use tinybms_firmware::inverter::Protocol;
 use tinybms_firmware::{MS, SECOND};
 
 fn ready() -> Rig {
-    let mut r = Rig::ready(config(false, 0));
+    let mut r = Rig::ready(config_with_wifi(false, 0));
     r.drain();
     r
 }
@@ -262,6 +262,33 @@ fn secrets_are_never_echoed() {
     assert_eq!(key_line["value"], "set");
     assert_eq!(key_line["default"], "unset");
     assert_eq!(key_line["secret"], true);
+}
+
+/// Issue 51: an image without Wi-Fi refuses the network fields (they used
+/// to be stored where nothing reads them), and changes nothing else of the
+/// same line.
+#[test]
+fn an_image_without_wifi_refuses_the_network_fields() {
+    let mut r = Rig::ready(config(false, 0));
+    r.drain();
+    let before = r.config().stored().clone();
+    let all = set(&mut r, 5, json!({"wifi_ssid":"home","stream_period":"2 s"}));
+    let o = of_type(&all, "config_outcome");
+    let ssid = o
+        .iter()
+        .find(|l| l["name"] == "wifi_ssid")
+        .unwrap_or_else(|| panic!("{all:#?}"));
+    assert_eq!(ssid["outcome"], "refused", "{ssid}");
+    assert!(ssid.to_string().contains("no Wi-Fi"), "{ssid}");
+    assert_eq!(r.config().stored(), &before, "nothing of the line applied");
+    // With Wi-Fi, the same line is taken.
+    let mut r = ready();
+    let all = set(&mut r, 6, json!({"wifi_ssid":"home"}));
+    assert_eq!(
+        of_type(&all, "config_outcome")[0]["outcome"],
+        "at_restart",
+        "{all:?}"
+    );
 }
 
 #[test]

@@ -349,7 +349,8 @@ fn hello_on_connect_and_on_request() {
         json!({"type":"hello","protocol":1,"firmware":env!("CARGO_PKG_VERSION"),
             "build":tinybms_firmware::identity::BUILD,"chip":"sim","board":"simulated",
             "features":["host-link"],"record_version":tinybms_firmware::config::VERSION,
-            "read_only":false,"stream_period_ms":1000,"dropped_lines":0})
+            "read_only":false,"stream_period_ms":1000,"dropped_lines":0,
+            "update":{"slot":null,"trial":"confirmed","built_in_key":null,"owner_key":null}})
     );
     r.line(r#"{"cmd":"hello","req":77}"#);
     assert_eq!(only(&r.drain())["req"], 77);

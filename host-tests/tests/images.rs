@@ -57,6 +57,26 @@ mkdir -p "target/$target/release" && : > "target/$target/release/tinybms-firmwar
 /// Runs the script in `dir`, with `env` added; the build names its cargo
 /// runs got, one per board.
 fn run(dir: &Path, env: &[(&str, &str)]) -> Vec<String> {
+    let builds = run_some(dir, env);
+    assert_eq!(builds.len(), 7, "one build per board: {builds:?}");
+    builds
+}
+
+/// [`run`] for any number of boards.
+fn run_some(dir: &Path, env: &[(&str, &str)]) -> Vec<String> {
+    let o = command(dir, env).output().unwrap();
+    assert!(
+        o.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let text = std::fs::read_to_string(dir.join("builds.txt")).unwrap();
+    text.lines().map(str::to_string).collect()
+}
+
+/// The script's command in `dir`, with `env` added.
+fn command(dir: &Path, env: &[(&str, &str)]) -> Command {
     let log = dir.join("builds.txt");
     let path = format!(
         "{}:{}",
@@ -70,23 +90,57 @@ fn run(dir: &Path, env: &[(&str, &str)]) -> Vec<String> {
         .env("PACK_IMAGES", dir.join("bin/pack-images"))
         .env("TINYBMS", dir.join("bin/tinybms"))
         .env_remove("TINYBMS_SIGNING_KEY_FILE")
+        .env_remove("TINYBMS_SIGNING_KEY_MAKE")
         .env_remove("TINYBMS_BUILD")
         // Never a repository above the scratch folder.
         .env("GIT_CEILING_DIRECTORIES", dir.parent().unwrap());
     for (k, v) in env {
         c.env(k, v);
     }
-    let o = c.output().unwrap();
-    assert!(
-        o.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    );
-    let text = std::fs::read_to_string(&log).unwrap();
-    let builds: Vec<String> = text.lines().map(str::to_string).collect();
-    assert_eq!(builds.len(), 7, "one build per board: {builds:?}");
-    builds
+    c
+}
+
+/// Issue 51, item 5: an owner's own build for one board (IMAGE_BOARDS), and
+/// the signing key's kind checked: a 64-digit key (a public key, or a seed
+/// of an older keygen) is refused with words, as a damaged private key.
+#[test]
+fn one_board_on_request_and_only_a_private_key_signs() {
+    let dir = scratch("one");
+    let builds = run_some(&dir, &[("IMAGE_BOARDS", "c3-supermini")]);
+    assert_eq!(builds.len(), 1, "{builds:?}");
+    let o = command(&dir, &[("IMAGE_BOARDS", "c3-nosuch")])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("no board c3-nosuch"));
+    // The throwaway key it made: a private key file, 128 hex digits.
+    let made = std::fs::read_to_string(dir.join("firmware/target/update-signing-key.hex")).unwrap();
+    let digits: String = made.lines().filter(|l| !l.starts_with('#')).collect();
+    assert_eq!(digits.len(), 128, "{made}");
+    for (name, text, says) in [
+        ("public", "ab".repeat(32), "public key"),
+        (
+            "damaged",
+            format!("{}{}", "ab".repeat(32), "cd".repeat(32)),
+            "damaged",
+        ),
+    ] {
+        let key = dir.join(format!("{name}.key"));
+        std::fs::write(&key, &text).unwrap();
+        let o = command(
+            &dir,
+            &[
+                ("IMAGE_BOARDS", "c3-supermini"),
+                ("TINYBMS_SIGNING_KEY_FILE", key.to_str().unwrap()),
+            ],
+        )
+        .output()
+        .unwrap();
+        assert_eq!(o.status.code(), Some(2), "{name}");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains(says), "{name}: {err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// Issue 26, item 8: the ready-made images said `build dev` (nothing set

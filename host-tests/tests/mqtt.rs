@@ -60,6 +60,7 @@ fn view<'a>(snap: &'a LiveSnapshot, age_s: u64) -> View<'a> {
         }),
         wifi_rssi_dbm: Some(-61),
         update_rolled_back: None,
+        update_latest: None,
     }
 }
 
@@ -258,6 +259,9 @@ fn every_template_reads_a_member_the_state_has() {
                     s.get("update_rolled_back").is_some_and(|v| v.is_null()),
                     "{s}"
                 );
+                // No newer version known: null, never the installed one
+                // (Home Assistant then says unknown, not "up to date").
+                assert!(s.get("update_latest").is_some_and(|v| v.is_null()), "{s}");
             }
         }
         if e.component == Component::BinarySensor {
@@ -543,7 +547,7 @@ fn guide_row(e: &discovery::Entity) -> std::string::String {
         Read::NonZero(m) => format!("`{m}` > 0"),
         Read::Flag(m) => format!("`{m}` (unavailable while null)"),
         Read::Event => "the event topic: each event's `severity`".to_string(),
-        Read::Update => "`bridge_firmware` as the installed version (and the latest: install is not offered, updates come from `tinybms update`), `update_rolled_back` as the release summary after a rollback".to_string(),
+        Read::Update => "`bridge_firmware` as the installed version, `update_latest` as the latest (a newer version the bridge has seen: a file checked with `tinybms update --check`, an update rolled back; else unknown — the bridge does not look for releases; install is not offered, updates come from `tinybms update`), `update_rolled_back` as the release summary after a rollback".to_string(),
     };
     format!(
         "| `{}` | {} | {} | {} | {} | {} | {}{} |",

@@ -40,12 +40,19 @@ fn keygen(name: &str) -> Keys {
     assert_eq!(out.code, 0, "{out}");
     let public = std::fs::read_to_string(format!("{}.pub", key.display()))
         .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .collect::<String>()
         .trim()
         .to_string();
     assert_eq!(public.len(), 64);
     assert!(out.stdout.contains(&public), "{out}");
     Keys { key, public }
 }
+
+/// What the simulated bridge runs (its `hello`'s features): an update file
+/// names the same, or the bridge refuses it unless told to drop some.
+const FEATURES: &str = "can,host-link,wifi,store";
 
 /// `tinybms sign` of `img` for `board` and `version`: the file's path.
 fn sign(k: &Keys, img: &[u8], board: &str, version: &str, name: &str) -> std::path::PathBuf {
@@ -63,7 +70,7 @@ fn sign(k: &Keys, img: &[u8], board: &str, version: &str, name: &str) -> std::pa
         "--version",
         version,
         "--features",
-        "can,host-link",
+        FEATURES,
         bin.to_str().unwrap(),
         "-o",
         out_path.to_str().unwrap(),
@@ -374,8 +381,9 @@ fn every_refused_file_is_refused_with_its_reason_by_the_tool() {
         tmp("r-board.bin").to_str().unwrap(),
         "-y",
     ]);
-    assert_eq!(out.code, 2, "{out}");
+    assert_eq!(out.code, 1, "{out}");
     assert!(out.stderr.contains("not an update file"), "{out}");
+    assert!(!out.stderr.contains("--help"), "not a usage error: {out}");
 }
 
 #[test]
@@ -495,4 +503,232 @@ fn over_tcp_on_the_update_port() {
     assert!(out.stdout.contains("installed 0.9.0"), "{out}");
     let mut h = Host::open(&sim.path);
     hello_until(&mut h, "0.9.0");
+}
+
+/// Issue 51, item 1: the halves of a key pair cannot be swapped. Each file
+/// says what it is; `public-key` refuses a public key, `sign` refuses one;
+/// the bridge refuses a private key as `update_key` and it appears nowhere
+/// (the tool's words, `hello`, the configuration listing, the bridge's log).
+#[test]
+fn the_halves_of_a_key_cannot_be_swapped_and_a_private_key_is_never_taken() {
+    let k = keygen("e2e-key-5");
+    let private = std::fs::read_to_string(&k.key).unwrap();
+    assert!(
+        private.starts_with("# tinybms update signing key: PRIVATE"),
+        "{private}"
+    );
+    let private_hex: String = private.lines().filter(|l| !l.starts_with('#')).collect();
+    assert_eq!(private_hex.len(), 128);
+    assert!(
+        private_hex.ends_with(&k.public),
+        "the public half follows the seed"
+    );
+    let seed = &private_hex[..64];
+    let pubfile = format!("{}.pub", k.key.display());
+    assert!(std::fs::read_to_string(&pubfile)
+        .unwrap()
+        .starts_with("# tinybms update public key"));
+
+    // public-key: the private key's public key; a public key is refused.
+    let out = tinybms(&["public-key", k.key.to_str().unwrap()]);
+    assert_eq!(
+        (out.code, out.stdout.trim()),
+        (0, k.public.as_str()),
+        "{out}"
+    );
+    let out = tinybms(&["public-key", &pubfile]);
+    assert_eq!(out.code, 1, "{out}");
+    assert!(!out.stderr.contains("--help"), "not a usage error: {out}");
+    assert!(out.stderr.contains("already is a public key"), "{out}");
+    // sign: a public key is refused, with which is which.
+    let bin = tmp("k5.bin");
+    std::fs::write(&bin, image(9_000, "0.9.0", "tinybms-firmware")).unwrap();
+    let out = tinybms(&[
+        "sign",
+        "--key",
+        &pubfile,
+        "--chip",
+        "esp32c3",
+        "--board",
+        "c3-supermini",
+        "--features",
+        FEATURES,
+        bin.to_str().unwrap(),
+        "-o",
+        tmp("k5.tbu").to_str().unwrap(),
+    ]);
+    assert_eq!(out.code, 1, "{out}");
+    assert!(out.stderr.contains("PUBLIC key"), "{out}");
+    // A damaged private key file (its halves disagree) is refused.
+    let bad = tmp("k5-bad");
+    std::fs::write(&bad, format!("{seed}\n{}\n", "0".repeat(64))).unwrap();
+    let out = tinybms(&["public-key", bad.to_str().unwrap()]);
+    assert_eq!(out.code, 1, "{out}");
+    assert!(out.stderr.contains("damaged"), "{out}");
+
+    // The bridge: a private key as update_key is refused, nothing stored.
+    let sim = bridge_trusting(&k, &[]);
+    let set = format!("update_key={private_hex}");
+    let out = tinybms_with_input(&["config", &sim.path, &set], "y\n");
+    assert_ne!(out.code, 0, "{out}");
+    assert!(
+        out.stderr.contains("PRIVATE key") || out.stdout.contains("PRIVATE key"),
+        "{out}"
+    );
+    let listing = tinybms(&["config", &sim.path]);
+    assert_eq!(listing.code, 0, "{listing}");
+    let mut h = Host::open(&sim.path);
+    let hello = h.ask(json!({"cmd": "hello"}));
+    // What it trusts: its owner key, the public one, said in hello.
+    assert_eq!(
+        hello["update"]["owner_key"].as_str().map(str::to_lowercase),
+        Some(k.public.clone()),
+        "{hello}"
+    );
+    assert_eq!(hello["update"]["trial"], "confirmed", "{hello}");
+    assert_eq!(hello["update"]["slot"], "ota_0", "{hello}");
+    // Straight to the bridge, without the tool's own check: refused too,
+    // and the answer does not repeat it.
+    let req = h.send(json!({"cmd": "set_config", "fields": {"update_key": private_hex}}));
+    let until = Instant::now() + Duration::from_secs(2);
+    let mut answer = String::new();
+    while let Some(v) = h.next_line(until) {
+        if v["req"] == req {
+            answer.push_str(&v.to_string());
+        }
+    }
+    assert!(answer.contains("PRIVATE key"), "{answer}");
+    drop(h);
+    let log = tinybms_limited(&["log", &sim.path], "", Duration::from_secs(3));
+    let everything = format!(
+        "{out}{listing}{hello}{answer}{}",
+        log.map(|l| l.to_string()).unwrap_or_default()
+    )
+    .to_lowercase();
+    assert!(
+        !everything.contains(seed),
+        "the private key was said somewhere"
+    );
+}
+
+/// Issue 51, items 2-4: the whole file is checked before a byte is sent —
+/// one flipped byte of the image fails `--check` as it fails the update; a
+/// file without a feature the bridge runs is refused unless dropped on
+/// purpose; swapped arguments are said at once.
+#[test]
+fn a_damaged_or_lesser_file_is_refused_before_a_byte_is_sent() {
+    let k = keygen("e2e-key-6");
+    let img = image(20_000, "0.9.0", "tinybms-firmware");
+    let good = sign(&k, &img, "c3-supermini", "0.9.0", "w-good");
+    let sim = bridge_trusting(&k, &[]);
+    let mut bytes = std::fs::read(&good).unwrap();
+    bytes[256 + 12_345] ^= 0x10;
+    let damaged = tmp("w-damaged.tbu");
+    std::fs::write(&damaged, &bytes).unwrap();
+    for extra in [&["--check"][..], &["-y"][..]] {
+        let mut args = vec!["update", &sim.path, damaged.to_str().unwrap()];
+        args.extend_from_slice(extra);
+        let out = tinybms(&args);
+        assert_eq!(out.code, 1, "{out}");
+        assert!(
+            out.stderr.contains("damaged") && out.stderr.contains("nothing was sent"),
+            "{out}"
+        );
+    }
+    // Nothing reached the bridge.
+    let mut h = Host::open(&sim.path);
+    let s = h.ask(json!({"cmd": "update_status"}));
+    assert_eq!(s["phase"], "idle", "{s}");
+    assert!(s["ended"].is_null(), "{s}");
+    drop(h);
+
+    // Signed without Wi-Fi and the store: refused by the tool, and by the
+    // bridge itself when asked without the tool's check.
+    let bin = tmp("w-lesser.bin");
+    std::fs::write(&bin, &img).unwrap();
+    let lesser = tmp("w-lesser.tbu");
+    let out = tinybms(&[
+        "sign",
+        "--key",
+        k.key.to_str().unwrap(),
+        "--chip",
+        "esp32c3",
+        "--board",
+        "c3-supermini",
+        "--features",
+        "can,host-link",
+        bin.to_str().unwrap(),
+        "-o",
+        lesser.to_str().unwrap(),
+    ]);
+    assert_eq!(out.code, 0, "{out}");
+    let out = tinybms(&["update", &sim.path, lesser.to_str().unwrap(), "--check"]);
+    assert_eq!(out.code, 1, "{out}");
+    assert!(out.stderr.contains("has no wifi, store"), "{out}");
+    assert!(out.stderr.contains("--drop wifi,store"), "{out}");
+    let out = tinybms(&[
+        "update",
+        &sim.path,
+        lesser.to_str().unwrap(),
+        "--check",
+        "--drop",
+        "wifi",
+    ]);
+    assert_eq!(out.code, 1, "store still missing: {out}");
+    let out = tinybms(&[
+        "update",
+        &sim.path,
+        lesser.to_str().unwrap(),
+        "--check",
+        "--drop",
+        "wifi,store",
+    ]);
+    assert_eq!(out.code, 0, "{out}");
+    let out = tinybms(&[
+        "update",
+        &sim.path,
+        lesser.to_str().unwrap(),
+        "--drop",
+        "radio",
+    ]);
+    assert_eq!(out.code, 2, "{out}");
+    let mut h = Host::open(&sim.path);
+    let file = std::fs::read(&lesser).unwrap();
+    let a = h.ask(json!({"cmd": "update_begin", "size": file.len(), "check": true}));
+    assert_eq!(a["state"], "next", "{a}");
+    let mut at = 0;
+    let a = loop {
+        let a = h.ask(chunk(&file, at));
+        if a["state"] != "next" {
+            break a;
+        }
+        at = a["at"].as_u64().unwrap() as usize;
+    };
+    assert_eq!(a["ended"], "drops_features", "{a}");
+    let a = h.ask(
+        json!({"cmd": "update_begin", "size": file.len(), "check": true,
+                         "drop_features": "wifi,store"}),
+    );
+    assert_eq!(a["state"], "next", "{a}");
+    let mut at = 0;
+    let a = loop {
+        let a = h.ask(chunk(&file, at));
+        if a["state"] != "next" {
+            break a;
+        }
+        at = a["at"].as_u64().unwrap() as usize;
+    };
+    assert_eq!(a["state"], "acceptable", "{a}");
+    drop(h);
+
+    // Swapped: the file first, the port second, said at once.
+    let started = Instant::now();
+    let out = tinybms(&["update", good.to_str().unwrap(), &sim.path, "-y"]);
+    assert_eq!(out.code, 2, "{out}");
+    assert!(out.stderr.contains("the bridge comes first"), "{out}");
+    assert!(
+        started.elapsed() < Duration::from_secs(5),
+        "{:?}",
+        started.elapsed()
+    );
 }

@@ -23,7 +23,7 @@ use tinybms_desk::flash::RamFlash;
 use tinybms_desk::ota::{ChipFlash, PARTITIONS_CSV};
 use tinybms_firmware::config::site;
 use tinybms_firmware::config::Config;
-use tinybms_firmware::update::file::{self, Target, SIGNED_LEN};
+use tinybms_firmware::update::file::{self, Permit, Target, SIGNED_LEN};
 use tinybms_firmware::update::flash::{self as uflash, Booted, OtaFlash};
 use tinybms_firmware::update::otadata::Cause;
 use tinybms_firmware::update::transfer::{Answer, CHUNK_MAX};
@@ -90,6 +90,7 @@ const ME: Target<'static> = Target {
     chip: "esp32c3",
     board: "c3-supermini",
     version: "0.2.0",
+    features: 0,
     slot_size: 0,
 };
 
@@ -282,7 +283,7 @@ fn update(f: &mut CutFlash, file_bytes: &[u8]) {
     let running = ota.running_slot();
     let mut a = ota
         .transfer_mut()
-        .begin(0, file_bytes.len() as u32, false, false);
+        .begin(0, file_bytes.len() as u32, Permit::NONE, false);
     while let Answer::Next(n) | Answer::Busy(n) = a {
         while let Some(op) = ota.next_op() {
             let program = ota.transfer().program_bytes().to_vec();
@@ -436,7 +437,9 @@ fn a_refused_file_leaves_every_byte_of_the_flash_as_it_was() {
         let mut ota = Ota::new(Some(layout), uflash::read_otadata(&mut cf, &layout));
         ota.set_owner_key(Some(key().verifying_key().to_bytes()));
         let keys = ota.keys();
-        let mut a = ota.transfer_mut().begin(0, f.len() as u32, false, false);
+        let mut a = ota
+            .transfer_mut()
+            .begin(0, f.len() as u32, Permit::NONE, false);
         let mut ended = None;
         while let Answer::Next(n) | Answer::Busy(n) = a {
             while let Some(op) = ota.next_op() {

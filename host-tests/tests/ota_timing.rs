@@ -43,7 +43,7 @@ fn update_file() -> Vec<u8> {
         &hash,
         "esp32c3",
         "c3-supermini",
-        "can",
+        "can,host-link",
         "0.9.0",
         "t",
     )

@@ -169,7 +169,9 @@ fn errors_a_user_meets_get_a_sentence() {
     let bad = tmp("bad-config.txt");
     std::fs::write(&bad, "# x\nstale_after = 7\nstale_after = 9\n").unwrap();
     let load = tinybms(&["config", &sim.path, "--load", bad.to_str().unwrap()]);
-    assert_eq!(load.code, 2, "{load}");
+    // Issue 51: a file's content is no usage error: exit 1, no "try --help".
+    assert_eq!(load.code, 1, "{load}");
+    assert!(!load.stderr.contains("--help"), "{load}");
     assert!(load.stderr.contains("line 3"), "{load}");
     // Nothing of it reached the bridge.
     let show = tinybms(&["config", &sim.path]);
@@ -210,8 +212,9 @@ fn a_read_only_bridge_refuses_and_says_how_to_unlock() {
 fn direct_mode_has_no_bridge_configuration() {
     let sim = Sim::start(&["--pty"]);
     let out = tinybms(&["config", &sim.path]);
-    assert_eq!(out.code, 2, "{out}");
+    assert_eq!(out.code, 1, "{out}");
     assert!(out.stderr.contains("direct mode"), "{out}");
+    assert!(!out.stderr.contains("--help"), "{out}");
 }
 
 #[test]
@@ -311,6 +314,21 @@ fn wifi_and_mqtt_store_the_key_and_the_broker_and_never_echo_a_secret() {
     let bad = tinybms_with_input(&["wifi", &sim.path, "--ssid", "X"], "short\n");
     assert_eq!(bad.code, 2, "{bad}");
     assert!(bad.stderr.contains("8 to 63"), "{bad}");
+    // Issue 51: `--user` without a terminal and nothing on standard input
+    // used to set an empty password silently: now nothing changes, said.
+    let empty = tinybms_with_input(
+        &["mqtt", &sim.path, "--host", "broker.lan", "--user", "other"],
+        "",
+    );
+    assert_eq!(empty.code, 1, "{empty}");
+    assert!(empty.stderr.contains("nothing to read"), "{empty}");
+    let show = tinybms(&["config", &sim.path]);
+    let user = show
+        .stdout
+        .lines()
+        .find(|l| l.contains("mqtt_user"))
+        .unwrap();
+    assert!(user.contains("bms"), "unchanged: {user}");
 }
 
 /// Issue 26: `read_only=on` is one-way over USB, so it asks first; `no`
@@ -376,7 +394,7 @@ fn the_bridge_says_who_it_is_and_an_image_without_wifi_says_so() {
         &["wifi", &sim.path, "--ssid", "Home Net"],
         "correct horse battery\n",
     );
-    assert_eq!(wifi.code, 2, "{wifi}");
+    assert_eq!(wifi.code, 1, "{wifi}");
     assert!(
         wifi.stderr
             .contains("this bridge's image has no Wi-Fi (built in: can, host-link, store)"),
@@ -387,7 +405,7 @@ fn the_bridge_says_who_it_is_and_an_image_without_wifi_says_so() {
         "asked for a passphrase: {wifi}"
     );
     let mqtt = tinybms_with_input(&["mqtt", &sim.path, "--host", "broker.lan"], "");
-    assert_eq!(mqtt.code, 2, "{mqtt}");
+    assert_eq!(mqtt.code, 1, "{mqtt}");
     assert!(mqtt.stderr.contains("has no Wi-Fi"), "{mqtt}");
     let show = tinybms(&["config", &sim.path, "wifi_ssid"]);
     assert!(!show.stdout.contains("Home Net"), "stored anyway: {show}");

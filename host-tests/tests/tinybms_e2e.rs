@@ -188,7 +188,7 @@ fn direct_settings_dump_save_apply_verify() {
     let o = tinybms(&["settings", &sim.path, "--save", profile.to_str().unwrap()]);
     assert_eq!(o.code, 0, "{o}");
     assert!(o.stdout.contains("over_voltage_cutoff"), "{o}");
-    assert!(o.stdout.contains("Rev D range"), "{o}");
+    assert!(o.stdout.contains("allowed range"), "{o}");
     let saved = std::fs::read_to_string(&profile).unwrap();
     let parsed = host_tests::profile::parse_profile(&saved).unwrap();
     assert!(parsed.len() > 20, "{saved}");
@@ -226,7 +226,7 @@ fn direct_refused_value_and_physical_set() {
     assert!(
         o.stderr.contains("nothing written")
             && o.stderr
-                .contains("outside Rev D's range (Rev D 1.2 V..4.5 V"),
+                .contains("outside the range the TinyBMS allows (allowed 1.2 V..4.5 V"),
         "{o}"
     );
     let o = tinybms(&["set", &sim.path, "over_voltage_cutoff=3.72V"]);

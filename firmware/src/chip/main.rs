@@ -74,7 +74,20 @@ use tinybms_firmware::station::{Setup, Station};
 use tinybms_firmware::text::Boot;
 
 // ESP-IDF 2nd-stage bootloader requires an application descriptor in the image.
-esp_bootloader_esp_idf::esp_app_desc!();
+// Its version is the one the image reports (`TINYBMS_VERSION` aware), its
+// project name the build (what `hello` says it was built from): `tinybms
+// sign` reads both from here, so an update file's header is the image's own.
+esp_bootloader_esp_idf::esp_app_desc!(
+    tinybms_firmware::identity::FIRMWARE,
+    tinybms_firmware::identity::BUILD,
+    esp_bootloader_esp_idf::BUILD_TIME,
+    esp_bootloader_esp_idf::BUILD_DATE,
+    esp_bootloader_esp_idf::ESP_IDF_COMPATIBLE_VERSION,
+    esp_bootloader_esp_idf::MMU_PAGE_SIZE,
+    0,
+    u16::MAX,
+    esp_bootloader_esp_idf::SECURE_VERSION
+);
 
 /// The board this image is built for (`board-…` feature; pins in
 /// `firmware/src/boards.rs`).
@@ -130,8 +143,15 @@ const IDENTITY: tinybms_firmware::identity::Identity = tinybms_firmware::identit
         store: cfg!(feature = "store"),
     },
 };
+/// The features built in, in the image's bytes, for `tinybms sign` (an
+/// update file's header names the image's own features).
+#[used]
+static FEATURES_TAG: [u8; tinybms_firmware::identity::FEATURES_TAG_LEN] = IDENTITY.features.tag();
+
 #[esp_rtos::main]
 async fn main(spawner: Spawner) {
+    // Referenced, so that no linker drops it.
+    core::hint::black_box(&FEATURES_TAG);
     // Watchdog coverage at boot:
     //  - until `esp_hal::init` disables it, the 2nd-stage bootloader's RTC watchdog
     //    (ESP-IDF default CONFIG_BOOTLOADER_WDT_ENABLE, 9 s; depends on the

@@ -104,6 +104,9 @@ pub enum TextRule {
     Topic,
     /// An Ed25519 public key: 64 hex digits, or empty (none).
     Key,
+    /// Printable ASCII only (what goes out in a CAN frame byte for byte:
+    /// 0x35E's name).
+    Ascii,
 }
 
 /// What kind of value a field holds.
@@ -419,9 +422,9 @@ fields! {
     StaleHold = 5 since 1, "stale_hold", "s", Inverter, Now, num(10, 3600, 0),
         stale_hold_s: u16 = (i.stale_hold_us / SECOND) as u16,
         "With stale_policy hold: how long the inverter may keep discharging on stale data at most (less when the last data proves less charge above the discharge stop).";
-    InverterName = 7 since 4, "inverter_name", "", Inverter, Now, text(8, TextRule::Printable),
+    InverterName = 7 since 4, "inverter_name", "", Inverter, Now, text(8, TextRule::Ascii),
         inverter_name: String<8> = fixed_text("PYLON"),
-        "What 0x35E says in the protocols pylon, solark and luxpower (at most 8 characters): PYLON for most inverters (Deye, Sunsynk, Sofar, Growatt SPF, EG4, MidNite), GOODWE for a GoodWe, DEYE as Deye's copy of the spec prints it; inverters key their behaviour on this name.";
+        "What 0x35E says in the protocols pylon, solark and luxpower (at most 8 ASCII characters): PYLON for most inverters (Deye, Sunsynk, Sofar, Growatt SPF, EG4, MidNite), GOODWE for a GoodWe, DEYE as Deye's copy of the spec prints it; inverters key their behaviour on this name.";
     StopBySoc = 9 since 6, "stop_by_soc", "", Inverter, Now, Kind::Bool,
         stop_by_soc: bool = i.stop_by_soc,
         "In the protocols whose inverters are known to ignore a current limit of 0 A (pylon, solark, luxpower, growatt: Deye, Solis…): report SOC 100 % while charging must stop and 0 % while discharging must (the real SOC stays in the monitor and Home Assistant). On by default; an inverter seen ignoring a stop is told by SOC whatever this says.";
@@ -496,7 +499,7 @@ fields! {
         "How often telemetry is pushed to the computer.";
     UpdateKey = 42 since 5, "update_key", "", Host, Now, text(64, TextRule::Key),
         update_key: String<64> = String::new(),
-        "The owner's update key (64 hex digits, `tinybms keygen`): updates signed with it are taken besides the release key's; empty = none. Set over USB only.";
+        "The owner's public update key (64 hex digits: the .pub file of `tinybms keygen`; a private key, 128 digits, is refused and never stored): updates signed with it are taken besides the release key's; empty = none. Set over USB only.";
     WifiSsid = 60 since 1, "wifi_ssid", "", Network, Restart, text(32, TextRule::Printable),
         wifi_ssid: String<32> = String::new(),
         "The Wi-Fi network's name; empty = no Wi-Fi.";

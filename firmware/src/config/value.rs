@@ -124,6 +124,11 @@ pub fn check(field: &Field, v: &Value<'_>) -> Result<(), FieldError> {
             }
         }
         (Kind::Text { max, rule }, Value::Text(s)) => {
+            // A key's kind first: a private key is longer than a public one,
+            // and "too long" would not say what it is.
+            if rule == TextRule::Key {
+                check_text(rule, s)?;
+            }
             if s.len() > usize::from(max) {
                 return Err(FieldError::TOO_LONG);
             }
@@ -149,6 +154,16 @@ pub fn check(field: &Field, v: &Value<'_>) -> Result<(), FieldError> {
 
 fn check_text(rule: TextRule, s: &str) -> Result<(), FieldError> {
     match rule {
+        TextRule::Ascii => {
+            if s.bytes().all(|b| (0x20..0x7F).contains(&b)) {
+                Ok(())
+            } else {
+                Err(FieldError::invalid(
+                    "only ASCII letters, digits, punctuation and spaces (it goes out byte for \
+                     byte in a CAN frame: no accents)",
+                ))
+            }
+        }
         TextRule::Printable => {
             if s.chars().any(char::is_control) {
                 Err(FieldError::invalid("holds a control character"))
@@ -187,12 +202,17 @@ fn check_text(rule: TextRule, s: &str) -> Result<(), FieldError> {
             }
         }
         TextRule::Key => {
-            if s.is_empty() || crate::update::parse_key(s.as_bytes()).is_some() {
-                Ok(())
-            } else {
-                Err(FieldError::invalid(
-                    "not an update key: 64 hex digits (tinybms keygen), or empty",
-                ))
+            use crate::update::key_text::{parse, KeyText, PRIVATE_REFUSED};
+            match parse(s) {
+                _ if s.is_empty() => Ok(()),
+                Ok(KeyText::Private { .. }) => Err(FieldError::invalid(PRIVATE_REFUSED)),
+                Ok(KeyText::Public(_)) if crate::update::parse_key(s.as_bytes()).is_some() => {
+                    Ok(())
+                }
+                _ => Err(FieldError::invalid(
+                    "not a public update key: 64 hex digits (the .pub file of tinybms keygen), \
+                     or empty",
+                )),
             }
         }
         TextRule::Topic => {
@@ -331,6 +351,15 @@ pub fn parse(field: &Field, text: &str) -> Result<Parsed, FieldError> {
             Parsed::Number(raw)
         }
         Kind::Text { .. } | Kind::Secret { .. } => {
+            // A key says what it is before its length does (a private key
+            // is longer than a public one).
+            if let Kind::Text {
+                rule: TextRule::Key,
+                ..
+            } = field.kind
+            {
+                check_text(TextRule::Key, text)?;
+            }
             let mut s = String::new();
             // Text is taken as given (not trimmed): a Wi-Fi name may end in a space.
             if s.push_str(text).is_err() {

@@ -89,8 +89,9 @@ pub enum HostCommand<'a> {
     UpdateBegin {
         /// The file's length.
         size: u32,
-        /// An older version is wanted.
-        downgrade: bool,
+        /// An older version is wanted, features may be dropped (`downgrade`,
+        /// `drop_features`: a comma-separated list of feature names).
+        permit: crate::update::file::Permit,
         /// Only check the header.
         check: bool,
     },
@@ -149,6 +150,7 @@ struct Fields<'a> {
     data: Option<&'a str>,
     downgrade: Option<bool>,
     check: Option<bool>,
+    drop_features: Option<&'a str>,
     /// The first member no command has.
     unknown: Option<&'a str>,
     /// A member given twice.
@@ -255,6 +257,11 @@ impl<'de, 'f> Visitor<'de> for Top<'f, 'de> {
                         &mut f.downgrade
                     };
                     put(slot, v, name, &mut f.duplicate);
+                }
+                "drop_features" => {
+                    f.current = "drop_features";
+                    let v = map.next_value()?;
+                    put(&mut f.drop_features, v, "drop_features", &mut f.duplicate);
                 }
                 "force" => {
                     f.current = "force";
@@ -436,6 +443,7 @@ pub fn parse(line: &[u8]) -> Result<Parsed<'_>, CommandError<'_>> {
         ("data", f.data.is_some()),
         ("downgrade", f.downgrade.is_some()),
         ("check", f.check.is_some()),
+        ("drop_features", f.drop_features.is_some()),
     ];
     for (name, present) in given {
         if present && !takes.contains(&name) {
@@ -489,7 +497,7 @@ const COMMANDS: &[(&str, &[&str], Build)] = &[
     ("capture", &["on"], capture),
     (
         "update_begin",
-        &["size", "downgrade", "check"],
+        &["size", "downgrade", "check", "drop_features"],
         update_begin,
     ),
     ("update_chunk", &["at", "data"], update_chunk),
@@ -498,9 +506,21 @@ const COMMANDS: &[(&str, &[&str], Build)] = &[
 ];
 
 fn update_begin(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {
+    let drop = match f.drop_features {
+        None => 0,
+        Some(list) => crate::update::file::feature_bits(list).ok_or(err(
+            f.req,
+            ErrorCode::InvalidValue,
+            "not a list of feature names (can, host-link, wifi, store)",
+            "drop_features",
+        ))?,
+    };
     Ok(HostCommand::UpdateBegin {
         size: f.size.ok_or(missing(f.req, "size"))?,
-        downgrade: f.downgrade.unwrap_or(false),
+        permit: crate::update::file::Permit {
+            downgrade: f.downgrade.unwrap_or(false),
+            drop,
+        },
         check: f.check.unwrap_or(false),
     })
 }

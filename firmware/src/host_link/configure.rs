@@ -89,7 +89,34 @@ impl State {
         for (name, text) in fields {
             let answer = match FieldId::from_name(name) {
                 None => Some(ConfigAnswer::Unknown),
+                // An image without Wi-Fi has no use for a network field: it
+                // is refused rather than kept where nothing reads it.
+                Some(id)
+                    if id.field().group == crate::config::Group::Network
+                        && !self.config.features.wifi =>
+                {
+                    Some(ConfigAnswer::Invalid(
+                        id,
+                        FieldError {
+                            out_of_range: false,
+                            detail:
+                                "this image has no Wi-Fi: a network field would do \
+                                     nothing (the images with Wi-Fi end in -wifi: docs/flashing.md)",
+                        },
+                    ))
+                }
                 Some(id) => match unescape(text)
+                    .or_else(|e| {
+                        // Too long to hold: a key says what it is first (a
+                        // private key is longer than a public one).
+                        match id.field().kind {
+                            crate::config::Kind::Text {
+                                rule: crate::config::TextRule::Key,
+                                ..
+                            } => value::parse(id.field(), text.0).map(|_| String::new()),
+                            _ => Err(e),
+                        }
+                    })
                     .map_err(|e| (id, e))
                     .and_then(|t| value::parse(id.field(), &t).map_err(|e| (id, e)))
                 {

@@ -93,8 +93,8 @@ pub struct HelloFields<'a> {
     pub radio: Option<&'static str>,
     /// The Wi-Fi link (images with Wi-Fi).
     pub wifi: Option<crate::improv::WifiLink>,
-    /// "update to X rolled back: reason", after a rollback.
-    pub rolled_back: Option<&'a str>,
+    /// The updates' side: slot, trial, keys trusted, a rollback.
+    pub update: &'a super::UpdateView,
 }
 
 /// Writes a `hello` line.
@@ -103,6 +103,7 @@ pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<us
     if let Some(crate::improv::WifiLink::Up(a)) = f.wifi {
         crate::text::ipv4(a, &mut ip);
     }
+    let u = f.update;
     line(
         &schema::Hello::<Wire> {
             ty: "hello",
@@ -130,7 +131,13 @@ pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<us
                 state: w.key(),
                 ip: (!ip.as_str().is_empty()).then_some(ip.as_str()),
             }),
-            rolled_back: f.rolled_back,
+            rolled_back: u.rolled_back.as_deref(),
+            update: Some(schema::UpdateHello::<Wire> {
+                slot: u.slot.map(|s| if s == 0 { "ota_0" } else { "ota_1" }),
+                trial: if u.on_trial { "on_trial" } else { "confirmed" },
+                built_in_key: u.built_in_key.as_ref().map(|k| Hex(k, false)),
+                owner_key: u.owner_key.as_ref().map(|k| Hex(k, false)),
+            }),
         },
         out,
     )
@@ -174,6 +181,9 @@ pub struct StateExtras<'a> {
     pub wifi_rssi_dbm: Option<i8>,
     /// "update to X rolled back: reason" (`None`: none, published as null).
     pub update_rolled_back: Option<&'a str>,
+    /// The newest version known beyond the running one (`None`: none known,
+    /// published as null: Home Assistant's update entity then says unknown).
+    pub update_latest: Option<&'a str>,
 }
 
 /// What a `telemetry` line says besides the snapshot.
@@ -363,6 +373,7 @@ fn extras_members<'a>(
         ignored_stop: e.ignored_stop,
         wifi_rssi_dbm: e.wifi_rssi_dbm,
         update_rolled_back: e.update_rolled_back,
+        update_latest: e.update_latest,
     }
 }
 

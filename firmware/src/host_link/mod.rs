@@ -36,7 +36,7 @@ mod dispatch;
 pub mod encode;
 mod output;
 mod update;
-pub use update::{rolled_back_text, RolledBack};
+pub use update::{rolled_back_text, update_view, RolledBack, UpdateView};
 pub mod panic;
 pub mod queue;
 pub mod schema;
@@ -205,8 +205,9 @@ struct State {
     /// The Wi-Fi link (`hello`, images with Wi-Fi).
     wifi: crate::improv::WifiLink,
     capture: bool,
-    /// "update to X rolled back: reason" (`hello`, `update` lines).
-    rolled_back: Option<update::RolledBack>,
+    /// The updates' side: the slot, its trial, the keys trusted, a rollback
+    /// (`hello`; the rollback in `update` lines too).
+    update: update::UpdateView,
     /// The update port on the network: `hello` and the `update_…` commands
     /// only ([`HostLink::update_port`]).
     update_only: bool,
@@ -277,7 +278,7 @@ impl HostLink {
                 radio: None,
                 wifi: crate::improv::WifiLink::Off,
                 capture: false,
-                rolled_back: None,
+                update: update::UpdateView::default(),
                 update_only: false,
                 queue: Deque::new(),
                 raw: Deque::new(),
@@ -319,10 +320,10 @@ impl HostLink {
         link
     }
 
-    /// "update to X rolled back: reason" for `hello` and the `update` lines
-    /// (the station says it at boot).
-    pub fn set_rolled_back(&mut self, text: Option<RolledBack>) {
-        self.s.rolled_back = text;
+    /// What `hello` says of updates, and the rollback of the `update` lines
+    /// (the station says it at boot and when the owner's key changes).
+    pub fn set_update(&mut self, view: UpdateView) {
+        self.s.update = view;
     }
 
     /// Improv Wi-Fi on this port.

@@ -306,7 +306,7 @@ impl State {
                         mqtt: self.mqtt,
                         radio: self.radio.map(crate::wifi::Radio::key),
                         wifi: self.config.features.wifi.then_some(self.wifi),
-                        rolled_back: self.rolled_back.as_deref(),
+                        update: &self.update,
                     },
                 )
             }
@@ -318,7 +318,7 @@ impl State {
                 subject,
             } => encode::error(out, *req, code.name(), detail, subject.as_str()),
             Out::Accepted(req, cmd) => encode::accepted(out, *req, cmd),
-            Out::Update(req, l) => l.encode(*req, self.rolled_back.as_deref(), out),
+            Out::Update(req, l) => l.encode(*req, self.update.rolled_back.as_deref(), out),
             Out::Outcome {
                 req,
                 setting,

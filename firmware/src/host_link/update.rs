@@ -24,6 +24,36 @@ pub fn rolled_back_text(ota: &Ota) -> Option<RolledBack> {
     Some(s)
 }
 
+/// What `hello` says of updates: the slot running, its trial, the keys the
+/// bridge trusts (public keys: the one built in, the owner's), and a
+/// rollback.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct UpdateView {
+    /// "update to X rolled back: reason".
+    pub rolled_back: Option<RolledBack>,
+    /// The app slot running (0: `ota_0`, 1: `ota_1`), when the bridge has two.
+    pub slot: Option<u8>,
+    /// On trial since boot.
+    pub on_trial: bool,
+    /// The key built into the image.
+    pub built_in_key: Option<crate::update::file::Key>,
+    /// The owner's key (`update_key`).
+    pub owner_key: Option<crate::update::file::Key>,
+}
+
+/// What `hello` says of `ota`.
+pub fn update_view(ota: &Ota) -> UpdateView {
+    UpdateView {
+        rolled_back: rolled_back_text(ota),
+        slot: ota
+            .layout()
+            .map(|_| u8::try_from(ota.running_slot() % 2).unwrap_or(0)),
+        on_trial: ota.trial() == Trial::OnTrial,
+        built_in_key: crate::update::BUILT_IN_KEY,
+        owner_key: ota.owner_key(),
+    }
+}
+
 /// One `update` line's content (kept until its turn to be written).
 #[derive(Debug, Clone, PartialEq)]
 pub(super) struct UpdateLine {
@@ -112,9 +142,9 @@ impl State {
         let answer = match *command {
             HostCommand::UpdateBegin {
                 size,
-                downgrade,
+                permit,
                 check,
-            } => Some(ota.transfer_mut().begin(now, size, downgrade, check)),
+            } => Some(ota.transfer_mut().begin(now, size, permit, check)),
             HostCommand::UpdateChunk { at, data } => {
                 let mut buf = [0u8; CHUNK_MAX + 4];
                 match base64::engine::general_purpose::STANDARD.decode_slice(data, &mut buf) {
@@ -123,6 +153,7 @@ impl State {
                             chip: self.config.chip,
                             board: crate::boards::key_of(self.config.board),
                             version: self.config.firmware,
+                            features: self.config.features.bits(),
                             slot_size: 0,
                         };
                         let keys = ota.keys();

@@ -722,7 +722,8 @@ pub fn value_template(r: Read) -> String<192> {
         ),
         Read::Update => push(
             "{{ {'installed_version': value_json.bridge_firmware, 'latest_version': \
-             value_json.bridge_firmware, 'release_summary': value_json.update_rolled_back or ''} | to_json }}",
+             value_json.update_latest, 'release_summary': value_json.update_rolled_back or ''} \
+             | to_json }}",
         ),
     }
     t

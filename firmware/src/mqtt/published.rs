@@ -48,6 +48,9 @@ pub struct Published {
     /// "update to X rolled back: reason", when the running image came back
     /// from an update that failed its trial (the update entity's summary).
     pub update_rolled_back: Option<crate::host_link::RolledBack>,
+    /// The newest version known to exist beyond the running one (an update
+    /// rolled back, a file checked): the update entity's latest version.
+    pub update_latest: Option<crate::update::transfer::Version>,
 }
 
 /// The inverter output as the MQTT diagnostics show it.

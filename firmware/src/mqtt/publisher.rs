@@ -69,6 +69,8 @@ pub struct View<'a> {
     pub wifi_rssi_dbm: Option<i8>,
     /// An update that was rolled back, in words.
     pub update_rolled_back: Option<&'a str>,
+    /// The newest version known beyond the running one.
+    pub update_latest: Option<&'a str>,
 }
 
 impl<'a> View<'a> {
@@ -90,6 +92,7 @@ impl<'a> View<'a> {
             inverter: p.inverter,
             wifi_rssi_dbm: p.wifi_rssi_dbm,
             update_rolled_back: p.update_rolled_back.as_deref(),
+            update_latest: p.update_latest.as_deref(),
         }
     }
 
@@ -554,6 +557,7 @@ impl Publisher {
             ignored_stop: ignored.as_deref(),
             wifi_rssi_dbm: view.wifi_rssi_dbm,
             update_rolled_back: view.update_rolled_back,
+            update_latest: view.update_latest,
         };
         let head = TelemetryHead {
             req: None,

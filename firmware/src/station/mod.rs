@@ -638,6 +638,11 @@ impl Station {
             }),
             wifi_rssi_dbm: self.wifi_rssi,
             update_rolled_back: crate::host_link::rolled_back_text(&self.ota),
+            update_latest: self.ota.latest(self.identity.firmware).map(|v| {
+                let mut s = crate::update::transfer::Version::new();
+                let _ = s.push_str(v);
+                s
+            }),
         }
     }
 
@@ -874,6 +879,19 @@ impl Station {
                 i.reconfigure(c.inverter());
             }
             self.ota.set_owner_key(c.update_key());
+            #[cfg(feature = "host-link")]
+            {
+                let view = crate::host_link::update_view(&self.ota);
+                if let Some(h) = self.host.as_mut() {
+                    h.set_update(view.clone());
+                }
+                #[cfg(feature = "net")]
+                if let Some(u) = self.update_port.as_mut() {
+                    u.set_update(view);
+                }
+                #[cfg(not(feature = "net"))]
+                let _ = view;
+            }
         }
     }
 

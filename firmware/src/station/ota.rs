@@ -97,7 +97,7 @@ impl Station {
         }
         #[cfg(feature = "host-link")]
         if let Some(h) = self.host.as_mut() {
-            h.set_rolled_back(crate::host_link::rolled_back_text(&ota));
+            h.set_update(crate::host_link::update_view(&ota));
         }
         self.ota = ota;
     }
@@ -182,7 +182,7 @@ impl Station {
         {
             let config = self.config.running().host_link(&self.identity);
             let mut link = crate::host_link::HostLink::update_port(config, now);
-            link.set_rolled_back(crate::host_link::rolled_back_text(&self.ota));
+            link.set_update(crate::host_link::update_view(&self.ota));
             link.connected(now);
             self.update_port = Some(link);
         }

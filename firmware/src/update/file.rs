@@ -72,6 +72,10 @@ pub enum Refusal {
     /// The bridge has no second slot (its partition table has no `otadata`
     /// or not two app slots: reinstall once by cable).
     NoSlot,
+    /// The update lacks a feature the running image has (Wi-Fi: the
+    /// network, Home Assistant and updates without a cable would be gone)
+    /// and the owner did not say to drop it.
+    DropsFeatures,
 }
 
 impl Refusal {
@@ -92,6 +96,7 @@ impl Refusal {
             Self::NotAnImage => "not_an_image",
             Self::HashMismatch => "hash_mismatch",
             Self::NoSlot => "no_slot",
+            Self::DropsFeatures => "drops_features",
         }
     }
 
@@ -114,6 +119,11 @@ impl Refusal {
             Self::NotAnImage => "the image is not an app image for this chip",
             Self::HashMismatch => "the image does not match its signed hash",
             Self::NoSlot => "no second app slot (reinstall once by cable: docs/updates.md)",
+            Self::DropsFeatures => {
+                "the update lacks a feature this bridge runs (its header's features; a Wi-Fi \
+                 bridge would lose its network and updates without a cable): take the file \
+                 with the same features, or drop them on purpose (tinybms update --drop)"
+            }
         }
     }
 }
@@ -229,8 +239,10 @@ impl Header {
     }
 
     /// Everything but the signature and the image, against the running
-    /// bridge: chip, board, size, version.
-    pub fn check(&self, me: &Target<'_>, downgrade: bool) -> Result<(), Refusal> {
+    /// bridge: chip, board, size, version, and the features it runs (each
+    /// one the update lacks must be in the permit's `drop`).
+    pub fn check(&self, me: &Target<'_>, permit: Permit) -> Result<(), Refusal> {
+        let Permit { downgrade, drop } = permit;
         if self.chip() != me.chip {
             return Err(Refusal::WrongChip);
         }
@@ -243,8 +255,59 @@ impl Header {
         if !downgrade && older(self.version(), me.version) {
             return Err(Refusal::Older);
         }
+        if lacks(self.features(), me.features) & !drop != 0 {
+            return Err(Refusal::DropsFeatures);
+        }
         Ok(())
     }
+}
+
+/// What the owner allows an update that the bridge would otherwise refuse.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Permit {
+    /// A version older than the running one.
+    pub downgrade: bool,
+    /// Features the update may lack (bits of [`FEATURE_NAMES`]).
+    pub drop: u8,
+}
+
+impl Permit {
+    /// Nothing beyond the rules.
+    pub const NONE: Self = Self {
+        downgrade: false,
+        drop: 0,
+    };
+    /// An older version.
+    pub const DOWNGRADE: Self = Self {
+        downgrade: true,
+        drop: 0,
+    };
+}
+
+/// The features an image can have, by name (bit n for the n-th): what an
+/// update may not lack unless the owner says so.
+pub const FEATURE_NAMES: [&str; 4] = ["can", "host-link", "wifi", "store"];
+
+/// The bits of a comma-separated list of [`FEATURE_NAMES`] (`None`: a name
+/// not among them). White space around a name is allowed; empty = none.
+pub fn feature_bits(list: &str) -> Option<u8> {
+    let mut bits = 0u8;
+    for name in list.split(',').map(str::trim).filter(|n| !n.is_empty()) {
+        let i = FEATURE_NAMES.iter().position(|&f| f == name)?;
+        bits |= 1 << i;
+    }
+    Some(bits)
+}
+
+/// The features `running` has (bits) that an update naming `update` lacks.
+/// An unknown name in the update's list is ignored (a later feature).
+pub fn lacks(update: &str, running: u8) -> u8 {
+    let has = update
+        .split(',')
+        .filter_map(|n| FEATURE_NAMES.iter().position(|&f| f == n.trim()))
+        .fold(0u8, |b, i| b | (1 << i));
+    running & !has
 }
 
 /// The bridge an update is for.
@@ -256,6 +319,8 @@ pub struct Target<'a> {
     pub board: &'a str,
     /// The running version.
     pub version: &'a str,
+    /// The features the running image has (bits of [`FEATURE_NAMES`]).
+    pub features: u8,
     /// The inactive slot's size, bytes.
     pub slot_size: u32,
 }
@@ -308,12 +373,24 @@ pub fn image_start_ok(first: &[u8], chip: &str) -> bool {
         && word(32) == Some(0xABCD_5432)
 }
 
-/// The version in an app image's descriptor (`esp_app_desc_t.version`, bytes
-/// 48..80 of the image).
-pub fn image_version(first: &[u8]) -> Option<&str> {
-    let v = first.get(48..80)?;
+/// A text field of an app image's descriptor (C string, at most its width).
+fn descriptor_text(first: &[u8], (from, to): (usize, usize)) -> Option<&str> {
+    let v = first.get(from..to)?;
     let end = v.iter().position(|&b| b == 0).unwrap_or(v.len());
     core::str::from_utf8(v.get(..end)?).ok()
+}
+
+/// The version in an app image's descriptor (`esp_app_desc_t.version`, bytes
+/// 48..80 of the image): the version the image reports.
+pub fn image_version(first: &[u8]) -> Option<&str> {
+    descriptor_text(first, (48, 80))
+}
+
+/// The build in an app image's descriptor (`esp_app_desc_t.project_name`,
+/// bytes 80..112 of the image): what the image says it was built from
+/// (`hello`'s `build`; the firmware puts it there).
+pub fn image_build(first: &[u8]) -> Option<&str> {
+    descriptor_text(first, (80, 112))
 }
 
 /// A header for an image (for the signing tool and the tests): unsigned.
@@ -374,6 +451,7 @@ mod tests {
         chip: "esp32c3",
         board: "c3-supermini",
         version: "0.2.0",
+        features: 0b0011,
         slot_size: 0x1E_0000,
     };
 
@@ -431,21 +509,27 @@ mod tests {
     #[test]
     fn chip_board_size_and_version_are_checked() {
         let k = SigningKey::from_bytes(&[1; 32]);
-        assert_eq!(signed(&k, "0.3.0").check(&ME, false), Ok(()));
-        assert_eq!(signed(&k, "0.2.0").check(&ME, false), Ok(()));
-        assert_eq!(signed(&k, "0.1.9").check(&ME, false), Err(Refusal::Older));
-        assert_eq!(signed(&k, "0.1.9").check(&ME, true), Ok(()));
+        assert_eq!(signed(&k, "0.3.0").check(&ME, Permit::NONE), Ok(()));
+        assert_eq!(signed(&k, "0.2.0").check(&ME, Permit::NONE), Ok(()));
         assert_eq!(
-            signed(&k, "0.2.0-rc1").check(&ME, false),
+            signed(&k, "0.1.9").check(&ME, Permit::NONE),
             Err(Refusal::Older)
         );
-        assert_eq!(signed(&k, "junk").check(&ME, false), Err(Refusal::Older));
+        assert_eq!(signed(&k, "0.1.9").check(&ME, Permit::DOWNGRADE), Ok(()));
+        assert_eq!(
+            signed(&k, "0.2.0-rc1").check(&ME, Permit::NONE),
+            Err(Refusal::Older)
+        );
+        assert_eq!(
+            signed(&k, "junk").check(&ME, Permit::NONE),
+            Err(Refusal::Older)
+        );
         let c6 = Target {
             chip: "esp32c6",
             ..ME
         };
         assert_eq!(
-            signed(&k, "0.3.0").check(&c6, false),
+            signed(&k, "0.3.0").check(&c6, Permit::NONE),
             Err(Refusal::WrongChip)
         );
         let board = Target {
@@ -453,7 +537,7 @@ mod tests {
             ..ME
         };
         assert_eq!(
-            signed(&k, "0.3.0").check(&board, false),
+            signed(&k, "0.3.0").check(&board, Permit::NONE),
             Err(Refusal::WrongBoard)
         );
         let small = Target {
@@ -461,8 +545,57 @@ mod tests {
             ..ME
         };
         assert_eq!(
-            signed(&k, "0.3.0").check(&small, false),
+            signed(&k, "0.3.0").check(&small, Permit::NONE),
             Err(Refusal::TooBig)
+        );
+    }
+
+    #[test]
+    fn an_update_that_lacks_a_running_feature_needs_the_owner_s_word() {
+        let k = SigningKey::from_bytes(&[1; 32]);
+        // The file has can,host-link.
+        let wifi = Target {
+            features: feature_bits("can,host-link,wifi,store").unwrap(),
+            ..ME
+        };
+        assert_eq!(
+            signed(&k, "0.3.0").check(&wifi, Permit::NONE),
+            Err(Refusal::DropsFeatures)
+        );
+        let only_wifi = feature_bits("wifi").unwrap();
+        assert_eq!(
+            signed(&k, "0.3.0").check(
+                &wifi,
+                Permit {
+                    drop: only_wifi,
+                    ..Permit::NONE
+                }
+            ),
+            Err(Refusal::DropsFeatures),
+            "store too"
+        );
+        let both = feature_bits("wifi, store").unwrap();
+        assert_eq!(
+            signed(&k, "0.3.0").check(
+                &wifi,
+                Permit {
+                    drop: both,
+                    ..Permit::NONE
+                }
+            ),
+            Ok(())
+        );
+        // Gaining one needs nothing.
+        let less = Target {
+            features: feature_bits("can").unwrap(),
+            ..ME
+        };
+        assert_eq!(signed(&k, "0.3.0").check(&less, Permit::NONE), Ok(()));
+        assert_eq!(feature_bits("wifi,radio"), None);
+        assert_eq!(feature_bits(""), Some(0));
+        assert_eq!(
+            lacks("can,host-link,later", feature_bits("can,wifi").unwrap()),
+            1 << 2
         );
     }
 

@@ -12,6 +12,7 @@
 
 pub mod file;
 pub mod flash;
+pub mod key_text;
 pub mod otadata;
 pub mod transfer;
 
@@ -42,7 +43,11 @@ pub const KEYS_MAX: usize = 2;
 pub const BUILT_IN_KEY: Option<Key> = match option_env!("TINYBMS_UPDATE_KEY") {
     Some(hex) => match parse_key(hex.as_bytes()) {
         Some(k) => Some(k),
-        None => panic!("TINYBMS_UPDATE_KEY is not 64 hex digits"),
+        None if hex.len() == 128 => panic!(
+            "TINYBMS_UPDATE_KEY is a PRIVATE key (128 hex digits): build with the public key, \
+             64 hex digits (the .pub file), and keep the private one secret"
+        ),
+        None => panic!("TINYBMS_UPDATE_KEY is not a public key (64 hex digits)"),
     },
     None => None,
 };
@@ -195,7 +200,28 @@ impl Ota {
         self.owner_key = key;
     }
 
-    /// Every key trusted now.
+    /// The newest version known to exist that is newer than `running`: an
+    /// update rolled back, or a file whose header passed every check (a
+    /// `check` too) since start-up. `None`: none known (the bridge does not
+    /// look for releases).
+    pub fn latest(&self, running: &str) -> Option<&str> {
+        let rolled = self.rolled_back().map(|(v, _)| v);
+        [rolled, self.transfer.offered()]
+            .into_iter()
+            .flatten()
+            .filter(|v| file::older(running, v))
+            .fold(None, |best: Option<&str>, v| match best {
+                Some(b) if !file::older(b, v) => Some(b),
+                _ => Some(v),
+            })
+    }
+
+    /// The owner's key (`update_key`), if one is set.
+    pub fn owner_key(&self) -> Option<Key> {
+        self.owner_key
+    }
+
+    /// Every key trusted now: the one built in, the owner's.
     pub fn keys(&self) -> heapless::Vec<Key, KEYS_MAX> {
         let mut v = heapless::Vec::new();
         for k in [BUILT_IN_KEY, self.owner_key].into_iter().flatten() {

@@ -4,7 +4,7 @@
 use ed25519_dalek::{Signer, SigningKey};
 use sha2::{Digest, Sha256};
 
-use super::file::{self, Refusal, Target, HEADER_LEN, SIGNED_LEN};
+use super::file::{self, Permit, Refusal, Target, HEADER_LEN, SIGNED_LEN};
 use super::otadata::{self, Cause};
 use super::transfer::{Answer, Ended, Layout, Op, Phase, CHUNK_MAX, STALL_US};
 use super::*;
@@ -21,6 +21,7 @@ const ME: Target<'static> = Target {
     chip: "esp32c3",
     board: "c3-supermini",
     version: "0.2.0",
+    features: 0,
     slot_size: 0,
 };
 
@@ -115,9 +116,15 @@ impl Bench {
     }
 
     fn begin(&mut self, size: usize, downgrade: bool, check: bool) -> Answer {
-        self.ota
-            .transfer_mut()
-            .begin(self.now, size as u32, downgrade, check)
+        self.ota.transfer_mut().begin(
+            self.now,
+            size as u32,
+            Permit {
+                downgrade,
+                ..Permit::NONE
+            },
+            check,
+        )
     }
 
     fn chunk(&mut self, at: usize, data: &[u8]) -> Answer {
@@ -454,6 +461,42 @@ fn check_reads_the_header_only() {
     assert_eq!(b.ops, 0);
     assert_eq!(b.chunk(256, &f[256..384]), Answer::NotStarted);
     assert!(b.begin(100, false, true) == Answer::Ended(Ended::Refused(Refusal::Truncated)));
+}
+
+/// Issue 51, item 9: the newest version a file that passed every check
+/// offered (a `check` too) is what Home Assistant may call the latest; an
+/// older one or a refused one changes nothing; nothing known: `None`.
+#[test]
+fn the_latest_known_version_is_the_newest_checked_file() {
+    let mut b = Bench::new();
+    assert_eq!(b.ota.latest("0.2.0"), None);
+    let offer = |b: &mut Bench, version: &str, k: &SigningKey| {
+        let f = update_file(
+            &image(5000, 5, version),
+            "esp32c3",
+            "c3-supermini",
+            version,
+            Some(k),
+        );
+        b.begin(f.len(), true, true);
+        b.chunk(0, &f[..128]);
+        b.chunk(128, &f[128..256])
+    };
+    assert_eq!(offer(&mut b, "0.3.0", &key()), Answer::Acceptable);
+    assert_eq!(b.ota.latest("0.2.0"), Some("0.3.0"));
+    assert_eq!(
+        b.ota.latest("0.3.0"),
+        None,
+        "not newer than the running one"
+    );
+    // Older, or signed by a stranger: the latest stays.
+    assert_eq!(offer(&mut b, "0.2.5", &key()), Answer::Acceptable);
+    let stranger = SigningKey::from_bytes(&[7; 32]);
+    assert!(matches!(
+        offer(&mut b, "0.9.0", &stranger),
+        Answer::Ended(_)
+    ));
+    assert_eq!(b.ota.latest("0.2.0"), Some("0.3.0"));
 }
 
 #[test]

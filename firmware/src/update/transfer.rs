@@ -25,7 +25,7 @@
 
 use sha2::{Digest, Sha256};
 
-use super::file::{image_start_ok, Header, Key, Refusal, Target, HEADER_LEN};
+use super::file::{image_start_ok, Header, Key, Permit, Refusal, Target, HEADER_LEN};
 use super::otadata::{self, Both, Write};
 use crate::Instant;
 
@@ -136,7 +136,7 @@ enum State {
     Idle,
     Header {
         size: u32,
-        downgrade: bool,
+        permit: Permit,
         check: bool,
         got: usize,
         buf: [u8; HEADER_LEN],
@@ -197,6 +197,9 @@ pub struct Transfer {
     last: Instant,
     /// How the last transfer ended (until the next begins).
     outcome: Option<Ended>,
+    /// The newest version whose file passed every check of its header
+    /// (a `check` too): what Home Assistant may show as available.
+    offered: Option<Version>,
 }
 
 impl Default for Transfer {
@@ -213,7 +216,14 @@ impl Transfer {
             buf: [0xFF; SECTOR as usize],
             last: 0,
             outcome: None,
+            offered: None,
         }
+    }
+
+    /// The newest version a file that passed every check of its header
+    /// offered since start-up.
+    pub fn offered(&self) -> Option<&str> {
+        self.offered.as_deref()
     }
 
     /// Where it is.
@@ -252,7 +262,7 @@ impl Transfer {
     /// `update_begin`: a file of `size` bytes comes. Replaces a transfer
     /// that was running. `check`: only its header, to say whether it would
     /// be taken.
-    pub fn begin(&mut self, now: Instant, size: u32, downgrade: bool, check: bool) -> Answer {
+    pub fn begin(&mut self, now: Instant, size: u32, permit: Permit, check: bool) -> Answer {
         if matches!(self.state, State::Installed(_) | State::Activate { .. }) {
             // The new image is (being) made the one to boot: nothing else
             // starts before the restart.
@@ -265,7 +275,7 @@ impl Transfer {
         }
         self.state = State::Header {
             size,
-            downgrade,
+            permit,
             check,
             got: 0,
             buf: [0; HEADER_LEN],
@@ -298,7 +308,7 @@ impl Transfer {
             State::Idle | State::Installed(_) | State::Activate { .. } => Answer::NotStarted,
             State::Header {
                 size,
-                downgrade,
+                permit,
                 check,
                 got,
                 buf,
@@ -319,8 +329,8 @@ impl Transfer {
                 if end < HEADER_LEN {
                     return Answer::Next(end as u32);
                 }
-                let (size, downgrade, check, buf) = (*size, *downgrade, *check, *buf);
-                self.header_in(size, downgrade, check, &buf, me, keys, layout, running_slot)
+                let (size, permit, check, buf) = (*size, *permit, *check, *buf);
+                self.header_in(size, permit, check, &buf, me, keys, layout, running_slot)
             }
             State::Image(b) => {
                 if at != b.next || data.is_empty() {
@@ -365,7 +375,7 @@ impl Transfer {
     fn header_in(
         &mut self,
         size: u32,
-        downgrade: bool,
+        permit: Permit,
         check: bool,
         buf: &[u8; HEADER_LEN],
         me: &Target<'_>,
@@ -387,7 +397,7 @@ impl Transfer {
         let target = Target { slot_size, ..*me };
         let whole = HEADER_LEN as u64 + u64::from(header.image_len);
         let verdict = header
-            .check(&target, downgrade)
+            .check(&target, permit)
             .and_then(|_| header.verify(keys).map(|_| ()))
             .and_then(|_| match u64::from(size).cmp(&whole) {
                 core::cmp::Ordering::Less => Err(Refusal::Truncated),
@@ -396,6 +406,13 @@ impl Transfer {
             });
         if let Err(r) = verdict {
             return self.end(Ended::Refused(r));
+        }
+        let newer = self
+            .offered
+            .as_deref()
+            .is_none_or(|o| super::file::older(o, header.version()));
+        if newer {
+            self.offered = Some(version_of(&header));
         }
         if check {
             self.state = State::Idle;

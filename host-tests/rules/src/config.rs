@@ -38,9 +38,20 @@ pub fn range_text(id: FieldId) -> String {
 pub fn check_assignment(name: &str, text: &str) -> Result<(FieldId, Parsed), String> {
     let id = field_named(name)?;
     let f = id.field();
+    // A key or a secret is never repeated (a private key pasted by mistake
+    // must not land in a terminal's history twice).
+    let hidden = f.is_secret()
+        || matches!(
+            f.kind,
+            Kind::Text {
+                rule: tinybms_firmware::config::TextRule::Key,
+                ..
+            }
+        );
+    let shown = if hidden { "(the value given)" } else { text };
     value::parse(f, text).map(|p| (id, p)).map_err(|e| {
         format!(
-            "{name} = {text}: {} (it takes {}{})",
+            "{name} = {shown}: {} (it takes {}{})",
             e.detail,
             range_text(id),
             if f.unit.is_empty() {

@@ -238,21 +238,21 @@ fn refusal(
     let name = snake_name(id);
     let range = match (id.register().and_then(|r| r.range), bms) {
         (Some((lo, hi)), Some((bl, bh))) => format!(
-            "Rev D {}..{}, this BMS {}..{}",
+            "allowed {}..{}, this BMS {}..{}",
             physical(id, i64::from(lo)),
             physical(id, i64::from(hi)),
             physical(id, i64::from(bl)),
             physical(id, i64::from(bh))
         ),
         (Some((lo, hi)), None) => format!(
-            "Rev D {}..{}",
+            "allowed {}..{}",
             physical(id, i64::from(lo)),
             physical(id, i64::from(hi))
         ),
         _ => String::new(),
     };
     let why = match e.reason() {
-        "out_of_rev_d_range" => "outside Rev D's range",
+        "out_of_rev_d_range" => "outside the range the TinyBMS allows",
         "outside_bms_limits" => "outside this BMS's own limits",
         "not_an_option" => "not one of its values",
         other => other,

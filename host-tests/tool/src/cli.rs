@@ -275,8 +275,9 @@ pub enum Command {
         #[arg(long, value_name = "U")]
         user: Option<String>,
     },
-    /// Update the bridge's firmware without a cable: the update file is
-    /// checked by the bridge (chip, board, version, signature), written to its
+    /// Update the bridge's firmware without a cable: the whole update file is
+    /// checked first (its hash, and chip, board, version, features and
+    /// signature against the bridge), then by the bridge, written to its
     /// other app slot while it keeps working, and booted on trial; a new image
     /// that fails before it confirms itself is rolled back by the bridge.
     Update {
@@ -290,7 +291,12 @@ pub enum Command {
         /// Take a version older than the running one.
         #[arg(long)]
         downgrade: bool,
-        /// Only ask the bridge whether it would take the file (nothing is written).
+        /// Take a file without features the bridge runs (wifi, can,
+        /// host-link, store; comma-separated): they are gone after it.
+        #[arg(long, value_name = "FEATURES")]
+        drop: Option<String>,
+        /// Check the whole file and ask the bridge whether it would take it
+        /// (nothing is written).
         #[arg(long)]
         check: bool,
         /// Do not ask for confirmation.
@@ -320,15 +326,19 @@ pub enum Command {
         /// The board (its name in `tinybms version`'s hello: c3-supermini, …).
         #[arg(long)]
         board: String,
-        /// The version the image reports.
+        /// The version: read from the image; if given, it must be the one
+        /// the image reports.
         #[arg(long)]
-        version: String,
-        /// What is built in, comma-separated (can,host-link,wifi,store).
-        #[arg(long, default_value = "")]
-        features: String,
-        /// What it was built from.
-        #[arg(long, default_value = "")]
-        build: String,
+        version: Option<String>,
+        /// What is built in, comma-separated (can,host-link,wifi,store):
+        /// read from the image; if given, it must be the image's (only an
+        /// image of an older build needs it).
+        #[arg(long)]
+        features: Option<String>,
+        /// What it was built from: read from the image; if given, it must be
+        /// the image's (only an image of an older build needs it).
+        #[arg(long)]
+        build: Option<String>,
         /// The app image (`tinybms-BOARD-app.bin`).
         #[arg(value_name = "APP.bin")]
         image: PathBuf,

@@ -125,7 +125,7 @@ pub fn protocol_error(e: &Error<Read>) -> ToolError {
         "busy" => " (the bridge's command queue is full: try again when the running writes are done)",
         "unknown_setting" => " (`tinybms settings PORT` lists the names)",
         "out_of_range" => {
-            " (`tinybms settings PORT` shows each setting's Rev D range and the BMS's own min..max)"
+            " (`tinybms settings PORT` shows each setting's allowed range and the BMS's own min..max)"
         }
         _ => "",
     };

@@ -45,7 +45,7 @@ pub type Shown = ConfigField<Read>;
 pub fn require_bridge(c: &Client) -> ToolResult<()> {
     match c.mode {
         Mode::Bridge => Ok(()),
-        Mode::Direct => Err(ToolError::usage(format!(
+        Mode::Direct => Err(ToolError::failed(format!(
             "no bridge answered on `{}` (no hello): an ESP32 board not running this firmware \
              yet (flash it: docs/flashing.md), one still starting, or a USB-UART adapter \
              wired to the BMS (direct mode). The configuration is the ESP32 bridge's own, kept \
@@ -63,7 +63,7 @@ pub fn require_wifi(c: &Client, command: &str) -> ToolResult<()> {
         return Ok(());
     }
     let built: Vec<&str> = features.iter().map(String::as_str).collect();
-    Err(ToolError::usage(format!(
+    Err(ToolError::failed(format!(
         "this bridge's image has no Wi-Fi (built in: {}): `tinybms {command}` would be \
          stored and never used. Flash an image with Wi-Fi (`tinybms-BOARD-wifi.bin`, or \
          `cargo build --release --features wifi`; docs/flashing.md), then run it again",
@@ -582,10 +582,19 @@ pub fn ask_secret(prompt: &str) -> ToolResult<String> {
             .map_err(|e| ToolError::failed(format!("reading the answer: {e}")))?
     } else {
         let mut line = String::new();
-        std::io::stdin()
+        let n = std::io::stdin()
             .lock()
             .read_line(&mut line)
             .map_err(|e| ToolError::failed(format!("reading the answer: {e}")))?;
+        if n == 0 {
+            // No terminal and nothing on standard input: never an empty
+            // secret set without a word.
+            return Err(ToolError::failed(format!(
+                "{}nothing to read: standard input is not a terminal and gave no line \
+                 (give it one: `echo 'SECRET' | tinybms …`); nothing changed",
+                prompt.trim_end_matches(": ").trim_end().to_string() + ": "
+            )));
+        }
         line.trim_end_matches(['\n', '\r']).to_string()
     };
     Ok(text)

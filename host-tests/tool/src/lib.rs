@@ -145,12 +145,20 @@ fn run(cli: Cli) -> ToolResult<()> {
     match cli.command {
         Command::Ports => cmd::ports::run(),
         Command::Completions { shell } => {
-            clap_complete::generate(
-                shell,
-                &mut Cli::command(),
-                "tinybms",
-                &mut std::io::stdout(),
-            );
+            // `config`'s NAME=VALUE completes the configuration's field
+            // names (for the completions only: the parser takes any text
+            // and says what is wrong with it).
+            // (Leaked: the command prints and ends; clap's names are 'static.)
+            let names: Vec<&'static str> = tinybms_firmware::config::FIELDS
+                .iter()
+                .map(|f| &*Box::leak(format!("{}=", f.name).into_boxed_str()))
+                .collect();
+            let mut cmd = Cli::command().mut_subcommand("config", |c| {
+                c.mut_arg("args", |a| {
+                    a.value_parser(clap::builder::PossibleValuesParser::new(names))
+                })
+            });
+            clap_complete::generate(shell, &mut cmd, "tinybms", &mut std::io::stdout());
             Ok(())
         }
         Command::Monitor {
@@ -216,9 +224,10 @@ fn run(cli: Cli) -> ToolResult<()> {
             target,
             file,
             downgrade,
+            drop,
             check,
             yes,
-        } => update(&target, &file, downgrade, check, yes),
+        } => update(&target, &file, downgrade, drop.as_deref(), check, yes),
         Command::Keygen { out } => cmd::update::keygen(&out),
         Command::PublicKey { key } => cmd::update::public_key(&key),
         Command::Sign {
@@ -254,7 +263,7 @@ fn run(cli: Cli) -> ToolResult<()> {
 fn read_profile(file: &Path, port: &str) -> ToolResult<String> {
     let shown = file.display();
     let meta = std::fs::metadata(file)
-        .map_err(|e| ToolError::usage(format!("cannot read the profile `{shown}`: {e}")))?;
+        .map_err(|e| ToolError::failed(format!("cannot read the profile `{shown}`: {e}")))?;
     if !meta.is_file() {
         let swapped = Path::new(port).is_file();
         return Err(ToolError::usage(if swapped {
@@ -467,8 +476,30 @@ fn connect_ready(conn: &Conn) -> ToolResult<Client> {
 
 /// `tinybms update PORT|HOST FILE`: a serial port (a path that exists, or
 /// COMn), else a bridge on the network at its update port.
-fn update(target: &str, file: &Path, downgrade: bool, check: bool, yes: bool) -> ToolResult<()> {
+fn update(
+    target: &str,
+    file: &Path,
+    downgrade: bool,
+    drop: Option<&str>,
+    check: bool,
+    yes: bool,
+) -> ToolResult<()> {
+    refuse_swapped_update(target, file)?;
+    let drop_bits = match drop {
+        None => 0,
+        Some(list) => tinybms_firmware::update::file::feature_bits(list).ok_or_else(|| {
+            ToolError::usage(format!(
+                "--drop {list}: not feature names (can, host-link, wifi, store)"
+            ))
+        })?,
+    };
+    let permit = tinybms_firmware::update::file::Permit {
+        downgrade,
+        drop: drop_bits,
+    };
     let (bytes, header) = cmd::update::read_update(file)?;
+    // The whole file before anything else: a damaged download never starts.
+    cmd::update::check_whole(file, &bytes, &header)?;
     let serial = Path::new(target).exists() || target.to_ascii_uppercase().starts_with("COM");
     let mut c = if serial {
         let conn = Conn {
@@ -508,21 +539,62 @@ fn update(target: &str, file: &Path, downgrade: bool, check: bool, yes: bool) ->
             header.features()
         },
     );
+    cmd::update::check_for(&header, &c.hello, permit)?;
     if check {
-        cmd::update::send(&mut c, &bytes, downgrade, true, true)?;
-        println!("the bridge would take it (nothing was sent beyond the header)");
+        cmd::update::send(&mut c, &bytes, permit, true, true)?;
+        println!(
+            "the whole file checked (its hash and signature), and the bridge would take it \
+             (nothing was sent beyond the header)"
+        );
         return Ok(());
     }
     if !yes && !confirm("Update the bridge (it restarts into the new firmware, on trial)")? {
         return Err(ToolError::failed("not confirmed: nothing sent"));
     }
-    let v = cmd::update::send(&mut c, &bytes, downgrade, false, false)?;
+    let v = cmd::update::send(&mut c, &bytes, permit, false, false)?;
     println!(
         "installed {v}: the bridge restarts into it on trial; it confirms itself once BMS data \
          and the inverter output run, else the bridge goes back to {} by itself \
          (`tinybms version PORT` or its hello says which runs)",
         c.hello.firmware
     );
+    Ok(())
+}
+
+/// `update FILE PORT` instead of `update PORT FILE`: said at once (the file
+/// opened as a port would wait forever).
+fn refuse_swapped_update(target: &str, file: &Path) -> ToolResult<()> {
+    let is_update_file = |p: &Path| {
+        std::fs::File::open(p).is_ok_and(|mut f| {
+            use std::io::Read as _;
+            let mut magic = [0u8; 8];
+            p.is_file()
+                && f.read_exact(&mut magic).is_ok()
+                && &magic == tinybms_firmware::update::file::MAGIC
+        })
+    };
+    let target_path = Path::new(target);
+    let file_is_port = file.exists() && !file.is_file();
+    if is_update_file(target_path) || (target_path.is_file() && file_is_port) {
+        return Err(ToolError::usage(format!(
+            "`{target}` is the update file and `{}` the bridge: the bridge comes first \
+             (tinybms update {} {target})",
+            file.display(),
+            file.display()
+        )));
+    }
+    if target_path.is_file() {
+        return Err(ToolError::usage(format!(
+            "`{target}` is a file, not the bridge's serial port or network address \
+             (tinybms update PORT|HOST FILE)"
+        )));
+    }
+    if file_is_port {
+        return Err(ToolError::usage(format!(
+            "`{}` is not an update file (a device, a folder): give the .tbu file",
+            file.display()
+        )));
+    }
     Ok(())
 }
 

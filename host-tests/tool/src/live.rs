@@ -232,7 +232,46 @@ fn pack_lines(t: &Telemetry<Read>, live: bool, alarm: Style) -> Vec<Line<'static
             ));
         }
     }
-    lines
+    lines.into_iter().map(glue).collect()
+}
+
+/// A no-break space: the paragraph never wraps at it.
+const NBSP: char = '\u{a0}';
+
+/// Figures kept whole where a line wraps in a narrow window: the space
+/// between a label and its number (`CVL 56.8`) and between a number and its
+/// unit (`56.8 V`) becomes a no-break space, so the paragraph wraps only
+/// between figures.
+fn glue(line: Line<'static>) -> Line<'static> {
+    let text: Vec<char> = line.spans.iter().flat_map(|s| s.content.chars()).collect();
+    let at = |i: Option<usize>| i.and_then(|i| text.get(i)).copied();
+    let unit = |c: char| matches!(c, 'V' | 'A' | 'W' | '%' | '°' | 's' | 'm' | 'k' | 'h');
+    let keep = |i: usize| {
+        let (prev, next, next2) = (at(i.checked_sub(1)), at(Some(i + 1)), at(Some(i + 2)));
+        let number_next = next.is_some_and(|c| c.is_ascii_digit())
+            || (next == Some('-') && next2.is_some_and(|c| c.is_ascii_digit()));
+        let label_before = prev.is_some_and(|c| c.is_alphabetic() || c == '/');
+        let number_before = prev.is_some_and(|c| c.is_ascii_digit());
+        (number_next && label_before) || (number_before && next.is_some_and(unit))
+    };
+    let mut i = 0;
+    let spans = line
+        .spans
+        .into_iter()
+        .map(|span| {
+            let content: String = span
+                .content
+                .chars()
+                .map(|c| {
+                    let glued = if c == ' ' && keep(i) { NBSP } else { c };
+                    i += 1;
+                    glued
+                })
+                .collect();
+            Span::styled(content, span.style)
+        })
+        .collect::<Vec<_>>();
+    Line::from(spans).style(line.style)
 }
 
 /// `text` in `width` columns, never cut inside a figure: whole as it is when
@@ -679,7 +718,8 @@ mod tests {
             }
             out.push('\n');
         }
-        out
+        // A no-break space shows as a space.
+        out.replace(NBSP, " ")
     }
 
     /// A telemetry line as the bridge writes it (`host_link::schema::Telemetry`).
@@ -805,7 +845,8 @@ mod tests {
             }
             out.push('\n');
         }
-        out
+        // A no-break space shows as a space.
+        out.replace(NBSP, " ")
     }
 
     fn sixteen_cells() -> Telemetry<Read> {
@@ -992,5 +1033,58 @@ mod tests {
         assert!(s.history.len() <= 301, "{}", s.history.len());
         let text = screen(&s, t0 + Duration::from_secs(400));
         assert!(text.contains("Pack voltage, last 5 min"), "{text}");
+    }
+
+    /// Issue 51: `--plain` printed the last pack values first and OFFLINE
+    /// last; the word that says how old they are now comes first.
+    #[test]
+    fn a_plain_picture_says_offline_before_the_old_values() {
+        let t = telemetry(false);
+        let f = freshness(Some(&t), Duration::ZERO);
+        let text = crate::picture::render_text(&t, None, "monitor — x", f);
+        let offline = text.find("OFFLINE").unwrap_or_else(|| panic!("{text}"));
+        let pack = text.find("Pack").unwrap_or_else(|| panic!("{text}"));
+        assert!(offline < pack, "{text}");
+        assert_eq!(
+            text.lines().nth(1).map(|l| l.contains("OFFLINE")),
+            Some(true),
+            "{text}"
+        );
+    }
+
+    /// Issue 51: at the smallest size (64 columns) a wrapped line broke
+    /// inside a figure (`CVL` at the end of a row, `56.8 V` on the next);
+    /// now every figure stays whole on its row.
+    #[test]
+    fn a_narrow_window_wraps_between_figures_never_inside_one() {
+        let t0 = Instant::now();
+        let mut s = LiveState::default();
+        s.update(
+            sixteen_cells_and(json!({"protocol":"pylon","can":"running","heard":true,
+                "cvl_v":56.8,"ccl_a":0.0,"dcl_a":48.0,"name":"PYLON",
+                "charge_stop":"temperature","soc_told":100,"charge_enabled":false,
+                "discharge_enabled":true,"ignored":"charge 9.8 A for 3 s"})),
+            t0,
+        );
+        let screen = screen_of(&s, t0, MIN_SIZE.0, MIN_SIZE.1);
+        let rows: Vec<&str> = screen.lines().collect();
+        for figure in [
+            "CVL 56.8 V",
+            "CCL 0.0 A",
+            "DCL 48.0 A",
+            "52.90 V",
+            "SOC 65.0 %",
+            "internal 27.0 °C",
+            "/ 24.8 °C",
+            "charge 9.8 A",
+        ] {
+            assert!(
+                rows.iter().any(|r| r.contains(figure)),
+                "`{figure}` cut: {screen}"
+            );
+        }
+        // Wide enough for one row each: nothing changes but the glue.
+        let wide = screen_of(&s, t0, 160, 40);
+        assert!(wide.contains("CVL 56.8 V  CCL 0.0 A  DCL 48.0 A"), "{wide}");
     }
 }

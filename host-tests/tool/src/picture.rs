@@ -163,6 +163,17 @@ pub fn render_text(
         line(freshness_text(f));
         return s;
     };
+    // How fresh it is comes first: stale values are never read before the
+    // word that says they are old.
+    let flagged = match &sn.flagged {
+        Some(fl) => format!("   flagged: {fl}"),
+        None => String::new(),
+    };
+    line(format!(
+        "{}   seq {}{flagged}",
+        freshness_text(f),
+        t.head.seq
+    ));
     let v = sn.pack_voltage_v;
     let i = sn.pack_current_a;
     let p = match (v, i) {
@@ -226,15 +237,6 @@ pub fn render_text(
             line(l.to_string());
         }
     }
-    let flagged = match &sn.flagged {
-        Some(fl) => format!("   flagged: {fl}"),
-        None => String::new(),
-    };
-    line(format!(
-        "{}   seq {}{flagged}",
-        freshness_text(f),
-        t.head.seq
-    ));
     if let Some(q) = link.map(link_quality) {
         line(format!("Link {q}"));
     }

@@ -38,7 +38,7 @@ pub fn render_table(lines: &[SettingLine<Read>]) -> String {
         "name".to_string(),
         "value".to_string(),
         "raw".to_string(),
-        "Rev D range".to_string(),
+        "allowed range".to_string(),
         "BMS min..max".to_string(),
     ]];
     for l in lines {

@@ -400,7 +400,7 @@ function showSettings(lines: Line[]): void {
         td(l.name, "name"),
         td(`${l.value ?? l.raw}${unit}`, "current"),
         edit,
-        td(l.min !== undefined && l.min !== null ? `Rev D ${l.min}..${l.max}${unit}${bms}` : ""),
+        td(l.min !== undefined && l.min !== null ? `allowed ${l.min}..${l.max}${unit}${bms}` : ""),
       );
       return tr;
     }),

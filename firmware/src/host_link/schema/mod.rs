@@ -135,6 +135,25 @@ line_type! {
         /// an update that failed its trial.
         #[serde(skip_serializing_if = "Option::is_none")]
         pub rolled_back: Option<F::Text>,
+        /// Updates: the slot running, its trial, the keys trusted.
+        #[serde(skip_serializing_if = "Option::is_none", default)]
+        pub update: Option<UpdateHello<F>>,
+    }
+}
+
+line_type! {
+    /// Updates, in `hello`: what runs and which keys an update file must
+    /// be signed with (public keys).
+    pub struct UpdateHello<F: Form> {
+        /// The app slot running (`ota_0`, `ota_1`); none without two slots
+        /// (an install from before updates without a cable).
+        pub slot: Option<F::Text>,
+        /// `confirmed` or `on_trial`.
+        pub trial: F::Text,
+        /// The key built into the image, hex.
+        pub built_in_key: Option<F::Hex>,
+        /// The owner's key (`update_key`), hex.
+        pub owner_key: Option<F::Hex>,
     }
 }
 
@@ -409,6 +428,8 @@ line_type! {
         pub ignored_stop: Option<F::Text>,
         pub wifi_rssi_dbm: Option<i8>,
         pub update_rolled_back: Option<F::Text>,
+        #[serde(default)]
+        pub update_latest: Option<F::Text>,
     }
 }
 

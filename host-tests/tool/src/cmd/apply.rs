@@ -20,7 +20,7 @@ pub fn run(
 ) -> ToolResult<()> {
     let text = read_profile(&file, &conn.port)?;
     let wanted =
-        parse_profile(&text).map_err(|e| ToolError::usage(format!("{}: {e}", file.display())))?;
+        parse_profile(&text).map_err(|e| ToolError::failed(format!("{}: {e}", file.display())))?;
     let mut c = connect_ready(&conn)?;
     let current = c.settings()?;
     let chem = settings::chemistry_of(&current, &wanted, chemistry);

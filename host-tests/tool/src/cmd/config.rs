@@ -141,7 +141,7 @@ fn read_file(path: &Path) -> ToolResult<SavedFile> {
         .map(str::to_string)
         .collect();
     let record = config::parse_file(&text)
-        .map_err(|e| ToolError::usage(format!("{}: {e}", path.display())))?;
+        .map_err(|e| ToolError::failed(format!("{}: {e}", path.display())))?;
     Ok(SavedFile { record, secrets })
 }
 
@@ -162,7 +162,21 @@ fn apply_file(
     yes: bool,
 ) -> ToolResult<()> {
     let (fields, current) = (to.fields, to.current);
-    let changes = config::diff(current, &file.record);
+    let mut changes = config::diff(current, &file.record);
+    // A bridge without Wi-Fi refuses the network fields: they stay out, said.
+    if !c.hello.features.iter().any(|f| f == "wifi") {
+        let (network, rest): (Vec<_>, Vec<_>) = changes
+            .into_iter()
+            .partition(|(id, _)| id.field().group == tinybms_firmware::config::Group::Network);
+        if !network.is_empty() {
+            let names: Vec<&str> = network.iter().map(|(id, _)| id.name()).collect();
+            println!(
+                "skipped: {} (this image has no Wi-Fi; the images with Wi-Fi end in -wifi)",
+                names.join(", ")
+            );
+        }
+        changes = rest;
+    }
     config::check_locally(current, &changes)?;
     println!(
         "{}: {} fields, {} differ from the bridge's",

@@ -310,6 +310,38 @@ fn bridge_of(h: &Hello<Read>) -> Vec<(&'static str, Value, String)> {
     if let Some(m) = &h.mqtt {
         b.push(("mqtt", json!(m), mqtt_text(m)));
     }
+    if let Some(ip) = h.wifi.as_ref().and_then(|w| w.ip.as_ref()) {
+        // Where `tinybms update HOST FILE` finds it on the network.
+        b.push((
+            "address",
+            json!(ip),
+            format!("{ip} (tinybms update {ip} FILE)"),
+        ));
+    }
+    if let Some(u) = &h.update {
+        let v = serde_json::to_value(u).unwrap_or(Value::Null);
+        let key = |k: &Option<String>| k.as_ref().map(|k| k.to_lowercase());
+        let keys: Vec<String> = [
+            key(&u.built_in_key).map(|k| format!("built in {k}")),
+            key(&u.owner_key).map(|k| format!("update_key {k}")),
+        ]
+        .into_iter()
+        .flatten()
+        .collect();
+        let text = format!(
+            "{}, {}; {}",
+            u.slot
+                .as_deref()
+                .unwrap_or("one app slot (reinstall once by cable)"),
+            u.trial.replace('_', " "),
+            if keys.is_empty() {
+                "trusts no key (set update_key over USB)".to_string()
+            } else {
+                format!("takes files signed by {}", keys.join(", "))
+            }
+        );
+        b.push(("updates", v, text));
+    }
     if let Some(r) = &h.rolled_back {
         b.push(("rolled_back", json!(r), r.clone()));
     }

@@ -11,8 +11,9 @@ use base64::Engine as _;
 use ed25519_dalek::{Signer, SigningKey};
 use serde_json::json;
 use sha2::{Digest, Sha256};
-use tinybms_firmware::host_link::schema::{HostLine, Update};
+use tinybms_firmware::host_link::schema::{Hello, HostLine, Update};
 use tinybms_firmware::update::file::{self, Header, HEADER_LEN, SIGNED_LEN};
+use tinybms_firmware::update::key_text::{self, KeyText};
 use tinybms_firmware::update::transfer::CHUNK_MAX;
 
 use crate::client::Client;
@@ -32,18 +33,59 @@ fn hex(b: &[u8]) -> String {
     b.iter().map(|x| format!("{x:02x}")).collect()
 }
 
-/// A signing key from its file: 64 hex digits (the seed), nothing else but
-/// white space.
-pub fn read_signing_key(path: &Path) -> ToolResult<SigningKey> {
+/// A key file's text, understood (`tinybms_firmware::update::key_text`: a
+/// public key is 64 hex digits, a private key 128).
+fn read_key_text(path: &Path) -> ToolResult<KeyText> {
     let text = std::fs::read_to_string(path)
-        .map_err(|e| ToolError::usage(format!("cannot read the key `{}`: {e}", path.display())))?;
-    let seed = tinybms_firmware::update::parse_key(text.trim().as_bytes()).ok_or_else(|| {
-        ToolError::usage(format!(
-            "`{}` is not a signing key (64 hex digits, as `tinybms keygen` writes)",
+        .map_err(|e| ToolError::failed(format!("cannot read the key `{}`: {e}", path.display())))?;
+    key_text::parse(&text)
+        .map_err(|e| ToolError::failed(format!("`{}`: {}", path.display(), e.words())))
+}
+
+/// A signing key from its file: a private key, 128 hex digits (`tinybms
+/// keygen`), whose public half is the seed's. A public key is refused with
+/// words that say which is which.
+pub fn read_signing_key(path: &Path) -> ToolResult<SigningKey> {
+    match read_key_text(path)? {
+        KeyText::Public(_) => Err(ToolError::failed(format!(
+            "`{}` holds a PUBLIC key (64 hex digits): it only checks signatures; sign with \
+             the private key (128 hex digits: the file tinybms keygen wrote without .pub)",
             path.display()
-        ))
-    })?;
-    Ok(SigningKey::from_bytes(&seed))
+        ))),
+        KeyText::Private { seed, public } => {
+            let key = SigningKey::from_bytes(&seed);
+            if key.verifying_key().to_bytes() == public {
+                Ok(key)
+            } else {
+                Err(ToolError::failed(format!(
+                    "`{}` is damaged: its two halves do not belong together (the public key \
+                     written in it is not its private key's)",
+                    path.display()
+                )))
+            }
+        }
+    }
+}
+
+/// The text of a private key file (128 hex digits: seed, then public key).
+fn private_file(seed: &[u8; 32], public: &[u8; 32], pubfile: &Path) -> String {
+    format!(
+        "# tinybms update signing key: PRIVATE. Anyone with this file can sign firmware\n\
+         # your bridges take: keep it safe, never give it to a bridge or post it.\n\
+         # Its public key (what bridges are given) is in {}.\n{}\n{}\n",
+        pubfile.display(),
+        hex(seed),
+        hex(public)
+    )
+}
+
+/// The text of a public key file (64 hex digits).
+fn public_file(public: &[u8; 32]) -> String {
+    let p = hex(public);
+    format!(
+        "# tinybms update public key: give it to a bridge to trust what its private key\n\
+         # signs (tinybms config PORT update_key={p}).\n{p}\n"
+    )
 }
 
 /// `tinybms keygen OUT`: a new key pair, OUT (private, only the owner may
@@ -51,7 +93,7 @@ pub fn read_signing_key(path: &Path) -> ToolResult<SigningKey> {
 pub fn keygen(out: &Path) -> ToolResult<()> {
     let pubfile = PathBuf::from(format!("{}.pub", out.display()));
     if out.exists() || pubfile.exists() {
-        return Err(ToolError::usage(format!(
+        return Err(ToolError::failed(format!(
             "`{}` or its .pub exists: a key is never overwritten",
             out.display()
         )));
@@ -59,15 +101,16 @@ pub fn keygen(out: &Path) -> ToolResult<()> {
     let mut seed = [0u8; 32];
     getrandom::fill(&mut seed).map_err(|e| ToolError::failed(format!("no randomness: {e}")))?;
     let key = SigningKey::from_bytes(&seed);
-    let public = hex(&key.verifying_key().to_bytes());
-    write_private(out, &format!("{}\n", hex(&seed)))?;
-    std::fs::write(&pubfile, format!("{public}\n"))
+    let public_bytes = key.verifying_key().to_bytes();
+    let public = hex(&public_bytes);
+    write_private(out, &private_file(&seed, &public_bytes, &pubfile))?;
+    std::fs::write(&pubfile, public_file(&public_bytes))
         .map_err(|e| ToolError::failed(format!("{}: {e}", pubfile.display())))?;
     println!(
-        "private key: {} (keep it; anyone with it can sign updates your bridges take)",
+        "private key: {} (keep it secret; anyone with it can sign updates your bridges take)",
         out.display()
     );
-    println!("public key:  {public}");
+    println!("public key:  {} = {public}", pubfile.display());
     println!("Let a bridge take updates you sign: tinybms config PORT update_key={public}");
     println!("or build it trusting the key: TINYBMS_UPDATE_KEY={public} cargo build --release");
     Ok(())
@@ -88,8 +131,17 @@ fn write_private(path: &Path, text: &str) -> ToolResult<()> {
         .map_err(|e| ToolError::failed(format!("{}: {e}", path.display())))
 }
 
-/// `tinybms public-key KEY`: the public key of a signing key.
+/// `tinybms public-key KEY`: the public key of a private key. Given a
+/// public key it says so (and derives nothing from it).
 pub fn public_key(key: &Path) -> ToolResult<()> {
+    if let KeyText::Public(p) = read_key_text(key)? {
+        return Err(ToolError::failed(format!(
+            "`{}` already is a public key: {} (give that to a bridge; \
+             public-key takes the private key, 128 hex digits)",
+            key.display(),
+            hex(&p)
+        )));
+    }
     let k = read_signing_key(key)?;
     println!("{}", hex(&k.verifying_key().to_bytes()));
     Ok(())
@@ -108,35 +160,73 @@ pub struct SignArgs {
     pub chip: String,
     /// The board's name.
     pub board: String,
-    /// The version the image reports.
-    pub version: String,
-    /// What is built in, comma-separated.
-    pub features: String,
-    /// What it was built from.
-    pub build: String,
+    /// The version the image reports: read from the image; when given, it
+    /// must be the image's.
+    pub version: Option<String>,
+    /// What is built in, comma-separated: read from the image; when given,
+    /// it must be the image's.
+    pub features: Option<String>,
+    /// What it was built from: read from the image (an image from before
+    /// images named their build takes this); when given, it must be the
+    /// image's.
+    pub build: Option<String>,
+}
+
+/// The project name of an image built before images carried their build in
+/// their descriptor (the crate's name): no build.
+const OLD_PROJECT_NAME: &str = "tinybms-firmware";
+
+/// A field of the header from the image's own descriptor, or else from the
+/// command line; both, and they must agree.
+fn from_image(
+    what: &str,
+    image: Option<&str>,
+    given: Option<&str>,
+    flag: &str,
+) -> ToolResult<String> {
+    match (image, given) {
+        (Some(i), Some(g)) if i != g => Err(ToolError::failed(format!(
+            "the image says its {what} is `{i}`, not `{g}`: a header must say what the image \
+             reports (leave out {flag})"
+        ))),
+        (Some(i), _) => Ok(i.to_string()),
+        (None, Some(g)) => Ok(g.to_string()),
+        (None, None) => Err(ToolError::failed(format!(
+            "the image does not say its {what}: give {flag}"
+        ))),
+    }
 }
 
 /// The update file of `image` (header signed with `key`).
 pub fn sign_bytes(key: &SigningKey, image: &[u8], a: &SignArgs) -> ToolResult<Vec<u8>> {
     if !file::image_start_ok(image, &a.chip) {
-        return Err(ToolError::usage(format!(
+        return Err(ToolError::failed(format!(
             "`{}` is not an app image for {} (magic E9, chip id, app descriptor)",
             a.image.display(),
             a.chip
         )));
     }
+    let version = from_image(
+        "version",
+        file::image_version(image).filter(|v| !v.is_empty()),
+        a.version.as_deref(),
+        "--version",
+    )?;
+    let build = match file::image_build(image).filter(|b| !b.is_empty() && *b != OLD_PROJECT_NAME) {
+        None => a.build.clone().unwrap_or_default(),
+        known => from_image("build", known, a.build.as_deref(), "--build")?,
+    };
+    let features = from_image(
+        "features",
+        tinybms_firmware::identity::features_in_image(image),
+        a.features.as_deref(),
+        "--features",
+    )?;
     let hash: [u8; 32] = Sha256::digest(image).into();
-    let len = u32::try_from(image.len()).map_err(|_| ToolError::usage("the image is too large"))?;
-    let mut h = file::unsigned_header(
-        len,
-        &hash,
-        &a.chip,
-        &a.board,
-        &a.features,
-        &a.version,
-        &a.build,
-    )
-    .map_err(|r| ToolError::usage(format!("the header: {}", r.words())))?;
+    let len =
+        u32::try_from(image.len()).map_err(|_| ToolError::failed("the image is too large"))?;
+    let mut h = file::unsigned_header(len, &hash, &a.chip, &a.board, &features, &version, &build)
+        .map_err(|r| ToolError::failed(format!("the header: {}", r.words())))?;
     let sig = key.sign(&h[..SIGNED_LEN]);
     h[SIGNED_LEN..].copy_from_slice(&sig.to_bytes());
     let mut out = h.to_vec();
@@ -148,16 +238,20 @@ pub fn sign_bytes(key: &SigningKey, image: &[u8], a: &SignArgs) -> ToolResult<Ve
 pub fn sign(a: &SignArgs) -> ToolResult<()> {
     let key = read_signing_key(&a.key)?;
     let image = std::fs::read(&a.image)
-        .map_err(|e| ToolError::usage(format!("cannot read `{}`: {e}", a.image.display())))?;
+        .map_err(|e| ToolError::failed(format!("cannot read `{}`: {e}", a.image.display())))?;
     let bytes = sign_bytes(&key, &image, a)?;
     std::fs::write(&a.out, &bytes)
         .map_err(|e| ToolError::failed(format!("{}: {e}", a.out.display())))?;
+    let version = file::image_version(&image)
+        .map(str::to_string)
+        .or_else(|| a.version.clone())
+        .unwrap_or_default();
     println!(
         "{}: {} {} {} ({} bytes), signed by {}",
         a.out.display(),
         a.chip,
         a.board,
-        a.version,
+        version,
         image.len(),
         hex(&key.verifying_key().to_bytes())
     );
@@ -168,19 +262,147 @@ pub fn sign(a: &SignArgs) -> ToolResult<()> {
 /// the bridge does that).
 pub fn read_update(path: &Path) -> ToolResult<(Vec<u8>, Header)> {
     let bytes = std::fs::read(path)
-        .map_err(|e| ToolError::usage(format!("cannot read `{}`: {e}", path.display())))?;
+        .map_err(|e| ToolError::failed(format!("cannot read `{}`: {e}", path.display())))?;
     let head: &[u8; HEADER_LEN] = bytes
         .get(..HEADER_LEN)
         .and_then(|h| h.try_into().ok())
         .ok_or_else(|| {
-            ToolError::usage(format!(
+            ToolError::failed(format!(
                 "`{}` is too short for an update file",
                 path.display()
             ))
         })?;
     let h = Header::parse(head)
-        .map_err(|r| ToolError::usage(format!("`{}`: {}", path.display(), r.words())))?;
+        .map_err(|r| ToolError::failed(format!("`{}`: {}", path.display(), r.words())))?;
     Ok((bytes, h))
+}
+
+/// The whole file, checked before a byte of it goes to a bridge: its length
+/// against its header, the image's start for its chip, the image's bytes
+/// against the signed hash (a download damaged anywhere is found here).
+pub fn check_whole(path: &Path, bytes: &[u8], h: &Header) -> ToolResult<()> {
+    let image = bytes.get(HEADER_LEN..).unwrap_or(&[]);
+    let bad = |why: &str| {
+        Err(ToolError::failed(format!(
+            "`{}`: {why}; nothing was sent (download it again)",
+            path.display()
+        )))
+    };
+    match image.len().cmp(&(h.image_len as usize)) {
+        std::cmp::Ordering::Less => return bad(file::Refusal::Truncated.words()),
+        std::cmp::Ordering::Greater => return bad(file::Refusal::Padded.words()),
+        std::cmp::Ordering::Equal => {}
+    }
+    if !file::image_start_ok(image, h.chip()) {
+        return bad(file::Refusal::NotAnImage.words());
+    }
+    let hash: [u8; 32] = Sha256::digest(image).into();
+    if hash != h.image_sha256() {
+        return bad("damaged: the image's bytes do not give the hash its signature covers");
+    }
+    Ok(())
+}
+
+/// The keys a bridge trusts, from its `hello` (a bridge from before hello
+/// said them: `None`).
+pub fn trusted_keys(hello: &Hello<Read>) -> Option<Vec<file::Key>> {
+    let u = hello.update.as_ref()?;
+    let parse = |k: &Option<String>| {
+        k.as_deref()
+            .and_then(|hex| tinybms_firmware::update::parse_key(hex.as_bytes()))
+    };
+    Some(
+        [parse(&u.built_in_key), parse(&u.owner_key)]
+            .into_iter()
+            .flatten()
+            .collect(),
+    )
+}
+
+/// The file against the bridge that would take it, as the bridge itself
+/// will check it: chip, board, version, the features it runs (those the
+/// file lacks must be in `permit.drop`), and the signature with the keys it
+/// trusts. The words say what to do.
+pub fn check_for(h: &Header, hello: &Hello<Read>, permit: file::Permit) -> ToolResult<()> {
+    let running = file::feature_bits(&hello.features.join(",")).unwrap_or_else(|| {
+        hello
+            .features
+            .iter()
+            .filter_map(|n| file::feature_bits(n))
+            .fold(0, |a, b| a | b)
+    });
+    let me = file::Target {
+        chip: &hello.chip,
+        board: tinybms_firmware::boards::key_of(&hello.board),
+        version: &hello.firmware,
+        features: running,
+        slot_size: u32::MAX,
+    };
+    match h.check(&me, permit) {
+        Ok(()) => {}
+        Err(file::Refusal::DropsFeatures) => {
+            let lacking = file::lacks(h.features(), running) & !permit.drop;
+            let names: Vec<&str> = file::FEATURE_NAMES
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| lacking & (1 << i) != 0)
+                .map(|(_, n)| *n)
+                .collect();
+            let wifi = lacking & (1 << 2) != 0;
+            return Err(ToolError::failed(format!(
+                "this file has no {}, which the bridge runs: after it the bridge would have none{}. \
+                 Take the file with the bridge's features ({}){}, or say --drop {} if you mean it; \
+                 nothing was sent",
+                names.join(", "),
+                if wifi {
+                    " (no network: no Home Assistant, no update without a cable)"
+                } else {
+                    ""
+                },
+                hello.features.join(","),
+                if wifi { ": tinybms-BOARD-wifi.tbu" } else { "" },
+                names.join(",")
+            )));
+        }
+        Err(file::Refusal::WrongBoard) => {
+            return Err(ToolError::failed(format!(
+                "this file is for another board ({}; the bridge is a {}, {}): take its board's \
+                 file; nothing was sent",
+                h.board(),
+                hello.board,
+                me.board
+            )))
+        }
+        Err(file::Refusal::Older) => {
+            return Err(ToolError::failed(format!(
+                "this file is {}, older than the running firmware ({}): say --downgrade if you \
+                 mean it; nothing was sent",
+                h.version(),
+                hello.firmware
+            )))
+        }
+        Err(r) => {
+            return Err(ToolError::failed(format!(
+                "{}; nothing was sent",
+                r.words()
+            )))
+        }
+    }
+    if let Some(keys) = trusted_keys(hello) {
+        if let Err(r) = h.verify(&keys) {
+            let trusted: Vec<String> = keys.iter().map(|k| hex(k)).collect();
+            return Err(ToolError::failed(format!(
+                "{} (it trusts {}); nothing was sent",
+                r.words(),
+                if trusted.is_empty() {
+                    "no key: register yours with update_key over USB".to_string()
+                } else {
+                    trusted.join(" and ")
+                }
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// The `update` line answering `req`.
@@ -236,14 +458,23 @@ impl Progress {
 pub fn send(
     c: &mut Client,
     bytes: &[u8],
-    downgrade: bool,
+    permit: file::Permit,
     check: bool,
     quiet: bool,
 ) -> ToolResult<String> {
     let size = bytes.len();
-    let req = c.send(
-        json!({"cmd": "update_begin", "size": size, "downgrade": downgrade, "check": check}),
-    )?;
+    let mut begin =
+        json!({"cmd": "update_begin", "size": size, "downgrade": permit.downgrade, "check": check});
+    if permit.drop != 0 {
+        let names: Vec<&str> = file::FEATURE_NAMES
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| permit.drop & (1 << i) != 0)
+            .map(|(_, n)| *n)
+            .collect();
+        begin["drop_features"] = json!(names.join(","));
+    }
+    let req = c.send(begin)?;
     let mut a = answer(c, req, "update_begin")?.ok_or_else(|| {
         ToolError::failed("no answer to update_begin (an image without updates?)")
     })?;
