@@ -732,3 +732,63 @@ fn a_damaged_or_lesser_file_is_refused_before_a_byte_is_sent() {
         started.elapsed()
     );
 }
+
+/// Issue 51, item 10: a file signed as 0.3.0 reported 0.2.0 once installed
+/// (the header said what the command line said). `sign` reads the version,
+/// the build and the features from the image, and refuses others.
+#[test]
+fn sign_takes_the_image_s_own_version_build_and_features() {
+    let k = keygen("e2e-key-7");
+    let mut img = image(9_000, "0.2.0", "src-0123abcd");
+    let tag = b"tinybms-features=can,host-link,store\0";
+    img[5_000..5_000 + tag.len()].copy_from_slice(tag);
+    let bin = tmp("own.bin");
+    std::fs::write(&bin, &img).unwrap();
+    let out_path = tmp("own.tbu");
+    let sign_with = |extra: &[&str]| {
+        let mut args = vec![
+            "sign",
+            "--key",
+            k.key.to_str().unwrap(),
+            "--chip",
+            "esp32c3",
+            "--board",
+            "c3-supermini",
+        ];
+        args.extend_from_slice(extra);
+        args.extend_from_slice(&[bin.to_str().unwrap(), "-o", out_path.to_str().unwrap()]);
+        tinybms(&args)
+    };
+    let out = sign_with(&[]);
+    assert_eq!(out.code, 0, "{out}");
+    let file = std::fs::read(&out_path).unwrap();
+    let field = |from: usize, to: usize| {
+        String::from_utf8(
+            file[from..to]
+                .iter()
+                .copied()
+                .take_while(|&b| b != 0)
+                .collect(),
+        )
+        .unwrap()
+    };
+    assert_eq!(field(124, 148), "0.2.0");
+    assert_eq!(field(148, 180), "src-0123abcd");
+    assert_eq!(field(84, 124), "can,host-link,store");
+    for (flag, value, says) in [
+        ("--version", "0.3.0", "version is `0.2.0`"),
+        ("--build", "v9", "build is `src-0123abcd`"),
+        (
+            "--features",
+            "can,host-link,wifi,store",
+            "features is `can,host-link,store`",
+        ),
+    ] {
+        let out = sign_with(&[flag, value]);
+        assert_eq!(out.code, 1, "{flag}: {out}");
+        assert!(out.stderr.contains(says), "{flag}: {out}");
+    }
+    // The same values given agree: taken.
+    let out = sign_with(&["--version", "0.2.0", "--build", "src-0123abcd"]);
+    assert_eq!(out.code, 0, "{out}");
+}
