@@ -69,15 +69,16 @@ def free_port():
         return s.getsockname()[1]
 
 
-def wait_for(what, cond, timeout, step=0.25):
-    """cond() until it is truthy; its value. Fails after `timeout` s."""
+def wait_for(what, cond, timeout, step=0.25, why=None):
+    """cond() until it is truthy; its value. Fails after `timeout` s
+    (saying `why()` when given)."""
     end = time.monotonic() + timeout
     while True:
         v = cond()
         if v:
             return v
         if time.monotonic() >= end:
-            raise Failed(f"{what}: not within {timeout} s")
+            raise Failed(f"{what}: not within {timeout} s" + (f" ({why()})" if why else ""))
         time.sleep(step)
 
 
@@ -357,8 +358,10 @@ def expected_value(row, state):
         on = v > 0 if "> 0" in member else bool(v)
         return "on" if on else "off"
     if platform == "update":
-        # The installed version is the latest: up to date.
-        return "unavailable" if v is None else "off"
+        # No newer version seen: unknown, never "up to date" without knowing.
+        if v is None:
+            return "unavailable"
+        return "unknown" if state.get("update_latest") is None else "on"
     if v is None:
         return "unavailable"
     return v
@@ -427,10 +430,11 @@ def compare_values(ha, entities, serial, pack_rows, last_state):
         if row[2] == "update":
             # The versions it shows are the bridge's firmware as published.
             a = states[e["entity_id"]]["attributes"]
-            for k in ("installed_version", "latest_version"):
-                if a.get(k) != last_state.get("bridge_firmware"):
+            for k, member in (("installed_version", "bridge_firmware"),
+                              ("latest_version", "update_latest")):
+                if a.get(k) != last_state.get(member):
                     wrong.append(f"{row[0]}: {k} {a.get(k)!r}, published "
-                                 f"{last_state.get('bridge_firmware')!r}")
+                                 f"{member} {last_state.get(member)!r}")
         compared += 1
         if not same(got, want):
             wrong.append(f"{row[0]}: Home Assistant {got!r}, published {want!r}")
@@ -448,11 +452,14 @@ def may_be_unavailable(entity_id):
     external temperature sensor a pack may not have (the simulated packs of
     some seeds have none), the event entity until a first event, and what
     stops charging or discharging, which only a 48 V hybrid inverter's
-    protocol reports (null with Victron, the simulator's default)."""
+    protocol reports (null with Victron, the simulator's default), and an
+    inverter that ignored a stop (null while none has)."""
     return (
         "_temperature_" in entity_id
         or entity_id.startswith("event.")
-        or entity_id.endswith(("_stopped_by", "_charge_stop", "_discharge_stop"))
+        or entity_id.endswith(
+            ("_stopped_by", "_charge_stop", "_discharge_stop", "_inverter_ignored_a_stop")
+        )
     )
 
 
@@ -491,11 +498,17 @@ def main():
         time.sleep(6)
 
         # 2. A hung bridge: stopped, its connection left open.
+        missing = []
+
         def all_available(ser=serial):
             s = ours(ha.states(), ser)
-            return s and all(
-                v["state"] != "unavailable" for k, v in s.items() if not may_be_unavailable(k)
+            missing[:] = sorted(
+                k for k, v in s.items() if v["state"] == "unavailable" and not may_be_unavailable(k)
             )
+            return s and not missing
+
+        def still_missing():
+            return "unavailable: " + ", ".join(missing)
 
         def hang(override_will, while_hung=None):
             """Stops the bridge (`while_hung` gets its last state 1 s later);
@@ -557,6 +570,31 @@ def main():
             n = compare_values(ha, entities, serial, pack_rows, last_state)
             print(f"ok: {n} values equal what the bridge published")
 
+        # The update entity's template as published, rendered by Home
+        # Assistant itself: a latest version only when the bridge knows one
+        # (a null one makes Home Assistant drop the whole message).
+        with watch.lock:
+            update_configs = [
+                json.loads(p)
+                for _, top, p in watch.messages
+                if top.startswith("homeassistant/update/") and top.endswith("/config") and p
+            ]
+        check(update_configs, "no update entity's config published")
+        template = update_configs[-1]["value_template"]
+        for latest in (None, "9.9.9"):
+            got = ha.request("POST", "/api/template", {
+                "template": template,
+                "variables": {"value_json": {
+                    "bridge_firmware": "0.1.0", "update_latest": latest,
+                    "update_rolled_back": None,
+                }},
+            })
+            want = {"installed_version": "0.1.0", "release_summary": ""}
+            if latest:
+                want["latest_version"] = latest
+            check(got == want, f"update template with update_latest {latest!r}: {got}")
+        print("ok: the update entity names a latest version only when one is known")
+
         hung_expiry, first, _ = hang(True, values_equal)
         figures["hung bridge, expiry alone: first entity unavailable after"] = f"{first:.1f} s"
         figures["hung bridge, expiry alone: every entity unavailable after"] = (
@@ -568,7 +606,9 @@ def main():
         )
         print(f"ok: by expiry alone unavailable {hung_expiry:.1f} s after the last state")
         back = time.monotonic()
-        wait_for("the bridge's entities back after it resumed", all_available, 90, 0.5)
+        wait_for(
+            "the bridge's entities back after it resumed", all_available, 90, 0.5, still_missing
+        )
         figures["resumed bridge: back after"] = f"{time.monotonic() - back:.1f} s"
         time.sleep(6)
         hung, first, last_at = hang(False)
@@ -580,7 +620,9 @@ def main():
         figures["hung bridge: every entity unavailable after the last state"] = f"{hung:.1f} s"
         check(hung <= EXPIRE_S + SLACK_S, f"hung bridge unavailable after {hung:.1f} s")
         print(f"ok: hung bridge unavailable {hung:.1f} s after its last state (bound {EXPIRE_S} s)")
-        wait_for("the bridge's entities back after it resumed", all_available, 90, 0.5)
+        wait_for(
+            "the bridge's entities back after it resumed", all_available, 90, 0.5, still_missing
+        )
         print("ok: back after the bridge resumed")
 
         # 3. A killed connection: unavailable at once (the will).
@@ -600,11 +642,13 @@ def main():
 
         # 4. Home Assistant restarted: the entities come back.
         a = sim("a2", "--seed", "1")
-        wait_for("the bridge back", all_available, 60, 0.5)
+        wait_for("the bridge back", all_available, 60, 0.5, still_missing)
         ha.stop()
         ha.start()
         restarted = time.monotonic()
-        wait_for("the entities after Home Assistant's restart", all_available, 60, 0.5)
+        wait_for(
+            "the entities after Home Assistant's restart", all_available, 60, 0.5, still_missing
+        )
         figures["home assistant restarted: entities back after"] = (
             f"{time.monotonic() - restarted:.1f} s"
         )

@@ -241,6 +241,9 @@ fn every_template_reads_a_member_the_state_has() {
         .chain((1..=16).map(discovery::cell))
     {
         let member = e.read.member();
+        // Whole: a template cut at its buffer's end would be refused.
+        let template = discovery::value_template(e.read);
+        assert!(template.ends_with("}}"), "{}: {template}", e.object);
         assert!(
             s.get(member).is_some(),
             "{}: the state has no `{member}`: {s}",

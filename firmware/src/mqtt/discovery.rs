@@ -685,7 +685,7 @@ struct Config<'a> {
 
 /// The template reading `r` from the state JSON (or, for the event entity,
 /// turning an event line into Home Assistant's event payload).
-pub fn value_template(r: Read) -> String<192> {
+pub fn value_template(r: Read) -> String<256> {
     let mut t = String::new();
     let mut push = |s: &str| {
         let _ = t.push_str(s);
@@ -720,10 +720,13 @@ pub fn value_template(r: Read) -> String<192> {
             "{{ {'event_type': value_json.severity, 'name': value_json.name, \
              'id': value_json.id, 'timestamp_s': value_json.timestamp_s} | to_json }}",
         ),
+        // Home Assistant refuses the whole message when a version is null (its
+        // schema wants a string): the latest version is named only when known,
+        // which leaves the entity's state unknown, never "up to date".
         Read::Update => push(
-            "{{ {'installed_version': value_json.bridge_firmware, 'latest_version': \
-             value_json.update_latest, 'release_summary': value_json.update_rolled_back or ''} \
-             | to_json }}",
+            "{% set v = {'installed_version': value_json.bridge_firmware, 'release_summary': \
+             value_json.update_rolled_back or ''} %}{% if value_json.update_latest %}{% set v = \
+             dict(v, latest_version=value_json.update_latest) %}{% endif %}{{ v | to_json }}",
         ),
     }
     t

@@ -278,7 +278,8 @@ test("a TinyBMS behind a USB-UART adapter: the firmware's station runs in the pa
   }
 });
 
-/** An app image as the bridge checks its start (ESP32-C3, version `v`). */
+/** An app image as the bridge checks its start (ESP32-C3, version `v`), naming
+ * its features in its bytes as a real image does (what `sign` reads). */
 function appImage(len, v) {
   const b = Buffer.alloc(len);
   for (let i = 0; i < len; i++) b[i] = (i * 13 + (i >> 8)) & 0xff;
@@ -288,6 +289,7 @@ function appImage(len, v) {
   b.fill(0, 48, 112);
   b.write(v, 48, "latin1");
   b.write("tinybms-firmware", 80, "latin1");
+  b.write("tinybms-features=can,host-link,wifi,store\0", 5000, "latin1");
   return b;
 }
 
@@ -296,7 +298,8 @@ test("a firmware update from the page: refused with the bridge's reason, then se
   const key = join(dir, "k");
   const stranger = join(dir, "s");
   for (const k of [key, stranger]) assert.equal((await tinybms(["keygen", k])).code, 0);
-  const pub = readFileSync(`${key}.pub`, "utf8").trim();
+  // The .pub file: `#` lines saying what it is, then the key's 64 hex digits.
+  const pub = readFileSync(`${key}.pub`, "utf8").split("\n").find((l) => /^[0-9a-f]{64}$/.test(l.trim())).trim();
   const app = join(dir, "app.bin");
   writeFileSync(app, appImage(12000, "0.9.0"));
   const sign = async (k, out) => {
