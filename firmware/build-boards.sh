@@ -10,7 +10,7 @@
 # log-uart image of a board whose host link runs on UART0 (only `can`).
 # Then every board once more with Wi-Fi and MQTT (feature `wifi`, log-rtt), held
 # to size-report.sh's budget for Wi-Fi images (WIFI_FLASH_BUDGET_KIB, default 1024;
-# WIFI_RAM_BUDGET_KIB, default 256: the radio's heap included).
+# WIFI_RAM_BUDGET_KIB, default 256: the radio's heap included; WIFI_RAM_BUDGET_C6_KIB, 280).
 # Images are kept as target/boards/tinybms-firmware-<board>-<log>[-wifi].elf.
 #
 # BOARDS_IMAGES=DIR (CI): the log-rtt images, with and without Wi-Fi, are the
