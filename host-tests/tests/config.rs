@@ -1143,3 +1143,27 @@ fn update_key_refuses_a_private_key_by_name() {
     let e = value::parse(f, &public[1..]).unwrap_err();
     assert!(e.detail.contains("64 hex digits"), "{}", e.detail);
 }
+
+/// `update_key=$(cat mykey.pub)`: the .pub file whole (its `#` lines, then
+/// the key) is taken as its 64 hex digits, on the bridge and in the tool
+/// (an owner found it refused with words that named that very file).
+#[test]
+fn update_key_takes_the_pub_file_whole() {
+    let f = field("update_key").field();
+    let hex = "5f69a1b2c3d4e5f60718293a4b5c6d7e8f9012345678abcdef0123456789abcd";
+    let file = format!(
+        "# tinybms update public key: give it to a bridge\n# (tinybms config PORT update_key={hex}).\n{}\n",
+        hex.to_uppercase()
+    );
+    for text in [file.as_str(), &format!("{} {}", &hex[..32], &hex[32..])] {
+        match value::parse(f, text) {
+            Ok(Parsed::Text(s)) => assert_eq!(s.as_str(), hex, "{text}"),
+            other => panic!("{text}: {other:?}"),
+        }
+    }
+    // Comments alone, or a private key's file whole: refused, never stored.
+    assert!(value::parse(f, "# only a comment\n").is_err());
+    let private = format!("# PRIVATE\n{}{hex}\n", "cd".repeat(32));
+    let e = value::parse(f, &private).unwrap_err();
+    assert!(e.detail.contains("PRIVATE key"), "{}", e.detail);
+}

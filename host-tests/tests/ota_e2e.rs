@@ -274,6 +274,9 @@ fn lost_repeated_and_reordered_chunks_then_a_rollback() {
         );
         std::thread::sleep(Duration::from_millis(200));
     }
+    // `hello` says so too, at once (it said "on_trial" until a restart).
+    let v = h.ask(json!({"cmd": "hello"}));
+    assert_eq!(v["update"]["trial"], "confirmed", "{v}");
 
     // An image that panics before it confirms itself: back to 0.9.0, said.
     let bad = sign(
@@ -599,6 +602,24 @@ fn the_halves_of_a_key_cannot_be_swapped_and_a_private_key_is_never_taken() {
     }
     assert!(answer.contains("PRIVATE key"), "{answer}");
     drop(h);
+    // The .pub file whole, as `update_key="$(cat mykey.pub)"` gives it (its
+    // `#` lines, then the key): taken as the key.
+    let k2 = keygen("e2e-key-5b");
+    let whole = std::fs::read_to_string(format!("{}.pub", k2.key.display())).unwrap();
+    assert!(whole.lines().count() > 1, "{whole}");
+    let set = format!("update_key={whole}");
+    let taken = tinybms_with_input(&["config", &sim.path, &set], "y\n");
+    assert_eq!(taken.code, 0, "{taken}");
+    let mut h = Host::open(&sim.path);
+    let hello2 = h.ask(json!({"cmd": "hello"}));
+    assert_eq!(
+        hello2["update"]["owner_key"]
+            .as_str()
+            .map(str::to_lowercase),
+        Some(k2.public.clone()),
+        "{hello2}"
+    );
+    drop(h);
     let log = tinybms_limited(&["log", &sim.path], "", Duration::from_secs(3));
     let everything = format!(
         "{out}{listing}{hello}{answer}{}",
@@ -635,6 +656,19 @@ fn a_damaged_or_lesser_file_is_refused_before_a_byte_is_sent() {
             "{out}"
         );
     }
+    // A byte of the signature changed: it fails,
+    // and the words say the file may have been changed, not only "a stranger".
+    let mut header_changed = std::fs::read(&good).unwrap();
+    header_changed[200] ^= 0x01;
+    let changed = tmp("w-header.tbu");
+    std::fs::write(&changed, &header_changed).unwrap();
+    let out = tinybms(&["update", &sim.path, changed.to_str().unwrap(), "--check"]);
+    assert_eq!(out.code, 1, "{out}");
+    assert!(
+        out.stderr.contains("not from a key this bridge trusts")
+            && out.stderr.contains("changed after it was signed"),
+        "{out}"
+    );
     // Nothing reached the bridge.
     let mut h = Host::open(&sim.path);
     let s = h.ask(json!({"cmd": "update_status"}));

@@ -206,12 +206,10 @@ fn check_text(rule: TextRule, s: &str) -> Result<(), FieldError> {
             match parse(s) {
                 _ if s.is_empty() => Ok(()),
                 Ok(KeyText::Private { .. }) => Err(FieldError::invalid(PRIVATE_REFUSED)),
-                Ok(KeyText::Public(_)) if crate::update::parse_key(s.as_bytes()).is_some() => {
-                    Ok(())
-                }
+                Ok(KeyText::Public(_)) => Ok(()),
                 _ => Err(FieldError::invalid(
-                    "not a public update key: 64 hex digits (the .pub file of tinybms keygen), \
-                     or empty",
+                    "not a public update key: 64 hex digits (the .pub file of tinybms keygen, \
+                     whole or its key line), or empty",
                 )),
             }
         }
@@ -359,6 +357,13 @@ pub fn parse(field: &Field, text: &str) -> Result<Parsed, FieldError> {
             } = field.kind
             {
                 check_text(TextRule::Key, text)?;
+                // The .pub file whole (its `#` lines, then the key) is the
+                // key: kept as its 64 hex digits alone.
+                if let Ok(crate::update::key_text::KeyText::Public(key)) =
+                    crate::update::key_text::parse(text)
+                {
+                    return Ok(Parsed::Text(crate::update::key_text::hex(&key)));
+                }
             }
             let mut s = String::new();
             // Text is taken as given (not trimmed): a Wi-Fi name may end in a space.
@@ -476,6 +481,12 @@ pub fn write_range(field: &Field, out: &mut Line) {
                 }
                 out.push(n);
             }
+        }
+        Kind::Text {
+            rule: TextRule::Key,
+            ..
+        } => {
+            out.push("a public key: 64 hex digits (the .pub file of tinybms keygen), or empty");
         }
         Kind::Text { max, .. } => {
             out.push("text, at most ")

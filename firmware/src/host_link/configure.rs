@@ -106,19 +106,20 @@ impl State {
                     ))
                 }
                 Some(id) => match unescape(text)
+                    .and_then(|t| value::parse(id.field(), &t))
                     .or_else(|e| {
                         // Too long to hold: a key says what it is first (a
-                        // private key is longer than a public one).
+                        // private key is longer than a public one), and a
+                        // public key written with spaces is its 64 digits.
                         match id.field().kind {
                             crate::config::Kind::Text {
                                 rule: crate::config::TextRule::Key,
                                 ..
-                            } => value::parse(id.field(), text.0).map(|_| String::new()),
+                            } if e == FieldError::TOO_LONG => value::parse(id.field(), text.0),
                             _ => Err(e),
                         }
                     })
                     .map_err(|e| (id, e))
-                    .and_then(|t| value::parse(id.field(), &t).map_err(|e| (id, e)))
                 {
                     Ok(p) => {
                         let _ = parsed.push((id, p));

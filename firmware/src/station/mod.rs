@@ -879,19 +879,7 @@ impl Station {
                 i.reconfigure(c.inverter());
             }
             self.ota.set_owner_key(c.update_key());
-            #[cfg(feature = "host-link")]
-            {
-                let view = crate::host_link::update_view(&self.ota);
-                if let Some(h) = self.host.as_mut() {
-                    h.set_update(view.clone());
-                }
-                #[cfg(feature = "net")]
-                if let Some(u) = self.update_port.as_mut() {
-                    u.set_update(view);
-                }
-                #[cfg(not(feature = "net"))]
-                let _ = view;
-            }
+            self.refresh_update_view();
         }
     }
 

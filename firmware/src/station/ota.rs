@@ -130,6 +130,28 @@ impl Station {
         if let Some(n) = note {
             self.generation = self.generation.wrapping_add(1);
             let _ = self.ota_notes.push_back(n);
+            // A trial that confirmed itself (or could not) is what `hello`
+            // says from now on, on USB and on the update port.
+            self.refresh_update_view();
+        }
+    }
+
+    /// The host link's and the update port's view of the update side
+    /// (`hello`'s `update`) made again from [`Ota`]: after anything that
+    /// changes the slot, the trial or the keys.
+    pub(super) fn refresh_update_view(&mut self) {
+        #[cfg(feature = "host-link")]
+        {
+            let view = crate::host_link::update_view(&self.ota);
+            if let Some(h) = self.host.as_mut() {
+                h.set_update(view.clone());
+            }
+            #[cfg(feature = "net")]
+            if let Some(u) = self.update_port.as_mut() {
+                u.set_update(view);
+            }
+            #[cfg(not(feature = "net"))]
+            let _ = view;
         }
     }
 

@@ -95,6 +95,17 @@ pub fn parse(text: &str) -> Result<KeyText, KeyTextError> {
     }
 }
 
+/// A public key as the 64 lower-case hex digits a bridge stores.
+pub fn hex(key: &Key) -> heapless::String<64> {
+    let mut s = heapless::String::new();
+    for b in key {
+        for d in [b >> 4, b & 0x0f] {
+            let _ = s.push(char::from_digit(u32::from(d), 16).unwrap_or('0'));
+        }
+    }
+    s
+}
+
 #[cfg(test)]
 mod tests {
     extern crate std;
@@ -118,6 +129,15 @@ mod tests {
         assert_eq!(parse("# only\n  \n"), Err(KeyTextError::Empty));
         assert_eq!(parse(&PUBLIC[1..]), Err(KeyTextError::Length(63)));
         assert_eq!(parse("5f69 zz"), Err(KeyTextError::NotHex));
+        assert_eq!(
+            hex(&parse(PUBLIC)
+                .map(|k| match k {
+                    KeyText::Public(k) => k,
+                    KeyText::Private { public, .. } => public,
+                })
+                .unwrap()),
+            PUBLIC
+        );
         assert_eq!(
             parse(&PUBLIC.repeat(3)),
             Err(KeyTextError::Length(192)),

@@ -281,6 +281,17 @@ pub fn version(conn: &Conn, json: bool) -> ToolResult<()> {
     Ok(())
 }
 
+/// A board's name and, when it differs, its key (`ESP32-C3 SuperMini
+/// (c3-supermini)`): update files and `IMAGE_BOARDS` name boards by key.
+fn board_words(name: &str) -> String {
+    let key = tinybms_firmware::boards::key_of(name);
+    if key == name {
+        name.to_string()
+    } else {
+        format!("{name} ({key})")
+    }
+}
+
 /// What `version` says of the bridge, from its `hello`: each member's name,
 /// its value (`--json`) and its words.
 fn bridge_of(h: &Hello<Read>) -> Vec<(&'static str, Value, String)> {
@@ -288,7 +299,8 @@ fn bridge_of(h: &Hello<Read>) -> Vec<(&'static str, Value, String)> {
         ("firmware", json!(h.firmware), h.firmware.clone()),
         ("build", json!(h.build), h.build.clone()),
         ("chip", json!(h.chip), h.chip.clone()),
-        ("board", json!(h.board), h.board.clone()),
+        // Its name, and the key update files and IMAGE_BOARDS use.
+        ("board", json!(h.board), board_words(&h.board)),
         ("features", json!(h.features), h.features.join(", ")),
         (
             "record_version",

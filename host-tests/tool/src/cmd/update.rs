@@ -391,8 +391,15 @@ pub fn check_for(h: &Header, hello: &Hello<Read>, permit: file::Permit) -> ToolR
     if let Some(keys) = trusted_keys(hello) {
         if let Err(r) = h.verify(&keys) {
             let trusted: Vec<String> = keys.iter().map(|k| hex(k)).collect();
+            // A signature that fails is a stranger's key or a file changed
+            // after it was signed (its header included): both are said.
+            let changed = if r == file::Refusal::BadSignature {
+                "; or the file was changed after it was signed: take it again"
+            } else {
+                ""
+            };
             return Err(ToolError::failed(format!(
-                "{} (it trusts {}); nothing was sent",
+                "{} (it trusts {}){changed}; nothing was sent",
                 r.words(),
                 if trusted.is_empty() {
                     "no key: register yours with update_key over USB".to_string()
