@@ -21,6 +21,17 @@ use crate::inverter::{InverterReport, StaleMode};
 
 pub use crate::log_line::{Line, LINE_MAX};
 
+/// 32 bytes (a key, a Wi-Fi PSK) as 64 lower-case hex digits.
+pub fn hex32(bytes: &[u8; 32]) -> heapless::String<64> {
+    let mut s = heapless::String::new();
+    for b in bytes {
+        for n in [b >> 4, b & 0xF] {
+            let _ = s.push(char::from_digit(u32::from(n), 16).unwrap_or('0'));
+        }
+    }
+    s
+}
+
 /// A status as printed: its name, or `unknown_0xNN`.
 fn status(out: &mut Line, s: OnlineStatus) {
     match s {

@@ -362,7 +362,7 @@ pub fn parse(field: &Field, text: &str) -> Result<Parsed, FieldError> {
                 if let Ok(crate::update::key_text::KeyText::Public(key)) =
                     crate::update::key_text::parse(text)
                 {
-                    return Ok(Parsed::Text(crate::update::key_text::hex(&key)));
+                    return Ok(Parsed::Text(crate::text::hex32(&key)));
                 }
             }
             let mut s = String::new();

@@ -166,7 +166,7 @@ impl PskDerivation {
                     }
                 }
                 if self.block == 2 {
-                    return Some(hex(&self.key));
+                    return Some(crate::text::hex32(&self.key));
                 }
                 self.block = 2;
                 self.begin_block();
@@ -187,19 +187,4 @@ impl PskDerivation {
     pub fn progress(&self) -> u32 {
         (u32::from(self.block) - 1) * u32::from(ROUNDS) + u32::from(self.round)
     }
-}
-
-fn hex(key: &[u8; 32]) -> PskHex {
-    let mut s = PskHex::new();
-    for b in key {
-        for n in [b >> 4, b & 0xF] {
-            let _ = s.push(char::from(
-                b"0123456789abcdef"
-                    .get(usize::from(n))
-                    .copied()
-                    .unwrap_or(b'0'),
-            ));
-        }
-    }
-    s
 }

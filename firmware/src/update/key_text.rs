@@ -6,6 +6,7 @@
 //! private key wherever a key is given to it, and never stores or says one.
 
 use super::file::Key;
+use super::nibble;
 
 /// A key's text, understood.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -51,15 +52,6 @@ pub const PRIVATE_REFUSED: &str = "this is a PRIVATE key (128 hex digits): never
      bridge or anyone; a bridge needs the public key, 64 hex digits (the .pub file, or \
      `tinybms public-key FILE`); nothing was stored";
 
-const fn nibble(c: u8) -> Option<u8> {
-    match c {
-        b'0'..=b'9' => Some(c - b'0'),
-        b'a'..=b'f' => Some(c - b'a' + 10),
-        b'A'..=b'F' => Some(c - b'A' + 10),
-        _ => None,
-    }
-}
-
 /// The key in `text`: lines starting with `#` are comments; the rest,
 /// without white space, must be 64 or 128 hex digits.
 pub fn parse(text: &str) -> Result<KeyText, KeyTextError> {
@@ -95,17 +87,6 @@ pub fn parse(text: &str) -> Result<KeyText, KeyTextError> {
     }
 }
 
-/// A public key as the 64 lower-case hex digits a bridge stores.
-pub fn hex(key: &Key) -> heapless::String<64> {
-    let mut s = heapless::String::new();
-    for b in key {
-        for d in [b >> 4, b & 0x0f] {
-            let _ = s.push(char::from_digit(u32::from(d), 16).unwrap_or('0'));
-        }
-    }
-    s
-}
-
 #[cfg(test)]
 mod tests {
     extern crate std;
@@ -130,12 +111,14 @@ mod tests {
         assert_eq!(parse(&PUBLIC[1..]), Err(KeyTextError::Length(63)));
         assert_eq!(parse("5f69 zz"), Err(KeyTextError::NotHex));
         assert_eq!(
-            hex(&parse(PUBLIC)
-                .map(|k| match k {
-                    KeyText::Public(k) => k,
-                    KeyText::Private { public, .. } => public,
-                })
-                .unwrap()),
+            crate::text::hex32(
+                &parse(PUBLIC)
+                    .map(|k| match k {
+                        KeyText::Public(k) => k,
+                        KeyText::Private { public, .. } => public,
+                    })
+                    .unwrap()
+            ),
             PUBLIC
         );
         assert_eq!(

@@ -52,7 +52,8 @@ pub const BUILT_IN_KEY: Option<Key> = match option_env!("TINYBMS_UPDATE_KEY") {
     None => None,
 };
 
-const fn nibble(c: u8) -> Option<u8> {
+/// A hex digit's value (either case).
+pub(crate) const fn nibble(c: u8) -> Option<u8> {
     match c {
         b'0'..=b'9' => Some(c - b'0'),
         b'a'..=b'f' => Some(c - b'a' + 10),
