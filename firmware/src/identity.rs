@@ -30,16 +30,20 @@ pub struct Features {
     pub store: bool,
 }
 
+/// The features an image can have, by name, in a fixed order: bit n of
+/// [`Features::bits`] is the n-th (an update file names them too).
+pub const FEATURE_NAMES: [&str; 4] = ["can", "host-link", "wifi", "store"];
+
 impl Features {
+    /// Built in or not, in the order of [`FEATURE_NAMES`].
+    const fn flags(self) -> [bool; 4] {
+        [self.can, self.host_link, self.wifi, self.store]
+    }
+
     /// The names of those built in, in a fixed order.
     pub fn names(&self) -> heapless::Vec<&'static str, 4> {
         let mut v = heapless::Vec::new();
-        for (on, name) in [
-            (self.can, "can"),
-            (self.host_link, "host-link"),
-            (self.wifi, "wifi"),
-            (self.store, "store"),
-        ] {
+        for (on, name) in self.flags().into_iter().zip(FEATURE_NAMES) {
             if on {
                 let _ = v.push(name);
             }
@@ -56,12 +60,11 @@ pub const FEATURES_MARK: &[u8] = b"tinybms-features=";
 pub const FEATURES_TAG_LEN: usize = 48;
 
 impl Features {
-    /// The bits of `crate::update::file::FEATURE_NAMES` built in.
-    pub const fn bits(self) -> u8 {
-        (self.can as u8)
-            | (self.host_link as u8) << 1
-            | (self.wifi as u8) << 2
-            | (self.store as u8) << 3
+    /// The bits of [`FEATURE_NAMES`] built in.
+    pub fn bits(self) -> u8 {
+        (0u8..)
+            .zip(self.flags())
+            .fold(0, |bits, (i, on)| bits | u8::from(on) << i)
     }
 
     /// `tinybms-features=can,host-link,wifi,store` (the names built in), then
@@ -79,17 +82,12 @@ impl Features {
             n += 1;
             i += 1;
         }
-        let all: [(bool, &[u8]); 4] = [
-            (self.can, b"can"),
-            (self.host_link, b"host-link"),
-            (self.wifi, b"wifi"),
-            (self.store, b"store"),
-        ];
+        let flags = self.flags();
         let mut first = true;
         let mut k = 0;
-        while k < all.len() {
-            let (on, name) = all[k];
-            if on {
+        while k < flags.len() {
+            let name = FEATURE_NAMES[k].as_bytes();
+            if flags[k] {
                 if !first {
                     out[n] = b',';
                     n += 1;
@@ -163,6 +161,13 @@ mod tests {
         let mut image = [0xAAu8; 200];
         image[77..77 + FEATURES_TAG_LEN].copy_from_slice(&all.tag());
         assert_eq!(features_in_image(&image), Some("can,host-link,wifi,store"));
+        assert_eq!(all.bits(), 0b1111);
+        let wifi_only = Features {
+            wifi: true,
+            ..Features::default()
+        };
+        assert_eq!(wifi_only.bits(), 1 << 2);
+        assert_eq!(wifi_only.names().as_slice(), ["wifi"]);
         let none = Features::default().tag();
         image[77..77 + FEATURES_TAG_LEN].copy_from_slice(&none);
         assert_eq!(features_in_image(&image), Some(""));

@@ -287,7 +287,7 @@ impl Permit {
 
 /// The features an image can have, by name (bit n for the n-th): what an
 /// update may not lack unless the owner says so.
-pub const FEATURE_NAMES: [&str; 4] = ["can", "host-link", "wifi", "store"];
+pub use crate::identity::FEATURE_NAMES;
 
 /// The bits of a comma-separated list of [`FEATURE_NAMES`] (`None`: a name
 /// not among them). White space around a name is allowed; empty = none.

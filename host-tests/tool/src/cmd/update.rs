@@ -324,13 +324,12 @@ pub fn trusted_keys(hello: &Hello<Read>) -> Option<Vec<file::Key>> {
 /// file lacks must be in `permit.drop`), and the signature with the keys it
 /// trusts. The words say what to do.
 pub fn check_for(h: &Header, hello: &Hello<Read>, permit: file::Permit) -> ToolResult<()> {
-    let running = file::feature_bits(&hello.features.join(",")).unwrap_or_else(|| {
-        hello
-            .features
-            .iter()
-            .filter_map(|n| file::feature_bits(n))
-            .fold(0, |a, b| a | b)
-    });
+    // The names this tool knows (a later image's unknown ones are ignored).
+    let running = hello
+        .features
+        .iter()
+        .filter_map(|n| file::feature_bits(n))
+        .fold(0, |a, b| a | b);
     let me = file::Target {
         chip: &hello.chip,
         board: tinybms_firmware::boards::key_of(&hello.board),
@@ -348,7 +347,7 @@ pub fn check_for(h: &Header, hello: &Hello<Read>, permit: file::Permit) -> ToolR
                 .filter(|(i, _)| lacking & (1 << i) != 0)
                 .map(|(_, n)| *n)
                 .collect();
-            let wifi = lacking & (1 << 2) != 0;
+            let wifi = names.contains(&"wifi");
             return Err(ToolError::failed(format!(
                 "this file has no {}, which the bridge runs: after it the bridge would have none{}. \
                  Take the file with the bridge's features ({}){}, or say --drop {} if you mean it; \
