@@ -437,6 +437,10 @@ pub fn inverter(r: &InverterReport, out: &mut Line) {
                 .push("): it counts nowhere");
         }
         InverterReport::Protection { stops, told } => protection(stops, told, out),
+        InverterReport::Stage(s) => {
+            out.push("charge: ");
+            s.write(out);
+        }
         InverterReport::IgnoresStop(e) => {
             out.push("CAN: the inverter ignores the ")
                 .push(e.side.text())

@@ -31,6 +31,7 @@ pub mod truth;
 pub mod virtual_host_link;
 pub mod virtual_host_port;
 pub mod virtual_time;
+pub mod year;
 
 impl pty::Pty {
     /// Opens a new pair and writes its path to `out` as a first line (flushed):

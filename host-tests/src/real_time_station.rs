@@ -63,7 +63,16 @@ impl Beside for MqttBeside {
 pub struct PtySide<'a> {
     pty: &'a Pty,
     buf: Vec<u8>,
+    /// The rest of a line the pty could not take whole yet, and since when
+    /// it waits.
+    rest: Vec<u8>,
+    stuck_since: Option<std::time::Instant>,
+    patience: Duration,
 }
+
+/// A line the pty cannot take waits this long for the reader to drain it;
+/// past it, nobody is taken to be reading: the backlog is discarded.
+pub const PTY_STUCK: Duration = Duration::from_secs(2);
 
 /// Unread bytes on the pty beyond which nobody is taken to be reading: the
 /// backlog is discarded (stale for whoever opens the path next) and lines wait
@@ -76,6 +85,17 @@ impl<'a> PtySide<'a> {
         Self {
             pty,
             buf: vec![0; 1024],
+            rest: Vec::new(),
+            stuck_since: None,
+            patience: PTY_STUCK,
+        }
+    }
+
+    /// On `pty`, waiting `patience` (not [`PTY_STUCK`]) for a reader.
+    pub fn with_patience(pty: &'a Pty, patience: Duration) -> Self {
+        Self {
+            patience,
+            ..Self::new(pty)
         }
     }
 }
@@ -96,20 +116,30 @@ impl HostSide for PtySide<'_> {
             self.pty.discard_unread();
             return false;
         }
+        // The rest of a line the pty could not take whole: a reader drains
+        // it (a listing longer than the pty holds, ~18 KB, comes out as fast
+        // as it is read); one that does not for PTY_STUCK is not there, and
+        // what the pty holds is stale for whoever opens it next: discarded.
+        if !self.rest.is_empty() {
+            let n = self.pty.write(&self.rest).unwrap_or(0);
+            self.rest.drain(..n.min(self.rest.len()));
+            if !self.rest.is_empty() {
+                let since = *self.stuck_since.get_or_insert_with(std::time::Instant::now);
+                if since.elapsed() < self.patience {
+                    return false;
+                }
+                self.pty.discard_unread();
+                self.rest.clear();
+            }
+        }
+        self.stuck_since = None;
         true
     }
 
     fn write_line(&mut self, line: &[u8]) -> io::Result<()> {
-        if self.pty.write(line)? < line.len() {
-            // The pty is full (~18 KB; FIONREAD in `can_take` sees only the
-            // line discipline's ≤ 4 KB, so the backlog check does not catch
-            // it): nobody reads. What it holds is stale and the part of this
-            // line in it would reach the next reader cut: discard it all, then
-            // write the line whole (or, should even that not fit, nothing).
-            self.pty.discard_unread();
-            if self.pty.write(line)? < line.len() {
-                self.pty.discard_unread();
-            }
+        let n = self.pty.write(line)?;
+        if n < line.len() {
+            self.rest.extend_from_slice(line.get(n..).unwrap_or(&[]));
         }
         Ok(())
     }
@@ -324,7 +354,9 @@ mod tests {
     #[test]
     fn unread_pty_never_gets_cut_lines() {
         let pty = Pty::open().unwrap();
-        let mut side = PtySide::new(&pty);
+        // Nobody reads: no wait (the sim waits PTY_STUCK) before the backlog
+        // goes.
+        let mut side = PtySide::with_patience(&pty, Duration::ZERO);
         let mut written = 0usize;
         for i in 0..1000u32 {
             if side.can_take() {
@@ -351,8 +383,11 @@ mod tests {
                 _ => break,
             }
         });
+        // The rounds go on while the client reads: the rest of a line the
+        // pty took only in part follows it.
         while let Ok(b) = rx.recv_timeout(Duration::from_millis(500)) {
             got.extend_from_slice(&b);
+            side.can_take();
         }
         let text = String::from_utf8_lossy(&got);
         let lines: Vec<&str> = text.split_terminator('\n').collect();

@@ -7,6 +7,7 @@ use host_tests::closed_loop::ClosedLoop;
 use host_tests::sim::PackModel;
 use protocol_core::events::EventId;
 use tinybms_firmware::inverter::control::Phase;
+use tinybms_firmware::inverter::finish::Stage;
 use tinybms_firmware::inverter::{InverterConfig, InverterReport, Protocol, StaleMode};
 
 const S: u64 = 1_000_000;
@@ -67,12 +68,49 @@ fn a_full_charge_from_20_percent_ends_in_float_with_no_cell_over_the_limit() {
     let float_at = l.figures.float_at_us.expect("reached float");
     assert!(float_at < 5 * H, "float at {float_at}");
     assert_eq!(l.inverter().phase(), Phase::Float);
-    // Absorption at 16 × 3.55 V, then float at 16 × 3.328 V.
+    // Absorption at 16 × 3.55 V, then the step down into float: CVL never
+    // rises on the way, and with no load the pack rests near its absorption
+    // voltage, so CVL stays at or above the pack's voltage (an inverter that
+    // pulls the pack down to CVL finds nothing to pull).
     assert!(l.sent_limits.iter().any(|s| s.1 == CVL_ABSORPTION_DV));
+    let after: Vec<u16> = l
+        .sent_limits
+        .iter()
+        .filter(|s| s.0 >= float_at)
+        .map(|s| s.1)
+        .collect();
+    assert!(after.windows(2).all(|w| w[1] <= w[0]), "{after:?}");
     let last = l.sent_limits.last().unwrap();
-    assert_eq!(last.1, CVL_FLOAT_DV, "{last:?}");
+    assert!(
+        f64::from(last.1) / 10.0 >= l.true_pack_v() - 0.05,
+        "{last:?} below the pack's {} V",
+        l.true_pack_v()
+    );
+    assert!(
+        matches!(
+            l.inverter().stage(),
+            Some(Stage::StepDown { .. } | Stage::Float)
+        ),
+        "{:?}",
+        l.inverter().stage()
+    );
     // CVL changed rarely: never more often than once per 20 s when rising.
     assert!(l.figures.cvl_changes_per_hour(6 * H) < 60.0);
+}
+
+/// The policy before the step (`float_step=0`): float at 16 × 3.328 V at once.
+#[test]
+fn with_float_step_0_cvl_drops_to_float_at_once() {
+    let mut config = InverterConfig::default();
+    config.charge.float_step_mv_per_min = 0;
+    let mut l = ClosedLoop::new(PackModel::LiFePO4_16S, 1, config, 100.0);
+    l.h.sim.set_soc_percent(20.0);
+    l.run_until(6 * H);
+    invariants(&l);
+    assert_eq!(l.inverter().phase(), Phase::Float);
+    let last = l.sent_limits.last().unwrap();
+    assert_eq!(last.1, CVL_FLOAT_DV, "{last:?}");
+    assert_eq!(l.inverter().stage(), Some(Stage::Float));
 }
 
 #[test]

@@ -344,6 +344,10 @@ fn full_record() -> Config {
     c.stop_by_soc = true;
     c.update_key.clear();
     c.update_key.push_str(&"ab".repeat(32)).unwrap();
+    c.balance_hold_min = 90;
+    c.full_charge_days = 14;
+    c.float_step_mv_per_min = 10;
+    c.soc_ceiling_pct = 85;
     c
 }
 
@@ -368,6 +372,18 @@ fn before_version_6(mut c: Config) -> Config {
     let d = Config::default();
     c.stop_by_soc = d.stop_by_soc;
     c.current_margin_pct = d.current_margin_pct;
+    before_version_7(c)
+}
+
+/// `c` as a version-6 record holds it: the end of a charge (version 7:
+/// `balance_hold`, `full_charge_days`, `float_step`, `soc_ceiling`) at its
+/// defaults.
+fn before_version_7(mut c: Config) -> Config {
+    let d = Config::default();
+    c.balance_hold_min = d.balance_hold_min;
+    c.full_charge_days = d.full_charge_days;
+    c.float_step_mv_per_min = d.float_step_mv_per_min;
+    c.soc_ceiling_pct = d.soc_ceiling_pct;
     c
 }
 
@@ -428,7 +444,7 @@ fn a_version_1_record_keeps_the_owners_configuration_and_pack_node_defaults() {
     c.pack_name.clear();
     let v1 = v1_record(&c);
     assert_eq!(v1[2], 1);
-    assert_eq!(usize::from(v1[3]), FIELDS.len() - 6);
+    assert_eq!(usize::from(v1[3]), FIELDS.len() - 10);
     assert_eq!(codec::decode(&v1).unwrap(), c);
     // A field a version-1 record cannot hold is refused in one.
     let mut with_node = v1.clone();
@@ -457,7 +473,7 @@ fn a_version_2_record_keeps_the_owners_configuration_and_no_pack_name() {
     let mut c = before_version_4(full_record());
     c.pack_name.clear();
     let v2 = record_of_version(&c, 2);
-    assert_eq!(usize::from(v2[3]), FIELDS.len() - 5);
+    assert_eq!(usize::from(v2[3]), FIELDS.len() - 9);
     assert_eq!(codec::decode(&v2).unwrap(), c);
     let tag = field("pack_name").field().tag;
     assert_eq!(codec::introduced(tag), 3);
@@ -488,7 +504,7 @@ fn a_version_4_record_keeps_the_owners_configuration_and_no_update_key() {
     assert_eq!(v4[2], 4);
     // Its fields less update_key, stop_by_soc and current_margin, and the
     // retired stop_by_soc.
-    assert_eq!(usize::from(v4[3]), FIELDS.len() - 2);
+    assert_eq!(usize::from(v4[3]), FIELDS.len() - 6);
     let got = codec::decode(&v4).unwrap();
     assert_eq!(got, before_version_5(full.clone()));
     assert!(got.update_key.is_empty() && got.update_key().is_none());
@@ -507,7 +523,7 @@ fn a_version_3_record_keeps_the_owners_configuration_and_the_hybrid_defaults() {
     let c = before_version_4(full.clone());
     let v3 = record_of_version(&full, 3);
     assert_eq!(v3[2], 3);
-    assert_eq!(usize::from(v3[3]), FIELDS.len() - 4);
+    assert_eq!(usize::from(v3[3]), FIELDS.len() - 8);
     let got = codec::decode(&v3).unwrap();
     assert_eq!(got, c);
     assert_eq!(got.inverter_name.as_str(), "PYLON");
@@ -558,9 +574,9 @@ fn a_version_5_record_reads_stop_by_soc_as_on_and_the_current_margin_at_its_defa
     }
     assert_eq!(field("stop_by_soc").field().tag, 9);
     // Version 6: tag 8 is unknown; the new fields must be there.
-    let v6 = encoded(&full);
+    let v6 = record_of_version(&full, 6);
     assert_eq!(v6[2], 6);
-    assert_eq!(codec::decode(&v6).unwrap(), full);
+    assert_eq!(codec::decode(&v6).unwrap(), before_version_7(full.clone()));
     let mut with8 = v6.clone();
     with8[3] += 1;
     with8.extend_from_slice(&[8, 1, 0]);
@@ -576,6 +592,52 @@ fn a_version_5_record_reads_stop_by_soc_as_on_and_the_current_margin_at_its_defa
     );
     assert!(Config::default().stop_by_soc);
     assert_eq!(Config::default().current_margin_pct, 20);
+}
+
+/// Issue 53: the end of a charge (`balance_hold`, `full_charge_days`,
+/// `float_step`, `soc_ceiling`) came with layout version 7. A version-6
+/// record keeps the owner's configuration with their defaults; a version-7
+/// record must hold them.
+#[test]
+fn a_version_6_record_keeps_the_owners_configuration_and_the_end_of_charge_defaults() {
+    let full = full_record();
+    let v6 = record_of_version(&full, 6);
+    assert_eq!(v6[2], 6);
+    assert_eq!(usize::from(v6[3]), FIELDS.len() - 4);
+    let got = codec::decode(&v6).unwrap();
+    assert_eq!(got, before_version_7(full.clone()));
+    assert_eq!(got.balance_hold_min, 60);
+    assert_eq!(got.full_charge_days, 7);
+    assert_eq!(got.float_step_mv_per_min, 5);
+    assert_eq!(got.soc_ceiling_pct, 100);
+    for name in [
+        "balance_hold",
+        "full_charge_days",
+        "float_step",
+        "soc_ceiling",
+    ] {
+        assert_eq!(codec::introduced(field(name).field().tag), 7, "{name}");
+    }
+    let mut short = v6;
+    short[2] = 7;
+    assert!(matches!(
+        codec::decode(&short),
+        Err(DecodeError::Missing(_))
+    ));
+    let v7 = encoded(&full);
+    assert_eq!(v7[2], 7);
+    assert_eq!(codec::decode(&v7).unwrap(), full);
+    // What charge control runs with.
+    let c = full.charge();
+    assert_eq!(c.balance_hold_us, 90 * 60 * 1_000_000);
+    assert_eq!(
+        (
+            c.full_charge_days,
+            c.float_step_mv_per_min,
+            c.soc_ceiling_pct
+        ),
+        (14, 10, 85)
+    );
 }
 
 /// `pack_name`: printable text, at most 24 bytes, empty by default.

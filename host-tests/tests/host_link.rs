@@ -900,6 +900,11 @@ fn longest_telemetry_line_fits() {
                 current_da: u16::MAX,
                 for_s: u16::MAX,
             }),
+            stage: Some(tinybms_firmware::inverter::finish::Stage::BalanceHeld {
+                balancing: 0xF000,
+                spread_mv: u16::MAX,
+                left_s: u32::MAX,
+            }),
         }),
         restart_pending: u32::MAX,
     };
@@ -916,7 +921,8 @@ fn longest_telemetry_line_fits() {
     // the inverter member, 107 bytes, to 896, and the buffer from 1024 to
     // 1280 bytes; what the inverter is told — the SOC, the enable bits, the
     // name, an ignored stop — and the changes waiting for a restart, 221
-    // bytes, to 1117, and the buffer to 1408 bytes).
+    // bytes, to 1117, and the buffer to 1408 bytes; the charge's stage and
+    // its reason, 136 bytes, to 1253, and the buffer to 1600 bytes).
     assert!(n < OUT_LINE_MAX * 4 / 5, "{n}");
     check_line(&buf[..n]);
 }

@@ -40,6 +40,7 @@ fn state() -> PackState {
         max_temp_c: 27.0,
         fault: false,
         charge_blocked: false,
+        balancing: 0,
     }
 }
 
@@ -745,6 +746,7 @@ fn arb_state(s: PackSettings) -> impl Strategy<Value = PackState> {
                 max_temp_c: t + 2.0,
                 fault,
                 charge_blocked: false,
+                balancing: 0,
             }
         })
 }
@@ -809,7 +811,7 @@ proptest! {
             min_cell_mv: min, max_cell_mv: max,
             pack_v: f32::from(min) * f32::from(s.cells) / 1000.0,
             current_a: 0.0, soc_pct: 50.0, soh_pct: 100.0,
-            min_temp_c: t, max_temp_c: t, fault: false, charge_blocked: false,
+            min_temp_c: t, max_temp_c: t, fault: false, charge_blocked: false, balancing: 0,
         };
         let ccl = |max: u16| ChargeControl::new(ChargeConfig::default()).update(0, &s, &p(max, max)).0.ccl_da;
         let dcl = |min: u16| ChargeControl::new(ChargeConfig::default()).update(0, &s, &p(min, min)).0.dcl_da;

@@ -57,6 +57,7 @@ fn view<'a>(snap: &'a LiveSnapshot, age_s: u64) -> View<'a> {
             stops: None,
             told: Default::default(),
             ignored: None,
+            stage: None,
         }),
         wifi_rssi_dbm: Some(-61),
         update_rolled_back: None,

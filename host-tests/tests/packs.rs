@@ -699,6 +699,7 @@ fn the_own_summary_rounds_and_carries_the_conditions() {
         max_temp_c: 24.96,
         fault: false,
         charge_blocked: true,
+        balancing: 0,
     };
     let cond = Conditions {
         high_voltage: 1,

@@ -464,6 +464,18 @@ fields! {
     RebulkSoc = 20 since 1, "rebulk_soc", "%", Charge, Now, num(50, 99, 0),
         rebulk_soc_pct: u8 = c.rebulk_soc_pct as u8,
         "Below this state of charge float ends and charging starts again.";
+    BalanceHold = 30 since 7, "balance_hold", "min", Charge, Now, num(0, 600, 0),
+        balance_hold_min: u16 = (c.balance_hold_us / (60 * SECOND)) as u16,
+        "At the end of a charge, absorption is held at most this long while the BMS balances and the cells' spread is above its allowed disbalance (308); 0 = never.";
+    FullChargeDays = 31 since 7, "full_charge_days", "days", Charge, Now, num(0, 90, 0),
+        full_charge_days: u16 = c.full_charge_days,
+        "A full charge (absorption and its balance hold) at least this often: float ends for it and the SOC ceiling waits; 0 = off. Due at every start.";
+    FloatStep = 32 since 7, "float_step", "mV/min", Charge, Now, num(0, 100, 0),
+        float_step_mv_per_min: u16 = c.float_step_mv_per_min,
+        "The charge voltage steps down into float at most this fast per cell, and never below the pack's own voltage while it is not charging (no discharge to the grid); 0 = at once.";
+    SocCeiling = 33 since 7, "soc_ceiling", "%", Charge, Now, num(50, 100, 0),
+        soc_ceiling_pct: u8 = c.soc_ceiling_pct,
+        "Charging pauses at this state of charge (resumes 3 % below) for daily cycling, except for the periodic full charge; 100 = no ceiling.";
     ChargeCurrentCap = 21 since 1, "charge_current_cap", "A", Charge, Now, num_or(1, 7500, 1, "none"),
         charge_current_cap_da: u16 = c.charge_current_cap_da.unwrap_or(0),
         "Most charge current ever asked for; none = the BMS's charge over-current cutoff (a cap above it is refused).";
@@ -721,6 +733,10 @@ impl Config {
             tail_current_a: f32::from(self.tail_current_da) / 10.0,
             full_hold_us: Instant::from(self.full_hold_s) * SECOND,
             rebulk_soc_pct: f32::from(self.rebulk_soc_pct),
+            balance_hold_us: Instant::from(self.balance_hold_min) * 60 * SECOND,
+            full_charge_days: self.full_charge_days,
+            float_step_mv_per_min: self.float_step_mv_per_min,
+            soc_ceiling_pct: self.soc_ceiling_pct,
             charge_current_cap_da: opt(self.charge_current_cap_da),
             discharge_current_cap_da: opt(self.discharge_current_cap_da),
             temperature_margin_c: i16::from(self.temperature_margin_c),

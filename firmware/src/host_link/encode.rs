@@ -177,6 +177,8 @@ pub struct StateExtras<'a> {
     /// The last stop the inverter was seen ignoring, in words (`None`:
     /// null).
     pub ignored_stop: Option<&'a str>,
+    /// Where the charge is and why, in words (`None`: null).
+    pub charge_stage: Option<&'a str>,
     /// The Wi-Fi signal, dBm (`None`: unknown, published as null).
     pub wifi_rssi_dbm: Option<i8>,
     /// "update to X rolled back: reason" (`None`: none, published as null).
@@ -230,14 +232,17 @@ pub struct InverterState {
     pub told: crate::inverter::dialect::Told,
     /// The last stop the inverter was seen ignoring.
     pub ignored: Option<crate::inverter::ignored::Ignored>,
+    /// Where the charge is and why.
+    pub stage: Option<crate::inverter::finish::Stage>,
 }
 
 /// The `inverter` member of a `telemetry` line (`name`: 0x35E's, `ignored`:
-/// the last ignored stop, in words).
+/// the last ignored stop, in words; `reason`: the stage's).
 fn inverter_member<'a>(
     s: &InverterState,
     name: Option<&'a str>,
     ignored: Option<&'a str>,
+    reason: Option<&'a str>,
 ) -> schema::Inverter<Wire<'a>> {
     let l =
         |f: fn(&(u16, u16, u16)) -> u16| s.limits.as_ref().and_then(|x| fixed(i64::from(f(x)), 1));
@@ -255,6 +260,8 @@ fn inverter_member<'a>(
         discharge_enabled: s.told.discharge_enabled,
         name,
         ignored,
+        stage: s.stage.map(|x| x.key()),
+        stage_reason: reason,
     }
 }
 
@@ -284,6 +291,11 @@ pub fn telemetry(
         .as_ref()
         .and_then(|i| i.ignored)
         .map(|e| e.text());
+    let reason = head
+        .inverter
+        .as_ref()
+        .and_then(|i| i.stage)
+        .map(|s| s.text());
     line(
         &schema::Telemetry::<Wire> {
             head: schema::Head {
@@ -299,7 +311,12 @@ pub fn telemetry(
             snapshot: snapshot.map(|s| snapshot_members(s, flagged)),
             told: schema::Told {
                 inverter: head.inverter.as_ref().map(|i| {
-                    inverter_member(i, name.as_ref().and_then(name_text), ignored.as_deref())
+                    inverter_member(
+                        i,
+                        name.as_ref().and_then(name_text),
+                        ignored.as_deref(),
+                        reason.as_ref().map(|r| r.as_str()),
+                    )
                 }),
             },
             extras: match (snapshot, extras, &balancing) {
@@ -371,6 +388,7 @@ fn extras_members<'a>(
         discharge_stop: e.stops.map(|x| x.1),
         soc_told: e.soc_told,
         ignored_stop: e.ignored_stop,
+        charge_stage: e.charge_stage,
         wifi_rssi_dbm: e.wifi_rssi_dbm,
         update_rolled_back: e.update_rolled_back,
         update_latest: e.update_latest,

@@ -66,7 +66,7 @@ pub const PROTOCOL_VERSION: u32 = 1;
 /// `telemetry` line with 16 cells, the inverter member with what it told
 /// and every value at its widest is about 1120 bytes), `\n` included. A line
 /// that does not fit a smaller buffer is dropped and counted.
-pub const OUT_LINE_MAX: usize = 1408;
+pub const OUT_LINE_MAX: usize = 1600;
 
 /// Lines (or listings) waiting for the host: answers, outcomes and events.
 pub const QUEUE: usize = 32;

@@ -54,6 +54,7 @@
 
 use protocol_core::views::cell_mv;
 
+use super::finish::{Finish, Stage};
 use crate::Instant;
 
 /// Charge control settings; [`Default`] gives the documented defaults.
@@ -87,6 +88,19 @@ pub struct ChargeConfig {
     pub full_hold_us: Instant,
     /// Below this SOC the float phase ends, %.
     pub rebulk_soc_pct: f32,
+    /// Absorption is held at most this long per charge while the BMS
+    /// balances and the spread is above 308, µs; 0 = never
+    /// ([`super::finish`]).
+    pub balance_hold_us: Instant,
+    /// A full charge every this many days (float ends for it, an SOC
+    /// ceiling waits for it); 0 = off.
+    pub full_charge_days: u16,
+    /// CVL steps down into float at most this fast, mV per cell per minute;
+    /// 0 = at once.
+    pub float_step_mv_per_min: u16,
+    /// Charging pauses at this SOC, % (100 = no ceiling), except for a due
+    /// full charge.
+    pub soc_ceiling_pct: u8,
     /// Cap on CCL, 0.1 A (`None` = 318 alone).
     pub charge_current_cap_da: Option<u16>,
     /// Cap on DCL, 0.1 A (`None` = 317 alone).
@@ -123,6 +137,10 @@ impl Default for ChargeConfig {
             tail_current_a: 5.0,
             full_hold_us: 120 * crate::SECOND,
             rebulk_soc_pct: 90.0,
+            balance_hold_us: 60 * 60 * crate::SECOND,
+            full_charge_days: 7,
+            float_step_mv_per_min: 5,
+            soc_ceiling_pct: 100,
             charge_current_cap_da: None,
             discharge_current_cap_da: None,
             temperature_margin_c: 5,
@@ -221,6 +239,8 @@ pub struct PackState {
     /// A charge-side fault event is latched (over-voltage, charge over-current,
     /// low-temperature cutoff) and not yet recovered.
     pub charge_blocked: bool,
+    /// Register 52: the cells the BMS is balancing now (bit 0 = cell 1).
+    pub balancing: u16,
 }
 
 impl PackState {
@@ -251,6 +271,7 @@ impl PackState {
             max_temp_c: max_t,
             fault: s.status == protocol_core::events::OnlineStatus::Fault,
             charge_blocked: false,
+            balancing: s.real_balancing_bits,
         }
     }
 }
@@ -414,6 +435,8 @@ pub struct ChargeControl {
     last_update: Option<Instant>,
     targets: (u16, u16),
     over_current: OverCurrent,
+    finish: Finish,
+    stage: Stage,
 }
 
 /// How long a discharge past 317 may last before the bridge stops it, at
@@ -564,6 +587,13 @@ impl ChargeControl {
                 now: (false, false),
                 pending: (false, false),
             },
+            finish: Finish {
+                hold_since: None,
+                last_full: None,
+                step_mv: None,
+                at_ceiling: false,
+            },
+            stage: Stage::Bulk { full_due: false },
         }
     }
 
@@ -614,6 +644,11 @@ impl ChargeControl {
         self.phase
     }
 
+    /// Where the charge is and why ([`super::finish`]), as of the last update.
+    pub fn stage(&self) -> Stage {
+        self.stage
+    }
+
     /// CCL and DCL of the last update before the hold and ramp, 0.1 A: what
     /// the pack may take now, which a battery of several packs holds and
     /// ramps as a whole (see [`super::packs`]).
@@ -662,9 +697,18 @@ impl ChargeControl {
         let n = u32::from(s.cells.clamp(1, MAX_SERIES_CELLS));
         let bounds = PackBounds::of(s, n);
         let target = self.advance_phase(now, s, p, n);
-        let cvl_dv = self.charge_voltage_limit(now, p, n, target, bounds);
+        let cvl_dv = self.charge_voltage_limit(now, p, n, target, bounds, dt_us);
         let temps = Temperatures::of(&c, s, p);
         let (mut ccl_target, mut dcl_target) = current_targets(&c, s, p, temps);
+        let due = self.finish.full_due(now, c.full_charge_days);
+        let ceiling = self.phase == Phase::Absorption
+            && self.finish.ceiling(c.soc_ceiling_pct, p.soc_pct, due);
+        if ceiling {
+            ccl_target = 0;
+            self.stage = Stage::Ceiling {
+                ceiling_pct: c.soc_ceiling_pct,
+            };
+        }
         let (charge_over, discharge_over) = self.over_current.take();
         if charge_over {
             ccl_target = 0;
@@ -698,12 +742,16 @@ impl ChargeControl {
     }
 
     /// Absorption → float once the pack is at the absorption target with the
-    /// current tapered for [`ChargeConfig::full_hold_us`]; float → absorption
-    /// below [`ChargeConfig::rebulk_soc_pct`]. Returns the per-cell target of
-    /// the phase it is in now, mV.
+    /// current tapered for [`ChargeConfig::full_hold_us`] — and, while the
+    /// BMS balances with the spread above 308, once the balance hold is over
+    /// ([`super::finish`]); float → absorption below
+    /// [`ChargeConfig::rebulk_soc_pct`] or when a periodic full charge is due.
+    /// Sets the [`Stage`]. Returns the per-cell target of the phase it is in
+    /// now, mV.
     fn advance_phase(&mut self, now: Instant, s: &PackSettings, p: &PackState, n: u32) -> u16 {
-        let c = &self.config;
+        let c = self.config;
         let (absorption, float) = self.targets_mv(s);
+        let due = self.finish.full_due(now, c.full_charge_days);
         match self.phase {
             Phase::Absorption => {
                 // At the target: the highest cell there, or the pack held at CVL
@@ -712,19 +760,26 @@ impl ChargeControl {
                 let at_target = p.max_cell_mv.saturating_add(AT_TARGET_CELL_MV) >= absorption
                     || avg_mv.saturating_add(AT_TARGET_AVERAGE_MV) >= i32::from(absorption);
                 let tapered = p.current_a < c.tail_current_a;
+                self.stage = Stage::Bulk { full_due: due };
                 if at_target && tapered {
+                    self.stage = Stage::Absorption;
                     let since = *self.full_since.get_or_insert(now);
                     if now.saturating_sub(since) >= c.full_hold_us {
-                        self.phase = Phase::Float;
-                        self.full_since = None;
+                        if let Some(held) = self.balance_hold(now, s, p) {
+                            self.stage = held;
+                        } else {
+                            self.enter_float(now);
+                        }
                     }
                 } else {
                     self.full_since = None;
                 }
             }
             Phase::Float => {
-                if p.soc_pct < c.rebulk_soc_pct {
+                if p.soc_pct < c.rebulk_soc_pct || due {
                     self.phase = Phase::Absorption;
+                    self.finish.step_mv = None;
+                    self.stage = Stage::Bulk { full_due: due };
                 }
             }
         }
@@ -734,9 +789,45 @@ impl ChargeControl {
         }
     }
 
+    /// The balance hold at the end of absorption: `Some` while the BMS
+    /// balances (register 52), the spread is above the allowed disbalance
+    /// (308) and the hold of this charge has time left ([`Finish::hold_bound`]).
+    fn balance_hold(&mut self, now: Instant, s: &PackSettings, p: &PackState) -> Option<Stage> {
+        let bound = self.finish.hold_bound(
+            now,
+            self.config.balance_hold_us,
+            self.config.full_charge_days,
+        );
+        let spread_mv = p.max_cell_mv.saturating_sub(p.min_cell_mv);
+        if bound == 0 || p.balancing == 0 || spread_mv <= s.allowed_disbalance_mv {
+            return None;
+        }
+        let since = *self.finish.hold_since.get_or_insert(now);
+        let held = now.saturating_sub(since);
+        (held < bound).then(|| Stage::BalanceHeld {
+            balancing: p.balancing,
+            spread_mv,
+            left_s: ((bound - held) / crate::SECOND) as u32,
+        })
+    }
+
+    /// The switch to float: the full charge is done; CVL steps down from
+    /// where it is.
+    fn enter_float(&mut self, now: Instant) {
+        self.phase = Phase::Float;
+        self.full_since = None;
+        self.finish.hold_since = None;
+        self.finish.last_full = Some(now);
+        self.finish.step_mv = (self.config.float_step_mv_per_min > 0)
+            .then(|| self.last_cvl_dv.map(|dv| u32::from(dv) * MV_PER_DV))
+            .flatten();
+        self.stage = Stage::Float;
+    }
+
     /// CVL, 0.1 V: cells × `target` less the runner offset, kept within the
     /// pack's bounds, in 0.1 V steps, raised at most once per
-    /// [`ChargeConfig::cvl_raise_interval_us`].
+    /// [`ChargeConfig::cvl_raise_interval_us`]; on the way down into float,
+    /// stepped ([`super::finish`]).
     fn charge_voltage_limit(
         &mut self,
         now: Instant,
@@ -744,13 +835,41 @@ impl ChargeControl {
         n: u32,
         target: u16,
         bounds: PackBounds,
+        dt_us: Instant,
     ) -> u16 {
         self.follow_runner(p, n, target);
         let cvl_mv = (n * u32::from(target))
             .saturating_sub(self.runner_offset_mv)
             .max(bounds.floor_mv)
             .min(bounds.ceil_mv);
-        let cvl_dv = bounds.round_inside_dv(cvl_mv);
+        let mut cvl_dv = bounds.round_inside_dv(cvl_mv);
+        if self.phase == Phase::Float {
+            // At rest, the pack's own voltage is the floor of the step: an
+            // inverter pulling the pack down to CVL finds nothing. While it
+            // charges gently (below the tail current), the inverter's
+            // regulator holds the pack at or below CVL, above the pack's
+            // rest: no floor needed. While it charges harder or discharges,
+            // its rest is unknown (a drop of unknown size): no step at all.
+            // Rounded up to the 0.1 V, within the bounds.
+            let i = p.current_a;
+            let (floor_mv, dt_us) = if i > CHARGING_ABOVE_A && i < self.config.tail_current_a {
+                (0, dt_us)
+            } else if i.abs() <= CHARGING_ABOVE_A {
+                ((p.pack_v.max(0.0) * MV_PER_V) as u32, dt_us)
+            } else {
+                (u32::MAX, 0)
+            };
+            let step = self.config.float_step_mv_per_min;
+            if let Some(mv) = self.finish.step(cvl_mv, n, step, dt_us, floor_mv) {
+                cvl_dv = (mv.div_ceil(MV_PER_DV).min(bounds.ceil_mv / MV_PER_DV)) as u16;
+                self.stage = Stage::StepDown {
+                    cvl_dv,
+                    float_dv: bounds.round_inside_dv(cvl_mv),
+                };
+            } else {
+                self.stage = Stage::Float;
+            }
+        }
         self.limit_cvl_raise(now, cvl_dv)
     }
 
@@ -763,8 +882,15 @@ impl ChargeControl {
         let avg_mv = (p.pack_v.max(0.0) * MV_PER_V / n as f32) as u32;
         let lead_mv = u32::from(p.max_cell_mv).saturating_sub(avg_mv);
         if p.max_cell_mv > target {
-            self.runner_offset_mv =
-                n * lead_mv.saturating_sub(u32::from(self.config.runner_tolerance_mv));
+            // Deeper at once; shallower only by more than RUNNER_RELEASE_MV a
+            // cell: a lead that wobbles by a mV would otherwise move CVL by
+            // 0.1 V back and forth (through a long balance hold, every minute).
+            let offset = n * lead_mv.saturating_sub(u32::from(self.config.runner_tolerance_mv));
+            if offset > self.runner_offset_mv
+                || offset + n * u32::from(RUNNER_RELEASE_MV) < self.runner_offset_mv
+            {
+                self.runner_offset_mv = offset;
+            }
         } else if p.max_cell_mv.saturating_add(RUNNER_RELEASE_MV) < target {
             self.runner_offset_mv = 0;
         }

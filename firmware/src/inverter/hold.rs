@@ -133,6 +133,7 @@ mod tests {
             max_temp_c: 22.0,
             fault: false,
             charge_blocked: false,
+            balancing: 0,
         }
     }
 

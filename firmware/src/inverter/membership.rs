@@ -593,6 +593,7 @@ mod tests {
             max_temp_c: 21.0,
             fault: false,
             charge_blocked: false,
+            balancing: 0,
         };
         let battery = Battery {
             state,

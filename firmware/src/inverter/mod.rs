@@ -6,6 +6,8 @@
 //! * [`say`] — what the inverter is told: the one decision of every period,
 //!   for every dialect: the limits, the stops and every signal they go out
 //!   with.
+//! * [`finish`] — the end of a charge: the balance hold, the periodic full
+//!   charge, the step down into float, the SOC ceiling.
 //! * [`dialect`] — the dialects behind one seam (Victron, SMA Sunny Island,
 //!   the Pylontech LV family, Growatt), listed once; each puts what [`say`]
 //!   decided into its frames and reads them back.
@@ -55,6 +57,7 @@
 pub mod bus;
 pub mod control;
 pub mod dialect;
+pub mod finish;
 mod gap;
 pub mod hold;
 pub mod ignored;
@@ -250,6 +253,8 @@ pub struct Inverter {
     fresh_stops: Stops,
     /// Stops the inverter was seen ignoring.
     ignored: IgnoredStops,
+    /// The end-of-charge stage last logged.
+    logged_stage: Option<finish::Stage>,
     /// The snapshot the watch of ignored stops saw last.
     watched_at: Option<Instant>,
     /// When SOC was last at least 97 % (or the data first came): the
@@ -302,6 +307,7 @@ impl Inverter {
             said: (Stops::default(), Told::default()),
             fresh_stops: Stops::default(),
             ignored: IgnoredStops::default(),
+            logged_stage: None,
             watched_at: None,
             full_at: None,
             shutdown_at: None,
@@ -403,6 +409,12 @@ impl Inverter {
     /// Absorption or float.
     pub fn phase(&self) -> control::Phase {
         self.control.phase()
+    }
+
+    /// Where the charge is and why ([`finish`]); `None` before the first
+    /// fresh data or with the output off.
+    pub fn stage(&self) -> Option<finish::Stage> {
+        (self.config.enabled && self.limits.is_some()).then(|| self.control.stage())
     }
 
     /// Frames transmitted successfully.
@@ -838,6 +850,11 @@ impl Inverter {
         let (limits, conditions) = self.control.update(now, settings, state);
         self.limits = Some(limits);
         self.conditions = conditions;
+        let stage = self.control.stage();
+        if !self.logged_stage.is_some_and(|s| s.same_kind(stage)) {
+            self.logged_stage = Some(stage);
+            self.reports.push(InverterReport::Stage(stage));
+        }
         if self.logged_limits != Some(limits)
             && limits_log_due(
                 self.logged_limits,

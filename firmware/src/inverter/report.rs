@@ -78,6 +78,8 @@ pub enum InverterReport {
     /// The inverter was seen ignoring a stop: from now on every stop goes
     /// out with every signal the dialect has.
     IgnoresStop(Ignored),
+    /// The end of a charge moved to another stage ([`super::finish`]).
+    Stage(super::finish::Stage),
     /// A Luxpower inverter asks the battery to shut down (0x300), or no
     /// longer does: charge and discharge stop meanwhile; the BMS itself is
     /// never switched off.
@@ -101,6 +103,7 @@ impl InverterReport {
             | Self::Limits(_)
             | Self::BatteryLimits(_)
             | Self::Speaker(_)
+            | Self::Stage(_)
             | Self::Packs { .. } => crate::Level::Info,
             Self::BatteryLost
             | Self::DuplicateNode(_)

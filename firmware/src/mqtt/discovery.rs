@@ -435,6 +435,13 @@ pub const ENTITIES: &[Entity] = &[
         Read::Nullable("ignored_stop"),
         None,
     )),
+    plain(
+        "charge_stage",
+        "Charge stage",
+        None,
+        Read::Nullable("charge_stage"),
+        None,
+    ),
     diagnostic(Entity {
         object: "firmware_update",
         name: "Bridge firmware update",

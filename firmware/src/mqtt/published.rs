@@ -68,6 +68,8 @@ pub struct InverterStatus {
     pub told: crate::inverter::dialect::Told,
     /// The last stop the inverter was seen ignoring.
     pub ignored: Option<crate::inverter::ignored::Ignored>,
+    /// Where the charge is and why.
+    pub stage: Option<crate::inverter::finish::Stage>,
 }
 
 impl Published {

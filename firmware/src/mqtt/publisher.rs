@@ -540,6 +540,7 @@ impl Publisher {
             (u64::from(c) * u64::from(snapshot.soc_raw.min(100_000_000)) / 100_000_000) as u32
         });
         let ignored = view.inverter.and_then(|i| i.ignored).map(|e| e.text());
+        let stage = view.inverter.and_then(|i| i.stage).map(|s| s.text());
         let extras = StateExtras {
             status: snapshot.status.key().unwrap_or("other"),
             status_name,
@@ -555,6 +556,7 @@ impl Publisher {
             stops: view.inverter.and_then(|i| i.stops).map(|s| s.keys()),
             soc_told: view.inverter.and_then(|i| i.told.soc_pct),
             ignored_stop: ignored.as_deref(),
+            charge_stage: stage.as_ref().map(|s| s.as_str()),
             wifi_rssi_dbm: view.wifi_rssi_dbm,
             update_rolled_back: view.update_rolled_back,
             update_latest: view.update_latest,

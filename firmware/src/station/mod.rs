@@ -426,6 +426,7 @@ impl Station {
             stops: i.protection().map(|s| s.keys()),
             told: i.told().unwrap_or_default(),
             ignored: i.ignored(),
+            stage: i.stage(),
         });
         let pending = self.config.restarts_pending() as u32;
         let h = self.host.as_mut()?;
@@ -635,6 +636,7 @@ impl Station {
                 stops: i.protection(),
                 told: i.told().unwrap_or_default(),
                 ignored: i.ignored(),
+                stage: i.stage(),
             }),
             wifi_rssi_dbm: self.wifi_rssi,
             update_rolled_back: crate::host_link::rolled_back_text(&self.ota),

@@ -203,6 +203,9 @@ impl NoOutput {
     pub fn ignored(&self) -> Option<crate::inverter::ignored::Ignored> {
         match *self {}
     }
+    pub fn stage(&self) -> Option<crate::inverter::finish::Stage> {
+        match *self {}
+    }
     pub fn next_report(&mut self) -> Option<crate::inverter::InverterReport> {
         match *self {}
     }

@@ -86,6 +86,8 @@ pub(crate) struct Params {
     pub capacity_ah: f64,
     /// Register 303, mV.
     pub early_balancing_mv: u16,
+    /// Register 308, mV.
+    pub allowed_disbalance_mv: u16,
     /// Register 304, A.
     pub charge_finished_a: f64,
     /// Register 317, A.
@@ -102,6 +104,7 @@ impl Params {
         Self {
             capacity_ah: (f64::from(g(306)) * 0.01).max(0.1),
             early_balancing_mv: g(303),
+            allowed_disbalance_mv: g(308),
             charge_finished_a: f64::from(g(304)) * 0.001,
             discharge_cutoff_a: f64::from(g(317)).max(1.0),
             charge_cutoff_a: f64::from(g(318)).max(1.0),
@@ -443,20 +446,15 @@ impl Live {
         set_in(regs, 48, dc(self.t_int));
         set_in(regs, 50, self.status(p.fault));
         // Balancing: bit n = n-th detected cell (bit 0 = first cell, Rev D §3.1),
-        // needed when the cell is above the early balancing threshold (303);
-        // really balancing unless discharging.
-        let mut decision = 0u16;
-        for (i, &c) in cells.iter().enumerate().take(16) {
-            if raw_to_mv(c) > p.early_balancing_mv {
-                decision |= 1 << i;
-            }
-        }
+        // as the TinyBMS's balancer decides (see `balancer`).
+        let mv: heapless::Vec<u16, 16> = cells.iter().map(|&c| raw_to_mv(c)).collect();
+        let (decision, real) = super::balancer::bits(
+            &mv,
+            p.early_balancing_mv,
+            p.allowed_disbalance_mv,
+            self.current,
+        );
         set_in(regs, 51, decision);
-        let real = if self.current < -IDLE_BAND_A {
-            0
-        } else {
-            decision
-        };
         set_in(regs, 52, real);
         set_in(regs, 53, self.cells as u16);
 
@@ -516,6 +514,7 @@ mod tests {
         Params {
             capacity_ah: 50.0,
             early_balancing_mv: 4000,
+            allowed_disbalance_mv: 15,
             charge_finished_a: 1.0,
             discharge_cutoff_a: 50.0,
             charge_cutoff_a: 25.0,

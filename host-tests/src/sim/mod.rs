@@ -143,6 +143,7 @@
 )]
 
 mod ascii;
+pub mod balancer;
 mod commands;
 mod config;
 mod event_loop;

@@ -290,6 +290,10 @@ pub fn inverter_text(t: &Telemetry<Read>) -> Option<String> {
         out.push_str("\n  ");
         out.push_str(&p);
     }
+    if let Some(r) = inv.stage_reason.as_deref() {
+        out.push_str("\n  charge: ");
+        out.push_str(r);
+    }
     if let Some(e) = inv.ignored.as_deref() {
         out.push_str(&format!(
             "\n  the inverter ignored a stop ({e}): every stop is told every way"

@@ -397,6 +397,13 @@ line_type! {
         /// 3 s`): every stop goes out with every signal since.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         pub ignored: Option<F::Text>,
+        /// Where the charge is ([`crate::inverter::finish::Stage::key`]).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub stage: Option<F::Text>,
+        /// Why, in words (`absorption held: cells 3 and 7 balancing,
+        /// spread 24 mV (at most 40 min more)`).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub stage_reason: Option<F::Text>,
     }
 }
 
@@ -426,6 +433,8 @@ line_type! {
         pub discharge_stop: Option<F::Text>,
         pub soc_told: Option<u8>,
         pub ignored_stop: Option<F::Text>,
+        #[serde(default)]
+        pub charge_stage: Option<F::Text>,
         pub wifi_rssi_dbm: Option<i8>,
         pub update_rolled_back: Option<F::Text>,
         #[serde(default)]

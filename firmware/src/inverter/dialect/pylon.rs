@@ -413,6 +413,7 @@ pub(crate) mod tests {
             max_temp_c: 24.9,
             fault: false,
             charge_blocked: false,
+            balancing: 0,
         }
     }
 

@@ -196,6 +196,9 @@ pub fn aggregate_with(
             max_temp_c: f32::from(max_t) / 10.0,
             fault: false,
             charge_blocked,
+            // The summaries carry no balancing bits: each pack's own charge
+            // control holds its absorption for its balance.
+            balancing: 0,
         },
         limits: Limits {
             cvl_dv: cvl,
