@@ -466,7 +466,7 @@ fields! {
         "Below this state of charge float ends and charging starts again.";
     BalanceHold = 30 since 7, "balance_hold", "min", Charge, Now, num(0, 600, 0),
         balance_hold_min: u16 = (c.balance_hold_us / (60 * SECOND)) as u16,
-        "At the end of a charge, absorption is held at most this long while the BMS balances and the cells' spread is above its allowed disbalance (308); 0 = never.";
+        "At the end of a charge, absorption is held while the BMS balances and the cells' spread is above its allowed disbalance (308): at most this long for each day since the last full charge (up to full_charge_days times); 0 = never.";
     FullChargeDays = 31 since 7, "full_charge_days", "days", Charge, Now, num(0, 90, 0),
         full_charge_days: u16 = c.full_charge_days,
         "A full charge (absorption and its balance hold) at least this often: float ends for it and the SOC ceiling waits; 0 = off. Due at every start.";

@@ -88,7 +88,8 @@ pub struct ChargeConfig {
     pub full_hold_us: Instant,
     /// Below this SOC the float phase ends, %.
     pub rebulk_soc_pct: f32,
-    /// Absorption is held at most this long per charge while the BMS
+    /// Absorption is held at most this long per charge (for each day since
+    /// the last full charge, up to `full_charge_days` times) while the BMS
     /// balances and the spread is above 308, µs; 0 = never
     /// ([`super::finish`]).
     pub balance_hold_us: Instant,
