@@ -170,6 +170,11 @@ fn seventy_five_days_balance_the_pack_and_no_cell_passes_its_cutoff() {
     let s = year::settings();
     let before = year::run(1, days, Policy::Before.config(), InverterKind::Obeys);
     let now = year::run(1, days, Policy::Now.config(), InverterKind::Obeys);
+    // The start: at least the 80 mV apart at the end of the first charge.
+    for f in [&before, &now] {
+        let first = f.end_spreads.first().map(|d| d.1).unwrap_or(0);
+        assert!(first >= year::START_IMBALANCE_MV, "{first} mV");
+    }
     eprintln!("{}", year::header());
     eprintln!("{}", year::row("before / obeys", &before, 30, 15));
     eprintln!("{}", year::row("end-of-charge / obeys", &now, 30, 15));

@@ -33,7 +33,8 @@ fn main() {
     }
     let limit = year::settings().allowed_disbalance_mv;
     println!(
-        "{days} days from {} mV apart; spreads after day 30; sunFl = sunny days that reached float",
+        "{days} days, one cell {} % of charge ahead at the start (the first charge ends at least {} mV apart); spreads after day 30; sunFl = sunny days that reached float",
+        year::START_LEAD_PCT,
         year::START_IMBALANCE_MV
     );
     println!("{}", year::header());
