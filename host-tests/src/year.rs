@@ -571,6 +571,8 @@ pub fn run(seed: u64, days: u64, config: ChargeConfig, kind: InverterKind) -> Ye
         ..YearFigures::default()
     };
     let mut last_cvl: Option<u16> = None;
+    // The highest cell now (after each step: the next step's choice of length).
+    let mut top = pack.cells_mv().iter().copied().max().unwrap_or(0);
     let over = if kind == InverterKind::Overshoot {
         1.2
     } else {
@@ -582,7 +584,6 @@ pub fn run(seed: u64, days: u64, config: ChargeConfig, kind: InverterKind) -> Ye
         let mut end: Option<ChargeEnd> = None;
         let mut t = 0u64;
         while t < DAY_S {
-            let top = pack.cells_mv().iter().copied().max().unwrap_or(0);
             let dt = if day.quiet(t as f64) {
                 QUIET_STEP_S
             } else if top >= KNEE_MV {
@@ -650,7 +651,7 @@ pub fn run(seed: u64, days: u64, config: ChargeConfig, kind: InverterKind) -> Ye
                 f.charged_kwh += i * pack.volts() * dt as f64 / 3.6e6;
             }
             pack.step(i, dt as f64);
-            let top = pack.cells_mv().iter().copied().max().unwrap_or(0);
+            top = pack.cells_mv().iter().copied().max().unwrap_or(0);
             f.max_cell_mv = f.max_cell_mv.max(top);
             t += dt;
         }

@@ -588,12 +588,7 @@ impl ChargeControl {
                 now: (false, false),
                 pending: (false, false),
             },
-            finish: Finish {
-                hold_since: None,
-                last_full: None,
-                step_mv: None,
-                at_ceiling: false,
-            },
+            finish: Finish::new(),
             stage: Stage::Bulk { full_due: false },
         }
     }
@@ -697,11 +692,13 @@ impl ChargeControl {
         let dt_us = self.ramp_interval(now);
         let n = u32::from(s.cells.clamp(1, MAX_SERIES_CELLS));
         let bounds = PackBounds::of(s, n);
-        let target = self.advance_phase(now, s, p, n);
+        let due = self.finish.full_due(now, c.full_charge_days);
+        let target = self.advance_phase(now, s, p, n, due);
         let cvl_dv = self.charge_voltage_limit(now, p, n, target, bounds, dt_us);
         let temps = Temperatures::of(&c, s, p);
         let (mut ccl_target, mut dcl_target) = current_targets(&c, s, p, temps);
-        let due = self.finish.full_due(now, c.full_charge_days);
+        // (A switch to float in this update leaves the phase Float: `due`,
+        // of before it, then asks nothing.)
         let ceiling = self.phase == Phase::Absorption
             && self.finish.ceiling(c.soc_ceiling_pct, p.soc_pct, due);
         if ceiling {
@@ -747,12 +744,18 @@ impl ChargeControl {
     /// BMS balances with the spread above 308, once the balance hold is over
     /// ([`super::finish`]); float → absorption below
     /// [`ChargeConfig::rebulk_soc_pct`] or when a periodic full charge is due.
-    /// Sets the [`Stage`]. Returns the per-cell target of the phase it is in
-    /// now, mV.
-    fn advance_phase(&mut self, now: Instant, s: &PackSettings, p: &PackState, n: u32) -> u16 {
+    /// `due`: a periodic full charge is due. Sets the [`Stage`]. Returns the
+    /// per-cell target of the phase it is in now, mV.
+    fn advance_phase(
+        &mut self,
+        now: Instant,
+        s: &PackSettings,
+        p: &PackState,
+        n: u32,
+        due: bool,
+    ) -> u16 {
         let c = self.config;
         let (absorption, float) = self.targets_mv(s);
-        let due = self.finish.full_due(now, c.full_charge_days);
         match self.phase {
             Phase::Absorption => {
                 // At the target: the highest cell there, or the pack held at CVL

@@ -100,16 +100,6 @@ impl Stage {
         }
     }
 
-    /// Every key, for Home Assistant's enum sensor.
-    pub const KEYS: [&'static str; 6] = [
-        "bulk",
-        "absorption",
-        "balance_hold",
-        "step_down",
-        "float",
-        "soc_ceiling",
-    ];
-
     /// Whether `other` is the same stage for the log (the numbers may move).
     pub fn same_kind(self, other: Self) -> bool {
         core::mem::discriminant(&self) == core::mem::discriminant(&other)
@@ -211,6 +201,16 @@ pub(super) struct Finish {
 }
 
 impl Finish {
+    /// Nothing held, no full charge known, not stepping, no ceiling.
+    pub const fn new() -> Self {
+        Self {
+            hold_since: None,
+            last_full: None,
+            step_mv: None,
+            at_ceiling: false,
+        }
+    }
+
     /// Whether a periodic full charge is due at `now`.
     pub fn full_due(&self, now: Instant, days: u16) -> bool {
         days > 0
@@ -280,6 +280,14 @@ impl Finish {
 mod tests {
     use super::*;
 
+    fn balance_held(balancing: u16, spread_mv: u16, left_s: u32) -> Stage {
+        Stage::BalanceHeld {
+            balancing,
+            spread_mv,
+            left_s,
+        }
+    }
+
     #[test]
     fn stages_in_words() {
         let held = Stage::BalanceHeld {
@@ -291,36 +299,20 @@ mod tests {
             held.text().as_str(),
             "absorption held: cells 3 and 7 balancing, spread 24 mV (at most 10 min more)"
         );
-        let one = Stage::BalanceHeld {
-            balancing: 1 << 15,
-            spread_mv: 30,
-            left_s: 61,
-        };
+        let one = balance_held(1 << 15, 30, 61);
         assert!(one
             .text()
             .as_str()
             .starts_with("absorption held: cell 16 balancing"));
-        let three = Stage::BalanceHeld {
-            balancing: 0b111,
-            spread_mv: 30,
-            left_s: 0,
-        };
+        let three = balance_held(0b111, 30, 0);
         assert!(three.text().as_str().contains("cells 1, 2 and 3 balancing"));
-        let many = Stage::BalanceHeld {
-            balancing: 0xFFF0,
-            spread_mv: u16::MAX,
-            left_s: u32::MAX,
-        };
+        let many = balance_held(0xFFF0, u16::MAX, u32::MAX);
         assert!(many
             .text()
             .as_str()
             .contains("12 cells balancing, spread 65535 mV"));
         // The longest text fits whole.
-        let longest = Stage::BalanceHeld {
-            balancing: 0xF000,
-            spread_mv: u16::MAX,
-            left_s: u32::MAX,
-        };
+        let longest = balance_held(0xF000, u16::MAX, u32::MAX);
         assert!(
             longest.text().as_str().ends_with("min more)"),
             "{}",
@@ -334,9 +326,6 @@ mod tests {
             s.text().as_str(),
             "stepping down to float: 56.3 V, float 53.2 V"
         );
-        for k in Stage::KEYS {
-            assert!(!k.is_empty());
-        }
     }
 
     #[test]
