@@ -441,6 +441,18 @@ pub fn inverter(r: &InverterReport, out: &mut Line) {
             out.push("charge: ");
             s.write(out);
         }
+        InverterReport::Doctor(v) => {
+            out.push("CAN doctor: ");
+            v.write(out);
+        }
+        InverterReport::Reasons(r) => {
+            out.push("limits because: CVL ");
+            r.cvl.write(out);
+            out.push("; CCL ");
+            r.ccl.write(out);
+            out.push("; DCL ");
+            r.dcl.write(out);
+        }
         InverterReport::IgnoresStop(e) => {
             out.push("CAN: the inverter ignores the ")
                 .push(e.side.text())

@@ -93,6 +93,19 @@ pub struct InverterModel {
     pub charged_wh: f64,
     /// Energy out of the pack so far, Wh.
     pub discharged_wh: f64,
+    /// Pulls the pack down to the charge voltage when it is above it (an
+    /// inverter that exports to the grid to reach CVL).
+    pub exports: bool,
+    /// Its heartbeat skips `gap` µs once every `every` µs (a Deye late by
+    /// more than 3 s every two hours, compressed).
+    pub heartbeat_gap: Option<(u64, u64)>,
+    /// What its own voltmeter reads off the pack's voltage, V (an SMA
+    /// Sunny Island reports its reading in 0x305).
+    pub voltage_offset_v: f64,
+    /// The pack voltage it last measured, V.
+    pub measured_v: f64,
+    /// Which of the GX's two keep-alives goes next (0x305, 0x307).
+    gx_second: bool,
     /// When the battery's last data came (the heartbeat answers it).
     heard_at: Option<u64>,
     /// When it last sent its heartbeat or query.
@@ -145,6 +158,11 @@ impl InverterModel {
             silent: false,
             charged_wh: 0.0,
             discharged_wh: 0.0,
+            exports: false,
+            heartbeat_gap: None,
+            voltage_offset_v: 0.0,
+            measured_v: 0.0,
+            gx_second: false,
             heard_at: None,
             sent_at: None,
         }
@@ -196,14 +214,38 @@ impl InverterModel {
 
     /// What the inverter sends at `now`: the Pylontech family's heartbeat
     /// (0x305, while the battery's data comes), Growatt's query (0x301,
-    /// always: the battery answers it); nothing for Victron and SMA (their
-    /// loops do not model the keep-alive).
+    /// always: the battery answers it), a GX's keep-alives (0x305 and 0x307
+    /// "VIC", each once a second), a Sunny Island's 0x305 with its own
+    /// reading of the pack (voltage 0.1 V, current 0.1 A).
     pub fn outgoing(&mut self, now: u64) -> Option<(u16, [u8; 8])> {
-        if self.silent || self.sent_at.is_some_and(|t| now < t + HEARTBEAT_US) {
+        let period = if self.dialect == Protocol::Victron {
+            HEARTBEAT_US / 2
+        } else {
+            HEARTBEAT_US
+        };
+        if self.silent || self.sent_at.is_some_and(|t| now < t + period) {
             return None;
         }
+        if let Some((every, gap)) = self.heartbeat_gap {
+            if now % every < gap {
+                return None;
+            }
+        }
         let frame = match self.dialect {
-            Protocol::Victron | Protocol::SmaSunnyIsland => return None,
+            Protocol::Victron => {
+                self.gx_second = !self.gx_second;
+                if self.gx_second {
+                    (0x305, [0; 8])
+                } else {
+                    (0x307, [0x01, 0x02, 0x03, 0x04, b'V', b'I', b'C', 0x00])
+                }
+            }
+            Protocol::SmaSunnyIsland => {
+                let v = (((self.measured_v + self.voltage_offset_v) * 10.0).round() as u16)
+                    .to_le_bytes();
+                let i = ((self.current_a * 10.0).round() as i16).to_le_bytes();
+                (0x305, [v[0], v[1], i[0], i[1], 0, 0, 0, 0])
+            }
             Protocol::Growatt => (0x301, [0x11, 0x22, 0x33, 0x44, 0x55, 0x66, 0x77, 0x88]),
             _ if self.heard_at.is_some_and(|t| now < t + 3 * HEARTBEAT_US) => (0x305, [0; 8]),
             _ => return None,
@@ -215,6 +257,7 @@ impl InverterModel {
     /// The current for the next step, given the pack voltage the inverter
     /// measures at its terminals (its own reading, like a real one).
     pub fn step(&mut self, now: u64, pack_v: f64) -> f64 {
+        self.measured_v = pack_v;
         let Some((cvl, ccl, dcl, at)) = self.last_limits else {
             self.current_a = 0.0;
             return 0.0;
@@ -252,7 +295,12 @@ impl InverterModel {
             // charger's maximum.
             let dt_s = STEP_US as f64 / 1e6;
             let next = self.current_a.max(0.0) + CV_GAIN_A_PER_V_S * (cvl - pack_v) * dt_s;
-            next.clamp(0.0, self.charger_max_a.min(ccl * over))
+            let floor = if self.exports {
+                -self.charger_max_a
+            } else {
+                0.0
+            };
+            next.clamp(floor, self.charger_max_a.min(ccl * over))
         } else {
             0.0
         };

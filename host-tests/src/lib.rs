@@ -7,6 +7,7 @@
 //! share is `tinybms-desk` (`host-tests/desk`).
 
 pub mod closed_loop;
+pub mod doctor_fixtures;
 pub mod fixtures;
 pub mod flash;
 pub mod harsh;

@@ -8,9 +8,11 @@
 //! The simulated inverter acknowledges every frame (it is the other node on
 //! the bus), keeps the last limits it was told (0x351; Growatt's 0x311), and
 //! once a second sends 0x305 — the GX keep-alive, the heartbeat of the
-//! Pylontech family — and 0x301, Growatt's query, which the other
-//! protocols ignore: one inverter for every `inverter_protocol`, which a
-//! restart may change. A candump log of what the
+//! Pylontech family — and, while the bridge has sent no 0x351 for
+//! [`QUERY_AFTER_SILENCE`] (a Growatt-speaking bridge never does) and from
+//! [`FIRST_QUERY_AFTER`] on, 0x301, Growatt's query: one inverter for every
+//! `inverter_protocol`, which a restart may change, and none that the
+//! bridge's doctor would take for another dialect's. A candump log of what the
 //! bridge sent can be written (`--can-log`), readable by can-utils and
 //! cantools.
 
@@ -27,6 +29,10 @@ use tinybms_desk::CanSide;
 
 /// How often the simulated inverter sends its keep-alive.
 pub const KEEPALIVE_EVERY: Duration = Duration::from_secs(1);
+/// No Growatt query before this long after the bus was made.
+pub const FIRST_QUERY_AFTER: Duration = Duration::from_secs(3);
+/// The query goes out while the bridge has sent no 0x351 for this long.
+pub const QUERY_AFTER_SILENCE: Duration = Duration::from_secs(30);
 
 /// What the simulated inverter saw, for a test or the sim's summary.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -42,6 +48,8 @@ pub struct SimInverterBus {
     seen: Arc<Mutex<Seen>>,
     log: Option<Box<dyn Write + Send>>,
     next_keepalive: WallInstant,
+    made_at: WallInstant,
+    limits_at: Option<WallInstant>,
     pending: Vec<(u16, Vec<u8>)>,
     /// Keep-alives on (an inverter that is there); off: a bus with only a
     /// listener that acknowledges.
@@ -59,6 +67,8 @@ impl SimInverterBus {
             seen: Arc::default(),
             log,
             next_keepalive: WallInstant::now(),
+            made_at: WallInstant::now(),
+            limits_at: None,
             pending: Vec::new(),
             keepalive: true,
         }
@@ -78,6 +88,7 @@ impl CanSide for SimInverterBus {
         if frame.id == 0x351 && frame.len >= 6 {
             let word = |i: usize| u16::from_le_bytes([d[i], d[i + 1]]);
             seen.limits = Some((word(0), word(2), word(4)));
+            self.limits_at = Some(WallInstant::now());
         }
         if frame.id == 0x311 && frame.len >= 6 {
             let word = |i: usize| u16::from_be_bytes([d[i], d[i + 1]]);
@@ -96,9 +107,15 @@ impl CanSide for SimInverterBus {
 
     fn receive(&mut self) -> Option<(u16, Vec<u8>)> {
         if self.keepalive && WallInstant::now() >= self.next_keepalive {
-            self.next_keepalive = WallInstant::now() + KEEPALIVE_EVERY;
-            self.pending
-                .push((GROWATT_QUERY.0, GROWATT_QUERY.1.to_vec()));
+            let now = WallInstant::now();
+            self.next_keepalive = now + KEEPALIVE_EVERY;
+            let speaks = self
+                .limits_at
+                .is_some_and(|t| now.duration_since(t) < QUERY_AFTER_SILENCE);
+            if now.duration_since(self.made_at) >= FIRST_QUERY_AFTER && !speaks {
+                self.pending
+                    .push((GROWATT_QUERY.0, GROWATT_QUERY.1.to_vec()));
+            }
             self.pending.push((ID_GX_KEEPALIVE, vec![0; 8]));
         }
         self.pending.pop()
@@ -134,8 +151,15 @@ mod tests {
         assert_eq!(seen.limits, Some((556, 500, 600)));
         let text = String::from_utf8(log.lock().unwrap().clone()).unwrap();
         assert!(text.ends_with(" can0 351#2C02F40158020000\n"), "{text}");
-        // The keep-alive and the query at once, then not before a second has
+        // The keep-alive at once, without the query: the bridge speaks (a
+        // 0x351), and the bus is young; then nothing before a second has
         // passed.
+        assert_eq!(bus.receive().map(|(id, _)| id), Some(ID_GX_KEEPALIVE));
+        assert_eq!(bus.receive(), None);
+        // Older, and no 0x351 for a while: the query too.
+        bus.made_at = WallInstant::now() - FIRST_QUERY_AFTER;
+        bus.limits_at = Some(WallInstant::now() - QUERY_AFTER_SILENCE);
+        bus.next_keepalive = WallInstant::now();
         assert_eq!(bus.receive().map(|(id, _)| id), Some(ID_GX_KEEPALIVE));
         assert_eq!(bus.receive().map(|(id, _)| id), Some(0x301));
         assert_eq!(bus.receive(), None);

@@ -905,6 +905,22 @@ fn longest_telemetry_line_fits() {
                 spread_mv: u16::MAX,
                 left_s: u32::MAX,
             }),
+            reasons: Some({
+                use tinybms_firmware::inverter::why::{Reasons, Why};
+                let longest = Why::OverCurrent { cutoff_a: u16::MAX };
+                Reasons {
+                    cvl: longest,
+                    ccl: longest,
+                    dcl: longest,
+                }
+            }),
+            heartbeat: tinybms_firmware::inverter::doctor::Heartbeat {
+                count: u32::MAX,
+                mean_ms: u32::MAX,
+                longest_ms: u32::MAX,
+                late: u32::MAX,
+            },
+            verdicts: every_verdict(),
         }),
         restart_pending: u32::MAX,
     };
@@ -922,7 +938,9 @@ fn longest_telemetry_line_fits() {
     // 1280 bytes; what the inverter is told — the SOC, the enable bits, the
     // name, an ignored stop — and the changes waiting for a restart, 221
     // bytes, to 1117, and the buffer to 1408 bytes; the charge's stage and
-    // its reason, 136 bytes, to 1253, and the buffer to 1600 bytes).
+    // its reason, 136 bytes, to 1253, and the buffer to 1600 bytes; why each
+    // limit is what it is, the heartbeat and the doctor's verdicts, 431
+    // bytes, to 1684, and the buffer to 2112 bytes).
     assert!(n < OUT_LINE_MAX * 4 / 5, "{n}");
     check_line(&buf[..n]);
 }
@@ -1705,4 +1723,41 @@ fn the_bridge_checks_cell_voltages_against_the_chemistry() {
     r.line(r#"{"cmd":"set","req":6,"chemistry":"lead-acid","values":{"over_voltage_cutoff":3.6}}"#);
     let e = only(&r.drain()).clone();
     assert_eq!(e["error"], "invalid_value", "{e}");
+}
+
+/// One verdict of each kind, with the widest numbers.
+fn every_verdict() -> [Option<tinybms_firmware::inverter::doctor::Verdict>; 9] {
+    use tinybms_firmware::inverter::doctor::Verdict;
+    use tinybms_firmware::inverter::Protocol;
+    let m = u16::MAX;
+    [
+        Verdict::NoAck { frames: m },
+        Verdict::BusOff,
+        Verdict::NoInverter { for_s: u32::MAX },
+        Verdict::HeartbeatLate {
+            late: m,
+            longest_ms: u32::MAX,
+        },
+        Verdict::OtherDialect {
+            id: 0x7FF,
+            heard: Protocol::SmaSunnyIsland,
+        },
+        Verdict::OverLimit {
+            charge: true,
+            current_da: m,
+            limit_da: m,
+            for_s: u32::MAX,
+        },
+        Verdict::VoltageDisagrees {
+            inverter_dv: m,
+            bms_dv: m,
+        },
+        Verdict::UnknownName { name: *b"ABCDEFGH" },
+        Verdict::ExportAfterStep {
+            from_dv: m,
+            to_dv: m,
+            current_da: m,
+        },
+    ]
+    .map(Some)
 }

@@ -20,7 +20,10 @@ fn written_back(line: &HostLine) -> Value {
         HostLine::Hello(l) => serde_json::to_value(l),
         HostLine::Telemetry(l) => serde_json::to_value(l),
         HostLine::Setting(l) => serde_json::to_value(l),
-        HostLine::SettingsEnd(l) | HostLine::EventsEnd(l) => serde_json::to_value(l),
+        HostLine::SettingsEnd(l) | HostLine::EventsEnd(l) | HostLine::CanEnd(l) => {
+            serde_json::to_value(l)
+        }
+        HostLine::Can(l) => serde_json::to_value(l),
         HostLine::Statistics(l) => serde_json::to_value(l),
         HostLine::Version(l) => serde_json::to_value(l),
         HostLine::Event(l) => serde_json::to_value(l),
@@ -66,7 +69,7 @@ fn round_trip(v: &Value) -> String {
 fn every_line_of_a_host_session_reads_back_whole() {
     let mut l = ClosedLoop::from_flash(PackModel::LiFePO4_16S, 3, RamFlash::new(), 100.0);
     l.h.sim.set_soc_percent(40.0);
-    let script: [(u64, &str); 19] = [
+    let script: [(u64, &str); 20] = [
         (1, r#"{"cmd":"hello","req":1}"#),
         (5, r#"{"cmd":"stream","period_ms":500,"req":2}"#),
         (30, r#"{"cmd":"get","what":"settings","req":3}"#),
@@ -75,6 +78,7 @@ fn every_line_of_a_host_session_reads_back_whole() {
         (33, r#"{"cmd":"get","what":"events","req":6}"#),
         (34, r#"{"cmd":"get","what":"link","req":7}"#),
         (35, r#"{"cmd":"get","what":"config","req":8}"#),
+        (36, r#"{"cmd":"get","what":"can","req":20}"#),
         (
             60,
             r#"{"cmd":"set_config","fields":{"charge_current_cap":"40 A","nonsense":"1"},"req":9}"#,
@@ -121,6 +125,8 @@ fn every_line_of_a_host_session_reads_back_whole() {
         "link",
         "config",
         "config_end",
+        "can",
+        "can_end",
         "config_outcome",
         "config_done",
         "accepted",

@@ -58,6 +58,8 @@ fn view<'a>(snap: &'a LiveSnapshot, age_s: u64) -> View<'a> {
             told: Default::default(),
             ignored: None,
             stage: None,
+            reasons: None,
+            verdicts: [None; 9],
         }),
         wifi_rssi_dbm: Some(-61),
         update_rolled_back: None,
@@ -944,4 +946,77 @@ fn every_stop_cause_is_an_option_of_home_assistant() {
     let mut keys: Vec<&str> = all.iter().map(|w| stop_key(Some(*w))).collect();
     keys.insert(0, stop_key(None));
     assert_eq!(keys, discovery::STOP_CAUSES);
+}
+
+/// The state with 16 cells, every value and every text at its widest, fits
+/// a payload with a margin (a state that does not fit is not published at
+/// all: Home Assistant would see nothing). It was 1,831 bytes before the
+/// limits' reasons and the doctor's verdicts (2,123 with them), over the
+/// 1,536 of the payload then: the payload is 2,560 bytes since.
+#[test]
+fn the_widest_state_fits_the_payload() {
+    use tinybms_firmware::host_link::encode::{self, StateExtras, TelemetryHead};
+    use tinybms_firmware::inverter::why::Why;
+    let mut block = RegisterBlock {
+        start: 0,
+        values: Default::default(),
+    };
+    for a in 0..56u16 {
+        let v = match a {
+            0..=15 => 49_999,
+            36..=39 => 0xBF7F,
+            53 => 16,
+            48 | 42 | 43 => 0x8001,
+            _ => 0xFFFF,
+        };
+        block.values.push(v).unwrap();
+    }
+    let snapshot = LiveSnapshot::from_registers(&block).unwrap();
+    let why = Why::OverCurrent { cutoff_a: u16::MAX }.text();
+    let long = "x".repeat(120);
+    let doctor = "no_ack, bus_off, no_inverter, heartbeat_late, other_dialect, over_limit, voltage_disagrees, unknown_name, export_after_step";
+    let extras = StateExtras {
+        status: "other",
+        status_name: "Other",
+        age_ms: u64::MAX,
+        link_quality_permille: Some(u32::MAX),
+        limits: Some((u16::MAX, u16::MAX, u16::MAX)),
+        remaining_cah: Some(u32::MAX),
+        energy_mwh: (u64::MAX, u64::MAX),
+        uptime_s: u64::MAX,
+        bridge_firmware: &long[..64],
+        can_state: Some("bus_off"),
+        inverter_heard: Some(false),
+        stops: Some(("inverter_asked", "inverter_asked")),
+        soc_told: Some(100),
+        ignored_stop: Some("discharge: 6553.5 A for 65535 s"),
+        charge_stage: Some(&long),
+        why: [Some(why.as_str()); 3],
+        can_doctor: Some(doctor),
+        wifi_rssi_dbm: Some(-128),
+        update_rolled_back: Some(&long),
+        update_latest: Some(&long[..32]),
+    };
+    let head = TelemetryHead {
+        req: None,
+        seq: u32::MAX,
+        age_ms: Some(u64::MAX),
+        stale_after_ms: None,
+        online: true,
+        ready: true,
+        inverter: None,
+        restart_pending: 0,
+    };
+    let mut payload = vec![0u8; PAYLOAD_MAX];
+    let n = encode::state(
+        &mut payload,
+        head,
+        Some(&snapshot),
+        Some("cell_count_mismatch"),
+        Some(&extras),
+    )
+    .expect("the widest state fits");
+    eprintln!("widest state: {n} bytes of {PAYLOAD_MAX}");
+    assert!(n < PAYLOAD_MAX * 9 / 10, "{n}");
+    serde_json::from_slice::<Value>(&payload[..n]).expect("valid JSON");
 }

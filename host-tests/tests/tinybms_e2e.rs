@@ -589,3 +589,54 @@ fn a_reader_that_goes_away_ends_the_command_and_frees_the_port() {
         assert_eq!(o.code, 0, "{args:?}: the port was not freed: {o}");
     }
 }
+
+#[test]
+fn doctor_reads_the_bridges_capture_and_says_why() {
+    let sim = Sim::start(&["--bridge-pty", "--stream-period", "200ms"]);
+    // A few seconds of frames both ways first.
+    std::thread::sleep(std::time::Duration::from_secs(4));
+    let out = tmp("doctor-capture.log");
+    let o = tinybms(&["doctor", &sim.path, "--out", out.to_str().unwrap()]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("inverter: victron on CAN"), "{o}");
+    assert!(
+        o.stdout.contains("CCL ") && o.stdout.contains("DCL "),
+        "{o}"
+    );
+    assert!(
+        o.stdout
+            .contains("no verdict: the capture shows nothing wrong"),
+        "{o}"
+    );
+    let saved = std::fs::read_to_string(&out).unwrap();
+    assert!(saved.lines().count() >= 8, "{saved}");
+    assert!(
+        saved
+            .lines()
+            .any(|l| l.ends_with(" T") && l.contains(" can0 351#")),
+        "{saved}"
+    );
+    assert!(
+        saved
+            .lines()
+            .any(|l| l.ends_with(" R") && l.contains(" can0 305#")),
+        "{saved}"
+    );
+    // The saved capture reads the same offline.
+    let o = tinybms(&[
+        "doctor",
+        "--capture",
+        out.to_str().unwrap(),
+        "--protocol",
+        "victron",
+    ]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("no verdict"), "{o}");
+    // A damaged capture is refused with its line.
+    std::fs::write(&out, "(1.0) can0 351#00\n").unwrap();
+    let o = tinybms(&["doctor", "--capture", out.to_str().unwrap()]);
+    assert_eq!(o.code, 1, "{o}");
+    assert!(o.stderr.contains("line 1: no direction flag"), "{o}");
+    let o = tinybms(&["doctor"]);
+    assert_eq!(o.code, 2, "{o}");
+}

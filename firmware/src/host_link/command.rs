@@ -41,6 +41,8 @@ pub enum What {
     Link,
     /// `config` lines (the bridge's own configuration) and `config_end`.
     Config,
+    /// `can` lines (the CAN capture, oldest first) and `can_end`.
+    Can,
 }
 
 /// What `clear` clears.
@@ -412,6 +414,7 @@ fn what(s: &str) -> Option<What> {
         "version" => What::Version,
         "link" => What::Link,
         "config" => What::Config,
+        "can" => What::Can,
         _ => return None,
     })
 }

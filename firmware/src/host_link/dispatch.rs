@@ -144,6 +144,15 @@ impl State {
             What::Version => self.push(Out::Version(req)),
             What::Link => self.push(Out::Link(req)),
             What::Config => self.push(Out::Config { req, next: 0 }),
+            What::Can => match self.can.span {
+                None => self.error(req, ErrorCode::NotReady, "no CAN output built in", ""),
+                Some((first, end)) => self.push(Out::Can {
+                    req,
+                    next: first,
+                    end,
+                    sent: 0,
+                }),
+            },
             What::Events => {
                 let known = bridge.events();
                 let end = known.total();

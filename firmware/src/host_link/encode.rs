@@ -179,6 +179,11 @@ pub struct StateExtras<'a> {
     pub ignored_stop: Option<&'a str>,
     /// Where the charge is and why, in words (`None`: null).
     pub charge_stage: Option<&'a str>,
+    /// Why CVL, CCL and DCL are what they are, in words (`None`: null).
+    pub why: [Option<&'a str>; 3],
+    /// The doctor's verdicts of the last minute, their keys (`ok`: none;
+    /// `None`: no CAN output, null).
+    pub can_doctor: Option<&'a str>,
     /// The Wi-Fi signal, dBm (`None`: unknown, published as null).
     pub wifi_rssi_dbm: Option<i8>,
     /// "update to X rolled back: reason" (`None`: none, published as null).
@@ -234,6 +239,35 @@ pub struct InverterState {
     pub ignored: Option<crate::inverter::ignored::Ignored>,
     /// Where the charge is and why.
     pub stage: Option<crate::inverter::finish::Stage>,
+    /// Why each limit is what it is.
+    pub reasons: Option<crate::inverter::why::Reasons>,
+    /// The inverter's heartbeat as heard.
+    pub heartbeat: crate::inverter::doctor::Heartbeat,
+    /// The doctor's verdicts of the last minute, in its order.
+    pub verdicts: [Option<crate::inverter::doctor::Verdict>; crate::inverter::doctor::KINDS],
+}
+
+/// The words of the limits' reasons, and the doctor's keys, of an
+/// [`InverterState`] (built once per line, lent to the schema).
+struct InverterWords {
+    why: Option<[crate::log_line::Line; 3]>,
+    doctor: heapless::String<160>,
+}
+
+impl InverterWords {
+    fn of(s: &InverterState) -> Self {
+        let why = s
+            .reasons
+            .map(|r| [r.cvl.text(), r.ccl.text(), r.dcl.text()]);
+        let mut doctor = heapless::String::new();
+        for (k, v) in s.verdicts.iter().flatten().enumerate() {
+            if k > 0 {
+                let _ = doctor.push(',');
+            }
+            let _ = doctor.push_str(v.key()); // 9 keys < 160 bytes
+        }
+        Self { why, doctor }
+    }
 }
 
 /// The `inverter` member of a `telemetry` line (`name`: 0x35E's, `ignored`:
@@ -243,7 +277,16 @@ fn inverter_member<'a>(
     name: Option<&'a str>,
     ignored: Option<&'a str>,
     reason: Option<&'a str>,
+    words: &'a InverterWords,
 ) -> schema::Inverter<Wire<'a>> {
+    let why = |k: usize| {
+        words
+            .why
+            .as_ref()
+            .and_then(|w| w.get(k))
+            .map(|l| l.as_str())
+    };
+    let heard = s.heartbeat.count > 0;
     let l =
         |f: fn(&(u16, u16, u16)) -> u16| s.limits.as_ref().and_then(|x| fixed(i64::from(f(x)), 1));
     schema::Inverter {
@@ -262,6 +305,13 @@ fn inverter_member<'a>(
         ignored,
         stage: s.stage.map(|x| x.key()),
         stage_reason: reason,
+        cvl_why: why(0),
+        ccl_why: why(1),
+        dcl_why: why(2),
+        heartbeat_ms: heard.then_some(s.heartbeat.mean_ms),
+        heartbeat_longest_ms: heard.then_some(s.heartbeat.longest_ms),
+        heartbeat_late: heard.then_some(s.heartbeat.late),
+        doctor: (!words.doctor.is_empty()).then_some(words.doctor.as_str()),
     }
 }
 
@@ -296,6 +346,7 @@ pub fn telemetry(
         .as_ref()
         .and_then(|i| i.stage)
         .map(|s| s.text());
+    let words = head.inverter.as_ref().map(InverterWords::of);
     line(
         &schema::Telemetry::<Wire> {
             head: schema::Head {
@@ -310,12 +361,13 @@ pub fn telemetry(
             },
             snapshot: snapshot.map(|s| snapshot_members(s, flagged)),
             told: schema::Told {
-                inverter: head.inverter.as_ref().map(|i| {
+                inverter: head.inverter.as_ref().zip(words.as_ref()).map(|(i, w)| {
                     inverter_member(
                         i,
                         name.as_ref().and_then(name_text),
                         ignored.as_deref(),
                         reason.as_ref().map(|r| r.as_str()),
+                        w,
                     )
                 }),
             },
@@ -389,6 +441,10 @@ fn extras_members<'a>(
         soc_told: e.soc_told,
         ignored_stop: e.ignored_stop,
         charge_stage: e.charge_stage,
+        cvl_why: e.why[0],
+        ccl_why: e.why[1],
+        dcl_why: e.why[2],
+        can_doctor: e.can_doctor,
         wifi_rssi_dbm: e.wifi_rssi_dbm,
         update_rolled_back: e.update_rolled_back,
         update_latest: e.update_latest,
@@ -461,6 +517,18 @@ pub fn setting(
 /// Writes the line that closes a listing (`settings_end`, `events_end`).
 pub fn end(out: &mut [u8], ty: &'static str, req: Option<u32>, count: u32) -> Option<usize> {
     line(&schema::End::<Wire> { ty, req, count }, out)
+}
+
+/// Writes a `can` line: one entry of the CAN capture as a candump line.
+pub fn can(out: &mut [u8], req: Option<u32>, candump: &str) -> Option<usize> {
+    line(
+        &schema::CanLine::<Wire> {
+            ty: "can",
+            req,
+            line: candump,
+        },
+        out,
+    )
 }
 
 /// Writes a `statistics` line (replay's statistics fields).

@@ -63,10 +63,11 @@ pub use configure::{ConfigDone, PENDING_CONFIG};
 pub const PROTOCOL_VERSION: u32 = 1;
 
 /// Buffer size [`HostLink::next_line`] needs: the longest line it writes (a
-/// `telemetry` line with 16 cells, the inverter member with what it told
-/// and every value at its widest is about 1120 bytes), `\n` included. A line
-/// that does not fit a smaller buffer is dropped and counted.
-pub const OUT_LINE_MAX: usize = 1600;
+/// `telemetry` line with 16 cells, the inverter member with what it told,
+/// why each limit is what it is, the heartbeat and the doctor's verdicts,
+/// every value at its widest, is 1684 bytes), `\n` included. A line that
+/// does not fit a smaller buffer is dropped and counted.
+pub const OUT_LINE_MAX: usize = 2112;
 
 /// Lines (or listings) waiting for the host: answers, outcomes and events.
 pub const QUEUE: usize = 32;
@@ -166,6 +167,13 @@ pub struct HostLinkStats {
     pub dropped_lines: u32,
 }
 
+/// What the station shows the host link of the CAN capture.
+#[derive(Debug, Clone, Copy, Default)]
+struct CanFeed {
+    span: Option<(u32, u32)>,
+    entry: Option<(u32, Option<crate::inverter::capture::Entry>)>,
+}
+
 /// The host link. See the module documentation.
 #[derive(Debug, Clone)]
 pub struct HostLink {
@@ -196,6 +204,8 @@ struct State {
     battery_lines: usize,
     /// The inverter output now (each telemetry line says it), when built in.
     inverter: Option<encode::InverterState>,
+    /// The CAN capture as the station shows it (`get can`).
+    can: CanFeed,
     /// Configuration fields that wait for a restart.
     restart_pending: u32,
     /// Where the MQTT connection stands (`hello`), once the session said.
@@ -273,6 +283,7 @@ impl HostLink {
                 battery: None,
                 battery_lines: 0,
                 inverter: None,
+                can: CanFeed::default(),
                 restart_pending: 0,
                 mqtt: None,
                 radio: None,
@@ -489,6 +500,26 @@ impl HostLink {
     /// `telemetry` line carries it.
     pub fn on_inverter(&mut self, state: Option<encode::InverterState>) {
         self.s.inverter = state;
+    }
+
+    /// The CAN capture's sequence numbers held (`first..end`; `None`: no CAN
+    /// output built in), before each [`HostLink::next_line`].
+    pub fn on_can_span(&mut self, span: Option<(u32, u32)>) {
+        self.s.can.span = span;
+    }
+
+    /// The capture entry a `get can` listing needs next, if one is under way.
+    pub fn can_wanted(&self) -> Option<u32> {
+        match self.s.queue.front() {
+            Some(output::Out::Can { next, .. }) => Some(*next),
+            _ => None,
+        }
+    }
+
+    /// The capture entry of sequence number `seq` (`None`: no longer held),
+    /// as [`HostLink::can_wanted`] asked.
+    pub fn on_can_entry(&mut self, seq: u32, entry: Option<crate::inverter::capture::Entry>) {
+        self.s.can.entry = Some((seq, entry));
     }
 
     /// How many configuration fields changed that apply at the next restart

@@ -49,6 +49,14 @@ pub(super) enum Out {
         end: u32,
         sent: u32,
     },
+    /// `get can`: capture entries `next..end` (sequence numbers), `sent` so
+    /// far.
+    Can {
+        req: Option<u32>,
+        next: u32,
+        end: u32,
+        sent: u32,
+    },
     /// `get settings`: the next index into `SettingId::ALL`.
     Settings {
         req: Option<u32>,
@@ -252,6 +260,35 @@ impl State {
                 }
                 encode::end(out, "events_end", *req, *sent)
             }
+            Out::Can {
+                req,
+                next,
+                end,
+                sent,
+            } => {
+                let (first, _) = self.can.span.unwrap_or((*end, *end));
+                // Entries overwritten since the listing began are skipped.
+                if next.wrapping_sub(first) > u32::MAX / 2 {
+                    *next = first;
+                }
+                let remaining = end.wrapping_sub(*next);
+                let e = match self.can.entry {
+                    Some((seq, e))
+                        if seq == *next && remaining > 0 && remaining <= u32::MAX / 2 =>
+                    {
+                        e
+                    }
+                    _ => None,
+                };
+                if let Some(e) = e {
+                    *next = next.wrapping_add(1);
+                    *sent = sent.wrapping_add(1);
+                    let mut l = crate::log_line::Line::new();
+                    e.write_candump(&mut l);
+                    return Some(Listed::More(encode::can(out, *req, l.as_str())));
+                }
+                encode::end(out, "can_end", *req, *sent)
+            }
             Out::Config { req, next } => {
                 let fields = crate::config::FIELDS;
                 match fields.get(usize::from(*next)) {
@@ -359,7 +396,9 @@ impl State {
                 if *option == 1 { "events" } else { "statistics" },
                 *ok,
             ),
-            Out::Settings { .. } | Out::Events { .. } | Out::Config { .. } => None,
+            Out::Settings { .. } | Out::Events { .. } | Out::Config { .. } | Out::Can { .. } => {
+                None
+            }
         }
     }
 }

@@ -25,8 +25,8 @@ use crate::Instant;
 /// Longest the writer waits for room to start a line while the host reads.
 pub const START_WAIT_US: Instant = 20 * crate::MS;
 /// Longest the rest of a started line may take: a line of
-/// [`super::OUT_LINE_MAX`] bytes is 16 packets of 64 bytes, which a reading
-/// host takes in 16 ms.
+/// [`super::OUT_LINE_MAX`] bytes is 33 packets of 64 bytes, which a reading
+/// host takes in 33 ms.
 pub const LINE_WRITE_US: Instant = 100 * crate::MS;
 /// An absent host is tried again this often.
 pub const PROBE_PERIOD_US: Instant = crate::SECOND;

@@ -55,6 +55,7 @@
 use protocol_core::views::cell_mv;
 
 use super::finish::{Finish, Stage};
+use super::why::{Reasons, Why};
 use crate::Instant;
 
 /// Charge control settings; [`Default`] gives the documented defaults.
@@ -438,6 +439,7 @@ pub struct ChargeControl {
     over_current: OverCurrent,
     finish: Finish,
     stage: Stage,
+    reasons: Reasons,
 }
 
 /// How long a discharge past 317 may last before the bridge stops it, at
@@ -590,6 +592,11 @@ impl ChargeControl {
             },
             finish: Finish::new(),
             stage: Stage::Bulk { full_due: false },
+            reasons: Reasons {
+                cvl: Why::Unknown,
+                ccl: Why::Unknown,
+                dcl: Why::Unknown,
+            },
         }
     }
 
@@ -645,6 +652,11 @@ impl ChargeControl {
         self.stage
     }
 
+    /// The rule that set each limit of the last update ([`super::why`]).
+    pub fn reasons(&self) -> Reasons {
+        self.reasons
+    }
+
     /// CCL and DCL of the last update before the hold and ramp, 0.1 A: what
     /// the pack may take now, which a battery of several packs holds and
     /// ramps as a whole (see [`super::packs`]).
@@ -696,13 +708,17 @@ impl ChargeControl {
         let target = self.advance_phase(now, s, p, n, due);
         let cvl_dv = self.charge_voltage_limit(now, p, n, target, bounds, dt_us);
         let temps = Temperatures::of(&c, s, p);
-        let (mut ccl_target, mut dcl_target) = current_targets(&c, s, p, temps);
+        let ((mut ccl_target, mut dcl_target), (mut ccl_why, mut dcl_why)) =
+            current_targets(&c, s, p, temps);
         // (A switch to float in this update leaves the phase Float: `due`,
         // of before it, then asks nothing.)
         let ceiling = self.phase == Phase::Absorption
             && self.finish.ceiling(c.soc_ceiling_pct, p.soc_pct, due);
         if ceiling {
             ccl_target = 0;
+            ccl_why = Why::SocCeiling {
+                pct: c.soc_ceiling_pct,
+            };
             self.stage = Stage::Ceiling {
                 ceiling_pct: c.soc_ceiling_pct,
             };
@@ -710,13 +726,28 @@ impl ChargeControl {
         let (charge_over, discharge_over) = self.over_current.take();
         if charge_over {
             ccl_target = 0;
+            ccl_why = Why::OverCurrent {
+                cutoff_a: s.charge_cutoff_a,
+            };
         }
         if discharge_over {
             dcl_target = 0;
+            dcl_why = Why::OverCurrent {
+                cutoff_a: s.discharge_cutoff_a,
+            };
         }
         self.targets = (ccl_target, dcl_target);
         let ccl_da = self.ccl.step(now, ccl_target, dt_us, &c);
         let dcl_da = self.dcl.step(now, dcl_target, dt_us, &c);
+        let ramping = |da: u16, target_da: u16, why: Why| {
+            if da < target_da {
+                Why::Ramp { target_da }
+            } else {
+                why
+            }
+        };
+        self.reasons.ccl = ramping(ccl_da, ccl_target, ccl_why);
+        self.reasons.dcl = ramping(dcl_da, dcl_target, dcl_why);
         let limits = Limits {
             cvl_dv,
             ccl_da,
@@ -842,10 +873,37 @@ impl ChargeControl {
         dt_us: Instant,
     ) -> u16 {
         self.follow_runner(p, n, target);
-        let cvl_mv = (n * u32::from(target))
-            .saturating_sub(self.runner_offset_mv)
-            .max(bounds.floor_mv)
-            .min(bounds.ceil_mv);
+        let wanted_mv = (n * u32::from(target)).saturating_sub(self.runner_offset_mv);
+        let cvl_mv = wanted_mv.max(bounds.floor_mv).min(bounds.ceil_mv);
+        let cells = n as u8; // n <= MAX_SERIES_CELLS
+        let mut why = match (self.phase, self.stage) {
+            (Phase::Absorption, Stage::BalanceHeld { spread_mv, .. }) => {
+                Why::BalanceHold { spread_mv }
+            }
+            (Phase::Absorption, _) => Why::Absorption {
+                cell_mv: target,
+                cells,
+            },
+            (Phase::Float, _) => Why::Float {
+                cell_mv: target,
+                cells,
+            },
+        };
+        if self.runner_offset_mv > 0 {
+            why = Why::Runner {
+                cell_mv: p.max_cell_mv,
+                offset_mv: self.runner_offset_mv,
+            };
+        }
+        if wanted_mv > bounds.ceil_mv {
+            why = Why::CutoffCeiling {
+                cutoff_mv: (bounds.ceil_mv / n) as u16,
+            };
+        } else if wanted_mv < bounds.floor_mv {
+            why = Why::CutoffFloor {
+                cutoff_mv: (bounds.floor_mv / n) as u16,
+            };
+        }
         let mut cvl_dv = bounds.round_inside_dv(cvl_mv);
         if self.phase == Phase::Float {
             // At rest, the pack's own voltage is the floor of the step: an
@@ -866,15 +924,16 @@ impl ChargeControl {
             let step = self.config.float_step_mv_per_min;
             if let Some(mv) = self.finish.step(cvl_mv, n, step, dt_us, floor_mv) {
                 cvl_dv = (mv.div_ceil(MV_PER_DV).min(bounds.ceil_mv / MV_PER_DV)) as u16;
-                self.stage = Stage::StepDown {
-                    cvl_dv,
-                    float_dv: bounds.round_inside_dv(cvl_mv),
-                };
+                let float_dv = bounds.round_inside_dv(cvl_mv);
+                self.stage = Stage::StepDown { cvl_dv, float_dv };
+                why = Why::StepDown { float_dv };
             } else {
                 self.stage = Stage::Float;
             }
         }
-        self.limit_cvl_raise(now, cvl_dv)
+        let told = self.limit_cvl_raise(now, cvl_dv);
+        self.reasons.cvl = if told < cvl_dv { Why::RaiseWait } else { why };
+        told
     }
 
     /// A runner: when the highest cell is above the target because it runs
@@ -1005,7 +1064,7 @@ fn current_targets(
     s: &PackSettings,
     p: &PackState,
     t: Temperatures,
-) -> (u16, u16) {
+) -> ((u16, u16), (Why, Why)) {
     let ccl_max = capped_da(
         s.charge_cutoff_a,
         c.current_margin_pct,
@@ -1016,6 +1075,17 @@ fn current_targets(
         c.current_margin_pct,
         c.discharge_current_cap_da,
     );
+    // The base of each: the owner's cap where it is below the cutoff's.
+    let base = |cutoff_a: u16, cap: Option<u16>| {
+        let uncapped = capped_da(cutoff_a, c.current_margin_pct, None);
+        match cap {
+            Some(cap_da) if cap_da < uncapped => Why::OwnerCap { cap_da },
+            _ => Why::Cutoff {
+                cutoff_a,
+                margin_pct: c.current_margin_pct,
+            },
+        }
+    };
     // Tapers by cell voltage.
     let stop_mv = i32::from(s.ov_cutoff_mv) - i32::from(c.ceiling_margin_mv);
     let ccl_v = falling_permille(
@@ -1037,14 +1107,55 @@ fn current_targets(
         ccl_hot,
     );
     let mut dcl_target = scale_permille(scale_permille(dcl_max, dcl_v), dcl_hot);
+    // The reason of each: the taper that cuts deepest, else the base.
+    let cell_high = Why::CellHigh {
+        cell_mv: p.max_cell_mv,
+        stop_mv: stop_mv.clamp(0, i32::from(u16::MAX)) as u16,
+    };
+    let cell_low = Why::CellLow {
+        cell_mv: p.min_cell_mv,
+        stop_mv: discharge_stop_mv(c, s).clamp(0, i32::from(u16::MAX)) as u16,
+    };
+    let dc = |x: i32| x.clamp(i32::from(i16::MIN), i32::from(i16::MAX)) as i16;
+    let cold = Why::Cold {
+        temp_dc: dc(t.min),
+        cutoff_c: dc(t.cold / DC_PER_C),
+    };
+    let hot = Why::Hot {
+        temp_dc: dc(t.max),
+        cutoff_c: dc(t.hot / DC_PER_C),
+    };
+    let mut ccl_why = deepest(
+        base(s.charge_cutoff_a, c.charge_current_cap_da),
+        &[(ccl_v, cell_high), (ccl_cold, cold), (ccl_hot, hot)],
+    );
+    let mut dcl_why = deepest(
+        base(s.discharge_cutoff_a, c.discharge_current_cap_da),
+        &[(dcl_v, cell_low), (dcl_hot, hot)],
+    );
     if p.fault {
         ccl_target = 0;
         dcl_target = 0;
+        (ccl_why, dcl_why) = (Why::BmsFault, Why::BmsFault);
     }
     if p.charge_blocked {
         ccl_target = 0;
+        ccl_why = Why::ChargeBlocked;
     }
-    (ccl_target, dcl_target)
+    ((ccl_target, dcl_target), (ccl_why, dcl_why))
+}
+
+/// The reason of the smallest per-mille factor below a whole, else `base`
+/// (the first of equal factors).
+fn deepest(base: Why, factors: &[(u32, Why)]) -> Why {
+    factors
+        .iter()
+        .filter(|(f, _)| *f < PERMILLE)
+        .fold(None::<(u32, Why)>, |best, &(f, w)| match best {
+            Some((b, _)) if b <= f => best,
+            _ => Some((f, w)),
+        })
+        .map_or(base, |(_, w)| w)
 }
 
 /// The cell voltage at which discharge stops: 316 + [`ChargeConfig::discharge_margin_mv`], mV.

@@ -55,8 +55,10 @@
 //!   at once, CCL ramps from 0 ([`control::ChargeControl::resume`]).
 
 pub mod bus;
+pub mod capture;
 pub mod control;
 pub mod dialect;
+pub mod doctor;
 pub mod finish;
 mod gap;
 pub mod hold;
@@ -67,6 +69,7 @@ pub mod port;
 pub mod report;
 pub mod say;
 pub mod stale;
+pub mod why;
 
 use heapless::Deque;
 use protocol_core::events::{Event, EventId};
@@ -255,6 +258,9 @@ pub struct Inverter {
     ignored: IgnoredStops,
     /// The end-of-charge stage last logged.
     logged_stage: Option<finish::Stage>,
+    /// Why the limits last told are what they are, and whether it was logged.
+    reasons: Option<why::Reasons>,
+    logged_reasons: Option<why::Reasons>,
     /// The snapshot the watch of ignored stops saw last.
     watched_at: Option<Instant>,
     /// When SOC was last at least 97 % (or the data first came): the
@@ -266,6 +272,11 @@ pub struct Inverter {
     /// they were made.
     answer: heapless::Vec<CanFrame, 8>,
     answer_at: Option<Instant>,
+    /// The last frames both ways ([`capture`]), the frame handed out and
+    /// not yet reported sent, and the doctor reading them ([`doctor`]).
+    capture: capture::Capture,
+    in_flight: Option<CanFrame>,
+    doctor: doctor::Doctor,
 }
 
 /// What one period is made of, besides what is told.
@@ -308,11 +319,35 @@ impl Inverter {
             fresh_stops: Stops::default(),
             ignored: IgnoredStops::default(),
             logged_stage: None,
+            reasons: None,
+            logged_reasons: None,
             watched_at: None,
             full_at: None,
             shutdown_at: None,
             answer: heapless::Vec::new(),
             answer_at: None,
+            capture: capture::Capture::new(),
+            in_flight: None,
+            doctor: doctor::Doctor::new(config.protocol),
+        }
+    }
+
+    /// The last frames both ways on the bus ([`capture`]).
+    pub fn capture(&self) -> &capture::Capture {
+        &self.capture
+    }
+
+    /// What the doctor found in them ([`doctor`]).
+    pub fn doctor(&self) -> &doctor::Doctor {
+        &self.doctor
+    }
+
+    /// Records `seen` in the capture and shows it to the doctor.
+    fn capture_now(&mut self, now: Instant, seen: capture::Seen) {
+        let e = self.capture.record(now, seen);
+        self.doctor.on_entry(e.at_us(), e.seen());
+        if let Some(v) = self.doctor.take_news() {
+            self.reports.push(InverterReport::Doctor(v));
         }
     }
 
@@ -417,6 +452,12 @@ impl Inverter {
         (self.config.enabled && self.limits.is_some()).then(|| self.control.stage())
     }
 
+    /// Why each limit last told is what it is ([`why`]); `None` before the
+    /// first period or with the output off.
+    pub fn reasons(&self) -> Option<why::Reasons> {
+        self.config.enabled.then_some(self.reasons).flatten()
+    }
+
     /// Frames transmitted successfully.
     pub fn frames_sent(&self) -> u32 {
         self.bus.frames_sent()
@@ -516,6 +557,12 @@ impl Inverter {
         if !self.config.enabled {
             return; // output off: the bus is none of our business
         }
+        let mut data8 = [0u8; 8];
+        for (d, b) in data8.iter_mut().zip(data) {
+            *d = *b;
+        }
+        let len = data.len().min(8) as u8;
+        self.capture_now(now, capture::Seen::Heard(CanFrame::new(id, len, data8)));
         // Another pack stops a side: the inverter hears it now.
         self.urgent |= self.membership.on_frame(now, id, data, &mut self.reports);
         let protocol = self.config.protocol;
@@ -619,7 +666,14 @@ impl Inverter {
     }
 
     /// Result of the last [`InverterAction::Send`].
-    pub fn on_tx(&mut self, _now: Instant, result: TxResult) {
+    pub fn on_tx(&mut self, now: Instant, result: TxResult) {
+        if let Some(f) = self.in_flight.take() {
+            let seen = match result {
+                TxResult::Sent => capture::Seen::Sent(f),
+                TxResult::Failed => capture::Seen::NoAck,
+            };
+            self.capture_now(now, seen);
+        }
         if !self.bus.on_tx(result, &mut self.reports) {
             // Whatever was queued is not retried: the next period sends
             // fresh values (never stale ones late).
@@ -633,6 +687,8 @@ impl Inverter {
         // shown as current meanwhile; it listens again after the recovery.
         self.membership.on_bus_off(now, &mut self.reports);
         self.queue.clear();
+        self.in_flight = None;
+        self.capture_now(now, capture::Seen::BusOff);
         self.bus
             .on_bus_off(now, self.config.bus_off_backoff_us, &mut self.reports);
     }
@@ -684,6 +740,7 @@ impl Inverter {
     }
 
     fn send(&mut self, now: Instant, f: CanFrame) -> InverterAction {
+        self.in_flight = Some(f);
         if let Some(l) = self.config.protocol.limits_of(&f) {
             self.told = Some((l, now));
         }
@@ -813,8 +870,31 @@ impl Inverter {
         for f in &frames {
             protocol.read_back(f, &mut told);
         }
+        let base = if self.membership.node() == 0 {
+            self.control.reasons()
+        } else {
+            let packs = why::Why::Battery {
+                packs: m.modules.0.min(u16::from(u8::MAX)) as u8,
+            };
+            why::Reasons {
+                cvl: packs,
+                ccl: packs,
+                dcl: packs,
+            }
+        };
+        self.reasons_now(base.after_say(&limits, &say.limits, say.stops, fresh));
         self.said_now(say.stops, told);
         self.queue_frames(now, &frames);
+    }
+
+    /// Why the limits of this period are what they are, reported when a
+    /// rule changes (not each number).
+    fn reasons_now(&mut self, r: why::Reasons) {
+        self.reasons = Some(r);
+        if !self.logged_reasons.is_some_and(|l| l.same_rules(&r)) {
+            self.logged_reasons = Some(r);
+            self.reports.push(InverterReport::Reasons(r));
+        }
     }
 
     /// What this period says, reported when the stops or the signals that

@@ -80,6 +80,10 @@ pub enum InverterReport {
     IgnoresStop(Ignored),
     /// The end of a charge moved to another stage ([`super::finish`]).
     Stage(super::finish::Stage),
+    /// The rule behind a limit changed ([`super::why`]).
+    Reasons(super::why::Reasons),
+    /// The doctor found something new on the bus ([`super::doctor`]).
+    Doctor(super::doctor::Verdict),
     /// A Luxpower inverter asks the battery to shut down (0x300), or no
     /// longer does: charge and discharge stop meanwhile; the BMS itself is
     /// never switched off.
@@ -104,8 +108,10 @@ impl InverterReport {
             | Self::BatteryLimits(_)
             | Self::Speaker(_)
             | Self::Stage(_)
+            | Self::Reasons(_)
             | Self::Packs { .. } => crate::Level::Info,
             Self::BatteryLost
+            | Self::Doctor(_)
             | Self::DuplicateNode(_)
             | Self::SummaryRefused(..)
             | Self::Protection { .. }

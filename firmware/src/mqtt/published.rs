@@ -70,6 +70,10 @@ pub struct InverterStatus {
     pub ignored: Option<crate::inverter::ignored::Ignored>,
     /// Where the charge is and why.
     pub stage: Option<crate::inverter::finish::Stage>,
+    /// Why each limit is what it is.
+    pub reasons: Option<crate::inverter::why::Reasons>,
+    /// The doctor's verdicts of the last minute.
+    pub verdicts: [Option<crate::inverter::doctor::Verdict>; crate::inverter::doctor::KINDS],
 }
 
 impl Published {

@@ -541,6 +541,24 @@ impl Publisher {
         });
         let ignored = view.inverter.and_then(|i| i.ignored).map(|e| e.text());
         let stage = view.inverter.and_then(|i| i.stage).map(|s| s.text());
+        let why = view
+            .inverter
+            .and_then(|i| i.reasons)
+            .map(|r| [r.cvl.text(), r.ccl.text(), r.dcl.text()]);
+        let why_text = |k: usize| why.as_ref().and_then(|w| w.get(k)).map(|l| l.as_str());
+        let doctor = view.inverter.map(|i| {
+            let mut keys = heapless::String::<160>::new();
+            for v in i.verdicts.iter().flatten() {
+                if !keys.is_empty() {
+                    let _ = keys.push_str(", ");
+                }
+                let _ = keys.push_str(v.key()); // nine keys fit
+            }
+            if keys.is_empty() {
+                let _ = keys.push_str("ok");
+            }
+            keys
+        });
         let extras = StateExtras {
             status: snapshot.status.key().unwrap_or("other"),
             status_name,
@@ -557,6 +575,8 @@ impl Publisher {
             soc_told: view.inverter.and_then(|i| i.told.soc_pct),
             ignored_stop: ignored.as_deref(),
             charge_stage: stage.as_ref().map(|s| s.as_str()),
+            why: [why_text(0), why_text(1), why_text(2)],
+            can_doctor: doctor.as_ref().map(|d| d.as_str()),
             wifi_rssi_dbm: view.wifi_rssi_dbm,
             update_rolled_back: view.update_rolled_back,
             update_latest: view.update_latest,

@@ -427,9 +427,17 @@ impl Station {
             told: i.told().unwrap_or_default(),
             ignored: i.ignored(),
             stage: i.stage(),
+            reasons: i.reasons(),
+            heartbeat: i.doctor().heartbeat(),
+            verdicts: i.doctor().verdict_array(now),
         });
         let pending = self.config.restarts_pending() as u32;
         let h = self.host.as_mut()?;
+        let capture = self.inverter.as_ref().map(|i| i.capture());
+        h.on_can_span(capture.map(|c| c.span()));
+        if let (Some(seq), Some(c)) = (h.can_wanted(), capture) {
+            h.on_can_entry(seq, c.get(seq));
+        }
         h.on_inverter(inverter);
         h.on_restart_pending(pending);
         h.next_line(now, &self.bridge, &self.config, out)
@@ -637,6 +645,8 @@ impl Station {
                 told: i.told().unwrap_or_default(),
                 ignored: i.ignored(),
                 stage: i.stage(),
+                reasons: i.reasons(),
+                verdicts: i.doctor().verdict_array(now),
             }),
             wifi_rssi_dbm: self.wifi_rssi,
             update_rolled_back: crate::host_link::rolled_back_text(&self.ota),

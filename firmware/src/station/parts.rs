@@ -130,6 +130,15 @@ impl NoHost {
     pub fn on_inverter(&mut self, _: Option<crate::host_link::encode::InverterState>) {
         match *self {}
     }
+    pub fn on_can_span(&mut self, _: Option<(u32, u32)>) {
+        match *self {}
+    }
+    pub fn can_wanted(&self) -> Option<u32> {
+        match *self {}
+    }
+    pub fn on_can_entry(&mut self, _: u32, _: Option<crate::inverter::capture::Entry>) {
+        match *self {}
+    }
     pub fn on_restart_pending(&mut self, _: u32) {
         match *self {}
     }
@@ -204,6 +213,15 @@ impl NoOutput {
         match *self {}
     }
     pub fn stage(&self) -> Option<crate::inverter::finish::Stage> {
+        match *self {}
+    }
+    pub fn reasons(&self) -> Option<crate::inverter::why::Reasons> {
+        match *self {}
+    }
+    pub fn doctor(&self) -> &crate::inverter::doctor::Doctor {
+        match *self {}
+    }
+    pub fn capture(&self) -> &crate::inverter::capture::Capture {
         match *self {}
     }
     pub fn next_report(&mut self) -> Option<crate::inverter::InverterReport> {

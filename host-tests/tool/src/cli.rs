@@ -168,6 +168,23 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// The inverter's wire in words: why each limit is what it is, the
+    /// inverter's heartbeat, what the doctor found and what to do — from a
+    /// bridge, or from a candump capture of its CAN bus (`--capture`).
+    Doctor {
+        /// The bridge's serial port (not with --capture).
+        #[arg(value_name = "PORT")]
+        port: Option<String>,
+        /// A capture file (candump log with the T/R direction flag).
+        #[arg(long, value_name = "FILE")]
+        capture: Option<std::path::PathBuf>,
+        /// The protocol the bridge spoke in the capture.
+        #[arg(long, value_name = "P", default_value = "victron")]
+        protocol: String,
+        /// From a bridge: also save its CAN capture (a candump log) to FILE.
+        #[arg(long, value_name = "FILE")]
+        out: Option<std::path::PathBuf>,
+    },
     /// The statistics (registers 100-117).
     Stats {
         #[command(flatten)]
@@ -363,6 +380,7 @@ impl Command {
             | Command::Update { .. }
             | Command::Keygen { .. }
             | Command::PublicKey { .. }
+            | Command::Doctor { .. }
             | Command::Sign { .. } => None,
             Command::Monitor { conn, .. }
             | Command::Log { conn, .. }

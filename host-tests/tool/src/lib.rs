@@ -192,6 +192,12 @@ fn run(cli: Cli) -> ToolResult<()> {
             chemistry,
         } => cmd::set::run(conn, assignments, raw, dry_run, yes, chemistry.check()),
         Command::Events { conn, json } => cmd::events::run(conn, json),
+        Command::Doctor {
+            port,
+            capture,
+            protocol,
+            out,
+        } => cmd::doctor::run(port, capture.as_deref(), &protocol, out.as_deref()),
         Command::Stats { conn, json } => cmd::show::show_one(&conn, "statistics", json),
         Command::Version { conn, json } => cmd::show::version(&conn, json),
         Command::Reset { conn, yes } => cmd::clear::clear_or_reset(&conn, yes, "reset"),

@@ -294,6 +294,21 @@ pub fn inverter_text(t: &Telemetry<Read>) -> Option<String> {
         out.push_str("\n  charge: ");
         out.push_str(r);
     }
+    for (name, why) in [
+        ("CVL", &inv.cvl_why),
+        ("CCL", &inv.ccl_why),
+        ("DCL", &inv.dcl_why),
+    ] {
+        if let Some(w) = why.as_deref() {
+            out.push_str(&format!("\n  {name}: {w}"));
+        }
+    }
+    if let Some(d) = inv.doctor.as_deref() {
+        out.push_str(&format!(
+            "\n  doctor: {} (tinybms doctor PORT: what to do)",
+            d.replace(',', ", ")
+        ));
+    }
     if let Some(e) = inv.ignored.as_deref() {
         out.push_str(&format!(
             "\n  the inverter ignored a stop ({e}): every stop is told every way"

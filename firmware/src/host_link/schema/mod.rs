@@ -404,6 +404,28 @@ line_type! {
         /// spread 24 mV (at most 40 min more)`).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         pub stage_reason: Option<F::Text>,
+        /// Why CVL is what it is, in words ([`crate::inverter::why`]).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub cvl_why: Option<F::Text>,
+        /// Why CCL is what it is.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub ccl_why: Option<F::Text>,
+        /// Why DCL is what it is.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub dcl_why: Option<F::Text>,
+        /// The inverter's heartbeat: mean interval, ms ([`crate::inverter::doctor::Heartbeat`]).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub heartbeat_ms: Option<u32>,
+        /// Its longest gap, ms.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub heartbeat_longest_ms: Option<u32>,
+        /// Its gaps longer than 3 s.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub heartbeat_late: Option<u32>,
+        /// The doctor's verdicts of the last minute, their keys separated by
+        /// commas ([`crate::inverter::doctor::Verdict::key`]; none: absent).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub doctor: Option<F::Text>,
     }
 }
 
@@ -435,6 +457,14 @@ line_type! {
         pub ignored_stop: Option<F::Text>,
         #[serde(default)]
         pub charge_stage: Option<F::Text>,
+        #[serde(default)]
+        pub cvl_why: Option<F::Text>,
+        #[serde(default)]
+        pub ccl_why: Option<F::Text>,
+        #[serde(default)]
+        pub dcl_why: Option<F::Text>,
+        #[serde(default)]
+        pub can_doctor: Option<F::Text>,
         pub wifi_rssi_dbm: Option<i8>,
         pub update_rolled_back: Option<F::Text>,
         #[serde(default)]
@@ -662,6 +692,15 @@ line_type! {
         pub what: F::Text,
         /// The BMS acknowledged.
         pub ok: bool,
+    }
+}
+
+line_type! {
+    /// `can`: one entry of the CAN capture (`get can`), as a candump log
+    /// line ([`crate::inverter::capture`]).
+    pub struct CanLine<F: Form> answer {
+        /// The candump line (`(SECONDS) can0 ID#DATA T|R`).
+        pub line: F::Text,
     }
 }
 

@@ -67,6 +67,8 @@ pub enum HostLine {
     ConfigDone(ConfigDone<Read>),
     Battery(Battery<Read>),
     Pack(Pack<Read>),
+    Can(CanLine<Read>),
+    CanEnd(End<Read>),
     #[serde(other)]
     Other,
 }
@@ -78,7 +80,8 @@ impl HostLine {
             HostLine::Hello(l) => l.req,
             HostLine::Telemetry(l) => l.head.req,
             HostLine::Setting(l) => l.req,
-            HostLine::SettingsEnd(l) | HostLine::EventsEnd(l) => l.req,
+            HostLine::SettingsEnd(l) | HostLine::EventsEnd(l) | HostLine::CanEnd(l) => l.req,
+            HostLine::Can(l) => l.req,
             HostLine::Statistics(l) => l.req,
             HostLine::Version(l) => l.req,
             HostLine::Event(l) => l.req,

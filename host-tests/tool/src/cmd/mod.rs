@@ -7,6 +7,7 @@
 pub mod apply;
 pub mod clear;
 pub mod config;
+pub mod doctor;
 pub mod events;
 pub mod log;
 pub mod monitor;
