@@ -909,3 +909,134 @@ fn the_pack_summary_dbc_describes_the_encoder() {
         &expect,
     );
 }
+
+// ---------------------------------------------------------------------------
+// Why each limit is what it is.
+// ---------------------------------------------------------------------------
+
+/// The rule charge control names for each limit is the one that set it, with
+/// the numbers that set it: the base (the BMS's cutoff less the margin, or
+/// the owner's cap), the taper that cuts deepest, a fault, a latched cutoff,
+/// the ramp back; CVL's target, a runner, the cutoff bounds.
+#[test]
+fn the_reason_of_each_limit_is_the_rule_that_set_it() {
+    use tinybms_firmware::inverter::why::Why;
+    let s = lfp_settings();
+    let first = |config: ChargeConfig, p: PackState| {
+        let mut c = ChargeControl::new(config);
+        let (l, _) = c.update(0, &s, &p);
+        (l, c.reasons())
+    };
+    // At rest in the middle: the BMS's cutoffs less 20 %, absorption's CVL.
+    let (l, r) = first(ChargeConfig::default(), state());
+    let margin = ChargeConfig::default().current_margin_pct;
+    assert_eq!(
+        r.ccl,
+        Why::Cutoff {
+            cutoff_a: 90,
+            margin_pct: margin
+        }
+    );
+    assert_eq!(u32::from(l.ccl_da), 900 * (100 - u32::from(margin)) / 100);
+    assert_eq!(
+        r.dcl,
+        Why::Cutoff {
+            cutoff_a: 150,
+            margin_pct: margin
+        }
+    );
+    assert!(matches!(r.cvl, Why::Absorption { cells: 16, .. }), "{r:?}");
+    // The owner's cap below the cutoff's.
+    let capped = ChargeConfig {
+        charge_current_cap_da: Some(400),
+        ..ChargeConfig::default()
+    };
+    let (l, r) = first(capped, state());
+    assert_eq!((r.ccl, l.ccl_da), (Why::OwnerCap { cap_da: 400 }, 400));
+    // A cell near the top tapers the charge, a cold pack too: the deeper
+    // taper is the reason.
+    let high = PackState {
+        max_cell_mv: 3590,
+        ..state()
+    };
+    let (_, r) = first(ChargeConfig::default(), high);
+    assert!(
+        matches!(r.ccl, Why::CellHigh { cell_mv: 3590, .. }),
+        "{r:?}"
+    );
+    // (The cell 40 mV below the stop: 40 % of the charge; 0.5 °C above the
+    // cold cutoff: 10 %.)
+    let cold_and_high = PackState {
+        min_temp_c: 0.5,
+        max_cell_mv: 3560,
+        ..state()
+    };
+    let (_, r) = first(ChargeConfig::default(), cold_and_high);
+    assert!(
+        matches!(
+            r.ccl,
+            Why::Cold {
+                temp_dc: 5,
+                cutoff_c: 0
+            }
+        ),
+        "{r:?}"
+    );
+    // A cell near the bottom tapers the discharge.
+    let low = PackState {
+        min_cell_mv: 2600,
+        ..state()
+    };
+    let (_, r) = first(ChargeConfig::default(), low);
+    assert!(matches!(r.dcl, Why::CellLow { cell_mv: 2600, .. }), "{r:?}");
+    // A fault: both 0 for it; a latched charge cutoff: the charge.
+    let (l, r) = first(
+        ChargeConfig::default(),
+        PackState {
+            fault: true,
+            ..state()
+        },
+    );
+    assert_eq!((l.ccl_da, l.dcl_da), (0, 0));
+    assert_eq!((r.ccl, r.dcl), (Why::BmsFault, Why::BmsFault));
+    let (_, r) = first(
+        ChargeConfig::default(),
+        PackState {
+            charge_blocked: true,
+            ..state()
+        },
+    );
+    assert_eq!(r.ccl, Why::ChargeBlocked);
+    // After the fault clears: held, then ramping back to the target.
+    let mut c = ChargeControl::new(ChargeConfig::default());
+    c.update(
+        0,
+        &s,
+        &PackState {
+            fault: true,
+            ..state()
+        },
+    );
+    let (l, _) = c.update(32 * S, &s, &state());
+    assert!(l.ccl_da > 0, "{l:?}");
+    assert!(
+        matches!(c.reasons().ccl, Why::Ramp { target_da } if target_da > l.ccl_da),
+        "{:?}",
+        c.reasons()
+    );
+    // A runner: CVL lowered, named with the runner's voltage.
+    let mut c = ChargeControl::new(ChargeConfig::default());
+    let target = c.targets_mv(&s).0;
+    let runner = PackState {
+        max_cell_mv: target + 40,
+        pack_v: 16.0 * f32::from(target - 30) / 1000.0,
+        current_a: 20.0,
+        ..state()
+    };
+    c.update(0, &s, &runner);
+    assert!(
+        matches!(c.reasons().cvl, Why::Runner { cell_mv, offset_mv } if cell_mv == target + 40 && offset_mv > 0),
+        "{:?}",
+        c.reasons()
+    );
+}
