@@ -20,10 +20,9 @@ fn written_back(line: &HostLine) -> Value {
         HostLine::Hello(l) => serde_json::to_value(l),
         HostLine::Telemetry(l) => serde_json::to_value(l),
         HostLine::Setting(l) => serde_json::to_value(l),
-        HostLine::SettingsEnd(l) | HostLine::EventsEnd(l) | HostLine::CanEnd(l) => {
-            serde_json::to_value(l)
-        }
+        HostLine::SettingsEnd(l) | HostLine::EventsEnd(l) => serde_json::to_value(l),
         HostLine::Can(l) => serde_json::to_value(l),
+        HostLine::CanEnd(l) => serde_json::to_value(l),
         HostLine::Statistics(l) => serde_json::to_value(l),
         HostLine::Version(l) => serde_json::to_value(l),
         HostLine::Event(l) => serde_json::to_value(l),

@@ -640,3 +640,20 @@ fn doctor_reads_the_bridges_capture_and_says_why() {
     let o = tinybms(&["doctor"]);
     assert_eq!(o.code, 2, "{o}");
 }
+
+#[test]
+fn doctor_over_the_update_port_reads_the_capture() {
+    let port = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().port()
+    };
+    let addr = format!("127.0.0.1:{port}");
+    let _sim = Sim::start(&["--bridge-pty", "--update-port", &addr]);
+    std::thread::sleep(std::time::Duration::from_secs(4));
+    let out = tmp("doctor-tcp.log");
+    let o = tinybms(&["doctor", &addr, "--out", out.to_str().unwrap()]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("the bridge speaking Victron"), "{o}");
+    let saved = std::fs::read_to_string(&out).unwrap();
+    assert!(saved.lines().any(|l| l.ends_with(" T")), "{saved}");
+}

@@ -37,6 +37,7 @@ impl State {
             && !matches!(
                 parsed.command,
                 HostCommand::Hello
+                    | HostCommand::Get(What::Can)
                     | HostCommand::UpdateBegin { .. }
                     | HostCommand::UpdateChunk { .. }
                     | HostCommand::UpdateCancel
@@ -46,7 +47,7 @@ impl State {
             return self.error(
                 req,
                 ErrorCode::UnknownCommand,
-                "only hello and the update_… commands on the update port",
+                "only hello, get can and the update_… commands on the update port",
                 "",
             );
         }

@@ -531,6 +531,19 @@ pub fn can(out: &mut [u8], req: Option<u32>, candump: &str) -> Option<usize> {
     )
 }
 
+/// Writes a `can_end` line: `count` `can` lines of a capture of `protocol`.
+pub fn can_end(out: &mut [u8], req: Option<u32>, count: u32, protocol: &str) -> Option<usize> {
+    line(
+        &schema::CanEnd::<Wire> {
+            ty: "can_end",
+            req,
+            count,
+            protocol,
+        },
+        out,
+    )
+}
+
 /// Writes a `statistics` line (replay's statistics fields).
 pub fn statistics(out: &mut [u8], req: Option<u32>, s: &Statistics) -> Option<usize> {
     line(

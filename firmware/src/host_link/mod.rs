@@ -171,6 +171,7 @@ pub struct HostLinkStats {
 #[derive(Debug, Clone, Copy, Default)]
 struct CanFeed {
     span: Option<(u32, u32)>,
+    protocol: &'static str,
     entry: Option<(u32, Option<crate::inverter::capture::Entry>)>,
 }
 
@@ -503,9 +504,11 @@ impl HostLink {
     }
 
     /// The CAN capture's sequence numbers held (`first..end`; `None`: no CAN
-    /// output built in), before each [`HostLink::next_line`].
-    pub fn on_can_span(&mut self, span: Option<(u32, u32)>) {
+    /// output built in) and the protocol of its frames, before each
+    /// [`HostLink::next_line`].
+    pub fn on_can_span(&mut self, span: Option<(u32, u32)>, protocol: &'static str) {
         self.s.can.span = span;
+        self.s.can.protocol = protocol;
     }
 
     /// The capture entry a `get can` listing needs next, if one is under way.

@@ -287,7 +287,7 @@ impl State {
                     e.write_candump(&mut l);
                     return Some(Listed::More(encode::can(out, *req, l.as_str())));
                 }
-                encode::end(out, "can_end", *req, *sent)
+                encode::can_end(out, *req, *sent, self.can.protocol)
             }
             Out::Config { req, next } => {
                 let fields = crate::config::FIELDS;

@@ -68,6 +68,22 @@ use crate::Instant;
 pub use crate::mqtt::published::{InverterStatus, Published};
 use crate::mqtt::MqttState;
 
+/// Shows a host link (the USB port's, or the update port's) the CAN capture
+/// of the inverter output `$inverter` (`Option<&parts::Output>`): what is
+/// held, the protocol of its frames, and the entry its `get can` listing
+/// needs next. A macro: the two ports' types differ with the features.
+macro_rules! feed_capture {
+    ($h:expr, $inverter:expr) => {{
+        let inverter = $inverter;
+        let protocol = inverter.map_or("", |i| i.config().protocol.key());
+        let capture = inverter.map(|i| i.capture());
+        $h.on_can_span(capture.map(|c| c.span()), protocol);
+        if let (Some(seq), Some(c)) = ($h.can_wanted(), capture) {
+            $h.on_can_entry(seq, c.get(seq));
+        }
+    }};
+}
+
 pub mod ota;
 mod parts;
 pub mod pumps;
@@ -433,11 +449,7 @@ impl Station {
         });
         let pending = self.config.restarts_pending() as u32;
         let h = self.host.as_mut()?;
-        let capture = self.inverter.as_ref().map(|i| i.capture());
-        h.on_can_span(capture.map(|c| c.span()));
-        if let (Some(seq), Some(c)) = (h.can_wanted(), capture) {
-            h.on_can_entry(seq, c.get(seq));
-        }
+        feed_capture!(h, self.inverter.as_ref());
         h.on_inverter(inverter);
         h.on_restart_pending(pending);
         h.next_line(now, &self.bridge, &self.config, out)

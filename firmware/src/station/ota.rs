@@ -233,6 +233,7 @@ impl Station {
     /// The next line for the update port's connection (`\n`-terminated).
     pub fn next_update_port_line(&mut self, now: Instant, out: &mut [u8]) -> Option<usize> {
         let l = self.update_port.as_mut()?;
+        feed_capture!(l, self.inverter.as_ref());
         l.next_line(now, &self.bridge, &self.config, out)
     }
 

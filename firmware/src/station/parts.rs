@@ -56,6 +56,15 @@ impl NoPort {
     ) -> Option<usize> {
         match *self {}
     }
+    pub fn on_can_span(&mut self, _: Option<(u32, u32)>, _: &'static str) {
+        match *self {}
+    }
+    pub fn can_wanted(&self) -> Option<u32> {
+        match *self {}
+    }
+    pub fn on_can_entry(&mut self, _: u32, _: Option<crate::inverter::capture::Entry>) {
+        match *self {}
+    }
 }
 
 /// No host link: a type without values.
@@ -130,7 +139,7 @@ impl NoHost {
     pub fn on_inverter(&mut self, _: Option<crate::host_link::encode::InverterState>) {
         match *self {}
     }
-    pub fn on_can_span(&mut self, _: Option<(u32, u32)>) {
+    pub fn on_can_span(&mut self, _: Option<(u32, u32)>, _: &'static str) {
         match *self {}
     }
     pub fn can_wanted(&self) -> Option<u32> {

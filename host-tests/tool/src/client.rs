@@ -225,9 +225,9 @@ impl Client {
             // The line that ends the answer: an `_end` line (left out), or the
             // answer's one line.
             let (last, kept) = match (&r.line, what) {
-                (HostLine::SettingsEnd(_), _)
-                | (HostLine::EventsEnd(_), _)
-                | (HostLine::CanEnd(_), _) => (true, false),
+                (HostLine::SettingsEnd(_), _) | (HostLine::EventsEnd(_), _) => (true, false),
+                // Kept: it names the protocol of the capture's frames.
+                (HostLine::CanEnd(_), _) => (true, true),
                 (HostLine::Telemetry(_), "snapshot")
                 | (HostLine::Statistics(_), "statistics")
                 | (HostLine::Version(_), "version")

@@ -506,23 +506,7 @@ fn update(
     let (bytes, header) = cmd::update::read_update(file)?;
     // The whole file before anything else: a damaged download never starts.
     cmd::update::check_whole(file, &bytes, &header)?;
-    let serial = Path::new(target).exists() || target.to_ascii_uppercase().starts_with("COM");
-    let mut c = if serial {
-        let conn = Conn {
-            port: target.to_string(),
-            mode: ModeArg::Bridge,
-            timeout: Duration::from_secs(15),
-        };
-        let c = connect(&conn)?;
-        config::require_bridge(&c)?;
-        c
-    } else {
-        let addr = tcp_address(target)?;
-        status(&format!("connecting to {addr}…"));
-        let mut lines = transport::TcpLines::connect(&addr, Duration::from_secs(5))?;
-        let hello = transport::hello_over(&mut lines, Duration::from_secs(5))?;
-        Client::new(Box::new(lines), Mode::Bridge, hello, addr.to_string())
-    };
+    let mut c = connect_bridge_or_host(target)?;
     let h = &c.hello;
     println!(
         "bridge: {} {} on {}, firmware {}",
@@ -605,6 +589,37 @@ fn refuse_swapped_update(target: &str, file: &Path) -> ToolResult<()> {
 }
 
 /// HOST or HOST:PORT, resolved (the update port by default).
+/// A serial port (a path that exists, or `COMn`): not a host on the network.
+pub(crate) fn is_serial(target: &str) -> bool {
+    Path::new(target).exists() || target.to_ascii_uppercase().starts_with("COM")
+}
+
+/// A bridge on a serial port, or on its update port over the network
+/// (`HOST[:PORT]`, TCP 8232 by default; only `hello`, `get can` and the
+/// update commands are answered there).
+pub(crate) fn connect_bridge_or_host(target: &str) -> ToolResult<Client> {
+    if is_serial(target) {
+        let conn = Conn {
+            port: target.to_string(),
+            mode: ModeArg::Bridge,
+            timeout: Duration::from_secs(15),
+        };
+        let c = connect(&conn)?;
+        config::require_bridge(&c)?;
+        return Ok(c);
+    }
+    let addr = tcp_address(target)?;
+    status(&format!("connecting to {addr}…"));
+    let mut lines = transport::TcpLines::connect(&addr, Duration::from_secs(5))?;
+    let hello = transport::hello_over(&mut lines, Duration::from_secs(5))?;
+    Ok(Client::new(
+        Box::new(lines),
+        Mode::Bridge,
+        hello,
+        addr.to_string(),
+    ))
+}
+
 fn tcp_address(target: &str) -> ToolResult<std::net::SocketAddr> {
     use std::net::ToSocketAddrs;
     let with_port = if target.contains(':') {

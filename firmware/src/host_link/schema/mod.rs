@@ -705,6 +705,17 @@ line_type! {
 }
 
 line_type! {
+    /// `can_end`: the end of a `get can` listing.
+    pub struct CanEnd<F: Form> answer {
+        /// Lines.
+        pub count: u32,
+        /// The protocol the bridge speaks on the bus (`inverter_protocol`):
+        /// what the capture's frames mean.
+        pub protocol: F::Text,
+    }
+}
+
+line_type! {
     /// `raw`: UART bytes while capture is on.
     pub struct Raw<F: Form> tagged {
         /// `tx` or `rx`.

@@ -68,7 +68,7 @@ pub enum HostLine {
     Battery(Battery<Read>),
     Pack(Pack<Read>),
     Can(CanLine<Read>),
-    CanEnd(End<Read>),
+    CanEnd(CanEnd<Read>),
     #[serde(other)]
     Other,
 }
@@ -80,8 +80,9 @@ impl HostLine {
             HostLine::Hello(l) => l.req,
             HostLine::Telemetry(l) => l.head.req,
             HostLine::Setting(l) => l.req,
-            HostLine::SettingsEnd(l) | HostLine::EventsEnd(l) | HostLine::CanEnd(l) => l.req,
+            HostLine::SettingsEnd(l) | HostLine::EventsEnd(l) => l.req,
             HostLine::Can(l) => l.req,
+            HostLine::CanEnd(l) => l.req,
             HostLine::Statistics(l) => l.req,
             HostLine::Version(l) => l.req,
             HostLine::Event(l) => l.req,

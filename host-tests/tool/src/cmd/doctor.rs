@@ -44,18 +44,42 @@ pub fn run(
             "either a PORT or --capture FILE, not both",
         )),
         (None, Some(file)) => on_capture(file, protocol),
-        (Some(port), None) => on_bridge(
-            &Conn {
-                port,
-                mode: ModeArg::Bridge,
-                timeout: std::time::Duration::from_secs(15),
-            },
-            out,
-        ),
+        (Some(target), None) => on_bridge(&target, out),
         (None, None) => Err(ToolError::usage(
             "tinybms doctor PORT, or tinybms doctor --capture FILE [--protocol P]",
         )),
     }
+}
+
+/// The bridge's capture (`get can`), saved to `out` when given, and the
+/// doctor over it.
+fn capture_of(c: &mut crate::client::Client, out: Option<&Path>) -> ToolResult<()> {
+    let lines = c.get("can")?;
+    let mut text = String::new();
+    let mut protocol = None;
+    for r in &lines {
+        match &r.line {
+            HostLine::Can(l) => {
+                text.push_str(&l.line);
+                text.push('\n');
+            }
+            HostLine::CanEnd(e) => protocol = Some(e.protocol.clone()),
+            _ => {}
+        }
+    }
+    let key = protocol.unwrap_or_default();
+    let p = Protocol::from_key(&key)
+        .ok_or_else(|| ToolError::failed(format!("the bridge speaks `{key}`: unknown here")))?;
+    if let Some(file) = out {
+        std::fs::write(file, &text)
+            .map_err(|e| ToolError::failed(format!("cannot write {}: {e}", file.display())))?;
+        println!(
+            "the CAN capture saved to {} ({} frames)",
+            file.display(),
+            text.lines().count()
+        );
+    }
+    diagnose(&text, p, "the bridge's capture")
 }
 
 fn on_capture(file: &Path, protocol: &str) -> ToolResult<()> {
@@ -97,8 +121,17 @@ fn diagnose(text: &str, p: Protocol, what: &str) -> ToolResult<()> {
     Ok(())
 }
 
-fn on_bridge(conn: &Conn, out: Option<&Path>) -> ToolResult<()> {
-    let mut c = connect_ready(conn)?;
+fn on_bridge(target: &str, out: Option<&Path>) -> ToolResult<()> {
+    if !crate::is_serial(target) {
+        // The update port: the capture only (no telemetry there).
+        let mut c = crate::connect_bridge_or_host(target)?;
+        return capture_of(&mut c, out).map(|_| ());
+    }
+    let mut c = connect_ready(&Conn {
+        port: target.to_string(),
+        mode: ModeArg::Bridge,
+        timeout: std::time::Duration::from_secs(15),
+    })?;
     let t = c.snapshot()?;
     let Some(inv) = t.told.inverter else {
         println!("this bridge has no CAN output");
