@@ -31,7 +31,11 @@
 //!   the new charge voltage: into the grid or the loads).
 //!
 //! Growatt's frames (big-endian 0x311/0x313) carry no 0x356: the current
-//! rules do not apply to it.
+//! rules do not apply to it. A Growatt-speaking bridge says nothing until the
+//! inverter asks: with no inverter its capture stays empty, so the bridge
+//! tells the doctor the time ([`Doctor::on_quiet`]) and no query for
+//! [`QUIET_US`] is "no inverter heard" too (on the bridge only: an empty
+//! capture file has no time).
 
 use super::capture::Seen;
 use super::dialect::{CanFrame, Protocol};
@@ -331,6 +335,8 @@ pub struct Doctor {
     export: Since,
     /// A verdict that was not held before (for the log), not yet taken.
     news: Option<Verdict>,
+    /// The first time [`Doctor::on_quiet`] was called.
+    quiet_from: Option<Instant>,
 }
 
 impl Doctor {
@@ -357,6 +363,23 @@ impl Doctor {
             voltage_off: Since(None),
             export: Since(None),
             news: None,
+            quiet_from: None,
+        }
+    }
+
+    /// The time, for a bridge that speaks only when asked (Growatt): nothing
+    /// heard of the inverter for [`QUIET_US`] is "no inverter heard".
+    pub fn on_quiet(&mut self, now: Instant) {
+        let from = *self.quiet_from.get_or_insert(now);
+        let since = self.heard_at.map_or(from, |h| h.max(from));
+        let quiet = now.saturating_sub(since);
+        if quiet >= QUIET_US {
+            self.found(
+                Verdict::NoInverter {
+                    for_s: (quiet / crate::SECOND) as u32,
+                },
+                now,
+            );
         }
     }
 
@@ -695,6 +718,24 @@ mod tests {
         assert_eq!(d.take_news(), None);
         d.on_entry(KEEP_US + 2 * crate::SECOND, Seen::BusOff);
         assert_eq!(d.take_news(), Some(Verdict::BusOff));
+    }
+
+    #[test]
+    fn a_bridge_that_answers_only_hears_no_query() {
+        let mut d = Doctor::new(Protocol::Growatt);
+        d.on_quiet(0);
+        d.on_quiet(9 * crate::SECOND);
+        assert!(d.verdicts(None).is_empty());
+        d.on_quiet(QUIET_US);
+        assert_eq!(d.verdicts(None).first().map(|v| v.key()), Some("no_inverter"));
+        // Queries every second: nothing.
+        let mut d = Doctor::new(Protocol::Growatt);
+        for s in 0..30 {
+            let t = s * crate::SECOND;
+            d.on_entry(t, Seen::Heard(f(0x301, [0; 8])));
+            d.on_quiet(t + 1);
+        }
+        assert!(d.verdicts(None).is_empty(), "{:?}", d.verdicts(None));
     }
 
     #[test]

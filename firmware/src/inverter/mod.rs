@@ -700,6 +700,12 @@ impl Inverter {
         }
         let timeout = self.config.inverter_timeout_us;
         self.bus.check_keepalive(now, timeout, &mut self.reports);
+        if self.config.protocol.answers_only() {
+            self.doctor.on_quiet(now);
+            if let Some(v) = self.doctor.take_news() {
+                self.reports.push(InverterReport::Doctor(v));
+            }
+        }
         if let Some(t) = self.bus.off_until(now) {
             return InverterAction::WaitUntil(t);
         }
