@@ -727,7 +727,10 @@ mod tests {
         d.on_quiet(9 * crate::SECOND);
         assert!(d.verdicts(None).is_empty());
         d.on_quiet(QUIET_US);
-        assert_eq!(d.verdicts(None).first().map(|v| v.key()), Some("no_inverter"));
+        assert_eq!(
+            d.verdicts(None).first().map(|v| v.key()),
+            Some("no_inverter")
+        );
         // Queries every second: nothing.
         let mut d = Doctor::new(Protocol::Growatt);
         for s in 0..30 {

@@ -105,10 +105,14 @@ fn diagnose(text: &str, p: Protocol, what: &str) -> ToolResult<()> {
     }
     let h = d.heartbeat();
     println!("{frames} frames read, the bridge speaking {}", p.title());
-    println!(
-        "heartbeat: {} heard, every {} ms on average, longest gap {} ms, {} late",
-        h.count, h.mean_ms, h.longest_ms, h.late
-    );
+    match h.count {
+        0 => println!("heartbeat in the capture: none heard"),
+        1 => println!("heartbeat in the capture: one heard"),
+        n => println!(
+            "heartbeat in the capture: {n} heard, every {} ms on average, longest gap {} ms, {} late",
+            h.mean_ms, h.longest_ms, h.late
+        ),
+    }
     let verdicts = d.verdicts(None);
     if verdicts.is_empty() {
         println!("no verdict: the capture shows nothing wrong");
@@ -161,9 +165,9 @@ fn on_bridge(target: &str, out: Option<&Path>) -> ToolResult<()> {
         inv.heartbeat_late,
     ) {
         (Some(m), Some(l), Some(n)) => {
-            println!("heartbeat: every {m} ms on average, longest gap {l} ms, {n} late")
+            println!("heartbeat since the bridge started: every {m} ms on average, longest gap {l} ms, {n} late")
         }
-        _ => println!("heartbeat: none heard"),
+        _ => println!("heartbeat since the bridge started: none heard"),
     }
     let protocol = Protocol::from_key(&inv.protocol).ok_or_else(|| {
         ToolError::failed(format!("the bridge speaks {}: unknown here", inv.protocol))
