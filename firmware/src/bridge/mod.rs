@@ -348,17 +348,18 @@ impl Bridge {
                     Some((silence, purpose)) => {
                         self.s.purpose = purpose;
                         // Pieces (0x09 block reads on a bad line, event slots)
-                        // are small: a lost answer is not waited for as long.
+                        // are small: a lost or broken answer is not waited
+                        // for as long.
                         let piece = matches!(
                             purpose,
                             Purpose::Live | Purpose::Aux(_) | Purpose::EventSlot
                         ) && matches!(self.link.request(), Request::ReadIndividual(_));
-                        let timeout = if piece {
-                            self.s.config.piece_response_timeout_us
+                        if piece {
+                            self.link.start_written_piece(now, silence);
                         } else {
-                            self.s.config.response_timeout_us
-                        };
-                        self.link.start_written(now, silence, timeout);
+                            let timeout = self.s.config.response_timeout_us;
+                            self.link.start_written(now, silence, timeout);
+                        }
                     }
                     None => return Step::WaitUntil(self.s.next_wake(now).min(next_log)),
                 },
