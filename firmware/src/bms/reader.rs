@@ -558,67 +558,72 @@ impl BlockRead {
     /// Records that `first..=last` were asked for at `at`, trimming the
     /// ranges it covers. False when there is no room left.
     fn stamp(&mut self, first: u16, last: u16, at: Instant) -> bool {
-        let mut i = 0;
-        while i < self.stamps.len() {
-            let s = self.stamps[i];
+        // Wholly covered: gone.
+        self.stamps.retain(|s| s.first < first || s.last > last);
+        let mut split = None;
+        for s in self.stamps.iter_mut() {
             if s.last < first || s.first > last {
-                i += 1;
-            } else if s.first >= first && s.last <= last {
-                let _ = self.stamps.swap_remove(i);
-            } else if s.first < first && s.last > last {
+                continue;
+            }
+            if s.first < first && s.last > last {
                 // The new piece lies inside an older one: split it.
-                self.stamps[i].last = first - 1;
-                let after = Stamp {
-                    first: last + 1,
-                    ..s
-                };
-                if self.stamps.push(after).is_err() {
-                    return false;
-                }
-                i += 1;
+                split = Some(Stamp {
+                    first: last.saturating_add(1),
+                    ..*s
+                });
+                s.last = first.saturating_sub(1);
             } else if s.first < first {
-                self.stamps[i].last = first - 1;
-                i += 1;
+                s.last = first.saturating_sub(1);
             } else {
-                self.stamps[i].first = last + 1;
-                i += 1;
+                s.first = last.saturating_add(1);
             }
         }
-        if self.stamps.is_full() && !self.merge_two() {
-            return false;
+        for new in split.into_iter().chain([Stamp { first, last, at }]) {
+            if self.stamps.is_full() && !self.merge_two() {
+                return false;
+            }
+            if self.stamps.push(new).is_err() {
+                return false;
+            }
         }
-        self.stamps.push(Stamp { first, last, at }).is_ok()
+        true
     }
 
     /// Makes room: two stamps with nothing of the segments between them
     /// become one, with the older time (a window that holds for it holds for
     /// both). False when no two are that close.
     fn merge_two(&mut self) -> bool {
-        let n = self.stamps.len();
-        for i in 0..n {
-            for j in 0..n {
-                let (a, b) = (self.stamps[i], self.stamps[j]);
-                if i == j || a.last >= b.first {
-                    continue;
-                }
-                let between = a.last + 1..b.first;
-                let gap_in_segments = !between.is_empty()
-                    && self
-                        .segments
-                        .iter()
-                        .any(|&(x, y)| x < between.end && y >= between.start);
-                if !gap_in_segments {
-                    self.stamps[i] = Stamp {
-                        first: a.first,
-                        last: b.last,
-                        at: a.at.min(b.at),
-                    };
-                    let _ = self.stamps.swap_remove(j);
-                    return true;
-                }
-            }
+        let segments = self.segments;
+        let close = |a: &Stamp, b: &Stamp| {
+            a.last < b.first
+                && !segments.iter().any(|&(x, y)| {
+                    // A register of the segments strictly between a and b.
+                    x < b.first && y > a.last && x.max(a.last.saturating_add(1)) < b.first
+                })
+        };
+        let pair = self.stamps.iter().enumerate().find_map(|(i, a)| {
+            self.stamps
+                .iter()
+                .enumerate()
+                .find(|(_, b)| close(a, b))
+                .map(|(j, b)| {
+                    (
+                        i,
+                        j,
+                        a.first.min(b.first),
+                        a.last.max(b.last),
+                        a.at.min(b.at),
+                    )
+                })
+        });
+        let Some((i, j, first, last, at)) = pair else {
+            return false;
+        };
+        if let Some(a) = self.stamps.get_mut(i) {
+            *a = Stamp { first, last, at };
         }
-        false
+        let _ = self.stamps.swap_remove(j);
+        true
     }
 
     /// The first register of the segments at or after `from` that no piece

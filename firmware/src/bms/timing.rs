@@ -87,8 +87,9 @@ pub const STATS_PERIOD_US: Instant = 30 * SECOND;
 pub const EVENTS_PERIOD_US: Instant = 5 * SECOND;
 
 /// Longest a live block assembled from pieces may take, first piece to last:
-/// on a bad line the pieces of one snapshot are all read within this window (or
-/// the read starts over), so a snapshot never mixes values further apart.
+/// on a bad line the pieces of one snapshot are all asked for within this
+/// window (the oldest are read again until they are), so a snapshot never
+/// mixes values further apart.
 pub const LIVE_ASSEMBLY_WINDOW_US: Instant = 5 * SECOND;
 
 /// Period of the line quality line in the log (only logged when something failed).
