@@ -213,6 +213,19 @@ pub fn report(r: &Report, out: &mut Line) {
                 .uint(u64::from(*snapshots))
                 .push(" snapshots");
         }
+        Report::Wire { figures, verdict } => {
+            out.push("wire: ");
+            verdict.text(out);
+            out.push(" (")
+                .uint(u64::from(figures.replies))
+                .push(" replies; per 1000 sends ")
+                .uint(u64::from(figures.corrupted_permille))
+                .push(" corrupted, ")
+                .uint(u64::from(figures.lost_permille))
+                .push(" lost, ")
+                .uint(u64::from(figures.resent_permille))
+                .push(" resent)");
+        }
     }
 }
 

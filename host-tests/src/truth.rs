@@ -69,6 +69,36 @@ pub fn check_registers(block: &RegisterBlock, reads: &VecDeque<TrueRead>) -> Res
     Ok(())
 }
 
+/// As [`check_registers`], for a block that replaces `previous` (the same
+/// block as published before, already checked then): only the values that
+/// differ from it are checked. A value the bridge kept unchanged was judged
+/// when it was first published, and the recorded answers only reach back
+/// [`crate::virtual_time::TRUTH_WINDOW_US`]: the settings block is patched
+/// by a write's read-back (one register, from a reply the BMS sent) while its
+/// other values were read at the last settings read, which may be older than
+/// that when the writes in between changed nothing (`unchanged`,
+/// `not_written`). A value that changes is checked as before, also when it
+/// goes back to an earlier one.
+pub fn check_changed(
+    block: &RegisterBlock,
+    previous: Option<&RegisterBlock>,
+    reads: &VecDeque<TrueRead>,
+) -> Result<(), String> {
+    let Some(prev) = previous.filter(|p| p.start == block.start) else {
+        return check_registers(block, reads);
+    };
+    let last = block.start + block.values.len() as u16 - 1;
+    for (a, width) in fields(block.start, last) {
+        let same = (a..a + width).all(|x| prev.get(x).is_some() && prev.get(x) == block.get(x));
+        if same {
+            continue;
+        }
+        let values = (a..a + width).filter_map(|x| block.get(x)).collect();
+        check_registers(&RegisterBlock { start: a, values }, reads)?;
+    }
+    Ok(())
+}
+
 /// Checks a 0x1D table: it must equal one recorded answer for that option.
 pub fn check_table(
     block: &RegisterBlock,
@@ -107,6 +137,41 @@ mod tests {
         assert!(!f.iter().any(|&(a, _)| a == 30 || a == 33));
         assert_eq!(fields(504, 509), vec![(504, 6)]);
         assert_eq!(fields(200, 203), vec![(200, 2), (202, 2)]);
+    }
+
+    /// Seed 7 at fault rate 0.1 (issue 54): the settings block patched by the
+    /// read-back of 312 while 300 was last read more than the truth window
+    /// ago. 300 is unchanged (judged when first published): no wrong value;
+    /// a changed value no answer holds still is one.
+    #[test]
+    fn an_unchanged_value_is_not_judged_again() {
+        let reads: VecDeque<TrueRead> = [read(312, &[1000, 0])].into_iter().collect();
+        let block = |v300: u16, v312: u16| {
+            let mut values = heapless::Vec::new();
+            for a in 300..=313u16 {
+                let v = match a {
+                    300 => v300,
+                    312 => v312,
+                    _ => 0,
+                };
+                values.push(v).unwrap();
+            }
+            RegisterBlock { start: 300, values }
+        };
+        let before = block(3650, 1001);
+        let after = block(3650, 1000);
+        // The whole block against the window: 300 is too old for it.
+        assert!(check_registers(&after, &reads).is_err());
+        assert_eq!(check_changed(&after, Some(&before), &reads), Ok(()));
+        // Nothing to compare with: every value is checked.
+        assert!(check_changed(&after, None, &reads).is_err());
+        // A value that changed to one no answer holds is caught.
+        let forged = block(3600, 1000);
+        let e = check_changed(&forged, Some(&before), &reads).unwrap_err();
+        assert!(e.contains("register 300..300"), "{e}");
+        // 312 going back to 1001, which no recorded answer holds, is caught too.
+        let back = block(3650, 1001);
+        assert!(check_changed(&back, Some(&after), &reads).is_err());
     }
 
     #[test]

@@ -717,10 +717,12 @@ impl Harness {
         let t = self.station.bridge().telemetry();
         let reads = self.sim.recent_reads();
         if t.settings != soak.last_settings {
-            soak.last_settings = t.settings.clone();
+            let previous = std::mem::replace(&mut soak.last_settings, t.settings.clone());
             if let Some(b) = &t.settings {
                 soak.blocks_checked += 1;
-                if let Err(e) = truth::check_registers(b, reads) {
+                // Values kept since the last check were judged then (see
+                // `truth::check_changed`: a write's read-back patches one).
+                if let Err(e) = truth::check_changed(b, previous.as_ref(), reads) {
                     soak.wrong(format!("settings at {} µs: {e}", self.now));
                 }
             }

@@ -31,6 +31,33 @@ fn answer(
     }
 }
 
+/// As [`answer`], with the time the assembled block's first piece was asked
+/// for.
+fn answer_at(
+    read: &mut BlockRead,
+    now: u64,
+    request: &Request,
+    value: impl Fn(u16) -> u16,
+) -> Option<(RegisterBlock, u64)> {
+    match request {
+        Request::ReadRegisters { start, count } => {
+            let values: Words = (*start..*start + u16::from(*count)).map(&value).collect();
+            let reply = RegisterBlock {
+                start: *start,
+                values,
+            };
+            read.on_block(now, &reply)
+                .map(|a| (a.block.clone(), a.started_at))
+        }
+        Request::ReadIndividual(addresses) => {
+            let pairs: Vec<(u16, u16)> = addresses.iter().map(|&a| (a, value(a))).collect();
+            read.on_pairs(now, &pairs, None)
+                .map(|a| (a.block.clone(), a.started_at))
+        }
+        other => panic!("unexpected request {other:?}"),
+    }
+}
+
 /// One complete pass at `piece` registers per request: the requests sent and
 /// the assembled block, if the read completed.
 fn pass(
@@ -162,7 +189,9 @@ proptest! {
 
     /// Whatever the order of piece sizes, failures, refused replies and
     /// restarts, an assembled block holds exactly the values stored in its own
-    /// pass (reserved gaps 0): never a value of an earlier pass.
+    /// pass (reserved gaps 0): never a value of an earlier pass. A window read
+    /// holds for each register the last value read for it, every one asked
+    /// for within the window.
     #[test]
     fn an_assembled_block_holds_only_its_own_pass(
         which in 0..4usize,
@@ -183,6 +212,9 @@ proptest! {
         let mut fresh = 1u16;
         // What this pass stored so far.
         let mut pass: std::collections::BTreeMap<u16, u16> = Default::default();
+        // Window reads: the last value stored for each address, and when it
+        // was asked for.
+        let mut latest: std::collections::BTreeMap<u16, (u64, u16)> = Default::default();
         let mut previous_complete: Option<Vec<u16>> = None;
         for op in ops {
             now += 500;
@@ -213,11 +245,29 @@ proptest! {
                 }
                 Op::Answer { stable, .. } => {
                     let value = |a: u16| if stable { a ^ 0x5A5A } else { fresh.wrapping_add(a) };
-                    let done = answer(&mut read, now, &req, value);
+                    let done = answer_at(&mut read, now, &req, value);
                     for &a in &addresses {
                         pass.insert(a, value(a));
+                        latest.insert(a, (now, value(a)));
                     }
                     fresh = fresh.wrapping_add(1000);
+                    if window {
+                        // Window: every register holds the last value read
+                        // for it, all asked for within the window.
+                        if let Some((block, started_at)) = done {
+                            prop_assert_eq!(block.start, first);
+                            for &(x, y) in segments {
+                                for a in x..=y {
+                                    let (t, v) = latest[&a];
+                                    prop_assert_eq!(block.get(a), Some(v), "register {}", a);
+                                    prop_assert!(t >= started_at && t - started_at <= 1_000_000,
+                                        "register {} asked for at {} in a block from {}", a, t, started_at);
+                                }
+                            }
+                        }
+                        continue;
+                    }
+                    let done = done.map(|(b, _)| b);
                     if let Some(block) = done {
                         prop_assert_eq!(block.start, first);
                         prop_assert_eq!(usize::from(last - first) + 1, block.values.len());
@@ -436,4 +486,47 @@ fn values_stored_without_confirmation_never_confirm_a_later_piece() {
         _ => a(x),
     });
     assert_eq!(read.second_reads(), 1);
+}
+
+/// The live read on a bad line, one piece per request; `stall_after`: a
+/// pause longer than the window before that request. The addresses asked for
+/// (first of each piece), the assembled block's start time and the end.
+fn window_read(window: u64, stall_after: Option<usize>) -> (Vec<u16>, u64, u64) {
+    let mut now = 0;
+    let mut read = BlockRead::new(reader::LIVE_SEGMENTS, Mode::Window(window), now);
+    let mut asked = Vec::new();
+    for i in 0..500 {
+        now += if Some(i) == stall_after {
+            window + 10_000
+        } else {
+            1_000
+        };
+        let req = read.next_request(now, PIECE_REGISTERS[3]);
+        let Request::ReadIndividual(a) = &req else {
+            panic!("{req:?}");
+        };
+        asked.push(a[0]);
+        if let Some((_, started_at)) = answer_at(&mut read, now, &req, |a| a ^ 0x1234) {
+            return (asked, started_at, now);
+        }
+    }
+    panic!("the read never completes");
+}
+
+/// Issue 54: a window read that runs late reads its oldest pieces again
+/// instead of starting over: on a bad line, where a read takes about as long
+/// as the window, starting over threw the good pieces away and snapshots came
+/// 30 s apart. The block still lies within the window.
+#[test]
+fn a_window_read_that_runs_late_reads_its_oldest_pieces_again() {
+    let w = 50_000;
+    let (clean, _, _) = window_read(w, None);
+    let (asked, started_at, end) = window_read(w, Some(3));
+    // Three pieces, then the stall: the read goes on where it was...
+    assert_eq!(asked[..3], clean[..3]);
+    assert_eq!(asked[3], clean[3], "the read started over after the stall");
+    // ...and reads only the three stale pieces again, at the end.
+    assert_eq!(asked.len(), clean.len() + 3);
+    assert_eq!(asked[clean.len()..], clean[..3]);
+    assert!(end - started_at <= w);
 }

@@ -187,7 +187,10 @@ fn a_host_that_never_reads_and_a_bus_that_never_acks_change_nothing_at_the_bms()
 /// wake drains the UART's FIFO). On a clean line that changes nothing; on a
 /// faulted one the bridge decides a few edge cases differently (a reply that
 /// trickles in around a timeout), so there the measure is that it is not held
-/// back: the same rate of requests and snapshots within 2 %.
+/// back: the same rate of requests within 2 %, and not 2 % fewer snapshots.
+/// (More is not held back: since a late live read reads its oldest pieces
+/// again instead of starting over, issue 54, two such runs differ by a few %
+/// in snapshots either way — 1280 against 1252 here — as two seeds do.)
 #[test]
 fn a_controller_that_stays_bus_off_does_not_hold_the_bridge_back() {
     let duration = 600 * SECOND;
@@ -217,10 +220,7 @@ fn a_controller_that_stays_bus_off_does_not_hold_the_bridge_back() {
         let (p, q) = (good.published.len() as f64, r.published.len() as f64);
         println!("{what}, faulted: {b} requests against {a}, {q} snapshots against {p}");
         assert!((a - b).abs() / a < 0.02, "{what}: {b} requests against {a}");
-        assert!(
-            (p - q).abs() / p < 0.02,
-            "{what}: {q} snapshots against {p}"
-        );
+        assert!((p - q) / p < 0.02, "{what}: {q} snapshots against {p}");
     }
 }
 

@@ -132,6 +132,44 @@ fn line_quality_is_a_percentage_with_one_decimal() {
 }
 
 #[test]
+fn the_wire_says_its_figures_and_what_to_check() {
+    use tinybms_firmware::bms::wire::{WireFigures, WireVerdict};
+    let figures = WireFigures {
+        replies: 1200,
+        corrupted_permille: 104,
+        lost_permille: 230,
+        resent_permille: 310,
+    };
+    let r = Report::Wire {
+        figures,
+        verdict: WireVerdict::BadWire {
+            corrupted_permille: 104,
+        },
+    };
+    assert_eq!(
+        said(&r),
+        "wire: one reply in 10 corrupted: check the ground and the cable length; the BMS answers \
+         (1200 replies; per 1000 sends 104 corrupted, 230 lost, 310 resent)"
+    );
+    assert_eq!(r.level(), Level::Warn);
+    let r = Report::Wire {
+        figures,
+        verdict: WireVerdict::Noisy {
+            corrupted_permille: 40,
+            lost_permille: 30,
+        },
+    };
+    assert!(said(&r).starts_with("wire: a noisy line: 4.0 % of replies corrupted, 3.0 % lost"));
+    assert_eq!(r.level(), Level::Info);
+    let r = Report::Wire {
+        figures: WireFigures::default(),
+        verdict: WireVerdict::Silent,
+    };
+    assert!(said(&r).starts_with("wire: the BMS does not answer: check its power"));
+    assert_eq!(r.level(), Level::Warn);
+}
+
+#[test]
 fn inverter_lines_read_in_volts_amps_and_seconds() {
     let l = InverterReport::Limits(Limits {
         cvl_dv: 552,

@@ -425,6 +425,48 @@ fn a_clean_line_reads_the_live_block_in_one_request() {
     assert_eq!(count(&h, |r| matches!(r, Report::LineQuality { .. })), 0);
 }
 
+/// The wire in figures and words (issue 54): a bad line is a bad wire, a
+/// clean one healthy (and says nothing), a BMS that never answers silent.
+#[test]
+fn the_wire_is_judged_from_the_link_counters() {
+    use tinybms_firmware::bms::wire::WireVerdict;
+    let bad = SimConfig::default().with_faults(FaultConfig::all(0.10));
+    let mut h = checked(PackModel::LiFePO4_16S, bad, 30);
+    h.run_until(3 * MIN);
+    let (f, v) = h.bridge().wire();
+    assert!(matches!(v, WireVerdict::BadWire { .. }), "{v:?} {f:?}");
+    assert!(f.replies > 0 && f.corrupted_permille >= 100, "{f:?}");
+    let said = count(&h, |r| matches!(r, Report::Wire { .. }));
+    assert!((2..=3).contains(&said), "{said}");
+
+    let mut h = checked(PackModel::LiFePO4_16S, SimConfig::default(), 31);
+    h.run_until(3 * MIN);
+    assert_eq!(h.bridge().wire().1, WireVerdict::Healthy);
+    assert!(h.bridge().wire().0.replies > 0);
+    assert_eq!(count(&h, |r| matches!(r, Report::Wire { .. })), 0);
+
+    let deaf = FaultConfig {
+        no_reply: 1.0,
+        ..FaultConfig::NONE
+    };
+    let mut h = checked(
+        PackModel::LiFePO4_16S,
+        SimConfig::default().with_faults(deaf),
+        32,
+    );
+    h.run_until(3 * MIN);
+    assert_eq!(h.bridge().wire().1, WireVerdict::Silent);
+    assert!(
+        count(&h, |r| matches!(
+            r,
+            Report::Wire {
+                verdict: WireVerdict::Silent,
+                ..
+            }
+        )) >= 2
+    );
+}
+
 // ---------------------------------------------------------------------------
 // 5. No event is lost.
 // ---------------------------------------------------------------------------

@@ -192,6 +192,8 @@ struct Pending {
     sends: u8,
     last_sent: Instant,
     timeout_us: Instant,
+    /// Silence after reply bytes that ends an attempt early.
+    idle_gap_us: Instant,
 }
 
 /// What the link wants next.
@@ -346,6 +348,17 @@ impl Link {
         &self.request
     }
 
+    /// As [`Link::start_written`] for a piece of a block read (a 0x09 read of
+    /// at most 15 registers): the piece timeout and idle gap
+    /// ([`Timing::piece_response_timeout_us`],
+    /// [`Timing::piece_reply_idle_gap_us`]).
+    pub fn start_written_piece(&mut self, now: Instant, silence: Silence) {
+        self.start_written(now, silence, self.config.piece_response_timeout_us);
+        if let Some(p) = self.pending.as_mut() {
+            p.idle_gap_us = self.config.piece_reply_idle_gap_us;
+        }
+    }
+
     /// As [`Link::start_with_timeout`], with the request written into
     /// [`Link::request_slot`] before.
     pub fn start_written(&mut self, now: Instant, silence: Silence, timeout_us: Instant) {
@@ -366,6 +379,7 @@ impl Link {
                     sends: 0,
                     last_sent: now,
                     timeout_us,
+                    idle_gap_us: self.config.reply_idle_gap_us,
                 });
                 self.to_send = true;
             }
@@ -472,9 +486,7 @@ impl Link {
                 return Next::Send;
             }
             let deadline = match p.last_rx {
-                Some(t) => p
-                    .deadline
-                    .min(t.saturating_add(self.config.reply_idle_gap_us)),
+                Some(t) => p.deadline.min(t.saturating_add(p.idle_gap_us)),
                 None => p.deadline,
             };
             if now < deadline {

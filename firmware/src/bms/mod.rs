@@ -12,6 +12,9 @@
 //! * [`profile`] — the settings profile written to the BMS at start-up (empty by
 //!   default) and the setting names.
 //! * [`timing`] — periods and timeouts, every default a named constant.
+//! * [`wire`] — the link counters of a window in figures (damaged, lost,
+//!   resent per thousand sends) and a verdict in words (healthy, noisy, a bad
+//!   wire, a silent or a sleeping BMS).
 
 pub mod checks;
 pub mod event_log;
@@ -20,3 +23,4 @@ pub mod profile;
 pub mod reader;
 pub mod timing;
 pub mod uart;
+pub mod wire;

@@ -104,12 +104,31 @@ fn continues_after(address: u16) -> bool {
     registers::is_continuation(address.wrapping_add(1))
 }
 
+/// Most pieces a window read keeps apart (a piece of the live block at the
+/// deepest level holds one or two registers: 40 registers, at most 24
+/// pieces). Beyond, two neighbouring pieces are kept as one with the older
+/// time; a read where no two are neighbours starts over.
+pub const WINDOW_PIECES: usize = 32;
+
+/// Registers `first..=last` of a window read were asked for at `at`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Stamp {
+    first: u16,
+    last: u16,
+    at: Instant,
+}
+
 /// What a block read is for: how its pieces are accepted.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Mode {
-    /// Values that change by themselves (live): one pass, every piece read within
-    /// `window_us` of the first, else the read starts over.
+    /// Values that change by themselves (live): every piece of the block asked
+    /// for within `window_us` of every other. The pieces are read in order;
+    /// when the last one is in but the oldest is too old for the window, the
+    /// oldest is read again (and the next oldest, ...) until the block's pieces
+    /// lie within the window, instead of starting the whole read over: on a
+    /// bad line, where a read takes about as long as the window, starting over
+    /// threw away the pieces that were still good (issue 54).
     Window(Instant),
     /// Values that do not change by themselves (settings, version, statistics,
     /// the event log): complete passes until two in a row are identical.
@@ -143,6 +162,11 @@ pub struct BlockRead {
     /// First read of the piece in flight, waiting for a second that agrees.
     first_read: Option<heapless::Vec<(u16, u16), 16>>,
     second_reads: u32,
+    /// When the piece in flight was asked for.
+    in_flight_at: Instant,
+    /// Window reads: which registers hold a piece, and when it was asked for
+    /// (disjoint ranges).
+    stamps: heapless::Vec<Stamp, WINDOW_PIECES>,
 }
 
 /// A finished block read, lent by the [`BlockRead`] that assembled it (the
@@ -180,6 +204,8 @@ impl BlockRead {
             believed: 0,
             first_read: None,
             second_reads: 0,
+            in_flight_at: now,
+            stamps: heapless::Vec::new(),
         };
         r.restart(now);
         r
@@ -241,6 +267,7 @@ impl BlockRead {
         }
         self.started_at = now;
         self.pieces = 0;
+        self.stamps.clear();
     }
 
     /// The piece in flight failed: it is asked again next time.
@@ -304,15 +331,10 @@ impl BlockRead {
         if self.restart_due {
             self.restart(now);
         }
-        if let Mode::Window(w) = self.mode {
-            if self.cursor != self.first() && now.saturating_sub(self.started_at) > w {
-                // Too slow: the pieces would describe different moments.
-                self.restart(now);
-            }
-        }
-        if self.cursor == self.first() && self.in_flight.is_none() {
+        if self.cursor == self.first() && self.in_flight.is_none() && self.stamps.is_empty() {
             self.started_at = now;
         }
+        self.in_flight_at = now;
         // Confirmed pieces are 0x09 pieces (at most 15 registers): only the
         // whole span is read with 0x03.
         let piece = if self.confirm && self.cursor != self.first() {
@@ -479,6 +501,9 @@ impl BlockRead {
         };
         self.pieces = self.pieces.saturating_add(1);
         let next = start.saturating_add(count);
+        if let Mode::Window(w) = self.mode {
+            return self.advance_window(now, start, count, w);
+        }
         // Segments ascend: the first one holding `next` or starting after it.
         let cursor = self.segments.iter().find_map(|&(a, b)| {
             if (a..=b).contains(&next) {
@@ -493,6 +518,125 @@ impl BlockRead {
                 false
             }
             None => self.complete(now),
+        }
+    }
+
+    /// [`Self::advance`] for a window read: the piece `start..start + count`
+    /// is stamped; the next piece is the first register no piece holds yet,
+    /// else, when the pieces lie further apart than `w`, the oldest one.
+    fn advance_window(&mut self, now: Instant, start: u16, count: u16, w: Instant) -> bool {
+        let at = self.in_flight_at;
+        if !self.stamp(start, start.saturating_add(count - 1), at) {
+            // More pieces than kept apart: start over (never seen with the
+            // piece sizes of PIECE_REGISTERS).
+            self.restart(now);
+            return false;
+        }
+        let next = start.saturating_add(count);
+        if let Some(c) = self
+            .uncovered_from(next)
+            .or_else(|| self.uncovered_from(self.first()))
+        {
+            self.cursor = c;
+            return false;
+        }
+        let oldest = self.stamps.iter().min_by_key(|s| s.at).copied();
+        let newest = self.stamps.iter().map(|s| s.at).max().unwrap_or(at);
+        match oldest {
+            Some(o) if newest.saturating_sub(o.at) > w => {
+                // Too far apart: the oldest piece is read again.
+                self.cursor = o.first;
+                false
+            }
+            _ => {
+                self.started_at = oldest.map(|o| o.at).unwrap_or(at);
+                self.complete(now)
+            }
+        }
+    }
+
+    /// Records that `first..=last` were asked for at `at`, trimming the
+    /// ranges it covers. False when there is no room left.
+    fn stamp(&mut self, first: u16, last: u16, at: Instant) -> bool {
+        // Wholly covered: gone.
+        self.stamps.retain(|s| s.first < first || s.last > last);
+        let mut split = None;
+        for s in self.stamps.iter_mut() {
+            if s.last < first || s.first > last {
+                continue;
+            }
+            if s.first < first && s.last > last {
+                // The new piece lies inside an older one: split it.
+                split = Some(Stamp {
+                    first: last.saturating_add(1),
+                    ..*s
+                });
+                s.last = first.saturating_sub(1);
+            } else if s.first < first {
+                s.last = first.saturating_sub(1);
+            } else {
+                s.first = last.saturating_add(1);
+            }
+        }
+        for new in split.into_iter().chain([Stamp { first, last, at }]) {
+            if self.stamps.is_full() && !self.merge_two() {
+                return false;
+            }
+            if self.stamps.push(new).is_err() {
+                return false;
+            }
+        }
+        true
+    }
+
+    /// Makes room: two stamps with nothing of the segments between them
+    /// become one, with the older time (a window that holds for it holds for
+    /// both). False when no two are that close.
+    fn merge_two(&mut self) -> bool {
+        let segments = self.segments;
+        let close = |a: &Stamp, b: &Stamp| {
+            a.last < b.first
+                && !segments.iter().any(|&(x, y)| {
+                    // A register of the segments strictly between a and b.
+                    x < b.first && y > a.last && x.max(a.last.saturating_add(1)) < b.first
+                })
+        };
+        let pair = self.stamps.iter().enumerate().find_map(|(i, a)| {
+            self.stamps
+                .iter()
+                .enumerate()
+                .find(|(_, b)| close(a, b))
+                .map(|(j, b)| {
+                    (
+                        i,
+                        j,
+                        a.first.min(b.first),
+                        a.last.max(b.last),
+                        a.at.min(b.at),
+                    )
+                })
+        });
+        let Some((i, j, first, last, at)) = pair else {
+            return false;
+        };
+        if let Some(a) = self.stamps.get_mut(i) {
+            *a = Stamp { first, last, at };
+        }
+        let _ = self.stamps.swap_remove(j);
+        true
+    }
+
+    /// The first register of the segments at or after `from` that no piece
+    /// holds.
+    fn uncovered_from(&self, from: u16) -> Option<u16> {
+        let mut r = from;
+        loop {
+            let seg = self.segments.iter().find(|&&(_, b)| b >= r)?;
+            r = r.max(seg.0);
+            match self.stamps.iter().find(|s| (s.first..=s.last).contains(&r)) {
+                Some(s) => r = s.last.checked_add(1)?,
+                None => return Some(r),
+            }
         }
     }
 

@@ -98,8 +98,9 @@ use self::sync::SyncState;
 use self::telemetry::TelemetryModel;
 use self::writes::Writes;
 use crate::bms::event_log::EventTracker;
-use crate::bms::link::{CompletionRef, Failure, Link, Next, Transmit};
+use crate::bms::link::{CompletionRef, Failure, Link, LinkStats, Next, Transmit};
 use crate::bms::timing::{self, Timing};
+use crate::bms::wire::{WireFigures, WireVerdict};
 use crate::bridge::report::Report;
 use crate::Instant;
 
@@ -178,6 +179,10 @@ struct State {
     events: EventTracker,
     known_events: KnownEvents,
     out: Reports,
+    /// The link counters when the line quality period began.
+    wire_base: LinkStats,
+    /// The wire in the last complete line quality period.
+    wire: (WireFigures, WireVerdict),
 }
 
 impl Bridge {
@@ -243,6 +248,16 @@ impl Bridge {
     /// Replaces the link counters (see [`Link::preset_stats`]).
     pub fn preset_link_stats(&mut self, stats: crate::bms::link::LinkStats) {
         self.link.preset_stats(stats);
+        // The wire's window starts from them.
+        self.s.wire_base = stats;
+    }
+
+    /// The wire in the last complete line quality period
+    /// ([`Timing::line_quality_log_period_us`]): figures and verdict
+    /// ([`crate::bms::wire`]). Healthy with no figures before the first period
+    /// ends.
+    pub fn wire(&self) -> (WireFigures, WireVerdict) {
+        self.s.wire
     }
 
     /// True while a command is queued or running.
@@ -319,7 +334,7 @@ impl Bridge {
             s.out.push(Report::LinkStats(stats));
         }
         if line_quality {
-            s.log_quality();
+            s.log_quality(self.link.stats());
         }
         let next_log = s.out.next_periodic();
         for _ in 0..16 {
@@ -348,17 +363,18 @@ impl Bridge {
                     Some((silence, purpose)) => {
                         self.s.purpose = purpose;
                         // Pieces (0x09 block reads on a bad line, event slots)
-                        // are small: a lost answer is not waited for as long.
+                        // are small: a lost or broken answer is not waited
+                        // for as long.
                         let piece = matches!(
                             purpose,
                             Purpose::Live | Purpose::Aux(_) | Purpose::EventSlot
                         ) && matches!(self.link.request(), Request::ReadIndividual(_));
-                        let timeout = if piece {
-                            self.s.config.piece_response_timeout_us
+                        if piece {
+                            self.link.start_written_piece(now, silence);
                         } else {
-                            self.s.config.response_timeout_us
-                        };
-                        self.link.start_written(now, silence, timeout);
+                            let timeout = self.s.config.response_timeout_us;
+                            self.link.start_written(now, silence, timeout);
+                        }
                     }
                     None => return Step::WaitUntil(self.s.next_wake(now).min(next_log)),
                 },
@@ -383,10 +399,22 @@ impl State {
             events: EventTracker::new(),
             known_events: KnownEvents::default(),
             out: Reports::new(&config, now),
+            wire_base: LinkStats::default(),
+            wire: (WireFigures::default(), WireVerdict::Healthy),
         }
     }
 
-    fn log_quality(&mut self) {
+    fn log_quality(&mut self, stats: LinkStats) {
+        let window = WireFigures::between(&self.wire_base, &stats);
+        self.wire_base = stats;
+        let verdict = window.verdict();
+        self.wire = (window.figures, verdict);
+        if verdict.is_degraded() {
+            self.out.push(Report::Wire {
+                figures: window.figures,
+                verdict,
+            });
+        }
         let (attempts, clean) = self.schedule.quality.take_window();
         let snapshots = self.model.take_window(&mut self.out);
         // A clean line says nothing; a degraded one says how degraded, once per

@@ -9,6 +9,7 @@ use protocol_core::views::VersionInfo;
 
 use crate::bms::checks::Check;
 use crate::bms::link::{Failure, LinkStats};
+use crate::bms::wire::{WireFigures, WireVerdict};
 
 /// Log level of a report.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
@@ -187,6 +188,14 @@ pub enum Report {
         /// Snapshots published in the period.
         snapshots: u32,
     },
+    /// The wire in the line quality period, when it is not healthy: the
+    /// figures and what to check ([`crate::bms::wire`]).
+    Wire {
+        /// Damaged, lost and resent per thousand sends, valid replies.
+        figures: WireFigures,
+        /// What they say.
+        verdict: WireVerdict,
+    },
 }
 
 impl Report {
@@ -209,6 +218,10 @@ impl Report {
             Report::LineQuality {
                 attempts, clean, ..
             } if u64::from(*clean) * 10 < u64::from(*attempts) * 9 => Level::Warn,
+            Report::Wire {
+                verdict: WireVerdict::BadWire { .. } | WireVerdict::Silent,
+                ..
+            } => Level::Warn,
             Report::ResetDone { confirmed: false } | Report::Cleared { ok: false, .. } => {
                 Level::Warn
             }

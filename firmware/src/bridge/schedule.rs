@@ -8,7 +8,9 @@
 //! `State::next_request` (below) is the priority list, read top to
 //! bottom: a hold sends nothing; an offline link gets only the probe; the sync
 //! phase its steps ([`super::sync`]); running, in this order —
-//! 1. the live read in progress, while it has turns left ([`timing::LIVE_SHARE`]);
+//! 1. the live read in progress, while it has turns left ([`timing::LIVE_SHARE`],
+//!    [`timing::LIVE_SHARE_OVERDUE`] when no snapshot came for twice the usual
+//!    time, [`timing::live_overdue_after_us`]);
 //! 2. a due live read, between two settings of a group;
 //! 3. the confirmed read in progress, then the settings read after writes;
 //! 4. the command queue ([`super::writes`]); a reset or clear owns the link;
@@ -60,6 +62,10 @@ pub(super) struct Schedule {
     aux_read: Option<(Aux, BlockRead)>,
     /// Live requests left before the other reads get a turn.
     live_turns: u8,
+    /// The last snapshot seen, and the running mean of the time between
+    /// snapshots (see [`timing::live_overdue_after_us`]).
+    last_snapshot: Option<Instant>,
+    typical_interval_us: Instant,
 }
 
 impl Schedule {
@@ -79,6 +85,8 @@ impl Schedule {
             live_active: false,
             aux_read: None,
             live_turns: 0,
+            last_snapshot: None,
+            typical_interval_us: 0,
         }
     }
 
@@ -146,6 +154,27 @@ impl Schedule {
         };
         read.request_into(now, piece, slot);
         (Silence::Failure, Purpose::Aux(aux))
+    }
+
+    /// True when the live data is overdue at `now`, given when the last
+    /// snapshot was published (`None`: none yet).
+    fn live_overdue(&mut self, now: Instant, snapshot_at: Option<Instant>) -> bool {
+        let Some(at) = snapshot_at else {
+            return true;
+        };
+        if self.last_snapshot != Some(at) {
+            if let Some(prev) = self.last_snapshot.filter(|&p| p < at) {
+                // Running mean over about 8 snapshots.
+                let interval = at - prev;
+                self.typical_interval_us = if self.typical_interval_us == 0 {
+                    interval
+                } else {
+                    (self.typical_interval_us * 7 + interval) / 8
+                };
+            }
+            self.last_snapshot = Some(at);
+        }
+        now.saturating_sub(at) > timing::live_overdue_after_us(self.typical_interval_us)
     }
 
     /// The live read, while one is in progress.
@@ -267,8 +296,15 @@ impl State {
         {
             return Some(self.start_live(now, slot));
         }
-        // From here on, whatever goes out gives the live read its next turns.
-        self.schedule.live_turns = timing::LIVE_SHARE;
+        // From here on, whatever goes out gives the live read its next turns:
+        // more of them while the live data is overdue.
+        let snapshot_at = self.model.telemetry.snapshot_at;
+        let overdue = self.schedule.live_overdue(now, snapshot_at);
+        self.schedule.live_turns = if overdue {
+            timing::LIVE_SHARE_OVERDUE
+        } else {
+            timing::LIVE_SHARE
+        };
         if let Some((aux, _)) = self.schedule.aux_read {
             return Some(self.schedule.aux_piece(now, aux, slot));
         }
