@@ -599,6 +599,7 @@ fn doctor_reads_the_bridges_capture_and_says_why() {
     let o = tinybms(&["doctor", &sim.path, "--out", out.to_str().unwrap()]);
     assert_eq!(o.code, 0, "{o}");
     assert!(o.stdout.contains("inverter: victron on CAN"), "{o}");
+    assert!(o.stdout.contains("BMS wire: the wire is healthy"), "{o}");
     assert!(
         o.stdout.contains("CCL ") && o.stdout.contains("DCL "),
         "{o}"

@@ -189,6 +189,17 @@ impl WireWindow {
 }
 
 impl WireVerdict {
+    /// A short key (the host link's `wire`, Home Assistant).
+    pub const fn key(&self) -> &'static str {
+        match self {
+            WireVerdict::Healthy => "healthy",
+            WireVerdict::Noisy { .. } => "noisy",
+            WireVerdict::BadWire { .. } => "bad_wire",
+            WireVerdict::Silent => "silent",
+            WireVerdict::Asleep { .. } => "asleep",
+        }
+    }
+
     /// Not [`WireVerdict::Healthy`].
     pub fn is_degraded(&self) -> bool {
         *self != WireVerdict::Healthy

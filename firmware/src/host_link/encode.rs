@@ -184,6 +184,8 @@ pub struct StateExtras<'a> {
     /// The doctor's verdicts of the last minute, their keys (`ok`: none;
     /// `None`: no CAN output, null).
     pub can_doctor: Option<&'a str>,
+    /// The UART wire's verdict in words ([`crate::bms::wire`]).
+    pub bms_wire: Option<&'a str>,
     /// The Wi-Fi signal, dBm (`None`: unknown, published as null).
     pub wifi_rssi_dbm: Option<i8>,
     /// "update to X rolled back: reason" (`None`: none, published as null).
@@ -445,6 +447,7 @@ fn extras_members<'a>(
         ccl_why: e.why[1],
         dcl_why: e.why[2],
         can_doctor: e.can_doctor,
+        bms_wire: e.bms_wire,
         wifi_rssi_dbm: e.wifi_rssi_dbm,
         update_rolled_back: e.update_rolled_back,
         update_latest: e.update_latest,
@@ -641,7 +644,10 @@ pub fn link(
     online: bool,
     piece_registers: u16,
     host: &super::HostLinkStats,
+    wire: (crate::bms::wire::WireFigures, crate::bms::wire::WireVerdict),
 ) -> Option<usize> {
+    let mut verdict = crate::log_line::Line::new();
+    wire.1.text(&mut verdict);
     line(
         &schema::Link::<Wire> {
             ty: "link",
@@ -668,6 +674,11 @@ pub fn link(
             lines_in: host.lines_in,
             errors: host.errors,
             dropped_lines: host.dropped_lines,
+            corrupted_permille: wire.0.corrupted_permille,
+            lost_permille: wire.0.lost_permille,
+            resent_permille: wire.0.resent_permille,
+            wire: wire.1.key(),
+            wire_verdict: verdict.as_str(),
         },
         out,
     )

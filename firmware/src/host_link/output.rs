@@ -378,6 +378,7 @@ impl State {
                 t.online,
                 bridge.piece_registers(),
                 &self.stats,
+                bridge.wire(),
             ),
             Out::ConfigOutcome { req, name, outcome } => match outcome {
                 ConfigAnswer::Field(id, o) => {

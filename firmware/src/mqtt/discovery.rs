@@ -470,6 +470,13 @@ pub const ENTITIES: &[Entity] = &[
         Read::Nullable("can_doctor"),
         None,
     )),
+    diagnostic(plain(
+        "bms_wire",
+        "BMS wire",
+        None,
+        Read::Nullable("bms_wire"),
+        None,
+    )),
     diagnostic(Entity {
         object: "firmware_update",
         name: "Bridge firmware update",

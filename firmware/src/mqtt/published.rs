@@ -28,6 +28,8 @@ pub struct Published {
     pub version: Option<VersionInfo>,
     /// Requests sent to the BMS and replies received.
     pub link: (u32, u32),
+    /// The UART wire's verdict of the last window ([`crate::bms::wire`]).
+    pub wire: crate::bms::wire::WireVerdict,
     /// What the inverter is told (CVL 0.1 V, CCL 0.1 A, DCL 0.1 A), while the
     /// CAN output sends it.
     pub limits: Option<(u16, u16, u16)>,

@@ -54,6 +54,8 @@ pub struct View<'a> {
     pub limits: Option<(u16, u16, u16)>,
     /// Requests sent to the BMS and replies received, since start-up.
     pub link: (u32, u32),
+    /// The UART wire's verdict of the last window ([`crate::bms::wire`]).
+    pub wire: crate::bms::wire::WireVerdict,
     /// Packs in parallel: the battery as the inverter output sees it (its
     /// device is published while this bridge speaks: [`super::battery`]).
     pub battery: Option<&'a crate::inverter::packs::BatteryView>,
@@ -85,6 +87,7 @@ impl<'a> View<'a> {
             identity: p.version.as_ref().map(Identity::from_version),
             limits: p.limits,
             link: p.link,
+            wire: p.wire,
             battery: p.battery.as_ref(),
             freshness: p.freshness,
             energy_mwh: p.energy_mwh,
@@ -546,6 +549,8 @@ impl Publisher {
             .and_then(|i| i.reasons)
             .map(|r| [r.cvl.text(), r.ccl.text(), r.dcl.text()]);
         let why_text = |k: usize| why.as_ref().and_then(|w| w.get(k)).map(|l| l.as_str());
+        let mut wire = crate::log_line::Line::new();
+        view.wire.text(&mut wire);
         let doctor = view.inverter.map(|i| {
             let mut keys = heapless::String::<160>::new();
             for v in i.verdicts.iter().flatten() {
@@ -577,6 +582,7 @@ impl Publisher {
             charge_stage: stage.as_ref().map(|s| s.as_str()),
             why: [why_text(0), why_text(1), why_text(2)],
             can_doctor: doctor.as_ref().map(|d| d.as_str()),
+            bms_wire: Some(wire.as_str()),
             wifi_rssi_dbm: view.wifi_rssi_dbm,
             update_rolled_back: view.update_rolled_back,
             update_latest: view.update_latest,

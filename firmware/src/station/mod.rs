@@ -637,6 +637,7 @@ impl Station {
             flagged: t.live.flagged.map(|c| c.name()),
             version: t.version,
             link: (s.requests, s.replies),
+            wire: self.bridge.wire().1,
             limits: self
                 .inverter
                 .as_ref()

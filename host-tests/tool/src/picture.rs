@@ -240,6 +240,10 @@ pub fn render_text(
     if let Some(q) = link.map(link_quality) {
         line(format!("Link {q}"));
     }
+    // The wire's verdict of the last minute, when it is not healthy.
+    if let Some(l) = link.filter(|l| !l.wire.is_empty() && l.wire != "healthy") {
+        line(format!("  wire: {}", l.wire_verdict));
+    }
     s
 }
 

@@ -465,6 +465,8 @@ line_type! {
         pub dcl_why: Option<F::Text>,
         #[serde(default)]
         pub can_doctor: Option<F::Text>,
+        #[serde(default)]
+        pub bms_wire: Option<F::Text>,
         pub wifi_rssi_dbm: Option<i8>,
         pub update_rolled_back: Option<F::Text>,
         #[serde(default)]
@@ -612,6 +614,16 @@ line_type! {
         pub lines_in: u32,
         pub errors: u32,
         pub dropped_lines: u32,
+        #[serde(default)]
+        pub corrupted_permille: u16,
+        #[serde(default)]
+        pub lost_permille: u16,
+        #[serde(default)]
+        pub resent_permille: u16,
+        #[serde(default)]
+        pub wire: F::Text,
+        #[serde(default)]
+        pub wire_verdict: F::Text,
     }
 }
 

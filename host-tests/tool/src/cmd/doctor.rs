@@ -1,4 +1,5 @@
-//! `tinybms doctor`: the inverter's wire in words. On a bridge: why each
+//! `tinybms doctor`: both wires in words. On a bridge: the BMS's UART wire
+//! (its `link` line: damaged, lost and resent replies and a verdict), why each
 //! limit is what it is (its `telemetry` line), then its CAN capture (`get
 //! can`: the last minute of frames both ways) read by the firmware's own
 //! doctor — the heartbeat and each verdict with its numbers and what to do
@@ -137,6 +138,16 @@ fn on_bridge(target: &str, out: Option<&Path>) -> ToolResult<()> {
         timeout: std::time::Duration::from_secs(15),
     })?;
     let t = c.snapshot()?;
+    // The BMS's wire first: without data nothing else is right.
+    let l = c.link()?;
+    if l.wire.is_empty() {
+        println!("BMS wire: (this bridge's firmware does not judge it)");
+    } else {
+        println!(
+            "BMS wire: {} (last minute, per thousand sends: {} corrupted, {} lost, {} resent)",
+            l.wire_verdict, l.corrupted_permille, l.lost_permille, l.resent_permille
+        );
+    }
     let Some(inv) = t.told.inverter else {
         println!("this bridge has no CAN output");
         return Ok(());
