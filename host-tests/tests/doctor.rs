@@ -84,3 +84,24 @@ fn a_damaged_capture_is_refused_with_the_line() {
     let e = verdicts(CASES[0].protocol, &log).unwrap_err();
     assert!(e.starts_with("line 2: no direction"), "{e}");
 }
+
+/// The bridge's doctor judges its evidence against the running clock: the
+/// capture's milliseconds wrap after 49.7 days, the verdicts must not vanish
+/// with them.
+#[test]
+fn a_verdict_holds_after_fifty_days_of_uptime() {
+    use tinybms_firmware::inverter::{Inverter, InverterConfig};
+    let fifty_days = 50 * 86_400 * 1_000_000u64;
+    let mut i = Inverter::new(InverterConfig::default(), fifty_days);
+    i.on_bus_off(fifty_days);
+    let keys: Vec<_> = i
+        .doctor()
+        .verdicts(Some(fifty_days))
+        .iter()
+        .map(|v| v.key())
+        .collect();
+    assert_eq!(keys, ["bus_off"]);
+    // The capture's line wraps (a log's time), the verdict did not.
+    let e = i.capture().iter().last().copied().expect("an entry");
+    assert!(e.at_us() < fifty_days);
+}

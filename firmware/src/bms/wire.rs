@@ -4,7 +4,7 @@
 //! check.
 //!
 //! Sans-IO: [`WireFigures::between`] takes two copies of the counters,
-//! [`WireFigures::verdict`] decides, [`WireVerdict::text`] says it.
+//! [`WireWindow::verdict`] decides, [`WireVerdict::text`] says it.
 //!
 //! ## Figures
 //! Every figure is per thousand **sends**: the attempts put on the wire in the

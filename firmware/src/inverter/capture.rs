@@ -173,14 +173,13 @@ impl Capture {
     }
 
     /// Records `seen` at `at_us`, dropping the oldest when full.
-    pub fn record(&mut self, at_us: Instant, seen: Seen) -> Entry {
+    pub fn record(&mut self, at_us: Instant, seen: Seen) {
         let e = Entry::new(at_us, seen);
         if self.ring.is_full() {
             self.ring.pop_front();
         }
         let _fits = self.ring.push_back(e); // room made above
         self.recorded = self.recorded.wrapping_add(1);
-        e
     }
 
     /// Sequence numbers held: `first..end` (entry `k` is `get(k)`).

@@ -342,10 +342,12 @@ impl Inverter {
         &self.doctor
     }
 
-    /// Records `seen` in the capture and shows it to the doctor.
+    /// Records `seen` in the capture and shows it to the doctor (with the
+    /// time as it is: the capture keeps milliseconds that wrap after 49
+    /// days, the doctor's evidence is judged against the running clock).
     fn capture_now(&mut self, now: Instant, seen: capture::Seen) {
-        let e = self.capture.record(now, seen);
-        self.doctor.on_entry(e.at_us(), e.seen());
+        self.capture.record(now, seen);
+        self.doctor.on_entry(now, seen);
         if let Some(v) = self.doctor.take_news() {
             self.reports.push(InverterReport::Doctor(v));
         }
