@@ -57,7 +57,8 @@ for m in can.LogReader(log):
         elif k == 3:
             summaries += 1
 # Every frame the bridge sends must be in the log; the inverter's own
-# (0x305, 0x300, 0x301: sender INVERTER) only when the simulated one sends it.
+# (0x305, 0x307, 0x300, 0x301: sender INVERTER) only when the simulated one
+# sends it.
 missing = [f"{i.frame_id:03X}" for i in db.messages
            if i.frame_id not in counts and "INVERTER" not in i.senders]
 if missing:
