@@ -25,9 +25,10 @@
 # wire (issue 54: the CAN capture, 512 entries of 14 bytes = 7 KiB of RAM; the
 # host link's line from 1600 to 2112 bytes for the limits' reasons, the
 # heartbeat and the verdicts, +2.5 KiB of RAM in its buffer and pipes; the
-# reasons, the doctor's rules and their words, the `get can` listing: SuperMini
-# 375.5 -> 389.1 KiB of flash, 46.3 -> 55.4 KiB of static RAM). The C3 has
-# 320 KiB of data RAM; what static RAM leaves is the stack (257.6 KiB).
+# reasons, the doctor's rules and their words, the `get can` listing, the BMS
+# wire's verdict and adaptive reads: SuperMini 375.5 -> 397.6 KiB of flash,
+# 46.3 -> 56.6 KiB of static RAM). The C3 has 320 KiB of data RAM; what static
+# RAM leaves is the stack.
 # An image with Wi-Fi (it holds esp-radio's symbols) has a budget of its own:
 # WIFI_FLASH_BUDGET_KIB (default 1024), WIFI_RAM_BUDGET_KIB (default 256: the
 # 100 KiB heap included), WIFI_RAM_BUDGET_C6_KIB (default 280: the C6's radio
