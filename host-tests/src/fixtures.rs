@@ -102,3 +102,23 @@ pub fn battery_view(
         packs: views,
     }
 }
+
+/// A live snapshot of 16 cells with every value at its widest (the longest
+/// `telemetry` line and MQTT state are measured with it).
+pub fn widest_snapshot() -> protocol_core::views::LiveSnapshot {
+    let mut block = protocol_core::response::RegisterBlock {
+        start: 0,
+        values: Default::default(),
+    };
+    for a in 0..56u16 {
+        let v = match a {
+            0..=15 => 49_999,
+            36..=39 => 0xBF7F, // f32 halves
+            53 => 16,
+            48 | 42 | 43 => 0x8001,
+            _ => 0xFFFF,
+        };
+        block.values.push(v).expect("56 registers fit");
+    }
+    protocol_core::views::LiveSnapshot::from_registers(&block).expect("a snapshot")
+}

@@ -856,22 +856,7 @@ fn link_line_counts() {
 
 #[test]
 fn longest_telemetry_line_fits() {
-    // 16 cells and every value at its widest.
-    let mut block = RegisterBlock {
-        start: 0,
-        values: Default::default(),
-    };
-    for a in 0..56u16 {
-        let v = match a {
-            0..=15 => 49_999,
-            36..=39 => 0xBF7F, // f32 halves
-            53 => 16,
-            48 | 42 | 43 => 0x8001,
-            _ => 0xFFFF,
-        };
-        block.values.push(v).unwrap();
-    }
-    let snapshot = protocol_core::views::LiveSnapshot::from_registers(&block).unwrap();
+    let snapshot = host_tests::fixtures::widest_snapshot();
     let mut buf = [0u8; OUT_LINE_MAX];
     let head = encode::TelemetryHead {
         req: Some(u32::MAX),

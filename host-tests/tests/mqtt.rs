@@ -958,21 +958,7 @@ fn every_stop_cause_is_an_option_of_home_assistant() {
 fn the_widest_state_fits_the_payload() {
     use tinybms_firmware::host_link::encode::{self, StateExtras, TelemetryHead};
     use tinybms_firmware::inverter::why::Why;
-    let mut block = RegisterBlock {
-        start: 0,
-        values: Default::default(),
-    };
-    for a in 0..56u16 {
-        let v = match a {
-            0..=15 => 49_999,
-            36..=39 => 0xBF7F,
-            53 => 16,
-            48 | 42 | 43 => 0x8001,
-            _ => 0xFFFF,
-        };
-        block.values.push(v).unwrap();
-    }
-    let snapshot = LiveSnapshot::from_registers(&block).unwrap();
+    let snapshot = host_tests::fixtures::widest_snapshot();
     let why = Why::OverCurrent { cutoff_a: u16::MAX }.text();
     let long = "x".repeat(120);
     let doctor = "no_ack, bus_off, no_inverter, heartbeat_late, other_dialect, over_limit, voltage_disagrees, unknown_name, export_after_step";

@@ -180,27 +180,7 @@ fn on_bridge(target: &str, out: Option<&Path>) -> ToolResult<()> {
         }
         _ => println!("heartbeat since the bridge started: none heard"),
     }
-    let protocol = Protocol::from_key(&inv.protocol).ok_or_else(|| {
-        ToolError::failed(format!("the bridge speaks {}: unknown here", inv.protocol))
-    })?;
-    let lines = c.get("can")?;
-    let mut text = String::new();
-    for r in &lines {
-        if let HostLine::Can(l) = &r.line {
-            text.push_str(&l.line);
-            text.push('\n');
-        }
-    }
-    if let Some(file) = out {
-        std::fs::write(file, &text)
-            .map_err(|e| ToolError::failed(format!("cannot write {}: {e}", file.display())))?;
-        println!(
-            "the CAN capture saved to {} ({} frames)",
-            file.display(),
-            text.lines().count()
-        );
-    }
-    diagnose(&text, protocol, "the bridge's capture")?;
+    capture_of(&mut c, out)?;
     // What the bridge itself found in the last minute (its capture may have
     // moved on since).
     if let Some(keys) = inv.doctor.as_deref() {
