@@ -59,6 +59,7 @@ pub mod bridge;
 pub mod config;
 pub mod energy;
 pub mod freshness;
+pub mod history;
 pub mod host_link;
 pub mod identity;
 pub mod improv;

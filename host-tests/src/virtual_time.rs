@@ -481,6 +481,30 @@ impl Harness {
                     self.drain();
                     continue;
                 }
+                Action::History(op) => {
+                    use tinybms_firmware::history::ring::Op;
+                    let ok = self
+                        .ota
+                        .as_mut()
+                        .is_some_and(|f| tinybms_firmware::history::log::run(f, op));
+                    let (erase, program, _) = self.flash_stall_us;
+                    let (stall, name) = match op {
+                        Op::Erase(_) => (erase, "history erase"),
+                        Op::Program(..) => (program, "history program"),
+                    };
+                    self.flash_ops.push((self.now, name));
+                    self.station.history_done(ok);
+                    self.stall(stall);
+                    self.drain();
+                    continue;
+                }
+                Action::HistoryRead(at, len) => {
+                    use tinybms_firmware::update::flash::OtaFlash;
+                    let mut b = vec![0u8; usize::from(len)];
+                    let ok = self.ota.as_mut().is_some_and(|f| f.read(at, &mut b));
+                    self.station.history_read(ok.then_some(&b[..]));
+                    continue;
+                }
                 Action::Restart => {
                     // The chip restarts into the update: this station's run
                     // ends (the clock goes on to the end).

@@ -192,6 +192,16 @@ async fn main(spawner: Spawner) {
     #[cfg(not(feature = "store"))]
     let _ = site;
     station.set_ota(ota);
+    // The history: its partition and where its rings stand (reads only).
+    let history = chip_ota.open_history();
+    if let Some(p) = history.problem() {
+        defmt::warn!("history: {=str}", p);
+    }
+    station.set_history(
+        now_us(),
+        history,
+        esp_hal::system::reset_reason().map(|r| r as u8),
+    );
     // The boot lines go to defmt and stay in the host link for every host
     // (`tinybms log PORT` shows them however late it connects).
     log::boot(

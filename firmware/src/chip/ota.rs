@@ -56,6 +56,13 @@ pub fn boot() -> (ChipOta, Ota) {
 }
 
 impl ChipOta {
+    /// Opens the history in its partition (or says why there is none).
+    pub fn open_history(&mut self) -> tinybms_firmware::history::log::History {
+        use tinybms_firmware::history::log::{find, History, Reading};
+        let range = find(self);
+        History::open(&mut Reading(self), range)
+    }
+
     /// Does `op` for the station (`program`: a program's bytes); true when it
     /// worked and reads back the same.
     pub fn run(&mut self, ota: &Ota, op: Op, program: &[u8]) -> bool {

@@ -123,6 +123,17 @@ async fn station_task(
                 station.flashed(now_us(), ok);
             }
             Action::Restart => esp_hal::system::software_reset(),
+            Action::History(op) => {
+                let ok = tinybms_firmware::history::log::run(&mut chip_ota, op);
+                station.history_done(ok);
+            }
+            Action::HistoryRead(at, len) => {
+                use tinybms_firmware::update::flash::OtaFlash;
+                let mut b = [0u8; tinybms_firmware::history::log::READ_MAX];
+                let n = usize::from(len).min(b.len());
+                let ok = chip_ota.read(at, &mut b[..n]);
+                station.history_read(ok.then_some(&b[..n]));
+            }
             #[cfg(feature = "can")]
             Action::Can(frame) => {
                 if wires::CAN_COMMAND

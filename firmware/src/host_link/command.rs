@@ -43,6 +43,9 @@ pub enum What {
     Config,
     /// `can` lines (the CAN capture, oldest first) and `can_end`.
     Can,
+    /// The history in flash: `history_event`, `history_day` (and
+    /// `history_skipped`) lines, oldest first, and `history_end`.
+    History,
 }
 
 /// What `clear` clears.
@@ -108,6 +111,8 @@ pub enum HostCommand<'a> {
     UpdateCancel,
     /// `update_status`.
     UpdateStatus,
+    /// `set_time`: the date, Unix seconds (`at`), for the history's records.
+    SetTime(u32),
 }
 
 /// A command line that parsed, with its request id.
@@ -415,6 +420,7 @@ fn what(s: &str) -> Option<What> {
         "link" => What::Link,
         "config" => What::Config,
         "can" => What::Can,
+        "history" => What::History,
         _ => return None,
     })
 }
@@ -506,6 +512,9 @@ const COMMANDS: &[(&str, &[&str], Build)] = &[
     ("update_chunk", &["at", "data"], update_chunk),
     ("update_cancel", &[], |_| Ok(HostCommand::UpdateCancel)),
     ("update_status", &[], |_| Ok(HostCommand::UpdateStatus)),
+    ("set_time", &["at"], |f| {
+        Ok(HostCommand::SetTime(f.at.ok_or(missing(f.req, "at"))?))
+    }),
 ];
 
 fn update_begin(f: Fields<'_>) -> Result<HostCommand<'_>, CommandError<'_>> {

@@ -124,6 +124,10 @@ impl State {
                 let l = self.update(now, &parsed.command, ota);
                 self.push(Out::Update(req, l));
             }
+            HostCommand::SetTime(at) => {
+                self.time = Some(at);
+                self.push(Out::Accepted(req, "set_time"));
+            }
         }
     }
 
@@ -152,6 +156,14 @@ impl State {
                     next: first,
                     end,
                     sent: 0,
+                }),
+            },
+            What::History => match self.history {
+                Some(problem) => self.error(req, ErrorCode::NotReady, problem, ""),
+                None => self.push(Out::History {
+                    req,
+                    started: false,
+                    counts: [0; 3],
                 }),
             },
             What::Events => {

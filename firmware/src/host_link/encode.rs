@@ -193,6 +193,8 @@ pub struct StateExtras<'a> {
     /// The newest version known beyond the running one (`None`: none known,
     /// published as null: Home Assistant's update entity then says unknown).
     pub update_latest: Option<&'a str>,
+    /// How the pack ages.
+    pub aging: crate::history::Aging,
 }
 
 /// What a `telemetry` line says besides the snapshot.
@@ -451,6 +453,11 @@ fn extras_members<'a>(
         wifi_rssi_dbm: e.wifi_rssi_dbm,
         update_rolled_back: e.update_rolled_back,
         update_latest: e.update_latest,
+        capacity_measured_ah: e.aging.capacity.and_then(|c| fixed(i64::from(c.0), 2)),
+        capacity_uncertainty_percent: e.aging.capacity.and_then(|c| fixed(i64::from(c.1), 1)),
+        charge_cycles: e.aging.cycles,
+        top_spread_mv: e.aging.top_spread_mv,
+        history: if e.aging.recording { "recording" } else { "off" },
     }
 }
 
@@ -542,6 +549,71 @@ pub fn can_end(out: &mut [u8], req: Option<u32>, count: u32, protocol: &str) -> 
             req,
             count,
             protocol,
+        },
+        out,
+    )
+}
+
+/// Writes one line of a `get history` listing (`history_event`,
+/// `history_day`, `history_skipped`).
+pub fn history(
+    out: &mut [u8],
+    req: Option<u32>,
+    item: &crate::history::log::Listed,
+) -> Option<usize> {
+    use crate::history::log::Listed;
+    use crate::history::ring::{Kind, DAY_PAYLOAD_BYTES};
+    match item {
+        Listed::Event(id, e) => line(
+            &schema::HistoryEvent::<Wire> {
+                ty: "history_event",
+                req,
+                id: *id,
+                code: e.code.key(),
+                boot: u32::from(e.boot),
+                uptime_ms: e.uptime_ms,
+                date: (e.unix_s != 0).then_some(u64::from(e.unix_s)),
+                a: e.a,
+                b: e.b,
+                text: e.text(),
+            },
+            out,
+        ),
+        Listed::Day(id, p) => line(
+            &schema::HistoryDay::<Wire> {
+                ty: "history_day",
+                req,
+                id: *id,
+                record: Hex(p.get(..DAY_PAYLOAD_BYTES).unwrap_or(p), false),
+            },
+            out,
+        ),
+        Listed::Skipped(kind, at, reason) => line(
+            &schema::HistorySkipped::<Wire> {
+                ty: "history_skipped",
+                req,
+                ring: if *kind == Kind::Event {
+                    "events"
+                } else {
+                    "days"
+                },
+                at: *at,
+                reason,
+            },
+            out,
+        ),
+    }
+}
+
+/// Writes a `history_end` line.
+pub fn history_end(out: &mut [u8], req: Option<u32>, counts: [u32; 3]) -> Option<usize> {
+    line(
+        &schema::HistoryEnd::<Wire> {
+            ty: "history_end",
+            req,
+            events: counts[0],
+            days: counts[1],
+            skipped: counts[2],
         },
         out,
     )

@@ -207,6 +207,13 @@ struct State {
     inverter: Option<encode::InverterState>,
     /// The CAN capture as the station shows it (`get can`).
     can: CanFeed,
+    /// A host said the date (`set_time`), for the station to take.
+    time: Option<u32>,
+    /// Why `get history` cannot be answered (`None`: it can).
+    history: Option<&'static str>,
+    /// The history listing's next item, as the station read it
+    /// (`Some(None)`: the listing is over).
+    history_item: Option<Option<crate::history::log::Listed>>,
     /// Configuration fields that wait for a restart.
     restart_pending: u32,
     /// Where the MQTT connection stands (`hello`), once the session said.
@@ -285,6 +292,9 @@ impl HostLink {
                 battery_lines: 0,
                 inverter: None,
                 can: CanFeed::default(),
+                time: None,
+                history: Some("this bridge keeps no history"),
+                history_item: None,
                 restart_pending: 0,
                 mqtt: None,
                 radio: None,
@@ -509,6 +519,40 @@ impl HostLink {
     pub fn on_can_span(&mut self, span: Option<(u32, u32)>, protocol: &'static str) {
         self.s.can.span = span;
         self.s.can.protocol = protocol;
+    }
+
+    /// Whether the bridge keeps a history (`Err`: why not), before each
+    /// [`HostLink::next_line`].
+    pub fn on_history(&mut self, problem: Option<&'static str>) {
+        self.s.history = problem;
+    }
+
+    /// The date a host said (`set_time`, Unix seconds), once.
+    pub fn take_time(&mut self) -> Option<u32> {
+        self.s.time.take()
+    }
+
+    /// A `get history` listing waits to be started: true once (the station
+    /// then starts reading the history).
+    pub fn history_start(&mut self) -> bool {
+        match self.s.queue.front_mut() {
+            Some(output::Out::History { started, .. }) if !*started => {
+                *started = true;
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// A `get history` listing waits for its next item.
+    pub fn history_wanted(&self) -> bool {
+        matches!(self.s.queue.front(), Some(output::Out::History { .. }))
+            && self.s.history_item.is_none()
+    }
+
+    /// The listing's next item (`None`: the listing is over).
+    pub fn on_history_item(&mut self, item: Option<crate::history::log::Listed>) {
+        self.s.history_item = Some(item);
     }
 
     /// The capture entry a `get can` listing needs next, if one is under way.

@@ -57,6 +57,13 @@ pub(super) enum Out {
         end: u32,
         sent: u32,
     },
+    /// `get history`: the listing asked of the history (`started`), lines
+    /// so far (events, days, skipped).
+    History {
+        req: Option<u32>,
+        started: bool,
+        counts: [u32; 3],
+    },
     /// `get settings`: the next index into `SettingId::ALL`.
     Settings {
         req: Option<u32>,
@@ -116,6 +123,11 @@ impl HostLink {
                     crate::Level::Info
                 };
                 encode::boot_log(out, level, line.get(1..).unwrap_or(""))
+            } else if matches!(self.s.queue.front(), Some(Out::History { .. }))
+                && self.s.history_item.is_none()
+            {
+                // The station reads the history's next record first.
+                return None;
             } else if !self.s.queue.is_empty() {
                 self.s.encode_front(now, bridge, config, out)
             } else if let Some((level, text)) = self.s.logs.pop_front() {
@@ -289,6 +301,21 @@ impl State {
                 }
                 encode::can_end(out, *req, *sent, self.can.protocol)
             }
+            Out::History { req, counts, .. } => match self.history_item.take() {
+                Some(Some(item)) => {
+                    let i = match item {
+                        crate::history::log::Listed::Event(..) => 0,
+                        crate::history::log::Listed::Day(..) => 1,
+                        crate::history::log::Listed::Skipped(..) => 2,
+                    };
+                    if let Some(c) = counts.get_mut(i) {
+                        *c = c.saturating_add(1);
+                    }
+                    return Some(Listed::More(encode::history(out, *req, &item)));
+                }
+                // Over (or never started: no history).
+                _ => encode::history_end(out, *req, *counts),
+            },
             Out::Config { req, next } => {
                 let fields = crate::config::FIELDS;
                 match fields.get(usize::from(*next)) {
@@ -397,9 +424,11 @@ impl State {
                 if *option == 1 { "events" } else { "statistics" },
                 *ok,
             ),
-            Out::Settings { .. } | Out::Events { .. } | Out::Config { .. } | Out::Can { .. } => {
-                None
-            }
+            Out::Settings { .. }
+            | Out::Events { .. }
+            | Out::Config { .. }
+            | Out::Can { .. }
+            | Out::History { .. } => None,
         }
     }
 }

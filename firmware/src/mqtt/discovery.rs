@@ -320,6 +320,33 @@ pub const ENTITIES: &[Entity] = &[
         Read::Member("estimated_time_left_s"),
         0,
     ),
+    sensor(
+        "capacity_measured",
+        "Measured capacity",
+        None,
+        Some("Ah"),
+        Read::Nullable("capacity_measured_ah"),
+        1,
+    ),
+    sensor(
+        "top_spread",
+        "Spread at the top of charge",
+        Some("voltage"),
+        Some("mV"),
+        Read::Nullable("top_spread_mv"),
+        0,
+    ),
+    Entity {
+        state_class: Some("total_increasing"),
+        ..sensor(
+            "charge_cycles",
+            "Charge cycles",
+            None,
+            None,
+            Read::Nullable("charge_cycles"),
+            0,
+        )
+    },
     energy("energy_charged", "Energy charged", "energy_charged_kwh"),
     energy(
         "energy_discharged",
@@ -475,6 +502,13 @@ pub const ENTITIES: &[Entity] = &[
         "BMS wire",
         None,
         Read::Nullable("bms_wire"),
+        None,
+    )),
+    diagnostic(plain(
+        "history",
+        "History in flash",
+        None,
+        Read::Member("history"),
         None,
     )),
     diagnostic(Entity {

@@ -53,6 +53,8 @@ pub struct Published {
     /// The newest version known to exist beyond the running one (an update
     /// rolled back, a file checked): the update entity's latest version.
     pub update_latest: Option<crate::update::transfer::Version>,
+    /// How the pack ages (capacity, cycles, the spread at the top of charge).
+    pub aging: crate::history::Aging,
 }
 
 /// The inverter output as the MQTT diagnostics show it.

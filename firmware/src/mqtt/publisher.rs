@@ -73,6 +73,8 @@ pub struct View<'a> {
     pub update_rolled_back: Option<&'a str>,
     /// The newest version known beyond the running one.
     pub update_latest: Option<&'a str>,
+    /// How the pack ages.
+    pub aging: crate::history::Aging,
 }
 
 impl<'a> View<'a> {
@@ -96,6 +98,7 @@ impl<'a> View<'a> {
             wifi_rssi_dbm: p.wifi_rssi_dbm,
             update_rolled_back: p.update_rolled_back.as_deref(),
             update_latest: p.update_latest.as_deref(),
+            aging: p.aging,
         }
     }
 
@@ -586,6 +589,7 @@ impl Publisher {
             wifi_rssi_dbm: view.wifi_rssi_dbm,
             update_rolled_back: view.update_rolled_back,
             update_latest: view.update_latest,
+            aging: view.aging,
         };
         let head = TelemetryHead {
             req: None,

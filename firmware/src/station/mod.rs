@@ -84,6 +84,7 @@ macro_rules! feed_capture {
     }};
 }
 
+mod history;
 pub mod ota;
 mod parts;
 pub mod pumps;
@@ -174,6 +175,12 @@ pub enum Action {
     Flash(crate::update::transfer::Op),
     /// Restart the chip (an update is installed).
     Restart,
+    /// Do this flash operation of the history, read it back, and report
+    /// with [`Station::history_done`]; send nothing to the BMS before.
+    History(crate::history::ring::Op),
+    /// Read this many bytes at this flash address for a host's listing of
+    /// the history, and hand them to [`Station::history_read`].
+    HistoryRead(u32, u16),
     /// Nothing before this time, unless an input arrives.
     WaitUntil(Instant),
 }
@@ -231,6 +238,12 @@ pub struct Station {
     restart_at: Option<Instant>,
     /// The link of a connection to the update port on the network.
     update_port: Option<parts::UpdatePort>,
+    /// The history in flash (events, days).
+    history: crate::history::log::History,
+    /// What the history follows.
+    watch: history::Watch,
+    /// The latest `now` the station was polled with.
+    last_now: Instant,
 }
 
 impl Station {
@@ -292,6 +305,9 @@ impl Station {
             ota_notes: Deque::new(),
             restart_at: None,
             update_port: None,
+            history: crate::history::log::History::without("this runner keeps no history"),
+            watch: history::Watch::default(),
+            last_now: now,
         }
     }
 
@@ -360,6 +376,7 @@ impl Station {
         let pack = settings
             .as_ref()
             .and_then(crate::config::PackSettings::from_registers);
+        self.watch.who = Some(crate::history::event::Who::Host);
         let out = self.config.change(changes, false, pack.as_ref());
         self.apply_running(now);
         out
@@ -418,6 +435,7 @@ impl Station {
 
     /// Bytes from the host at `now`.
     pub fn host_rx(&mut self, now: Instant, bytes: &[u8]) {
+        self.watch.who = Some(crate::history::event::Who::Usb);
         if let Some(h) = self.host.as_mut() {
             h.handle_rx(
                 now,
@@ -426,6 +444,10 @@ impl Station {
                 &mut self.config,
                 &mut self.ota,
             );
+            if let Some(t) = h.take_time() {
+                self.history
+                    .set_date(now, u64::from(t), crate::history::event::Who::Usb);
+            }
         }
         self.apply_running(now);
     }
@@ -450,6 +472,15 @@ impl Station {
         let pending = self.config.restarts_pending() as u32;
         let h = self.host.as_mut()?;
         feed_capture!(h, self.inverter.as_ref());
+        h.on_history(self.history.problem());
+        if h.history_start() {
+            self.history.list();
+        }
+        if h.history_wanted() {
+            if let Some(item) = self.history.take_listed() {
+                h.on_history_item(item);
+            }
+        }
         h.on_inverter(inverter);
         h.on_restart_pending(pending);
         h.next_line(now, &self.bridge, &self.config, out)
@@ -463,6 +494,8 @@ impl Station {
             return;
         }
         self.mqtt = Some(state);
+        let up = matches!(state, MqttState::Connected | MqttState::Held);
+        self.record_mqtt(self.last_now, up);
         if let Some(h) = self.host.as_mut() {
             h.on_mqtt(state.key());
         }
@@ -519,6 +552,7 @@ impl Station {
 
     /// The Wi-Fi link changed: joined (its address), lost, or off.
     pub fn wifi_link(&mut self, link: WifiLink) {
+        self.record_wifi(self.last_now, matches!(link, WifiLink::Up(_)));
         if let Some(h) = self.host.as_mut() {
             h.wifi_link(link);
         }
@@ -593,6 +627,7 @@ impl Station {
     /// enough, it lifts read-only.
     pub fn button(&mut self, now: Instant, pressed: bool) {
         if self.hold.sample(now, pressed) {
+            self.watch.who = Some(crate::history::event::Who::Button);
             self.config.unlock();
             self.apply_running(now);
         }
@@ -668,6 +703,7 @@ impl Station {
                 let _ = s.push_str(v);
                 s
             }),
+            aging: self.aging(),
         }
     }
 
@@ -725,6 +761,7 @@ impl Station {
 
     /// What to do at `now`.
     pub fn poll(&mut self, now: Instant) -> Action {
+        self.last_now = now;
         self.feed_inverter();
         self.apply_running(now);
         self.tick_battery(now);
@@ -781,6 +818,10 @@ impl Station {
                     if let Some(a) = self.ota_action(now, t.min(wake)) {
                         return a;
                     }
+                    // The history's writes in the same kind of gap.
+                    if let Some(a) = self.history_action(now, t.min(wake)) {
+                        return a;
+                    }
                 }
                 if let Some(h) = self.host.as_mut() {
                     wake = wake.min(h.poll(now, &self.bridge));
@@ -801,6 +842,7 @@ impl Station {
         let h = self.host.as_mut()?;
         let req = h.improv_mut().poll(now);
         if let Some((ssid, key)) = h.improv_mut().take_joined() {
+            self.watch.who = Some(crate::history::event::Who::WifiSetup);
             if self.config.joined_network(&ssid, &key) {
                 self.apply_running(now);
             }
@@ -848,7 +890,7 @@ impl Station {
         } else {
             self.next_update_note()?
         };
-        let _ = now;
+        self.record_logged(now, &item);
         if self.host.is_some() {
             let mut line = Line::new();
             self.log_text(&item, &mut line);
@@ -890,6 +932,7 @@ impl Station {
         if l != self.last_limits {
             self.last_limits = l;
             self.generation = self.generation.wrapping_add(1);
+            self.record_limits(now);
         }
     }
 

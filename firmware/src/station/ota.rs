@@ -219,6 +219,7 @@ impl Station {
 
     /// Bytes from the update port's connection.
     pub fn update_port_rx(&mut self, now: Instant, bytes: &[u8]) {
+        self.watch.who = Some(crate::history::event::Who::Network);
         if let Some(l) = self.update_port.as_mut() {
             l.handle_rx(
                 now,

@@ -148,6 +148,21 @@ impl NoHost {
     pub fn on_can_entry(&mut self, _: u32, _: Option<crate::inverter::capture::Entry>) {
         match *self {}
     }
+    pub fn take_time(&mut self) -> Option<u32> {
+        match *self {}
+    }
+    pub fn on_history(&mut self, _: Option<&'static str>) {
+        match *self {}
+    }
+    pub fn history_start(&mut self) -> bool {
+        match *self {}
+    }
+    pub fn history_wanted(&self) -> bool {
+        match *self {}
+    }
+    pub fn on_history_item(&mut self, _: Option<crate::history::log::Listed>) {
+        match *self {}
+    }
     pub fn on_restart_pending(&mut self, _: u32) {
         match *self {}
     }

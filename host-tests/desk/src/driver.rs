@@ -282,6 +282,19 @@ impl<P: BytePort> Driver<P> {
                     });
                     self.station.flashed(now, ok);
                 }
+                Action::History(op) => {
+                    let ok = self
+                        .ota
+                        .as_mut()
+                        .is_some_and(|c| tinybms_firmware::history::log::run(c, op));
+                    self.station.history_done(ok);
+                }
+                Action::HistoryRead(at, len) => {
+                    use tinybms_firmware::update::flash::OtaFlash;
+                    let mut b = vec![0u8; usize::from(len)];
+                    let ok = self.ota.as_mut().is_some_and(|c| c.read(at, &mut b));
+                    self.station.history_read(ok.then_some(&b[..]));
+                }
                 Action::Restart => {
                     self.restart_due = true;
                     self.deadline = now;

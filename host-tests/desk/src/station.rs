@@ -147,6 +147,10 @@ impl<P: BytePort> Hosted<P> {
         if let Some((ota, _)) = image {
             station.set_ota(ota);
         }
+        let mut chip = chip;
+        if let Some(c) = chip.as_mut() {
+            station.set_history(clock.now(), open_history(c), None);
+        }
         let mut driver = Driver::with_station(port, station, clock);
         driver.panics_before_confirm = panics;
         driver.store = Some(store);
@@ -226,6 +230,10 @@ impl<P: BytePort> Hosted<P> {
             .as_ref()
             .map(|c| boot_image(&c.0, &mut self.setup, cause));
         self.driver.station = Station::new(self.setup, loaded, now);
+        if let Some(c) = self.driver.ota.as_mut() {
+            let h = open_history(c);
+            self.driver.station.set_history(now, h, None);
+        }
         self.driver.panics_before_confirm = image.as_ref().is_some_and(|(_, p)| *p);
         self.driver.panicked = false;
         if let Some((ota, _)) = image {
@@ -437,4 +445,12 @@ impl HostSide for NoHost {
     fn write_line(&mut self, _: &[u8]) -> io::Result<()> {
         Ok(())
     }
+}
+
+/// The history in the desktop chip's flash (its `history` partition), as the
+/// chip opens it at boot.
+pub fn open_history(chip: &mut crate::ota::ChipFlash) -> tinybms_firmware::history::log::History {
+    use tinybms_firmware::history::log::{find, History, Reading};
+    let range = find(chip);
+    History::open(&mut Reading(chip), range)
 }

@@ -168,6 +168,19 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// The bridge's own history in flash: its events (why it restarted, stale
+    /// episodes, stops, configuration changes, updates, network losses) and
+    /// its daily records of the pack (energy, cells, capacity).
+    History {
+        #[command(flatten)]
+        conn: Conn,
+        /// The daily records instead of the events.
+        #[arg(long)]
+        days: bool,
+        /// Output: text, csv or json (JSON Lines).
+        #[arg(long, value_name = "F", default_value = "text")]
+        format: String,
+    },
     /// The inverter's wire in words: why each limit is what it is, the
     /// inverter's heartbeat, what the doctor found and what to do — from a
     /// bridge, or from a candump capture of its CAN bus (`--capture`).
@@ -388,6 +401,7 @@ impl Command {
             | Command::Apply { conn, .. }
             | Command::Set { conn, .. }
             | Command::Events { conn, .. }
+            | Command::History { conn, .. }
             | Command::Stats { conn, .. }
             | Command::Version { conn, .. }
             | Command::Reset { conn, .. }

@@ -217,8 +217,13 @@ impl Client {
     /// `get WHAT`: the lines answering it (for settings and events, up to and
     /// without the `_end` line).
     pub fn get(&mut self, what: &str) -> ToolResult<Vec<Received>> {
+        self.get_within(what, GET_TIMEOUT)
+    }
+
+    /// [`Client::get`] with a time for the whole answer (a long listing).
+    pub fn get_within(&mut self, what: &str, within: Duration) -> ToolResult<Vec<Received>> {
         let req = self.send(json!({"cmd": "get", "what": what}))?;
-        let end = Instant::now() + GET_TIMEOUT;
+        let end = Instant::now() + within;
         let mut out = Vec::new();
         loop {
             let r = self.recv_for(req, end, &format!("get {what}"))?;
@@ -228,6 +233,8 @@ impl Client {
                 (HostLine::SettingsEnd(_), _) | (HostLine::EventsEnd(_), _) => (true, false),
                 // Kept: it names the protocol of the capture's frames.
                 (HostLine::CanEnd(_), _) => (true, true),
+                // Kept: its counts.
+                (HostLine::HistoryEnd(_), _) => (true, true),
                 (HostLine::Telemetry(_), "snapshot")
                 | (HostLine::Statistics(_), "statistics")
                 | (HostLine::Version(_), "version")

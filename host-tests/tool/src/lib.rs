@@ -192,6 +192,7 @@ fn run(cli: Cli) -> ToolResult<()> {
             chemistry,
         } => cmd::set::run(conn, assignments, raw, dry_run, yes, chemistry.check()),
         Command::Events { conn, json } => cmd::events::run(conn, json),
+        Command::History { conn, days, format } => cmd::history::run(conn, days, &format),
         Command::Doctor {
             port,
             capture,

@@ -471,6 +471,15 @@ line_type! {
         pub update_rolled_back: Option<F::Text>,
         #[serde(default)]
         pub update_latest: Option<F::Text>,
+        #[serde(default)]
+        pub capacity_measured_ah: Option<F::Number>,
+        #[serde(default)]
+        pub capacity_uncertainty_percent: Option<F::Number>,
+        #[serde(default)]
+        pub charge_cycles: Option<u16>,
+        #[serde(default)]
+        pub top_spread_mv: Option<u16>,
+        pub history: F::Text,
     }
 }
 
@@ -724,6 +733,64 @@ line_type! {
         /// The protocol the bridge speaks on the bus (`inverter_protocol`):
         /// what the capture's frames mean.
         pub protocol: F::Text,
+    }
+}
+
+line_type! {
+    /// `history_event`: one event of the bridge's history in flash (`get
+    /// history`; [`crate::history::event`]).
+    pub struct HistoryEvent<F: Form> answer {
+        /// The record's id (its place in the ring: later is larger).
+        pub id: u32,
+        /// What happened (`started`, `bms_event`, `stop`, …).
+        pub code: F::Text,
+        /// The bridge's start it happened in.
+        pub boot: u32,
+        /// Time since that start, ms.
+        pub uptime_ms: u64,
+        /// The date, Unix seconds, when the bridge knew it.
+        pub date: Option<u64>,
+        /// First number (what it is depends on the code).
+        pub a: u32,
+        /// Second number.
+        pub b: u32,
+        /// The rest in words or a key (a version, a rule, a field).
+        pub text: F::Text,
+    }
+}
+
+line_type! {
+    /// `history_day`: one day record of the history (`get history`), its
+    /// bytes as stored ([`crate::history::day`] reads them).
+    pub struct HistoryDay<F: Form> answer {
+        /// The record's id (later is larger).
+        pub id: u32,
+        /// The record, upper-case hex.
+        pub record: F::Hex,
+    }
+}
+
+line_type! {
+    /// `history_skipped`: a record of the history that could not be read.
+    pub struct HistorySkipped<F: Form> answer {
+        /// `events` or `days`.
+        pub ring: F::Text,
+        /// Where (a flash address, or the record's id).
+        pub at: u32,
+        /// Why, in words.
+        pub reason: F::Text,
+    }
+}
+
+line_type! {
+    /// `history_end`: the end of a `get history` listing.
+    pub struct HistoryEnd<F: Form> answer {
+        /// `history_event` lines.
+        pub events: u32,
+        /// `history_day` lines.
+        pub days: u32,
+        /// `history_skipped` lines.
+        pub skipped: u32,
     }
 }
 

@@ -69,6 +69,10 @@ pub enum HostLine {
     Pack(Pack<Read>),
     Can(CanLine<Read>),
     CanEnd(CanEnd<Read>),
+    HistoryEvent(HistoryEvent<Read>),
+    HistoryDay(HistoryDay<Read>),
+    HistorySkipped(HistorySkipped<Read>),
+    HistoryEnd(HistoryEnd<Read>),
     #[serde(other)]
     Other,
 }
@@ -83,6 +87,10 @@ impl HostLine {
             HostLine::SettingsEnd(l) | HostLine::EventsEnd(l) => l.req,
             HostLine::Can(l) => l.req,
             HostLine::CanEnd(l) => l.req,
+            HostLine::HistoryEvent(l) => l.req,
+            HostLine::HistoryDay(l) => l.req,
+            HostLine::HistorySkipped(l) => l.req,
+            HostLine::HistoryEnd(l) => l.req,
             HostLine::Statistics(l) => l.req,
             HostLine::Version(l) => l.req,
             HostLine::Event(l) => l.req,

@@ -9,6 +9,7 @@ pub mod clear;
 pub mod config;
 pub mod doctor;
 pub mod events;
+pub mod history;
 pub mod log;
 pub mod monitor;
 pub mod mqtt;

@@ -314,6 +314,9 @@ mod direct {
                     // No flash in the page: an update has nowhere to go (it is
                     // refused before any flash work: no second slot).
                     Action::Flash(_) => station.flashed(now, false),
+                    // No history in the page (the station has none).
+                    Action::History(_) => station.history_done(false),
+                    Action::HistoryRead(..) => station.history_read(None),
                     Action::Restart => break,
                     Action::WaitUntil(t) => {
                         wake = t;
