@@ -24,6 +24,7 @@
 //! | | [`partitions`] | the ESP-IDF partition table, read from its bytes |
 //! | | [`update`] | updates without a cable: signed update files, the transfer into the other app slot, the trial boot that rolls itself back |
 //! | | [`identity`], [`energy`] | who the bridge is (firmware, build, chip, board, features); energy into and out of the pack |
+//! | | [`history`] | the pack's days (a record of each) and its capacity, estimated between full and the knee |
 //! | all of it | [`station`] | **the entry point**: one bridge with everything it feeds, wired together — what the chip runs and every desktop runner runs |
 //! | shared | [`freshness`] | the one freshness rule and the one stale choice |
 //! | | [`backoff`] | how a lost connection is retried (Wi-Fi and MQTT alike) |

@@ -6,7 +6,12 @@
 //! | --- | --- |
 //! | [`ring`] | a ring of fixed-size records in flash sectors: whole or absent after a power cut |
 //! | [`event`] | the bridge's events as records |
+//! | [`day`] | the record of each day of the pack and the book that fills it |
+//! | [`capacity`] | how much charge the pack really holds: estimated from the runs between two points whose state of charge is known |
 //! | [`log`] | the history as the station keeps it: what is written when, the listing |
+//!
+//! Sans-IO like the rest of the library: snapshots, events and time go in,
+//! records, estimates and flash operations come out.
 
 /// How the pack ages, as Home Assistant and the state show it.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
