@@ -199,7 +199,10 @@ fn read_back(f: &mut ChipFlash) -> (Written, Vec<&'static str>) {
                     w.days.push(p[0]);
                 }
                 Kind::Checkpoint => {
-                    assert!(p[..40].iter().all(|&b| b == p[0]) && p[40..52].iter().all(|&b| b == 0));
+                    assert!(
+                        p[..40].iter().all(|&b| b == p[0])
+                            && p[40..DAY_PAYLOAD_BYTES].iter().all(|&b| b == 0)
+                    );
                     w.points.push(p[0]);
                 }
             },

@@ -955,3 +955,13 @@ mod tests {
         assert!(decoded > 1000, "{decoded}");
     }
 }
+
+impl DayBook {
+    /// Day number `day` of a history, beginning at `now` (the day after the
+    /// newest one in flash).
+    pub fn starting(day: u32, now: Instant) -> Self {
+        let mut b = Self::new(now);
+        b.day = day;
+        b
+    }
+}

@@ -18,9 +18,9 @@
 //!
 //! ## Where
 //! The partition (`history`, 512 KiB in the table of every image) is cut in
-//! three: checkpoints 1/16 (8 sectors), days 3/16 (24 sectors of 31 days:
-//! 713 days at least), events the rest (96 sectors of 63: 5 985 events at
-//! least). A bridge whose table has no such partition (installed before it
+//! three: checkpoints 1/16 (8 sectors of 31: 217 hours at least), days 3/16
+//! (24 sectors of 31 days: 713 days at least), events the rest (96 sectors
+//! of 63: 5 985 events at least). A bridge whose table has no such partition (installed before it
 //! came) runs without history and says why ([`History::problem`]).
 
 use core::ops::Range;

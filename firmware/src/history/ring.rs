@@ -4,7 +4,7 @@
 //!
 //! ## The layout
 //! A region is whole 4 KiB sectors of slots of one size ([`SLOT_BYTES`]
-//! for events and checkpoints, [`DAY_SLOT_BYTES`] for days): slot 0 is the
+//! for events, [`DAY_SLOT_BYTES`] for days and checkpoints): slot 0 is the
 //! sector's header (its sequence number), slots 1.. hold records. A slot is
 //! `"HR"`, its kind, the format version, an id (the record's place: sector
 //! sequence × 64 + slot), its payload and a CRC-32 of everything before it.
@@ -34,9 +34,10 @@ use core::ops::Range;
 
 /// A flash sector, bytes.
 pub const SECTOR_BYTES: u32 = 4096;
-/// A slot of the event log and the checkpoints, bytes.
+/// A slot of the event log, bytes.
 pub const SLOT_BYTES: usize = 64;
-/// A slot of the days, bytes (a day's record is longer than an event).
+/// A slot of the days and the checkpoints, bytes (a day's record is longer
+/// than an event).
 pub const DAY_SLOT_BYTES: usize = 128;
 /// The largest slot, bytes.
 pub const SLOT_MAX: usize = DAY_SLOT_BYTES;
@@ -243,7 +244,7 @@ impl Ring {
     /// knows where the next record goes. `region` must be whole sectors (a
     /// region of fewer than two sectors holds nothing: every append waits).
     pub fn scan(flash: &mut impl ReadFlash, kind: Kind, region: Range<u32>) -> Self {
-        let slot_bytes = if kind == Kind::Day {
+        let slot_bytes = if kind != Kind::Event {
             DAY_SLOT_BYTES
         } else {
             SLOT_BYTES
