@@ -10,8 +10,12 @@ For every tinybms-<board>[-suffix].bin (merged) and its -app.bin:
   * the partition table at 0x8000 is partitions.csv's: nvs (data/nvs) at
     0x9000, 0x6000 bytes — the partition the configuration store uses, where
     it has always been —, otadata at 0x10000 (0x2000 bytes), the app slots
-    ota_0 at 0x20000 and ota_1 at 0x210000 (0x1f0000 bytes each);
-  * the app fits its slot;
+    ota_0 at 0x20000 and ota_1 at 0x1d0000 (0x1b0000 bytes, 1728 KiB, each),
+    the history partition (data, subtype undefined 0x06, label history: the
+    bridge's event log and daily records) at 0x380000 (0x80000 bytes, to the
+    end of the 4 MiB), and nothing else;
+  * the app fits a slot: the merged image's app, the -app.bin and the update
+    file's image are each at most 0x1b0000 bytes;
   * the -app.bin is byte for byte the app inside the merged image, the
     -boot.bin its first 0x9000 bytes (bootloader and partition table, ending
     where the nvs partition starts), and the -otadata.bin 0x2000 bytes of FF;
@@ -41,8 +45,13 @@ import sys
 PARTITION_TABLE = 0x8000
 NVS = (0x9000, 0x6000)
 OTADATA = (0x10000, 0x2000)
-OTA_0 = (0x20000, 0x1F0000)
-OTA_1 = (0x210000, 0x1F0000)
+OTA_0 = (0x20000, 0x1B0000)
+OTA_1 = (0x1D0000, 0x1B0000)
+# The history partition: data (1), subtype undefined (0x06), label history.
+HISTORY = (0x380000, 0x80000)
+HISTORY_TYPE = (1, 0x06)
+# Every partition of the table, no more.
+LABELS = ["nvs", "phy_init", "otadata", "ota_0", "ota_1", "history"]
 HEADER = 256
 SIGNED = 192
 
@@ -182,6 +191,9 @@ def check_update(dirname, n, chip, app, problems):
         problems.append(f"{what}: the header says {length} bytes of image, {len(image)} follow")
     if image != app:
         problems.append(f"{what}: its image is not the -app.bin")
+    if len(image) > min(OTA_0[1], OTA_1[1]):
+        problems.append(f"{what}: its image ({len(image)} bytes) is larger than a slot "
+                        f"({min(OTA_0[1], OTA_1[1])} bytes): no bridge could take it")
     if header[12:44] != hashlib.sha256(image).digest():
         problems.append(f"{what}: the image's SHA-256 is not the signed one")
     fields = {"chip": text_field(header, 44, 60), "board": text_field(header, 60, 84),
@@ -258,8 +270,14 @@ def check(dirname):
         for i, want in ((0, OTA_0), (1, OTA_1)):
             if not slots[i] or (slots[i][0][2], slots[i][0][3]) != want:
                 problems.append(f"{n}: no ota_{i} at {want[0]:#x} of {want[1]:#x} bytes: {parts}")
+        history = [p for p in parts if (p[0], p[1]) == HISTORY_TYPE and p[4] == "history"]
+        if not history or (history[0][2], history[0][3]) != HISTORY:
+            problems.append(f"{n}: no history partition (data, undefined) at 0x380000 of "
+                            f"0x80000 bytes: {parts}")
         if [p for p in parts if p[0] == 0 and p[1] == 0]:
             problems.append(f"{n}: a factory app besides the two slots: {parts}")
+        if sorted(p[4] for p in parts) != sorted(LABELS):
+            problems.append(f"{n}: the partitions are not {LABELS}: {parts}")
         ends = sorted((p[2], p[2] + p[3], p[4]) for p in parts)
         for (a0, a1, la), (b0, b1, lb) in zip(ends, ends[1:]):
             if a1 > b0:
@@ -283,6 +301,9 @@ def check(dirname):
             problems.append(f"{n}: {os.path.basename(app_path)} missing")
         elif open(app_path, "rb").read() != app:
             problems.append(f"{os.path.basename(app_path)}: differs from the app in {n}")
+        elif os.path.getsize(app_path) > min(OTA_0[1], OTA_1[1]):
+            problems.append(f"{os.path.basename(app_path)}: larger than a slot "
+                            f"({min(OTA_0[1], OTA_1[1])} bytes)")
         boot_path = os.path.join(dirname, n[:-len(".bin")] + "-boot.bin")
         if not os.path.exists(boot_path):
             problems.append(f"{n}: {os.path.basename(boot_path)} missing")
@@ -297,7 +318,7 @@ def check(dirname):
         check_update(dirname, n, chip, app, problems)
         size = re.search(r"Image size: (\d+)", info)
         print(f"{n}: {chip}, bootloader + partition table (nvs 0x9000+0x6000, otadata "
-              f"0x10000, ota_0 0x20000, ota_1 0x210000) "
+              f"0x10000, ota_0 0x20000, ota_1 0x1d0000, 0x1b0000 each, history 0x380000) "
               f"+ app of {size.group(1) if size else '?'} bytes: ok"
               if not [p for p in problems if p.startswith(n)] else f"{n}: PROBLEMS")
     return problems

@@ -14,7 +14,8 @@
 # Per board (the `board-…` features of Cargo.toml), built like its alias
 # `cargo build-<board>` in .cargo/config.toml (the log path that needs only the
 # board's own USB connector, the inverter output and the host link), with the
-# partition table of partitions.csv (nvs, otadata, two app slots):
+# partition table of partitions.csv (nvs, otadata, two app slots of 1728 KiB,
+# the history partition):
 #   tinybms-<board>.bin         bootloader + partition table + app, written at
 #                               0x0: a first install (it also erases the stored
 #                               configuration and otadata: it covers both)

@@ -21,7 +21,7 @@
 //! | | [`wifi`] | the Wi-Fi side's rules: joins, scans, the radio's start, the bridge's name on the network |
 //! | this installation | [`config`] | the bridge's own configuration: the record, its checks, its store in flash |
 //! | | [`boards`] | the supported boards' pins and log paths, checked at compile time |
-//! | | [`partitions`] | the ESP-IDF partition table, read from its bytes |
+//! | | [`partitions`] | the ESP-IDF partition table, read from its bytes; the history partition |
 //! | | [`update`] | updates without a cable: signed update files, the transfer into the other app slot, the trial boot that rolls itself back |
 //! | | [`identity`], [`energy`] | who the bridge is (firmware, build, chip, board, features); energy into and out of the pack |
 //! | | [`history`] | the pack's days (a record of each) and its capacity, estimated between full and the knee |

@@ -12,32 +12,74 @@
 //! the bootloader picks again. It must boot the old or the new image,
 //! complete, never anything else, and the record must be intact.
 //!
-//! Also: the desktop station's partition table is these bytes, and every
-//! refused file leaves the flash as it was.
+//! Also: the desktop station's partition table is these bytes, every
+//! refused file leaves the flash as it was, an image larger than the slot is
+//! refused before a byte is written, and a bridge still on the table from
+//! before the history partition (`firmware/partitions-pre-history.csv`: a
+//! running image cannot rewrite its table) updates into its two 1984 KiB
+//! slots as before and finds no history partition.
 
 use ed25519_dalek::{Signer, SigningKey};
 use embassy_futures::block_on;
 use esp_idf_part::PartitionTable;
 use sha2::{Digest, Sha256};
 use tinybms_desk::flash::RamFlash;
-use tinybms_desk::ota::{ChipFlash, PARTITIONS_CSV};
+use tinybms_desk::ota::{ChipFlash, PARTITIONS_CSV, PRE_HISTORY_CSV};
 use tinybms_firmware::config::site;
 use tinybms_firmware::config::Config;
-use tinybms_firmware::update::file::{self, Permit, Target, SIGNED_LEN};
+use tinybms_firmware::partitions::{self, Checksum, HistoryProblem, Table};
+use tinybms_firmware::update::file::{self, Permit, Refusal, Target, SIGNED_LEN};
 use tinybms_firmware::update::flash::{self as uflash, Booted, OtaFlash};
 use tinybms_firmware::update::otadata::Cause;
-use tinybms_firmware::update::transfer::{Answer, CHUNK_MAX};
+use tinybms_firmware::update::transfer::{Answer, Ended, Layout, CHUNK_MAX};
 use tinybms_firmware::update::{Done, Ota};
 
 const MIB4: usize = 4 * 1024 * 1024;
 const OTADATA: usize = 0x10000;
-const SLOTS: [usize; 2] = [0x20000, 0x210000];
+/// The app slots of every image's table (`firmware/partitions.csv`).
+const SLOTS: [usize; 2] = [0x20000, 0x1D_0000];
+/// Their size: 1728 KiB.
+const SLOT_BYTES: usize = 0x1B_0000;
 
 fn table() -> Vec<u8> {
-    PartitionTable::try_from_str(PARTITIONS_CSV)
-        .expect("firmware/partitions.csv is a table")
+    table_of(PARTITIONS_CSV)
+}
+
+/// The bytes espflash writes for `csv`.
+fn table_of(csv: &str) -> Vec<u8> {
+    PartitionTable::try_from_str(csv)
+        .expect("a partition table")
         .to_bin()
         .expect("its bytes")
+}
+
+/// `(offset, size)` of `ota_0` and `ota_1` in the table on `flash` (as the
+/// bootloader reads it: espflash's crate, not the firmware's reader).
+fn slots_on(flash: &[u8]) -> [(usize, usize); 2] {
+    let t = PartitionTable::try_from_bytes(&flash[0x8000..0x8000 + 0xC00]).expect("a table");
+    ["ota_0", "ota_1"].map(|l| {
+        let p = t.find(l).expect(l);
+        (p.offset() as usize, p.size() as usize)
+    })
+}
+
+#[test]
+fn the_slots_here_are_the_tables() {
+    assert_eq!(
+        slots_on(&chip_with(&table())),
+        [(SLOTS[0], SLOT_BYTES), (SLOTS[1], SLOT_BYTES)]
+    );
+    assert_eq!(
+        slots_on(&chip_with(&table_of(PRE_HISTORY_CSV))),
+        [(0x20000, 0x1F_0000), (0x21_0000, 0x1F_0000)]
+    );
+}
+
+/// An erased 4 MiB chip with `table` at 0x8000.
+fn chip_with(table: &[u8]) -> Vec<u8> {
+    let mut bytes = vec![0xFF; MIB4];
+    bytes[0x8000..0x8000 + table.len()].copy_from_slice(table);
+    bytes
 }
 
 #[test]
@@ -114,15 +156,19 @@ enum Start {
 
 /// The chip before the update: table, a record in nvs, the old image.
 fn installed(old: &[u8], start: Start) -> RamFlash {
-    let mut bytes = vec![0xFF; MIB4];
-    let t = table();
-    bytes[0x8000..0x8000 + t.len()].copy_from_slice(&t);
+    installed_on(&table(), old, start)
+}
+
+/// The same on the partition table `table`.
+fn installed_on(table: &[u8], old: &[u8], start: Start) -> RamFlash {
+    let mut bytes = chip_with(table);
+    let [(a, _), (b, _)] = slots_on(&bytes);
     match start {
-        Start::FirstInstall => bytes[SLOTS[0]..SLOTS[0] + old.len()].copy_from_slice(old),
+        Start::FirstInstall => bytes[a..a + old.len()].copy_from_slice(old),
         Start::AfterAnUpdate => {
-            bytes[SLOTS[1]..SLOTS[1] + old.len()].copy_from_slice(old);
+            bytes[b..b + old.len()].copy_from_slice(old);
             let older = image(30_000, "0.1.0", 9);
-            bytes[SLOTS[0]..SLOTS[0] + older.len()].copy_from_slice(&older);
+            bytes[a..a + older.len()].copy_from_slice(&older);
             // ESP-IDF's entry for ota_1, confirmed: sequence 4.
             let e = tinybms_firmware::update::otadata::Entry::new(
                 4,
@@ -256,7 +302,8 @@ fn boot_after_cut(flash: &RamFlash, old: &[u8], new: &[u8]) -> (&'static str, Ot
     for _ in 0..4 {
         let slot = bootloader_slot(&flash.lock());
         let data = flash.lock();
-        let holds = |img: &[u8]| data.get(SLOTS[slot]..SLOTS[slot] + img.len()) == Some(img);
+        let at = slots_on(&data)[slot].0;
+        let holds = |img: &[u8]| data.get(at..at + img.len()) == Some(img);
         let which = if holds(old) {
             "old"
         } else if holds(new) {
@@ -469,9 +516,126 @@ fn a_refused_file_leaves_every_byte_of_the_flash_as_it_was() {
         assert!(
             differs
                 .iter()
-                .all(|&j| (SLOTS[1]..SLOTS[1] + 0x1F_0000).contains(&j)),
+                .all(|&j| (SLOTS[1]..SLOTS[1] + SLOT_BYTES).contains(&j)),
             "case {i}: bytes outside the other slot changed"
         );
         assert_eq!(boot_after_cut(&flash, &old, &new).0, "old", "case {i}");
     }
+}
+
+/// Sends `f` to a bridge on `flash` until the transfer asks for more than
+/// the header or ends; the answer then.
+fn answer_after_header(flash: &RamFlash, f: &[u8]) -> Answer {
+    let mut chip = ChipFlash(flash.clone());
+    let layout = uflash::layout(&mut chip).expect("two slots");
+    let mut ota = Ota::new(Some(layout), uflash::read_otadata(&mut chip, &layout));
+    ota.set_owner_key(Some(key().verifying_key().to_bytes()));
+    let keys = ota.keys();
+    let mut a = ota
+        .transfer_mut()
+        .begin(0, f.len() as u32, Permit::NONE, false);
+    while let Answer::Next(n) | Answer::Busy(n) = a {
+        assert!(
+            ota.next_op().is_none(),
+            "a flash operation before the header"
+        );
+        let at = n as usize;
+        if at >= file::HEADER_LEN {
+            break;
+        }
+        let end = (at + CHUNK_MAX).min(f.len());
+        a = ota
+            .transfer_mut()
+            .chunk(1, at as u32, &f[at..end], &ME, &keys, Some(&layout), 0);
+    }
+    a
+}
+
+/// Issue 55: the slots are 1728 KiB now. An image one byte larger is refused
+/// on its header, before anything is written, in words that give the slot's
+/// size; one that fills the slot exactly is taken.
+#[test]
+fn an_image_larger_than_the_slot_is_refused_before_a_byte_is_written() {
+    let old = image(20_000, "0.2.0", 1);
+    let flash = first_install(&old);
+    let before = flash.lock().clone();
+    let big = update_file(&image(SLOT_BYTES + 1, "0.3.0", 2), "c3-supermini", "0.3.0");
+    let a = answer_after_header(&flash, &big);
+    assert_eq!(a, Answer::Ended(Ended::Refused(Refusal::TooBig)));
+    let words = Ended::Refused(Refusal::TooBig).words();
+    assert!(
+        words.contains(&format!("{} KiB", SLOT_BYTES / 1024)),
+        "{words}"
+    );
+    assert!(*flash.lock() == before, "the flash changed");
+    let exact = update_file(&image(SLOT_BYTES, "0.3.0", 2), "c3-supermini", "0.3.0");
+    assert_eq!(
+        answer_after_header(&flash, &exact),
+        Answer::Next(file::HEADER_LEN as u32)
+    );
+}
+
+/// Issue 55: a bridge installed before the history partition keeps its table
+/// when it is updated over the network (a running image cannot rewrite it).
+/// The new firmware reads that table: its two 1984 KiB slots, into which an
+/// update lands as before — an image larger than today's 1728 KiB slots too,
+/// from either slot —, no history partition (in the words that send the owner
+/// to a cable reinstall), the record and the table untouched.
+#[test]
+fn a_bridge_on_the_pre_history_table_updates_as_before_without_history() {
+    let old_table = table_of(PRE_HISTORY_CSV);
+    let t = Table::parse(&old_table).unwrap();
+    assert_eq!(t.checksum(), Checksum::Verified);
+    let layout = Layout::from_table(&t).expect("two slots");
+    assert_eq!(layout.slots, [(0x20000, 0x1F_0000), (0x21_0000, 0x1F_0000)]);
+    assert_eq!(
+        partitions::history(&t, MIB4 as u32),
+        Err(HistoryProblem::Missing)
+    );
+    assert!(HistoryProblem::Missing
+        .reason()
+        .contains("reinstall by cable"));
+    let small = image(20_000, "0.2.0", 1);
+    let new = image(SLOT_BYTES + 64 * 1024, "0.3.0", 2);
+    let file_bytes = update_file(&new, "c3-supermini", "0.3.0");
+    for start in [Start::FirstInstall, Start::AfterAnUpdate] {
+        let flash = installed_on(&old_table, &small, start);
+        let mut f = CutFlash {
+            inner: ChipFlash(flash.clone()),
+            budget: usize::MAX,
+            how: Cut::Before,
+            dead: false,
+            calls: 0,
+        };
+        update(&mut f, &file_bytes);
+        let (which, ota) = boot_after_cut(&flash, &small, &new);
+        assert_eq!(which, "new", "{start:?}");
+        let into = match start {
+            Start::FirstInstall => 1,
+            Start::AfterAnUpdate => 0,
+        };
+        assert_eq!(ota.running_slot(), into, "{start:?}");
+        assert_eq!(ota.layout(), Some(&layout));
+        let bytes = flash.lock().clone();
+        assert_eq!(&bytes[0x8000..0x8000 + old_table.len()], &old_table[..]);
+        let at = [0x20000, 0x21_0000][into as usize];
+        assert_eq!(&bytes[at..at + new.len()], &new[..], "{start:?}");
+        let o = block_on(site::open(flash.clone(), MIB4 as u32, false));
+        assert_eq!(o.loaded.config, record(), "{start:?}");
+        let t = Table::parse(&bytes[0x8000..0x8000 + 0xC00]).unwrap();
+        assert_eq!(
+            partitions::history(&t, MIB4 as u32),
+            Err(HistoryProblem::Missing)
+        );
+    }
+    // Past its own slot, refused there too, before anything is written.
+    let flash = installed_on(&old_table, &small, Start::FirstInstall);
+    let before = flash.lock().clone();
+    let big = update_file(&image(0x1F_0001, "0.3.0", 2), "c3-supermini", "0.3.0");
+    assert_eq!(
+        answer_after_header(&flash, &big),
+        Answer::Ended(Ended::Refused(Refusal::TooBig))
+    );
+    assert!(Refusal::TooBig.words().contains("1984 KiB"));
+    assert!(*flash.lock() == before);
 }

@@ -253,7 +253,8 @@ fn every_way_of_flashing_from_source_writes_the_partition_table() {
     for (label, offset) in [
         ("otadata", 0x10000),
         ("ota_0", 0x20000),
-        ("ota_1", 0x210000),
+        ("ota_1", 0x1D0000),
+        ("history", 0x380000),
     ] {
         assert_eq!(t.find(label).map(|p| p.offset()), Some(offset), "{label}");
     }

@@ -9,6 +9,12 @@
 //!
 //! End to end: a record saved through the lookup, the flash's bytes kept, the
 //! "restarted" bridge finding the same record through the same lookup.
+//!
+//! The history partition (issue 55) the same way: found by the chip's lookup
+//! (`partitions::history`) in the bytes espflash writes for
+//! `firmware/partitions.csv` and in every merged image CI makes, clear of the
+//! store; and absent, in words, from the table bridges installed before it
+//! keep (`firmware/partitions-pre-history.csv`).
 
 use embassy_futures::block_on;
 use esp_idf_part::PartitionTable;
@@ -16,7 +22,9 @@ use tinybms_desk::flash::RamFlash;
 use tinybms_firmware::config::site::{self, Opened};
 use tinybms_firmware::config::store::{Saved, SiteProblem, Source, StoreError};
 use tinybms_firmware::config::Config;
-use tinybms_firmware::partitions::{Checksum, Table, TableError, TABLE_MAX, TABLE_OFFSET};
+use tinybms_firmware::partitions::{
+    self, Checksum, HistoryProblem, Table, TableError, TABLE_MAX, TABLE_OFFSET,
+};
 
 const MIB4: usize = 4 * 1024 * 1024;
 
@@ -28,6 +36,13 @@ nvs,      data, nvs,     0x9000,  0x6000,
 phy_init, data, phy,     0xf000,  0x1000,
 factory,  app,  factory, 0x10000, 0x3f0000,
 ";
+
+/// Every image's table.
+const PARTITIONS_CSV: &str = include_str!("../../firmware/partitions.csv");
+/// The table of every bridge installed before the history partition.
+const PRE_HISTORY_CSV: &str = include_str!("../../firmware/partitions-pre-history.csv");
+/// Where every image's history partition is.
+const HISTORY: std::ops::Range<u32> = 0x38_0000..0x40_0000;
 
 fn table_bin(csv: &str) -> Vec<u8> {
     let t = PartitionTable::try_from_str(csv).expect("a valid table");
@@ -240,6 +255,71 @@ fn the_flash_size_the_chip_reports_bounds_the_partition() {
     assert!(o.store.is_none());
 }
 
+/// espflash's library (what packs every image) takes the history's subtype
+/// by its name, `undefined`, and writes ESP-IDF's number for it, 0x06.
+#[test]
+fn espflash_writes_the_history_partition_as_data_undefined() {
+    use esp_idf_part::{DataType, SubType, Type};
+    let t = PartitionTable::try_from_str(PARTITIONS_CSV).expect("espflash takes the table");
+    let p = t
+        .find(partitions::HISTORY_LABEL)
+        .expect("a history partition");
+    assert_eq!(p.ty(), Type::Data);
+    assert_eq!(p.subtype(), SubType::Data(DataType::Undefined));
+    let bin = table_bin(PARTITIONS_CSV);
+    let at = t.partitions().iter().position(|q| q == p).unwrap() * 32;
+    assert_eq!(
+        (bin[at + 2], bin[at + 3]),
+        (partitions::HISTORY_TYPE, partitions::HISTORY_SUBTYPE)
+    );
+    assert_eq!(partitions::HISTORY_SUBTYPE, 0x06);
+}
+
+/// The table of every image, in espflash's bytes: the store at 0x9000 and the
+/// history in the last 512 KiB, both found by the chip's lookups; a record
+/// saved leaves the history's sectors erased.
+#[test]
+fn every_images_table_gives_the_store_and_the_history() {
+    let bin = table_bin(PARTITIONS_CSV);
+    let t = Table::parse(&bin).unwrap();
+    assert_eq!(t.checksum(), Checksum::Verified);
+    assert_eq!(partitions::history(&t, MIB4 as u32), Ok(HISTORY));
+    let flash = RamFlash::from_bytes(chip_with(&bin));
+    let mut o = open(&flash, MIB4 as u32);
+    assert_eq!(o.site.problem(), None);
+    assert_eq!(o.site.partition, Some((0x9000, 0x6000)));
+    let record = Config {
+        stream_period_ms: 2000,
+        ..Config::default()
+    };
+    block_on(o.store.as_mut().unwrap().save(&record)).unwrap();
+    let bytes = flash.lock().clone();
+    assert!(bytes[HISTORY.start as usize..HISTORY.end as usize]
+        .iter()
+        .all(|&b| b == 0xFF));
+}
+
+/// The table bridges installed before the history partition keep through
+/// updates over the network: the store where it always was, no history, and
+/// the words send the owner to one reinstall by cable.
+#[test]
+fn the_pre_history_table_gives_the_store_and_no_history() {
+    let bin = table_bin(PRE_HISTORY_CSV);
+    let t = Table::parse(&bin).unwrap();
+    assert_eq!(
+        partitions::history(&t, MIB4 as u32),
+        Err(HistoryProblem::Missing)
+    );
+    let words = HistoryProblem::Missing.reason();
+    assert!(
+        words.contains("predates the history partition") && words.contains("reinstall by cable"),
+        "{words}"
+    );
+    let o = open(&RamFlash::from_bytes(chip_with(&bin)), MIB4 as u32);
+    assert_eq!(o.site.problem(), None);
+    assert_eq!(o.site.partition, Some((0x9000, 0x6000)));
+}
+
 /// The merged images CI makes (`firmware/make-images.sh`): the table each one
 /// carries is read by the chip's lookup, the store is where the docs say, and
 /// a record saved on the image's bytes is found again.
@@ -283,6 +363,12 @@ fn every_merged_image_ci_makes_carries_a_table_the_chip_finds_its_store_in() {
         let table = Table::parse(&image[at..at + TABLE_MAX])
             .unwrap_or_else(|e| panic!("{}: {}", path.display(), e.reason()));
         assert_eq!(table.checksum(), Checksum::Verified, "{}", path.display());
+        assert_eq!(
+            partitions::history(&table, MIB4 as u32),
+            Ok(HISTORY),
+            "{}: the history partition",
+            path.display()
+        );
         let mut bytes = image.clone();
         assert!(bytes.len() <= MIB4);
         bytes.resize(MIB4, 0xFF);
@@ -305,7 +391,8 @@ fn every_merged_image_ci_makes_carries_a_table_the_chip_finds_its_store_in() {
         assert_eq!(again.loaded.source, Source::Flash, "{}", path.display());
         assert_eq!(again.loaded.config.stream_period_ms, 2000);
         eprintln!(
-            "{}: store at 0x9000 (24 KiB), found again after a restart",
+            "{}: store at 0x9000 (24 KiB), found again after a restart; history at \
+             0x380000 (512 KiB)",
             path.display()
         );
     }

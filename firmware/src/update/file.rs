@@ -63,7 +63,9 @@ pub enum Refusal {
     Truncated,
     /// The file is longer than its header says.
     Padded,
-    /// The image is larger than the slot.
+    /// The image is larger than the slot (the words name both tables' slot
+    /// sizes: `firmware/partitions.csv`'s and the one before the history
+    /// partition, which bridges updated over the network keep).
     TooBig,
     /// The image does not start as an app image for this chip.
     NotAnImage,
@@ -115,7 +117,10 @@ impl Refusal {
             }
             Self::Truncated => "the update file is shorter than its header says",
             Self::Padded => "the update file is longer than its header says",
-            Self::TooBig => "the image is larger than the app slot",
+            Self::TooBig => {
+                "the image is larger than the app slot (1728 KiB; 1984 KiB on a bridge \
+                 installed before the history partition)"
+            }
             Self::NotAnImage => "the image is not an app image for this chip",
             Self::HashMismatch => "the image does not match its signed hash",
             Self::NoSlot => "no second app slot (reinstall once by cable: docs/updates.md)",

@@ -18,6 +18,9 @@ use crate::flash::RamFlash;
 
 /// The firmware's partition table, as its images carry it.
 pub const PARTITIONS_CSV: &str = include_str!("../../../firmware/partitions.csv");
+/// The table every image carried before the history partition (issue 55): a
+/// bridge installed with it keeps it through updates over the network.
+pub const PRE_HISTORY_CSV: &str = include_str!("../../../firmware/partitions-pre-history.csv");
 /// The chip's flash, bytes.
 pub const CHIP_BYTES: usize = 4 * 1024 * 1024;
 /// The project name of a simulated image that panics before it confirms
@@ -48,6 +51,7 @@ pub fn table_bytes(csv: &str) -> Result<Vec<u8>, String> {
             "ota" => 0x00,
             "phy" => 0x01,
             "nvs" => 0x02,
+            "undefined" => 0x06,
             s if s.starts_with("ota_") => 0x10 + s[4..].parse::<u8>().map_err(|e| e.to_string())?,
             s => return Err(format!("subtype {s}")),
         };
