@@ -57,12 +57,11 @@ fn run(with_history: bool, end: u64) -> (Vec<(u64, Vec<u8>)>, Vec<(u64, u16)>, u
         t += 200_000;
     }
     l.run_until(end);
-    let ops = l
-        .h
-        .flash_ops
-        .iter()
-        .filter(|(_, n)| n.starts_with("history"))
-        .count();
+    let ops =
+        l.h.flash_ops
+            .iter()
+            .filter(|(_, n)| n.starts_with("history"))
+            .count();
     (l.h.tx_log.take().unwrap(), l.sent_ids.clone(), ops)
 }
 
@@ -82,7 +81,11 @@ fn writing_the_history_moves_no_request_and_no_frame() {
     );
     assert_eq!(tx_h.len(), tx_b.len(), "BMS requests");
     for (i, (h, b)) in tx_h.iter().zip(&tx_b).enumerate() {
-        assert_eq!(h, b, "BMS request {i}: with history at {} µs, without at {} µs", h.0, b.0);
+        assert_eq!(
+            h, b,
+            "BMS request {i}: with history at {} µs, without at {} µs",
+            h.0, b.0
+        );
     }
     assert_eq!(can_h, can_b, "the CAN frames' times and ids");
     assert!(can_b.len() >= 200 && tx_b.len() >= 200);
@@ -195,7 +198,10 @@ fn read_back(f: &mut ChipFlash) -> (Written, Vec<&'static str>) {
                     w.events.push(e.a);
                 }
                 Kind::Day => {
-                    assert!(p[..DAY_PAYLOAD_BYTES].iter().all(|&b| b == p[0]), "a day whole");
+                    assert!(
+                        p[..DAY_PAYLOAD_BYTES].iter().all(|&b| b == p[0]),
+                        "a day whole"
+                    );
                     w.days.push(p[0]);
                 }
                 Kind::Checkpoint => {
@@ -252,15 +258,31 @@ fn a_power_cut_at_every_flash_operation_leaves_the_history_whole() {
             // at most the one cut short is also there (whole) or skipped for
             // its CRC.
             for (name, confirmed, read) in [
-                ("events", w.events.iter().map(|&x| x as u64).collect::<Vec<_>>(), got.events.iter().map(|&x| x as u64).collect::<Vec<_>>()),
-                ("days", w.days.iter().map(|&x| x as u64).collect(), got.days.iter().map(|&x| x as u64).collect()),
-                ("checkpoints", w.points.iter().map(|&x| x as u64).collect(), got.points.iter().map(|&x| x as u64).collect()),
+                (
+                    "events",
+                    w.events.iter().map(|&x| x as u64).collect::<Vec<_>>(),
+                    got.events.iter().map(|&x| x as u64).collect::<Vec<_>>(),
+                ),
+                (
+                    "days",
+                    w.days.iter().map(|&x| x as u64).collect(),
+                    got.days.iter().map(|&x| x as u64).collect(),
+                ),
+                (
+                    "checkpoints",
+                    w.points.iter().map(|&x| x as u64).collect(),
+                    got.points.iter().map(|&x| x as u64).collect(),
+                ),
             ] {
                 assert!(
                     read.len() == confirmed.len() || read.len() == confirmed.len() + 1,
                     "cut {cut} half {half}: {name} confirmed {confirmed:?} read {read:?}"
                 );
-                assert_eq!(&read[..confirmed.len()], &confirmed[..], "cut {cut} half {half}: {name}");
+                assert_eq!(
+                    &read[..confirmed.len()],
+                    &confirmed[..],
+                    "cut {cut} half {half}: {name}"
+                );
             }
             assert!(
                 bad.iter().all(|r| r.contains("CRC")) && bad.len() <= 1,
@@ -273,7 +295,10 @@ fn a_power_cut_at_every_flash_operation_leaves_the_history_whole() {
             append(&mut f2, &mut h, 5, 1000, &mut w2);
             assert_eq!(w2.events, vec![1000, 1001, 1002, 1003, 1004], "cut {cut}");
             let (got2, _) = read_back(&mut f2);
-            assert_eq!(&got2.events[got2.events.len() - 5..], &[1000, 1001, 1002, 1003, 1004]);
+            assert_eq!(
+                &got2.events[got2.events.len() - 5..],
+                &[1000, 1001, 1002, 1003, 1004]
+            );
         }
     }
     let (got, bad) = read_back(&mut base);
@@ -308,7 +333,7 @@ fn a_listing_reads_what_was_written_oldest_first() {
     let mut chip = ChipFlash(chip_flash());
     let mut h = tinybms_desk::station::open_history(&mut chip);
     for i in 0..70u32 {
-        h.event(u64::from(i) * S, Code::Bms, i, 0, "x");
+        h.event(u64::from(i) * 10 * S, Code::Bms, i, 0, "x");
         while let Some(op) = h.next_op() {
             let ok = log::run(&mut chip, op);
             h.done(ok);
@@ -316,6 +341,7 @@ fn a_listing_reads_what_was_written_oldest_first() {
     }
     h.list();
     let mut got = Vec::new();
+    let mut ended = false;
     for _ in 0..10_000 {
         if let Some((at, len)) = h.want_read() {
             let mut b = vec![0u8; len];
@@ -325,9 +351,13 @@ fn a_listing_reads_what_was_written_oldest_first() {
         match h.take_listed() {
             Some(Some(Listed::Event(_, e))) => got.push(e.a),
             Some(Some(x)) => panic!("{x:?}"),
-            Some(None) => break,
+            Some(None) => {
+                ended = true;
+                break;
+            }
             None => {}
         }
     }
+    assert!(ended, "the listing came to its end");
     assert_eq!(got, (0..70).collect::<Vec<_>>());
 }

@@ -10,6 +10,8 @@ use host_tests::closed_loop::ClosedLoop;
 use host_tests::multi_pack;
 use host_tests::sim::PackModel;
 use tinybms_desk::flash::RamFlash;
+use tinybms_desk::ota::{chip_flash, ChipFlash};
+use tinybms_desk::station::open_history;
 use tinybms_firmware::host_link::encode;
 use tinybms_firmware::host_link::schema::HostLine;
 use tinybms_firmware::inverter::InverterConfig;
@@ -23,6 +25,10 @@ fn written_back(line: &HostLine) -> Value {
         HostLine::SettingsEnd(l) | HostLine::EventsEnd(l) => serde_json::to_value(l),
         HostLine::Can(l) => serde_json::to_value(l),
         HostLine::CanEnd(l) => serde_json::to_value(l),
+        HostLine::HistoryEvent(l) => serde_json::to_value(l),
+        HostLine::HistoryDay(l) => serde_json::to_value(l),
+        HostLine::HistorySkipped(l) => serde_json::to_value(l),
+        HostLine::HistoryEnd(l) => serde_json::to_value(l),
         HostLine::Statistics(l) => serde_json::to_value(l),
         HostLine::Version(l) => serde_json::to_value(l),
         HostLine::Event(l) => serde_json::to_value(l),
@@ -68,7 +74,34 @@ fn round_trip(v: &Value) -> String {
 fn every_line_of_a_host_session_reads_back_whole() {
     let mut l = ClosedLoop::from_flash(PackModel::LiFePO4_16S, 3, RamFlash::new(), 100.0);
     l.h.sim.set_soc_percent(40.0);
-    let script: [(u64, &str); 20] = [
+    // A history in the chip's flash with a day, events and one damaged
+    // record (`history_skipped`).
+    let mut chip = ChipFlash(chip_flash());
+    {
+        use tinybms_firmware::history::event::Code;
+        use tinybms_firmware::history::ring::Kind;
+        let mut h = open_history(&mut chip);
+        let day = tinybms_firmware::history::day::DayRecord {
+            day: 3,
+            covered_s: 86_400,
+            lowest_cell_mv: 3100,
+            highest_cell_mv: 3500,
+            ..Default::default()
+        };
+        h.record(Kind::Day, &day.encode());
+        h.event(0, Code::Started, 1, 0, "0.9.0");
+        h.event(0, Code::Bms, 1, 0, "x");
+        while let Some(op) = h.next_op() {
+            let ok = tinybms_firmware::history::log::run(&mut chip, op);
+            h.done(ok);
+        }
+        // The second event's slot (the event ring's first sector, slot 2).
+        chip.0.lock()[0x380000 + 2 * 64 + 20] ^= 0x40;
+    }
+    let h = open_history(&mut chip);
+    l.h.station.set_history(l.h.now, h, Some(1));
+    l.h.ota = Some(chip);
+    let script: [(u64, &str); 22] = [
         (1, r#"{"cmd":"hello","req":1}"#),
         (5, r#"{"cmd":"stream","period_ms":500,"req":2}"#),
         (30, r#"{"cmd":"get","what":"settings","req":3}"#),
@@ -78,6 +111,8 @@ fn every_line_of_a_host_session_reads_back_whole() {
         (34, r#"{"cmd":"get","what":"link","req":7}"#),
         (35, r#"{"cmd":"get","what":"config","req":8}"#),
         (36, r#"{"cmd":"get","what":"can","req":20}"#),
+        (37, r#"{"cmd":"set_time","at":1765000000,"req":21}"#),
+        (38, r#"{"cmd":"get","what":"history","req":22}"#),
         (
             60,
             r#"{"cmd":"set_config","fields":{"charge_current_cap":"40 A","nonsense":"1"},"req":9}"#,
@@ -126,6 +161,10 @@ fn every_line_of_a_host_session_reads_back_whole() {
         "config_end",
         "can",
         "can_end",
+        "history_event",
+        "history_day",
+        "history_skipped",
+        "history_end",
         "config_outcome",
         "config_done",
         "accepted",

@@ -643,6 +643,41 @@ fn doctor_reads_the_bridges_capture_and_says_why() {
 }
 
 #[test]
+fn history_lists_the_bridges_own_events_and_says_where_it_is_kept() {
+    let sim = Sim::start(&["--bridge-pty"]);
+    std::thread::sleep(std::time::Duration::from_secs(3));
+    let o = tinybms(&["history", &sim.path]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("event=started"), "{o}");
+    // The first listing told the bridge the date: the second shows it.
+    std::thread::sleep(std::time::Duration::from_secs(1));
+    let o = tinybms(&["history", &sim.path, "--format", "csv"]);
+    assert_eq!(o.code, 0, "{o}");
+    let mut lines = o.stdout.lines();
+    assert_eq!(lines.next(), Some("id,boot,uptime_s,date,event,what"), "{o}");
+    assert!(o.stdout.contains(",time_set,date set (usb)"), "{o}");
+    let o = tinybms(&["history", &sim.path, "--format", "json"]);
+    assert_eq!(o.code, 0, "{o}");
+    let rows: Vec<serde_json::Value> = o
+        .stdout
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
+        .collect();
+    let started = rows.iter().find(|r| r["event"] == "started").expect("started");
+    assert!(started["what"].as_str().unwrap().contains("reset reason"), "{started}");
+    assert!(rows.iter().any(|r| r["date"].is_string()), "{o}");
+    // No day has passed yet.
+    let o = tinybms(&["history", &sim.path, "--days"]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("no days in the history yet"), "{o}");
+    let o = tinybms(&["history", &sim.path, "--format", "xml"]);
+    assert_eq!(o.code, 2, "{o}");
+    let o = tinybms(&["version", &sim.path]);
+    assert_eq!(o.code, 0, "{o}");
+    assert!(o.stdout.contains("kept in flash (tinybms history PORT)"), "{o}");
+}
+
+#[test]
 fn doctor_over_the_update_port_reads_the_capture() {
     let port = {
         let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();

@@ -309,8 +309,12 @@ impl History {
             return;
         };
         let mut readers = Deque::new();
-        let _ = readers.push_back(rings[0].reader());
-        let _ = readers.push_back(rings[1].reader());
+        for r in [rings[0].reader(), rings[1].reader()] {
+            // A ring with nothing in it has nothing to read.
+            if r.want().is_some() {
+                let _ = readers.push_back(r);
+            }
+        }
         self.listing = Some(Listing {
             readers,
             ready: None,
@@ -429,22 +433,18 @@ pub fn run(flash: &mut impl crate::update::flash::OtaFlash, op: Op) -> bool {
     }
 }
 
-/// The `history` partition in the partition table `flash` holds (the
-/// table's entry of type data, subtype `undefined`, label `history`), or
-/// why there is none.
-pub fn find(flash: &mut impl crate::update::flash::OtaFlash) -> Result<Range<u32>, &'static str> {
+/// The `history` partition in the partition table `flash` (of
+/// `flash_bytes`) holds ([`crate::partitions::history`]), or why there is
+/// none.
+pub fn find(
+    flash: &mut impl crate::update::flash::OtaFlash,
+    flash_bytes: u32,
+) -> Result<Range<u32>, &'static str> {
     use crate::partitions::{Table, TABLE_MAX, TABLE_OFFSET};
     let mut table = [0u8; TABLE_MAX];
     if !flash.read(TABLE_OFFSET, &mut table) {
         return Err("the partition table could not be read");
     }
     let table = Table::parse(&table).map_err(|e| e.reason())?;
-    // Until the table's lookup lands (partitions.rs): type data, subtype
-    // undefined, label `history`.
-    table
-        .find(crate::partitions::TYPE_DATA, 0x06, "history")
-        .map(|e| e.offset..e.offset.saturating_add(e.size))
-        .ok_or(
-            "no history partition: the partition table predates it (reinstall by cable to add it)",
-        )
+    crate::partitions::history(&table, flash_bytes).map_err(|p| p.reason())
 }

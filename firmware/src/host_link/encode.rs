@@ -95,6 +95,8 @@ pub struct HelloFields<'a> {
     pub wifi: Option<crate::improv::WifiLink>,
     /// The updates' side: slot, trial, keys trusted, a rollback.
     pub update: &'a super::UpdateView,
+    /// Why the bridge keeps no history (`None`: it does).
+    pub history: Option<&'static str>,
 }
 
 /// Writes a `hello` line.
@@ -138,6 +140,7 @@ pub fn hello(out: &mut [u8], req: Option<u32>, f: &HelloFields<'_>) -> Option<us
                 built_in_key: u.built_in_key.as_ref().map(|k| Hex(k, false)),
                 owner_key: u.owner_key.as_ref().map(|k| Hex(k, false)),
             }),
+            history: Some(f.history.unwrap_or("recording")),
         },
         out,
     )
@@ -457,7 +460,11 @@ fn extras_members<'a>(
         capacity_uncertainty_percent: e.aging.capacity.and_then(|c| fixed(i64::from(c.1), 1)),
         charge_cycles: e.aging.cycles,
         top_spread_mv: e.aging.top_spread_mv,
-        history: if e.aging.recording { "recording" } else { "off" },
+        history: if e.aging.recording {
+            "recording"
+        } else {
+            "off"
+        },
     }
 }
 

@@ -371,6 +371,7 @@ impl State {
                         radio: self.radio.map(crate::wifi::Radio::key),
                         wifi: self.config.features.wifi.then_some(self.wifi),
                         update: &self.update,
+                        history: self.history,
                     },
                 )
             }

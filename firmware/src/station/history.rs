@@ -9,11 +9,46 @@
 use super::{Action, Logged, Station};
 use crate::bridge::report::Report;
 use crate::config::state::Note;
+use crate::history::capacity::Capacity;
+use crate::history::day::{DayBook, DayRecord, DAY_BYTES};
 use crate::history::event::{Code, Who};
 use crate::history::log::History;
-use crate::history::ring::SLOT_MAX;
+use crate::history::ring::{Kind, SLOT_MAX};
+use crate::history::Aging;
 use crate::inverter::InverterReport;
 use crate::Instant;
+
+/// The day under way is saved this often, µs.
+pub const CHECKPOINT_US: Instant = 3600 * crate::SECOND;
+
+/// The pack's days and capacity, as the station keeps them.
+#[derive(Debug, Clone)]
+pub(super) struct Days {
+    pub book: DayBook,
+    pub capacity: Capacity,
+    pub next_checkpoint: Instant,
+    /// The last closed day's spread at the top of charge, mV.
+    pub top_spread: Option<u16>,
+    /// The newest capacity estimate in flash (before one qualifies again).
+    pub stored_capacity: Option<(u32, u16)>,
+}
+
+impl Days {
+    pub fn new(now: Instant) -> Self {
+        Self {
+            book: DayBook::new(now),
+            capacity: Capacity::new(),
+            next_checkpoint: now.saturating_add(CHECKPOINT_US),
+            top_spread: None,
+            stored_capacity: None,
+        }
+    }
+}
+
+/// A day record of the history's payload.
+fn day_of(p: &crate::history::ring::Payload) -> Option<DayRecord> {
+    DayRecord::decode(p.get(..DAY_BYTES)?).ok()
+}
 
 /// Network state the history follows.
 #[derive(Debug, Clone, Copy, Default)]
@@ -37,6 +72,22 @@ impl Station {
     /// reason (its raw code; `None` unknown): the start is its first event.
     pub fn set_history(&mut self, now: Instant, history: History, reset_reason: Option<u8>) {
         self.history = history;
+        // The day under way goes on from its checkpoint; else the day after
+        // the newest closed one.
+        let last = self.history.last_day().and_then(day_of);
+        let point = self.history.last_checkpoint().and_then(day_of);
+        self.days.book = match (point, last) {
+            (Some(p), l) if l.is_none_or(|l| p.day > l.day) => DayBook::resume(&p, now),
+            (_, Some(l)) => DayBook::starting(l.day.saturating_add(1), now),
+            _ => DayBook::new(now),
+        };
+        self.days.top_spread = last.filter(|l| l.top_cell != 0).map(|l| l.top_spread_mv);
+        self.days.stored_capacity = last.filter(|l| l.capacity_cah != 0).map(|l| {
+            (
+                u32::from(l.capacity_cah),
+                u16::from(l.capacity_uncertainty_permille),
+            )
+        });
         let firmware = self.identity.firmware;
         self.history.event(
             now,
@@ -56,6 +107,65 @@ impl Station {
     pub fn set_date(&mut self, now: Instant, unix_s: u64) {
         let who = self.watch.who.unwrap_or(Who::Host);
         self.history.set_date(now, unix_s, who);
+    }
+
+    /// A snapshot for the day's record and the capacity estimate.
+    pub(super) fn days_snapshot(
+        days: &mut Days,
+        at: Instant,
+        s: &protocol_core::views::LiveSnapshot,
+        valid: bool,
+        settings: Option<&crate::inverter::control::PackSettings>,
+        stage: Option<&crate::inverter::finish::Stage>,
+        statistics: Option<&protocol_core::views::Statistics>,
+    ) {
+        days.book.on_snapshot(at, s, valid, settings, stage);
+        if let Some(st) = statistics {
+            days.book.on_statistics(st);
+        }
+        if let Some(e) = days.capacity.on_snapshot(at, s, valid, settings) {
+            days.book.on_estimate(&e);
+        }
+    }
+
+    /// A day closed, or the hour's checkpoint due: to the history.
+    pub(super) fn tick_days(&mut self, now: Instant) {
+        if let Some(rec) = self.days.book.poll(now, self.history.unix(now)) {
+            self.days.top_spread = (rec.top_cell != 0).then_some(rec.top_spread_mv);
+            self.history.record(Kind::Day, &rec.encode());
+            self.days.next_checkpoint = now.saturating_add(CHECKPOINT_US);
+        }
+        if now >= self.days.next_checkpoint {
+            let p = self.days.book.checkpoint(now);
+            self.history.record(Kind::Checkpoint, &p.encode());
+            self.days.next_checkpoint = now.saturating_add(CHECKPOINT_US);
+        }
+    }
+
+    /// How the pack ages, for the state Home Assistant reads.
+    pub(super) fn aging(&self) -> Aging {
+        let t = self.bridge.telemetry();
+        Aging {
+            capacity: self
+                .days
+                .capacity
+                .estimate()
+                .map(|e| (e.cah, e.uncertainty_permille))
+                .or(self.days.stored_capacity),
+            cycles: t.statistics.as_ref().map(|s| s.charging_count),
+            top_spread_mv: self.days.top_spread,
+            recording: self.history.problem().is_none(),
+        }
+    }
+
+    /// The day under way (the desk's tools, the tests).
+    pub fn day_book(&self) -> &DayBook {
+        &self.days.book
+    }
+
+    /// The capacity estimator.
+    pub fn capacity(&self) -> &Capacity {
+        &self.days.capacity
     }
 
     /// The flash work of the history, when there is a gap until `free_until`

@@ -244,6 +244,8 @@ pub struct Station {
     watch: history::Watch,
     /// The latest `now` the station was polled with.
     last_now: Instant,
+    /// The pack's days and capacity.
+    days: history::Days,
 }
 
 impl Station {
@@ -308,6 +310,7 @@ impl Station {
             history: crate::history::log::History::without("this runner keeps no history"),
             watch: history::Watch::default(),
             last_now: now,
+            days: history::Days::new(now),
         }
     }
 
@@ -763,6 +766,7 @@ impl Station {
     pub fn poll(&mut self, now: Instant) -> Action {
         self.last_now = now;
         self.feed_inverter();
+        self.tick_days(now);
         self.apply_running(now);
         self.tick_battery(now);
         if self.transmit_pending {
@@ -923,6 +927,16 @@ impl Station {
             if let Some(i) = self.inverter.as_mut() {
                 i.on_snapshot(at, s, settings, t.version.as_ref());
             }
+            let stage = self.inverter.as_ref().and_then(|i| i.stage());
+            Self::days_snapshot(
+                &mut self.days,
+                at,
+                s,
+                valid,
+                settings.as_ref(),
+                stage.as_ref(),
+                t.statistics.as_ref(),
+            );
         }
     }
 

@@ -74,6 +74,9 @@ pub struct Hosted<P: BytePort> {
     next_sample: u64,
 }
 
+/// Rounds of lines and flash reads a step gives a history listing.
+const LISTING_ROUNDS: usize = 256;
+
 impl<P: BytePort> Hosted<P> {
     /// The station at time 0 (now), with the configuration record in `flash`
     /// (the defaults when it holds none; `chip` names the host link's chip).
@@ -323,11 +326,24 @@ impl<P: BytePort> Hosted<P> {
         if let Some(u) = self.update_port.as_mut() {
             u.round(&mut self.driver.station, now);
         }
-        while side.can_take() {
-            match self.driver.station.next_host_line(now, &mut self.line) {
-                Some(n) => side.write_line(self.line.get(..n).unwrap_or(&[]))?,
-                None => break,
+        // A listing of the history reads a record between two lines (the
+        // station's flash reads): as the chip's task loop does, without
+        // waiting for the next deadline in between.
+        for _ in 0..LISTING_ROUNDS {
+            let mut wrote = false;
+            while side.can_take() {
+                match self.driver.station.next_host_line(now, &mut self.line) {
+                    Some(n) => {
+                        side.write_line(self.line.get(..n).unwrap_or(&[]))?;
+                        wrote = true;
+                    }
+                    None => break,
+                }
             }
+            if !(wrote && self.driver.station.history().listing()) {
+                break;
+            }
+            self.driver.service(print)?;
         }
         let mut wait = MAX_SLICE;
         if self.boot_button.is_some() {
@@ -451,6 +467,6 @@ impl HostSide for NoHost {
 /// chip opens it at boot.
 pub fn open_history(chip: &mut crate::ota::ChipFlash) -> tinybms_firmware::history::log::History {
     use tinybms_firmware::history::log::{find, History, Reading};
-    let range = find(chip);
+    let range = find(chip, crate::ota::CHIP_BYTES as u32);
     History::open(&mut Reading(chip), range)
 }

@@ -549,6 +549,9 @@ fn update(
          (`tinybms version PORT` or its hello says which runs)",
         c.hello.firmware
     );
+    if let Some(note) = cmd::update::history_note(&c.hello) {
+        println!("{note}");
+    }
     Ok(())
 }
 

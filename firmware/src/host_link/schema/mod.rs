@@ -138,6 +138,11 @@ line_type! {
         /// Updates: the slot running, its trial, the keys trusted.
         #[serde(skip_serializing_if = "Option::is_none", default)]
         pub update: Option<UpdateHello<F>>,
+        /// The history in flash: `recording`, or why there is none (a table
+        /// from before the history partition: one reinstall by cable adds
+        /// it). Absent from a bridge older than the history.
+        #[serde(skip_serializing_if = "Option::is_none", default)]
+        pub history: Option<F::Text>,
     }
 }
 

@@ -312,6 +312,14 @@ fn bridge_of(h: &Hello<Read>) -> Vec<(&'static str, Value, String)> {
         let v = serde_json::to_value(s).unwrap_or(Value::Null);
         b.push(("store", v, store_text(s)));
     }
+    if let Some(hist) = &h.history {
+        let text = if hist == "recording" {
+            "kept in flash (tinybms history PORT)".to_string()
+        } else {
+            format!("off: {hist}")
+        };
+        b.push(("history", json!(hist), text));
+    }
     if let Some(r) = &h.radio {
         let text = tinybms_firmware::wifi::Radio::from_key(r).map_or_else(
             || r.clone(),

@@ -589,3 +589,20 @@ pub fn send(
         "the bridge did not finish the update in 30 s",
     ))
 }
+
+/// What an update leaves of the history on this bridge, when it is not
+/// kept: a bridge whose firmware predates the history (its `hello` has no
+/// `history`) was installed with the partition table of before, which an
+/// update cannot change; one whose history is off says why.
+pub fn history_note(hello: &Hello<Read>) -> Option<String> {
+    match hello.history.as_deref() {
+        Some("recording") => None,
+        Some(why) => Some(format!("note: no history on this bridge: {why}")),
+        None => Some(
+            "note: this bridge was installed before the history partition: the update works, \
+             and the bridge runs without its history (events, days, capacity) until one \
+             reinstall by cable (the browser installer's Update, or esptool: docs/updates.md)"
+                .to_string(),
+        ),
+    }
+}
