@@ -29,11 +29,30 @@
 //! once), [`InverterKind::Overshoot`] — every current limit exceeded by 20 %,
 //! [`InverterKind::IgnoresZero`] — a charge limit of 0 A is taken as 10 A
 //! (charging then stops only at CVL).
+//!
+//! ## The capacity measure ([`run_capacity`])
+//! The same year (today's control, an inverter that obeys) with three
+//! additions, none of which changes a draw of the year above: each cell loses
+//! [`FADE_PER_YEAR`] of its capacity a year (±30 % per cell, its own draw
+//! from the seed); deep spells (every 18-35 days, 2-3 overcast days with a
+//! heater's 8-14 A more load, their own draws) take the pack down to its
+//! knee, which the ordinary days never reach; and the firmware's
+//! [`tinybms_firmware::history`] is fed with what a TinyBMS would report
+//! every [`FEED_S`] s — a `LiveSnapshot` of the cells, the pack's voltage and
+//! current and the status "fully charged" once the highest cell reached 300
+//! ([`CAPACITY_FULL_MV`]) with the charge current below
+//! [`CHARGE_FINISHED_A`], until the pack discharges. Each estimate is held
+//! against the weakest cell's capacity at that moment.
 
 use tinybms_firmware::inverter::control::{
     ChargeConfig, ChargeControl, PackSettings, PackState, Phase,
 };
 use tinybms_firmware::inverter::finish::Stage;
+
+use protocol_core::events::OnlineStatus;
+use protocol_core::views::{Cells, LiveSnapshot};
+use tinybms_firmware::history::capacity::{Capacity, Estimate, LFP_KNEE_MV};
+use tinybms_firmware::history::day::{DayBook, DayRecord};
 
 use crate::sim::balancer;
 use crate::sim::rng::Rng;
@@ -137,6 +156,9 @@ struct Cell {
     r_ohm: f64,
     /// Polarisation now, V.
     pol_v: f64,
+    /// Capacity fade, share of the capacity per second (0: none; only the
+    /// capacity measure fades its cells, see [`run_capacity`]).
+    fade_per_s: f64,
 }
 
 impl Cell {
@@ -181,6 +203,7 @@ impl Pack {
             leak_ah_s: 0.0,
             r_ohm: 0.0005,
             pol_v: 0.0,
+            fade_per_s: 0.0,
         }; CELLS];
         for c in &mut cells {
             c.capacity_ah = CAPACITY_AH * rng.range_f64(0.98, 1.02);
@@ -206,11 +229,14 @@ impl Pack {
 
     /// Cell voltages now, mV.
     pub fn cells_mv(&self) -> [u16; CELLS] {
+        self.cells_mv_at(self.current_a)
+    }
+
+    /// Cell voltages with `current_a` through them now, mV.
+    pub fn cells_mv_at(&self, current_a: f64) -> [u16; CELLS] {
         let mut out = [0u16; CELLS];
         for (o, c) in out.iter_mut().zip(&self.cells) {
-            *o = (c.volts(self.current_a) * 1000.0)
-                .round()
-                .clamp(0.0, 6500.0) as u16;
+            *o = (c.volts(current_a) * 1000.0).round().clamp(0.0, 6500.0) as u16;
         }
         out
     }
@@ -223,6 +249,32 @@ impl Pack {
     /// The pack's voltage with no current through it now, V.
     pub fn rest_volts(&self) -> f64 {
         self.cells.iter().map(Cell::rest).sum()
+    }
+
+    /// Pack voltage with `current_a` through it now, V.
+    pub fn volts_at(&self, current_a: f64) -> f64 {
+        self.cells.iter().map(|c| c.volts(current_a)).sum()
+    }
+
+    /// The cells' capacities now, Ah.
+    pub fn capacities_ah(&self) -> [f64; CELLS] {
+        self.cells.map(|c| c.capacity_ah)
+    }
+
+    /// The cells' charges now, Ah.
+    pub fn charges_ah(&self) -> [f64; CELLS] {
+        self.cells.map(|c| c.charge_ah)
+    }
+
+    /// Gives each cell a capacity fade of [`FADE_PER_YEAR`] varied by ±30 %
+    /// per cell, drawn from `seed` (a draw of its own: the pack is otherwise
+    /// the same as without).
+    pub fn fade(&mut self, seed: u64) {
+        let mut rng = Rng::new(seed ^ 0xFADE);
+        let year_s = 365.0 * DAY_S as f64;
+        for c in &mut self.cells {
+            c.fade_per_s = FADE_PER_YEAR * rng.range_f64(0.7, 1.3) / year_s;
+        }
     }
 
     /// Resistance of the pack, Ω.
@@ -256,6 +308,12 @@ impl Pack {
             }
             c.charge_ah = (c.charge_ah + ah).max(0.0);
             c.polarise(current_a, dt_s);
+            if c.fade_per_s > 0.0 {
+                // Capacity lost, the charge with it (the SOC stays).
+                let k = 1.0 - c.fade_per_s * dt_s;
+                c.capacity_ah *= k;
+                c.charge_ah *= k;
+            }
         }
     }
 
@@ -302,6 +360,8 @@ pub struct Day {
     clouds: Vec<(f64, f64, f64)>,
     /// Appliances: (start, end, A).
     appliances: Vec<(f64, f64, f64)>,
+    /// A load on all day (a deep day's heater), A.
+    extra_load_a: f64,
 }
 
 impl Day {
@@ -354,7 +414,21 @@ impl Day {
             peak_a,
             clouds,
             appliances,
+            extra_load_a: 0.0,
         }
+    }
+
+    /// Makes it a deep day: overcast, and `extra_a` more load all day.
+    fn deepen(&mut self, extra_a: f64) {
+        let sun = match self.sky {
+            Sky::Sunny => 0.2,
+            Sky::Mixed => 0.2 / 0.85,
+            Sky::Overcast => 1.0,
+        };
+        self.peak_a *= sun;
+        self.sky = Sky::Overcast;
+        self.clouds.clear();
+        self.extra_load_a = extra_a;
     }
 
     /// Solar current at `t` s of the day, A.
@@ -375,7 +449,7 @@ impl Day {
     /// House load at `t` s of the day, A.
     fn load_a(&self, t: f64) -> f64 {
         let h = t / 3600.0;
-        let mut a = 3.0;
+        let mut a = 3.0 + self.extra_load_a;
         if (6.5..8.5).contains(&h) {
             a += 8.0;
         }
@@ -562,10 +636,28 @@ const KNEE_MV: u16 = 3450;
 
 /// Runs `days` days of `seed` under `config` behind `kind`.
 pub fn run(seed: u64, days: u64, config: ChargeConfig, kind: InverterKind) -> YearFigures {
+    run_with(seed, days, config, kind, None)
+}
+
+/// [`run`], with the capacity measure's additions when `watch` is given.
+fn run_with(
+    seed: u64,
+    days: u64,
+    config: ChargeConfig,
+    kind: InverterKind,
+    mut watch: Option<&mut Watch>,
+) -> YearFigures {
     let mut rng = Rng::new(seed);
     let mut pack = Pack::new(seed, 60.0);
     let mut control = ChargeControl::new(config);
-    let s = settings();
+    let s = match watch {
+        Some(_) => capacity_settings(),
+        None => settings(),
+    };
+    if let Some(w) = watch.as_deref_mut() {
+        pack.fade(seed);
+        w.start(&pack);
+    }
     let mut f = YearFigures {
         days,
         ..YearFigures::default()
@@ -579,7 +671,10 @@ pub fn run(seed: u64, days: u64, config: ChargeConfig, kind: InverterKind) -> Ye
         1.0
     };
     for n in 0..days {
-        let day = Day::new(n, &mut rng);
+        let mut day = Day::new(n, &mut rng);
+        if let Some(w) = watch.as_deref_mut() {
+            w.shape(n, &mut day);
+        }
         let mut reached_float = false;
         let mut end: Option<ChargeEnd> = None;
         let mut t = 0u64;
@@ -650,6 +745,9 @@ pub fn run(seed: u64, days: u64, config: ChargeConfig, kind: InverterKind) -> Ye
             if i > 0.0 {
                 f.charged_kwh += i * pack.volts() * dt as f64 / 3.6e6;
             }
+            if let Some(w) = watch.as_deref_mut() {
+                w.observe(&pack, i, now_us, dt, &stage, &s);
+            }
             pack.step(i, dt as f64);
             top = pack.cells_mv().iter().copied().max().unwrap_or(0);
             f.max_cell_mv = f.max_cell_mv.max(top);
@@ -712,5 +810,321 @@ pub fn header() -> String {
         "cvl/h",
         "balAh",
         "heldh"
+    )
+}
+
+// ---------------------------------------------------------------------------
+// The capacity measure (issue 55): the firmware's day book and capacity
+// estimate fed with the year's pack, against the simulated truth.
+
+/// Capacity fade of a cell over a year, share (each cell ±30 % of it).
+pub const FADE_PER_YEAR: f64 = 0.03;
+/// The simulated BMS's "fully charged voltage" (300) in the capacity
+/// measure, mV: the bridge's absorption target (315 − 100 = 3550 mV caps it
+/// either way), so that the BMS sees its full charges — at 3650 mV a
+/// TinyBMS behind the bridge would never say "fully charged".
+pub const CAPACITY_FULL_MV: u16 = 3550;
+/// The simulated BMS's "charge finished current" (304), A: with the highest
+/// cell at 300 and the charge current below it, the BMS says "fully charged"
+/// (status 0x92 once the current is at rest), until the pack discharges.
+pub const CHARGE_FINISHED_A: f64 = 5.0;
+/// A current within ±this is at rest for the BMS's status, A.
+pub const IDLE_BAND_A: f64 = 0.5;
+/// The bridge reads the BMS at least this often, s: a step of a minute is
+/// fed to the firmware as six snapshots (its current is constant over it).
+pub const FEED_S: u64 = 10;
+
+/// The settings of the capacity measure: [`settings`] with 300 =
+/// [`CAPACITY_FULL_MV`].
+pub fn capacity_settings() -> PackSettings {
+    PackSettings {
+        fully_charged_mv: CAPACITY_FULL_MV,
+        ..settings()
+    }
+}
+
+/// One capacity estimate of a run against the truth then.
+#[derive(Debug, Clone, Copy)]
+pub struct CapacityPoint {
+    /// The day it came.
+    pub day: u64,
+    /// The run's estimate.
+    pub estimate: Estimate,
+    /// The reported capacity then (the median of the last five).
+    pub median: Estimate,
+    /// The weakest cell's capacity then, Ah: the truth.
+    pub truth_ah: f64,
+    /// The weakest cell's charge at the last "fully charged", Ah: what the
+    /// pack could give from full.
+    pub usable_ah: f64,
+}
+
+impl CapacityPoint {
+    /// The run's estimate against the truth, %.
+    pub fn error_pct(&self) -> f64 {
+        (f64::from(self.estimate.cah) / 100.0 - self.truth_ah) / self.truth_ah * 100.0
+    }
+    /// The reported capacity against the truth, %.
+    pub fn median_error_pct(&self) -> f64 {
+        (f64::from(self.median.cah) / 100.0 - self.truth_ah) / self.truth_ah * 100.0
+    }
+}
+
+/// The figures of the capacity measure.
+#[derive(Debug, Clone, Default)]
+pub struct CapacityFigures {
+    /// Days run.
+    pub days: u64,
+    /// Deep days (overcast, with a heater's load).
+    pub deep_days: u64,
+    /// Times the lowest cell crossed down through the knee (any current).
+    pub knee_crossings: u64,
+    /// Times the BMS said "fully charged" after a charge.
+    pub full_charges: u64,
+    /// Each qualifying run's estimate.
+    pub points: Vec<CapacityPoint>,
+    /// The reported capacity at the end.
+    pub last: Option<Estimate>,
+    /// The weakest cell's capacity at the start and at the end, Ah.
+    pub truth_ah: (f64, f64),
+    /// Day records closed, and how many of them came back from their bytes
+    /// unchanged.
+    pub records: (u64, u64),
+}
+
+impl CapacityFigures {
+    /// The largest error of a run's estimate, % (signed).
+    pub fn worst_error_pct(&self) -> f64 {
+        self.points
+            .iter()
+            .map(CapacityPoint::error_pct)
+            .fold(0.0, |a, e| if e.abs() > a.abs() { e } else { a })
+    }
+    /// The mean absolute error of the runs' estimates, %.
+    pub fn mean_error_pct(&self) -> f64 {
+        let n = self.points.len().max(1) as f64;
+        self.points.iter().map(|p| p.error_pct().abs()).sum::<f64>() / n
+    }
+}
+
+/// The capacity measure's side of a run: the deep days, the BMS's status,
+/// the firmware's day book and estimator.
+struct Watch {
+    deep: bool,
+    spells: Rng,
+    next_spell: u64,
+    spell_left: u64,
+    extra_a: f64,
+    /// The simulated BMS's "fully charged" latch.
+    full: bool,
+    usable_ah: f64,
+    last_min_mv: u16,
+    book: DayBook,
+    capacity: Capacity,
+    f: CapacityFigures,
+}
+
+impl Watch {
+    fn new(seed: u64, deep: bool) -> Self {
+        let mut spells = Rng::new(seed ^ 0xDEE9);
+        let next_spell = spells.range_u64(10, 30);
+        Self {
+            deep,
+            spells,
+            next_spell,
+            spell_left: 0,
+            extra_a: 0.0,
+            full: false,
+            usable_ah: 0.0,
+            last_min_mv: 0,
+            book: DayBook::new(0),
+            capacity: Capacity::new(),
+            f: CapacityFigures::default(),
+        }
+    }
+
+    fn start(&mut self, pack: &Pack) {
+        self.f.truth_ah.0 = pack
+            .capacities_ah()
+            .into_iter()
+            .fold(f64::INFINITY, f64::min);
+    }
+
+    /// Deep spells: every 18-35 days, 2-3 overcast days with 8-14 A more
+    /// load (a heater), drawn from the seed.
+    fn shape(&mut self, n: u64, day: &mut Day) {
+        if !self.deep {
+            return;
+        }
+        if self.spell_left == 0 && n >= self.next_spell {
+            self.spell_left = self.spells.range_u64(2, 3);
+            self.extra_a = self.spells.range_f64(8.0, 14.0);
+            self.next_spell = n + self.spell_left + self.spells.range_u64(18, 35);
+        }
+        if self.spell_left > 0 {
+            day.deepen(self.extra_a);
+            self.spell_left -= 1;
+            self.f.deep_days += 1;
+        }
+    }
+
+    /// A step of `dt` s from `now_us` at `i` A: what the BMS reports, fed to
+    /// the firmware every [`FEED_S`] s of it.
+    fn observe(
+        &mut self,
+        pack: &Pack,
+        i: f64,
+        now_us: u64,
+        dt: u64,
+        stage: &Stage,
+        s: &PackSettings,
+    ) {
+        let mv = pack.cells_mv_at(i);
+        let min = mv.iter().copied().min().unwrap_or(0);
+        let max = mv.iter().copied().max().unwrap_or(0);
+        if max >= s.fully_charged_mv && (0.0..CHARGE_FINISHED_A).contains(&i) {
+            if !self.full {
+                self.f.full_charges += 1;
+            }
+            self.full = true;
+        }
+        if i < -IDLE_BAND_A {
+            self.full = false;
+        }
+        let status = if i > IDLE_BAND_A {
+            OnlineStatus::Charging
+        } else if i < -IDLE_BAND_A {
+            OnlineStatus::Discharging
+        } else if self.full {
+            OnlineStatus::FullyCharged
+        } else {
+            OnlineStatus::Idle
+        };
+        let charges = pack.charges_ah();
+        if status == OnlineStatus::FullyCharged {
+            self.usable_ah = charges.into_iter().fold(f64::INFINITY, f64::min);
+        }
+        if self.last_min_mv >= LFP_KNEE_MV && min < LFP_KNEE_MV {
+            self.f.knee_crossings += 1;
+        }
+        self.last_min_mv = min;
+        let snap = snapshot(&mv, pack.volts_at(i), i, status);
+        let mut t = now_us;
+        while t < now_us + dt * 1_000_000 {
+            self.book.on_snapshot(t, &snap, true, Some(s), Some(stage));
+            if let Some(e) = self.capacity.on_snapshot(t, &snap, true, Some(s)) {
+                self.book.on_estimate(&e);
+                let truth_ah = pack
+                    .capacities_ah()
+                    .into_iter()
+                    .fold(f64::INFINITY, f64::min);
+                self.f.points.push(CapacityPoint {
+                    day: t / (DAY_S * 1_000_000),
+                    estimate: e,
+                    median: self.capacity.estimate().unwrap_or(e),
+                    truth_ah,
+                    usable_ah: self.usable_ah,
+                });
+            }
+            if let Some(r) = self.book.poll(t, None) {
+                self.f.records.0 += 1;
+                if DayRecord::decode(&r.encode()) == Ok(r) {
+                    self.f.records.1 += 1;
+                }
+            }
+            t += FEED_S * 1_000_000;
+        }
+    }
+}
+
+/// What the simulated BMS reports: registers 0-55 as the bridge decodes them.
+fn snapshot(mv: &[u16; CELLS], volts: f64, current_a: f64, status: OnlineStatus) -> LiveSnapshot {
+    let mut raw = heapless::Vec::new();
+    for &v in mv {
+        let _fits = raw.push(v.saturating_mul(10));
+    }
+    LiveSnapshot {
+        cells: Cells {
+            first_register: 0,
+            raw,
+        },
+        cell_count: CELLS as u16,
+        lifetime_s: 0,
+        estimated_time_left_s: 0,
+        pack_voltage_v: volts as f32,
+        pack_current_a: current_a as f32,
+        min_cell_mv: mv.iter().copied().min().unwrap_or(0),
+        max_cell_mv: mv.iter().copied().max().unwrap_or(0),
+        external1_dc: Some(250),
+        external2_dc: None,
+        distance_left_km: 0,
+        soh_raw: 50_000,
+        soc_raw: 0,
+        internal_dc: 250,
+        status,
+        balancing_decision_bits: 0,
+        real_balancing_bits: 0,
+        speed_kmh: 0.0,
+    }
+}
+
+/// A year of `seed` (today's end-of-charge control, an inverter that obeys)
+/// with cells that fade ([`FADE_PER_YEAR`]) and, when `deep`, deep spells
+/// that take the pack down to its knee; the firmware's
+/// [`tinybms_firmware::history`] fed with what the BMS reports.
+pub fn run_capacity(seed: u64, days: u64, deep: bool) -> CapacityFigures {
+    let mut w = Watch::new(seed, deep);
+    run_with(
+        seed,
+        days,
+        Policy::Now.config(),
+        InverterKind::Obeys,
+        Some(&mut w),
+    );
+    w.f.days = days;
+    w.f.last = w.capacity.estimate();
+    w.f.truth_ah.1 = w.f.points.last().map_or(w.f.truth_ah.0, |p| p.truth_ah);
+    w.f
+}
+
+/// One line of the capacity measure.
+pub fn capacity_row(seed: u64, f: &CapacityFigures) -> String {
+    let last = f.last.map_or("unknown".to_string(), |e| {
+        format!(
+            "{:.1} Ah ±{:.1}%",
+            f64::from(e.cah) / 100.0,
+            f64::from(e.uncertainty_permille) / 10.0
+        )
+    });
+    format!(
+        "{seed:>4} {:>5} {:>5} {:>5} {:>5} {:>+7.2}% {:>6.2}% {:>22} {:>9.1} {:>9.1} {:>7}",
+        f.deep_days,
+        f.knee_crossings,
+        f.full_charges,
+        f.points.len(),
+        f.worst_error_pct(),
+        f.mean_error_pct(),
+        last,
+        f.truth_ah.0,
+        f.truth_ah.1,
+        format!("{}/{}", f.records.1, f.records.0),
+    )
+}
+
+/// The header of [`capacity_row`].
+pub fn capacity_header() -> String {
+    format!(
+        "{:>4} {:>5} {:>5} {:>5} {:>5} {:>8} {:>7} {:>22} {:>9} {:>9} {:>7}",
+        "seed",
+        "deep",
+        "knee",
+        "full",
+        "runs",
+        "worst",
+        "mean",
+        "reported at the end",
+        "truth0 Ah",
+        "truth Ah",
+        "days"
     )
 }
