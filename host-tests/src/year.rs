@@ -40,8 +40,11 @@
 //! [`tinybms_firmware::history`] is fed with what a TinyBMS would report
 //! every [`FEED_S`] s — a `LiveSnapshot` of the cells, the pack's voltage and
 //! current and the status "fully charged" once the highest cell reached 300
-//! ([`CAPACITY_FULL_MV`]) with the charge current below
-//! [`CHARGE_FINISHED_A`], until the pack discharges. Each estimate is held
+//! with the charge current below [`CHARGE_FINISHED_A`], until the pack
+//! discharges — which at the pack's 300 of 3650 mV never happens behind the
+//! bridge (its absorption target is 3550 mV), so the full points are the
+//! bridge's own ends of charge ([`charge_finished`](tinybms_firmware::history::capacity::charge_finished)),
+//! handed in as "fully charged" as the station does. Each estimate is held
 //! against the weakest cell's capacity at that moment.
 
 use tinybms_firmware::inverter::control::{
@@ -650,10 +653,7 @@ fn run_with(
     let mut rng = Rng::new(seed);
     let mut pack = Pack::new(seed, 60.0);
     let mut control = ChargeControl::new(config);
-    let s = match watch {
-        Some(_) => capacity_settings(),
-        None => settings(),
-    };
+    let s = settings();
     if let Some(w) = watch.as_deref_mut() {
         pack.fade(seed);
         w.start(&pack);
@@ -819,11 +819,6 @@ pub fn header() -> String {
 
 /// Capacity fade of a cell over a year, share (each cell ±30 % of it).
 pub const FADE_PER_YEAR: f64 = 0.03;
-/// The simulated BMS's "fully charged voltage" (300) in the capacity
-/// measure, mV: the bridge's absorption target (315 − 100 = 3550 mV caps it
-/// either way), so that the BMS sees its full charges — at 3650 mV a
-/// TinyBMS behind the bridge would never say "fully charged".
-pub const CAPACITY_FULL_MV: u16 = 3550;
 /// The simulated BMS's "charge finished current" (304), A: with the highest
 /// cell at 300 and the charge current below it, the BMS says "fully charged"
 /// (status 0x92 once the current is at rest), until the pack discharges.
@@ -833,15 +828,6 @@ pub const IDLE_BAND_A: f64 = 0.5;
 /// The bridge reads the BMS at least this often, s: a step of a minute is
 /// fed to the firmware as six snapshots (its current is constant over it).
 pub const FEED_S: u64 = 10;
-
-/// The settings of the capacity measure: [`settings`] with 300 =
-/// [`CAPACITY_FULL_MV`].
-pub fn capacity_settings() -> PackSettings {
-    PackSettings {
-        fully_charged_mv: CAPACITY_FULL_MV,
-        ..settings()
-    }
-}
 
 /// One capacity estimate of a run against the truth then.
 #[derive(Debug, Clone, Copy)]
@@ -917,6 +903,8 @@ struct Watch {
     extra_a: f64,
     /// The simulated BMS's "fully charged" latch.
     full: bool,
+    /// Charge control's stage at the last step.
+    last_stage: Option<Stage>,
     usable_ah: f64,
     last_min_mv: u16,
     book: DayBook,
@@ -935,6 +923,7 @@ impl Watch {
             spell_left: 0,
             extra_a: 0.0,
             full: false,
+            last_stage: None,
             usable_ah: 0.0,
             last_min_mv: 0,
             book: DayBook::new(0),
@@ -991,7 +980,19 @@ impl Watch {
         if i < -IDLE_BAND_A {
             self.full = false;
         }
-        let status = if i > IDLE_BAND_A {
+        // The bridge's own end of a charge (the station hands that snapshot
+        // to the estimate as "fully charged" too).
+        let finished = tinybms_firmware::history::capacity::charge_finished(
+            self.last_stage.as_ref(),
+            Some(stage),
+        );
+        self.last_stage = Some(*stage);
+        if finished {
+            self.f.full_charges += 1;
+        }
+        let status = if finished {
+            OnlineStatus::FullyCharged
+        } else if i > IDLE_BAND_A {
             OnlineStatus::Charging
         } else if i < -IDLE_BAND_A {
             OnlineStatus::Discharging

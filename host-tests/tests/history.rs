@@ -25,7 +25,11 @@ const S: u64 = 1_000_000;
 /// The BMS requests, the CAN frames and the history's flash operations of a
 /// run with `set_time` lines every 200 ms (each a new date: an event each,
 /// within the rate limit).
-fn run(with_history: bool, end: u64) -> (Vec<(u64, Vec<u8>)>, Vec<(u64, u16)>, usize) {
+/// A run: its BMS requests (time, bytes), its CAN frames (time, id), the
+/// history's flash operations.
+type Run = (Vec<(u64, Vec<u8>)>, Vec<(u64, u16)>, usize);
+
+fn run(with_history: bool, end: u64) -> Run {
     let mut l = ClosedLoop::from_flash_as(
         PackModel::LiFePO4_16S,
         7,

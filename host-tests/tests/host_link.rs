@@ -350,7 +350,8 @@ fn hello_on_connect_and_on_request() {
             "build":tinybms_firmware::identity::BUILD,"chip":"sim","board":"simulated",
             "features":["host-link"],"record_version":tinybms_firmware::config::VERSION,
             "read_only":false,"stream_period_ms":1000,"dropped_lines":0,
-            "update":{"slot":null,"trial":"confirmed","built_in_key":null,"owner_key":null}})
+            "update":{"slot":null,"trial":"confirmed","built_in_key":null,"owner_key":null},
+            "history":"this runner keeps no history"})
     );
     r.line(r#"{"cmd":"hello","req":77}"#);
     assert_eq!(only(&r.drain())["req"], 77);

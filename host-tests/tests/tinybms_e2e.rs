@@ -654,7 +654,11 @@ fn history_lists_the_bridges_own_events_and_says_where_it_is_kept() {
     let o = tinybms(&["history", &sim.path, "--format", "csv"]);
     assert_eq!(o.code, 0, "{o}");
     let mut lines = o.stdout.lines();
-    assert_eq!(lines.next(), Some("id,boot,uptime_s,date,event,what"), "{o}");
+    assert_eq!(
+        lines.next(),
+        Some("id,boot,uptime_s,date,event,what"),
+        "{o}"
+    );
     assert!(o.stdout.contains(",time_set,date set (usb)"), "{o}");
     let o = tinybms(&["history", &sim.path, "--format", "json"]);
     assert_eq!(o.code, 0, "{o}");
@@ -663,8 +667,14 @@ fn history_lists_the_bridges_own_events_and_says_where_it_is_kept() {
         .lines()
         .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
         .collect();
-    let started = rows.iter().find(|r| r["event"] == "started").expect("started");
-    assert!(started["what"].as_str().unwrap().contains("reset reason"), "{started}");
+    let started = rows
+        .iter()
+        .find(|r| r["event"] == "started")
+        .expect("started");
+    assert!(
+        started["what"].as_str().unwrap().contains("reset reason"),
+        "{started}"
+    );
     assert!(rows.iter().any(|r| r["date"].is_string()), "{o}");
     // No day has passed yet.
     let o = tinybms(&["history", &sim.path, "--days"]);
@@ -674,7 +684,10 @@ fn history_lists_the_bridges_own_events_and_says_where_it_is_kept() {
     assert_eq!(o.code, 2, "{o}");
     let o = tinybms(&["version", &sim.path]);
     assert_eq!(o.code, 0, "{o}");
-    assert!(o.stdout.contains("kept in flash (tinybms history PORT)"), "{o}");
+    assert!(
+        o.stdout.contains("kept in flash (tinybms history PORT)"),
+        "{o}"
+    );
 }
 
 #[test]

@@ -174,7 +174,7 @@ async fn main(spawner: Spawner) {
 
     // Updates: otadata, the trial's mark or the rollback (which restarts
     // here), before anything runs.
-    let (chip_ota, ota) = ota::boot();
+    let (mut chip_ota, ota) = ota::boot();
     // The configuration record, before any task that runs with it. (Reading
     // flash stops the CPU only for microseconds; nothing runs yet anyway.)
     let (store, loaded, site) = store::open(p.FLASH);

@@ -6,7 +6,12 @@
 //! ## The two known points
 //!
 //! - **Full**: the BMS says so (status "fully charged", register 50 =
-//!   0x92): the pack is at 100 %.
+//!   0x92): the pack is at 100 %. Or the bridge's own charge control says
+//!   so ([`charge_finished`]: absorption held until the current tapered,
+//!   then the step into float) — behind the bridge a TinyBMS rarely says it
+//!   itself: its "fully charged voltage" (300) is above the bridge's
+//!   absorption target (315 − 100 mV by default), which the cells then
+//!   never reach. The caller hands that snapshot in as "fully charged".
 //! - **The knee**: the lowest cell crossing down through the knee voltage
 //!   while the pack discharges at a modest current (at most
 //!   [`KNEE_MAX_C_PERMILLE`] ‰ of the nominal capacity per hour, 0.2 C):
@@ -84,6 +89,20 @@ pub const KEPT: usize = 5;
 const MA_US_PER_CAH: i64 = 36_000_000_000;
 /// A current beyond this is nonsense, mA (10 kA).
 const MAX_MA: f32 = 10_000_000.0;
+
+/// The bridge's charge control has just finished a charge: its stage went
+/// from absorption (or the balance hold) to the step into float or float —
+/// the highest cell at the absorption target and the current tapered below
+/// the tail current: the pack is full (a known point, as the BMS's "fully
+/// charged").
+pub fn charge_finished(
+    before: Option<&crate::inverter::finish::Stage>,
+    now: Option<&crate::inverter::finish::Stage>,
+) -> bool {
+    use crate::inverter::finish::Stage;
+    matches!(before, Some(Stage::Absorption | Stage::BalanceHeld { .. }))
+        && matches!(now, Some(Stage::StepDown { .. } | Stage::Float))
+}
 
 /// One capacity estimate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

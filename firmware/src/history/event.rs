@@ -262,11 +262,15 @@ impl Record {
         let mut text = [0u8; TEXT_BYTES];
         text.copy_from_slice(&p[23..]);
         let n = text.iter().position(|&b| b == 0).unwrap_or(TEXT_BYTES);
-        if text[..n].iter().any(|b| !(0x20..0x7F).contains(b)) || text[n..].iter().any(|&b| b != 0)
-        {
+        let (words, padding) = text.split_at(n.min(TEXT_BYTES));
+        if words.iter().any(|b| !(0x20..0x7F).contains(b)) || padding.iter().any(|&b| b != 0) {
             return Err(EventError::Text);
         }
-        let u32_at = |at: usize| u32::from_le_bytes([p[at], p[at + 1], p[at + 2], p[at + 3]]);
+        let u32_at = |at: usize| {
+            let mut w = [0u8; 4];
+            w.copy_from_slice(p.get(at..at + 4).unwrap_or(&[0; 4]));
+            u32::from_le_bytes(w)
+        };
         let mut up = [0u8; 8];
         up.copy_from_slice(&p[3..11]);
         Ok(Self {

@@ -150,11 +150,14 @@ pub fn encode(kind: Option<Kind>, id: u32, payload: &[u8], len: usize) -> [u8; S
     b[2] = kind.map_or(KIND_HEADER, |k| k as u8);
     b[3] = VERSION;
     b[4..8].copy_from_slice(&id.to_le_bytes());
-    for (d, s) in b[8..len - 4].iter_mut().zip(payload) {
+    let (body, tail) = b.split_at_mut(len - 4);
+    for (d, s) in body.iter_mut().skip(8).zip(payload) {
         *d = *s;
     }
-    let crc = CRC.checksum(&b[..len - 4]);
-    b[len - 4..len].copy_from_slice(&crc.to_le_bytes());
+    let crc = CRC.checksum(body);
+    for (d, s) in tail.iter_mut().zip(crc.to_le_bytes()) {
+        *d = s;
+    }
     b
 }
 
@@ -559,7 +562,7 @@ impl Reader {
     pub fn read_all(mut self, flash: &mut impl ReadFlash, mut each: impl FnMut(Found)) {
         while let Some(at) = self.want() {
             let mut b = [0u8; SLOT_MAX];
-            let b = &mut b[..self.slot_bytes()];
+            let b = b.get_mut(..self.slot_bytes()).unwrap_or(&mut []);
             let ok = flash.read(at, b);
             if let Some(f) = self.feed(ok.then_some(&*b)) {
                 each(f);

@@ -31,6 +31,8 @@ pub(super) struct Days {
     pub top_spread: Option<u16>,
     /// The newest capacity estimate in flash (before one qualifies again).
     pub stored_capacity: Option<(u32, u16)>,
+    /// Charge control's stage at the last snapshot.
+    pub stage: Option<crate::inverter::finish::Stage>,
 }
 
 impl Days {
@@ -41,6 +43,7 @@ impl Days {
             next_checkpoint: now.saturating_add(CHECKPOINT_US),
             top_spread: None,
             stored_capacity: None,
+            stage: None,
         }
     }
 }
@@ -123,7 +126,17 @@ impl Station {
         if let Some(st) = statistics {
             days.book.on_statistics(st);
         }
-        if let Some(e) = days.capacity.on_snapshot(at, s, valid, settings) {
+        // The bridge's own end of a charge is a full point too.
+        let finished = crate::history::capacity::charge_finished(days.stage.as_ref(), stage);
+        days.stage = stage.copied();
+        let e = if finished && valid {
+            let mut full = s.clone();
+            full.status = protocol_core::events::OnlineStatus::FullyCharged;
+            days.capacity.on_snapshot(at, &full, valid, settings)
+        } else {
+            days.capacity.on_snapshot(at, s, valid, settings)
+        };
+        if let Some(e) = e {
             days.book.on_estimate(&e);
         }
     }
@@ -209,11 +222,11 @@ impl Station {
                 h.event(now, Code::BmsOffline, u32::from(*failures), 0, "")
             }
             Logged::Bridge(Report::Online) => h.event(now, Code::BmsOnline, 0, 0, ""),
-            Logged::Inverter(InverterReport::Stale { age_ms, .. }) => {
-                if self.watch.stale_since.is_none() {
-                    self.watch.stale_since = Some(now.saturating_sub(u64::from(*age_ms) * 1000));
-                    h.event(now, Code::StaleBegan, *age_ms, 0, "");
-                }
+            Logged::Inverter(InverterReport::Stale { age_ms, .. })
+                if self.watch.stale_since.is_none() =>
+            {
+                self.watch.stale_since = Some(now.saturating_sub(u64::from(*age_ms) * 1000));
+                h.event(now, Code::StaleBegan, *age_ms, 0, "");
             }
             Logged::Inverter(InverterReport::Fresh) => {
                 if let Some(t) = self.watch.stale_since.take() {
