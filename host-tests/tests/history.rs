@@ -365,3 +365,72 @@ fn a_listing_reads_what_was_written_oldest_first() {
     assert!(ended, "the listing came to its end");
     assert_eq!(got, (0..70).collect::<Vec<_>>());
 }
+
+/// A chip flash whose history holds a closed day `last` and a checkpoint of
+/// day `point`.
+fn with_days(last: Option<u32>, point: Option<u32>) -> ChipFlash {
+    use tinybms_firmware::history::day::DayRecord;
+    let mut chip = ChipFlash(chip_flash());
+    let mut h = tinybms_desk::station::open_history(&mut chip);
+    if let Some(d) = last {
+        let r = DayRecord {
+            day: d,
+            covered_s: 86_400,
+            top_spread_mv: 23,
+            top_cell: 4,
+            highest_cell_mv: 3550,
+            lowest_cell_mv: 3300,
+            capacity_cah: 27_100,
+            capacity_uncertainty_permille: 21,
+            ..Default::default()
+        };
+        h.record(Kind::Day, &r.encode());
+    }
+    if let Some(d) = point {
+        let r = DayRecord {
+            day: d,
+            partial: true,
+            covered_s: 7_200,
+            energy_in_wh: 1_234,
+            ..Default::default()
+        };
+        h.record(Kind::Checkpoint, &r.encode());
+    }
+    while let Some(op) = h.next_op() {
+        let ok = log::run(&mut chip, op);
+        h.done(ok);
+    }
+    chip
+}
+
+#[test]
+fn after_a_restart_the_day_goes_on_from_its_checkpoint_or_the_next_one_begins() {
+    let station = |chip: &mut ChipFlash| {
+        let mut l = ClosedLoop::from_flash(PackModel::LiFePO4_16S, 1, RamFlash::new(), 100.0);
+        let h = tinybms_desk::station::open_history(chip);
+        l.h.station.set_history(0, h, Some(1));
+        l
+    };
+    // A checkpoint of a day newer than the last closed one: that day goes on.
+    let l = station(&mut with_days(Some(4), Some(5)));
+    assert_eq!(l.h.station.day_book().day(), 5);
+    let p = l.h.station.day_book().checkpoint(0);
+    assert!(
+        p.cut_by_restart && p.covered_s == 7_200 && p.energy_in_wh == 1_234,
+        "{p:?}"
+    );
+    // The checkpoint of a day already closed: the next day begins.
+    let l = station(&mut with_days(Some(5), Some(5)));
+    assert_eq!(l.h.station.day_book().day(), 6);
+    assert!(!l.h.station.day_book().checkpoint(0).cut_by_restart);
+    // Nothing yet: day 0.
+    let l = station(&mut with_days(None, None));
+    assert_eq!(l.h.station.day_book().day(), 0);
+    // The last closed day's spread and capacity are what Home Assistant shows
+    // until new ones come.
+    let l = station(&mut with_days(Some(9), None));
+    let a = l.h.station.published(0).aging;
+    assert_eq!(a.top_spread_mv, Some(23));
+    assert_eq!(a.capacity, Some((27_100, 21)));
+    assert!(a.recording);
+}

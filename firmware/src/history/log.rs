@@ -448,3 +448,98 @@ pub fn find(
     let table = Table::parse(&table).map_err(|e| e.reason())?;
     crate::partitions::history(&table, flash_bytes).map_err(|p| p.reason())
 }
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use super::*;
+    use std::vec;
+    use std::vec::Vec;
+
+    /// Flash in RAM for the history's operations.
+    struct Ram(Vec<u8>);
+
+    impl crate::update::flash::OtaFlash for Ram {
+        fn read(&mut self, at: u32, buf: &mut [u8]) -> bool {
+            let at = at as usize;
+            match self.0.get(at..at + buf.len()) {
+                Some(s) => {
+                    buf.copy_from_slice(s);
+                    true
+                }
+                None => false,
+            }
+        }
+        fn erase_sector(&mut self, at: u32) -> bool {
+            let at = at as usize;
+            self.0
+                .get_mut(at..at + SECTOR_BYTES as usize)
+                .map(|s| s.fill(0xFF))
+                .is_some()
+        }
+        fn program(&mut self, at: u32, bytes: &[u8]) -> bool {
+            let at = at as usize;
+            match self.0.get_mut(at..at + bytes.len()) {
+                Some(s) => {
+                    for (d, b) in s.iter_mut().zip(bytes) {
+                        *d &= b;
+                    }
+                    true
+                }
+                None => false,
+            }
+        }
+    }
+
+    fn events(h: &History, f: &mut Ram) -> Vec<Record> {
+        let mut out = Vec::new();
+        h.read_ring(&mut Reading(f), Kind::Event, |x| {
+            if let Found::Record(_, p) = x {
+                out.push(Record::decode_payload(&p).unwrap());
+            }
+        });
+        out
+    }
+
+    #[test]
+    fn a_flood_of_events_is_cut_to_the_rate_and_said_with_a_count() {
+        let mut f = Ram(vec![0xFF; 64 * SECTOR_BYTES as usize]);
+        let mut h = History::open(&mut Reading(&mut f), Ok(0..64 * SECTOR_BYTES));
+        // 1000 events in 100 s, each written as it comes.
+        for i in 0..1000u64 {
+            h.event(i * 100_000, Code::Bms, i as u32, 0, "x");
+            while let Some(op) = h.next_op() {
+                let ok = run(&mut f, op);
+                h.done(ok);
+            }
+        }
+        // Then one more, 10 s on: it says how many were not kept.
+        h.event(110 * SECOND, Code::Bms, 1000, 0, "x");
+        while let Some(op) = h.next_op() {
+            let ok = run(&mut f, op);
+            h.done(ok);
+        }
+        let got = events(&h, &mut f);
+        let kept = got.iter().filter(|e| e.code == Code::Bms).count();
+        // The burst of 60, then one every 10 s: 69 in the 100 s, the last one.
+        assert_eq!(kept, 60 + 9 + 1, "{kept}");
+        let dropped: u32 = got
+            .iter()
+            .filter(|e| e.code == Code::Dropped)
+            .map(|e| e.a)
+            .sum();
+        assert_eq!(dropped as usize + kept, 1001);
+        // A history reopened goes on with the next start's number.
+        let h2 = History::open(&mut Reading(&mut f), Ok(0..64 * SECTOR_BYTES));
+        assert_eq!(h2.boot(), 2);
+    }
+
+    #[test]
+    fn without_a_partition_nothing_waits_and_the_reason_is_kept() {
+        let mut h = History::without("no history partition");
+        h.event(0, Code::Started, 0, 0, "");
+        h.record(Kind::Day, &[1; 56]);
+        assert!(!h.pending() && h.next_op().is_none());
+        assert_eq!(h.problem(), Some("no history partition"));
+    }
+}
