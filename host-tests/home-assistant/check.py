@@ -452,13 +452,22 @@ def may_be_unavailable(entity_id):
     external temperature sensor a pack may not have (the simulated packs of
     some seeds have none), the event entity until a first event, and what
     stops charging or discharging, which only a 48 V hybrid inverter's
-    protocol reports (null with Victron, the simulator's default), and an
-    inverter that ignored a stop (null while none has)."""
+    protocol reports (null with Victron, the simulator's default), an
+    inverter that ignored a stop (null while none has), the measured capacity
+    (null until a run from full to the knee qualified) and the spread at the
+    top of charge (null until a whole day closed)."""
     return (
         "_temperature_" in entity_id
         or entity_id.startswith("event.")
         or entity_id.endswith(
-            ("_stopped_by", "_charge_stop", "_discharge_stop", "_inverter_ignored_a_stop")
+            (
+                "_stopped_by",
+                "_charge_stop",
+                "_discharge_stop",
+                "_inverter_ignored_a_stop",
+                "_measured_capacity",
+                "_spread_at_the_top_of_charge",
+            )
         )
     )
 
