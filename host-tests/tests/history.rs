@@ -434,3 +434,25 @@ fn after_a_restart_the_day_goes_on_from_its_checkpoint_or_the_next_one_begins() 
     assert_eq!(a.capacity, Some((27_100, 21)));
     assert!(a.recording);
 }
+
+/// A bridge with nothing else to wake it (no host, no CAN output): the
+/// station looks at the BMS poll's gap itself when the link turns quiet, so
+/// the history is written.
+#[test]
+fn a_bridge_alone_writes_its_history_in_the_polls_gaps() {
+    use host_tests::sim::{SimBms, SimConfig};
+    use host_tests::virtual_time::Harness;
+    let sim = SimBms::new(PackModel::LiFePO4_16S, SimConfig::default(), 7);
+    let mut h = Harness::checked(sim, Default::default());
+    let mut chip = ChipFlash(chip_flash());
+    let history = tinybms_desk::station::open_history(&mut chip);
+    h.station.set_history(0, history, Some(1));
+    assert!(h.station.history().pending());
+    h.ota = Some(chip);
+    h.run_until(30 * S);
+    assert!(!h.station.history().pending());
+    assert_eq!(h.station.history().counts(), (1, 0));
+    // Erase, header, record: each in a gap of 100 ms or more before the
+    // next request.
+    assert_eq!(h.flash_ops.len(), 3, "{:?}", h.flash_ops);
+}

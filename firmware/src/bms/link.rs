@@ -302,6 +302,17 @@ impl Link {
                 .is_none_or(|t| now.saturating_sub(t) >= self.config.reply_idle_gap_us)
     }
 
+    /// When the link turns [`Link::quiet`] if nothing more happens (`None`:
+    /// a transaction is under way).
+    pub fn quiet_from(&self) -> Option<Instant> {
+        self.is_idle().then(|| {
+            let heard = self
+                .last_heard
+                .map_or(0, |t| t.saturating_add(self.config.reply_idle_gap_us));
+            heard.max(self.quiet_until)
+        })
+    }
+
     /// False after [`crate::bms::timing::OFFLINE_AFTER_FAILURES`] consecutive failures,
     /// until a valid reply arrives.
     pub fn is_online(&self) -> bool {

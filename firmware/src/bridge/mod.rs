@@ -273,6 +273,12 @@ impl Bridge {
         self.link.quiet(now)
     }
 
+    /// When the link turns quiet if nothing more happens ([`Bridge::quiet`];
+    /// `None`: a transaction is under way).
+    pub fn quiet_from(&self) -> Option<Instant> {
+        self.link.quiet_from()
+    }
+
     /// The next report to log, oldest first.
     pub fn next_report(&mut self) -> Option<Report> {
         self.s.out.next()

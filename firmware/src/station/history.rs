@@ -195,6 +195,20 @@ impl Station {
         None
     }
 
+    /// When the history's work wants the station polled: the moment the BMS
+    /// link turns quiet, while something waits to be written or read (a gap
+    /// of the poll is only seen when the station looks at it then; `MAX`:
+    /// nothing waits).
+    pub(super) fn history_wake(&self, now: Instant) -> Instant {
+        if !(self.history.pending() || self.history.want_read().is_some()) {
+            return Instant::MAX;
+        }
+        match self.bridge.quiet_from() {
+            Some(q) if q > now => q,
+            _ => Instant::MAX,
+        }
+    }
+
     /// The operation of [`Action::History`] is done (`ok`: it worked and
     /// read back the same).
     pub fn history_done(&mut self, ok: bool) {

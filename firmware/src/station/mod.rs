@@ -835,6 +835,7 @@ impl Station {
                     wake = wake.min(self.next_view);
                 }
                 wake = wake.min(self.ota_wake(now));
+                wake = wake.min(self.history_wake(now));
                 Action::WaitUntil(t.min(wake))
             }
         }

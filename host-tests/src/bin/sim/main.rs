@@ -108,6 +108,9 @@ struct Totals {
     requests: u64,
     clean_first: u64,
     faults: u64,
+    /// The bridge's history in flash: records written, given up, flash
+    /// operations (each stalls the clock as on the chip).
+    flash_history: (u64, u64, u64),
 }
 
 fn run_seed(o: &Options, seed: u64, t: &mut Totals) -> Result<(), String> {
@@ -126,6 +129,12 @@ fn run_seed(o: &Options, seed: u64, t: &mut Totals) -> Result<(), String> {
     let mut h = Harness::checked(sim, bridge_config);
     h.retain = false;
     h.echo = !o.quiet;
+    // The chip's flash with its history, as every image has it: the
+    // history's writes go into the BMS poll's gaps, each stalling the clock.
+    let mut chip = tinybms_desk::ota::ChipFlash(tinybms_desk::ota::chip_flash());
+    let history = tinybms_desk::station::open_history(&mut chip);
+    h.station.set_history(0, history, Some(1));
+    h.ota = Some(chip);
     h.bridge_mut()
         .submit_profile(&o.profile)
         .map_err(|e| format!("profile does not fit the command queue: {e:?}"))?;
@@ -208,6 +217,14 @@ fn run_seed(o: &Options, seed: u64, t: &mut Totals) -> Result<(), String> {
     t.requests += u64::from(ls.requests);
     t.clean_first += u64::from(ls.replies);
     t.faults += h.sim.stats().faults.total();
+    let (written, given_up) = h.station.history().counts();
+    t.flash_history.0 += u64::from(written);
+    t.flash_history.1 += u64::from(given_up);
+    t.flash_history.2 += h
+        .flash_ops
+        .iter()
+        .filter(|(_, n)| n.starts_with("history"))
+        .count() as u64;
     if o.seeds.0 == o.seeds.1 {
         print_link(&h);
     }
@@ -364,6 +381,10 @@ fn main() -> ExitCode {
     println!(
         "events: {} logged after the start-up history ({} in it), {} reported exactly once, {} missing, {} duplicated, {} invented, {} logged in the last minute not reported yet",
         t.logged, t.history, t.reported_once, t.missing, t.duplicated, t.invented, t.pending
+    );
+    println!(
+        "history in flash: {} records written, {} given up, {} flash operations (each stalled the clock as on the chip)",
+        t.flash_history.0, t.flash_history.1, t.flash_history.2
     );
     println!(
         "log: {} lines, {} warnings ({:.1} per hour)",
