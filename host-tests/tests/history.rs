@@ -246,6 +246,7 @@ fn a_power_cut_at_every_flash_operation_leaves_the_history_whole() {
         f.ops
     };
     assert!(total_ops > 130 + 13 + 32, "{total_ops} operations");
+    eprintln!("{total_ops} flash operations, the power cut before and half-way through each");
     for cut in 0..total_ops {
         for half in [false, true] {
             let mut f = Cutting {
