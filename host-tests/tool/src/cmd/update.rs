@@ -606,3 +606,30 @@ pub fn history_note(hello: &Hello<Read>) -> Option<String> {
         ),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn hello(history: Option<&str>) -> Hello<Read> {
+        let mut v = serde_json::json!({"protocol":1,"firmware":"0.9.0","build":"b","chip":"esp32c3",
+            "board":"ESP32-C3 SuperMini","features":["can"],"record_version":7,"read_only":false,
+            "stream_period_ms":1000,"dropped_lines":0});
+        if let Some(h) = history {
+            v["history"] = serde_json::json!(h);
+        }
+        serde_json::from_value(v).unwrap()
+    }
+
+    #[test]
+    fn an_update_says_when_the_bridge_keeps_no_history() {
+        assert_eq!(history_note(&hello(Some("recording"))), None);
+        let n = history_note(&hello(None)).unwrap();
+        assert!(
+            n.contains("installed before the history partition") && n.contains("reinstall"),
+            "{n}"
+        );
+        let n = history_note(&hello(Some("the table predates it"))).unwrap();
+        assert!(n.ends_with("the table predates it"), "{n}");
+    }
+}
