@@ -16,7 +16,7 @@ use host_tests::sim::PackModel;
 use tinybms_desk::flash::RamFlash;
 use tinybms_desk::ota::{chip_flash, ChipFlash};
 use tinybms_firmware::history::event::{Code, Record};
-use tinybms_firmware::history::log::{self, History, Listed, Reading};
+use tinybms_firmware::history::log::{self, History, Listed};
 use tinybms_firmware::history::ring::{Found, Kind, Op, DAY_PAYLOAD_BYTES};
 use tinybms_firmware::update::flash::OtaFlash;
 
@@ -194,7 +194,7 @@ fn read_back(f: &mut ChipFlash) -> (Written, Vec<&'static str>) {
     let mut w = Written::default();
     let mut bad = Vec::new();
     for kind in [Kind::Event, Kind::Day, Kind::Checkpoint] {
-        h.read_ring(&mut Reading(f), kind, |x| match x {
+        h.read_ring(f, kind, |x| match x {
             Found::Record(_, p) => match kind {
                 Kind::Event => {
                     let e = Record::decode_payload(&p).expect("an event reads");

@@ -58,10 +58,10 @@ pub fn boot() -> (ChipOta, Ota) {
 impl ChipOta {
     /// Opens the history in its partition (or says why there is none).
     pub fn open_history(&mut self) -> tinybms_firmware::history::log::History {
-        use tinybms_firmware::history::log::{find, History, Reading};
+        use tinybms_firmware::history::log::{find, History};
         let flash_bytes = u32::try_from(self.0.capacity()).unwrap_or(u32::MAX);
         let range = find(self, flash_bytes);
-        History::open(&mut Reading(self), range)
+        History::open(self, range)
     }
 
     /// Does `op` for the station (`program`: a program's bytes); true when it

@@ -28,7 +28,8 @@ use core::ops::Range;
 use heapless::Deque;
 
 use super::event::{Code, Record, Who};
-use super::ring::{Found, Kind, Op, Payload, ReadFlash, Reader, Ring, SECTOR_BYTES, SLOT_MAX};
+use super::ring::{Found, Kind, Op, Payload, Reader, Ring, SECTOR_BYTES, SLOT_MAX};
+use crate::update::flash::OtaFlash;
 use crate::{Instant, SECOND};
 
 /// Records waiting to be written, at most.
@@ -119,7 +120,7 @@ impl History {
     /// Opens the history in `partition` (or says why there is none): reads
     /// the rings' headers and newest records (before the bridge runs). The
     /// start's number follows the newest event's.
-    pub fn open(flash: &mut impl ReadFlash, partition: Result<Range<u32>, &'static str>) -> Self {
+    pub fn open(flash: &mut impl OtaFlash, partition: Result<Range<u32>, &'static str>) -> Self {
         let range = match partition {
             Ok(r) => r,
             Err(p) => return Self::without(p),
@@ -379,7 +380,7 @@ impl History {
 
     /// Reads a whole ring at once, oldest first (the desktop's tools and the
     /// tests).
-    pub fn read_ring(&self, flash: &mut impl ReadFlash, kind: Kind, each: impl FnMut(Found)) {
+    pub fn read_ring(&self, flash: &mut impl OtaFlash, kind: Kind, each: impl FnMut(Found)) {
         if let Some(r) = self
             .rings
             .as_ref()
@@ -393,20 +394,10 @@ impl History {
 /// The largest slot a shell reads for a listing, bytes.
 pub const READ_MAX: usize = SLOT_MAX;
 
-/// The chip's flash as the history reads it at start (any update flash:
-/// the chip's, the desktop's).
-pub struct Reading<'a, F: crate::update::flash::OtaFlash>(pub &'a mut F);
-
-impl<F: crate::update::flash::OtaFlash> ReadFlash for Reading<'_, F> {
-    fn read(&mut self, at: u32, buf: &mut [u8]) -> bool {
-        self.0.read(at, buf)
-    }
-}
-
 /// Carries out `op` of [`Action::History`](crate::station::Action::History)
 /// on `flash` and reads it back: true when it worked (an erased sector reads
 /// all `FF`, a program reads back its bytes).
-pub fn run(flash: &mut impl crate::update::flash::OtaFlash, op: Op) -> bool {
+pub fn run(flash: &mut impl OtaFlash, op: Op) -> bool {
     match op {
         Op::Erase(at) => {
             if !flash.erase_sector(at) {
@@ -421,14 +412,7 @@ pub fn run(flash: &mut impl crate::update::flash::OtaFlash, op: Op) -> bool {
             let Some(bytes) = bytes.get(..usize::from(len)) else {
                 return false;
             };
-            if !flash.program(at, bytes) {
-                return false;
-            }
-            let mut b = [0u8; SLOT_MAX];
-            let Some(back) = b.get_mut(..bytes.len()) else {
-                return false;
-            };
-            flash.read(at, back) && back == bytes
+            flash.program(at, bytes) && crate::update::flash::same(flash, at, bytes)
         }
     }
 }
@@ -436,10 +420,7 @@ pub fn run(flash: &mut impl crate::update::flash::OtaFlash, op: Op) -> bool {
 /// The `history` partition in the partition table `flash` (of
 /// `flash_bytes`) holds ([`crate::partitions::history`]), or why there is
 /// none.
-pub fn find(
-    flash: &mut impl crate::update::flash::OtaFlash,
-    flash_bytes: u32,
-) -> Result<Range<u32>, &'static str> {
+pub fn find(flash: &mut impl OtaFlash, flash_bytes: u32) -> Result<Range<u32>, &'static str> {
     use crate::partitions::{Table, TABLE_MAX, TABLE_OFFSET};
     let mut table = [0u8; TABLE_MAX];
     if !flash.read(TABLE_OFFSET, &mut table) {
@@ -459,7 +440,7 @@ mod tests {
     /// Flash in RAM for the history's operations.
     struct Ram(Vec<u8>);
 
-    impl crate::update::flash::OtaFlash for Ram {
+    impl OtaFlash for Ram {
         fn read(&mut self, at: u32, buf: &mut [u8]) -> bool {
             let at = at as usize;
             match self.0.get(at..at + buf.len()) {
@@ -493,7 +474,7 @@ mod tests {
 
     fn events(h: &History, f: &mut Ram) -> Vec<Record> {
         let mut out = Vec::new();
-        h.read_ring(&mut Reading(f), Kind::Event, |x| {
+        h.read_ring(f, Kind::Event, |x| {
             if let Found::Record(_, p) = x {
                 out.push(Record::decode_payload(&p).unwrap());
             }
@@ -504,7 +485,7 @@ mod tests {
     #[test]
     fn a_flood_of_events_is_cut_to_the_rate_and_said_with_a_count() {
         let mut f = Ram(vec![0xFF; 64 * SECTOR_BYTES as usize]);
-        let mut h = History::open(&mut Reading(&mut f), Ok(0..64 * SECTOR_BYTES));
+        let mut h = History::open(&mut f, Ok(0..64 * SECTOR_BYTES));
         // 1000 events in 100 s, each written as it comes.
         for i in 0..1000u64 {
             h.event(i * 100_000, Code::Bms, i as u32, 0, "x");
@@ -530,7 +511,7 @@ mod tests {
             .sum();
         assert_eq!(dropped as usize + kept, 1001);
         // A history reopened goes on with the next start's number.
-        let h2 = History::open(&mut Reading(&mut f), Ok(0..64 * SECTOR_BYTES));
+        let h2 = History::open(&mut f, Ok(0..64 * SECTOR_BYTES));
         assert_eq!(h2.boot(), 2);
     }
 

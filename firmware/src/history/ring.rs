@@ -25,12 +25,15 @@
 //! Each sector is erased once per lap of the ring: a region of `n` sectors
 //! takes `63 n` records per lap (see `docs/history.md` for the figures).
 //!
-//! Sans-IO: [`Ring::scan`] reads through [`ReadFlash`] at start (before the
+//! Sans-IO: [`Ring::scan`] reads through the update flash trait ([`OtaFlash`],
+//! the one the chip and the desktop already hand in) at start (before the
 //! bridge runs); appends are planned as [`Op`]s the station has the chip
 //! shell carry out in a gap of the BMS poll and the CAN output
 //! ([`crate::station`]), reported back with [`Ring::done`].
 
 use core::ops::Range;
+
+use crate::update::flash::OtaFlash;
 
 /// A flash sector, bytes.
 pub const SECTOR_BYTES: u32 = 4096;
@@ -201,12 +204,6 @@ pub fn decode(b: &[u8]) -> Slot {
     }
 }
 
-/// Reads flash (at start, and for the tests).
-pub trait ReadFlash {
-    /// Reads `buf.len()` bytes at `at`; false on a failure.
-    fn read(&mut self, at: u32, buf: &mut [u8]) -> bool;
-}
-
 /// A flash operation of an append.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -246,7 +243,7 @@ impl Ring {
     /// Reads the region's sector headers and the newest sector's slots, and
     /// knows where the next record goes. `region` must be whole sectors (a
     /// region of fewer than two sectors holds nothing: every append waits).
-    pub fn scan(flash: &mut impl ReadFlash, kind: Kind, region: Range<u32>) -> Self {
+    pub fn scan(flash: &mut impl OtaFlash, kind: Kind, region: Range<u32>) -> Self {
         let slot_bytes = if kind != Kind::Event {
             DAY_SLOT_BYTES
         } else {
@@ -314,14 +311,14 @@ impl Ring {
         self.sector_at(index) + u32::from(slot) * u32::from(self.slot_bytes)
     }
 
-    fn read_slot(&self, flash: &mut impl ReadFlash, index: u16, slot: u8) -> Option<Slot> {
+    fn read_slot(&self, flash: &mut impl OtaFlash, index: u16, slot: u8) -> Option<Slot> {
         let mut b = [0u8; SLOT_MAX];
         let b = b.get_mut(..usize::from(self.slot_bytes))?;
         flash.read(self.slot_at(index, slot), b).then(|| decode(b))
     }
 
     /// Sector `index`'s sequence number, when its header is valid.
-    fn header(&self, flash: &mut impl ReadFlash, index: u16) -> Option<u32> {
+    fn header(&self, flash: &mut impl OtaFlash, index: u16) -> Option<u32> {
         match self.read_slot(flash, index, 0)? {
             Slot::Record {
                 kind: None,
@@ -334,7 +331,7 @@ impl Ring {
 
     /// The newest record's payload (in the newest sector, or the one before
     /// it when the newest holds none yet).
-    pub fn newest_record(&self, flash: &mut impl ReadFlash) -> Option<Payload> {
+    pub fn newest_record(&self, flash: &mut impl OtaFlash) -> Option<Payload> {
         let (newest, _) = self.newest?;
         let before = (newest + self.sectors.max(1) - 1) % self.sectors.max(1);
         for index in [newest, before] {
@@ -559,7 +556,7 @@ impl Reader {
     }
 
     /// Reads the whole ring at once (tests, the desktop).
-    pub fn read_all(mut self, flash: &mut impl ReadFlash, mut each: impl FnMut(Found)) {
+    pub fn read_all(mut self, flash: &mut impl OtaFlash, mut each: impl FnMut(Found)) {
         while let Some(at) = self.want() {
             let mut b = [0u8; SLOT_MAX];
             let b = b.get_mut(..self.slot_bytes()).unwrap_or(&mut []);
@@ -585,7 +582,14 @@ mod tests {
         cut: Option<usize>,
     }
 
-    impl ReadFlash for Nor {
+    impl OtaFlash for Nor {
+        // The tests cut the power in [`Nor::run`]; the ring only reads.
+        fn erase_sector(&mut self, _: u32) -> bool {
+            false
+        }
+        fn program(&mut self, _: u32, _: &[u8]) -> bool {
+            false
+        }
         fn read(&mut self, at: u32, buf: &mut [u8]) -> bool {
             let at = at as usize;
             match self.b.get(at..at + buf.len()) {

@@ -62,12 +62,37 @@ pub(super) struct Watch {
     pub stopped: (bool, bool),
     /// Since when the data is stale.
     pub stale_since: Option<Instant>,
-    /// Since when the Wi-Fi network is lost (`Some(None)`: it was never up).
-    pub wifi_down: Option<Instant>,
-    pub wifi_up: bool,
-    /// Since when the MQTT connection is lost.
-    pub mqtt_down: Option<Instant>,
-    pub mqtt_up: bool,
+    /// The Wi-Fi network.
+    pub wifi: LinkWatch,
+    /// The MQTT connection.
+    pub mqtt: LinkWatch,
+}
+
+/// A network link the history follows: up, and since when it is down.
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct LinkWatch {
+    up: bool,
+    down_since: Option<Instant>,
+}
+
+impl LinkWatch {
+    /// The link is `up` at `now`: `Some(None)` when it was just lost,
+    /// `Some(Some(s))` when it came back after `s` seconds down (a first
+    /// coming up is no return), `None` when nothing changed.
+    fn change(&mut self, now: Instant, up: bool) -> Option<Option<u32>> {
+        let was = core::mem::replace(&mut self.up, up);
+        match (was, up) {
+            (false, true) => self
+                .down_since
+                .take()
+                .map(|t| Some((now.saturating_sub(t) / crate::SECOND) as u32)),
+            (true, false) => {
+                self.down_since = Some(now);
+                Some(None)
+            }
+            _ => None,
+        }
+    }
 }
 
 impl Station {
@@ -316,31 +341,27 @@ impl Station {
 
     /// The Wi-Fi network is up or not (images with Wi-Fi).
     pub(super) fn record_wifi(&mut self, now: Instant, up: bool) {
-        let w = &mut self.watch;
-        if up && !w.wifi_up {
-            if let Some(t) = w.wifi_down.take() {
-                let s = now.saturating_sub(t) / crate::SECOND;
-                self.history.event(now, Code::WifiBack, s as u32, 0, "");
-            }
-        } else if !up && w.wifi_up {
-            w.wifi_down = Some(now);
-            self.history.event(now, Code::WifiLost, 0, 0, "");
-        }
-        self.watch.wifi_up = up;
+        let change = self.watch.wifi.change(now, up);
+        self.record_link(now, change, (Code::WifiLost, Code::WifiBack));
     }
 
     /// The MQTT connection holds or not.
     pub(super) fn record_mqtt(&mut self, now: Instant, up: bool) {
-        let w = &mut self.watch;
-        if up && !w.mqtt_up {
-            if let Some(t) = w.mqtt_down.take() {
-                let s = now.saturating_sub(t) / crate::SECOND;
-                self.history.event(now, Code::MqttBack, s as u32, 0, "");
-            }
-        } else if !up && w.mqtt_up {
-            w.mqtt_down = Some(now);
-            self.history.event(now, Code::MqttLost, 0, 0, "");
+        let change = self.watch.mqtt.change(now, up);
+        self.record_link(now, change, (Code::MqttLost, Code::MqttBack));
+    }
+
+    /// A link's loss, or its return after `Some(seconds)` down, as an event.
+    fn record_link(
+        &mut self,
+        now: Instant,
+        change: Option<Option<u32>>,
+        (lost, back): (Code, Code),
+    ) {
+        match change {
+            Some(None) => self.history.event(now, lost, 0, 0, ""),
+            Some(Some(s)) => self.history.event(now, back, s, 0, ""),
+            None => {}
         }
-        self.watch.mqtt_up = up;
     }
 }

@@ -63,8 +63,9 @@ pub fn write_otadata<F: OtaFlash>(flash: &mut F, layout: &Layout, w: &Write) -> 
     flash.erase_sector(at) && flash.program(at, &bytes) && same(flash, at, &bytes)
 }
 
-/// The flash at `at` holds `bytes`.
-fn same<F: OtaFlash>(flash: &mut F, at: u32, bytes: &[u8]) -> bool {
+/// The flash at `at` holds `bytes` (an update's program, the history's
+/// record: read back).
+pub(crate) fn same<F: OtaFlash>(flash: &mut F, at: u32, bytes: &[u8]) -> bool {
     let mut buf = [0u8; 256];
     let mut offset = at;
     for piece in bytes.chunks(buf.len()) {

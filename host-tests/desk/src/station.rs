@@ -466,7 +466,7 @@ impl HostSide for NoHost {
 /// The history in the desktop chip's flash (its `history` partition), as the
 /// chip opens it at boot.
 pub fn open_history(chip: &mut crate::ota::ChipFlash) -> tinybms_firmware::history::log::History {
-    use tinybms_firmware::history::log::{find, History, Reading};
+    use tinybms_firmware::history::log::{find, History};
     let range = find(chip, crate::ota::CHIP_BYTES as u32);
-    History::open(&mut Reading(chip), range)
+    History::open(chip, range)
 }
